@@ -1,0 +1,560 @@
+"""Pixel layouts: bijections φ(·, θ) of the sensor square S = [-1, 1]² onto itself.
+
+Sensor pixel ``k`` of a layout is the image ``A_k = φ(U_k, θ)`` of the uniform cell ``U_k``
+(Sommerhoff et al., "Differentiable Sensor Layouts for End-to-End Learning of Task-Specific
+Camera Parameters", §3.2). Conventions used everywhere in this package:
+
+* points are ``(..., 2)`` tensors ``(x, y)``: ``x`` along the image width (columns), ``y``
+  along the height (rows, downwards), both in ``[-1, 1]``; ``-1`` is the outer edge of the
+  first pixel and ``+1`` the outer edge of the last (``align_corners=False``);
+* ``θ = (θ_x, θ_y)`` with each component in ``(-bound, bound)``; ``θ > 0`` puts more (smaller)
+  pixels at the centre, ``θ < 0`` at the border. A learnable layout stores the unconstrained
+  parameter ``ρ`` and derives ``θ = bound · tanh(ρ)``.
+
+The functional forms (:func:`phi_rect`, :func:`phi_curv`, their inverses, Jacobians and
+θ-derivatives) take ``θ`` explicitly; the :class:`Layout` modules wrap them.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import ClassVar
+
+import torch
+from torch import Tensor, nn
+
+__all__ = [
+    "Layout",
+    "UniformLayout",
+    "RectLayout",
+    "CurvLayout",
+    "FoldoverReport",
+    "phi_rect",
+    "phi_rect_inverse",
+    "phi_rect_jacobian",
+    "phi_rect_dtheta",
+    "phi_curv",
+    "phi_curv_inverse",
+    "phi_curv_jacobian",
+    "phi_curv_dtheta",
+    "make_layout",
+    "newton_inverse",
+]
+
+
+# ----------------------------------------------------------------------------------------
+# Scalar building blocks
+# ----------------------------------------------------------------------------------------
+def _denom(a: Tensor, t: Tensor) -> Tensor:
+    """``D(a, t) = 1 + t − 2ta`` (> 0 for ``|t| < 1``, ``0 <= a <= 1``), free of cancellation.
+
+    For ``t >= 0`` it is summed as ``(1 − t) + 2t(1 − a)`` and for ``t < 0`` as
+    ``(1 + t) + 2|t|a``: two non-negative terms either way, so the relative error stays at
+    a few ulp even when ``t → ±1`` and ``a → 1``.
+    """
+    return torch.where(t >= 0, (1 - t) + 2 * t * (1 - a), (1 + t) - 2 * t * a)
+
+
+def _safe_norm(p: Tensor) -> Tensor:
+    """``‖p‖`` over the last axis with a zero (not NaN) gradient at the origin."""
+    r2 = (p * p).sum(-1)
+    nonzero = r2 > 0
+    return torch.where(nonzero, torch.sqrt(torch.where(nonzero, r2, torch.ones_like(r2))), 0.0)
+
+
+def _check_points(p: Tensor, name: str = "p") -> None:
+    if not isinstance(p, Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor of shape (..., 2), got {type(p).__name__}")
+    if p.ndim == 0 or p.shape[-1] != 2:
+        raise ValueError(f"{name} must have shape (..., 2) holding (x, y), got {tuple(p.shape)}")
+    if not p.is_floating_point():
+        raise TypeError(f"{name} must be a floating-point tensor, got {p.dtype}")
+
+
+def _promote(p: Tensor, theta: Tensor) -> tuple[Tensor, Tensor]:
+    dtype = torch.promote_types(p.dtype, theta.dtype)
+    return p.to(dtype), theta.to(device=p.device, dtype=dtype)
+
+
+# ----------------------------------------------------------------------------------------
+# Rectangular layout φ_rect (separable)
+# ----------------------------------------------------------------------------------------
+def phi_rect(p: Tensor, theta: Tensor) -> Tensor:
+    """φ_rect: ``φ_j(p) = p_j (θ_j − 1) / (2 θ_j |p_j| − θ_j − 1)`` for ``|p_j| < 1``, else ``p_j``.
+
+    Args:
+        p: points ``(..., 2)`` in sensor coordinates.
+        theta: ``(2,)`` deformation strengths in ``(-1, 1)``.
+
+    Returns:
+        ``(..., 2)`` deformed points. Separable: each deformed pixel is an axis-aligned
+        rectangle. The centre pixel shrinks by ``(1 − θ)/(1 + θ)``.
+    """
+    p, theta = _promote(p, theta)
+    a = p.abs().clamp(max=1)
+    return torch.where(p.abs() < 1, p * (1 - theta) / _denom(a, theta), p)
+
+
+def phi_rect_inverse(q: Tensor, theta: Tensor) -> Tensor:
+    """Closed-form inverse of :func:`phi_rect`: ``φ_rect⁻¹(·, θ) = φ_rect(·, −θ)``."""
+    return phi_rect(q, -theta)
+
+
+def phi_rect_jacobian(p: Tensor, theta: Tensor) -> Tensor:
+    """Spatial Jacobian ``∂φ_i/∂p_j`` of :func:`phi_rect`, shape ``(..., 2, 2)`` (diagonal).
+
+    ``dφ_j/dp_j = (1 − θ_j²) / D_j²`` with ``D_j = 1 + θ_j − 2θ_j|p_j|``; 1 outside S.
+    """
+    p, theta = _promote(p, theta)
+    a = p.abs().clamp(max=1)
+    d = torch.where(p.abs() < 1, (1 - theta) * (1 + theta) / _denom(a, theta) ** 2, 1.0)
+    return torch.diag_embed(d)
+
+
+def phi_rect_dtheta(p: Tensor, theta: Tensor) -> Tensor:
+    """``∂φ_i/∂θ_j`` of :func:`phi_rect`, shape ``(..., 2, 2)`` (diagonal).
+
+    ``∂φ_j/∂θ_j = 2 p_j (|p_j| − 1) / D_j²``.
+    """
+    p, theta = _promote(p, theta)
+    a = p.abs().clamp(max=1)
+    d = torch.where(p.abs() < 1, 2 * p * (a - 1) / _denom(a, theta) ** 2, 0.0)
+    return torch.diag_embed(d)
+
+
+# ----------------------------------------------------------------------------------------
+# Curvilinear layout φ_curv
+# ----------------------------------------------------------------------------------------
+def phi_curv(p: Tensor, theta: Tensor) -> Tensor:
+    """φ_curv: ``φ_j(p) = p_j (θ_j − 1) / (2 θ_j ‖p‖ − θ_j − 1)`` for ``‖p‖ < 1``, else ``p``.
+
+    The unit circle is fixed pointwise (a kink there) and so is everything outside it,
+    including the sensor corners. Pixels are curvilinear quadrilaterals.
+
+    Args:
+        p: points ``(..., 2)`` in sensor coordinates.
+        theta: ``(2,)`` deformation strengths in ``(-1, 1)``.
+    """
+    p, theta = _promote(p, theta)
+    r = _safe_norm(p).clamp(max=1)[..., None]
+    inside = (p * p).sum(-1, keepdim=True) < 1
+    return torch.where(inside, p * (1 - theta) / _denom(r, theta), p)
+
+
+def phi_curv_inverse(q: Tensor, theta: Tensor) -> Tensor:
+    """Closed-form inverse of :func:`phi_curv`.
+
+    With ``p_j = q_j D_j(r) / (1 − θ_j)``, ``D_j(r) = (1 + θ_j) − 2θ_j r`` linear in
+    ``r = ‖p‖``, the constraint ``r² = Σ p_j²`` is a quadratic ``a r² + b r + c = 0`` with
+    exactly one root in ``[0, 1)`` for ``‖q‖ < 1`` (``f(0) = c >= 0``, ``f(1) = ‖q‖² − 1 < 0``).
+    It is solved with the cancellation-free form of the quadratic formula and polished by
+    one Newton step.
+    """
+    q, theta = _promote(q, theta)
+    inside = (q * q).sum(-1, keepdim=True) < 1
+    qi = torch.where(inside, q, torch.zeros_like(q))
+    alpha, beta = 1 + theta, 2 * theta
+    c2 = (qi / (1 - theta)) ** 2
+    a = (c2 * beta**2).sum(-1) - 1
+    b = -2 * (c2 * alpha * beta).sum(-1)
+    c = (c2 * alpha**2).sum(-1)
+    disc = (b * b - 4 * a * c).clamp(min=0)
+    sq = torch.sqrt(torch.where(disc > 0, disc, torch.ones_like(disc))) * (disc > 0)
+    s = -0.5 * (b + torch.where(b >= 0, sq, -sq))  # |s| = (|b| + √Δ)/2, no cancellation
+    s_safe = torch.where(s != 0, s, torch.ones_like(s))
+    a_safe = torch.where(a != 0, a, torch.ones_like(a))
+    r1 = torch.where(s != 0, c / s_safe, 0.0)  # root c / s
+    r2 = torch.where(a != 0, s / a_safe, 2.0)  # root s / a (absent when a = 0)
+    ok1 = (r1 >= 0) & (r1 <= 1)
+    r = torch.where(ok1, r1, r2).clamp(0, 1)
+    # One Newton step on f(r) = Σ c2 (α − βr)² − r² removes the last rounding error.
+    f = (c2 * (alpha - beta * r[..., None]) ** 2).sum(-1) - r * r
+    df = (-2 * c2 * beta * (alpha - beta * r[..., None])).sum(-1) - 2 * r
+    df_safe = torch.where(df != 0, df, torch.ones_like(df))
+    r = torch.where((df != 0) & (c > 0), r - f / df_safe, r).clamp(0, 1)
+    p = qi * _denom(r[..., None], theta) / (1 - theta)
+    return torch.where(inside, p, q)
+
+
+def phi_curv_jacobian(p: Tensor, theta: Tensor) -> Tensor:
+    """Spatial Jacobian ``∂φ_i/∂p_j`` of :func:`phi_curv`, shape ``(..., 2, 2)``.
+
+    ``∂φ_i/∂p_j = δ_ij s_i + p_i s_i'(r) p_j / r`` with ``s_i = (1 − θ_i)/D_i(r)`` and
+    ``s_i' = 2θ_i(1 − θ_i)/D_i²``; the second term vanishes at the origin (limit) and the
+    identity is returned outside the unit circle (one-sided value on it).
+    """
+    p, theta = _promote(p, theta)
+    r = _safe_norm(p).clamp(max=1)[..., None]
+    inside = ((p * p).sum(-1) < 1)[..., None, None]
+    d = _denom(r, theta)
+    s = (1 - theta) / d
+    ds = 2 * theta * (1 - theta) / d**2
+    r_safe = torch.where(r > 0, r, torch.ones_like(r))
+    u = torch.where(r > 0, p / r_safe, 0.0)  # unit direction, 0 at the origin
+    jac = torch.diag_embed(s) + (p * ds)[..., :, None] * u[..., None, :]
+    eye = torch.eye(2, dtype=p.dtype, device=p.device).expand_as(jac)
+    return torch.where(inside, jac, eye)
+
+
+def phi_curv_dtheta(p: Tensor, theta: Tensor) -> Tensor:
+    """``∂φ_i/∂θ_j`` of :func:`phi_curv`, shape ``(..., 2, 2)`` (diagonal).
+
+    ``∂φ_j/∂θ_j = 2 p_j (r − 1) / D_j(r)²`` (the reference code's formula for this is wrong).
+    """
+    p, theta = _promote(p, theta)
+    r = _safe_norm(p).clamp(max=1)[..., None]
+    inside = (p * p).sum(-1, keepdim=True) < 1
+    d = torch.where(inside, 2 * p * (r - 1) / _denom(r, theta) ** 2, 0.0)
+    return torch.diag_embed(d)
+
+
+# ----------------------------------------------------------------------------------------
+# Modules
+# ----------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class FoldoverReport:
+    """Result of :meth:`Layout.check_foldover` on an ``n × n`` grid of S.
+
+    Attributes:
+        min_det: smallest Jacobian determinant found.
+        num_nonpositive: number of grid points with ``det J <= 0`` (fold-overs).
+        worst_point: ``(x, y)`` where ``det J`` is smallest.
+        grid: the grid side ``n``.
+    """
+
+    min_det: float
+    num_nonpositive: int
+    worst_point: tuple[float, float]
+    grid: int
+
+    @property
+    def ok(self) -> bool:
+        """``True`` when no fold-over was found."""
+        return self.num_nonpositive == 0
+
+
+class Layout(nn.Module):
+    """Base class of pixel layouts.
+
+    A subclass writes :meth:`phi` (``φ(p, θ)`` for points ``(..., 2)`` and parameters
+    ``(P,)``). Optional overrides, with generic fallbacks here:
+
+    * :meth:`phi_inverse` — default: damped Newton iteration in float64;
+    * :meth:`phi_jacobian` — default: autograd, ``(..., 2, 2)``;
+    * :meth:`phi_dtheta` — default: autograd, ``(..., 2, P)``.
+
+    Class attributes tell the integrators what machinery a layout needs:
+
+    * ``separable``: ``φ_x`` depends on ``x`` only and ``φ_y`` on ``y`` only, so pixels are
+      axis-aligned rectangles (the fast separable integrator applies);
+    * ``straight_edges``: images of the uniform grid lines are straight, so pixel edges are
+      never subdivided.
+
+    The parameter is stored unconstrained as ``rho`` with ``θ = bound · tanh(ρ)``.
+
+    Args:
+        theta: initial ``θ`` (length ``num_params``), each in ``(-bound, bound)``.
+        bound: the open bound on ``|θ|`` (the paper uses 1).
+        learn: make ``ρ`` a trainable parameter (``False``: a buffer, frozen layout).
+        dtype: dtype of ``ρ``; use ``torch.float64`` for exact round trips.
+    """
+
+    family: ClassVar[str] = "custom"
+    num_params: ClassVar[int] = 2
+    separable: ClassVar[bool] = False
+    straight_edges: ClassVar[bool] = False
+
+    def __init__(
+        self,
+        theta: Sequence[float] | Tensor | None = None,
+        *,
+        bound: float = 1.0,
+        learn: bool = True,
+        dtype: torch.dtype | None = None,
+    ) -> None:
+        super().__init__()
+        if not (isinstance(bound, (int, float)) and math.isfinite(bound) and bound > 0):
+            raise ValueError(f"bound must be a finite number > 0, got {bound!r}")
+        self.bound = float(bound)
+        dtype = dtype or torch.get_default_dtype()
+        theta_t = self._validate_theta(theta, dtype)
+        rho = torch.atanh(theta_t / self.bound)
+        if learn and self.num_params > 0:
+            self.rho = nn.Parameter(rho)
+        else:
+            self.register_buffer("rho", rho)
+
+    # -- parameters ------------------------------------------------------------------
+    def _validate_theta(self, theta: Sequence[float] | Tensor | None, dtype: torch.dtype) -> Tensor:
+        n = self.num_params
+        if theta is None:
+            return torch.zeros(n, dtype=dtype)
+        t = torch.as_tensor(theta, dtype=torch.float64).detach().flatten()
+        if t.numel() != n:
+            raise ValueError(f"theta must have {n} values (θ_x, θ_y), got {t.numel()}: {theta!r}")
+        for i, v in enumerate(t.tolist()):
+            if not math.isfinite(v) or abs(v) >= self.bound:
+                raise ValueError(
+                    f"theta[{i}] = {v!r} is out of range: each θ must be finite with "
+                    f"|θ| < bound = {self.bound}"
+                )
+        return t.to(dtype)
+
+    @property
+    def theta(self) -> Tensor:
+        """The constrained parameters ``θ = bound · tanh(ρ)``, shape ``(P,)``."""
+        return self.bound * torch.tanh(self.rho)
+
+    @torch.no_grad()
+    def set_theta(self, theta: Sequence[float] | Tensor) -> None:
+        """Set ``θ`` in place (validated like the constructor)."""
+        t = self._validate_theta(theta, self.rho.dtype)
+        self.rho.copy_(torch.atanh(t / self.bound).to(self.rho.device))
+
+    @property
+    def learnable(self) -> bool:
+        """Whether ``ρ`` is a trainable parameter that currently requires grad."""
+        return isinstance(self.rho, nn.Parameter) and self.rho.requires_grad
+
+    # -- the map ---------------------------------------------------------------------
+    def phi(self, p: Tensor, theta: Tensor) -> Tensor:
+        """``φ(p, θ)`` for points ``(..., 2)``. Subclasses must implement this."""
+        raise NotImplementedError(f"{type(self).__name__} must implement phi(p, theta)")
+
+    def phi_inverse(self, q: Tensor, theta: Tensor) -> Tensor:
+        """``φ⁻¹(q, θ)``; generic fallback: :func:`newton_inverse`."""
+        return newton_inverse(self.phi, q, theta)
+
+    def phi_jacobian(self, p: Tensor, theta: Tensor) -> Tensor:
+        """``∂φ_i/∂p_j``, shape ``(..., 2, 2)``; generic fallback by autograd."""
+        with torch.enable_grad():
+            pp = p if p.requires_grad else p.detach().requires_grad_(True)
+            q = self.phi(pp, theta)
+            rows = [
+                torch.autograd.grad(q[..., i].sum(), pp, create_graph=True, allow_unused=True)[0]
+                for i in range(2)
+            ]
+        rows = [torch.zeros_like(p) if g is None else g for g in rows]
+        return torch.stack(rows, dim=-2)
+
+    def phi_dtheta(self, p: Tensor, theta: Tensor) -> Tensor:
+        """``∂φ_i/∂θ_j``, shape ``(..., 2, P)``; generic fallback by forward-mode autodiff."""
+        eye = torch.eye(theta.numel(), dtype=theta.dtype, device=theta.device)
+        cols = [
+            torch.func.jvp(lambda t: self.phi(p.detach(), t), (theta.detach(),), (e,))[1]
+            for e in eye
+        ]
+        if not cols:
+            return p.new_zeros(*p.shape, 0)
+        return torch.stack(cols, dim=-1)
+
+    def forward(self, p: Tensor) -> Tensor:
+        """``φ(p, θ)`` for points ``p`` of shape ``(..., 2)``; differentiable in ``p`` and ``θ``."""
+        _check_points(p)
+        return self.phi(p, self.theta)
+
+    def inverse(self, q: Tensor) -> Tensor:
+        """``φ⁻¹(q, θ)`` for points ``q`` of shape ``(..., 2)``."""
+        _check_points(q, "q")
+        return self.phi_inverse(q, self.theta)
+
+    def jacobian(self, p: Tensor) -> Tensor:
+        """Spatial Jacobian ``∂φ_i/∂p_j`` at ``p``, shape ``(..., 2, 2)``."""
+        _check_points(p)
+        return self.phi_jacobian(p, self.theta)
+
+    def dtheta(self, p: Tensor) -> Tensor:
+        """Parameter derivative ``∂φ_i/∂θ_j`` at ``p``, shape ``(..., 2, P)``."""
+        _check_points(p)
+        return self.phi_dtheta(p, self.theta)
+
+    @torch.no_grad()
+    def check_foldover(self, n: int = 401) -> FoldoverReport:
+        """Look for fold-overs: ``det J <= 0`` on an ``n × n`` grid of S (float64).
+
+        A valid layout is a bijection, so ``det J > 0`` everywhere (almost everywhere for
+        layouts with kinks). Use this to vet a user-written φ.
+        """
+        if n < 2:
+            raise ValueError(f"n must be >= 2, got {n}")
+        t = torch.linspace(-1, 1, n, dtype=torch.float64)
+        grid = torch.stack(torch.meshgrid(t, t, indexing="xy"), -1)
+        theta = self.theta.detach().double()
+        with torch.enable_grad():
+            jac = self.phi_jacobian(grid, theta).detach()
+        det = torch.linalg.det(jac)
+        k = int(torch.argmin(det))
+        worst = grid.reshape(-1, 2)[k]
+        return FoldoverReport(
+            min_det=float(det.min()),
+            num_nonpositive=int((det <= 0).sum()),
+            worst_point=(float(worst[0]), float(worst[1])),
+            grid=n,
+        )
+
+    def extra_repr(self) -> str:
+        th = ", ".join(f"{v:.4g}" for v in self.theta.detach().tolist())
+        return f"theta=({th}), bound={self.bound:g}, learn={self.learnable}"
+
+
+class UniformLayout(Layout):
+    """The uniform layout ``φ(p) = p`` (no parameters): the classical sensor."""
+
+    family = "uniform"
+    num_params = 0
+    separable = True
+    straight_edges = True
+
+    def __init__(self, *, dtype: torch.dtype | None = None) -> None:
+        super().__init__(None, learn=False, dtype=dtype)
+
+    def phi(self, p: Tensor, theta: Tensor) -> Tensor:
+        return p
+
+    def phi_inverse(self, q: Tensor, theta: Tensor) -> Tensor:
+        return q
+
+    def phi_jacobian(self, p: Tensor, theta: Tensor) -> Tensor:
+        return torch.eye(2, dtype=p.dtype, device=p.device).expand(*p.shape, 2).clone()
+
+    def phi_dtheta(self, p: Tensor, theta: Tensor) -> Tensor:
+        return p.new_zeros(*p.shape, 0)
+
+    def extra_repr(self) -> str:
+        return ""
+
+
+class RectLayout(Layout):
+    """The rectangular layout φ_rect of the paper (separable; pixels are rectangles).
+
+    Example:
+        >>> layout = RectLayout(theta=(0.3, -0.2))
+        >>> q = layout(torch.tensor([[0.5, 0.5]]))
+        >>> torch.allclose(layout.inverse(q), torch.tensor([[0.5, 0.5]]), atol=1e-6)
+        True
+    """
+
+    family = "rect"
+    separable = True
+    straight_edges = True
+
+    def phi(self, p: Tensor, theta: Tensor) -> Tensor:
+        return phi_rect(p, theta)
+
+    def phi_inverse(self, q: Tensor, theta: Tensor) -> Tensor:
+        return phi_rect_inverse(q, theta)
+
+    def phi_jacobian(self, p: Tensor, theta: Tensor) -> Tensor:
+        return phi_rect_jacobian(p, theta)
+
+    def phi_dtheta(self, p: Tensor, theta: Tensor) -> Tensor:
+        return phi_rect_dtheta(p, theta)
+
+
+class CurvLayout(Layout):
+    """The curvilinear layout φ_curv of the paper (radial, fixed outside the unit circle)."""
+
+    family = "curv"
+
+    def phi(self, p: Tensor, theta: Tensor) -> Tensor:
+        return phi_curv(p, theta)
+
+    def phi_inverse(self, q: Tensor, theta: Tensor) -> Tensor:
+        return phi_curv_inverse(q, theta)
+
+    def phi_jacobian(self, p: Tensor, theta: Tensor) -> Tensor:
+        return phi_curv_jacobian(p, theta)
+
+    def phi_dtheta(self, p: Tensor, theta: Tensor) -> Tensor:
+        return phi_curv_dtheta(p, theta)
+
+
+# ----------------------------------------------------------------------------------------
+# Generic numerical inverse
+# ----------------------------------------------------------------------------------------
+def newton_inverse(
+    phi, q: Tensor, theta: Tensor, *, max_iter: int = 100, tol: float = 1e-13
+) -> Tensor:
+    """Invert a bijection ``φ(·, θ)`` of S at points ``q`` by damped Newton iteration.
+
+    Solved in float64 from the start point ``p = q`` with a backtracking line search on the
+    residual ``‖φ(p) − q‖`` and iterates kept inside S, which converges for the bi-Lipschitz
+    maps layouts are required to be. The converged point is returned with one Newton step
+    re-attached to the autograd graph, so gradients w.r.t. ``q`` and ``θ`` follow the
+    implicit-function theorem (``dp = J⁻¹ (dq − ∂φ/∂θ dθ)``).
+
+    Raises:
+        RuntimeError: if some point does not converge within ``max_iter`` iterations.
+    """
+
+    def jac(p: Tensor, th: Tensor) -> Tensor:
+        with torch.enable_grad():
+            pp = p.detach().requires_grad_(True)
+            out = phi(pp, th)
+            rows = [torch.autograd.grad(out[..., i].sum(), pp, retain_graph=i == 0)[0] for i in range(2)]
+        return torch.stack(rows, -2)
+
+    th64 = theta.detach().double()
+    q64 = q.detach().double()
+    p = q64.clone()
+    with torch.no_grad():
+        res = phi(p, th64) - q64
+        err = res.norm(dim=-1)
+        for _ in range(max_iter):
+            if bool((err <= tol).all()):
+                break
+            j = jac(p, th64)
+            step = torch.linalg.solve(j, res.unsqueeze(-1)).squeeze(-1)
+            lam = torch.ones_like(err)
+            for _ in range(30):  # backtracking: accept the first step that reduces ‖res‖
+                cand = (p - lam[..., None] * step).clamp(-1, 1)
+                cres = phi(cand, th64) - q64
+                cerr = cres.norm(dim=-1)
+                better = (cerr < err) | (err <= tol)
+                if bool(better.all()):
+                    break
+                lam = torch.where(better, lam, lam / 2)
+            accept = (cerr < err)[..., None]
+            p = torch.where(accept, cand, p)
+            res = torch.where(accept, cres, res)
+            err = res.norm(dim=-1)
+        if not bool((err <= max(tol, 1e-9)).all()):
+            bad = int((err > max(tol, 1e-9)).sum())
+            raise RuntimeError(
+                f"newton_inverse: {bad} point(s) did not converge in {max_iter} iterations "
+                f"(largest residual {float(err.max()):.3g}); is φ a bijection of S?"
+            )
+    p = p.to(q.dtype)
+    if not (q.requires_grad or theta.requires_grad):
+        return p
+    # Re-attach: p* − J⁻¹(φ(p*, θ) − q) equals p* in value and has the implicit gradient.
+    j = jac(p, theta.detach()).to(q.dtype)
+    r = phi(p, theta) - q
+    return p - torch.linalg.solve(j, r.unsqueeze(-1)).squeeze(-1)
+
+
+_FAMILIES: dict[str, type[Layout]] = {
+    "uniform": UniformLayout,
+    "rect": RectLayout,
+    "curv": CurvLayout,
+}
+
+
+def make_layout(
+    family: str | Layout,
+    theta: Sequence[float] | Tensor | None = None,
+    **kwargs,
+) -> Layout:
+    """Build a layout from a family name (``"uniform"``, ``"rect"``, ``"curv"``) or pass one through."""
+    if isinstance(family, Layout):
+        return family
+    cls = _FAMILIES.get(str(family).lower())
+    if cls is None:
+        raise ValueError(f"unknown layout family {family!r}; expected one of {sorted(_FAMILIES)}")
+    if cls is UniformLayout:
+        if theta is not None and any(float(v) != 0 for v in torch.as_tensor(theta).flatten()):
+            raise ValueError(f"the uniform layout has no parameters; got theta={theta!r}")
+        return UniformLayout(dtype=kwargs.get("dtype"))
+    return cls(theta, **kwargs)
