@@ -1,0 +1,71 @@
+"""layoutwarp: differentiable sensor pixel layouts for PyTorch, Kornia and OpenCV.
+
+Implements the system of Sommerhoff et al., "Differentiable Sensor Layouts for End-to-End
+Learning of Task-Specific Camera Parameters": a sensor whose pixel ``k`` is the image
+``φ(U_k, θ)`` of a uniform cell, simulated as the mean radiance over that pixel and
+differentiable in θ and in the image.
+"""
+
+from .integrators import (
+    integrate_exact,
+    integrate_montecarlo,
+    integrate_point,
+    integrate_separable,
+)
+from .layouts import (
+    CurvLayout,
+    FoldoverReport,
+    Layout,
+    RectLayout,
+    UniformLayout,
+    make_layout,
+    newton_inverse,
+    phi_curv,
+    phi_curv_inverse,
+    phi_rect,
+    phi_rect_inverse,
+)
+from .mesh import (
+    Maps,
+    PixelMesh,
+    forward_maps,
+    inverse_maps,
+    pixel_centers,
+    pixel_mesh,
+    sample_points,
+    uniform_corners,
+)
+from .sensor import SensorLayer, SimulationPlan, plan_simulation, simulate
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "CurvLayout",
+    "FoldoverReport",
+    "Layout",
+    "Maps",
+    "PixelMesh",
+    "RectLayout",
+    "SensorLayer",
+    "SimulationPlan",
+    "UniformLayout",
+    "__version__",
+    "forward_maps",
+    "integrate_exact",
+    "integrate_montecarlo",
+    "integrate_point",
+    "integrate_separable",
+    "inverse_maps",
+    "make_layout",
+    "newton_inverse",
+    "phi_curv",
+    "phi_curv_inverse",
+    "phi_rect",
+    "phi_rect_inverse",
+    "pixel_centers",
+    "pixel_mesh",
+    "plan_simulation",
+    "sample_points",
+    "simulate",
+    "uniform_corners",
+]

@@ -30,6 +30,7 @@ from .layouts import Layout
 
 __all__ = [
     "PixelMesh",
+    "combine_edges",
     "Maps",
     "check_size",
     "uniform_corners",
@@ -141,11 +142,7 @@ class PixelMesh:
 
     def combine_edges(self, edge_values: Tensor) -> Tensor:
         """Pixel boundary integrals ``(..., H, W)`` from oriented edge integrals ``(..., E)``."""
-        h, w = self.size
-        nh = (h + 1) * w
-        eh = edge_values[..., :nh].unflatten(-1, (h + 1, w))
-        ev = edge_values[..., nh:].unflatten(-1, (h, w + 1))
-        return (eh[..., :-1, :] - eh[..., 1:, :]) + (ev[..., :, 1:] - ev[..., :, :-1])
+        return combine_edges(edge_values, self.size)
 
     def areas(self) -> Tensor:
         """Polygon area of every pixel, ``(H, W)``, in sensor units (they sum to 4)."""
@@ -198,6 +195,19 @@ class PixelMesh:
     def subdivisions(self) -> Tensor:
         """Number of segments of every edge, ``(E,)``."""
         return self.edge_offsets.diff()
+
+
+def combine_edges(edge_values: Tensor, size: tuple[int, int]) -> Tensor:
+    """Pixel boundary integrals ``(..., H, W)`` from oriented edge integrals ``(..., E)``.
+
+    Edges are ordered as in :class:`PixelMesh`; pixel ``(i, j)`` gets
+    ``E_h[i, j] − E_h[i + 1, j] + E_v[i, j + 1] − E_v[i, j]``.
+    """
+    h, w = size
+    nh = (h + 1) * w
+    eh = edge_values[..., :nh].unflatten(-1, (h + 1, w))
+    ev = edge_values[..., nh:].unflatten(-1, (h, w + 1))
+    return (eh[..., :-1, :] - eh[..., 1:, :]) + (ev[..., :, 1:] - ev[..., :, :-1])
 
 
 def _shoelace(poly: Tensor) -> Tensor:

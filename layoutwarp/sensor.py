@@ -1,0 +1,274 @@
+"""The differentiable sensor: :func:`simulate` and its :class:`SensorLayer` module."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from .integrators import (
+    Radiance,
+    integrate_exact,
+    integrate_montecarlo,
+    integrate_point,
+    integrate_separable,
+)
+from .layouts import Layout, make_layout
+from .mesh import check_size, pixel_mesh
+
+__all__ = ["SimulationPlan", "plan_simulation", "simulate", "SensorLayer", "METHODS"]
+
+METHODS = ("exact", "separable", "montecarlo", "point", "auto")
+_RADIANCE = ("box", "bilinear")
+
+
+@dataclass(frozen=True)
+class SimulationPlan:
+    """What :func:`simulate` does for a layout, size and options, and why.
+
+    Attributes:
+        method: the integrator that runs (``"separable"``, ``"exact"``, ``"montecarlo"``,
+            ``"point"``).
+        radiance: ``"box"``, ``"bilinear"`` or ``"callable"``.
+        error_bound: guaranteed bound on each pixel's error relative to the image's value
+            range (0 for exact straight-edged pixels; ``tol`` for curved ones; ``None`` for
+            the sampling integrators, whose error depends on the image).
+        details: integrator-specific numbers (segments, subdivisions, samples).
+        reason: one line on why this method was chosen.
+    """
+
+    method: str
+    radiance: str
+    error_bound: float | None
+    details: dict[str, Any] = field(default_factory=dict)
+    reason: str = ""
+
+
+def plan_simulation(
+    layout: Layout,
+    size: tuple[int, int],
+    method: str = "exact",
+    *,
+    radiance: str | None = None,
+    tol: float = 1e-5,
+    samples: int = 4,
+    callable_radiance: bool = False,
+) -> SimulationPlan:
+    """Choose the integrator for ``method`` (see :func:`simulate`) without running it."""
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    if radiance is not None and radiance not in _RADIANCE:
+        raise ValueError(f"radiance must be one of {_RADIANCE} or a callable image, got {radiance!r}")
+    if not (isinstance(tol, (int, float)) and tol > 0):
+        raise ValueError(f"tol must be a number > 0, got {tol!r}")
+    rad = "callable" if callable_radiance else radiance
+    if method in ("exact", "separable", "auto"):
+        if callable_radiance:
+            raise ValueError(
+                f"method={method!r} integrates a pixel image exactly; a callable radiance "
+                "needs method='montecarlo' or 'point'"
+            )
+        if rad not in (None, "box"):
+            raise ValueError(
+                f"method={method!r} integrates box radiance (piecewise-constant pixels); "
+                f"radiance={radiance!r} needs method='montecarlo' or 'point'"
+            )
+        if layout.separable:
+            return SimulationPlan(
+                "separable", "box", 0.0, {}, "separable layout: per-axis overlap weights, exact"
+            )
+        if method == "separable":
+            raise ValueError(
+                f"method='separable' needs a separable layout (uniform or rect), got {type(layout).__name__}"
+            )
+        if layout.straight_edges:
+            return SimulationPlan("exact", "box", 0.0, {"segments_per_edge": 1}, "straight edges: exact")
+        return SimulationPlan(
+            "exact", "box", float(tol), {"tol": float(tol)}, "curved edges: polylines within tol"
+        )
+    if int(samples) < 1:
+        raise ValueError(f"samples must be >= 1, got {samples!r}")
+    rad = rad or "bilinear"
+    if method == "montecarlo":
+        return SimulationPlan(
+            "montecarlo", rad, None, {"samples_per_pixel": int(samples) ** 2}, "stratified Monte Carlo"
+        )
+    return SimulationPlan("point", rad, None, {}, "one sample at each deformed pixel centre")
+
+
+def _prepare(image: Tensor, allow_nonfinite: bool) -> tuple[Tensor, torch.dtype, tuple[int, ...]]:
+    if not isinstance(image, Tensor):
+        raise TypeError(f"image must be a torch.Tensor (B, C, H, W) or a callable, got {type(image).__name__}")
+    if image.ndim not in (3, 4):
+        raise ValueError(f"image must have shape (B, C, H, W) or (C, H, W), got {tuple(image.shape)}")
+    if image.shape[-1] == 0 or image.shape[-2] == 0:
+        raise ValueError(f"image height and width must be >= 1, got {tuple(image.shape[-2:])}")
+    lead = tuple(image.shape[:-2])
+    if image.dtype == torch.uint8:
+        out_dtype = torch.float32
+        work = image.to(torch.float32) / 255
+    elif image.is_floating_point():
+        out_dtype = image.dtype
+        work = image if image.dtype == torch.float64 else image.to(torch.float32)
+    else:
+        raise TypeError(f"image dtype must be floating point or uint8, got {image.dtype}")
+    if not allow_nonfinite and work.numel() and not bool(torch.isfinite(work).all()):
+        bad = int((~torch.isfinite(work)).sum())
+        raise ValueError(
+            f"image contains {bad} non-finite value(s) (NaN or Inf); clean it or pass allow_nonfinite=True"
+        )
+    return work.reshape(-1, *work.shape[-2:]), out_dtype, lead
+
+
+def simulate(
+    image: Tensor | Radiance,
+    layout: Layout,
+    size: tuple[int, int],
+    method: str = "exact",
+    *,
+    radiance: str | None = None,
+    tol: float = 1e-5,
+    samples: int = 4,
+    grad: str = "reynolds",
+    seed: int | None = None,
+    generator: torch.Generator | None = None,
+    channels: int | None = None,
+    allow_nonfinite: bool = False,
+    return_plan: bool = False,
+) -> Tensor | tuple[Tensor, SimulationPlan]:
+    """Simulate a sensor with pixel layout ``layout``: the mean radiance over every pixel.
+
+    Args:
+        image: ``(B, C, H, W)`` (or ``(C, H, W)``) radiance image, float or uint8 (uint8 is
+            scaled to ``[0, 1]``; float16/bfloat16 are computed in float32); or a callable
+            radiance ``L(points (..., 2)) -> (..., C)`` in sensor coordinates (the paper's
+            black box, e.g. a renderer), for ``"montecarlo"`` and ``"point"``.
+        layout: the pixel layout (θ may be learnable; gradients flow to it).
+        size: sensor size ``(h, w)``.
+        method: ``"exact"`` (box radiance over the exact pixel polygons; dispatches to
+            ``"separable"`` for rectangular layouts), ``"separable"``, ``"montecarlo"``,
+            ``"point"``, or ``"auto"`` (the cheapest exact method that meets ``tol``).
+        radiance: ``"box"`` (each source pixel a constant square; the only choice for exact
+            methods) or ``"bilinear"`` (the paper's choice, default for sampling methods).
+        tol: the accuracy a scene needs: bound on each pixel's error relative to the
+            image's value range, spent on the polyline approximation of curved edges.
+        samples: ``s`` for Monte Carlo (``s²`` samples per pixel).
+        grad: Monte Carlo θ-gradient estimator, ``"reynolds"`` or ``"autograd"``.
+        seed, generator: randomness of the Monte Carlo jitter (``seed`` makes a generator).
+        channels: number of channels of a callable radiance (default 1).
+        allow_nonfinite: let NaN/Inf through instead of raising ``ValueError``.
+        return_plan: also return the :class:`SimulationPlan` that ran.
+
+    Returns:
+        ``(B, C, h, w)`` (or ``(C, h, w)``) in the image's floating dtype (float32 for uint8);
+        with ``return_plan``, ``(output, plan)``. Empty batches or channel counts give empty
+        outputs of the right shape.
+    """
+    size = check_size(size)
+    if not isinstance(layout, Layout):
+        raise TypeError(f"layout must be a layoutwarp Layout, got {type(layout).__name__}")
+    is_callable = callable(image) and not isinstance(image, Tensor)
+    plan = plan_simulation(
+        layout, size, method, radiance=radiance, tol=tol, samples=samples, callable_radiance=is_callable
+    )
+    if generator is None and seed is not None:
+        generator = torch.Generator().manual_seed(int(seed))
+    if is_callable:
+        out = _run(plan, image, layout, size, tol, samples, grad, generator)
+        out = out if channels is None else out.reshape(channels, *size)
+        return (out[None], plan) if return_plan else out[None]
+    work, out_dtype, lead = _prepare(image, allow_nonfinite)
+    if work.shape[0] == 0:
+        out = work.new_zeros(*lead, *size).to(out_dtype)
+    else:
+        out = _run(plan, work, layout, size, tol, samples, grad, generator)
+        out = out.to(out_dtype).reshape(*lead, *size)
+    return (out, plan) if return_plan else out
+
+
+def _run(plan: SimulationPlan, work, layout: Layout, size, tol, samples, grad, generator) -> Tensor:
+    if plan.method == "separable":
+        return integrate_separable(work, layout, size)
+    if plan.method == "exact":
+        mesh = pixel_mesh(layout, size, tol=tol, dtype=torch.float64)
+        return integrate_exact(work, layout, size, mesh=mesh)
+    if plan.method == "montecarlo":
+        return integrate_montecarlo(
+            work, layout, size, samples=samples, radiance=plan.radiance if plan.radiance != "callable" else "bilinear",
+            grad=grad, generator=generator,
+        )
+    return integrate_point(work, layout, size, radiance=plan.radiance if plan.radiance != "callable" else "bilinear")
+
+
+class SensorLayer(nn.Module):
+    """A drop-in sensor: high-resolution image in, sensor image of ``size`` out.
+
+    θ starts at 0 (the uniform layout) unless ``theta`` is given, and is trained with the
+    network when ``learn=True``; ``learn=False`` freezes it (the uniform baseline).
+
+    Args:
+        size: sensor size ``(h, w)``.
+        layout: ``"rect"``, ``"curv"``, ``"uniform"`` or a :class:`~layoutwarp.Layout`.
+        method: integrator (see :func:`simulate`).
+        learn: train θ.
+        theta: initial θ.
+        bound: bound on ``|θ|``.
+        **options: further :func:`simulate` options (``tol``, ``samples``, ``radiance``, ...).
+
+    Example:
+        >>> layer = SensorLayer((4, 4), "curv")
+        >>> layer(torch.rand(8, 1, 28, 28)).shape
+        torch.Size([8, 1, 4, 4])
+    """
+
+    def __init__(
+        self,
+        size: tuple[int, int],
+        layout: str | Layout = "rect",
+        method: str = "exact",
+        *,
+        learn: bool = True,
+        theta=None,
+        bound: float = 1.0,
+        **options: Any,
+    ) -> None:
+        super().__init__()
+        self.size = check_size(size)
+        if isinstance(layout, Layout):
+            self.layout = layout
+        elif str(layout) == "uniform":
+            self.layout = make_layout("uniform")
+        else:
+            self.layout = make_layout(layout, theta, bound=bound, learn=learn)
+        if method not in METHODS:
+            raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+        self.method = method
+        self.options = options
+        self.last_plan: SimulationPlan | None = None
+
+    @property
+    def theta(self) -> Tensor:
+        """The layout's constrained parameters θ."""
+        return self.layout.theta
+
+    def forward(self, image: Tensor) -> Tensor:
+        """``(B, C, H, W)`` image to ``(B, C, h, w)`` sensor image."""
+        out, self.last_plan = simulate(image, self.layout, self.size, self.method, return_plan=True, **self.options)
+        return out
+
+    def describe(self) -> SimulationPlan:
+        """The plan the layer runs with its current settings."""
+        return plan_simulation(
+            self.layout,
+            self.size,
+            self.method,
+            radiance=self.options.get("radiance"),
+            tol=self.options.get("tol", 1e-5),
+            samples=self.options.get("samples", 4),
+        )
+
+    def extra_repr(self) -> str:
+        h, w = self.size
+        return f"size=({h}, {w}), method={self.method!r}"
