@@ -43,7 +43,10 @@ def main(root: Path) -> None:
             (HERE / "camvid" / sub).mkdir(parents=True, exist_ok=True)
         for name in sorted((root / "camvid" / split).iterdir())[:n]:
             shutil.copy(name, HERE / "camvid" / split / name.name)
-            shutil.copy(root / "camvid" / (split + "annot") / name.name, HERE / "camvid" / (split + "annot") / name.name)
+            shutil.copy(
+                root / "camvid" / (split + "annot") / name.name,
+                HERE / "camvid" / (split + "annot") / name.name,
+            )
     shutil.copy(root / "camvid" / "CLASSES.txt", HERE / "camvid" / "CLASSES.txt")
     faces = HERE / "faces" / "utkface"
     (faces / "images").mkdir(parents=True, exist_ok=True)

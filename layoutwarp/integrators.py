@@ -28,11 +28,11 @@ from .mesh import PixelMesh, combine_edges, pixel_centers, pixel_mesh, sample_po
 
 __all__ = [
     "Radiance",
+    "axis_weights",
     "integrate_exact",
-    "integrate_separable",
     "integrate_montecarlo",
     "integrate_point",
-    "axis_weights",
+    "integrate_separable",
 ]
 
 #: A black-box radiance: points ``(..., 2)`` in sensor coordinates to values ``(..., N)``.
@@ -48,7 +48,6 @@ def _row_tables(image: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     ``S[r, c] = Σ_{c' < c} L[r, c']`` (the row prefix ``P`` at integer ``X = c``) and
     ``T[r, c] = ∫_0^c P_r(X) dX = Σ_{c' < c} (S[r, c'] + L[r, c'] / 2)``.
     """
-    n, h, w = image.shape
     lpad = F.pad(image, (0, 1))
     s = F.pad(torch.cumsum(image, -1), (1, 0))
     t = F.pad(torch.cumsum(s[..., :-1] + image / 2, -1), (1, 0))
@@ -95,7 +94,7 @@ def _mean_prefix(tables: tuple[Tensor, Tensor, Tensor], row: Tensor, x0: Tensor,
     last cell, a convex combination with no cancellation for short intervals.
     """
     lpad, s, t = tables
-    n, h, wp = s.shape
+    n, _, wp = s.shape
     w = wp - 1
     xa, xb = torch.minimum(x0, x1), torch.maximum(x0, x1)
     ca = xa.detach().floor().clamp(0, w - 1).long()
@@ -195,7 +194,9 @@ def axis_weights(edges: Tensor, n_src: int) -> tuple[Tensor, Tensor, Tensor]:
     return dst, src, overlap / (hi - lo)[dst]
 
 
-def _separable_edges(layout: Layout, size: tuple[int, int], src: tuple[int, int], dtype) -> tuple[Tensor, Tensor]:
+def _separable_edges(
+    layout: Layout, size: tuple[int, int], src: tuple[int, int], dtype
+) -> tuple[Tensor, Tensor]:
     h, w = size
     hs, ws = src
     theta = layout.theta.to(dtype)
@@ -306,7 +307,10 @@ def _flux_derivative(image, layout: Layout, theta: Tensor, size, m: int, radianc
     vy = gy[:-1, None] + t * (2 / h)  # (h, m)
     edges = (  # (points (E1, E2, m, 2), γ̇): horizontal edges run +x, vertical edges +y
         (torch.stack([hx.expand(h + 1, w, m), gy[:, None, None].expand(h + 1, w, m)], -1), (2 / w, 0.0)),
-        (torch.stack([gx[None, :, None].expand(h, w + 1, m), vy[:, None, :].expand(h, w + 1, m)], -1), (0.0, 2 / h)),
+        (
+            torch.stack([gx[None, :, None].expand(h, w + 1, m), vy[:, None, :].expand(h, w + 1, m)], -1),
+            (0.0, 2 / h),
+        ),
     )
     f_edges, g_edges = [], []
     for pts, gdot in edges:

@@ -26,21 +26,21 @@ import torch
 from torch import Tensor, nn
 
 __all__ = [
-    "Layout",
-    "UniformLayout",
-    "RectLayout",
     "CurvLayout",
     "FoldoverReport",
-    "phi_rect",
-    "phi_rect_inverse",
-    "phi_rect_jacobian",
-    "phi_rect_dtheta",
-    "phi_curv",
-    "phi_curv_inverse",
-    "phi_curv_jacobian",
-    "phi_curv_dtheta",
+    "Layout",
+    "RectLayout",
+    "UniformLayout",
     "make_layout",
     "newton_inverse",
+    "phi_curv",
+    "phi_curv_dtheta",
+    "phi_curv_inverse",
+    "phi_curv_jacobian",
+    "phi_rect",
+    "phi_rect_dtheta",
+    "phi_rect_inverse",
+    "phi_rect_jacobian",
 ]
 
 
@@ -342,13 +342,22 @@ class Layout(nn.Module):
     def phi_dtheta(self, p: Tensor, theta: Tensor) -> Tensor:
         """``∂φ_i/∂θ_j``, shape ``(..., 2, P)``; generic fallback by forward-mode autodiff."""
         eye = torch.eye(theta.numel(), dtype=theta.dtype, device=theta.device)
-        cols = [
-            torch.func.jvp(lambda t: self.phi(p.detach(), t), (theta.detach(),), (e,))[1]
-            for e in eye
-        ]
+        cols = [torch.func.jvp(lambda t: self.phi(p.detach(), t), (theta.detach(),), (e,))[1] for e in eye]
         if not cols:
             return p.new_zeros(*p.shape, 0)
         return torch.stack(cols, dim=-1)
+
+    def edge_breakpoints(self, a: Tensor, b: Tensor) -> Tensor:
+        """Parameters ``t ∈ (0, 1)`` where φ is not smooth along the segments ``a + t (b − a)``.
+
+        Args:
+            a, b: ``(E, 2)`` segment ends in uniform sensor coordinates.
+
+        Returns:
+            ``(E, K)`` parameters (NaN where there are fewer than ``K``); the mesh puts a
+            polyline vertex on each. Default: none (``K = 0``).
+        """
+        return a.new_zeros(a.shape[0], 0)
 
     def forward(self, p: Tensor) -> Tensor:
         """``φ(p, θ)`` for points ``p`` of shape ``(..., 2)``; differentiable in ``p`` and ``θ``."""
@@ -470,13 +479,24 @@ class CurvLayout(Layout):
     def phi_dtheta(self, p: Tensor, theta: Tensor) -> Tensor:
         return phi_curv_dtheta(p, theta)
 
+    def edge_breakpoints(self, a: Tensor, b: Tensor) -> Tensor:
+        """Where the segment crosses the unit circle (the kink of φ_curv): ``|a + t d|² = 1``."""
+        d = b - a
+        qa = (d * d).sum(-1)
+        qb = 2 * (a * d).sum(-1)
+        qc = (a * a).sum(-1) - 1
+        disc = qb * qb - 4 * qa * qc
+        ok = (disc > 0) & (qa > 0)
+        sq = torch.sqrt(disc.clamp_min(0))
+        qa_safe = torch.where(qa > 0, qa, torch.ones_like(qa))
+        t = torch.stack([(-qb - sq) / (2 * qa_safe), (-qb + sq) / (2 * qa_safe)], -1)
+        return torch.where(ok[:, None], t, torch.full_like(t, float("nan")))
+
 
 # ----------------------------------------------------------------------------------------
 # Generic numerical inverse
 # ----------------------------------------------------------------------------------------
-def newton_inverse(
-    phi, q: Tensor, theta: Tensor, *, max_iter: int = 100, tol: float = 1e-13
-) -> Tensor:
+def newton_inverse(phi, q: Tensor, theta: Tensor, *, max_iter: int = 100, tol: float = 1e-13) -> Tensor:
     """Invert a bijection ``φ(·, θ)`` of S at points ``q`` by damped Newton iteration.
 
     Solved in float64 from the start point ``p = q`` with a backtracking line search on the

@@ -29,18 +29,18 @@ from torch import Tensor
 from .layouts import Layout
 
 __all__ = [
-    "PixelMesh",
-    "combine_edges",
     "Maps",
+    "PixelMesh",
     "check_size",
-    "uniform_corners",
-    "pixel_mesh",
-    "pixel_centers",
-    "sample_points",
+    "combine_edges",
     "forward_maps",
     "inverse_maps",
-    "sensor_to_pixels",
+    "pixel_centers",
+    "pixel_mesh",
     "pixels_to_sensor",
+    "sample_points",
+    "sensor_to_pixels",
+    "uniform_corners",
 ]
 
 
@@ -215,42 +215,67 @@ def _shoelace(poly: Tensor) -> Tensor:
     return 0.5 * (x * y.roll(-1, -1) - x.roll(-1, -1) * y).sum(-1)
 
 
-def _edge_subdivisions(layout: Layout, size: tuple[int, int], tol: float, max_subdiv: int) -> Tensor:
-    """Segments per edge so that polyline error stays within ``tol`` (relative pixel value).
+def _edge_parameters(
+    layout: Layout, size: tuple[int, int], tol: float, max_subdiv: int
+) -> tuple[Tensor, Tensor]:
+    """Polyline parameters of every edge so that pixel values stay within ``tol``.
 
-    A curved edge of chord length ``ℓ`` and sagitta ``e`` cut into ``n`` segments deviates by
-    about ``e / n²`` from the curve, which changes each adjacent pixel's area by at most
-    ``(2/3) ℓ e / n²``. Giving each of a pixel's four edges a quarter of the budget
-    ``tol · A`` (``A`` the smaller adjacent pixel area) bounds the value error of any pixel
-    by ``tol`` times the radiance range. The sagitta is measured at 1/4, 1/2 and 3/4 of the
-    edge, perpendicular to the chord, so straight edges get exactly one segment.
+    Each uniform edge ``a → b`` is first cut where φ is not smooth along it
+    (:meth:`Layout.edge_breakpoints`, e.g. the unit circle of φ_curv), so that a polyline
+    vertex sits on every kink. A smooth piece with chord ``ℓ`` and sagitta ``e`` cut into
+    ``n`` equal parameter steps deviates by about ``e / n²`` from the curve and changes the
+    area next to it by at most ``(2/3) ℓ e / n²``. Giving each of a pixel's four edges a
+    quarter of the budget ``tol · A`` (``A`` the smaller adjacent pixel area), shared along
+    the edge in proportion to length, bounds every pixel's value error by ``tol`` times the
+    radiance range. Sagittas are measured perpendicular to the chord at 1/4, 1/2 and 3/4 of
+    each piece (with a safety factor 2), so straight edges get exactly one segment.
+
+    Returns:
+        ``(n, t)``: segments per edge ``(E,)`` and the parameter in ``[0, 1)`` of every
+        segment's start vertex ``(S,)``, edge by edge.
     """
     h, w = size
     th = layout.theta.detach().double()
     cu = uniform_corners(size)
     cd = layout.phi(cu, th)
-    # uniform endpoints of horizontal (H+1, W) and vertical (H, W+1) edges
-    ends = [(cu[:, :-1], cu[:, 1:], cd[:, :-1], cd[:, 1:]), (cu[:-1, :], cu[1:, :], cd[:-1, :], cd[1:, :])]
     quads = torch.stack([cd[:-1, :-1], cd[:-1, 1:], cd[1:, 1:], cd[1:, :-1]], -2)
     area = _shoelace(quads).abs()  # (H, W)
     inf = torch.full((1, w), math.inf, dtype=area.dtype)
     area_h = torch.minimum(torch.cat([inf, area]), torch.cat([area, inf]))  # (H+1, W)
     inf = torch.full((h, 1), math.inf, dtype=area.dtype)
     area_v = torch.minimum(torch.cat([inf, area], 1), torch.cat([area, inf], 1))  # (H, W+1)
-    counts = []
-    for (ua, ub, da, db), amin in zip(ends, (area_h, area_v)):
-        chord = db - da
-        length = chord.norm(dim=-1).clamp_min(1e-300)
-        sag = torch.zeros_like(length)
-        for f in (0.25, 0.5, 0.75):
-            m = layout.phi(ua + f * (ub - ua), th) - da
-            cross = (chord[..., 0] * m[..., 1] - chord[..., 1] * m[..., 0]).abs() / length
-            sag = torch.maximum(sag, cross / (4 * f * (1 - f)))  # parabola: e(f) = 4f(1-f)·e
-        budget = 3 * tol * amin / (8 * length)
-        n = torch.sqrt(sag / budget).ceil().clamp(1, max_subdiv)
-        n = torch.where(sag <= 1e-15 * length, torch.ones_like(n), n)
-        counts.append(n.long().flatten())
-    return torch.cat(counts)
+    ua = torch.cat([cu[:, :-1].reshape(-1, 2), cu[:-1, :].reshape(-1, 2)])
+    ub = torch.cat([cu[:, 1:].reshape(-1, 2), cu[1:, :].reshape(-1, 2)])
+    amin = torch.cat([area_h.flatten(), area_v.flatten()])
+    ne = ua.shape[0]
+    brk = layout.edge_breakpoints(ua, ub).to(ua.dtype).reshape(ne, -1)
+    brk = torch.where(torch.isfinite(brk) & (brk > 1e-6) & (brk < 1 - 1e-6), brk, torch.ones_like(brk))
+    bounds = torch.cat([torch.zeros(ne, 1, dtype=ua.dtype), brk, torch.ones(ne, 1, dtype=ua.dtype)], 1)
+    bounds = bounds.sort(1).values
+    lo, hi = bounds[:, :-1], bounds[:, 1:]  # (E, P) pieces, possibly empty
+    d = (ub - ua)[:, None]
+
+    def at(t: Tensor) -> Tensor:
+        return layout.phi(ua[:, None] + t[..., None] * d, th)
+
+    pa, pb = at(lo), at(hi)
+    chord = pb - pa
+    length = chord.norm(dim=-1)
+    sag = torch.zeros_like(length)
+    for f in (0.25, 0.5, 0.75):
+        m = at(lo + f * (hi - lo)) - pa
+        cross = (chord[..., 0] * m[..., 1] - chord[..., 1] * m[..., 0]).abs() / length.clamp_min(1e-300)
+        sag = torch.maximum(sag, cross / (4 * f * (1 - f)))  # parabola: e(f) = 4 f (1 − f) e
+    budget = 3 * tol * amin[:, None] / (8 * length.sum(1, keepdim=True).clamp_min(1e-300))
+    n = torch.sqrt(2 * sag / budget).ceil().clamp(1, max_subdiv)
+    n = torch.where(sag <= 1e-15 * length, torch.ones_like(n), n)
+    n = torch.where(hi - lo > 1e-12, n, torch.zeros_like(n)).long()  # empty pieces
+    counts = n.sum(1)
+    piece = torch.repeat_interleave(torch.arange(n.numel()), n.flatten())
+    first = torch.cumsum(n.flatten(), 0) - n.flatten()
+    k = torch.arange(piece.numel()) - first[piece]
+    lo_f, hi_f, n_f = lo.flatten()[piece], hi.flatten()[piece], n.flatten()[piece].to(lo.dtype)
+    return counts, lo_f + (hi_f - lo_f) * k.to(lo.dtype) / n_f
 
 
 def pixel_mesh(
@@ -258,7 +283,7 @@ def pixel_mesh(
     size: tuple[int, int],
     *,
     tol: float | None = 1e-5,
-    max_subdiv: int = 64,
+    max_subdiv: int = 4096,
     subdivisions: Tensor | int | None = None,
     dtype: torch.dtype | None = None,
 ) -> PixelMesh:
@@ -269,7 +294,7 @@ def pixel_mesh(
             differentiable in θ).
         size: sensor size ``(H, W)``.
         tol: polyline tolerance as a bound on the relative pixel-value error (see
-            :func:`_edge_subdivisions`); ignored for straight-edged layouts, which always use
+            :func:`_edge_parameters`); ignored for straight-edged layouts, which always use
             one segment per edge.
         max_subdiv: cap on segments per edge.
         subdivisions: force a segment count per edge (an int, or an ``(E,)`` tensor) instead
@@ -288,12 +313,14 @@ def pixel_mesh(
         n = torch.as_tensor(subdivisions, dtype=torch.long).expand(ne).clone()
         if bool((n < 1).any()):
             raise ValueError("subdivisions must be >= 1")
+        t_start = None
     elif layout.straight_edges or tol is None:
         n = torch.ones(ne, dtype=torch.long)
+        t_start = None
     else:
         if not (tol > 0):
             raise ValueError(f"tol must be > 0, got {tol!r}")
-        n = _edge_subdivisions(layout, (h, w), float(tol), max_subdiv)
+        n, t_start = _edge_parameters(layout, (h, w), float(tol), max_subdiv)
     ncorner = (h + 1) * (w + 1)
     cid = torch.arange(ncorner).view(h + 1, w + 1)
     # endpoint corner ids of every edge, in edge order
@@ -315,7 +342,11 @@ def pixel_mesh(
     seg_end = torch.where(last, eb[seg_edge], nxt)
     # uniform positions of all vertices
     cu = uniform_corners((h, w), dtype=dtype, device=device).reshape(-1, 2)
-    frac = (k[interior].to(dtype) / nn_[interior].to(dtype)).to(device)[:, None]
+    if t_start is None:  # equal parameter steps
+        frac = k[interior].to(dtype) / nn_[interior].to(dtype)
+    else:
+        frac = t_start[interior].to(dtype)
+    frac = frac.to(device)[:, None]
     ua, ub = cu[ea[seg_edge[interior]]], cu[eb[seg_edge[interior]]]
     upts = torch.cat([cu, ua + frac * (ub - ua)])
     verts = layout.phi(upts, theta.to(dtype))

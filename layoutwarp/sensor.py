@@ -18,7 +18,7 @@ from .integrators import (
 from .layouts import Layout, make_layout
 from .mesh import check_size, pixel_mesh
 
-__all__ = ["SimulationPlan", "plan_simulation", "simulate", "SensorLayer", "METHODS"]
+__all__ = ["METHODS", "SensorLayer", "SimulationPlan", "plan_simulation", "simulate"]
 
 METHODS = ("exact", "separable", "montecarlo", "point", "auto")
 _RADIANCE = ("box", "bilinear")
@@ -100,7 +100,9 @@ def plan_simulation(
 
 def _prepare(image: Tensor, allow_nonfinite: bool) -> tuple[Tensor, torch.dtype, tuple[int, ...]]:
     if not isinstance(image, Tensor):
-        raise TypeError(f"image must be a torch.Tensor (B, C, H, W) or a callable, got {type(image).__name__}")
+        raise TypeError(
+            f"image must be a torch.Tensor (B, C, H, W) or a callable, got {type(image).__name__}"
+        )
     if image.ndim not in (3, 4):
         raise ValueError(f"image must have shape (B, C, H, W) or (C, H, W), got {tuple(image.shape)}")
     if image.shape[-1] == 0 or image.shape[-2] == 0:
@@ -196,10 +198,17 @@ def _run(plan: SimulationPlan, work, layout: Layout, size, tol, samples, grad, g
         return integrate_exact(work, layout, size, mesh=mesh)
     if plan.method == "montecarlo":
         return integrate_montecarlo(
-            work, layout, size, samples=samples, radiance=plan.radiance if plan.radiance != "callable" else "bilinear",
-            grad=grad, generator=generator,
+            work,
+            layout,
+            size,
+            samples=samples,
+            radiance=plan.radiance if plan.radiance != "callable" else "bilinear",
+            grad=grad,
+            generator=generator,
         )
-    return integrate_point(work, layout, size, radiance=plan.radiance if plan.radiance != "callable" else "bilinear")
+    return integrate_point(
+        work, layout, size, radiance=plan.radiance if plan.radiance != "callable" else "bilinear"
+    )
 
 
 class SensorLayer(nn.Module):
@@ -255,7 +264,9 @@ class SensorLayer(nn.Module):
 
     def forward(self, image: Tensor) -> Tensor:
         """``(B, C, H, W)`` image to ``(B, C, h, w)`` sensor image."""
-        out, self.last_plan = simulate(image, self.layout, self.size, self.method, return_plan=True, **self.options)
+        out, self.last_plan = simulate(
+            image, self.layout, self.size, self.method, return_plan=True, **self.options
+        )
         return out
 
     def describe(self) -> SimulationPlan:

@@ -1,0 +1,242 @@
+"""Layouts: closed forms against float64 finite differences, inverses, bijectivity, errors."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from conftest import rand_theta
+
+import layoutwarp as lw
+from layoutwarp.layouts import (
+    phi_curv,
+    phi_curv_dtheta,
+    phi_curv_jacobian,
+    phi_rect,
+    phi_rect_dtheta,
+    phi_rect_jacobian,
+)
+
+F64 = torch.float64
+FAMILIES = [lw.RectLayout, lw.CurvLayout]
+
+
+def rand_points(gen, n=4000):
+    return torch.rand(n, 2, generator=gen, dtype=F64) * 2 - 1
+
+
+@pytest.mark.parametrize("cls", FAMILIES)
+def test_inverse_round_trip_up_to_0999(cls, gen):
+    for _ in range(40):
+        theta = rand_theta(gen, 0.999)
+        layout = cls(theta, dtype=F64)
+        p = rand_points(gen)
+        assert (layout.inverse(layout(p)) - p).abs().max() < 1e-9
+        assert (layout(layout.inverse(p)) - p).abs().max() < 1e-9
+    for theta in ([0.999, -0.999], [-0.999, 0.999], [0.999, 0.999], [0.0, 0.0]):
+        layout = cls(theta, dtype=F64)
+        p = rand_points(gen)
+        assert (layout.inverse(layout(p)) - p).abs().max() < 1e-9
+        assert (layout(layout.inverse(p)) - p).abs().max() < 1e-9
+
+
+def test_rect_inverse_is_phi_of_minus_theta(gen):
+    theta = rand_theta(gen)
+    p = rand_points(gen)
+    layout = lw.RectLayout(theta, dtype=F64)
+    assert torch.equal(layout.inverse(p), phi_rect(p, -layout.theta))
+
+
+@pytest.mark.parametrize("cls", FAMILIES)
+def test_theta_rho_round_trip(cls, gen):
+    theta = rand_theta(gen, 0.999)
+    layout = cls(theta, dtype=F64)
+    assert (layout.theta - theta).abs().max() < 1e-12
+    layout = cls(theta, bound=0.5 + 0.5, dtype=F64)
+    layout.set_theta(-theta)
+    assert (layout.theta + theta).abs().max() < 1e-12
+
+
+@pytest.mark.parametrize("cls", FAMILIES)
+@pytest.mark.parametrize("bad", [1.0, -1.0, 1.5, math.nan, math.inf])
+def test_out_of_range_theta_raises_naming_value(cls, bad):
+    with pytest.raises(ValueError, match=r"theta\[1\] = " + ("nan" if bad != bad else "")):
+        cls((0.1, bad))
+
+
+def test_theta_count_and_bound_errors():
+    with pytest.raises(ValueError, match="2 values"):
+        lw.RectLayout((0.1, 0.2, 0.3))
+    with pytest.raises(ValueError, match="bound"):
+        lw.CurvLayout((0.1, 0.2), bound=0.0)
+    with pytest.raises(ValueError, match=r"\|θ\| < bound = 0.5"):
+        lw.CurvLayout((0.6, 0.2), bound=0.5)
+    with pytest.raises(ValueError, match="unknown layout family 'hex'"):
+        lw.make_layout("hex")
+
+
+def test_points_shape_errors():
+    layout = lw.RectLayout()
+    with pytest.raises(ValueError, match=r"shape \(\.\.\., 2\)"):
+        layout(torch.zeros(4, 3))
+    with pytest.raises(TypeError, match="floating-point"):
+        layout(torch.zeros(4, 2, dtype=torch.long))
+    with pytest.raises(ValueError, match="q must have shape"):
+        layout.inverse(torch.zeros(3))
+
+
+def central_jacobian(fn, p, h=1e-6):
+    cols = [(fn(p + h * e) - fn(p - h * e)) / (2 * h) for e in torch.eye(2, dtype=F64)]
+    return torch.stack(cols, -1)
+
+
+def away_from_kinks(p, curv: bool, margin=1e-4):
+    if curv:
+        return (p.norm(dim=-1) - 1).abs() > margin
+    return torch.ones(p.shape[0], dtype=torch.bool)
+
+
+@pytest.mark.parametrize("curv", [False, True])
+def test_jacobian_and_dtheta_against_finite_differences(curv, gen):
+    phi, jac, dth = (
+        (phi_curv, phi_curv_jacobian, phi_curv_dtheta)
+        if curv
+        else (phi_rect, phi_rect_jacobian, phi_rect_dtheta)
+    )
+    for _ in range(10):
+        theta = rand_theta(gen, 0.95)
+        p = rand_points(gen, 2000)
+        p = p[away_from_kinks(p, curv)]
+        fd = central_jacobian(lambda q, t=theta: phi(q, t), p)
+        assert (jac(p, theta) - fd).abs().max() < 1e-6 * (1 + fd.abs().max())
+        fdt = torch.stack(
+            [(phi(p, theta + 1e-6 * e) - phi(p, theta - 1e-6 * e)) / 2e-6 for e in torch.eye(2, dtype=F64)],
+            -1,
+        )
+        assert (dth(p, theta) - fdt).abs().max() < 1e-6 * (1 + fdt.abs().max())
+
+
+def test_curv_dtheta_is_not_the_reference_code_formula(gen):
+    # DESIGN.md §3(b): the correct derivative is 2 p_j (r − 1)/(2θ_j r − θ_j − 1)².
+    theta = rand_theta(gen, 0.9)
+    p = rand_points(gen, 500) * 0.7
+    r = p.norm(dim=-1, keepdim=True)
+    expected = 2 * p * (r - 1) / (2 * theta * r - theta - 1) ** 2
+    got = torch.diagonal(phi_curv_dtheta(p, theta), dim1=-2, dim2=-1)
+    assert (got - expected).abs().max() < 1e-12
+
+
+@pytest.mark.parametrize("cls", FAMILIES)
+def test_module_derivatives_match_autograd(cls, gen):
+    layout = cls(rand_theta(gen), dtype=F64)
+    p = rand_points(gen, 500)
+    p = p[away_from_kinks(p, cls is lw.CurvLayout)]
+    assert (layout.jacobian(p) - lw.Layout.phi_jacobian(layout, p, layout.theta)).abs().max() < 1e-12
+    assert (layout.dtheta(p) - lw.Layout.phi_dtheta(layout, p, layout.theta)).abs().max() < 1e-12
+
+
+@pytest.mark.parametrize("cls", FAMILIES)
+def test_centre_pixel_shrink_factor(cls, gen):
+    theta = rand_theta(gen, 0.99)
+    jac = cls(theta, dtype=F64).jacobian(torch.zeros(1, 2, dtype=F64))[0]
+    assert torch.allclose(torch.diagonal(jac), (1 - theta) / (1 + theta), rtol=1e-13, atol=0)
+
+
+@pytest.mark.parametrize("cls", FAMILIES)
+def test_finite_values_and_gradients_at_special_points(cls):
+    a = 1 / math.sqrt(2)
+    special = torch.tensor(
+        [[0.0, 0.0], [1.0, 0.0], [0.0, -1.0], [a, a], [0.6, -0.8], [1.0, 1.0], [-1.0, 0.3], [0.3, 1.0]],
+        dtype=F64,
+    )
+    for theta in ([0.999, -0.999], [0.0, 0.0], [1 - 1e-6, 1 - 1e-6], [-0.5, 0.7]):
+        layout = cls(theta, dtype=F64)
+        for fn in (layout, layout.inverse):
+            p = special.clone().requires_grad_(True)
+            q = fn(p)
+            assert torch.isfinite(q).all()
+            g_p, g_rho = torch.autograd.grad(q.sum(), (p, layout.rho))
+            assert torch.isfinite(g_p).all() and torch.isfinite(g_rho).all()
+        assert torch.isfinite(layout.jacobian(special)).all()
+        # the border and (curv) the unit circle are fixed
+        fixed = special[1:] if cls is lw.CurvLayout else special[[1, 2, 5, 6, 7]]
+        assert torch.allclose(layout(fixed)[..., :], fixed, atol=1e-15) or cls is lw.RectLayout
+
+
+def test_rect_fixes_border_and_curv_fixes_circle(gen):
+    theta = rand_theta(gen)
+    ang = torch.rand(100, generator=gen, dtype=F64) * 2 * math.pi
+    circle = torch.stack([ang.cos(), ang.sin()], -1)
+    # |p| = 1 ± 1 ulp on the circle; the formula's conditioning there is 2|θ|/(1 − |θ|)
+    assert (lw.CurvLayout(theta, dtype=F64)(circle) - circle).abs().max() < 1e-13
+    t = torch.rand(100, generator=gen, dtype=F64) * 2 - 1
+    border = torch.cat([torch.stack([t, torch.ones_like(t)], -1), torch.stack([-torch.ones_like(t), t], -1)])
+    q = lw.RectLayout(theta, dtype=F64)(border)
+    assert torch.equal(q[:100, 1], border[:100, 1]) and torch.equal(q[100:, 0], border[100:, 0])
+
+
+@pytest.mark.parametrize("cls", FAMILIES)
+def test_no_foldovers_on_dense_grid(cls):
+    values = (-0.99, -0.9, -0.5, 0.0, 0.5, 0.9, 0.99)
+    for tx in values:
+        for ty in values:
+            report = cls((tx, ty), dtype=F64).check_foldover(201 if (tx, ty) != (0.99, 0.99) else 401)
+            assert report.ok and report.min_det > 0, (tx, ty, report)
+
+
+class Cubic(lw.Layout):
+    """A user layout that writes only φ: φ_j(p) = p_j + θ_j p_j (1 − p_j²)/2 (bijective for |θ| < 1)."""
+
+    family = "cubic"
+
+    def phi(self, p, theta):
+        theta = theta.to(p.dtype)
+        return p + theta * p * (1 - p * p) / 2
+
+
+class Folding(lw.Layout):
+    """A 'layout' that folds over: φ(p) = p − 2θ p(1 − p²) with θ = 0.9."""
+
+    def phi(self, p, theta):
+        return p - 2 * theta.to(p.dtype) * p * (1 - p * p)
+
+
+def test_user_layout_generic_fallbacks(gen):
+    theta = rand_theta(gen, 0.9)
+    layout = Cubic(theta, dtype=F64)
+    p = rand_points(gen, 1000)
+    q = layout(p).detach()
+    assert (layout.inverse(q) - p).abs().max() < 1e-10
+    fd = central_jacobian(layout, p)
+    assert (layout.jacobian(p) - fd).abs().max() < 1e-7
+    fdt = torch.stack(
+        [
+            (layout.phi(p, theta + 1e-6 * e) - layout.phi(p, theta - 1e-6 * e)) / 2e-6
+            for e in torch.eye(2, dtype=F64)
+        ],
+        -1,
+    )
+    assert (layout.dtheta(p) - fdt).abs().max() < 1e-7
+    assert layout.check_foldover(101).ok
+    # the numerical inverse is differentiable (implicit function theorem)
+    pinv = layout.inverse(q[:50])
+    g = torch.autograd.grad(pinv[:, 0].sum(), layout.rho)[0]
+    h = 1e-6
+    num = []
+    for e in torch.eye(2, dtype=F64):
+        lp, lm = Cubic(theta + h * e, dtype=F64), Cubic(theta - h * e, dtype=F64)
+        num.append(float((lp.inverse(q[:50])[:, 0].sum() - lm.inverse(q[:50])[:, 0].sum()) / (2 * h)))
+    assert torch.allclose(g / (1 - theta**2), torch.tensor(num, dtype=F64), atol=1e-6)
+
+
+def test_foldover_is_reported():
+    report = Folding((0.9, 0.9), dtype=F64).check_foldover(101)
+    assert not report.ok and report.num_nonpositive > 0 and report.min_det < 0
+
+
+def test_uniform_layout_is_identity(gen):
+    p = rand_points(gen)
+    u = lw.UniformLayout()
+    assert torch.equal(u(p), p) and torch.equal(u.inverse(p), p)
+    assert u.theta.numel() == 0 and list(u.parameters()) == []

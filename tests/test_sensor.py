@@ -1,0 +1,152 @@
+"""simulate() and SensorLayer: dtypes, shapes, edge sizes, errors, training behaviour."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from conftest import rand_theta
+
+import layoutwarp as lw
+
+F64 = torch.float64
+
+
+@pytest.mark.parametrize("family", ["uniform", "rect", "curv"])
+def test_batches_and_channels(family, gen):
+    layout = lw.make_layout(family, None if family == "uniform" else rand_theta(gen))
+    img = torch.rand(3, 5, 40, 30, generator=gen)
+    out = lw.simulate(img, layout, (6, 4))
+    assert out.shape == (3, 5, 6, 4)
+    for b in range(3):
+        for c in range(5):
+            single = lw.simulate(img[b : b + 1, c : c + 1], layout, (6, 4))
+            assert torch.allclose(out[b, c], single[0, 0], atol=1e-6)
+    assert lw.simulate(img[0], layout, (6, 4)).shape == (5, 6, 4)  # (C, H, W) accepted
+
+
+@pytest.mark.parametrize("family", ["rect", "curv"])
+def test_constant_image_gives_constant_output(family, gen):
+    value = float(torch.rand(1, generator=gen)) * 10 - 5
+    img = torch.full((1, 2, 33, 47), value, dtype=F64)
+    for method in ("exact", "montecarlo", "point"):
+        out = lw.simulate(img, lw.make_layout(family, rand_theta(gen, 0.999)), (9, 11), method)
+        assert float((out - value).abs().max()) < 1e-6 * (1 + abs(value))
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+def test_half_inputs_are_computed_in_float32(dtype, gen):
+    img = torch.rand(2, 3, 64, 48, generator=gen)
+    layout = lw.CurvLayout(rand_theta(gen))
+    out = lw.simulate(img.to(dtype), layout, (8, 6))
+    assert out.dtype == dtype
+    ref = lw.simulate(img.to(dtype).float(), layout, (8, 6))
+    assert torch.allclose(out.float(), ref, atol=float(torch.finfo(dtype).eps))
+
+
+def test_uint8_is_scaled_to_unit_range(gen):
+    img = torch.randint(0, 256, (1, 3, 30, 40), generator=gen, dtype=torch.uint8)
+    out = lw.simulate(img, lw.UniformLayout(), (10, 20))
+    assert out.dtype == torch.float32
+    ref = cv2.resize(
+        img[0].permute(1, 2, 0).numpy().astype(np.float32) / 255, (20, 10), interpolation=cv2.INTER_AREA
+    )
+    assert np.abs(out[0].permute(1, 2, 0).numpy() - ref).max() < 1e-6
+
+
+@pytest.mark.parametrize("family", ["rect", "curv"])
+@pytest.mark.parametrize("size", [(1, 1), (1, 13), (13, 1), (80, 100)])
+def test_tiny_and_upsampling_sensors(family, size, gen):
+    # (80, 100) is larger than the 20x30 source: sensor pixels smaller than source pixels
+    layout = lw.make_layout(family, rand_theta(gen, 0.9), dtype=F64)
+    img = torch.rand(1, 2, 20, 30, generator=gen, dtype=F64)
+    out = lw.simulate(img, layout, size)
+    assert out.shape == (1, 2, *size)
+    areas = lw.pixel_mesh(layout, size, tol=1e-5).areas().detach()
+    # area-weighted mean of the sensor image equals the image mean (flux is conserved)
+    total = (out[0] * areas).sum((-2, -1)) / 4
+    assert torch.allclose(total, img[0].mean((-2, -1)), atol=1e-9)
+
+
+def test_upsampling_uniform_is_nearest_neighbour(gen):
+    img = torch.rand(1, 1, 5, 7, generator=gen)
+    out = lw.simulate(img, lw.UniformLayout(), (15, 21))
+    assert torch.allclose(out, img.repeat_interleave(3, -2).repeat_interleave(3, -1), atol=1e-6)
+
+
+def test_empty_batch_and_channels():
+    layout = lw.RectLayout((0.1, 0.2))
+    assert lw.simulate(torch.rand(0, 3, 10, 10), layout, (2, 3)).shape == (0, 3, 2, 3)
+    assert lw.simulate(torch.rand(2, 0, 10, 10), layout, (2, 3)).shape == (2, 0, 2, 3)
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf")])
+def test_nonfinite_input_raises_unless_allowed(bad):
+    img = torch.rand(1, 1, 10, 10)
+    img[0, 0, 3, 4] = bad
+    with pytest.raises(ValueError, match="non-finite"):
+        lw.simulate(img, lw.CurvLayout((0.2, 0.1)), (3, 3))
+    out = lw.simulate(img, lw.RectLayout((0.2, 0.1)), (3, 3), allow_nonfinite=True)
+    assert not torch.isfinite(out).all()
+
+
+def test_bad_arguments_raise_clear_errors():
+    img = torch.rand(1, 1, 10, 10)
+    layout = lw.CurvLayout((0.2, 0.1))
+    with pytest.raises(ValueError, match="method must be one of"):
+        lw.simulate(img, layout, (3, 3), "magic")
+    with pytest.raises(ValueError, match="size must be a pair"):
+        lw.simulate(img, layout, (0, 3))
+    with pytest.raises(ValueError, match=r"shape \(B, C, H, W\)"):
+        lw.simulate(torch.rand(10), layout, (3, 3))
+    with pytest.raises(ValueError, match="separable layout"):
+        lw.simulate(img, layout, (3, 3), "separable")
+    with pytest.raises(ValueError, match="radiance='bilinear' needs method='montecarlo'"):
+        lw.simulate(img, layout, (3, 3), "exact", radiance="bilinear")
+    with pytest.raises(ValueError, match="tol must be"):
+        lw.simulate(img, layout, (3, 3), tol=0)
+    with pytest.raises(ValueError, match="samples must be >= 1"):
+        lw.simulate(img, layout, (3, 3), "montecarlo", samples=0)
+    with pytest.raises(TypeError, match="dtype"):
+        lw.simulate(torch.ones(1, 1, 4, 4, dtype=torch.int32), layout, (2, 2))
+
+
+def test_plan_models_only_what_the_scene_needs():
+    assert lw.plan_simulation(lw.UniformLayout(), (9, 9), "exact").method == "separable"
+    assert lw.plan_simulation(lw.RectLayout((0.5, 0.5)), (9, 9), "auto").method == "separable"
+    plan = lw.plan_simulation(lw.CurvLayout((0.5, 0.5)), (9, 9), "auto", tol=1e-3)
+    assert plan.method == "exact" and plan.error_bound == 1e-3
+    _, plan = lw.simulate(torch.rand(1, 1, 20, 20), lw.RectLayout((0.2, 0.2)), (4, 4), return_plan=True)
+    assert plan.method == "separable" and plan.error_bound == 0.0
+
+
+def test_sensor_layer_learns_and_freezes(gen):
+    img = torch.rand(4, 1, 28, 28, generator=gen)
+    target = torch.rand(4, 1, 4, 4, generator=gen)
+    for family in ("rect", "curv"):
+        layer = lw.SensorLayer((4, 4), family)
+        assert torch.equal(layer.theta.detach(), torch.zeros(2))
+        opt = torch.optim.SGD(layer.parameters(), lr=0.5)
+        loss = (layer(img) - target).pow(2).mean()
+        loss.backward()
+        assert layer.layout.rho.grad is not None and bool(layer.layout.rho.grad.abs().sum() > 0)
+        opt.step()
+        assert not torch.equal(layer.theta.detach(), torch.zeros(2))
+        assert layer.last_plan is not None
+        frozen = lw.SensorLayer((4, 4), family, learn=False)
+        assert list(frozen.parameters()) == []
+        assert torch.allclose(frozen(img), lw.simulate(img, lw.UniformLayout(), (4, 4)), atol=1e-6)
+    assert lw.SensorLayer((4, 4), "curv", method="montecarlo").describe().method == "montecarlo"
+
+
+def test_image_gradient_of_exact_is_adjoint(gen):
+    # <simulate(x), y> == <x, simulate^T(y)>: the image gradient is the transpose operator
+    layout = lw.CurvLayout(rand_theta(gen), dtype=F64)
+    x = torch.rand(1, 1, 25, 35, generator=gen, dtype=F64, requires_grad=True)
+    y = torch.rand(1, 1, 6, 8, generator=gen, dtype=F64)
+    out = lw.simulate(x, layout, (6, 8))
+    (g,) = torch.autograd.grad((out * y).sum(), x)
+    # gradient summed over all source pixels = Σ_k y_k (each pixel's weights sum to 1)
+    assert torch.allclose(g.sum(), y.sum(), atol=1e-10)
+    assert bool((g >= -1e-12).all())
