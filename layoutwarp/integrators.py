@@ -42,84 +42,131 @@ Radiance = Callable[[Tensor], Tensor]
 # ----------------------------------------------------------------------------------------
 # Exact: Green's theorem over polygon pixels
 # ----------------------------------------------------------------------------------------
-def _row_tables(image: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """Prefix tables of a piecewise-constant image ``(N, H, W)``, padded to width ``W + 1``.
+class _PrefixTables:
+    """Row prefix sums of a piecewise-constant image ``(N, H, W)``, safe in float32.
 
-    ``S[r, c] = Σ_{c' < c} L[r, c']`` (the row prefix ``P`` at integer ``X = c``) and
-    ``T[r, c] = ∫_0^c P_r(X) dX = Σ_{c' < c} (S[r, c'] + L[r, c'] / 2)``.
+    ``P_r(X) = ∫_0^X L(s, r) ds`` at the start of cell ``c`` is split into a float64 block
+    offset (the sum of whole ``B``-column blocks before ``c``) and a block-local float32
+    prefix, so a value never carries more than ``B`` cells' worth of rounding however wide
+    the row is; and two look-ups of the same cell return bit-identical numbers, so the left
+    and right boundaries of a pixel narrower than a source cell cancel exactly.
     """
-    lpad = F.pad(image, (0, 1))
-    s = F.pad(torch.cumsum(image, -1), (1, 0))
-    t = F.pad(torch.cumsum(s[..., :-1] + image / 2, -1), (1, 0))
-    return lpad, s, t
+
+    def __init__(self, image: Tensor, block: int = 64):
+        n, h, w = image.shape
+        nb = -(-w // block)
+        padded = image if nb * block == w else F.pad(image, (0, nb * block - w))
+        incl = padded.reshape(n, h, nb, block).cumsum(-1)  # block-local inclusive prefix
+        offs = incl[..., -1].double().cumsum(-1) - incl[..., -1].double()  # exclusive, float64
+        self.block, self.nb, self.width, self.rows = block, nb, nb * block, h
+        self.incl = incl.reshape(n, -1)
+        self.values = padded.reshape(n, -1)
+        self.offsets = offs.reshape(n, -1)
+
+    def prefix(self, row: Tensor, col: Tensor, frac: Tensor) -> Tensor:
+        """``P_row(col + frac)`` for ``frac`` in ``[0, 1]``: ``(N, pieces)`` in float64."""
+        idx = row * self.width + col
+        lv = self.values[:, idx]
+        start = (self.incl[:, idx] - lv).double()  # same cell → bit-identical start
+        offset = self.offsets[:, row * self.nb + col // self.block]
+        return offset + start + frac.to(torch.float64) * lv.double()
 
 
-def _split_rows(a: Tensor, b: Tensor, rows: int) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """Cut segments ``a → b`` (source pixel units, ``(S, 2)``) at integer ``Y``.
+def _ranges(lo: Tensor, count: Tensor) -> tuple[Tensor, Tensor]:
+    """For ``count[i]`` consecutive integers from ``lo[i]``: (parent index, integer)."""
+    parent = torch.repeat_interleave(torch.arange(count.numel(), device=count.device), count)
+    first = torch.cumsum(count, 0) - count
+    return parent, lo[parent] + (torch.arange(parent.numel(), device=count.device) - first[parent])
 
-    Horizontal segments (``ΔY = 0``) are dropped: they contribute nothing to ``∮ P dY``.
+
+def _segment_cells(a: Tensor, b: Tensor, rows: int, cols: int):
+    """Cut segments ``a → b`` (source pixel units, ``(S, 2)``) into single-cell pieces.
+
+    Segments are cut at integer ``Y`` (rows), then each row piece at integer ``X``
+    (columns); both cuts come out in order, so nothing is sorted.
 
     Returns:
-        ``(seg, row, x0, x1, dy)`` per piece: parent segment index, source row, the piece's
-        ``X`` at its two ends ordered by increasing ``Y``, and the signed ``ΔY``.
+        ``(seg, t0, t1, row, col, idx2)``: parent segment, the piece's parameter range on it,
+        its cell, and a second flat cell index ``r · cols + c`` that differs from the cell's
+        own only where the piece lies exactly on a cell boundary line (then the mean of the
+        two cells is the radiance along it: the symmetric, central-difference derivative).
     """
     ya, yb = a[:, 1], b[:, 1]
-    keep = torch.nonzero(ya != yb).squeeze(1)
-    a, b, ya, yb = a[keep], b[keep], ya[keep], yb[keep]
+    flat = ya == yb
     ylo, yhi = torch.minimum(ya, yb), torch.maximum(ya, yb)
-    r0 = ylo.detach().floor().clamp(0, rows - 1).long()
-    r1 = (yhi.detach().ceil().long() - 1).clamp(0, rows - 1)
-    r1 = torch.maximum(r1, r0)
-    count = r1 - r0 + 1
-    piece = torch.repeat_interleave(torch.arange(keep.numel(), device=a.device), count)
-    first = torch.cumsum(count, 0) - count
-    row = r0[piece] + (torch.arange(piece.numel(), device=a.device) - first[piece])
+    r0 = ylo.floor().clamp(0, rows - 1).long()
+    r1 = torch.maximum((yhi.ceil().long() - 1).clamp(0, rows - 1), r0)
+    r1 = torch.where(flat, r0, r1)
+    piece, row = _ranges(r0, r1 - r0 + 1)
+    pa, pb, fl = a[piece], b[piece], flat[piece]
     rowf = row.to(a.dtype)
-    lo = torch.maximum(ylo[piece], rowf)
-    hi = torch.minimum(yhi[piece], rowf + 1)
-    # X along the segment at a given Y
-    pa, pb = a[piece], b[piece]
-    inv = 1 / (pb[:, 1] - pa[:, 1])
-    x_lo = pa[:, 0] + (lo - pa[:, 1]) * inv * (pb[:, 0] - pa[:, 0])
-    x_hi = pa[:, 0] + (hi - pa[:, 1]) * inv * (pb[:, 0] - pa[:, 0])
-    sign = torch.sign(pb[:, 1] - pa[:, 1])
-    return keep[piece], row, x_lo, x_hi, sign * (hi - lo)
+    dyv = pb[:, 1] - pa[:, 1]
+    inv_dy = 1 / torch.where(fl, torch.ones_like(dyv), dyv)
+    ta = ((torch.maximum(ylo[piece], rowf) - pa[:, 1]) * inv_dy).clamp(0, 1)
+    tb = ((torch.minimum(yhi[piece], rowf + 1) - pa[:, 1]) * inv_dy).clamp(0, 1)
+    t_lo = torch.where(fl, torch.zeros_like(ta), torch.minimum(ta, tb))
+    t_hi = torch.where(fl, torch.ones_like(ta), torch.maximum(ta, tb))
+    # a horizontal segment on a row boundary reads the rows on both sides
+    on_row = fl & (pa[:, 1] == rowf) & (row > 0)
+    row2 = torch.where(on_row, row - 1, row)
+    # columns within each row piece
+    dxv = pb[:, 0] - pa[:, 0]
+    xa = pa[:, 0] + t_lo * dxv
+    xb = pa[:, 0] + t_hi * dxv
+    xlo, xhi = torch.minimum(xa, xb), torch.maximum(xa, xb)
+    c0 = xlo.floor().clamp(0, cols - 1).long()
+    c1 = torch.maximum((xhi.ceil().long() - 1).clamp(0, cols - 1), c0)
+    vertical = dxv == 0
+    c1 = torch.where(vertical, c0, c1)
+    sub, col = _ranges(c0, c1 - c0 + 1)
+    colf = col.to(a.dtype)
+    sa = pa[sub]
+    # one column: keep the row piece's range (X → t is ill-conditioned for tiny ΔX)
+    vert = (vertical | (c1 == c0))[sub]
+    inv_dx = 1 / torch.where(vert, torch.ones_like(dxv[sub]), dxv[sub])
+    u0 = ((torch.maximum(xlo[sub], colf) - sa[:, 0]) * inv_dx).clamp(0, 1)
+    u1 = ((torch.minimum(xhi[sub], colf + 1) - sa[:, 0]) * inv_dx).clamp(0, 1)
+    t0 = torch.where(vert, t_lo[sub], torch.maximum(torch.minimum(u0, u1), t_lo[sub]))
+    t1 = torch.where(vert, t_hi[sub], torch.minimum(torch.maximum(u0, u1), t_hi[sub]))
+    # a vertical piece on a column boundary reads the columns on both sides
+    on_col = vertical[sub] & (sa[:, 0] == colf) & (col > 0)
+    col2 = torch.where(on_col, col - 1, col)
+    return piece[sub], t0, t1, row[sub], col, row2[sub] * cols + col2
 
 
-def _mean_prefix(tables: tuple[Tensor, Tensor, Tensor], row: Tensor, x0: Tensor, x1: Tensor) -> Tensor:
-    """Mean of the row prefix ``P_row(X)`` over ``[x0, x1]`` (either order), ``(N, pieces)``.
+class _BoundaryFlux(torch.autograd.Function):
+    """Identity on per-segment integrals; gives the vertices their exact Reynolds gradient.
 
-    ``P`` is piecewise linear, so within one source cell the mean is ``P`` at the midpoint;
-    across cells it is split into a partial first cell, whole cells (from ``T``) and a partial
-    last cell, a convex combination with no cancellation for short intervals.
+    For a straight segment ``r(t) = a + t (b − a)`` with outward normal line element
+    ``n ds = (ΔY, −ΔX) dt``, ``∂/∂a = (ΔY, −ΔX) ∫ (1 − t) L dt`` and
+    ``∂/∂b = (ΔY, −ΔX) ∫ t L dt``. Summed around each closed pixel boundary this is the
+    derivative of ``∬_A L`` w.r.t. the vertices (the per-segment terms differ from a single
+    open segment's derivative only by endpoint terms that cancel around the loop).
     """
-    lpad, s, t = tables
-    n, _, wp = s.shape
-    w = wp - 1
-    xa, xb = torch.minimum(x0, x1), torch.maximum(x0, x1)
-    ca = xa.detach().floor().clamp(0, w - 1).long()
-    cb = xb.detach().floor().clamp(0, w - 1).long()
-    base = row * wp
-    lflat, sflat, tflat = lpad.reshape(n, -1), s.reshape(n, -1), t.reshape(n, -1)
 
-    def g(table: Tensor, col: Tensor) -> Tensor:
-        return table[:, base + col]
+    @staticmethod
+    def forward(ctx, per_seg, verts, image, seg_start, seg_end):
+        ctx.save_for_backward(verts, image, seg_start, seg_end)
+        return per_seg.clone()
 
-    la, lb = g(lflat, ca), g(lflat, cb)
-    sa, sb = g(sflat, ca), g(sflat, cb)
-    fa = (xa - ca.to(xa.dtype))[None]
-    fb = (xb - cb.to(xb.dtype))[None]
-    same = (ca == cb)[None]
-    # same cell: P at the midpoint
-    p_mid = sa + 0.5 * (fa + fb) * la
-    # different cells
-    sa1 = g(sflat, ca + 1)
-    first = (1 - fa) * (sa + fa * la + sa1) / 2
-    middle = g(tflat, cb) - g(tflat, ca + 1)
-    last = fb * (sb + (sb + fb * lb)) / 2
-    dx = (xb - xa)[None]
-    p_span = (first + middle + last) / torch.where(same, torch.ones_like(dx), dx)
-    return torch.where(same, p_mid, p_span)
+    @staticmethod
+    def backward(ctx, grad):
+        verts, image, seg_start, seg_end = ctx.saved_tensors
+        n, hs, ws = image.shape
+        a, b = verts[seg_start], verts[seg_end]
+        seg, t0, t1, row, col, i2 = _segment_cells(a, b, hs, ws)
+        flat_img = image.reshape(n, -1)
+        lv = 0.5 * (flat_img[:, row * ws + col] + flat_img[:, i2]).to(grad.dtype)  # (N, pieces)
+        gl = (grad[:, seg] * lv).sum(0)  # Σ over channels of ∂loss/∂E_s · L
+        m1 = (t1 * t1 - t0 * t0) / 2  # ∫ t dt
+        wa = torch.zeros_like(verts[:, 0]).new_zeros(seg_start.numel())
+        wa = wa.index_add(0, seg, gl * ((t1 - t0) - m1))
+        wb = torch.zeros_like(wa).index_add(0, seg, gl * m1)
+        normal = torch.stack([b[:, 1] - a[:, 1], a[:, 0] - b[:, 0]], -1)
+        g = torch.zeros_like(verts)
+        g.index_add_(0, seg_start, wa[:, None] * normal)
+        g.index_add_(0, seg_end, wb[:, None] * normal)
+        return grad, g, None, None, None
 
 
 def integrate_exact(
@@ -133,14 +180,16 @@ def integrate_exact(
     """Exact mean of a piecewise-constant (box) image over every polygonal pixel.
 
     Uses Green's theorem ``∬_A L dA = ∮_∂A P dY`` with ``P(X, Y) = ∫_0^X L(s, Y) ds``: each
-    boundary segment is cut at source rows, and its integral over one row is a closed form
-    in a few look-ups of float64 prefix tables. Exact for straight-edged pixels; curved
-    pixel edges are polylines within ``tol`` (see :func:`layoutwarp.mesh.pixel_mesh`).
-    Differentiable in the image and (through the mesh vertices) in θ; the derivative w.r.t.
-    the vertices is the Reynolds boundary term, exactly.
+    boundary segment is cut at source rows and columns, and within one cell ``P`` is linear
+    in ``X``, so a piece contributes ``ΔY · P(mid-X)`` exactly. Each shared edge is computed
+    once; straight-edged pixels are exact, curved edges are polylines within ``tol``
+    (see :func:`layoutwarp.mesh.pixel_mesh`). Differentiable in the image (autograd through
+    the prefix tables) and, through the mesh vertices, in θ, with the exact Reynolds
+    boundary gradient (symmetric where an edge lies on a source cell boundary).
 
     Args:
-        image: ``(N, H, W)`` floating source image.
+        image: ``(N, H, W)`` floating source image (float32 tables for float32 input,
+            float64 for float64).
         layout: the pixel layout.
         size: sensor size ``(h, w)``.
         tol: polyline tolerance (relative pixel-value error) for curved edges.
@@ -154,15 +203,24 @@ def integrate_exact(
         mesh = pixel_mesh(layout, size, tol=tol, dtype=torch.float64)
     verts = sensor_to_pixels(mesh.vertices.double(), (hs, ws))
     verts = torch.stack([verts[:, 0].clamp(0, ws), verts[:, 1].clamp(0, hs)], -1)
-    a, b = verts[mesh.seg_start], verts[mesh.seg_end]
-    seg, row, x0, x1, dy = _split_rows(a, b, hs)
-    tables = _row_tables(image.double())
-    contrib = dy[None] * _mean_prefix(tables, row, x0, x1)  # (N, pieces)
+    vd = verts.detach()
+    keep = torch.nonzero(vd[mesh.seg_start, 1] != vd[mesh.seg_end, 1]).squeeze(1)  # ΔY = 0 adds nothing
+    a, b = vd[mesh.seg_start[keep]], vd[mesh.seg_end[keep]]
+    seg, t0, t1, row, col, _ = _segment_cells(a, b, hs, ws)
+    d = (b - a)[seg]
+    dy = (t1 - t0) * d[:, 1]
+    frac = (a[seg, 0] + (t0 + t1) / 2 * d[:, 0] - col.to(d.dtype)).clamp(0, 1)  # mid-X in its cell
+    seg = keep[seg]
+    work = image if image.dtype == torch.float64 else image.float()
+    tables = _PrefixTables(work)
+    contrib = dy[None] * tables.prefix(row, col, frac)  # (N, pieces)
     per_seg = contrib.new_zeros(n, mesh.num_segments).index_add(1, seg, contrib)
+    if verts.requires_grad:
+        per_seg = _BoundaryFlux.apply(per_seg, verts, work.detach(), mesh.seg_start, mesh.seg_end)
     integral = mesh.combine_edges(mesh.sum_over_edges(per_seg))
     # polygon areas in source pixel units, from the same polyline
-    area_seg = (b[:, 1] - a[:, 1]) * (a[:, 0] + b[:, 0]) / 2
-    area = mesh.combine_edges(mesh.sum_over_edges(area_seg))
+    av, bv = verts[mesh.seg_start], verts[mesh.seg_end]
+    area = mesh.combine_edges(mesh.sum_over_edges((bv[:, 1] - av[:, 1]) * (av[:, 0] + bv[:, 0]) / 2))
     return integral / area
 
 
@@ -206,12 +264,99 @@ def _separable_edges(
     return ((px + 1) * (ws / 2)).clamp(0, ws), ((py + 1) * (hs / 2)).clamp(0, hs)
 
 
+def _axis_csr(edges: Tensor, n_src: int, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
+    """The ``(n, n_src)`` overlap-weight matrix of an axis and its transpose, as CSR."""
+    dst, src, wt = axis_weights(edges.detach(), n_src)
+    n = edges.numel() - 1
+    idx, wt = torch.stack([dst, src]), wt.to(dtype)
+    mat = torch.sparse_coo_tensor(idx, wt, (n, n_src)).coalesce().to_sparse_csr()
+    mat_t = torch.sparse_coo_tensor(idx.flip(0), wt, (n_src, n)).coalesce().to_sparse_csr()
+    return mat, mat_t
+
+
+def _rows(mat: Tensor, x: Tensor) -> Tensor:
+    """``mat @ x[k]`` for every ``k``: sparse ``(m, H)`` times ``(N, H, W)`` gives ``(N, m, W)``."""
+    n, h, w = x.shape
+    if n <= 8:
+        return torch.stack([torch.sparse.mm(mat, x[k]) for k in range(n)])
+    flat = x.permute(1, 0, 2).reshape(h, n * w)  # one call for many small images
+    return torch.sparse.mm(mat, flat).view(-1, n, w).permute(1, 0, 2)
+
+
+def _cols(x: Tensor, mat_t: Tensor) -> Tensor:
+    """``x @ mat_t``: ``(N, H, W)`` times sparse ``(W, m)`` gives ``(N, H, m)``."""
+    n, h, w = x.shape
+    return torch.mm(x.reshape(n * h, w), mat_t).view(n, h, -1)
+
+
+def _edge_values(profile: Tensor, edges: Tensor) -> Tensor:
+    """A piecewise-constant ``profile (..., n_src)`` read at ``edges (m,)``: ``(..., m)``.
+
+    At an exact cell boundary the mean of the two cells is returned (the symmetric
+    subgradient, which is what central differences see).
+    """
+    n_src = profile.shape[-1]
+    x = edges.detach()
+    left = (x.ceil().long() - 1).clamp(0, n_src - 1)
+    right = x.floor().long().clamp(0, n_src - 1)
+    return 0.5 * (profile[..., left] + profile[..., right])
+
+
+class _SeparableArea(torch.autograd.Function):
+    """``out = W_y · image · W_xᵀ`` with overlap weights from the interval edges.
+
+    The gradient w.r.t. an interval edge is the boundary (Reynolds) term of the box
+    integral: for interval ``i`` with length ``Δ_i`` and mean ``I_i``, moving its right edge
+    ``e_{i+1}`` changes ``I_i`` by ``(L(e_{i+1}) − I_i) / Δ_i``, where ``L`` is the image
+    already averaged over the other axis.
+    """
+
+    @staticmethod
+    def forward(ctx, image: Tensor, ex: Tensor, ey: Tensor) -> Tensor:
+        _, hs, ws = image.shape
+        wy, wy_t = _axis_csr(ey, hs, image.dtype)
+        wx, wx_t = _axis_csr(ex, ws, image.dtype)
+        y1 = _rows(wy, image)  # (N, h, W)
+        out = _cols(y1, wx_t)  # (N, h, w)
+        ctx.mats = (wy_t, wx, wx_t)
+        ctx.save_for_backward(image, ex, ey, y1, out)
+        return out
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):
+        image, ex, ey, y1, out = ctx.saved_tensors
+        wy_t, wx, wx_t = ctx.mats
+        grad = grad.contiguous()
+        g_img = g_ex = g_ey = None
+        if ctx.needs_input_grad[0]:
+            g_img = _rows(wy_t, _cols(grad, wx))
+        if ctx.needs_input_grad[1]:
+            g_ex = _edge_grad(grad, out, _edge_values(y1, ex), ex, -1)
+        if ctx.needs_input_grad[2]:
+            x1 = _cols(image, wx_t)  # (N, H, w): the image averaged over each column interval
+            g_ey = _edge_grad(grad, out, _edge_values(x1.transpose(1, 2), ey).transpose(1, 2), ey, -2)
+        return g_img, g_ex, g_ey
+
+
+def _edge_grad(grad: Tensor, out: Tensor, vals: Tensor, edges: Tensor, dim: int) -> Tensor:
+    """``∂loss/∂edge`` from boundary values ``vals`` (``n + 1`` along ``dim`` of ``out``)."""
+    n = out.shape[dim]
+    shape = [1] * out.ndim
+    shape[dim] = n
+    weight = grad / (edges[1:] - edges[:-1]).to(out.dtype).view(shape)
+    others = [d for d in range(out.ndim) if d != dim % out.ndim]
+    right = (weight * (vals.narrow(dim, 1, n) - out)).sum(others).double()
+    left = (weight * (vals.narrow(dim, 0, n) - out)).sum(others).double()
+    return F.pad(right, (1, 0)) - F.pad(left, (0, 1))
+
+
 def integrate_separable(image: Tensor, layout: Layout, size: tuple[int, int]) -> Tensor:
     """Exact box-radiance mean over the rectangular pixels of a separable layout.
 
-    Two sparse passes: rows (``H → h``), then columns (``W → w``). For the uniform layout
-    this is area resampling, identical to ``cv2.resize(..., interpolation=cv2.INTER_AREA)``
-    when downscaling.
+    Two sparse passes, rows (``H → h``) then columns (``W → w``), with per-axis overlap
+    weights. For the uniform layout this is area resampling, identical to
+    ``cv2.resize(..., interpolation=cv2.INTER_AREA)`` when downscaling. Differentiable in the
+    image and in θ (analytic boundary gradient).
 
     Args:
         image: ``(N, H, W)`` floating source image.
@@ -219,21 +364,14 @@ def integrate_separable(image: Tensor, layout: Layout, size: tuple[int, int]) ->
         size: sensor size ``(h, w)``.
 
     Returns:
-        ``(N, h, w)`` in the image's dtype (float64 weights are used for float64 input).
+        ``(N, h, w)`` in float64 for float64 input, else float32.
     """
     if not layout.separable:
         raise ValueError(f"integrate_separable needs a separable layout, got {type(layout).__name__}")
-    n, hs, ws = image.shape
-    h, w = size
+    _, hs, ws = image.shape
     dtype = torch.float64 if image.dtype == torch.float64 else torch.float32
     ex, ey = _separable_edges(layout, size, (hs, ws), torch.float64)
-    dy_, sy_, wy_ = axis_weights(ey, hs)
-    dx_, sx_, wx_ = axis_weights(ex, ws)
-    img = image.to(dtype)
-    rows = img.index_select(1, sy_) * wy_.to(dtype)[None, :, None]
-    out = img.new_zeros(n, h, ws).index_add(1, dy_, rows)
-    cols = out.index_select(2, sx_) * wx_.to(dtype)[None, None, :]
-    return out.new_zeros(n, h, w).index_add(2, dx_, cols)
+    return _SeparableArea.apply(image.to(dtype).contiguous(), ex, ey)
 
 
 # ----------------------------------------------------------------------------------------

@@ -52,14 +52,20 @@ def _denom(a: Tensor, t: Tensor) -> Tensor:
 
     For ``t >= 0`` it is summed as ``(1 − t) + 2t(1 − a)`` and for ``t < 0`` as
     ``(1 + t) + 2|t|a``: two non-negative terms either way, so the relative error stays at
-    a few ulp even when ``t → ±1`` and ``a → 1``.
+    a few ulp even when ``t → ±1`` and ``a → 1``. Written as ``(1 − |t|) + 2|t| g`` with
+    ``g = s + (1 − 2s) a`` (``s = [t >= 0]``, so ``g`` is ``1 − a`` or ``a``) to need only
+    two fused multiply-adds on the large tensor ``a``.
     """
-    return torch.where(t >= 0, (1 - t) + 2 * t * (1 - a), (1 + t) - 2 * t * a)
+    s = (t >= 0).to(a.dtype)
+    t_abs = t * (2 * s - 1)  # |t| whose derivative at t = 0 is the t >= 0 branch's, not 0
+    g = torch.addcmul(s, 1 - 2 * s, a)
+    return torch.addcmul(1 - t_abs, 2 * t_abs, g)
 
 
 def _safe_norm(p: Tensor) -> Tensor:
-    """``‖p‖`` over the last axis with a zero (not NaN) gradient at the origin."""
-    r2 = (p * p).sum(-1)
+    """``‖p‖`` over the last axis (of size 2) with a zero (not NaN) gradient at the origin."""
+    x, y = p[..., 0], p[..., 1]
+    r2 = x * x + y * y
     nonzero = r2 > 0
     return torch.where(nonzero, torch.sqrt(torch.where(nonzero, r2, torch.ones_like(r2))), 0.0)
 
@@ -138,9 +144,8 @@ def phi_curv(p: Tensor, theta: Tensor) -> Tensor:
         theta: ``(2,)`` deformation strengths in ``(-1, 1)``.
     """
     p, theta = _promote(p, theta)
-    r = _safe_norm(p).clamp(max=1)[..., None]
-    inside = (p * p).sum(-1, keepdim=True) < 1
-    return torch.where(inside, p * (1 - theta) / _denom(r, theta), p)
+    r = _safe_norm(p)[..., None]
+    return torch.where(r < 1, p * (1 - theta) / _denom(r.clamp(max=1), theta), p)
 
 
 def phi_curv_inverse(q: Tensor, theta: Tensor) -> Tensor:

@@ -216,7 +216,7 @@ def _shoelace(poly: Tensor) -> Tensor:
 
 
 def _edge_parameters(
-    layout: Layout, size: tuple[int, int], tol: float, max_subdiv: int
+    layout: Layout, size: tuple[int, int], tol: float, max_subdiv: int, with_grad: bool = False
 ) -> tuple[Tensor, Tensor]:
     """Polyline parameters of every edge so that pixel values stay within ``tol``.
 
@@ -227,8 +227,10 @@ def _edge_parameters(
     area next to it by at most ``(2/3) ℓ e / n²``. Giving each of a pixel's four edges a
     quarter of the budget ``tol · A`` (``A`` the smaller adjacent pixel area), shared along
     the edge in proportion to length, bounds every pixel's value error by ``tol`` times the
-    radiance range. Sagittas are measured perpendicular to the chord at 1/4, 1/2 and 3/4 of
-    each piece (with a safety factor 2), so straight edges get exactly one segment.
+    radiance range. Sagittas are measured perpendicular to the chord at the middle of each
+    piece (with a safety factor 2), so straight edges get exactly one segment. With
+    ``with_grad``, the parameter velocity ``∂φ/∂θ`` along each edge is held to the same
+    bound, so that θ-gradients are as accurate as values.
 
     Returns:
         ``(n, t)``: segments per edge ``(E,)`` and the parameter in ``[0, 1)`` of every
@@ -252,30 +254,39 @@ def _edge_parameters(
     brk = torch.where(torch.isfinite(brk) & (brk > 1e-6) & (brk < 1 - 1e-6), brk, torch.ones_like(brk))
     bounds = torch.cat([torch.zeros(ne, 1, dtype=ua.dtype), brk, torch.ones(ne, 1, dtype=ua.dtype)], 1)
     bounds = bounds.sort(1).values
-    lo, hi = bounds[:, :-1], bounds[:, 1:]  # (E, P) pieces, possibly empty
-    d = (ub - ua)[:, None]
-
-    def at(t: Tensor) -> Tensor:
-        return layout.phi(ua[:, None] + t[..., None] * d, th)
-
-    pa, pb = at(lo), at(hi)
-    chord = pb - pa
-    length = chord.norm(dim=-1)
-    sag = torch.zeros_like(length)
-    for f in (0.25, 0.5, 0.75):
-        m = at(lo + f * (hi - lo)) - pa
-        cross = (chord[..., 0] * m[..., 1] - chord[..., 1] * m[..., 0]).abs() / length.clamp_min(1e-300)
-        sag = torch.maximum(sag, cross / (4 * f * (1 - f)))  # parabola: e(f) = 4 f (1 − f) e
-    budget = 3 * tol * amin[:, None] / (8 * length.sum(1, keepdim=True).clamp_min(1e-300))
+    nonempty = bounds[:, 1:] - bounds[:, :-1] > 1e-12  # (E, P) pieces between breakpoints
+    edge, k = torch.nonzero(nonempty, as_tuple=True)  # row-major: pieces in edge order
+    lo, hi = bounds[edge, k], bounds[edge, k + 1]
+    a0, d = ua[edge], (ub - ua)[edge]
+    pts = torch.stack([a0 + lo[:, None] * d, a0 + hi[:, None] * d, a0 + ((lo + hi) / 2)[:, None] * d])
+    ends = layout.phi(pts, th)
+    chord = ends[1] - ends[0]
+    length = torch.sqrt(chord[:, 0] ** 2 + chord[:, 1] ** 2)
+    m = ends[2] - ends[0]
+    sag = (chord[:, 0] * m[:, 1] - chord[:, 1] * m[:, 0]).abs() / length.clamp_min(1e-300)
+    if with_grad and th.numel():
+        # the θ-gradient moves each edge by ∂φ/∂θ, which bends it even where φ does not
+        # (e.g. at θ = 0): bound the normal deviation of that field from linear the same way
+        v = layout.phi_dtheta(pts, th)  # (3, pieces, 2, P)
+        dev = v[2] - (v[0] + v[1]) / 2
+        unit = chord / length.clamp_min(1e-300)[:, None]
+        normal_dev = (unit[:, 0, None] * dev[:, 1] - unit[:, 1, None] * dev[:, 0]).abs().amax(-1)
+        sag = torch.maximum(sag, normal_dev)
+    edge_len = torch.zeros(ne, dtype=ua.dtype).index_add_(0, edge, length)
+    budget = 3 * tol * amin[edge] / (8 * edge_len[edge].clamp_min(1e-300))
     n = torch.sqrt(2 * sag / budget).ceil().clamp(1, max_subdiv)
-    n = torch.where(sag <= 1e-15 * length, torch.ones_like(n), n)
-    n = torch.where(hi - lo > 1e-12, n, torch.zeros_like(n)).long()  # empty pieces
-    counts = n.sum(1)
-    piece = torch.repeat_interleave(torch.arange(n.numel()), n.flatten())
-    first = torch.cumsum(n.flatten(), 0) - n.flatten()
-    k = torch.arange(piece.numel()) - first[piece]
-    lo_f, hi_f, n_f = lo.flatten()[piece], hi.flatten()[piece], n.flatten()[piece].to(lo.dtype)
-    return counts, lo_f + (hi_f - lo_f) * k.to(lo.dtype) / n_f
+    n = torch.where(sag <= 1e-15 * length, torch.ones_like(n), n).long()
+    counts = torch.zeros(ne, dtype=torch.long).index_add_(0, edge, n)
+    piece, kk = _segments_of(n)
+    lo_f, hi_f, n_f = lo[piece], hi[piece], n[piece].to(lo.dtype)
+    return counts, lo_f + (hi_f - lo_f) * kk.to(lo.dtype) / n_f
+
+
+def _segments_of(n: Tensor) -> tuple[Tensor, Tensor]:
+    """For ``n[i]`` items per group: (group index, index within group) of every item."""
+    group = torch.repeat_interleave(torch.arange(n.numel()), n)
+    first = torch.cumsum(n, 0) - n
+    return group, torch.arange(group.numel()) - first[group]
 
 
 def pixel_mesh(
@@ -294,8 +305,8 @@ def pixel_mesh(
             differentiable in θ).
         size: sensor size ``(H, W)``.
         tol: polyline tolerance as a bound on the relative pixel-value error (see
-            :func:`_edge_parameters`); ignored for straight-edged layouts, which always use
-            one segment per edge.
+            :func:`_edge_parameters`), and on the θ-gradient's when θ requires grad;
+            ignored for straight-edged layouts, which always use one segment per edge.
         max_subdiv: cap on segments per edge.
         subdivisions: force a segment count per edge (an int, or an ``(E,)`` tensor) instead
             of the adaptive choice; used for reference computations.
@@ -320,7 +331,8 @@ def pixel_mesh(
     else:
         if not (tol > 0):
             raise ValueError(f"tol must be > 0, got {tol!r}")
-        n, t_start = _edge_parameters(layout, (h, w), float(tol), max_subdiv)
+        with_grad = torch.is_grad_enabled() and theta.requires_grad
+        n, t_start = _edge_parameters(layout, (h, w), float(tol), max_subdiv, with_grad)
     ncorner = (h + 1) * (w + 1)
     cid = torch.arange(ncorner).view(h + 1, w + 1)
     # endpoint corner ids of every edge, in edge order

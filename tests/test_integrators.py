@@ -69,6 +69,47 @@ def test_exact_matches_polygon_clipping(family, gen):
             assert np.abs(sep - ref).max() < 1e-9
 
 
+def test_segment_cells_tile_every_segment_in_order(gen):
+    # random segments, including (nearly) vertical and horizontal ones and ones on cell lines
+    from layoutwarp.integrators import _segment_cells
+
+    n = 400
+    a = torch.rand(n, 2, generator=gen, dtype=F64) * torch.tensor([30.0, 20.0], dtype=F64)
+    b = a + (torch.rand(n, 2, generator=gen, dtype=F64) - 0.5) * 12
+    b[:100, 0] = a[:100, 0] + torch.randn(100, generator=gen, dtype=F64) * 1e-13  # nearly vertical
+    b[100:150, 1] = a[100:150, 1]  # horizontal
+    a[150:200, 0] = b[150:200, 0] = a[150:200, 0].round()  # vertical on a column line
+    top = torch.tensor([30.0, 20.0], dtype=F64)
+    a, b = torch.minimum(a.clamp_min(0), top), torch.minimum(b.clamp_min(0), top)
+    seg, t0, t1, row, col, _ = _segment_cells(a, b, 20, 30)
+    for s in range(n):
+        k = seg == s
+        order = torch.argsort(t0[k])  # pieces come in row order, not parameter order
+        lo, hi = t0[k][order], t1[k][order]
+        assert bool((hi >= lo).all())
+        # the pieces tile [0, 1] without gaps or overlaps
+        assert abs(float(lo[0])) < 1e-12 and abs(float(hi[-1]) - 1) < 1e-12, s
+        assert bool(((lo[1:] - hi[:-1]).abs() < 1e-12).all()), s
+        mid = (lo + hi) / 2  # each piece lies in its cell
+        x = a[s, 0] + mid * (b[s, 0] - a[s, 0])
+        y = a[s, 1] + mid * (b[s, 1] - a[s, 1])
+        c, r = col[k][order], row[k][order]
+        inside = (x >= c - 1e-9) & (x <= c + 1 + 1e-9) & (y >= r - 1e-9) & (y <= r + 1 + 1e-9)
+        assert bool(inside.all()), s
+
+
+@pytest.mark.parametrize("family", ["rect", "curv"])
+def test_exact_at_scale_conserves_flux_and_stays_in_range(family, gen):
+    # medium sensors over a wide source: many nearly-vertical polyline segments
+    layout = lw.make_layout(family, rand_theta(gen, 0.9))
+    img = torch.rand(1, 2, 256, 512, generator=gen, dtype=F64)
+    with torch.no_grad():
+        out = lw.integrate_exact(img[0], layout, (33, 65), tol=1e-4)
+        areas = lw.pixel_mesh(layout, (33, 65), tol=1e-4).areas().double()
+    assert float(out.min()) >= float(img.min()) - 1e-9 and float(out.max()) <= float(img.max()) + 1e-9
+    assert torch.allclose((out * areas).sum((-2, -1)) / 4, img[0].mean((-2, -1)), atol=1e-9)
+
+
 def test_exact_matches_analytic_integral_of_bilinear_pixel_function(gen):
     # L[r, c] = a + b·c + d·r + e·c·r integrates in closed form over a rectangle when the
     # rectangle's corners sit on source pixel boundaries; choose a rect layout whose grid
@@ -131,6 +172,29 @@ def test_gradcheck_exact_and_separable(cls, fn, kw, size, gen):
     assert torch.autograd.gradcheck(f, (rho, img), eps=1e-6, atol=1e-5, rtol=1e-4)
 
 
+@pytest.mark.parametrize("family", ["rect", "curv"])
+def test_gradient_at_theta_zero_on_cell_boundaries(family, gen):
+    # 28 -> 4 puts every uniform grid line on a source cell boundary (the MNIST setup): the
+    # gradient must be the symmetric one that central differences measure.
+    img = torch.rand(2, 28, 28, generator=gen, dtype=F64)
+    wts = torch.randn(2, 4, 4, generator=gen, dtype=F64)
+    layout = lw.make_layout(family, (0.0, 0.0), dtype=F64)
+    (g,) = torch.autograd.grad((lw.integrate_exact(img, layout, (4, 4)) * wts).sum(), layout.rho)
+    sep = family == "rect"
+    if sep:
+        (g_sep,) = torch.autograd.grad((lw.integrate_separable(img, layout, (4, 4)) * wts).sum(), layout.rho)
+        assert torch.allclose(g, g_sep, atol=1e-12)
+
+    def loss(th):
+        lay = lw.make_layout(family, th, dtype=F64)
+        mesh = lw.pixel_mesh(lay, (4, 4), subdivisions=1 if sep else 256)
+        return float((lw.integrate_exact(img, lay, (4, 4), mesh=mesh) * wts).sum())
+
+    h = 1e-7
+    fd = torch.tensor([(loss(h * e) - loss(-h * e)) / (2 * h) for e in torch.eye(2, dtype=F64)], dtype=F64)
+    assert torch.allclose(g, fd, atol=1e-5 if sep else 2e-3)
+
+
 def smooth_image(h, w):
     yy, xx = torch.meshgrid(
         torch.linspace(0, 1, h, dtype=F64), torch.linspace(0, 1, w, dtype=F64), indexing="ij"
@@ -170,7 +234,7 @@ def test_montecarlo_gradients_agree_with_finite_differences(family, size, grad, 
             img,
             layout,
             size,
-            samples=4,
+            samples=8,
             radiance=radiance,
             grad=grad,
             generator=torch.Generator().manual_seed(1000 * k + 7),

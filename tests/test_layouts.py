@@ -128,12 +128,18 @@ def test_curv_dtheta_is_not_the_reference_code_formula(gen):
 
 
 @pytest.mark.parametrize("cls", FAMILIES)
-def test_module_derivatives_match_autograd(cls, gen):
-    layout = cls(rand_theta(gen), dtype=F64)
+@pytest.mark.parametrize("at_zero", [False, True])
+def test_module_derivatives_match_autograd(cls, at_zero, gen):
+    # θ = 0 exactly is where the paper starts training: autograd through φ must not take a
+    # zero subgradient of |θ| there
+    layout = cls((0.0, 0.0) if at_zero else rand_theta(gen), dtype=F64)
     p = rand_points(gen, 500)
     p = p[away_from_kinks(p, cls is lw.CurvLayout)]
     assert (layout.jacobian(p) - lw.Layout.phi_jacobian(layout, p, layout.theta)).abs().max() < 1e-12
     assert (layout.dtheta(p) - lw.Layout.phi_dtheta(layout, p, layout.theta)).abs().max() < 1e-12
+    (g,) = torch.autograd.grad((layout(p) * p.flip(-1)).sum(), layout.rho)
+    expected = (layout.dtheta(p) * p.flip(-1)[..., None]).sum((0, 1)) * (1 - layout.theta.detach() ** 2)
+    assert torch.allclose(g, expected, atol=1e-12)
 
 
 @pytest.mark.parametrize("cls", FAMILIES)
