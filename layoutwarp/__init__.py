@@ -6,6 +6,7 @@ Learning of Task-Specific Camera Parameters": a sensor whose pixel ``k`` is the 
 differentiable in θ and in the image.
 """
 
+from .backwarp import backwarp, backwarp_cross_entropy, backwarp_numpy, sensor_index_maps
 from .integrators import (
     integrate_exact,
     integrate_montecarlo,
@@ -50,6 +51,9 @@ __all__ = [
     "SimulationPlan",
     "UniformLayout",
     "__version__",
+    "backwarp",
+    "backwarp_cross_entropy",
+    "backwarp_numpy",
     "forward_maps",
     "integrate_exact",
     "integrate_montecarlo",
@@ -66,6 +70,7 @@ __all__ = [
     "pixel_mesh",
     "plan_simulation",
     "sample_points",
+    "sensor_index_maps",
     "simulate",
     "uniform_corners",
 ]

@@ -94,6 +94,14 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench(args: argparse.Namespace) -> int:
+    """Speed against error of every integrator, with anchors measured in the same run."""
+    from layoutwarp.bench import main_bench
+
+    main_bench(args.quick, args.json)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="layoutwarp", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", required=True)
@@ -105,6 +113,10 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--tol", type=float, default=1e-5, help="relative pixel-value tolerance")
     d.add_argument("--out", default="results/demo", help="output folder")
     d.set_defaults(func=_cmd_demo)
+    b = sub.add_parser("bench", help="time and error of every integrator against anchors (one process)")
+    b.add_argument("--quick", action="store_true", help="small sizes, few repeats")
+    b.add_argument("--json", default=None, help="also write the results to this JSON file")
+    b.set_defaults(func=_cmd_bench)
     return p
 
 

@@ -17,6 +17,7 @@ to the sensor square by ``X = (x + 1) · W / 2``, ``Y = (y + 1) · H / 2``.
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable
 
 import torch
@@ -269,8 +270,11 @@ def _axis_csr(edges: Tensor, n_src: int, dtype: torch.dtype) -> tuple[Tensor, Te
     dst, src, wt = axis_weights(edges.detach(), n_src)
     n = edges.numel() - 1
     idx, wt = torch.stack([dst, src]), wt.to(dtype)
-    mat = torch.sparse_coo_tensor(idx, wt, (n, n_src)).coalesce().to_sparse_csr()
-    mat_t = torch.sparse_coo_tensor(idx.flip(0), wt, (n_src, n)).coalesce().to_sparse_csr()
+    with warnings.catch_warnings():  # torch calls CSR "beta" and warns once per process
+        warnings.simplefilter("ignore", UserWarning)
+        mat = torch.sparse_coo_tensor(idx, wt, (n, n_src), check_invariants=False).coalesce().to_sparse_csr()
+        mat_t = torch.sparse_coo_tensor(idx.flip(0), wt, (n_src, n), check_invariants=False)
+        mat_t = mat_t.coalesce().to_sparse_csr()
     return mat, mat_t
 
 

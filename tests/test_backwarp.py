@@ -1,0 +1,93 @@
+"""Back-warping: exact against point-in-polygon, OpenCV path bit-identical, loss helper."""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import numpy as np
+import pytest
+import shapely
+import torch
+from conftest import rand_theta
+
+import layoutwarp as lw
+
+F64 = torch.float64
+
+
+@pytest.mark.parametrize("family", ["uniform", "rect", "curv"])
+def test_backwarp_matches_point_in_polygon(family, gen):
+    layout = lw.make_layout(family, None if family == "uniform" else rand_theta(gen, 0.9), dtype=F64)
+    size, target = (7, 9), (41, 53)
+    index = torch.arange(size[0] * size[1]).view(1, 1, *size)
+    got = lw.backwarp(index, layout, target)[0, 0].numpy()
+    assert got.dtype == np.int64
+    # reference: which (finely subdivided) pixel polygon contains each target centre
+    mesh = lw.pixel_mesh(layout, size, subdivisions=1 if family != "curv" else 512)
+    polys = [shapely.Polygon(p) for p in mesh.polygons()]
+    tree = shapely.STRtree(polys)
+    centres = lw.pixel_centers(target).reshape(-1, 2).numpy()
+    pts = shapely.points(centres)
+    boundary = shapely.union_all([p.boundary for p in polys])
+    near = shapely.distance(pts, boundary) < 1e-6
+    hits = tree.query(pts, predicate="within")
+    ref = np.full(len(pts), -1)
+    ref[hits[0]] = hits[1]
+    mismatch = (ref != got.reshape(-1)) & ~near
+    assert int(mismatch.sum()) == 0
+    assert (ref >= 0).sum() + near.sum() >= len(pts)  # every centre is classified
+
+
+@pytest.mark.parametrize("family", ["rect", "curv"])
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.int16, np.float32, np.float64])
+def test_opencv_path_is_bit_identical(family, dtype, gen):
+    layout = lw.make_layout(family, rand_theta(gen, 0.95))
+    arr = (torch.rand(13, 17, 3, generator=gen) * 200).numpy().astype(dtype)
+    got = lw.backwarp_numpy(arr, layout, (90, 70))
+    ref = (
+        lw.backwarp(torch.from_numpy(arr).permute(2, 0, 1)[None], layout, (90, 70))[0]
+        .permute(1, 2, 0)
+        .numpy()
+    )
+    assert got.dtype == dtype and np.array_equal(got, ref)
+    gray = arr[..., 0]
+    assert np.array_equal(lw.backwarp_numpy(gray, layout, (90, 70)), ref[..., 0])
+
+
+def test_bilinear_backwarp_converges_at_second_order(gen):
+    # a smooth field sampled at the deformed pixel centres and back-warped bilinearly
+    # approximates the field with error O(h²): it must fall ~4x per doubling of resolution
+    layout = lw.CurvLayout(rand_theta(gen, 0.7), dtype=F64)
+    q = lw.pixel_centers((50, 70))
+    # away from the border padding and from φ_curv's kink on the unit circle (O(h) there)
+    inner = (q.abs() < 0.85).all(-1) & ((q.norm(dim=-1) - 1).abs() > 0.15)
+    expected = torch.sin(2 * q[..., 0]) + q[..., 1] ** 2
+    errs = []
+    for size in ((20, 30), (40, 60), (80, 120), (160, 240)):
+        c = layout(lw.pixel_centers(size)).detach()
+        field = (torch.sin(2 * c[..., 0]) + c[..., 1] ** 2)[None, None]
+        out = lw.backwarp(field, layout, (50, 70), mode="bilinear")[0, 0]
+        errs.append(float((out - expected)[inner].abs().max()))
+    order = [math.log2(a / b) for a, b in itertools.pairwise(errs)]
+    assert order[-1] > 1.6 and order[-2] > 1.4, (errs, order)  # second order asymptotically
+    with pytest.raises(TypeError, match="nearest"):
+        lw.backwarp(torch.zeros(1, 1, 4, 4, dtype=torch.long), layout, (8, 8), mode="bilinear")
+
+
+def test_backwarp_cross_entropy_equals_manual_and_has_gradients(gen):
+    layout = lw.RectLayout(rand_theta(gen, 0.8))
+    logits = torch.randn(2, 5, 6, 8, generator=gen, requires_grad=True)
+    labels = torch.randint(0, 6, (2, 30, 40), generator=gen)  # 5 = ignored
+    loss = lw.backwarp_cross_entropy(logits, labels, layout, ignore_index=5)
+    ref = torch.nn.functional.cross_entropy(lw.backwarp(logits, layout, (30, 40)), labels, ignore_index=5)
+    assert torch.allclose(loss, ref)
+    (g,) = torch.autograd.grad(loss, logits)
+    assert bool(g.abs().sum() > 0)
+
+
+def test_backwarp_uniform_integer_ratio_is_nearest_upsampling(gen):
+    x = torch.rand(2, 3, 4, 5, generator=gen)
+    out = lw.backwarp(x, lw.UniformLayout(), (12, 20))
+    assert torch.equal(out, x.repeat_interleave(3, -2).repeat_interleave(4, -1))
+    assert lw.backwarp(x[:, 0], lw.UniformLayout(), (12, 20)).shape == (2, 12, 20)
