@@ -11,7 +11,6 @@ from __future__ import annotations
 import json
 import multiprocessing as mp
 import os
-import resource
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -63,25 +62,29 @@ def _time(fn: Callable[[], object], repeats: int) -> float:
     return float(np.median(times) * 1e3)
 
 
-def _rss_mb() -> float:
-    with open("/proc/self/statm") as f:
-        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+def _status_mb(key: str) -> float:
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith(key + ":"):
+                return int(line.split()[1]) / 1024
+    raise KeyError(key)
 
 
 def _memory_child(spec: dict, conn) -> None:  # pragma: no cover - runs in a spawned process
     torch.set_num_threads(spec["threads"])
     img = blurred_noise(*spec["src"])
+    npimg = np.ascontiguousarray(img[0].permute(1, 2, 0).numpy())
     layout = {"uniform": UniformLayout, "rect": RectLayout, "curv": CurvLayout}[spec["layout"]]
     layout = layout() if spec["layout"] == "uniform" else layout(spec["theta"])
-    before = _rss_mb()
+    with open("/proc/self/clear_refs", "w") as f:
+        f.write("5")  # reset the peak resident set (VmHWM) to the current one
+    before = _status_mb("VmRSS")
     with torch.no_grad():
         if spec["method"] == "inter_area":
-            npimg = np.ascontiguousarray(img[0].permute(1, 2, 0).numpy())
-            before = _rss_mb()
             cv2.resize(npimg, spec["size"][::-1], interpolation=cv2.INTER_AREA)
         else:
             simulate(img, layout, spec["size"], spec["method"], **spec["opts"])
-    conn.send(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024 - before)
+    conn.send(_status_mb("VmHWM") - before)
     conn.close()
 
 
@@ -91,7 +94,7 @@ def peak_memory_mb(spec: dict) -> float | None:
     ``spec`` names the run: ``layout``, ``theta``, ``method``, ``opts``, ``src``, ``size``,
     ``threads``. (A forked child would deadlock in torch's thread pool.)
     """
-    if not os.path.exists("/proc/self/statm"):
+    if not os.path.exists("/proc/self/clear_refs"):
         return None
     ctx = mp.get_context("spawn")
     parent, child = ctx.Pipe()

@@ -98,11 +98,10 @@ def plan_simulation(
     return SimulationPlan("point", rad, None, {}, "one sample at each deformed pixel centre")
 
 
-def _prepare(image: Tensor, allow_nonfinite: bool) -> tuple[Tensor, torch.dtype, tuple[int, ...]]:
+def _prepare(image: Tensor) -> tuple[Tensor, torch.dtype, tuple[int, ...]]:
     if not isinstance(image, Tensor):
-        raise TypeError(
-            f"image must be a torch.Tensor (B, C, H, W) or a callable, got {type(image).__name__}"
-        )
+        kind = type(image).__name__
+        raise TypeError(f"image must be a torch.Tensor (B, C, H, W) or a callable, got {kind}")
     if image.ndim not in (3, 4):
         raise ValueError(f"image must have shape (B, C, H, W) or (C, H, W), got {tuple(image.shape)}")
     if image.shape[-1] == 0 or image.shape[-2] == 0:
@@ -116,12 +115,15 @@ def _prepare(image: Tensor, allow_nonfinite: bool) -> tuple[Tensor, torch.dtype,
         work = image if image.dtype == torch.float64 else image.to(torch.float32)
     else:
         raise TypeError(f"image dtype must be floating point or uint8, got {image.dtype}")
-    if not allow_nonfinite and work.numel() and not bool(torch.isfinite(work).all()):
-        bad = int((~torch.isfinite(work)).sum())
+    return work.reshape(-1, *work.shape[-2:]), out_dtype, lead
+
+
+def _raise_nonfinite(work: Tensor) -> None:
+    bad = int((~torch.isfinite(work)).sum())
+    if bad:
         raise ValueError(
             f"image contains {bad} non-finite value(s) (NaN or Inf); clean it or pass allow_nonfinite=True"
         )
-    return work.reshape(-1, *work.shape[-2:]), out_dtype, lead
 
 
 def simulate(
@@ -181,11 +183,18 @@ def simulate(
         out = _run(plan, image, layout, size, tol, samples, grad, generator)
         out = out if channels is None else out.reshape(channels, *size)
         return (out[None], plan) if return_plan else out[None]
-    work, out_dtype, lead = _prepare(image, allow_nonfinite)
+    work, out_dtype, lead = _prepare(image)
     if work.shape[0] == 0:
         out = work.new_zeros(*lead, *size).to(out_dtype)
     else:
+        exact = plan.method in ("exact", "separable")
+        if not (allow_nonfinite or exact):  # samples may miss a bad pixel: look at the input
+            _raise_nonfinite(work)
         out = _run(plan, work, layout, size, tol, samples, grad, generator)
+        # Every source pixel reaches some sensor pixel with positive weight, so NaN/Inf in the
+        # input always reaches the (small) output of an exact method: check that instead.
+        if exact and not allow_nonfinite and not bool(torch.isfinite(out).all()):
+            _raise_nonfinite(work)
         out = out.to(out_dtype).reshape(*lead, *size)
     return (out, plan) if return_plan else out
 

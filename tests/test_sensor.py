@@ -82,13 +82,20 @@ def test_empty_batch_and_channels():
 
 
 @pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf")])
-def test_nonfinite_input_raises_unless_allowed(bad):
-    img = torch.rand(1, 1, 10, 10)
-    img[0, 0, 3, 4] = bad
-    with pytest.raises(ValueError, match="non-finite"):
-        lw.simulate(img, lw.CurvLayout((0.2, 0.1)), (3, 3))
-    out = lw.simulate(img, lw.RectLayout((0.2, 0.1)), (3, 3), allow_nonfinite=True)
-    assert not torch.isfinite(out).all()
+@pytest.mark.parametrize(
+    "family,method", [("curv", "exact"), ("rect", "exact"), ("curv", "montecarlo"), ("rect", "point")]
+)
+def test_nonfinite_input_raises_unless_allowed(bad, family, method, gen):
+    img = torch.rand(2, 1, 10, 10, generator=gen)
+    r, c = (int(v) for v in torch.randint(0, 10, (2,), generator=gen))
+    img[1, 0, r, c] = bad
+    layout = lw.make_layout(family, (0.2, 0.1))
+    with pytest.raises(ValueError, match=r"1 non-finite value\(s\)"):
+        lw.simulate(img, layout, (3, 3), method)
+    out = lw.simulate(img, layout, (3, 3), method, allow_nonfinite=True)
+    assert torch.isfinite(out[0]).all()  # the clean image is unaffected
+    if method == "exact":
+        assert not torch.isfinite(out[1]).all()  # the bad pixel reaches an exact output
 
 
 def test_bad_arguments_raise_clear_errors():
