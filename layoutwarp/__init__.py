@@ -6,6 +6,7 @@ Learning of Task-Specific Camera Parameters": a sensor whose pixel ``k`` is the 
 differentiable in θ and in the image.
 """
 
+from .augment import SensorAugmentation
 from .backwarp import backwarp, backwarp_cross_entropy, backwarp_numpy, sensor_index_maps
 from .integrators import (
     integrate_exact,
@@ -47,6 +48,7 @@ __all__ = [
     "Maps",
     "PixelMesh",
     "RectLayout",
+    "SensorAugmentation",
     "SensorLayer",
     "SimulationPlan",
     "UniformLayout",

@@ -139,15 +139,29 @@ class SensorAugmentation(GeometricAugmentationBase2D):
                 "rectangular layout"
             )
 
+    @staticmethod
+    def _with_data(obj, data: Tensor):
+        out = obj.clone()
+        out._data = data  # how Kornia's own containers update Keypoints/Boxes
+        return out
+
+    @staticmethod
+    def _src_hw(params: dict[str, Tensor]) -> tuple[int, int]:
+        return int(params["src_hw"][0, 0]), int(params["src_hw"][0, 1])
+
     def apply_transform_keypoint(self, input, params, flags, transform=None):
-        hw = tuple(int(v) for v in params["src_hw"][0].tolist()) if "src_hw" in params else self._src_hw
-        return input.clone(self.keypoints_to_sensor(input.data, hw)) if hasattr(input, "clone") else input
+        return self._with_data(input, self.keypoints_to_sensor(input.data, self._src_hw(params)))
+
+    def inverse_keypoints(self, input, params, flags, transform=None, **kwargs):
+        return self._with_data(input, self.keypoints_from_sensor(input.data, self._src_hw(params)))
 
     def apply_transform_box(self, input, params, flags, transform=None):
         self._check_boxes()
-        hw = self._src_hw
-        return input.clone(self.keypoints_to_sensor(input.data, hw))
+        return self._with_data(input, self.keypoints_to_sensor(input.data, self._src_hw(params)))
+
+    def inverse_boxes(self, input, params, flags, transform=None, **kwargs):
+        self._check_boxes()
+        return self._with_data(input, self.keypoints_from_sensor(input.data, self._src_hw(params)))
 
     def generate_parameters(self, shape: tuple[int, ...]) -> dict[str, Tensor]:
-        self._src_hw = (int(shape[-2]), int(shape[-1]))
         return {"src_hw": torch.tensor([[shape[-2], shape[-1]]] * shape[0])}

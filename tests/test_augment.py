@@ -1,0 +1,99 @@
+"""SensorAugmentation inside real kornia.augmentation containers."""
+
+from __future__ import annotations
+
+import kornia.augmentation as K
+import pytest
+import torch
+from conftest import rand_theta
+
+import layoutwarp as lw
+from layoutwarp.augment import SensorAugmentation
+
+
+def data(gen, b=2, h=48, w=64, k=5):
+    img = torch.rand(b, 3, h, w, generator=gen)
+    mask = torch.randint(0, k, (b, 1, h, w), generator=gen).float()
+    return img, mask
+
+
+@pytest.mark.parametrize("family", ["rect", "curv"])
+def test_container_matches_simulate_and_backwarp(family, gen):
+    img, mask = data(gen)
+    theta = tuple(rand_theta(gen, 0.8).tolist())
+    aug = SensorAugmentation((12, 16), family, theta=theta)
+    seq = K.AugmentationSequential(aug, data_keys=["input", "mask"])
+    out, m = seq(img, mask)
+    assert out.shape == (2, 3, 12, 16) and m.shape == (2, 1, 12, 16)
+    assert torch.allclose(out, lw.simulate(img, aug.layout, (12, 16)), atol=1e-6)
+    # masks (nearest rule): the label of the source pixel under each deformed pixel centre
+    ref_mask = lw.simulate(mask.double(), aug.layout, (12, 16), "point", radiance="box").float()
+    assert torch.equal(m, ref_mask)
+    inv_img, inv_mask = seq.inverse(out, m, data_keys=["input", "mask"])
+    assert inv_img.shape == img.shape and inv_mask.shape == mask.shape
+    assert torch.allclose(inv_img, lw.backwarp(out, aug.layout, (48, 64)))
+    assert torch.equal(inv_mask, lw.backwarp(m, aug.layout, (48, 64)))
+
+
+def test_gradients_reach_theta_through_the_container(gen):
+    img, _ = data(gen)
+    aug = SensorAugmentation((12, 16), "curv")
+    seq = K.AugmentationSequential(K.ColorJitter(0.1, 0.1, 0.1, 0.0, p=1.0), aug, data_keys=["input"])
+    names = [n for n, _ in seq.named_parameters()]
+    assert any(n.endswith("layout.rho") for n in names)
+    out = seq(img)
+    (out * torch.randn_like(out)).sum().backward()
+    assert aug.layout.rho.grad is not None and bool(aug.layout.rho.grad.abs().sum() > 0)
+
+
+def test_kornia_flip_before_the_sensor_commutes_with_flipped_layout(gen):
+    # a horizontal flip before a symmetric layout equals flipping the sensor image
+    img, _ = data(gen)
+    aug = SensorAugmentation((12, 16), "rect", theta=(0.4, -0.3), learn=False)
+    seq = K.AugmentationSequential(K.RandomHorizontalFlip(p=1.0), aug, data_keys=["input"])
+    out = seq(img)
+    assert torch.allclose(out, lw.simulate(img, aug.layout, (12, 16)).flip(-1), atol=1e-5)
+
+
+def test_majority_mask_rule(gen):
+    # 2x2 blocks of a 4x4-pixel uniform sensor over 8x8 labels: the majority of each block
+    labels = torch.zeros(1, 1, 8, 8)
+    labels[0, 0, :2, :2] = 3  # block (0, 0): all 3
+    labels[0, 0, 2, 2:4] = 4  # block (1, 1): 2 of 4 are 4, 2 of 4 are 0 -> tie broken to 0
+    labels[0, 0, 4:6, 4:6] = 2
+    labels[0, 0, 4, 4] = 1  # block (2, 2): 3 of 4 are 2
+    aug = SensorAugmentation((4, 4), "uniform", mask_rule="majority", num_classes=5)
+    seq = K.AugmentationSequential(aug, data_keys=["input", "mask"])
+    _, m = seq(torch.rand(1, 1, 8, 8), labels)
+    assert m[0, 0, 0, 0] == 3 and m[0, 0, 2, 2] == 2 and m[0, 0, 3, 3] == 0
+    with pytest.raises(ValueError, match="num_classes"):
+        SensorAugmentation((4, 4), "rect", mask_rule="majority")
+
+
+@pytest.mark.parametrize("family", ["rect", "curv"])
+def test_keypoints_follow_the_layout_and_come_back(family, gen):
+    img, _ = data(gen)
+    aug = SensorAugmentation((12, 16), family, theta=tuple(rand_theta(gen, 0.8).tolist()))
+    seq = K.AugmentationSequential(aug, data_keys=["input", "keypoints"])
+    kp = torch.rand(2, 6, 2, generator=gen) * torch.tensor([63.0, 47.0])
+    out, k2 = seq(img, kp)
+    # a keypoint q (pixel centres at integers) goes to φ⁻¹(q) in sensor pixel coordinates
+    q = (kp.double() + 0.5) / torch.tensor([64.0, 48.0], dtype=torch.float64) * 2 - 1
+    p = aug.layout.phi_inverse(q, aug.layout.theta.detach().double())
+    expected = (p + 1) / 2 * torch.tensor([16.0, 12.0], dtype=torch.float64) - 0.5
+    assert torch.allclose(k2.double(), expected, atol=1e-4)
+    back = seq.inverse(out, k2, data_keys=["input", "keypoints"])[1]
+    assert torch.allclose(back, kp, atol=1e-3)
+
+
+def test_boxes_exact_for_rect_and_refused_for_curv(gen):
+    img, _ = data(gen)
+    boxes = torch.tensor([[[10.0, 5.0, 30.0, 25.0]], [[2.0, 3.0, 60.0, 40.0]]])
+    aug = SensorAugmentation((12, 16), "rect", theta=(0.5, 0.2))
+    seq = K.AugmentationSequential(aug, data_keys=["input", "bbox_xyxy"])
+    out, b = seq(img, boxes)
+    assert b.shape == boxes.shape and bool((b[..., 2] > b[..., 0]).all())
+    assert torch.allclose(seq.inverse(out, b, data_keys=["input", "bbox_xyxy"])[1], boxes, atol=1e-3)
+    curv = K.AugmentationSequential(SensorAugmentation((12, 16), "curv"), data_keys=["input", "bbox_xyxy"])
+    with pytest.raises(NotImplementedError, match="keypoints"):
+        curv(img, boxes)
