@@ -53,7 +53,7 @@ class _PrefixTables:
     and right boundaries of a pixel narrower than a source cell cancel exactly.
     """
 
-    def __init__(self, image: Tensor, block: int = 64):
+    def __init__(self, image: Tensor, block: int = 16):
         n, h, w = image.shape
         nb = -(-w // block)
         padded = image if nb * block == w else F.pad(image, (0, nb * block - w))
