@@ -205,19 +205,12 @@ def _run(plan: SimulationPlan, work, layout: Layout, size, tol, samples, grad, g
     if plan.method == "exact":
         mesh = pixel_mesh(layout, size, tol=tol, dtype=torch.float64)
         return integrate_exact(work, layout, size, mesh=mesh)
+    radiance = "bilinear" if plan.radiance == "callable" else plan.radiance  # ignored for callables
     if plan.method == "montecarlo":
         return integrate_montecarlo(
-            work,
-            layout,
-            size,
-            samples=samples,
-            radiance=plan.radiance if plan.radiance != "callable" else "bilinear",
-            grad=grad,
-            generator=generator,
+            work, layout, size, samples=samples, radiance=radiance, grad=grad, generator=generator
         )
-    return integrate_point(
-        work, layout, size, radiance=plan.radiance if plan.radiance != "callable" else "bilinear"
-    )
+    return integrate_point(work, layout, size, radiance=radiance)
 
 
 class SensorLayer(nn.Module):

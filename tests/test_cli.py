@@ -32,3 +32,10 @@ def test_demo_writes_figures_and_numbers(tmp_path):
 def test_python_dash_m_entry_point():
     res = subprocess.run([sys.executable, "-m", "layoutwarp", "--help"], capture_output=True, text=True)
     assert res.returncode == 0 and "demo" in res.stdout
+
+
+@pytest.mark.parametrize("script", ["quickstart.py", "kornia_pipeline.py"])
+def test_examples_run(script):
+    cmd = [sys.executable, str(ROOT / "examples" / script)]
+    res = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
+    assert res.returncode == 0, res.stderr[-2000:]
