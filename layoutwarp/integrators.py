@@ -25,7 +25,16 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from .layouts import Layout
-from .mesh import PixelMesh, combine_edges, pixel_centers, pixel_mesh, sample_points, sensor_to_pixels
+from .mesh import (
+    PixelMesh,
+    combine_edges,
+    grid_lines,
+    pixel_centers,
+    pixel_mesh,
+    ranges,
+    sample_points,
+    sensor_to_pixels,
+)
 
 __all__ = [
     "Radiance",
@@ -73,13 +82,6 @@ class _PrefixTables:
         return offset + start + frac.to(torch.float64) * lv.double()
 
 
-def _ranges(lo: Tensor, count: Tensor) -> tuple[Tensor, Tensor]:
-    """For ``count[i]`` consecutive integers from ``lo[i]``: (parent index, integer)."""
-    parent = torch.repeat_interleave(torch.arange(count.numel(), device=count.device), count)
-    first = torch.cumsum(count, 0) - count
-    return parent, lo[parent] + (torch.arange(parent.numel(), device=count.device) - first[parent])
-
-
 def _segment_cells(a: Tensor, b: Tensor, rows: int, cols: int):
     """Cut segments ``a → b`` (source pixel units, ``(S, 2)``) into single-cell pieces.
 
@@ -98,7 +100,7 @@ def _segment_cells(a: Tensor, b: Tensor, rows: int, cols: int):
     r0 = ylo.floor().clamp(0, rows - 1).long()
     r1 = torch.maximum((yhi.ceil().long() - 1).clamp(0, rows - 1), r0)
     r1 = torch.where(flat, r0, r1)
-    piece, row = _ranges(r0, r1 - r0 + 1)
+    piece, row = ranges(r0, r1 - r0 + 1)
     pa, pb, fl = a[piece], b[piece], flat[piece]
     rowf = row.to(a.dtype)
     dyv = pb[:, 1] - pa[:, 1]
@@ -119,7 +121,7 @@ def _segment_cells(a: Tensor, b: Tensor, rows: int, cols: int):
     c1 = torch.maximum((xhi.ceil().long() - 1).clamp(0, cols - 1), c0)
     vertical = dxv == 0
     c1 = torch.where(vertical, c0, c1)
-    sub, col = _ranges(c0, c1 - c0 + 1)
+    sub, col = ranges(c0, c1 - c0 + 1)
     colf = col.to(a.dtype)
     sa = pa[sub]
     # one column: keep the row piece's range (X → t is ill-conditioned for tiny ΔX)
@@ -243,11 +245,7 @@ def axis_weights(edges: Tensor, n_src: int) -> tuple[Tensor, Tensor, Tensor]:
     lo, hi = edges[:-1], edges[1:]
     c0 = lo.detach().floor().clamp(0, n_src - 1).long()
     c1 = (hi.detach().ceil().long() - 1).clamp(0, n_src - 1)
-    c1 = torch.maximum(c1, c0)
-    count = c1 - c0 + 1
-    dst = torch.repeat_interleave(torch.arange(lo.numel(), device=edges.device), count)
-    first = torch.cumsum(count, 0) - count
-    src = c0[dst] + (torch.arange(dst.numel(), device=edges.device) - first[dst])
+    dst, src = ranges(c0, torch.maximum(c1, c0) - c0 + 1)
     cf = src.to(edges.dtype)
     overlap = (torch.minimum(hi[dst], cf + 1) - torch.maximum(lo[dst], cf)).clamp_min(0)
     return dst, src, overlap / (hi - lo)[dst]
@@ -259,7 +257,7 @@ def _separable_edges(
     h, w = size
     hs, ws = src
     theta = layout.theta.to(dtype)
-    gx, gy = _lines(w, dtype, theta.device), _lines(h, dtype, theta.device)
+    gx, gy = grid_lines(w, dtype, theta.device), grid_lines(h, dtype, theta.device)
     px = layout.phi(torch.stack([gx, torch.zeros_like(gx)], -1), theta)[:, 0]
     py = layout.phi(torch.stack([torch.zeros_like(gy), gy], -1), theta)[:, 1]
     return ((px + 1) * (ws / 2)).clamp(0, ws), ((py + 1) * (hs / 2)).clamp(0, hs)
@@ -443,7 +441,7 @@ def _flux_derivative(image, layout: Layout, theta: Tensor, size, m: int, radianc
     """
     h, w = size
     dtype, dev = theta.dtype, theta.device
-    gx, gy = _lines(w, dtype, dev), _lines(h, dtype, dev)
+    gx, gy = grid_lines(w, dtype, dev), grid_lines(h, dtype, dev)
     t = (torch.arange(m, dtype=dtype) + torch.rand(m, generator=generator, dtype=dtype)).to(dev) / m
     hx = gx[:-1, None] + t * (2 / w)  # (w, m)
     vy = gy[:-1, None] + t * (2 / h)  # (h, m)
@@ -466,10 +464,6 @@ def _flux_derivative(image, layout: Layout, theta: Tensor, size, m: int, radianc
     f_pix = combine_edges(torch.cat(f_edges, 1).movedim(-1, 1), size).movedim(1, -1)
     g_pix = combine_edges(torch.cat(g_edges, 0).T, size).movedim(0, -1)
     return f_pix, g_pix
-
-
-def _lines(n: int, dtype, dev) -> Tensor:
-    return (2 * torch.arange(n + 1, dtype=dtype, device=dev) - n) / n
 
 
 def integrate_montecarlo(

@@ -56,7 +56,7 @@ def check_size(size, name: str = "size") -> tuple[int, int]:
     return h, w
 
 
-def _grid_lines(n: int, dtype: torch.dtype, device=None) -> Tensor:
+def grid_lines(n: int, dtype: torch.dtype, device=None) -> Tensor:
     """The ``n + 1`` uniform cell boundaries ``(2k − n)/n`` of ``[-1, 1]`` (exactly ±1 at the ends)."""
     k = torch.arange(n + 1, dtype=dtype, device=device)
     return (2 * k - n) / n
@@ -65,7 +65,7 @@ def _grid_lines(n: int, dtype: torch.dtype, device=None) -> Tensor:
 def uniform_corners(size: tuple[int, int], dtype: torch.dtype = torch.float64, device=None) -> Tensor:
     """Uniform pixel corners, shape ``(H + 1, W + 1, 2)`` holding ``(x, y)``."""
     h, w = check_size(size)
-    ys, xs = _grid_lines(h, dtype, device), _grid_lines(w, dtype, device)
+    ys, xs = grid_lines(h, dtype, device), grid_lines(w, dtype, device)
     return torch.stack(torch.meshgrid(xs, ys, indexing="xy"), -1)
 
 
@@ -277,16 +277,17 @@ def _edge_parameters(
     n = torch.sqrt(2 * sag / budget).ceil().clamp(1, max_subdiv)
     n = torch.where(sag <= 1e-15 * length, torch.ones_like(n), n).long()
     counts = torch.zeros(ne, dtype=torch.long).index_add_(0, edge, n)
-    piece, kk = _segments_of(n)
+    piece, kk = ranges(torch.zeros_like(n), n)
     lo_f, hi_f, n_f = lo[piece], hi[piece], n[piece].to(lo.dtype)
     return counts, lo_f + (hi_f - lo_f) * kk.to(lo.dtype) / n_f
 
 
-def _segments_of(n: Tensor) -> tuple[Tensor, Tensor]:
-    """For ``n[i]`` items per group: (group index, index within group) of every item."""
-    group = torch.repeat_interleave(torch.arange(n.numel()), n)
-    first = torch.cumsum(n, 0) - n
-    return group, torch.arange(group.numel()) - first[group]
+def ranges(lo: Tensor, count: Tensor) -> tuple[Tensor, Tensor]:
+    """Expand runs: for ``count[i]`` consecutive integers from ``lo[i]``, the pair
+    ``(parent index i, integer)`` of every element, in order."""
+    parent = torch.repeat_interleave(torch.arange(count.numel(), device=count.device), count)
+    first = torch.cumsum(count, 0) - count
+    return parent, lo[parent] + (torch.arange(parent.numel(), device=count.device) - first[parent])
 
 
 def pixel_mesh(
@@ -341,8 +342,7 @@ def pixel_mesh(
     offsets = torch.zeros(ne + 1, dtype=torch.long)
     offsets[1:] = torch.cumsum(n, 0)
     nseg = int(offsets[-1])
-    seg_edge = torch.repeat_interleave(torch.arange(ne), n)
-    k = torch.arange(nseg) - offsets[:-1][seg_edge]  # segment index within its edge
+    seg_edge, k = ranges(torch.zeros_like(n), n)  # k: segment index within its edge
     nn_ = n[seg_edge]
     # interior vertices: segment k > 0 starts at a new vertex
     interior = k > 0
