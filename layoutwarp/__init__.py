@@ -14,6 +14,7 @@ from .integrators import (
     integrate_point,
     integrate_separable,
 )
+from .io import load_layout, save_layout
 from .layouts import (
     CurvLayout,
     FoldoverReport,
@@ -62,6 +63,7 @@ __all__ = [
     "integrate_point",
     "integrate_separable",
     "inverse_maps",
+    "load_layout",
     "make_layout",
     "newton_inverse",
     "phi_curv",
@@ -72,6 +74,7 @@ __all__ = [
     "pixel_mesh",
     "plan_simulation",
     "sample_points",
+    "save_layout",
     "sensor_index_maps",
     "simulate",
     "uniform_corners",
