@@ -335,8 +335,13 @@ class _SeparableArea(torch.autograd.Function):
         if ctx.needs_input_grad[1]:
             g_ex = _edge_grad(grad, out, _edge_values(y1, ex), ex, -1)
         if ctx.needs_input_grad[2]:
-            x1 = _cols(image, wx_t)  # (N, H, w): the image averaged over each column interval
-            g_ey = _edge_grad(grad, out, _edge_values(x1.transpose(1, 2), ey).transpose(1, 2), ey, -2)
+            # the image averaged over each column interval, needed only on the boundary rows
+            hs = image.shape[1]
+            y = ey.detach()
+            rows = torch.cat([(y.ceil().long() - 1).clamp(0, hs - 1), y.floor().long().clamp(0, hs - 1)])
+            x1 = _cols(image.index_select(1, rows).contiguous(), wx_t)  # (N, 2(h + 1), w)
+            vals = 0.5 * (x1[:, : y.numel()] + x1[:, y.numel() :])  # symmetric at cell boundaries
+            g_ey = _edge_grad(grad, out, vals, ey, -2)
         return g_img, g_ex, g_ey
 
 
