@@ -114,7 +114,14 @@ def _cmd_train(args: argparse.Namespace) -> int:
     seeds = tuple(range(args.seeds)) if args.seeds else ((0,) if args.quick else (0, 1, 2))
     epochs = args.epochs or (3 if args.quick else 14)
     print(f"MNIST 4x4: data {data}, layouts {', '.join(layouts)}, seeds {list(seeds)}, {epochs} epochs")
-    result = run_mnist_experiment(data, args.out, layouts, seeds, epochs, progress=not args.no_progress)
+    sensor = {"method": args.method}
+    if args.method in ("montecarlo", "point"):
+        sensor["radiance"] = args.radiance
+    if args.method == "montecarlo":
+        sensor["samples"] = args.samples
+    result = run_mnist_experiment(
+        data, args.out, layouts, seeds, epochs, progress=not args.no_progress, sensor=sensor
+    )
     print(f"{'layout':8s} {'test accuracy':>18s}  θ (mean)")
     for name, s in result["summary"].items():
         th = ", ".join(f"{v:+.2f}" for v in s["theta_mean"])
@@ -151,6 +158,13 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--data", default=None, help="folder with the dataset (default: ../shared/data/<task>)")
     t.add_argument("--seeds", type=int, default=None, help="number of seeds (default 3; 1 with --quick)")
     t.add_argument("--epochs", type=int, default=None, help="epochs (default 14; 3 with --quick)")
+    t.add_argument(
+        "--method", default="exact", choices=["exact", "montecarlo", "point"], help="sensor integrator"
+    )
+    t.add_argument("--samples", type=int, default=4, help="Monte Carlo samples per axis (s² per pixel)")
+    t.add_argument(
+        "--radiance", default="bilinear", choices=["bilinear", "box"], help="radiance for sampling"
+    )
     t.add_argument("--no-progress", action="store_true", help="no progress bars")
     t.add_argument("--out", default="results/mnist", help="output folder")
     t.set_defaults(func=_cmd_train)

@@ -69,12 +69,17 @@ def train_mnist(
     lr: float = 0.01,
     size: tuple[int, int] = (4, 4),
     progress: bool = True,
+    sensor: dict | None = None,
 ) -> tuple[RunResult, MnistNet]:
-    """Train sensor + CNN jointly (``layout="uniform"`` freezes θ at 0) and test it."""
+    """Train sensor + CNN jointly (``layout="uniform"`` freezes θ at 0) and test it.
+
+    ``sensor`` holds :class:`~layoutwarp.SensorLayer` options (``method``, ``samples``,
+    ``radiance``, ...); the default is the exact integrator.
+    """
     torch.manual_seed(seed)
     gen = torch.Generator().manual_seed(seed)
     family, learn = ("curv", False) if layout == "uniform" else (layout, True)
-    model = MnistNet(family, size, learn=learn)
+    model = MnistNet(family, size, learn=learn, **(sensor or {}))
     opt = torch.optim.Adam(model.parameters(), lr=lr)
     x_train = torch.from_numpy(data["train_images"]).float().div(255)[:, None]
     y_train = torch.from_numpy(data["train_labels"]).long()
@@ -128,6 +133,7 @@ def run_mnist_experiment(
     epochs: int = 14,
     limit_train: int | None = None,
     progress: bool = True,
+    sensor: dict | None = None,
 ) -> dict:
     """Train every layout for every seed; write ``results.json``, ``layout.json`` and figures."""
     out = Path(out)
@@ -143,7 +149,7 @@ def run_mnist_experiment(
     models: dict[str, MnistNet] = {}
     for layout in layouts:
         for seed in seeds:
-            res, model = train_mnist(data, layout, seed=seed, epochs=epochs, progress=progress)
+            res, model = train_mnist(data, layout, seed=seed, epochs=epochs, progress=progress, sensor=sensor)
             runs.append(res)
             models.setdefault(layout, model)
             print(
@@ -166,6 +172,7 @@ def run_mnist_experiment(
         "test_size": len(data["test_images"]),
         "epochs": epochs,
         "seeds": list(seeds),
+        "sensor": sensor or {"method": "exact"},
         "summary": summary,
         "runs": [r.__dict__ for r in runs],
     }
