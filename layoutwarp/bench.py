@@ -170,7 +170,6 @@ def run(
             + [("montecarlo", {"samples": s, "seed": 0}, f"{s * s} spp") for s in mc_samples]
             + [("point", {}, "1 spp")]
         ):
-            opts = {k: v for k, v in opts.items() if v is not None}
 
             def fwd(method=method, opts=opts, layout=layout):
                 with torch.no_grad():

@@ -99,8 +99,8 @@ def phi_rect(p: Tensor, theta: Tensor) -> Tensor:
         rectangle. The centre pixel shrinks by ``(1 − θ)/(1 + θ)``.
     """
     p, theta = _promote(p, theta)
-    a = p.abs().clamp(max=1)
-    return torch.where(p.abs() < 1, p * (1 - theta) / _denom(a, theta), p)
+    a = p.abs()
+    return torch.where(a < 1, p * (1 - theta) / _denom(a.clamp(max=1), theta), p)
 
 
 def phi_rect_inverse(q: Tensor, theta: Tensor) -> Tensor:
@@ -114,8 +114,8 @@ def phi_rect_jacobian(p: Tensor, theta: Tensor) -> Tensor:
     ``dφ_j/dp_j = (1 − θ_j²) / D_j²`` with ``D_j = 1 + θ_j − 2θ_j|p_j|``; 1 outside S.
     """
     p, theta = _promote(p, theta)
-    a = p.abs().clamp(max=1)
-    d = torch.where(p.abs() < 1, (1 - theta) * (1 + theta) / _denom(a, theta) ** 2, 1.0)
+    a = p.abs()
+    d = torch.where(a < 1, (1 - theta) * (1 + theta) / _denom(a.clamp(max=1), theta) ** 2, 1.0)
     return torch.diag_embed(d)
 
 
@@ -125,8 +125,8 @@ def phi_rect_dtheta(p: Tensor, theta: Tensor) -> Tensor:
     ``∂φ_j/∂θ_j = 2 p_j (|p_j| − 1) / D_j²``.
     """
     p, theta = _promote(p, theta)
-    a = p.abs().clamp(max=1)
-    d = torch.where(p.abs() < 1, 2 * p * (a - 1) / _denom(a, theta) ** 2, 0.0)
+    a = p.abs()
+    d = torch.where(a < 1, 2 * p * (a - 1) / _denom(a.clamp(max=1), theta) ** 2, 0.0)
     return torch.diag_embed(d)
 
 

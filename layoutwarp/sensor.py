@@ -16,7 +16,7 @@ from .integrators import (
     integrate_separable,
 )
 from .layouts import Layout, make_layout
-from .mesh import check_size, pixel_mesh
+from .mesh import check_size
 
 __all__ = ["METHODS", "SensorLayer", "SimulationPlan", "plan_simulation", "simulate"]
 
@@ -203,8 +203,7 @@ def _run(plan: SimulationPlan, work, layout: Layout, size, tol, samples, grad, g
     if plan.method == "separable":
         return integrate_separable(work, layout, size)
     if plan.method == "exact":
-        mesh = pixel_mesh(layout, size, tol=tol, dtype=torch.float64)
-        return integrate_exact(work, layout, size, mesh=mesh)
+        return integrate_exact(work, layout, size, tol=tol)
     radiance = "bilinear" if plan.radiance == "callable" else plan.radiance  # ignored for callables
     if plan.method == "montecarlo":
         return integrate_montecarlo(
