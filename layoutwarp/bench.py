@@ -1,18 +1,22 @@
-"""Speed against error, measured in one process: integrators and their anchors.
+"""Speed against error, measured in one process: integrators, their anchors, and scaling.
 
 Every time is the median of repeats after a warm-up; every ratio is against an anchor
-measured in the same run (``cv2.resize(INTER_AREA)``, a bare ``grid_sample`` stratified
-Monte Carlo with 16 samples per pixel). Errors are against a float64 exact reference.
-Peak memory is measured in a spawned child (growth of its resident set over one call).
+measured in the same run: ``cv2.resize(INTER_AREA)`` (the uniform box integral),
+``cv2.remap(INTER_LINEAR)`` on precomputed maps (point sampling) and a bare ``grid_sample``
+stratified Monte Carlo with 16 samples per pixel. Forward errors are against a float64 exact
+reference; on the synthetic scene also against the scene's analytic pixel means
+(:class:`SineScene`). Gradient errors are against central finite differences of the float64
+exact forward. Peak memory is measured in a spawned child (growth of its resident set).
 """
 
 from __future__ import annotations
 
 import json
+import math
 import multiprocessing as mp
 import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -20,18 +24,26 @@ import cv2
 import numpy as np
 import torch
 import torch.nn.functional as F
+from torch import Tensor
 
-from .layouts import CurvLayout, Layout, RectLayout, UniformLayout
-from .mesh import sample_points
+from .integrators import integrate_exact
+from .layouts import Layout, make_layout
+from .mesh import combine_edges, forward_maps, pixel_mesh, sample_points, uniform_corners
 from .sensor import simulate
 
-__all__ = ["Row", "blurred_noise", "format_table", "run"]
+__all__ = ["Row", "SineScene", "blurred_noise", "format_table", "load_photo", "run", "scaling"]
+
+PHOTO_CANDIDATES = (
+    Path(__file__).resolve().parents[1] / "data_samples" / "photos" / "kodim20.png",
+    Path(__file__).resolve().parents[2] / "shared" / "data" / "photos" / "kodak24" / "kodim20.png",
+)
 
 
 @dataclass
 class Row:
-    """One measured configuration."""
+    """One measured configuration (times in ms, errors in image units, memory in MiB)."""
 
+    image: str
     layout: str
     method: str
     setting: str
@@ -39,17 +51,112 @@ class Row:
     backward_ms: float | None = None
     rmse: float | None = None
     max_err: float | None = None
+    scene_rmse: float | None = None
+    grad_rel_err: float | None = None
     peak_mb: float | None = None
     extra: dict = field(default_factory=dict)
 
 
-def blurred_noise(h: int, w: int, c: int = 3, sigma: float = 2.0, seed: int = 0) -> torch.Tensor:
+def blurred_noise(h: int, w: int, c: int = 3, sigma: float = 2.0, seed: int = 0) -> Tensor:
     """A ``(1, c, h, w)`` float32 image of Gaussian-blurred uniform noise in [0, 1]."""
     rng = np.random.default_rng(seed)
     img = rng.random((h, w, c), dtype=np.float32)
     img = cv2.GaussianBlur(img, (0, 0), sigma)
     img = (img - img.min()) / (img.max() - img.min())
     return torch.from_numpy(np.ascontiguousarray(img.reshape(h, w, c).transpose(2, 0, 1)))[None]
+
+
+def load_photo(h: int, w: int, path: str | Path | None = None) -> Tensor | None:
+    """A real photo (Kodak ``kodim20``) resized to ``(h, w)`` with INTER_CUBIC, ``(1, 3, h, w)`` in [0, 1].
+
+    Returns ``None`` when no photo is found (``path``, then ``data_samples/``, then the
+    shared data folder).
+    """
+    for p in [Path(path)] if path else PHOTO_CANDIDATES:
+        bgr = cv2.imread(str(p), cv2.IMREAD_COLOR)
+        if bgr is not None:
+            rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB).astype(np.float32) / 255
+            rgb = np.clip(cv2.resize(rgb, (w, h), interpolation=cv2.INTER_CUBIC), 0, 1)
+            return torch.from_numpy(np.ascontiguousarray(rgb.transpose(2, 0, 1)))[None]
+    if path:
+        raise FileNotFoundError(f"cannot read image {path}")
+    return None
+
+
+@dataclass(frozen=True)
+class SineScene:
+    """A synthetic radiance with known pixel integrals, one frequency pair per channel.
+
+    ``f_c(x, y) = 0.5 + 0.4 sin(a_c x + p_c) sin(b_c y + q_c)`` in sensor coordinates
+    ``[-1, 1]²``. :meth:`image` gives the exact cell averages of ``f`` on a source grid (so a
+    box integrator sees the best pixel image of the scene); :meth:`pixel_means` gives the
+    exact mean of ``f`` over every pixel of a layout, by Green's theorem along the true
+    (curved) edges with Gauss–Legendre quadrature between the kinks of φ.
+    """
+
+    a: tuple[float, ...]
+    b: tuple[float, ...]
+    p: tuple[float, ...]
+    q: tuple[float, ...]
+
+    @classmethod
+    def random(cls, channels: int = 3, cycles: tuple[float, float] = (6.0, 30.0), seed: int = 0) -> SineScene:
+        """Frequencies of ``cycles`` periods across ``[-1, 1]`` and random phases."""
+        rng = np.random.default_rng(seed)
+        a, b = (tuple(float(v) for v in np.pi * rng.uniform(*cycles, channels)) for _ in range(2))
+        p, q = (tuple(float(v) for v in rng.uniform(0, 2 * np.pi, channels)) for _ in range(2))
+        return cls(a, b, p, q)
+
+    def _vec(self, name: str) -> Tensor:
+        return torch.tensor(getattr(self, name), dtype=torch.float64)
+
+    def image(self, h: int, w: int) -> Tensor:
+        """Cell averages on an ``h × w`` source grid, ``(1, C, h, w)`` float64."""
+
+        def avg(k: Tensor, ph: Tensor, n: int) -> Tensor:  # (C, n) mean of sin(k s + ph) per cell
+            edges = torch.linspace(-1, 1, n + 1, dtype=torch.float64)
+            c = torch.cos(k[:, None] * edges + ph[:, None])
+            return (c[:, :-1] - c[:, 1:]) / (k[:, None] * (2 / n))
+
+        sx, sy = avg(self._vec("a"), self._vec("p"), w), avg(self._vec("b"), self._vec("q"), h)
+        return (0.5 + 0.4 * sy[:, :, None] * sx[:, None, :])[None]
+
+    def pixel_means(self, layout: Layout, size: tuple[int, int], nodes: int = 16) -> Tensor:
+        """Exact mean of ``f`` over every pixel of ``layout``, ``(C, H, W)`` float64."""
+        h, w = size
+        theta = layout.theta.detach().double()
+        cu = uniform_corners(size)
+        a = torch.cat([cu[:, :-1].reshape(-1, 2), cu[:-1, :].reshape(-1, 2)])  # edges as in PixelMesh
+        b = torch.cat([cu[:, 1:].reshape(-1, 2), cu[1:, :].reshape(-1, 2)])
+        brk = layout.edge_breakpoints(a, b).clamp(0, 1).nan_to_num(1.0)
+        t = torch.cat([torch.zeros_like(a[:, :1]), brk, torch.ones_like(a[:, :1])], 1).sort(1).values
+        x, wq = np.polynomial.legendre.leggauss(nodes)
+        x, wq = torch.from_numpy((x + 1) / 2), torch.from_numpy(wq / 2)
+        chord = (layout.phi(b, theta) - layout.phi(a, theta)).norm(dim=-1).max()
+        panels = max(2, math.ceil(float(chord) * max(self.a + self.b)))
+        s = (torch.arange(panels, dtype=torch.float64)[:, None] + x) / panels  # (panels, nodes)
+        ak, bk, ph = self._vec("a"), self._vec("b"), (self._vec("p"), self._vec("q"))
+        out = torch.zeros(len(self.a) + 1, a.shape[0], dtype=torch.float64)
+        for lo in range(0, a.shape[0], 4096):
+            sl = slice(lo, lo + 4096)
+            t0, t1 = t[sl, :-1], t[sl, 1:]  # (e, K + 1) pieces between kinks
+            tt = t0[..., None, None] + (t1 - t0)[..., None, None] * s  # (e, K + 1, panels, nodes)
+            d = (b[sl] - a[sl])[:, None, None, None, :]
+            u = a[sl][:, None, None, None, :] + tt[..., None] * d
+            qv = layout.phi(u, theta)
+            dy = (layout.phi_jacobian(u, theta)[..., 1, :] * d).sum(-1)  # dφ_y/dt
+            weight = (t1 - t0)[..., None, None] * wq / panels * dy
+            px = [qv[..., 0]] + [
+                0.5 * qv[..., 0]
+                - 0.4
+                / ak[c]
+                * torch.cos(ak[c] * qv[..., 0] + ph[0][c])
+                * torch.sin(bk[c] * qv[..., 1] + ph[1][c])
+                for c in range(len(self.a))
+            ]  # P with ∂P/∂x = integrand: x for the area, then one per channel
+            out[:, sl] = torch.stack([(pc * weight).flatten(1).sum(1) for pc in px])
+        pix = combine_edges(out, (h, w))
+        return pix[1:] / pix[0]
 
 
 def _time(fn: Callable[[], object], repeats: int) -> float:
@@ -74,14 +181,16 @@ def _memory_child(spec: dict, conn) -> None:  # pragma: no cover - runs in a spa
     torch.set_num_threads(spec["threads"])
     img = blurred_noise(*spec["src"])
     npimg = np.ascontiguousarray(img[0].permute(1, 2, 0).numpy())
-    layout = {"uniform": UniformLayout, "rect": RectLayout, "curv": CurvLayout}[spec["layout"]]
-    layout = layout() if spec["layout"] == "uniform" else layout(spec["theta"])
+    layout = make_layout(spec["layout"], None if spec["layout"] == "uniform" else spec["theta"])
+    maps = forward_maps(layout, spec["size"], spec["src"]).numpy() if spec["method"] == "remap" else None
     with open("/proc/self/clear_refs", "w") as f:
         f.write("5")  # reset the peak resident set (VmHWM) to the current one
     before = _status_mb("VmRSS")
     with torch.no_grad():
         if spec["method"] == "inter_area":
             cv2.resize(npimg, spec["size"][::-1], interpolation=cv2.INTER_AREA)
+        elif maps is not None:
+            _remap(npimg, maps)
         else:
             simulate(img, layout, spec["size"], spec["method"], **spec["opts"])
     conn.send(_status_mb("VmHWM") - before)
@@ -91,8 +200,9 @@ def _memory_child(spec: dict, conn) -> None:  # pragma: no cover - runs in a spa
 def peak_memory_mb(spec: dict) -> float | None:
     """Growth of the resident set over one forward call, in MiB, in a fresh spawned process.
 
-    ``spec`` names the run: ``layout``, ``theta``, ``method``, ``opts``, ``src``, ``size``,
-    ``threads``. (A forked child would deadlock in torch's thread pool.)
+    ``spec`` names the run: ``layout``, ``theta``, ``method`` (a :func:`simulate` method,
+    ``"inter_area"`` or ``"remap"``), ``opts``, ``src``, ``size``, ``threads``. (A forked child
+    would deadlock in torch's thread pool.)
     """
     if not os.path.exists("/proc/self/clear_refs"):
         return None
@@ -105,7 +215,12 @@ def peak_memory_mb(spec: dict) -> float | None:
     return value
 
 
-def _grid_sample_mc(img: torch.Tensor, layout: Layout, size, s: int, gen) -> torch.Tensor:
+def _remap(npimg: np.ndarray, maps: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """Anchor: point sampling with ``cv2.remap`` (bilinear, replicated border) on precomputed maps."""
+    return cv2.remap(npimg, maps[0], maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+
+def _grid_sample_mc(img: Tensor, layout: Layout, size, s: int, gen) -> Tensor:
     """Anchor: stratified Monte Carlo as saliency samplers do it (φ, grid_sample, mean)."""
     h, w = size
     u = sample_points(size, s, jitter=True, generator=gen, dtype=torch.float32)
@@ -115,106 +230,273 @@ def _grid_sample_mc(img: torch.Tensor, layout: Layout, size, s: int, gen) -> tor
     return out.reshape(n, c, h, s, w, s).mean((3, 5))
 
 
+def _exact64(img64: Tensor, layout: Layout, size, subdivisions: int) -> Tensor:
+    """Float64 exact forward on a fixed-subdivision mesh (smooth in θ, for finite differences)."""
+    mesh = pixel_mesh(layout, size, subdivisions=1 if layout.straight_edges else subdivisions)
+    return integrate_exact(img64.flatten(0, 1), layout, size, mesh=mesh)
+
+
+def fd_theta_gradient(
+    img64: Tensor,
+    family: str,
+    theta: Sequence[float] | Tensor,
+    size,
+    weights: Tensor,
+    h: float = 1e-6,
+    subdiv: int = 64,
+) -> Tensor:
+    """Central finite differences of ``Σ weights · exact(θ)`` in float64, shape ``(P,)``.
+
+    Curved edges use ``subdiv`` equal parameter steps (no adaptive choice), so the forward
+    is smooth in θ and the differences are not polluted by changing subdivisions. The box
+    image makes the loss only piecewise smooth in θ (its derivative jumps whenever an edge
+    crosses a source row or column), so the step is small: edges move by about
+    ``1e-6 · source size`` pixels and few of them cross a boundary inside the window.
+    """
+    th = torch.as_tensor(theta, dtype=torch.float64)
+
+    def loss(t: Tensor) -> float:
+        with torch.no_grad():
+            layout = make_layout(family, t, dtype=torch.float64)
+            return float((_exact64(img64, layout, size, subdiv) * weights).sum())
+
+    grads = []
+    for k in range(th.numel()):
+        step = torch.zeros_like(th)
+        step[k] = h
+        grads.append((loss(th + step) - loss(th - step)) / (2 * h))
+    return torch.tensor(grads, dtype=torch.float64)
+
+
+def _settings(name: str, tols, mc_samples) -> list[tuple[str, dict, str]]:
+    exact = (
+        [("exact", {"tol": t}, f"tol={t:g}") for t in tols] if name == "curv" else [("exact", {}, "exact")]
+    )
+    return (
+        exact
+        + [("montecarlo", {"samples": s, "seed": 0}, f"{s * s} spp") for s in mc_samples]
+        + [("point", {}, "1 spp")]
+    )
+
+
 def run(
     src: tuple[int, int] = (1024, 2048),
     size: tuple[int, int] = (129, 257),
-    theta: tuple[float, float] = (0.3, 0.2),
+    theta: tuple[float, float] = (0.35, 0.25),
     tols: tuple[float, ...] = (1e-2, 1e-3, 1e-4),
-    mc_samples: tuple[int, ...] = (1, 2, 4, 8),
+    mc_samples: tuple[int, ...] = (1, 2, 4, 8, 16),
     repeats: int = 5,
     memory: bool = True,
     threads: int | None = None,
+    photo: str | Path | None = None,
+    progress: Callable[[str], None] | None = None,
 ) -> dict:
-    """Measure integrators against anchors on a blurred-noise image; returns a JSON-able dict."""
+    """Measure every integrator against the anchors on a photo and a synthetic scene.
+
+    Args:
+        src: source image size ``(H, W)``.
+        size: sensor size ``(h, w)``.
+        theta: θ of the rect and curv layouts.
+        tols: tolerances of the exact curvilinear integrator.
+        mc_samples: Monte Carlo samples per axis (``s²`` per pixel).
+        repeats: timed repeats after one warm-up (median reported).
+        memory: measure peak memory in spawned children (photo image only).
+        threads: torch threads (default: torch's choice).
+        photo: photo file (default: the bundled ``kodim20``; skipped if none is found).
+        progress: called with a short message before each configuration.
+
+    Returns:
+        a JSON-able dict: sizes, anchors (ms), and one :class:`Row` per configuration.
+    """
     if threads:
         torch.set_num_threads(threads)
-    img = blurred_noise(*src)
-    npimg = np.ascontiguousarray(img[0].permute(1, 2, 0).numpy())
+    say = progress or (lambda msg: None)
     h, w = size
+    scene = SineScene.random(3)
+    images = {"synthetic": scene.image(*src).float()}
+    pic = load_photo(*src, photo)
+    if pic is not None:
+        images = {"photo": pic, **images}
+    first = next(iter(images.values()))
+    npimg = np.ascontiguousarray(first[0].permute(1, 2, 0).numpy())
     rows: list[Row] = []
-    input_mb = img.numel() * 4 / 2**20
+    input_mb = first.numel() * 4 / 2**20
 
     def mem(layout_name, method, opts):
-        if not memory:
-            return None
-        spec = {
-            "layout": layout_name,
-            "theta": theta,
-            "method": method,
-            "opts": opts,
-            "src": src,
-            "size": size,
-            "threads": torch.get_num_threads(),
-        }
-        return peak_memory_mb(spec)
+        spec = {"layout": layout_name, "theta": theta, "method": method, "opts": opts, "src": src}
+        spec |= {"size": size, "threads": torch.get_num_threads()}
+        return peak_memory_mb(spec) if memory else None
 
-    # anchors
+    layouts = {
+        name: make_layout(name, None if name == "uniform" else theta) for name in ("uniform", "rect", "curv")
+    }
+    say("anchors")
     t_area = _time(lambda: cv2.resize(npimg, (w, h), interpolation=cv2.INTER_AREA), repeats)
-    rows.append(
-        Row("uniform", "anchor: cv2.resize INTER_AREA", "-", t_area, peak_mb=mem("uniform", "inter_area", {}))
-    )
-    curv, rect = CurvLayout(theta), RectLayout(theta)
     gen = torch.Generator().manual_seed(0)
-    t_gs = _time(lambda: _grid_sample_mc(img, curv, size, 4, gen), repeats)
-    rows.append(Row("curv", "anchor: grid_sample MC", "16 spp", t_gs))
+    t_gs = _time(lambda: _grid_sample_mc(first, layouts["curv"], size, 4, gen), repeats)
+    anchors = {"inter_area": t_area, "grid_sample_mc16": t_gs}
+    for image_name, img in images.items():
+        img64 = img.double()
+        npi = np.ascontiguousarray(img[0].permute(1, 2, 0).numpy())
+        for name, layout in layouts.items():
+            say(f"{image_name} {name}: float64 references")
+            with torch.no_grad():
+                ref = simulate(img64, layout, size, tol=1e-7)
+            truth = scene.pixel_means(layout, size)[None] if image_name == "synthetic" else None
+            gw = 1 + torch.rand(ref.shape, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+            g_ref = (
+                fd_theta_gradient(img64, name, layout.theta.detach(), size, gw)
+                if layout.theta.numel()
+                else None
+            )
 
-    for name, layout in (("uniform", UniformLayout()), ("rect", rect), ("curv", curv)):
-        with torch.no_grad():
-            ref = simulate(img.double(), layout, size, tol=1e-6)
-        if name == "curv":
-            exact_settings = [("exact", {"tol": t}, f"tol={t:g}") for t in tols]
-        else:
-            exact_settings = [("exact", {}, "exact")]
-        for method, opts, setting in (
-            exact_settings
-            + [("montecarlo", {"samples": s, "seed": 0}, f"{s * s} spp") for s in mc_samples]
-            + [("point", {}, "1 spp")]
-        ):
+            def errors(out: Tensor, truth=truth, ref=ref) -> dict:
+                err = (out.double() - ref).abs()
+                d = {"rmse": float(err.pow(2).mean().sqrt()), "max_err": float(err.max())}
+                if truth is not None:
+                    d["scene_rmse"] = float((out.double() - truth).pow(2).mean().sqrt())
+                return d
 
-            def fwd(method=method, opts=opts, layout=layout):
-                with torch.no_grad():
-                    return simulate(img, layout, size, method, **opts)
-
-            t_f = _time(fwd, repeats)
-            out = fwd()
-            err = (out.double() - ref).abs()
-            t_b = None
-            if layout.theta.numel():
-                layout.rho.requires_grad_(True)
-
-                def fwd_bwd(method=method, opts=opts, layout=layout):
-                    y = simulate(img, layout, size, method, **opts)
-                    y.sum().backward()
-                    layout.rho.grad = None
-
-                def fwd_grad(method=method, opts=opts, layout=layout):
-                    return simulate(img, layout, size, method, **opts)
-
-                t_fg = _time(fwd_grad, repeats)
-                t_b = _time(fwd_bwd, repeats) - t_fg
-            label = "separable" if (method == "exact" and layout.separable) else method
+            # point-sampling anchor: cv2.remap INTER_LINEAR on maps made once
+            maps = forward_maps(layout, size, src).numpy()
+            t_remap = _time(lambda maps=maps, npi=npi: _remap(npi, maps), repeats)
+            out = torch.from_numpy(_remap(npi, maps)).permute(2, 0, 1)[None]
+            anchors[f"remap_linear_{name}"] = t_remap
+            peak = mem(name, "remap", {}) if image_name == "photo" else None
             rows.append(
                 Row(
+                    image_name,
                     name,
-                    label,
-                    setting,
-                    t_f,
-                    t_b,
-                    float(err.pow(2).mean().sqrt()),
-                    float(err.max()),
-                    mem(name, method, opts),
-                    {"forward_with_grad_ms": t_fg if t_b is not None else None},
+                    "anchor: cv2.remap LINEAR",
+                    "1 spp",
+                    t_remap,
+                    peak_mb=peak,
+                    **errors(out),
                 )
             )
+            if name == "uniform":
+                out = torch.from_numpy(cv2.resize(npi, (w, h), interpolation=cv2.INTER_AREA)).permute(
+                    2, 0, 1
+                )[None]
+                peak = mem(name, "inter_area", {}) if image_name == "photo" else None
+                rows.append(
+                    Row(image_name, name, "anchor: cv2.resize AREA", "-", t_area, peak_mb=peak, **errors(out))
+                )
+            if name == "curv":
+                out = _grid_sample_mc(img, layout, size, 4, torch.Generator().manual_seed(0))
+                rows.append(Row(image_name, name, "anchor: grid_sample MC", "16 spp", t_gs, **errors(out)))
+
+            for method, opts, setting in _settings(name, tols, mc_samples):
+                say(f"{image_name} {name}: {method} {setting}")
+
+                def fwd(method=method, opts=opts, layout=layout, img=img):
+                    with torch.no_grad():
+                        return simulate(img, layout, size, method, **opts)
+
+                t_f = _time(fwd, repeats)
+                row = Row(image_name, name, method, setting, t_f, **errors(fwd()))
+                if method == "exact" and layout.separable:
+                    row.method = "separable"
+                if g_ref is not None:
+                    layout.rho.requires_grad_(True)
+
+                    def fwd_grad(method=method, opts=opts, layout=layout, img=img):
+                        return simulate(img, layout, size, method, **opts)
+
+                    def fwd_bwd(method=method, opts=opts, layout=layout, img=img):
+                        simulate(img, layout, size, method, **opts).sum().backward()
+                        layout.rho.grad = None
+
+                    t_fg = _time(fwd_grad, repeats)
+                    row.backward_ms = _time(fwd_bwd, repeats) - t_fg
+                    row.extra["forward_with_grad_ms"] = t_fg
+                    (simulate(img, layout, size, method, **opts).double() * gw).sum().backward()
+                    dtheta = layout.bound * (1 - torch.tanh(layout.rho.detach()) ** 2)
+                    g = layout.rho.grad.double() / dtheta.double()
+                    layout.rho.grad = None
+                    row.grad_rel_err = float((g - g_ref).norm() / g_ref.norm())
+                    row.extra["grad"] = g.tolist()
+                    row.extra["grad_ref"] = g_ref.tolist()
+                if image_name == "photo":
+                    row.peak_mb = mem(name, method, opts)
+                rows.append(row)
     return {
         "src_hw": list(src),
         "sensor_hw": list(size),
         "theta": list(theta),
         "threads": torch.get_num_threads(),
         "input_mb": input_mb,
-        "anchors_ms": {"inter_area": t_area, "grid_sample_mc16": t_gs},
+        "images": list(images),
+        "scene": asdict(scene),
+        "anchors_ms": anchors,
         "rows": [asdict(r) for r in rows],
     }
+
+
+def _forward_fn(img: Tensor, layout: Layout, size, method: str, opts: dict) -> Callable[[], object]:
+    """A no-grad forward call: a :func:`simulate` method, ``"inter_area"`` or ``"remap"`` (OpenCV)."""
+    npimg = np.ascontiguousarray(img[0].permute(1, 2, 0).numpy())
+    if method == "inter_area":
+        return lambda: cv2.resize(npimg, size[::-1], interpolation=cv2.INTER_AREA)
+    if method == "remap":
+        m = forward_maps(layout, size, img.shape[-2:]).numpy()
+        return lambda: _remap(npimg, m)
+
+    def fn():
+        with torch.no_grad():
+            return simulate(img, layout, size, method, **opts)
+
+    return fn
+
+
+SCALING_METHODS: dict[str, tuple[str, str, dict]] = {
+    "cv2.resize AREA": ("uniform", "inter_area", {}),
+    "cv2.remap LINEAR (curv)": ("curv", "remap", {}),
+    "separable (rect)": ("rect", "exact", {}),
+    "exact tol=1e-3 (curv)": ("curv", "exact", {"tol": 1e-3}),
+    "montecarlo 16 spp (curv)": ("curv", "montecarlo", {"samples": 4, "seed": 0}),
+}
+
+
+def scaling(
+    srcs: Sequence[tuple[int, int]] = ((256, 512), (512, 1024), (1024, 2048)),
+    sizes: Sequence[tuple[int, int]] = ((33, 65), (65, 129), (129, 257)),
+    theta: tuple[float, float] = (0.35, 0.25),
+    repeats: int = 5,
+) -> dict:
+    """Forward time of representative methods over a grid of source and sensor sizes.
+
+    Returns the times (ms) and, per method, the median log-log slope of time against
+    source pixels (sensor size fixed) and against sensor pixels (source fixed): 1 is linear.
+    """
+    times: dict[str, list[list[float]]] = {}
+    for label, (family, method, opts) in SCALING_METHODS.items():
+        layout = make_layout(family, None if family == "uniform" else theta)
+        times[label] = [
+            [_time(_forward_fn(blurred_noise(*src), layout, size, method, opts), repeats) for size in sizes]
+            for src in srcs
+        ]
+    src_px = np.log([a * b for a, b in srcs])
+    sen_px = np.log([a * b for a, b in sizes])
+    slopes = {}
+    for label, grid in times.items():
+        t = np.log(np.asarray(grid))
+        slopes[label] = {
+            "vs_source_pixels": float(
+                np.median([np.polyfit(src_px, t[:, j], 1)[0] for j in range(len(sizes))])
+            ),
+            "vs_sensor_pixels": float(np.median([np.polyfit(sen_px, t[i], 1)[0] for i in range(len(srcs))])),
+        }
+    return {
+        "srcs_hw": [list(s) for s in srcs],
+        "sizes_hw": [list(s) for s in sizes],
+        "times_ms": times,
+        "slopes": slopes,
+    }
+
+
+def _fmt(v: float | None, spec: str) -> str:
+    return "" if v is None else format(v, spec)
 
 
 def format_table(result: dict) -> str:
@@ -225,32 +507,75 @@ def format_table(result: dict) -> str:
         f"{result['sensor_hw'][1]}x{result['sensor_hw'][0]}, θ={tuple(result['theta'])}, "
         f"{result['threads']} threads; anchors: INTER_AREA {a['inter_area']:.2f} ms, "
         f"grid_sample MC-16 {a['grid_sample_mc16']:.2f} ms",
-        f"{'layout':8s} {'method':30s} {'setting':9s} {'fwd ms':>8s} {'/AREA':>6s} {'/GS16':>6s} "
-        f"{'bwd/fwd':>7s} {'RMSE':>9s} {'max err':>9s} {'peak/in':>7s}",
+        "errors: RMSE/max against float64 exact; 'scene' RMSE against the analytic pixel means "
+        "(synthetic only); grad: relative error of dL/dθ against float64 finite differences",
+        f"{'image':9s} {'layout':7s} {'method':25s} {'setting':8s} {'fwd ms':>8s} {'/AREA':>6s} "
+        f"{'/GS16':>6s} {'bwd/fwd':>7s} {'RMSE':>8s} {'max err':>8s} {'scene':>8s} {'grad':>8s} "
+        f"{'peak/in':>7s}",
     ]
     for r in result["rows"]:
-        bwd = (
-            "" if r["backward_ms"] is None else f"{r['backward_ms'] / r['extra']['forward_with_grad_ms']:.2f}"
-        )
-        rmse = "" if r["rmse"] is None else f"{r['rmse']:.2e}"
-        mx = "" if r["max_err"] is None else f"{r['max_err']:.2e}"
-        peak = "" if r["peak_mb"] is None else f"{r['peak_mb'] / result['input_mb']:.2f}"
+        fg = r["extra"].get("forward_with_grad_ms")
+        bwd = None if r["backward_ms"] is None else r["backward_ms"] / fg
+        peak = None if r["peak_mb"] is None else r["peak_mb"] / result["input_mb"]
         lines.append(
-            f"{r['layout']:8s} {r['method']:30s} {r['setting']:9s} {r['forward_ms']:8.2f} "
+            f"{r['image']:9s} {r['layout']:7s} {r['method']:25s} {r['setting']:8s} {r['forward_ms']:8.2f} "
             f"{r['forward_ms'] / a['inter_area']:6.2f} {r['forward_ms'] / a['grid_sample_mc16']:6.2f} "
-            f"{bwd:>7s} {rmse:>9s} {mx:>9s} {peak:>7s}"
+            f"{_fmt(bwd, '.2f'):>7s} {_fmt(r['rmse'], '.2e'):>8s} {_fmt(r['max_err'], '.2e'):>8s} "
+            f"{_fmt(r['scene_rmse'], '.2e'):>8s} {_fmt(r['grad_rel_err'], '.1e'):>8s} {_fmt(peak, '.2f'):>7s}"
         )
     return "\n".join(lines)
 
 
-def main_bench(quick: bool, json_path: str | None) -> dict:
-    """Run (``quick``: a 512x256 source, 65x33 sensor, fewer repeats) and print the table."""
+def format_scaling(result: dict) -> str:
+    """The scaling grid (ms) and fitted slopes as text."""
+    sizes = [f"{w}x{h}" for h, w in result["sizes_hw"]]
+    lines = [f"scaling: forward ms; rows = source, columns = sensor {', '.join(sizes)}"]
+    for label, grid in result["times_ms"].items():
+        s = result["slopes"][label]
+        lines.append(
+            f"  {label:26s} slope vs source px {s['vs_source_pixels']:.2f}, "
+            f"vs sensor px {s['vs_sensor_pixels']:.2f}"
+        )
+        for (h, w), row in zip(result["srcs_hw"], grid, strict=True):
+            lines.append(f"    {w}x{h}: " + "  ".join(f"{t:9.2f}" for t in row))
+    return "\n".join(lines)
+
+
+def main_bench(
+    quick: bool,
+    json_path: str | None,
+    plot_path: str | None = None,
+    *,
+    memory: bool = True,
+    with_scaling: bool = True,
+    photo: str | None = None,
+) -> dict:
+    """Run the benchmark (``quick``: small sizes, few repeats), print tables, write JSON and plot."""
+    say = lambda msg: print(f"  .. {msg}", flush=True)  # noqa: E731
     if quick:
-        result = run(src=(256, 512), size=(33, 65), repeats=3, memory=False)
+        result = run(
+            src=(256, 512),
+            size=(33, 65),
+            repeats=3,
+            memory=False,
+            mc_samples=(1, 4, 16),
+            photo=photo,
+            progress=say,
+        )
+        if with_scaling:
+            result["scaling"] = scaling(((128, 256), (256, 512)), ((17, 33), (33, 65)), repeats=2)
     else:
-        result = run()
+        result = run(memory=memory, photo=photo, progress=say)
+        if with_scaling:
+            result["scaling"] = scaling()
     print(format_table(result))
+    if "scaling" in result:
+        print(format_scaling(result["scaling"]))
     if json_path:
         Path(json_path).parent.mkdir(parents=True, exist_ok=True)
         Path(json_path).write_text(json.dumps(result, indent=2))
+    if plot_path:
+        from .plots import pareto_figure
+
+        print(f"wrote {pareto_figure(result, plot_path)}")
     return result

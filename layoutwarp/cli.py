@@ -98,7 +98,14 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     """Speed against error of every integrator, with anchors measured in the same run."""
     from layoutwarp.bench import main_bench
 
-    main_bench(args.quick, args.json)
+    main_bench(
+        args.quick,
+        args.json,
+        args.plot,
+        memory=not args.no_memory,
+        with_scaling=not args.no_scaling,
+        photo=args.image,
+    )
     return 0
 
 
@@ -148,6 +155,10 @@ def build_parser() -> argparse.ArgumentParser:
     b = sub.add_parser("bench", help="time and error of every integrator against anchors (one process)")
     b.add_argument("--quick", action="store_true", help="small sizes, few repeats")
     b.add_argument("--json", default=None, help="also write the results to this JSON file")
+    b.add_argument("--plot", default=None, help="also draw the speed-vs-error plot to this PNG")
+    b.add_argument("--image", default=None, help="photo to use (default: the bundled kodim20)")
+    b.add_argument("--no-memory", action="store_true", help="skip the peak-memory children")
+    b.add_argument("--no-scaling", action="store_true", help="skip the input/sensor size scaling grid")
     b.set_defaults(func=_cmd_bench)
     t = sub.add_parser("train", help="train a layout jointly with a network (mnist)")
     t.add_argument("task", choices=["mnist", "camvid", "faces"], help="the experiment")

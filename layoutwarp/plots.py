@@ -11,7 +11,7 @@ import torch
 from .layouts import Layout
 from .mesh import pixel_mesh
 
-__all__ = ["draw_layout", "layout_figure"]
+__all__ = ["draw_layout", "layout_figure", "pareto_figure"]
 
 
 def _plt():
@@ -93,6 +93,75 @@ def layout_figure(
         axes[1, k].set_title(f"sensor output {size[1]}x{size[0]}", fontsize=9)
         axes[1, k].set_xticks([])
         axes[1, k].set_yticks([])
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+_METHOD_MARKERS = {"separable": "s", "exact": "D", "montecarlo": "o", "point": "^"}
+_LAYOUT_COLORS = {"uniform": "tab:gray", "rect": "tab:blue", "curv": "tab:red"}
+
+
+def pareto_figure(result: dict, path: str | Path) -> Path:
+    """Speed against error from a :func:`layoutwarp.bench.run` result, one panel per image.
+
+    Forward time (ms) against RMSE to the float64 exact reference, log-log, one colour per
+    layout and one marker per method; Monte Carlo budgets and exact tolerances are joined by
+    lines, anchors are hollow. A last panel shows the θ-gradient error against the time of
+    a forward and backward pass. Errors of 0 are drawn at 1e-12.
+    """
+    plt = _plt()
+    rows = result["rows"]
+    images = result.get("images") or sorted({r["image"] for r in rows})
+    fig, axes = plt.subplots(1, len(images) + 1, figsize=(5.2 * (len(images) + 1), 4.6), squeeze=False)
+    axes = axes[0]
+    floor = 1e-12
+    for ax, image in zip(axes, images, strict=False):
+        for layout, color in _LAYOUT_COLORS.items():
+            sel = [r for r in rows if r["image"] == image and r["layout"] == layout]
+            for method, marker in _METHOD_MARKERS.items():
+                pts = sorted((r["forward_ms"], max(r["rmse"], floor)) for r in sel if r["method"] == method)
+                if pts:
+                    x, y = zip(*pts, strict=True)
+                    ax.plot(x, y, marker=marker, color=color, lw=0.8, ms=5, label=f"{layout} {method}")
+            for r in sel:
+                if r["method"].startswith("anchor"):
+                    ax.plot(
+                        r["forward_ms"], max(r["rmse"], floor), marker="*", mfc="none", color=color, ms=10
+                    )
+                    ax.annotate(r["method"][8:], (r["forward_ms"], max(r["rmse"], floor)), fontsize=6)
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("forward time (ms)")
+        ax.set_ylabel("RMSE vs float64 exact")
+        ax.set_title(
+            f"{image}: {result['src_hw'][1]}x{result['src_hw'][0]} -> "
+            f"{result['sensor_hw'][1]}x{result['sensor_hw'][0]}",
+            fontsize=10,
+        )
+        ax.grid(True, which="both", alpha=0.3)
+    ax = axes[-1]
+    for r in rows:
+        if r["grad_rel_err"] is None or r["image"] != images[0]:
+            continue
+        t = r["extra"]["forward_with_grad_ms"] + r["backward_ms"]
+        ax.plot(
+            t,
+            max(r["grad_rel_err"], floor),
+            marker=_METHOD_MARKERS.get(r["method"], "x"),
+            color=_LAYOUT_COLORS[r["layout"]],
+            ms=5,
+        )
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("forward + backward time (ms)")
+    ax.set_ylabel("relative error of dL/dθ vs finite differences")
+    ax.set_title(f"θ-gradient ({images[0]})", fontsize=10)
+    ax.grid(True, which="both", alpha=0.3)
+    axes[0].legend(fontsize=6, loc="best")
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

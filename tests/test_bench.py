@@ -1,0 +1,111 @@
+"""The benchmark's references: the synthetic scene's analytic integrals and the FD gradient."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+from conftest import rand_theta
+
+import layoutwarp as lw
+from layoutwarp.bench import SineScene, fd_theta_gradient, format_scaling, format_table, run, scaling
+from layoutwarp.plots import pareto_figure
+
+F64 = torch.float64
+
+
+def _sin_mean(k: float, ph: float, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    return (np.cos(k * lo + ph) - np.cos(k * hi + ph)) / (k * (hi - lo))
+
+
+def test_scene_pixel_means_rect_closed_form(seed):
+    scene = SineScene.random(2, seed=seed)
+    gen = torch.Generator().manual_seed(seed)
+    layout = lw.make_layout("rect", rand_theta(gen, 0.9), dtype=F64)
+    size = (7, 11)
+    got = scene.pixel_means(layout, size).numpy()
+    c = lw.pixel_mesh(layout, size).corners.detach().numpy()
+    xs, ys = c[0, :, 0], c[:, 0, 1]  # rect pixels are axis-aligned rectangles
+    for ch in range(2):
+        mx = _sin_mean(scene.a[ch], scene.p[ch], xs[:-1], xs[1:])
+        my = _sin_mean(scene.b[ch], scene.q[ch], ys[:-1], ys[1:])
+        expected = 0.5 + 0.4 * my[:, None] * mx[None]
+        assert np.abs(got[ch] - expected).max() < 1e-13
+
+
+def test_scene_pixel_means_curv_against_dense_quadrature(seed):
+    # independent route: a dense midpoint rule in uniform space, weighted by |det J|
+    scene = SineScene((9.0,), (5.0,), (0.3,), (1.1,))
+    gen = torch.Generator().manual_seed(seed)
+    layout = lw.make_layout("curv", rand_theta(gen, 0.8), dtype=F64)
+    size = (4, 5)
+    got = scene.pixel_means(layout, size)[0].numpy()
+    n = 600
+    u = lw.sample_points(size, n)
+    q = layout.phi(u, layout.theta.detach())
+    det = torch.linalg.det(layout.phi_jacobian(u, layout.theta.detach())).abs()
+    f = 0.5 + 0.4 * torch.sin(9.0 * q[..., 0] + 0.3) * torch.sin(5.0 * q[..., 1] + 1.1)
+    num = (f * det).reshape(size[0], n, size[1], n).sum((1, 3))
+    den = det.reshape(size[0], n, size[1], n).sum((1, 3))
+    assert np.abs(got - (num / den).numpy()).max() < 2e-5
+
+
+def test_scene_image_is_cell_average_and_box_integral_converges():
+    scene = SineScene.random(1, seed=3)
+    img = scene.image(8, 12)[0, 0].numpy()
+    # cell (2, 5): average by a fine midpoint rule
+    ys = np.linspace(-1 + 2 * 2 / 8, -1 + 2 * 3 / 8, 2001)[:-1] + 0.5 * (2 / 8) / 2000
+    xs = np.linspace(-1 + 2 * 5 / 12, -1 + 2 * 6 / 12, 2001)[:-1] + 0.5 * (2 / 12) / 2000
+    f = 0.5 + 0.4 * np.sin(scene.b[0] * ys[:, None] + scene.q[0]) * np.sin(scene.a[0] * xs[None] + scene.p[0])
+    assert abs(img[2, 5] - f.mean()) < 1e-7
+    # the exact box integral of finer and finer images approaches the analytic means (O(h²))
+    layout = lw.make_layout("curv", (0.4, -0.3), dtype=F64)
+    truth = scene.pixel_means(layout, (6, 8))
+    errs = [
+        float((lw.simulate(scene.image(s, s), layout, (6, 8), tol=1e-9)[0] - truth).abs().max())
+        for s in (48, 96, 192)
+    ]
+    assert errs[0] > errs[1] > errs[2] and errs[1] / errs[2] > 3
+
+
+def test_fd_gradient_matches_exact_autograd(seed):
+    gen = torch.Generator().manual_seed(seed)
+    img = torch.rand(1, 2, 60, 80, generator=gen, dtype=F64)
+    size = (9, 13)
+    w = 1 + torch.rand(1, 2, *size, generator=gen, dtype=F64)
+    for family in ("rect", "curv"):
+        layout = lw.make_layout(family, rand_theta(gen, 0.8), dtype=F64)
+        (lw.simulate(img, layout, size, tol=1e-9) * w).sum().backward()
+        g = layout.rho.grad / (1 - torch.tanh(layout.rho.detach()) ** 2)
+        fd = fd_theta_gradient(img, family, layout.theta.detach(), size, w, subdiv=128)
+        assert float((g - fd).norm() / fd.norm()) < 1e-4, (family, g, fd)
+
+
+def test_run_small_reports_every_method_and_plots(tmp_path):
+    res = run(src=(48, 96), size=(7, 13), tols=(1e-3,), mc_samples=(1, 4), repeats=1, memory=False)
+    rows = res["rows"]
+    assert {r["image"] for r in rows} == set(res["images"]) and "synthetic" in res["images"]
+    methods = {(r["layout"], r["method"]) for r in rows}
+    for lay in ("uniform", "rect", "curv"):
+        assert {(lay, "montecarlo"), (lay, "point"), (lay, "anchor: cv2.remap LINEAR")} <= methods
+    assert ("rect", "separable") in methods and ("curv", "exact") in methods
+    by = {(r["image"], r["layout"], r["method"], r["setting"]): r for r in rows}
+    sep = by[("synthetic", "rect", "separable", "exact")]
+    assert sep["rmse"] < 1e-6 and sep["grad_rel_err"] < 1e-3
+    area = by[("synthetic", "uniform", "anchor: cv2.resize AREA", "-")]
+    assert area["rmse"] < 1e-6 and math.isfinite(area["scene_rmse"])
+    mc = [by[("synthetic", "curv", "montecarlo", f"{s} spp")]["rmse"] for s in (1, 16)]
+    assert mc[1] < mc[0]
+    text = format_table(res)
+    assert "separable" in text and "/AREA" in text
+    png = pareto_figure(res, tmp_path / "p.png")
+    assert png.stat().st_size > 20_000
+
+
+def test_scaling_fits_slopes():
+    res = scaling(((32, 64), (64, 128)), ((5, 9), (9, 17)), repeats=1)
+    assert set(res["slopes"]) == set(res["times_ms"])
+    for grid in res["times_ms"].values():
+        assert np.all(np.isfinite(grid)) and np.asarray(grid).shape == (2, 2)
+    assert "slope vs source px" in format_scaling(res)
