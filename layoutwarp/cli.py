@@ -29,6 +29,19 @@ def parse_wxh(text: str) -> tuple[int, int]:
     return h, w
 
 
+def parse_um(text: str) -> tuple[float, float]:
+    """``"5600x4200"`` (width x height in µm) to ``(5600.0, 4200.0)``."""
+    try:
+        w, h = (float(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"extent must be WIDTHxHEIGHT in µm, e.g. 5600x4200, got {text!r}"
+        ) from None
+    if not (w > 0 and h > 0):
+        raise argparse.ArgumentTypeError(f"extent must be positive, got {text!r}")
+    return w, h
+
+
 def parse_theta(text: str) -> tuple[float, float]:
     try:
         tx, ty = (float(v) for v in text.split(","))
@@ -109,11 +122,21 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def _sensor_options(args: argparse.Namespace) -> dict:
+    sensor = {"method": args.method}
+    if args.method in ("montecarlo", "point"):
+        sensor["radiance"] = args.radiance
+    if args.method == "montecarlo":
+        sensor["samples"] = args.samples
+    return sensor
+
+
 def _cmd_train(args: argparse.Namespace) -> int:
     """Train a sensor layout jointly with a network (the paper's experiments)."""
-    if args.task != "mnist":
-        print(f"error: task {args.task!r} is not available yet (mnist is)", file=sys.stderr)
-        return 2
+    if args.task == "camvid":
+        return _train_task(args, "camvid")
+    if args.task == "faces":
+        return _train_task(args, "faces")
     from layoutwarp.train import run_mnist_experiment
 
     data = Path(args.data) if args.data else (DEFAULT_DATA / "mnist" if args.quick else _shared("mnist"))
@@ -121,11 +144,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     seeds = tuple(range(args.seeds)) if args.seeds else ((0,) if args.quick else (0, 1, 2))
     epochs = args.epochs or (3 if args.quick else 14)
     print(f"MNIST 4x4: data {data}, layouts {', '.join(layouts)}, seeds {list(seeds)}, {epochs} epochs")
-    sensor = {"method": args.method}
-    if args.method in ("montecarlo", "point"):
-        sensor["radiance"] = args.radiance
-    if args.method == "montecarlo":
-        sensor["samples"] = args.samples
+    sensor = _sensor_options(args)
     result = run_mnist_experiment(
         data, args.out, layouts, seeds, epochs, progress=not args.no_progress, sensor=sensor
     )
@@ -137,8 +156,156 @@ def _cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
+TASK_DEFAULTS = {
+    # task: (shared folder, data_samples folder, layouts, sizes (H, W), seeds, epochs, quick epochs)
+    "camvid": ("camvid", "camvid", ("uniform", "curv", "rect"), ((45, 60), (90, 120)), 2, 30, 1),
+    "faces": ("faces/utkface_subset", "faces/utkface", ("uniform", "rect"), ((8, 8), (16, 16)), 3, 30, 2),
+}
+
+
+def _train_task(args: argparse.Namespace, task: str) -> int:
+    from layoutwarp import tasks
+
+    shared, sample, layouts, sizes, n_seeds, epochs, quick_epochs = TASK_DEFAULTS[task]
+    data = Path(args.data) if args.data else (DEFAULT_DATA / sample if args.quick else _shared(shared))
+    if not data.exists():
+        print(f"error: no data at {data}; pass --data DIR or --quick (bundled samples)", file=sys.stderr)
+        return 2
+    layouts = (args.layout,) if args.layout else layouts
+    sizes = tuple(args.size) if args.size else (sizes[:1] if args.quick else sizes)
+    seeds = tuple(range(args.seeds)) if args.seeds else ((0,) if args.quick else tuple(range(n_seeds)))
+    epochs = args.epochs or (quick_epochs if args.quick else epochs)
+    out = args.out if args.out != "results/mnist" else f"results/{task}"
+    sizes_txt = ", ".join(f"{w}x{h}" for h, w in sizes)
+    print(
+        f"{task}: data {data}, layouts {', '.join(layouts)}, sensors {sizes_txt}, "
+        f"seeds {list(seeds)}, {epochs} epochs"
+    )
+    common = {"progress": not args.no_progress, "sensor": _sensor_options(args), "layouts": layouts}
+    common |= {"sizes": sizes, "seeds": seeds, "epochs": epochs}
+    if task == "camvid":
+        freeze = args.freeze_epochs if args.freeze_epochs is not None else (0 if args.quick else 5)
+        result = tasks.run_camvid_experiment(data, out, freeze_epochs=freeze, **common)
+        metrics = ("miou", "pixel_accuracy")
+    else:
+        result = tasks.run_faces_experiment(data, out, **common)
+        metrics = ("gender", "age_group", "race", "mean")
+    print(f"{'layout':16s} " + " ".join(f"{m:>16s}" for m in metrics) + "  θ (mean)")
+    for name, s in result["summary"].items():
+        cells = " ".join(f"{s[m]['mean']:8.2f} ± {s[m]['std']:5.2f}" for m in metrics)
+        th = ", ".join(f"{v:+.2f}" for v in s["theta_mean"])
+        print(f"{name:16s} {cells}  ({th})  n={s['n']}")
+    print(f"wrote {out}/results.json, layout_*.json and {task}_layouts.png")
+    return 0
+
+
+def _layout_from_args(args: argparse.Namespace):
+    """The layout and sensor size from ``--layout FILE`` or ``--family/--theta``, and ``--size``."""
+    import torch
+
+    import layoutwarp as lw
+
+    if args.layout:
+        layout, info = lw.load_layout(args.layout, dtype=torch.float64)
+        size = args.size or (tuple(info["size_hw"]) if info.get("size_hw") else None)
+    else:
+        if not args.family:
+            raise SystemExit("error: give --layout LAYOUT.json or --family (with --theta)")
+        theta = None if args.family == "uniform" else (args.theta or (0.0, 0.0))
+        layout, size = lw.make_layout(args.family, theta, dtype=torch.float64), args.size
+    if size is None:
+        raise SystemExit("error: --size WIDTHxHEIGHT is needed (the layout file stores no sensor size)")
+    return layout, size
+
+
+def _cmd_preprocess(args: argparse.Namespace) -> int:
+    """Write the sensor image of every image of a folder (and move its label maps)."""
+    from layoutwarp.preprocess import _walk, benchmark_baseline, preprocess_folder
+
+    layout, size = _layout_from_args(args)
+    dst = Path(args.dst)
+    if args.benchmark and dst.exists() and any(dst.iterdir()):
+        print(f"error: --benchmark needs an empty DST, {dst} is not empty", file=sys.stderr)
+        return 2
+    try:
+        res = preprocess_folder(
+            args.src,
+            dst,
+            layout,
+            size,
+            labels=args.labels,
+            label_rule=args.label_rule,
+            workers=args.workers,
+            tol=args.tol,
+            progress=False if args.no_progress else None,
+        )
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(
+        f"{res.processed} written, {res.skipped} already done, {len(res.failed)} failed "
+        f"in {res.seconds:.2f} s ({res.images_per_second:.1f} images/s, {args.workers} worker(s)); "
+        f"manifest {res.manifest}"
+    )
+    for f in res.failed:
+        print(f"  failed: {f['file']}: {f['error']}", file=sys.stderr)
+    if args.benchmark:
+        import tempfile
+
+        files = _walk(Path(args.src), dst.resolve())
+        with tempfile.TemporaryDirectory() as tmp:
+            base = benchmark_baseline(files, size, tmp)
+        ours = res.processed / res.seconds
+        ref = len(files) / base
+        print(
+            f"benchmark ({len(files)} files): layoutwarp {ours:.1f} images/s, "
+            f"imread + resize(INTER_AREA) + imwrite {ref:.1f} images/s, ratio {ours / ref:.2f}x"
+        )
+        manifest = json.loads(res.manifest.read_text())
+        manifest["benchmark"] = {"images_per_s": ours, "baseline_images_per_s": ref, "ratio": ours / ref}
+        res.manifest.write_text(json.dumps(manifest, indent=2))
+    return 1 if res.failed else 0
+
+
+def _cmd_export(args: argparse.Namespace) -> int:
+    """Write a layout's pixel boundaries as a GDSII/DXF/SVG/PNG fabrication mask."""
+    from layoutwarp.export import export_layout, report_json
+
+    layout, size = _layout_from_args(args)
+    try:
+        report = export_layout(
+            layout,
+            size,
+            args.out,
+            args.sensor_um,
+            format=args.format,
+            tol_um=args.tol_um,
+            grid_um=args.grid_um,
+            manhattan=args.manhattan,
+            layer=args.gds_layer,
+            datatype=args.gds_datatype,
+            px_per_um=args.px_per_um,
+            line_width=args.line_width,
+            min_feature_um=args.min_feature_um,
+        )
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(report.summary())
+    if args.report:
+        Path(args.report).write_text(report_json(report))
+    return 0
+
+
 def _shared(name: str) -> Path:
     return Path(__file__).resolve().parents[1].parent / "shared" / "data" / name
+
+
+def _layout_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--layout", default=None, help="layout JSON file (save_layout / train output)")
+    p.add_argument("--family", choices=["uniform", "rect", "curv"], default=None, help="or a layout family")
+    p.add_argument("--theta", type=parse_theta, default=None, help="θ as TX,TY with --family")
+    p.add_argument("--size", type=parse_wxh, default=None, help="sensor WIDTHxHEIGHT (default: the file's)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -160,7 +327,55 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--no-memory", action="store_true", help="skip the peak-memory children")
     b.add_argument("--no-scaling", action="store_true", help="skip the input/sensor size scaling grid")
     b.set_defaults(func=_cmd_bench)
-    t = sub.add_parser("train", help="train a layout jointly with a network (mnist)")
+    pp = sub.add_parser(
+        "preprocess", help="sensor images of a folder of images (OpenCV, precomputed weights)"
+    )
+    pp.add_argument("src", help="source folder (walked recursively)")
+    pp.add_argument("dst", help="destination folder (same relative paths)")
+    _layout_args(pp)
+    pp.add_argument("--labels", default=None, help="folder of class-index label maps (same relative paths)")
+    pp.add_argument(
+        "--label-rule",
+        choices=["nearest", "majority", "inverse"],
+        default="nearest",
+        help="labels to the sensor grid by the label under each pixel centre (nearest) or the "
+        "largest area (majority), or keep them full size with back-warp maps (inverse)",
+    )
+    pp.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
+    pp.add_argument(
+        "--tol",
+        type=float,
+        default=None,
+        help="curved-edge tolerance (default: 1/4 level of the image dtype)",
+    )
+    pp.add_argument("--no-progress", action="store_true", help="no progress bar")
+    pp.add_argument(
+        "--benchmark", action="store_true", help="also time a plain OpenCV loop on the same files"
+    )
+    pp.set_defaults(func=_cmd_preprocess)
+    ex = sub.add_parser("export", help="pixel boundaries as a fabrication mask (GDSII, DXF, SVG, PNG)")
+    ex.add_argument("layout", nargs="?", default=None, help="layout JSON file")
+    ex.add_argument("--family", choices=["uniform", "rect", "curv"], default=None, help="or a layout family")
+    ex.add_argument("--theta", type=parse_theta, default=None, help="θ as TX,TY with --family")
+    ex.add_argument("--size", type=parse_wxh, default=None, help="sensor WIDTHxHEIGHT in pixels")
+    ex.add_argument("--sensor-um", type=parse_um, required=True, help="sensor extent WIDTHxHEIGHT in µm")
+    ex.add_argument(
+        "--format", choices=["gds", "dxf", "svg", "png"], default=None, help="default: --out's suffix"
+    )
+    ex.add_argument("--out", required=True, help="output file")
+    ex.add_argument("--tol-um", type=float, default=0.01, help="curved-edge tolerance in µm (default 0.01)")
+    ex.add_argument("--grid-um", type=float, default=None, help="snap vertices to this grid (µm)")
+    ex.add_argument("--manhattan", action="store_true", help="axis-aligned steps instead of slanted edges")
+    ex.add_argument("--gds-layer", type=int, default=1, help="GDSII layer (DXF layer PIXELS_<n>), default 1")
+    ex.add_argument("--gds-datatype", type=int, default=0, help="GDSII datatype, default 0")
+    ex.add_argument(
+        "--px-per-um", type=float, default=None, help="PNG resolution (default: 4096 px long side)"
+    )
+    ex.add_argument("--line-width", type=int, default=1, help="PNG boundary line width in raster pixels")
+    ex.add_argument("--min-feature-um", type=float, default=None, help="warn below this pitch (µm)")
+    ex.add_argument("--report", default=None, help="also write the report as JSON to this file")
+    ex.set_defaults(func=_cmd_export)
+    t = sub.add_parser("train", help="train a layout jointly with a network (mnist, camvid, faces)")
     t.add_argument("task", choices=["mnist", "camvid", "faces"], help="the experiment")
     t.add_argument(
         "--layout", choices=["uniform", "curv", "rect"], default=None, help="one layout (default: all)"
@@ -176,6 +391,15 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument(
         "--radiance", default="bilinear", choices=["bilinear", "box"], help="radiance for sampling"
     )
+    t.add_argument(
+        "--size",
+        type=parse_wxh,
+        action="append",
+        default=None,
+        help="sensor WIDTHxHEIGHT for camvid/faces (repeat for several; default 60x45 and 120x90 "
+        "for camvid, 8x8 and 16x16 for faces)",
+    )
+    t.add_argument("--freeze-epochs", type=int, default=None, help="camvid: epochs with θ frozen (default 5)")
     t.add_argument("--no-progress", action="store_true", help="no progress bars")
     t.add_argument("--out", default="results/mnist", help="output folder")
     t.set_defaults(func=_cmd_train)

@@ -258,20 +258,30 @@ def _edge_parameters(
     edge, k = torch.nonzero(nonempty, as_tuple=True)  # row-major: pieces in edge order
     lo, hi = bounds[edge, k], bounds[edge, k + 1]
     a0, d = ua[edge], (ub - ua)[edge]
-    pts = torch.stack([a0 + lo[:, None] * d, a0 + hi[:, None] * d, a0 + ((lo + hi) / 2)[:, None] * d])
+    # K + 1 samples per piece: the chord, and second differences for the curvature. An
+    # S-shaped piece or one whose bend sits near an end has no sagitta at its middle, so the
+    # bound uses max |φ''⊥| / 8, the sagitta of a parabola with the piece's largest curvature.
+    k_s = 8
+    s_t = torch.linspace(0, 1, k_s + 1, dtype=ua.dtype)
+    pts = a0[:, None] + (lo[:, None] + (hi - lo)[:, None] * s_t)[..., None] * d[:, None]  # (pieces, K+1, 2)
+    pts = pts.transpose(0, 1)  # (K+1, pieces, 2)
     ends = layout.phi(pts, th)
-    chord = ends[1] - ends[0]
+    chord = ends[-1] - ends[0]
     length = torch.sqrt(chord[:, 0] ** 2 + chord[:, 1] ** 2)
-    m = ends[2] - ends[0]
-    sag = (chord[:, 0] * m[:, 1] - chord[:, 1] * m[:, 0]).abs() / length.clamp_min(1e-300)
+    unit = chord / length.clamp_min(1e-300)[:, None]
+
+    def normal_curvature(f: Tensor) -> Tensor:  # (K+1, pieces, 2) -> (K-1, pieces)
+        d2 = (f[2:] - 2 * f[1:-1] + f[:-2]) * k_s**2
+        return (unit[:, 0] * d2[..., 1] - unit[:, 1] * d2[..., 0]).abs()
+
+    sag = normal_curvature(ends).amax(0) / 8
     if with_grad and th.numel():
         # the θ-gradient moves each edge by ∂φ/∂θ, which bends it even where φ does not
-        # (e.g. at θ = 0): bound the normal deviation of that field from linear the same way
-        v = layout.phi_dtheta(pts, th)  # (3, pieces, 2, P)
-        dev = v[2] - (v[0] + v[1]) / 2
-        unit = chord / length.clamp_min(1e-300)[:, None]
-        normal_dev = (unit[:, 0, None] * dev[:, 1] - unit[:, 1, None] * dev[:, 0]).abs().amax(-1)
-        sag = torch.maximum(sag, normal_dev)
+        # (e.g. at θ = 0): bound the curvature of that field the same way
+        v = layout.phi_dtheta(pts, th)  # (K+1, pieces, 2, P)
+        d2 = (v[2:] - 2 * v[1:-1] + v[:-2]) * k_s**2  # (K-1, pieces, 2, P)
+        normal = (unit[:, 0, None] * d2[..., 1, :] - unit[:, 1, None] * d2[..., 0, :]).abs()
+        sag = torch.maximum(sag, normal.amax(0).amax(-1) / 8)
     edge_len = torch.zeros(ne, dtype=ua.dtype).index_add_(0, edge, length)
     budget = 3 * tol * amin[edge] / (8 * edge_len[edge].clamp_min(1e-300))
     n = torch.sqrt(2 * sag / budget).ceil().clamp(1, max_subdiv)

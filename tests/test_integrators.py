@@ -306,3 +306,17 @@ def test_montecarlo_converges_to_exact(gen):
     ]
     assert errs[2] < errs[1] < errs[0]
     assert errs[2] < 2e-3
+
+
+def test_curved_tolerance_holds_for_mixed_sign_theta(gen):
+    # S-shaped edges (θx, θy of opposite signs) have no sagitta at their middle; the value
+    # error must still stay within tol (it was 3.4x over when only the middle was measured)
+    cases = [((-0.677, 0.866), (20, 24)), ((0.6, -0.4), (9, 13))]
+    cases += [(tuple(rand_theta(gen, 0.9).tolist()), (rint(gen, 3, 30), rint(gen, 3, 30))) for _ in range(4)]
+    for theta, size in cases:
+        layout = lw.make_layout("curv", theta, learn=False, dtype=F64)
+        img = torch.rand(1, 60, 80, generator=gen, dtype=F64)
+        ref = lw.simulate(img, layout, size, tol=1e-10)
+        for tol in (1e-3, 1e-5):
+            err = float((lw.simulate(img, layout, size, tol=tol) - ref).abs().max())
+            assert err <= tol, (theta, size, tol, err)

@@ -1,0 +1,449 @@
+"""Fabrication masks: a layout's pixels as polygons in micrometres (GDSII, DXF, SVG) or rasters.
+
+Coordinates: the sensor spans ``[0, W_um] × [0, H_um]``. SVG and the rasters keep image
+orientation (origin top-left, y down, row 0 at the top); GDSII and DXF use the CAD
+convention (origin bottom-left, y up), so ``y_cad = H_um − y_image`` and the picture is the
+same. Pixel ``(i, j)`` (row ``i``, column ``j``) is polygon number ``i · w + j`` in every
+format.
+
+Curved pixel edges become polylines whose deviation from the true edge (measured at the
+middle of every segment) is at most ``tol_um``; straight-edged layouts need one segment per
+edge. ``manhattan=True`` replaces every segment by an axis-aligned step, for processes that
+only allow Manhattan geometry. ``grid_um`` snaps every vertex to the manufacturing grid.
+Neighbouring pixels share their edge vertices exactly (each edge is built once), so the
+polygons tile the sensor without gaps or overlaps, also after snapping.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from .layouts import Layout
+from .mesh import check_size, uniform_corners
+from .preprocess import FILE_MODE
+
+__all__ = ["FORMATS", "ExportReport", "export_layout", "pixel_polygons_um", "report_json"]
+
+FORMATS = ("gds", "dxf", "svg", "png")
+GDS_DBU_UM = 1e-3  # the GDSII database unit (precision 1e-9 m) in µm
+
+
+@dataclass
+class ExportReport:
+    """Numbers about an exported mask (lengths in µm, areas in µm²)."""
+
+    path: str
+    format: str
+    pixels: int
+    sensor_um: tuple[float, float]
+    min_pitch_um: float
+    max_pitch_um: float
+    min_area_um2: float
+    max_area_um2: float
+    vertices: int
+    tol_um: float
+    max_deviation_um: float
+    grid_um: float | None
+    manhattan: bool
+    files: list[str] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
+
+    def summary(self) -> str:
+        lines = [
+            f"{self.format} mask {self.path}: {self.pixels} pixels on {self.sensor_um[0]:g} x "
+            f"{self.sensor_um[1]:g} µm, {self.vertices} vertices",
+            f"  pitch {self.min_pitch_um:.4g} .. {self.max_pitch_um:.4g} µm, "
+            f"area {self.min_area_um2:.4g} .. {self.max_area_um2:.4g} µm²",
+            f"  edges within {self.max_deviation_um:.3g} µm of the layout (tolerance {self.tol_um:g} µm"
+            + (f", grid {self.grid_um:g} µm" if self.grid_um else "")
+            + (", Manhattan" if self.manhattan else "")
+            + ")",
+        ]
+        return "\n".join(lines + [f"  warning: {w}" for w in self.warnings])
+
+
+def _edge_ends(size: tuple[int, int]) -> tuple[torch.Tensor, torch.Tensor]:
+    """Uniform end points ``(E, 2)`` of every edge, in :class:`layoutwarp.mesh.PixelMesh` order."""
+    cu = uniform_corners(size)
+    a = torch.cat([cu[:, :-1].reshape(-1, 2), cu[:-1, :].reshape(-1, 2)])
+    b = torch.cat([cu[:, 1:].reshape(-1, 2), cu[1:, :].reshape(-1, 2)])
+    return a, b
+
+
+def _edge_polylines(
+    layout: Layout,
+    size,
+    scale: np.ndarray,
+    tol_um: float,
+    manhattan: bool,
+    min_steps: np.ndarray | None = None,
+    max_subdiv: int = 4096,
+) -> tuple[list[np.ndarray], float]:
+    """Every edge as a polyline in µm (image orientation) within ``tol_um``; and the max deviation.
+
+    Each edge is first cut where φ is not smooth along it (a vertex on every kink), then
+    each smooth piece is split into ``2^k`` equal parameter steps until the curve's
+    distance from every chord, measured at the step's middle, is within ``tol_um``.
+    """
+    theta = layout.theta.detach().double()
+    a, b = _edge_ends(size)
+    ne = a.shape[0]
+    brk = layout.edge_breakpoints(a, b)
+    brk = torch.where((brk > 0) & (brk < 1), brk, torch.ones_like(brk))  # NaN / outside -> 1
+    cuts = (
+        torch.cat([torch.zeros(ne, 1, dtype=a.dtype), brk, torch.ones(ne, 1, dtype=a.dtype)], 1)
+        .sort(1)
+        .values
+    )
+    t0, t1 = cuts[:, :-1].reshape(-1), cuts[:, 1:].reshape(-1)
+    owner = torch.arange(ne).repeat_interleave(cuts.shape[1] - 1)
+    live = t1 > t0
+    t0, t1, owner = t0[live], t1[live], owner[live]
+    pa = a[owner] + t0[:, None] * (b - a)[owner]  # smooth pieces in uniform coordinates
+    pd = (t1 - t0)[:, None] * (b - a)[owner]
+
+    def to_um(u: torch.Tensor) -> np.ndarray:
+        return ((layout.phi(u, theta) + 1) / 2).numpy() * scale
+
+    n = np.ones(len(owner), dtype=np.int64) if min_steps is None else min_steps[owner.numpy()].copy()
+    dev = np.zeros(len(owner))
+    check = (not layout.straight_edges) or manhattan
+    while check:  # double the steps of every piece that is not yet within tolerance
+        bad = np.zeros(len(owner), dtype=bool)
+        for k in np.unique(n):
+            idx = np.flatnonzero(n == k)
+            t = torch.linspace(0, 1, 2 * k + 1, dtype=torch.float64)
+            p = to_um(pa[idx, None] + t[None, :, None] * pd[idx, None])  # vertices and midpoints
+            dev[idx] = np.linalg.norm(p[:, 1::2] - (p[:, 0:-1:2] + p[:, 2::2]) / 2, axis=-1).max(1)
+            if manhattan:  # a Z step deviates from its chord by at most min(|dx|, |dy|) / 2
+                dev[idx] += np.abs(np.diff(p[:, ::2], axis=1)).min(-1).max(1) / 2
+            bad[idx] = (dev[idx] > tol_um) & (k < max_subdiv)
+        if not bad.any():
+            break
+        n[bad] *= 2
+    # vertices: each piece's steps without its end point, then each edge's final end point
+    counts = torch.from_numpy(n)
+    piece = torch.arange(len(owner)).repeat_interleave(counts)
+    first = torch.cumsum(counts, 0) - counts
+    step = (torch.arange(int(counts.sum())) - first.repeat_interleave(counts)).double() / counts[piece]
+    pts = to_um(pa[piece] + step[:, None] * pd[piece])
+    ends = to_um(b)
+    per_edge = np.bincount(owner.numpy()[piece.numpy()], minlength=ne)
+    chunks = np.split(pts, np.cumsum(per_edge)[:-1])
+    out = [np.concatenate([c, ends[e : e + 1]]) for e, c in enumerate(chunks)]
+    if manhattan:
+        nh = (size[0] + 1) * size[1]
+        out = [_staircase(p, e < nh) for e, p in enumerate(out)]
+    return out, float(dev.max(initial=0.0))
+
+
+def _staircase(p: np.ndarray, horizontal: bool) -> np.ndarray:
+    """Axis-aligned Z steps through the points ``p`` of one edge.
+
+    A horizontal edge steps ``p_k → (m_x, p_k.y) → (m_x, p_k+1.y) → p_k+1`` with ``m`` the
+    middle of the step, so it leaves and enters every vertex horizontally (a vertical edge
+    likewise vertically). At each mesh corner the four edges then run off along four
+    different axis directions and their staircases cannot cross there.
+    """
+    m = (p[:-1] + p[1:]) / 2
+    if horizontal:
+        c1, c2 = np.stack([m[:, 0], p[:-1, 1]], -1), np.stack([m[:, 0], p[1:, 1]], -1)
+    else:
+        c1, c2 = np.stack([p[:-1, 0], m[:, 1]], -1), np.stack([p[1:, 0], m[:, 1]], -1)
+    out = np.empty((3 * len(p) - 2, 2))
+    out[0::3], out[1::3], out[2::3] = p, c1, c2
+    return out
+
+
+def _clean(ring: np.ndarray) -> np.ndarray:
+    """Drop repeated vertices and vertices on a straight line through their neighbours.
+
+    Iterated until stable, so spikes that snapping folds onto a line (out and back along the
+    same segment) disappear too. Exact for integer (snapped) coordinates.
+    """
+    while len(ring) > 3:
+        ring = ring[np.any(ring != np.roll(ring, 1, axis=0), axis=1)]  # repeated vertices
+        if len(ring) < 3:
+            break
+        prev, nxt = np.roll(ring, 1, axis=0), np.roll(ring, -1, axis=0)
+        u, v = ring - prev, nxt - ring
+        straight = u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0] == 0  # on the line through both neighbours
+        if not straight.any():
+            break
+        ring = ring[~straight]
+    return ring
+
+
+def _self_crossing(ring: np.ndarray) -> bool:
+    """Whether two non-adjacent sides of an axis-aligned ring touch or cross."""
+    a, b = ring, np.roll(ring, -1, axis=0)
+    n = len(ring)
+    if n < 4:
+        return False
+    lo, hi = np.minimum(a, b), np.maximum(a, b)
+    idx = np.arange(n)
+    gap = np.abs(idx[:, None] - idx[None, :])
+    apart = (gap > 1) & (gap < n - 1)  # not the same side, not neighbours
+    overlap_x = (lo[:, None, 0] <= hi[None, :, 0]) & (lo[None, :, 0] <= hi[:, None, 0])
+    overlap_y = (lo[:, None, 1] <= hi[None, :, 1]) & (lo[None, :, 1] <= hi[:, None, 1])
+    return bool((apart & overlap_x & overlap_y).any())
+
+
+def pixel_polygons_um(
+    layout: Layout,
+    size: tuple[int, int],
+    sensor_um: tuple[float, float],
+    *,
+    tol_um: float = 0.01,
+    grid_um: float | None = None,
+    manhattan: bool = False,
+) -> tuple[list[np.ndarray], dict]:
+    """Every pixel's closed polygon in µm (image orientation), row-major.
+
+    Args:
+        layout: the pixel layout.
+        size: sensor size ``(h, w)`` in pixels.
+        sensor_um: sensor extent ``(W_um, H_um)`` (width first, like the command line).
+        tol_um: largest deviation of a curved edge's polyline from the edge.
+        grid_um: snap vertices to this grid (None: no snapping).
+        manhattan: axis-aligned steps instead of slanted segments.
+
+    Returns:
+        ``(polygons, info)``: ``(n_k, 2)`` float64 arrays (first vertex not repeated) and
+        ``{"max_deviation_um", "width_um", "height_um", "self_touching"}`` (per-pixel mean
+        edge lengths as ``(h, w)`` arrays, before snapping; the number of Manhattan outlines
+        that still touch themselves after refinement, which a coarse grid can force at acute
+        corners).
+    """
+    h, w = check_size(size)
+    wu, hu = (float(v) for v in sensor_um)
+    if not (wu > 0 and hu > 0 and math.isfinite(wu) and math.isfinite(hu)):
+        raise ValueError(f"sensor_um must be two positive sizes in µm, got {sensor_um!r}")
+    if not tol_um > 0:
+        raise ValueError(f"tol_um must be > 0, got {tol_um!r}")
+    if grid_um is not None and not grid_um > 0:
+        raise ValueError(f"grid_um must be > 0 or None, got {grid_um!r}")
+    nh = (h + 1) * w
+    steps = np.ones((h + 1) * w + h * (w + 1), dtype=np.int64)
+    for _ in range(12):  # Manhattan: refine the edges of any ring whose steps cross, and retry
+        with torch.no_grad():
+            lines, dev = _edge_polylines(layout, (h, w), np.array([wu, hu]), tol_um, manhattan, steps)
+        snapped = [np.rint(p / grid_um).astype(np.int64) for p in lines] if grid_um else lines
+        polys, crossed = [], []
+        for i in range(h):
+            for j in range(w):
+                edges = (i * w + j, nh + i * (w + 1) + j + 1, (i + 1) * w + j, nh + i * (w + 1) + j)
+                top, right, bottom, left = (snapped[e] for e in edges)
+                ring = _clean(np.concatenate([top[:-1], right[:-1], bottom[::-1][:-1], left[::-1][:-1]]))
+                if manhattan and _self_crossing(ring):
+                    crossed += edges
+                polys.append(ring * grid_um if grid_um else ring)
+        if not crossed:
+            break
+        steps[np.unique(crossed)] *= 2
+    length = np.array([np.linalg.norm(np.diff(p, axis=0), axis=1).sum() for p in lines])
+    lh, lv = length[:nh].reshape(h + 1, w), length[nh:].reshape(h, w + 1)
+    info = {
+        "max_deviation_um": dev,
+        "width_um": (lh[:-1] + lh[1:]) / 2,
+        "height_um": (lv[:, :-1] + lv[:, 1:]) / 2,
+        "self_touching": len(crossed) // 4,
+    }
+    return polys, info
+
+
+def _shoelace(p: np.ndarray) -> float:
+    x, y = p[:, 0], p[:, 1]
+    return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(np.roll(x, -1), y)))
+
+
+def _atomic(path: Path, write) -> None:
+    """Call ``write(tmp_path)`` and rename the result into ``path``."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
+    os.close(fd)
+    try:
+        write(tmp)
+        os.chmod(tmp, FILE_MODE)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _write_gds(path: Path, polys, hu: float, layer: int, datatype: int, cell: str) -> None:
+    import gdstk
+
+    lib = gdstk.Library("LAYOUTWARP", unit=1e-6, precision=1e-9)
+    c = lib.new_cell(cell)
+    for p in polys:
+        c.add(gdstk.Polygon(np.stack([p[:, 0], hu - p[:, 1]], -1), layer=layer, datatype=datatype))
+    _atomic(path, lib.write_gds)
+
+
+def _write_dxf(path: Path, polys, hu: float, layer: int) -> None:
+    import ezdxf
+    from ezdxf import units
+
+    doc = ezdxf.new("R2010", units=units.InsertUnits.Microns)
+    doc.header["$MEASUREMENT"] = 1  # metric
+    name = f"PIXELS_{layer}"
+    doc.layers.add(name)
+    msp = doc.modelspace()
+    for p in polys:
+        msp.add_lwpolyline(
+            np.stack([p[:, 0], hu - p[:, 1]], -1).tolist(),
+            format="xy",
+            close=True,
+            dxfattribs={"layer": name},
+        )
+    _atomic(path, doc.saveas)
+
+
+def _write_svg(path: Path, polys, wu: float, hu: float, size) -> None:
+    stroke = min(wu / size[1], hu / size[0]) / 50
+    parts = [
+        '<?xml version="1.0" encoding="UTF-8"?>',
+        f'<svg xmlns="http://www.w3.org/2000/svg" width="{wu:g}um" height="{hu:g}um" '
+        f'viewBox="0 0 {wu!r} {hu!r}">',
+        f'<g fill="none" stroke="black" stroke-width="{stroke:.6g}">',
+    ]
+    w = size[1]
+    for k, p in enumerate(polys):
+        pts = " ".join(f"{x!r},{y!r}" for x, y in p.tolist())
+        parts.append(f'<polygon id="p{k // w}_{k % w}" points="{pts}"/>')
+    parts += ["</g>", "</svg>", ""]
+    _atomic(path, lambda tmp: Path(tmp).write_text("\n".join(parts)))
+
+
+def _imwrite(path: str, arr: np.ndarray) -> None:
+    if not cv2.imwrite(path, arr):
+        raise OSError(f"OpenCV could not write {path}")
+
+
+def _write_png(path: Path, polys, wu: float, hu: float, px_per_um: float, line_width: int) -> list[str]:
+    shape = (max(1, round(hu * px_per_um)), max(1, round(wu * px_per_um)))
+    shift = 4
+    pts = [np.round(p * px_per_um * (1 << shift) - (1 << (shift - 1))).astype(np.int32) for p in polys]
+    lines = np.zeros(shape, np.uint8)
+    cv2.polylines(lines, pts, True, 255, thickness=max(1, line_width), lineType=cv2.LINE_8, shift=shift)
+    _atomic(path, lambda tmp: _imwrite(tmp, lines))
+    big = len(polys) + 1 > np.iinfo(np.uint16).max
+    index = np.zeros(shape, np.int32)
+    for k, p in enumerate(pts):
+        cv2.fillPoly(index, [p], k + 1, lineType=cv2.LINE_8, shift=shift)
+    if big:
+        ipath = path.with_name(path.stem + "_index.npy")
+        _atomic(ipath, lambda tmp: np.save(open(tmp, "wb"), index))
+    else:
+        ipath = path.with_name(path.stem + "_index.png")
+        _atomic(ipath, lambda tmp: _imwrite(tmp, index.astype(np.uint16)))
+    return [str(ipath)]
+
+
+def export_layout(
+    layout: Layout,
+    size: tuple[int, int],
+    path: str | Path,
+    sensor_um: tuple[float, float],
+    *,
+    format: str | None = None,
+    tol_um: float = 0.01,
+    grid_um: float | None = None,
+    manhattan: bool = False,
+    layer: int = 1,
+    datatype: int = 0,
+    cell: str = "SENSOR",
+    px_per_um: float | None = None,
+    line_width: int = 1,
+    min_feature_um: float | None = None,
+) -> ExportReport:
+    """Write the pixel boundaries of ``layout`` as a fabrication mask.
+
+    Args:
+        layout: the pixel layout.
+        size: sensor size ``(h, w)``.
+        path: output file; ``format`` defaults to its suffix (``.gds``, ``.dxf``, ``.svg``,
+            ``.png``).
+        sensor_um: sensor extent ``(W_um, H_um)``.
+        format: ``"gds"`` (gdstk; unit 1 µm, precision 1 nm; one polygon per pixel on
+            ``layer``/``datatype`` in cell ``cell``), ``"dxf"`` (ezdxf; R2010, units µm, one
+            closed LWPOLYLINE per pixel on layer ``PIXELS_<layer>``), ``"svg"`` (viewBox in
+            µm, one ``<polygon id="p<i>_<j>">`` per pixel) or ``"png"`` (boundary lines of
+            ``line_width`` raster pixels at ``px_per_um``, plus ``<stem>_index.png``: uint16
+            pixel index + 1 per raster pixel, 0 on no pixel; ``.npy`` int32 above 65534 pixels).
+        tol_um: curved-edge tolerance; grid_um: manufacturing grid (GDSII: default the 1 nm
+            database unit, which the file stores anyway); manhattan: axis-aligned steps (see
+            :func:`pixel_polygons_um`).
+        px_per_um: raster resolution (default: 4096 raster pixels on the longer side).
+        min_feature_um: warn when the smallest pitch is below this.
+
+    Returns:
+        an :class:`ExportReport` (also printed by ``layoutwarp export``).
+    """
+    path = Path(path)
+    fmt = (format or path.suffix.lstrip(".")).lower()
+    if fmt not in FORMATS:
+        raise ValueError(f"format must be one of {FORMATS}, got {fmt!r} (from {path.name!r})")
+    size = check_size(size)
+    wu, hu = (float(v) for v in sensor_um)
+    if fmt == "gds" and grid_um is None:
+        grid_um = GDS_DBU_UM  # GDSII stores integers: snap here so the report matches the file
+    polys, info = pixel_polygons_um(
+        layout, size, (wu, hu), tol_um=tol_um, grid_um=grid_um, manhattan=manhattan
+    )
+    areas = np.array([_shoelace(p) for p in polys])
+    pitch = np.minimum(info["width_um"], info["height_um"])
+    report = ExportReport(
+        path=str(path),
+        format=fmt,
+        pixels=len(polys),
+        sensor_um=(wu, hu),
+        min_pitch_um=float(pitch.min()),
+        max_pitch_um=float(np.maximum(info["width_um"], info["height_um"]).max()),
+        min_area_um2=float(areas.min()),
+        max_area_um2=float(areas.max()),
+        vertices=int(sum(len(p) for p in polys)),
+        tol_um=tol_um,
+        max_deviation_um=info["max_deviation_um"],
+        grid_um=grid_um,
+        manhattan=manhattan,
+        files=[str(path)],
+    )
+    if min_feature_um is not None and report.min_pitch_um < min_feature_um:
+        k = int(pitch.argmin())
+        report.warnings.append(
+            f"smallest pitch {report.min_pitch_um:.4g} µm (pixel row {k // size[1]}, column {k % size[1]}) "
+            f"is below the minimum feature size {min_feature_um:g} µm"
+        )
+    if info["self_touching"]:
+        report.warnings.append(
+            f"{info['self_touching']} Manhattan pixel outlines touch themselves near acute corners "
+            f"at grid {grid_um:g} µm; use a finer grid"
+        )
+    if (areas <= 0).any():
+        report.warnings.append(f"{int((areas <= 0).sum())} pixels collapsed to zero area (grid too coarse)")
+    if fmt == "gds":
+        _write_gds(path, polys, hu, layer, datatype, cell)
+    elif fmt == "dxf":
+        _write_dxf(path, polys, hu, layer)
+    elif fmt == "svg":
+        _write_svg(path, polys, wu, hu, size)
+    else:
+        ppu = px_per_um or 4096 / max(wu, hu)
+        report.files += _write_png(path, polys, wu, hu, ppu, line_width)
+    return report
+
+
+def report_json(report: ExportReport) -> str:
+    """The report as JSON text."""
+    return json.dumps(asdict(report), indent=2)

@@ -1,0 +1,195 @@
+"""Dataset preprocessing: exact area weights, the folder walk, resuming, labels, workers."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import shapely
+import torch
+from conftest import SAMPLES, rand_theta
+
+import layoutwarp as lw
+from layoutwarp.cli import main
+from layoutwarp.preprocess import AreaResampler, _write_atomic, area_weights, preprocess_folder
+
+F64 = torch.float64
+
+
+def fixed(family, theta=None):
+    return (
+        lw.make_layout(family, theta, learn=False, dtype=F64) if family != "uniform" else lw.UniformLayout()
+    )
+
+
+@pytest.mark.parametrize("family", ["uniform", "rect", "curv"])
+def test_area_weights_equal_exact_integrator(family, gen):
+    layout = fixed(family, rand_theta(gen, 0.9))
+    for src, size in [((37, 53), (7, 9)), ((64, 48), (13, 11)), ((12, 20), (17, 23))]:
+        img = torch.rand(3, *src, generator=gen, dtype=F64)
+        w = area_weights(layout, size, src, tol=1e-6)
+        got = (w @ img.reshape(3, -1).T.numpy()).T.reshape(3, *size)
+        with torch.no_grad():
+            ref = lw.simulate(img, layout, size, tol=1e-6).numpy()
+        assert np.abs(got - ref).max() < 1e-12
+        assert np.abs(np.asarray(w.sum(1)).ravel() - 1).max() < 1e-12
+        assert (w.data > 0).all()
+
+
+def test_area_weights_rows_are_cell_overlaps(gen):
+    # independent: shapely clipping of one curved pixel (fine polygon) with every source cell
+    layout = fixed("curv", rand_theta(gen, 0.8))
+    src, size = (10, 14), (3, 4)
+    w = area_weights(layout, size, src, tol=1e-9).toarray()
+    polys = lw.pixel_mesh(layout, size, tol=1e-9).polygons()
+    for k in (0, 5, 11):
+        px = shapely.Polygon((polys[k] + 1) / 2 * np.array([src[1], src[0]]))
+        cells = np.array(
+            [
+                shapely.box(c, r, c + 1, r + 1).intersection(px).area
+                for r in range(src[0])
+                for c in range(src[1])
+            ]
+        )
+        assert np.abs(w[k] - cells / px.area).max() < 1e-9
+
+
+def _images(root: Path) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(7)
+    imgs = {
+        "gray8.png": rng.integers(0, 256, (45, 61), dtype=np.uint8),
+        "sub/colour8.png": rng.integers(0, 256, (50, 40, 3), dtype=np.uint8),
+        "sub/deep/colour16.tif": rng.integers(0, 65536, (33, 47, 3), dtype=np.uint16),
+        "alpha.png": rng.integers(0, 256, (45, 61, 4), dtype=np.uint8),
+        "gray16.png": rng.integers(0, 65536, (45, 61), dtype=np.uint16),
+    }
+    for rel, arr in imgs.items():
+        (root / rel).parent.mkdir(parents=True, exist_ok=True)
+        assert cv2.imwrite(str(root / rel), arr)
+    (root / "photo.jpg").parent.mkdir(exist_ok=True)
+    cv2.imwrite(str(root / "photo.jpg"), imgs["sub/colour8.png"])
+    (root / "broken.png").write_bytes(b"\x89PNG\r\n\x1a\n this is not a png")
+    (root / "empty.jpg").write_bytes(b"")
+    (root / "notes.txt").write_text("not an image")
+    return imgs
+
+
+def test_preprocess_folder_matches_simulate_and_reports_failures(tmp_path):
+    src, dst = tmp_path / "src", tmp_path / "dst"
+    imgs = _images(src)
+    layout, size = fixed("curv", (0.6, -0.4)), (9, 13)
+    res = preprocess_folder(src, dst, layout, size, progress=False)
+    assert res.processed == 6 and res.skipped == 0
+    assert sorted(f["file"] for f in res.failed) == ["broken.png", "empty.jpg"]
+    for rel, arr in imgs.items():
+        out = cv2.imread(str(dst / rel), cv2.IMREAD_UNCHANGED)
+        assert out.dtype == arr.dtype and out.shape == (*size, *arr.shape[2:])
+        chw = torch.from_numpy(arr.astype(np.float64)).reshape(*arr.shape[:2], -1).permute(2, 0, 1)
+        with torch.no_grad():
+            ref = lw.simulate(chw, layout, size, tol=1e-7).permute(1, 2, 0).reshape(out.shape).numpy()
+        # integer output: the exact value within a quarter level, rounded (so within 1/255 at 8 bit)
+        assert np.abs(out - ref).max() <= 0.75 + 1e-9
+    assert (dst / "photo.jpg").exists()
+    manifest = json.loads((dst / "manifest.json").read_text())
+    assert manifest["files_done"] == 6 and len(manifest["failed"]) == 2
+    assert "broken.png" in manifest["failed"][0]["file"] + manifest["failed"][1]["file"]
+    saved, info = lw.load_layout(dst / "layout.json")
+    assert saved.family == "curv" and info["size_hw"] == [9, 13]
+    assert not list(dst.rglob("*.part"))
+
+
+def test_preprocess_resumes_and_checks_layout(tmp_path):
+    src, dst = tmp_path / "src", tmp_path / "dst"
+    _images(src)
+    layout, size = fixed("rect", (0.3, 0.2)), (8, 8)
+    first = preprocess_folder(src, dst, layout, size, progress=False)
+    again = preprocess_folder(src, dst, layout, size, progress=False)
+    assert again.processed == 0 and again.skipped == first.processed
+    # a changed source, a deleted output and a torn last line of the done-list are redone
+    cv2.imwrite(str(src / "gray8.png"), np.zeros((45, 61), np.uint8))
+    (dst / "sub" / "colour8.png").unlink()
+    with (dst / "done.jsonl").open("a") as f:
+        f.write('{"file": "alpha.pn')
+    third = preprocess_folder(src, dst, layout, size, progress=False)
+    assert third.processed == 2 and third.skipped == first.processed - 2
+    assert cv2.imread(str(dst / "gray8.png"), cv2.IMREAD_UNCHANGED).max() == 0
+    with pytest.raises(ValueError, match="another layout"):
+        preprocess_folder(src, dst, fixed("rect", (0.3, 0.25)), size, progress=False)
+
+
+def test_parallel_workers_give_identical_files(tmp_path):
+    src = tmp_path / "src"
+    imgs = _images(src)
+    layout, size = fixed("curv", (0.5, 0.5)), (7, 11)
+    a = preprocess_folder(src, tmp_path / "a", layout, size, progress=False)
+    b = preprocess_folder(src, tmp_path / "b", layout, size, workers=2, progress=False)
+    assert a.processed == b.processed == 6 and len(b.failed) == 2
+    for rel in imgs:
+        assert (tmp_path / "a" / rel).read_bytes() == (tmp_path / "b" / rel).read_bytes()
+
+
+def test_atomic_write_leaves_old_file_on_failure(tmp_path, monkeypatch):
+    target = tmp_path / "out.png"
+    target.write_bytes(b"old")
+
+    def boom(*args):
+        raise OSError("disk full")
+
+    monkeypatch.setattr("os.replace", boom)
+    with pytest.raises(OSError):
+        _write_atomic(target, b"new contents")
+    assert target.read_bytes() == b"old" and list(tmp_path.iterdir()) == [target]
+
+
+def test_label_rules(tmp_path, gen):
+    rng = np.random.default_rng(3)
+    src_size, size = (40, 52), (6, 8)
+    blocks = rng.integers(0, 5, (5, 4)).astype(np.uint8)
+    label = cv2.resize(blocks, (52, 40), interpolation=cv2.INTER_NEAREST)
+    layout = fixed("curv", rand_theta(gen, 0.8))
+    res = AreaResampler(layout, size, src_size, tol=1e-7)
+    # nearest: the label under each deformed pixel centre
+    q = layout.phi(lw.pixel_centers(size), layout.theta)
+    col = np.floor((q[..., 0].numpy() + 1) / 2 * src_size[1]).astype(int)
+    row = np.floor((q[..., 1].numpy() + 1) / 2 * src_size[0]).astype(int)
+    near = res.labels(label, "nearest")
+    assert near.dtype == np.uint8 and (near == label[row, col]).mean() > 0.97  # ties at cell borders
+    # majority: argmax of the exact area shares of the one-hot classes
+    onehot = torch.from_numpy(np.stack([label == k for k in range(5)]).astype(np.float64))
+    with torch.no_grad():
+        share = lw.simulate(onehot, layout, size, tol=1e-7).numpy()
+    maj = res.labels(label, "majority")
+    top2 = np.sort(share, 0)[-2:]
+    clear = top2[1] - top2[0] > 1e-4
+    assert (maj[clear] == share.argmax(0)[clear]).all() and clear.mean() > 0.8
+    # inverse: label kept, back-warp maps stored once
+    (tmp_path / "img").mkdir()
+    (tmp_path / "lab").mkdir()
+    cv2.imwrite(str(tmp_path / "img" / "a.png"), rng.integers(0, 256, (40, 52, 3), dtype=np.uint8))
+    cv2.imwrite(str(tmp_path / "lab" / "a.png"), label)
+    out = tmp_path / "out"
+    preprocess_folder(tmp_path / "img", out, layout, size, labels=tmp_path / "lab", label_rule="inverse")
+    assert (cv2.imread(str(out / "labels" / "a.png"), cv2.IMREAD_UNCHANGED) == label).all()
+    maps = np.load(out / "backwarp" / "52x40.npz")
+    c, r = lw.sensor_index_maps(layout, size, src_size)
+    assert (maps["col"] == c.numpy()).all() and (maps["row"] == r.numpy()).all()
+    with pytest.raises(ValueError, match="label_rule"):
+        preprocess_folder(tmp_path / "img", out, layout, size, label_rule="mode")
+
+
+def test_cli_preprocess_with_benchmark(tmp_path, capsys):
+    dst = tmp_path / "cam"
+    argv = ["preprocess", str(SAMPLES / "camvid" / "val"), str(dst), "--family", "rect", "--theta", "0.4,0.2"]
+    argv += ["--size", "60x45", "--labels", str(SAMPLES / "camvid" / "valannot"), "--label-rule", "majority"]
+    assert main([*argv, "--benchmark", "--no-progress"]) == 0
+    text = capsys.readouterr().out
+    assert "images/s" in text and "ratio" in text
+    manifest = json.loads((dst / "manifest.json").read_text())
+    assert manifest["benchmark"]["ratio"] > 0 and manifest["files_done"] == 3
+    lab = cv2.imread(str(next((dst / "labels").glob("*.png"))), cv2.IMREAD_UNCHANGED)
+    assert lab.shape == (45, 60) and lab.max() <= 11
+    with pytest.raises(SystemExit, match="--layout"):
+        main(["preprocess", str(SAMPLES / "camvid" / "val"), str(tmp_path / "x")])
