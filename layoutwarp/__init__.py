@@ -8,6 +8,7 @@ differentiable in θ and in the image.
 
 from .augment import SensorAugmentation
 from .backwarp import backwarp, backwarp_cross_entropy, backwarp_numpy, sensor_index_maps
+from .export import ExportReport, export_layout, pixel_polygons_um
 from .integrators import (
     integrate_exact,
     integrate_montecarlo,
@@ -38,12 +39,15 @@ from .mesh import (
     sample_points,
     uniform_corners,
 )
+from .preprocess import AreaResampler, area_weights, preprocess_folder
 from .sensor import SensorLayer, SimulationPlan, plan_simulation, simulate
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "AreaResampler",
     "CurvLayout",
+    "ExportReport",
     "FoldoverReport",
     "Layout",
     "Maps",
@@ -54,9 +58,11 @@ __all__ = [
     "SimulationPlan",
     "UniformLayout",
     "__version__",
+    "area_weights",
     "backwarp",
     "backwarp_cross_entropy",
     "backwarp_numpy",
+    "export_layout",
     "forward_maps",
     "integrate_exact",
     "integrate_montecarlo",
@@ -72,7 +78,9 @@ __all__ = [
     "phi_rect_inverse",
     "pixel_centers",
     "pixel_mesh",
+    "pixel_polygons_um",
     "plan_simulation",
+    "preprocess_folder",
     "sample_points",
     "save_layout",
     "sensor_index_maps",

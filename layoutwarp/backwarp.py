@@ -123,5 +123,22 @@ def backwarp_cross_entropy(
     """
     if labels.ndim != 3:
         raise ValueError(f"labels must be (B, H, W), got {tuple(labels.shape)}")
-    up = backwarp(logits, layout, tuple(labels.shape[-2:]))
-    return F.cross_entropy(up, labels.long(), ignore_index=ignore_index, weight=weight)
+    if logits.ndim != 4 or logits.shape[0] != labels.shape[0]:
+        raise ValueError(f"logits must be (B, K, h, w) with labels' B, got {tuple(logits.shape)}")
+    # Nearest back-warping copies each sensor pixel to the targets it contains, so the loss is
+    # a count-weighted cross-entropy on the sensor grid: count[b, c, k] = number of (non-ignored)
+    # targets of class c that read sensor pixel k. Same value and gradient, without building
+    # the (B, K, H, W) back-warped logits.
+    b, k, h, w = logits.shape
+    col, row = sensor_index_maps(layout, (h, w), tuple(labels.shape[-2:]))
+    pix = (row * w + col).to(labels.device).flatten()
+    lab = labels.long().flatten(1)
+    valid = lab != ignore_index
+    if bool(((lab < 0) | (lab >= k))[valid].any()):
+        raise ValueError(f"labels must be in [0, {k}) or ignore_index={ignore_index}")
+    idx = (torch.arange(b, device=lab.device)[:, None] * k + lab.clamp(0, k - 1)) * (h * w) + pix
+    counts = torch.bincount(idx[valid], minlength=b * k * h * w).view(b, k, h * w).to(logits.dtype)
+    if weight is not None:
+        counts = counts * weight.to(logits.dtype)[None, :, None]
+    nll = -F.log_softmax(logits.flatten(2), dim=1)
+    return (counts * nll).sum() / counts.sum()

@@ -122,8 +122,11 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
-def _sensor_options(args: argparse.Namespace) -> dict:
+def _sensor_options(args: argparse.Namespace, default_tol: float | None = None) -> dict:
     sensor = {"method": args.method}
+    tol = args.tol if args.tol is not None else default_tol
+    if args.method == "exact" and tol is not None:
+        sensor["tol"] = tol
     if args.method in ("montecarlo", "point"):
         sensor["radiance"] = args.radiance
     if args.method == "montecarlo":
@@ -158,7 +161,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
 TASK_DEFAULTS = {
     # task: (shared folder, data_samples folder, layouts, sizes (H, W), seeds, epochs, quick epochs)
-    "camvid": ("camvid", "camvid", ("uniform", "curv", "rect"), ((45, 60), (90, 120)), 2, 30, 1),
+    "camvid": ("camvid", "camvid", ("uniform", "curv", "rect"), ((36, 48), (72, 96)), 2, 12, 1),
     "faces": ("faces/utkface_subset", "faces/utkface", ("uniform", "rect"), ((8, 8), (16, 16)), 3, 30, 2),
 }
 
@@ -181,10 +184,10 @@ def _train_task(args: argparse.Namespace, task: str) -> int:
         f"{task}: data {data}, layouts {', '.join(layouts)}, sensors {sizes_txt}, "
         f"seeds {list(seeds)}, {epochs} epochs"
     )
-    common = {"progress": not args.no_progress, "sensor": _sensor_options(args), "layouts": layouts}
+    common = {"progress": not args.no_progress, "sensor": _sensor_options(args, 1e-3), "layouts": layouts}
     common |= {"sizes": sizes, "seeds": seeds, "epochs": epochs}
     if task == "camvid":
-        freeze = args.freeze_epochs if args.freeze_epochs is not None else (0 if args.quick else 5)
+        freeze = args.freeze_epochs if args.freeze_epochs is not None else (0 if args.quick else 3)
         result = tasks.run_camvid_experiment(data, out, freeze_epochs=freeze, **common)
         metrics = ("miou", "pixel_accuracy")
     else:
@@ -396,10 +399,16 @@ def build_parser() -> argparse.ArgumentParser:
         type=parse_wxh,
         action="append",
         default=None,
-        help="sensor WIDTHxHEIGHT for camvid/faces (repeat for several; default 60x45 and 120x90 "
+        help="sensor WIDTHxHEIGHT for camvid/faces (repeat for several; default 48x36 and 96x72 "
         "for camvid, 8x8 and 16x16 for faces)",
     )
-    t.add_argument("--freeze-epochs", type=int, default=None, help="camvid: epochs with θ frozen (default 5)")
+    t.add_argument(
+        "--tol",
+        type=float,
+        default=None,
+        help="exact integrator's curved-edge tolerance (default 1e-5 for mnist, 1e-3 for camvid/faces)",
+    )
+    t.add_argument("--freeze-epochs", type=int, default=None, help="camvid: epochs with θ frozen (default 3)")
     t.add_argument("--no-progress", action="store_true", help="no progress bars")
     t.add_argument("--out", default="results/mnist", help="output folder")
     t.set_defaults(func=_cmd_train)

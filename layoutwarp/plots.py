@@ -132,7 +132,8 @@ def pareto_figure(result: dict, path: str | Path) -> Path:
                     ax.plot(
                         r["forward_ms"], max(r["rmse"], floor), marker="*", mfc="none", color=color, ms=10
                     )
-                    ax.annotate(r["method"][8:], (r["forward_ms"], max(r["rmse"], floor)), fontsize=6)
+                    if layout == "curv" or "AREA" in r["method"]:  # one label per anchor kind
+                        ax.annotate(r["method"][8:], (r["forward_ms"], max(r["rmse"], floor)), fontsize=6)
         ax.set_xscale("log")
         ax.set_yscale("log")
         ax.set_xlabel("forward time (ms)")

@@ -249,19 +249,19 @@ def train_camvid(
     size: tuple[int, int],
     *,
     seed: int = 0,
-    epochs: int = 30,
-    freeze_epochs: int = 5,
+    epochs: int = 12,
+    freeze_epochs: int = 3,
     batch_size: int = 8,
     lr: float = 2e-3,
-    theta_lr: float = 0.02,
+    theta_lr: float = 0.01,
     progress: bool = True,
     sensor: dict | None = None,
 ) -> tuple[TaskRun, SegNet]:
     """Train sensor + SegNet on CamVid ``train`` and score it on ``val`` (back-warped to full size)."""
     torch.manual_seed(seed)
     gen = torch.Generator().manual_seed(seed)
-    family, learn = ("curv", False) if layout == "uniform" else (layout, True)
-    model = SegNet(family, size, learn=learn, **(sensor or {}))
+    learn = layout != "uniform"
+    model = SegNet(layout, size, learn=learn, **(sensor or {}))
     opt = _optimizer(model, lr, theta_lr)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, max(epochs, 1))
     x, y = _to_tensor(train[0]), torch.from_numpy(train[1]).long()
@@ -330,7 +330,7 @@ def train_faces(
     freeze_epochs: int = 0,
     batch_size: int = 64,
     lr: float = 2e-3,
-    theta_lr: float = 0.02,
+    theta_lr: float = 0.01,
     progress: bool = True,
     sensor: dict | None = None,
 ) -> tuple[TaskRun, FaceNet]:
@@ -418,10 +418,10 @@ def run_camvid_experiment(
     data_dir: str | Path,
     out: str | Path,
     layouts: tuple[str, ...] = ("uniform", "curv", "rect"),
-    sizes: tuple[tuple[int, int], ...] = ((45, 60), (90, 120)),
+    sizes: tuple[tuple[int, int], ...] = ((36, 48), (72, 96)),
     seeds: tuple[int, ...] = (0, 1),
-    epochs: int = 30,
-    freeze_epochs: int = 5,
+    epochs: int = 12,
+    freeze_epochs: int = 3,
     limit: int | None = None,
     progress: bool = True,
     sensor: dict | None = None,

@@ -34,7 +34,7 @@ def test_python_dash_m_entry_point():
     assert res.returncode == 0 and "demo" in res.stdout
 
 
-@pytest.mark.parametrize("script", ["quickstart.py", "kornia_pipeline.py"])
+@pytest.mark.parametrize("script", ["quickstart.py", "kornia_pipeline.py", "preprocess_and_export.py"])
 def test_examples_run(script):
     cmd = [sys.executable, str(ROOT / "examples" / script)]
     res = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)

@@ -1,0 +1,93 @@
+"""CamVid segmentation and UTKFace attributes: data, metrics, training mechanics, quick runs."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import torch
+from conftest import SAMPLES
+
+import layoutwarp as lw
+from layoutwarp.cli import main
+from layoutwarp.tasks import (
+    AGE_GROUPS,
+    FaceNet,
+    SegNet,
+    age_group,
+    load_camvid,
+    load_faces,
+    segmentation_scores,
+    train_camvid,
+)
+
+
+def test_segmentation_scores_against_per_class_counts(gen):
+    k = 5
+    gt = torch.randint(0, k, (4000,), generator=gen).numpy()
+    pred = np.where(
+        torch.rand(4000, generator=gen).numpy() < 0.6, gt, torch.randint(0, k, (4000,), generator=gen).numpy()
+    )
+    pred[gt == 4] = 0  # class 4 never predicted: IoU 0
+    conf = np.zeros((k, k), np.int64)
+    np.add.at(conf, (gt, pred), 1)
+    s = segmentation_scores(conf)
+    for c in range(k):
+        inter = np.sum((gt == c) & (pred == c))
+        union = np.sum((gt == c) | (pred == c))
+        assert abs(s["iou"][c] - 100 * inter / union) < 1e-9
+    assert abs(s["miou"] - np.mean(s["iou"])) < 1e-9 and s["iou"][4] == 0
+    assert abs(s["pixel_accuracy"] - 100 * np.mean(gt == pred)) < 1e-9
+    conf[3] = conf[:, 3] = 0  # a class absent from ground truth and predictions is left out
+    assert segmentation_scores(conf)["iou"][3] is None
+
+
+def test_age_groups_cover_all_ages():
+    ages = np.array([1, 14, 15, 29, 30, 44, 45, 59, 60, 110])
+    assert age_group(ages).tolist() == [0, 0, 1, 1, 2, 2, 3, 3, 4, 4]
+    assert len(AGE_GROUPS) == 5
+
+
+def test_loaders_read_the_bundled_samples():
+    imgs, labels = load_camvid(SAMPLES / "camvid", "val")
+    assert imgs.shape[1:] == (360, 480, 3) and labels.shape == imgs.shape[:3] and labels.max() <= 11
+    faces = load_faces(SAMPLES / "faces" / "utkface", limit=10)
+    assert faces["images"].shape == (10, 200, 200, 3)
+    assert set(faces) == {"images", "gender", "age_group", "race"} and faces["race"].max() <= 4
+
+
+def test_networks_shapes_and_theta_gradient():
+    seg = SegNet("curv", (23, 31), tol=1e-3)
+    x = torch.rand(2, 3, 90, 120)
+    out = seg(x)
+    assert out.shape == (2, 11, 23, 31)
+    y = torch.randint(0, 12, (2, 90, 120))
+    lw.backwarp_cross_entropy(out, y, seg.sensor.layout, ignore_index=11).backward()
+    g = seg.sensor.layout.rho.grad
+    assert g is not None and torch.isfinite(g).all() and g.abs().sum() > 0
+    face = FaceNet("rect", (8, 8))
+    heads = face(torch.rand(3, 3, 64, 64))
+    assert {k: v.shape for k, v in heads.items()} == {"gender": (3, 2), "age_group": (3, 5), "race": (3, 5)}
+
+
+def test_theta_stays_frozen_during_freeze_epochs():
+    train = load_camvid(SAMPLES / "camvid", "train", limit=2)
+    val = load_camvid(SAMPLES / "camvid", "val", limit=1)
+    opts = {"epochs": 1, "batch_size": 2, "progress": False, "sensor": {"tol": 1e-3}}
+    frozen, _ = train_camvid(train, val, "rect", (9, 12), freeze_epochs=1, **opts)
+    learned, _ = train_camvid(train, val, "rect", (9, 12), freeze_epochs=0, **opts)
+    assert frozen.theta == [0.0, 0.0] and any(abs(v) > 1e-4 for v in learned.theta)
+    assert 0 <= frozen.scores["miou"] <= 100
+
+
+def test_quick_commands_write_results(tmp_path):
+    assert main(["train", "camvid", "--quick", "--no-progress", "--out", str(tmp_path / "c")]) == 0
+    res = json.loads((tmp_path / "c" / "results.json").read_text())
+    assert set(res["summary"]) == {"uniform 48x36", "curv 48x36", "rect 48x36"}
+    assert (tmp_path / "c" / "camvid_layouts.png").stat().st_size > 10_000
+    assert (tmp_path / "c" / "layout_curv_48x36.json").exists()
+    assert main(["train", "faces", "--quick", "--no-progress", "--out", str(tmp_path / "f")]) == 0
+    res = json.loads((tmp_path / "f" / "results.json").read_text())
+    assert set(res["summary"]) == {"uniform 8x8", "rect 8x8"}
+    assert {"gender", "age_group", "race", "mean"} <= set(res["summary"]["rect 8x8"])
+    assert (tmp_path / "f" / "faces_layouts.png").exists()
