@@ -552,6 +552,11 @@ def run_faces_experiment(
     return json.loads((out / "results.json").read_text())
 
 
+def _theta_text(model: nn.Module) -> str:
+    th = model.sensor.theta.detach().tolist()
+    return "θ=(" + ", ".join(f"{v:.2f}" for v in th) + ")" if th else "θ=()"
+
+
 def _camvid_figures(val, models: dict, out: Path) -> None:
     """Fig. 5 analogue (layouts over a street scene) and back-warped example predictions."""
     from .plots import _plt, draw_layout
@@ -579,9 +584,8 @@ def _camvid_figures(val, models: dict, out: Path) -> None:
     fig, axes = plt.subplots(3, len(keys), figsize=(3.6 * len(keys), 8.2), squeeze=False)
     for k, (layout, size) in enumerate(keys):
         model = models[(layout, size)]
-        th = model.sensor.theta.detach().tolist()
         draw_layout(axes[0, k], model.sensor.layout, size, image=img / 255.0, max_lines=32, lw=0.5)
-        axes[0, k].set_title(f"{layout} {size[1]}x{size[0]} θ=({th[0]:.2f}, {th[1]:.2f})", fontsize=8)
+        axes[0, k].set_title(f"{layout} {size[1]}x{size[0]} {_theta_text(model)}", fontsize=8)
         with torch.no_grad():
             s = (
                 model.sensor(torch.from_numpy(img).permute(2, 0, 1)[None].float() / 255)[0]
@@ -609,9 +613,8 @@ def _faces_figure(images: np.ndarray, models: dict, out: Path) -> None:
     fig, axes = plt.subplots(2, len(keys), figsize=(3 * len(keys), 6), squeeze=False)
     for k, (layout, size) in enumerate(keys):
         model = models[(layout, size)]
-        th = model.sensor.theta.detach().tolist()
         draw_layout(axes[0, k], model.sensor.layout, size, image=images[0] / 255.0, lw=0.8)
-        axes[0, k].set_title(f"{layout} {size[1]}x{size[0]} θ=({th[0]:.2f}, {th[1]:.2f})", fontsize=8)
+        axes[0, k].set_title(f"{layout} {size[1]}x{size[0]} {_theta_text(model)}", fontsize=8)
         with torch.no_grad():
             s = model.sensor(torch.from_numpy(images[0]).permute(2, 0, 1)[None].float() / 255)[0]
         axes[1, k].imshow(np.clip(s.permute(1, 2, 0).numpy(), 0, 1), interpolation="nearest")
