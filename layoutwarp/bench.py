@@ -28,7 +28,7 @@ from torch import Tensor
 
 from .integrators import integrate_exact
 from .layouts import Layout, make_layout
-from .mesh import combine_edges, forward_maps, pixel_mesh, sample_points, uniform_corners
+from .mesh import combine_edges, edge_ends, forward_maps, pixel_mesh, sample_points
 from .sensor import simulate
 
 __all__ = ["Row", "SineScene", "blurred_noise", "format_table", "load_photo", "run", "scaling"]
@@ -125,9 +125,7 @@ class SineScene:
         """Exact mean of ``f`` over every pixel of ``layout``, ``(C, H, W)`` float64."""
         h, w = size
         theta = layout.theta.detach().double()
-        cu = uniform_corners(size)
-        a = torch.cat([cu[:, :-1].reshape(-1, 2), cu[:-1, :].reshape(-1, 2)])  # edges as in PixelMesh
-        b = torch.cat([cu[:, 1:].reshape(-1, 2), cu[1:, :].reshape(-1, 2)])
+        a, b = edge_ends(size)
         d = b - a
         axes = -a / torch.where(d == 0, torch.ones_like(d), d)  # where the edge crosses x = 0 or y = 0:
         axes = torch.where(d == 0, torch.ones_like(d), axes)  # layouts built on |x|, |y| bend there

@@ -18,8 +18,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import tempfile
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -27,9 +25,9 @@ import cv2
 import numpy as np
 import torch
 
+from .io import atomic_write
 from .layouts import Layout
-from .mesh import check_size, uniform_corners
-from .preprocess import FILE_MODE
+from .mesh import check_size, edge_ends
 
 __all__ = ["FORMATS", "ExportReport", "export_layout", "pixel_polygons_um", "report_json"]
 
@@ -71,14 +69,6 @@ class ExportReport:
         return "\n".join(lines + [f"  warning: {w}" for w in self.warnings])
 
 
-def _edge_ends(size: tuple[int, int]) -> tuple[torch.Tensor, torch.Tensor]:
-    """Uniform end points ``(E, 2)`` of every edge, in :class:`layoutwarp.mesh.PixelMesh` order."""
-    cu = uniform_corners(size)
-    a = torch.cat([cu[:, :-1].reshape(-1, 2), cu[:-1, :].reshape(-1, 2)])
-    b = torch.cat([cu[:, 1:].reshape(-1, 2), cu[1:, :].reshape(-1, 2)])
-    return a, b
-
-
 def _edge_polylines(
     layout: Layout,
     size,
@@ -95,7 +85,7 @@ def _edge_polylines(
     distance from every chord, measured at the step's middle, is within ``tol_um``.
     """
     theta = layout.theta.detach().double()
-    a, b = _edge_ends(size)
+    a, b = edge_ends(size)
     ne = a.shape[0]
     brk = layout.edge_breakpoints(a, b)
     brk = torch.where((brk > 0) & (brk < 1), brk, torch.ones_like(brk))  # NaN / outside -> 1
@@ -266,20 +256,6 @@ def _shoelace(p: np.ndarray) -> float:
     return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(np.roll(x, -1), y)))
 
 
-def _atomic(path: Path, write) -> None:
-    """Call ``write(tmp_path)`` and rename the result into ``path``."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
-    os.close(fd)
-    try:
-        write(tmp)
-        os.chmod(tmp, FILE_MODE)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def _write_gds(path: Path, polys, hu: float, layer: int, datatype: int, cell: str) -> None:
     import gdstk
 
@@ -287,7 +263,7 @@ def _write_gds(path: Path, polys, hu: float, layer: int, datatype: int, cell: st
     c = lib.new_cell(cell)
     for p in polys:
         c.add(gdstk.Polygon(np.stack([p[:, 0], hu - p[:, 1]], -1), layer=layer, datatype=datatype))
-    _atomic(path, lib.write_gds)
+    atomic_write(path, lib.write_gds)
 
 
 def _write_dxf(path: Path, polys, hu: float, layer: int) -> None:
@@ -306,7 +282,7 @@ def _write_dxf(path: Path, polys, hu: float, layer: int) -> None:
             close=True,
             dxfattribs={"layer": name},
         )
-    _atomic(path, doc.saveas)
+    atomic_write(path, doc.saveas)
 
 
 def _write_svg(path: Path, polys, wu: float, hu: float, size) -> None:
@@ -322,7 +298,7 @@ def _write_svg(path: Path, polys, wu: float, hu: float, size) -> None:
         pts = " ".join(f"{x!r},{y!r}" for x, y in p.tolist())
         parts.append(f'<polygon id="p{k // w}_{k % w}" points="{pts}"/>')
     parts += ["</g>", "</svg>", ""]
-    _atomic(path, lambda tmp: Path(tmp).write_text("\n".join(parts)))
+    atomic_write(path, lambda tmp: Path(tmp).write_text("\n".join(parts)))
 
 
 def _imwrite(path: str, arr: np.ndarray) -> None:
@@ -336,17 +312,17 @@ def _write_png(path: Path, polys, wu: float, hu: float, px_per_um: float, line_w
     pts = [np.round(p * px_per_um * (1 << shift) - (1 << (shift - 1))).astype(np.int32) for p in polys]
     lines = np.zeros(shape, np.uint8)
     cv2.polylines(lines, pts, True, 255, thickness=max(1, line_width), lineType=cv2.LINE_8, shift=shift)
-    _atomic(path, lambda tmp: _imwrite(tmp, lines))
+    atomic_write(path, lambda tmp: _imwrite(tmp, lines))
     big = len(polys) + 1 > np.iinfo(np.uint16).max
     index = np.zeros(shape, np.int32)
     for k, p in enumerate(pts):
         cv2.fillPoly(index, [p], k + 1, lineType=cv2.LINE_8, shift=shift)
     if big:
         ipath = path.with_name(path.stem + "_index.npy")
-        _atomic(ipath, lambda tmp: np.save(open(tmp, "wb"), index))
+        atomic_write(ipath, lambda tmp: np.save(tmp, index))
     else:
         ipath = path.with_name(path.stem + "_index.png")
-        _atomic(ipath, lambda tmp: _imwrite(tmp, index.astype(np.uint16)))
+        atomic_write(ipath, lambda tmp: _imwrite(tmp, index.astype(np.uint16)))
     return [str(ipath)]
 
 

@@ -6,6 +6,7 @@ import gzip
 import json
 import os
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -13,9 +14,40 @@ import torch
 
 from .layouts import Layout, make_layout
 
-__all__ = ["load_layout", "load_mnist", "read_idx", "save_layout"]
+__all__ = ["atomic_write", "load_layout", "load_mnist", "read_idx", "save_layout"]
 
 FORMAT = "layoutwarp.layout/1"
+_UMASK = os.umask(0)
+os.umask(_UMASK)
+FILE_MODE = 0o666 & ~_UMASK  # what open() gives a new file (mkstemp gives 0o600)
+
+
+def atomic_write(path: str | Path, content: bytes | str | Callable[[str], object]) -> Path:
+    """Write ``path`` so that no reader ever sees it half-written, even if the process dies.
+
+    The content goes to a temporary file in the same folder (named ``.<name>.<random><suffix>``,
+    so writers that pick a format from the suffix still work), which is then renamed over
+    ``path``; on any error the temporary file is removed and ``path`` is left as it was.
+
+    Args:
+        path: the file to write (its folder is created).
+        content: bytes or text, or a function that writes the file at the path it is given.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            if isinstance(content, (bytes, str)):
+                f.write(content.encode() if isinstance(content, str) else content)
+        if callable(content):
+            content(tmp)
+        os.chmod(tmp, FILE_MODE)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
 
 
 def save_layout(layout: Layout, path: str | Path, size: tuple[int, int] | None = None, **extra) -> Path:
@@ -35,13 +67,7 @@ def save_layout(layout: Layout, path: str | Path, size: tuple[int, int] | None =
         "version": __version__,
         "extra": extra,
     }
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
-    with os.fdopen(fd, "w") as f:
-        json.dump(data, f, indent=2)
-    os.replace(tmp, path)
-    return path
+    return atomic_write(path, json.dumps(data, indent=2))
 
 
 def load_layout(

@@ -33,6 +33,7 @@ __all__ = [
     "PixelMesh",
     "check_size",
     "combine_edges",
+    "edge_ends",
     "forward_maps",
     "inverse_maps",
     "pixel_centers",
@@ -67,6 +68,15 @@ def uniform_corners(size: tuple[int, int], dtype: torch.dtype = torch.float64, d
     h, w = check_size(size)
     ys, xs = grid_lines(h, dtype, device), grid_lines(w, dtype, device)
     return torch.stack(torch.meshgrid(xs, ys, indexing="xy"), -1)
+
+
+def edge_ends(size: tuple[int, int], dtype: torch.dtype = torch.float64) -> tuple[Tensor, Tensor]:
+    """Uniform end points ``(a, b)``, each ``(E, 2)``, of every pixel edge in :class:`PixelMesh`
+    order: horizontal edges (row-major, running +x), then vertical ones (running +y)."""
+    cu = uniform_corners(size, dtype)
+    a = torch.cat([cu[:, :-1].reshape(-1, 2), cu[:-1, :].reshape(-1, 2)])
+    b = torch.cat([cu[:, 1:].reshape(-1, 2), cu[1:, :].reshape(-1, 2)])
+    return a, b
 
 
 def pixel_centers(size: tuple[int, int], dtype: torch.dtype = torch.float64, device=None) -> Tensor:
@@ -246,8 +256,7 @@ def _edge_parameters(
     area_h = torch.minimum(torch.cat([inf, area]), torch.cat([area, inf]))  # (H+1, W)
     inf = torch.full((h, 1), math.inf, dtype=area.dtype)
     area_v = torch.minimum(torch.cat([inf, area], 1), torch.cat([area, inf], 1))  # (H, W+1)
-    ua = torch.cat([cu[:, :-1].reshape(-1, 2), cu[:-1, :].reshape(-1, 2)])
-    ub = torch.cat([cu[:, 1:].reshape(-1, 2), cu[1:, :].reshape(-1, 2)])
+    ua, ub = edge_ends(size)
     amin = torch.cat([area_h.flatten(), area_v.flatten()])
     ne = ua.shape[0]
     brk = layout.edge_breakpoints(ua, ub).to(ua.dtype).reshape(ne, -1)

@@ -31,7 +31,6 @@ from __future__ import annotations
 import json
 import os
 import sys
-import tempfile
 import time
 from collections.abc import Iterable
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -45,7 +44,7 @@ import torch
 
 from .backwarp import sensor_index_maps
 from .integrators import _segment_cells
-from .io import load_layout, save_layout
+from .io import atomic_write, load_layout, save_layout
 from .layouts import Layout, make_layout
 from .mesh import check_size, forward_maps, pixel_mesh, sensor_to_pixels
 
@@ -62,9 +61,6 @@ __all__ = [
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
 LABEL_RULES = ("nearest", "majority", "inverse")
-_UMASK = os.umask(0)
-os.umask(_UMASK)
-FILE_MODE = 0o666 & ~_UMASK  # what open() would give a new file (mkstemp gives 0o600)
 
 
 def _edge_pixels(size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
@@ -228,19 +224,6 @@ class PreprocessResult:
         return self.processed / self.seconds if self.seconds > 0 else float("nan")
 
 
-def _write_atomic(path: Path, data: bytes) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.chmod(tmp, FILE_MODE)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def _encode(path: Path, arr: np.ndarray) -> bytes:
     ok, buf = cv2.imencode(path.suffix, arr)
     if not ok:
@@ -299,7 +282,7 @@ def _process(task: dict) -> dict:
         res = _resampler(img.shape[:2], img.dtype)
         out = _to_dtype(res(img), img.dtype)
         dst = Path(task["dst"])
-        _write_atomic(dst, _encode(dst, out))
+        atomic_write(dst, _encode(dst, out))
         entry = {"file": rel, "src_bytes": task["src_bytes"], "src_mtime_ns": task["src_mtime_ns"]}
         entry |= {"src_hw": list(img.shape[:2]), "out_bytes": dst.stat().st_size}
         if task.get("label_src"):
@@ -313,17 +296,17 @@ def _process_label(task: dict, res: AreaResampler) -> dict:
     rule = _WORKER["config"]["label_rule"]
     src, dst = Path(task["label_src"]), Path(task["label_dst"])
     if rule == "inverse":
-        _write_atomic(dst, src.read_bytes())
+        atomic_write(dst, src.read_bytes())
         maps = Path(task["backwarp_dir"]) / f"{res.src_size[1]}x{res.src_size[0]}.npz"
         if not maps.exists():
             col, row = sensor_index_maps(res.layout, res.size, res.src_size)
             buf = _npz_bytes(row=row.numpy().astype(np.int32), col=col.numpy().astype(np.int32))
-            _write_atomic(maps, buf)
+            atomic_write(maps, buf)
     else:
         label = _read(src)
         if label.ndim != 2:
             raise ValueError(f"label map {src} must be single-channel, has shape {label.shape}")
-        _write_atomic(dst, _encode(dst, res.labels(label, rule)))
+        atomic_write(dst, _encode(dst, res.labels(label, rule)))
     return {"label": str(dst), "label_bytes": dst.stat().st_size}
 
 
@@ -513,7 +496,7 @@ def preprocess_folder(
         "workers": workers,
     }
     result.manifest = dst / "manifest.json"
-    _write_atomic(result.manifest, json.dumps(manifest, indent=2).encode())
+    atomic_write(result.manifest, json.dumps(manifest, indent=2).encode())
     return result
 
 

@@ -14,7 +14,8 @@ from conftest import SAMPLES, rand_theta
 
 import layoutwarp as lw
 from layoutwarp.cli import main
-from layoutwarp.preprocess import AreaResampler, _write_atomic, area_weights, preprocess_folder
+from layoutwarp.io import atomic_write
+from layoutwarp.preprocess import AreaResampler, area_weights, preprocess_folder
 
 F64 = torch.float64
 
@@ -98,7 +99,7 @@ def test_preprocess_folder_matches_simulate_and_reports_failures(tmp_path):
     assert "broken.png" in manifest["failed"][0]["file"] + manifest["failed"][1]["file"]
     saved, info = lw.load_layout(dst / "layout.json")
     assert saved.family == "curv" and info["size_hw"] == [9, 13]
-    assert not list(dst.rglob("*.part"))
+    assert not list(dst.rglob(".*"))  # no temporary files left behind
 
 
 def test_preprocess_resumes_and_checks_layout(tmp_path):
@@ -140,7 +141,7 @@ def test_atomic_write_leaves_old_file_on_failure(tmp_path, monkeypatch):
 
     monkeypatch.setattr("os.replace", boom)
     with pytest.raises(OSError):
-        _write_atomic(target, b"new contents")
+        atomic_write(target, b"new contents")
     assert target.read_bytes() == b"old" and list(tmp_path.iterdir()) == [target]
 
 
