@@ -11,7 +11,7 @@ import torch
 from .layouts import Layout
 from .mesh import pixel_mesh
 
-__all__ = ["draw_layout", "layout_figure", "pareto_figure"]
+__all__ = ["draw_layout", "layout_figure", "pareto_figure", "save_figure"]
 
 
 def _plt():
@@ -23,6 +23,16 @@ def _plt():
     except ImportError as exc:  # pragma: no cover - depends on the environment
         raise ImportError("plots need matplotlib: pip install 'layoutwarp[plot]'") from exc
     return plt
+
+
+def save_figure(fig, path: str | Path, dpi: int = 110) -> Path:
+    """Lay out, save (creating the folder) and close a matplotlib figure; returns the path."""
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=dpi)
+    _plt().close(fig)
+    return path
 
 
 def draw_layout(
@@ -93,12 +103,7 @@ def layout_figure(
         axes[1, k].set_title(f"sensor output {size[1]}x{size[0]}", fontsize=9)
         axes[1, k].set_xticks([])
         axes[1, k].set_yticks([])
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 _METHOD_MARKERS = {"separable": "s", "exact": "D", "montecarlo": "o", "point": "^"}
@@ -163,9 +168,4 @@ def pareto_figure(result: dict, path: str | Path) -> Path:
     ax.set_title(f"θ-gradient ({images[0]})", fontsize=10)
     ax.grid(True, which="both", alpha=0.3)
     axes[0].legend(fontsize=6, loc="best")
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)

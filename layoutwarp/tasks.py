@@ -559,7 +559,7 @@ def _theta_text(model: nn.Module) -> str:
 
 def _camvid_figures(val, models: dict, out: Path) -> None:
     """Fig. 5 analogue (layouts over a street scene) and back-warped example predictions."""
-    from .plots import _plt, draw_layout
+    from .plots import _plt, draw_layout, save_figure
 
     plt = _plt()
     img, lab = val[0][0], val[1][0]
@@ -600,13 +600,11 @@ def _camvid_figures(val, models: dict, out: Path) -> None:
         for ax in axes[1:, k]:
             ax.set_xticks([])
             ax.set_yticks([])
-    fig.tight_layout()
-    fig.savefig(out / "camvid_layouts.png", dpi=100)
-    plt.close(fig)
+    save_figure(fig, out / "camvid_layouts.png", dpi=100)
 
 
 def _faces_figure(images: np.ndarray, models: dict, out: Path) -> None:
-    from .plots import _plt, draw_layout
+    from .plots import _plt, draw_layout, save_figure
 
     plt = _plt()
     keys = list(models)
@@ -620,6 +618,4 @@ def _faces_figure(images: np.ndarray, models: dict, out: Path) -> None:
         axes[1, k].imshow(np.clip(s.permute(1, 2, 0).numpy(), 0, 1), interpolation="nearest")
         axes[1, k].set_xticks([])
         axes[1, k].set_yticks([])
-    fig.tight_layout()
-    fig.savefig(out / "faces_layouts.png", dpi=100)
-    plt.close(fig)
+    save_figure(fig, out / "faces_layouts.png", dpi=100)

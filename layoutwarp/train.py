@@ -192,7 +192,7 @@ def run_mnist_experiment(
 
 
 def _figures(data, models: dict[str, MnistNet], runs: list[RunResult], out: Path) -> None:
-    from .plots import _plt, draw_layout
+    from .plots import _plt, draw_layout, save_figure
 
     plt = _plt()
     digit = data["test_images"][4] / 255.0  # a "4", as in the paper's figure
@@ -209,9 +209,7 @@ def _figures(data, models: dict[str, MnistNet], runs: list[RunResult], out: Path
         axes[1, k].set_title("4x4 sensor output", fontsize=9)
         axes[1, k].set_xticks([])
         axes[1, k].set_yticks([])
-    fig.tight_layout()
-    fig.savefig(out / "mnist_layouts.png", dpi=110)
-    plt.close(fig)
+    save_figure(fig, out / "mnist_layouts.png", dpi=110)
     fig, ax = plt.subplots(figsize=(6, 3.5))
     for r in runs:
         if r.layout == "uniform":
@@ -230,6 +228,4 @@ def _figures(data, models: dict[str, MnistNet], runs: list[RunResult], out: Path
     handles, labels = ax.get_legend_handles_labels()
     uniq = dict(zip(labels, handles, strict=False))
     ax.legend(uniq.values(), uniq.keys(), fontsize=8)
-    fig.tight_layout()
-    fig.savefig(out / "mnist_theta.png", dpi=110)
-    plt.close(fig)
+    save_figure(fig, out / "mnist_theta.png", dpi=110)
