@@ -121,14 +121,28 @@ def test_preprocess_resumes_and_checks_layout(tmp_path):
         preprocess_folder(src, dst, fixed("rect", (0.3, 0.25)), size, progress=False)
 
 
-def test_parallel_workers_give_identical_files(tmp_path):
+def test_parallel_workers_give_identical_files_and_share_weights(tmp_path, monkeypatch):
     src = tmp_path / "src"
     imgs = _images(src)
+    rng = np.random.default_rng()
+    (src / "same").mkdir()
+    for k in range(12):  # many files of one size: the pool must build their weights once
+        assert cv2.imwrite(str(src / f"same/{k}.png"), rng.integers(0, 256, (30, 38, 3), dtype=np.uint8))
+    builds = []
+
+    def counting(layout, size, src_size, **kw):
+        builds.append((tuple(src_size), kw["tol"]))
+        return area_weights(layout, size, src_size, **kw)
+
+    monkeypatch.setattr("layoutwarp.preprocess.area_weights", counting)
     layout, size = fixed("curv", (0.5, 0.5)), (7, 11)
     a = preprocess_folder(src, tmp_path / "a", layout, size, progress=False)
-    b = preprocess_folder(src, tmp_path / "b", layout, size, workers=2, progress=False)
-    assert a.processed == b.processed == 6 and len(b.failed) == 2
-    for rel in imgs:
+    assert len(builds) == len(set(builds)) == 5  # (size, dtype tolerance) pairs of the inputs
+    builds.clear()
+    b = preprocess_folder(src, tmp_path / "b", layout, size, workers=4, progress=False)
+    assert len(builds) == len(set(builds)) == 5
+    assert a.processed == b.processed == 18 and len(b.failed) == 2
+    for rel in [*imgs, *(f"same/{k}.png" for k in range(12))]:
         assert (tmp_path / "a" / rel).read_bytes() == (tmp_path / "b" / rel).read_bytes()
 
 
