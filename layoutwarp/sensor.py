@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -280,6 +281,30 @@ class SensorLayer(nn.Module):
             tol=self.options.get("tol", 1e-5),
             samples=self.options.get("samples", 4),
         )
+
+    def save_layout(self, path: str | Path, **extra: Any) -> Path:
+        """Write the layer's layout, sensor size and method to a JSON file (see :func:`save_layout`)."""
+        from .io import save_layout
+
+        return save_layout(self.layout, path, self.size, method=self.method, **extra)
+
+    @classmethod
+    def from_layout_file(
+        cls, path: str | Path, size: tuple[int, int] | None = None, *, learn: bool = False, **kwargs: Any
+    ) -> SensorLayer:
+        """A layer with the layout saved at ``path`` (θ frozen unless ``learn``).
+
+        ``size`` defaults to the sensor size stored in the file; ``method`` to the stored
+        method, else ``"exact"``; other keyword arguments go to :class:`SensorLayer`.
+        """
+        from .io import load_layout
+
+        layout, info = load_layout(path, learn=learn)
+        size = size if size is not None else info["size_hw"]
+        if size is None:
+            raise ValueError(f"{path} stores no sensor size; pass size=(h, w)")
+        kwargs.setdefault("method", (info.get("extra") or {}).get("method", "exact"))
+        return cls(tuple(size), layout, **kwargs)
 
     def extra_repr(self) -> str:
         h, w = self.size

@@ -157,3 +157,24 @@ def test_image_gradient_of_exact_is_adjoint(gen):
     # gradient summed over all source pixels = Σ_k y_k (each pixel's weights sum to 1)
     assert torch.allclose(g.sum(), y.sum(), atol=1e-10)
     assert bool((g >= -1e-12).all())
+
+
+@pytest.mark.parametrize("family", ["uniform", "rect", "curv"])
+def test_sensor_layer_saves_and_reloads_its_layout(family, gen, tmp_path):
+    layer = lw.SensorLayer((5, 7), family, method="exact", tol=1e-4)
+    if family != "uniform":
+        with torch.no_grad():
+            layer.layout.rho.copy_(torch.randn(2, generator=gen) * 0.5)
+    path = layer.save_layout(tmp_path / "layer.json", note="test")
+    again = lw.SensorLayer.from_layout_file(path, tol=1e-4)
+    assert again.size == (5, 7) and again.method == "exact" and again.layout.family == family
+    assert list(again.parameters()) == []  # frozen unless learn=True
+    assert torch.allclose(again.theta, layer.theta.detach(), rtol=0, atol=1e-6)
+    img = torch.rand(2, 3, 31, 29, generator=gen)
+    assert torch.allclose(again(img), layer(img).detach(), rtol=0, atol=1e-5)
+    if family != "uniform":
+        assert len(list(lw.SensorLayer.from_layout_file(path, learn=True).parameters())) == 1
+    assert lw.SensorLayer.from_layout_file(path, (3, 3)).size == (3, 3)
+    lw.save_layout(layer.layout, tmp_path / "nosize.json")
+    with pytest.raises(ValueError, match="stores no sensor size"):
+        lw.SensorLayer.from_layout_file(tmp_path / "nosize.json")
