@@ -27,6 +27,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from .integrators import integrate_exact
+from .io import atomic_write
 from .layouts import Layout, make_layout
 from .mesh import combine_edges, edge_ends, forward_maps, pixel_mesh, sample_points
 from .sensor import simulate
@@ -583,7 +584,7 @@ def main_bench(
         print(format_scaling(result["scaling"]))
     if json_path:
         Path(json_path).parent.mkdir(parents=True, exist_ok=True)
-        Path(json_path).write_text(json.dumps(result, indent=2))
+        atomic_write(json_path, json.dumps(result, indent=2))
     if plot_path:
         from .plots import pareto_figure
 

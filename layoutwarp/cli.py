@@ -57,6 +57,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     import torch
 
     import layoutwarp as lw
+    from layoutwarp.io import atomic_write
     from layoutwarp.plots import layout_figure
 
     out = Path(args.out)
@@ -97,7 +98,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
             cv2.cvtColor((np.clip(arr, 0, 1) * 255).round().astype(np.uint8), cv2.COLOR_RGB2BGR),
         )
     fig = layout_figure(rgb / 255.0, panels, size, out / "layouts.png")
-    (out / "demo.json").write_text(json.dumps(numbers, indent=2))
+    atomic_write(out / "demo.json", json.dumps(numbers, indent=2))
     print(f"wrote {fig}, {out / 'demo.json'} and sensor_*.png")
     for name, d in numbers["layouts"].items():
         print(
@@ -188,7 +189,9 @@ def _train_task(args: argparse.Namespace, task: str) -> int:
     common |= {"sizes": sizes, "seeds": seeds, "epochs": epochs}
     if task == "camvid":
         freeze = args.freeze_epochs if args.freeze_epochs is not None else (0 if args.quick else 3)
-        result = tasks.run_camvid_experiment(data, out, freeze_epochs=freeze, **common)
+        result = tasks.run_camvid_experiment(
+            data, out, freeze_epochs=freeze, class_weights=args.class_weights, **common
+        )
         metrics = ("miou", "pixel_accuracy")
     else:
         result = tasks.run_faces_experiment(data, out, **common)
@@ -278,6 +281,7 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
 def _cmd_export(args: argparse.Namespace) -> int:
     """Write a layout's pixel boundaries as a GDSII/DXF/SVG/PNG fabrication mask."""
     from layoutwarp.export import export_layout, report_json
+    from layoutwarp.io import atomic_write
 
     layout, size = _layout_from_args(args)
     try:
@@ -301,7 +305,7 @@ def _cmd_export(args: argparse.Namespace) -> int:
         return 2
     print(report.summary())
     if args.report:
-        Path(args.report).write_text(report_json(report))
+        atomic_write(args.report, report_json(report))
     return 0
 
 
@@ -414,6 +418,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="exact integrator's curved-edge tolerance (default 1e-5 for mnist, 1e-3 for camvid/faces)",
     )
     t.add_argument("--freeze-epochs", type=int, default=None, help="camvid: epochs with θ frozen (default 3)")
+    t.add_argument(
+        "--class-weights",
+        choices=["none", "median"],
+        default="none",
+        help="camvid: loss class weights, none or median-frequency balancing (default none)",
+    )
     t.add_argument("--no-progress", action="store_true", help="no progress bars")
     t.add_argument("--out", default="results/mnist", help="output folder")
     t.set_defaults(func=_cmd_train)

@@ -27,7 +27,7 @@ from torch import nn
 from tqdm import tqdm
 
 from .backwarp import backwarp, backwarp_cross_entropy
-from .io import save_layout
+from .io import atomic_write, save_layout
 from .sensor import SensorLayer
 
 __all__ = [
@@ -37,6 +37,7 @@ __all__ = [
     "SegNet",
     "load_camvid",
     "load_faces",
+    "median_frequency_weights",
     "run_camvid_experiment",
     "run_faces_experiment",
     "segmentation_scores",
@@ -207,6 +208,28 @@ def segmentation_scores(confusion: np.ndarray) -> dict:
     }
 
 
+def median_frequency_weights(labels: np.ndarray, k: int, ignore: int = VOID) -> np.ndarray:
+    """Median-frequency class balancing: ``w_c = median(f) / f_c`` (float32, ``(k,)``).
+
+    ``f_c`` is the number of pixels of class ``c`` divided by the number of pixels of the
+    images in which ``c`` appears (Eigen & Fergus 2015, as SegNet trains on CamVid); ``ignore``
+    is left out, and a class absent from every image gets weight 0.
+
+    Args:
+        labels: ``(N, H, W)`` integer label maps.
+        k: number of classes.
+        ignore: label value that is not a class.
+    """
+    flat = labels.reshape(len(labels), -1)
+    counts = np.stack([np.bincount(row[row != ignore], minlength=k)[:k] for row in flat])  # (N, k)
+    valid = (flat != ignore).sum(1)
+    present = counts > 0
+    denom = (present * valid[:, None]).sum(0)
+    freq = np.where(denom > 0, counts.sum(0) / np.maximum(denom, 1), 0.0)
+    med = np.median(freq[freq > 0]) if (freq > 0).any() else 1.0
+    return np.where(freq > 0, med / np.where(freq > 0, freq, 1.0), 0.0).astype(np.float32)
+
+
 def _confusion(pred: torch.Tensor, labels: torch.Tensor, k: int, ignore: int) -> np.ndarray:
     keep = labels != ignore
     idx = labels[keep].long() * k + pred[keep].long()
@@ -256,8 +279,15 @@ def train_camvid(
     theta_lr: float = 0.01,
     progress: bool = True,
     sensor: dict | None = None,
+    class_weights: str = "none",
 ) -> tuple[TaskRun, SegNet]:
-    """Train sensor + SegNet on CamVid ``train`` and score it on ``val`` (back-warped to full size)."""
+    """Train sensor + SegNet on CamVid ``train`` and score it on ``val`` (back-warped to full size).
+
+    ``class_weights``: ``"none"`` (plain cross-entropy) or ``"median"``
+    (:func:`median_frequency_weights` of the training labels).
+    """
+    if class_weights not in ("none", "median"):
+        raise ValueError(f"class_weights must be 'none' or 'median', got {class_weights!r}")
     torch.manual_seed(seed)
     gen = torch.Generator().manual_seed(seed)
     learn = layout != "uniform"
@@ -265,6 +295,9 @@ def train_camvid(
     opt = _optimizer(model, lr, theta_lr)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, max(epochs, 1))
     x, y = _to_tensor(train[0]), torch.from_numpy(train[1]).long()
+    weight = None
+    if class_weights == "median":
+        weight = torch.from_numpy(median_frequency_weights(train[1], len(CAMVID_CLASSES)))
     history = [model.sensor.theta.detach().tolist()]
     t0 = time.perf_counter()
     steps = epochs * -(-len(x) // batch_size)
@@ -283,7 +316,9 @@ def train_camvid(
             xb, yb = x[idx].float().div_(255), y[idx]
             if bool(torch.rand((), generator=gen) < 0.5):  # horizontal flip
                 xb, yb = xb.flip(-1), yb.flip(-1)
-            loss = backwarp_cross_entropy(model(xb), yb, model.sensor.layout, ignore_index=VOID)
+            loss = backwarp_cross_entropy(
+                model(xb), yb, model.sensor.layout, ignore_index=VOID, weight=weight
+            )
             opt.zero_grad()
             loss.backward()
             opt.step()
@@ -425,6 +460,7 @@ def run_camvid_experiment(
     limit: int | None = None,
     progress: bool = True,
     sensor: dict | None = None,
+    class_weights: str = "none",
 ) -> dict:
     """Every layout × sensor size × seed on CamVid; writes results.json, layouts and figures."""
     out = Path(out)
@@ -444,6 +480,7 @@ def run_camvid_experiment(
                     freeze_epochs=min(freeze_epochs, max(epochs - 1, 0)),
                     progress=progress,
                     sensor=sensor,
+                    class_weights=class_weights,
                 )
                 runs.append(run)
                 models.setdefault((layout, tuple(size)), model)
@@ -463,6 +500,7 @@ def run_camvid_experiment(
                     runs,
                     ("miou", "pixel_accuracy"),
                     sensor,
+                    class_weights=class_weights,
                 )
     for (layout, size), model in models.items():
         save_layout(
@@ -476,7 +514,7 @@ def run_camvid_experiment(
 
 
 def _save_runs(
-    out: Path, task: str, data_dir, n_train: int, n_test: int, epochs: int, runs, metrics, sensor
+    out: Path, task: str, data_dir, n_train: int, n_test: int, epochs: int, runs, metrics, sensor, **options
 ) -> None:
     result = {
         "task": task,
@@ -484,13 +522,12 @@ def _save_runs(
         "train_size": n_train,
         "test_size": n_test,
         "epochs": epochs,
+        **options,
         "sensor": sensor or {"method": "exact"},
         "summary": _summarise(runs, metrics),
         "runs": [asdict(r) for r in runs],
     }
-    tmp = out / "results.json.part"
-    tmp.write_text(json.dumps(result, indent=2))
-    tmp.replace(out / "results.json")
+    atomic_write(out / "results.json", json.dumps(result, indent=2))
 
 
 def run_faces_experiment(

@@ -19,7 +19,7 @@ import torch.nn.functional as F
 from torch import nn
 from tqdm import tqdm
 
-from .io import load_mnist, save_layout
+from .io import atomic_write, load_mnist, save_layout
 from .sensor import SensorLayer
 
 __all__ = ["MnistNet", "RunResult", "run_mnist_experiment", "train_mnist"]
@@ -176,7 +176,7 @@ def run_mnist_experiment(
         "summary": summary,
         "runs": [r.__dict__ for r in runs],
     }
-    (out / "results.json").write_text(json.dumps(result, indent=2))
+    atomic_write(out / "results.json", json.dumps(result, indent=2))
     best = "curv" if "curv" in models else layouts[-1]
     save_layout(
         models[best].sensor.layout,

@@ -17,6 +17,7 @@ from layoutwarp.tasks import (
     age_group,
     load_camvid,
     load_faces,
+    median_frequency_weights,
     segmentation_scores,
     train_camvid,
 )
@@ -78,6 +79,42 @@ def test_theta_stays_frozen_during_freeze_epochs():
     learned, _ = train_camvid(train, val, "rect", (9, 12), freeze_epochs=0, **opts)
     assert frozen.theta == [0.0, 0.0] and any(abs(v) > 1e-4 for v in learned.theta)
     assert 0 <= frozen.scores["miou"] <= 100
+
+
+def test_median_frequency_weights_against_a_direct_count(gen):
+    k, void = 6, 6
+    labels = torch.randint(0, k + 1, (5, 13, 17), generator=gen).numpy()
+    labels[:3][labels[:3] == 2] = 0  # class 2 only in the last two images
+    labels[labels == 4] = 1  # class 4 absent
+    w = median_frequency_weights(labels, k, ignore=void)
+    freq = {}
+    for c in range(k):
+        pixels = images_pixels = 0
+        for lab in labels:
+            n = int((lab == c).sum())
+            if n:
+                pixels += n
+                images_pixels += int((lab != void).sum())
+        if pixels:
+            freq[c] = pixels / images_pixels
+    med = float(np.median(list(freq.values())))
+    for c in range(k):
+        assert abs(w[c] - (med / freq[c] if c in freq else 0.0)) < 1e-6
+    assert w[4] == 0 and w[2] > 1  # rare class up-weighted
+
+
+def test_class_weighted_camvid_training_differs_from_plain():
+    train = load_camvid(SAMPLES / "camvid", "train", limit=2)
+    val = load_camvid(SAMPLES / "camvid", "val", limit=1)
+    opts = {"epochs": 1, "batch_size": 2, "progress": False, "sensor": {"tol": 1e-3}, "seed": 3}
+    models = [
+        train_camvid(train, val, "uniform", (9, 12), class_weights=cw, **opts)[1]
+        for cw in ("none", "median", "median")
+    ]
+    p0, p1, p2 = (torch.cat([p.flatten() for p in m.parameters()]) for m in models)
+    assert torch.equal(p1, p2) and not torch.allclose(p0, p1)  # deterministic; the weights act
+    with np.testing.assert_raises(ValueError):
+        train_camvid(train, val, "uniform", (9, 12), class_weights="inverse", **opts)
 
 
 def test_quick_commands_write_results(tmp_path):
