@@ -24,11 +24,11 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
-from tqdm import tqdm
 
 from .backwarp import backwarp, backwarp_cross_entropy
 from .io import atomic_write, save_layout
 from .sensor import SensorLayer
+from .train import fit
 
 __all__ = [
     "AGE_GROUPS",
@@ -260,11 +260,6 @@ def _optimizer(model: nn.Module, lr: float, theta_lr: float) -> torch.optim.Opti
     return torch.optim.Adam(groups)
 
 
-def _set_theta_trainable(model: nn.Module, on: bool) -> None:
-    for p in model.sensor.parameters():
-        p.requires_grad_(on)
-
-
 def train_camvid(
     train: tuple[np.ndarray, np.ndarray],
     val: tuple[np.ndarray, np.ndarray],
@@ -293,42 +288,31 @@ def train_camvid(
     learn = layout != "uniform"
     model = SegNet(layout, size, learn=learn, **(sensor or {}))
     opt = _optimizer(model, lr, theta_lr)
-    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, max(epochs, 1))
     x, y = _to_tensor(train[0]), torch.from_numpy(train[1]).long()
     weight = None
     if class_weights == "median":
         weight = torch.from_numpy(median_frequency_weights(train[1], len(CAMVID_CLASSES)))
-    history = [model.sensor.theta.detach().tolist()]
+
+    def batch_loss(idx: torch.Tensor) -> torch.Tensor:
+        xb, yb = x[idx].float().div_(255), y[idx]
+        if bool(torch.rand((), generator=gen) < 0.5):  # horizontal flip
+            xb, yb = xb.flip(-1), yb.flip(-1)
+        return backwarp_cross_entropy(model(xb), yb, model.sensor.layout, ignore_index=VOID, weight=weight)
+
     t0 = time.perf_counter()
-    steps = epochs * -(-len(x) // batch_size)
-    bar = tqdm(
-        total=steps,
+    history = fit(
+        model,
+        torch.arange(len(x)),
+        batch_loss,
+        opt,
+        gen,
+        epochs=epochs,
+        batch_size=batch_size,
+        freeze_epochs=freeze_epochs,
+        sched=torch.optim.lr_scheduler.CosineAnnealingLR(opt, max(epochs, 1)),
         desc=f"camvid {layout} {size[1]}x{size[0]} seed {seed}",
-        disable=None if progress else True,
-        leave=False,
+        progress=progress,
     )
-    for epoch in range(epochs):
-        _set_theta_trainable(model, learn and epoch >= freeze_epochs)
-        model.train()
-        perm = torch.randperm(len(x), generator=gen)
-        for k in range(0, len(perm), batch_size):
-            idx = perm[k : k + batch_size]
-            xb, yb = x[idx].float().div_(255), y[idx]
-            if bool(torch.rand((), generator=gen) < 0.5):  # horizontal flip
-                xb, yb = xb.flip(-1), yb.flip(-1)
-            loss = backwarp_cross_entropy(
-                model(xb), yb, model.sensor.layout, ignore_index=VOID, weight=weight
-            )
-            opt.zero_grad()
-            loss.backward()
-            opt.step()
-            bar.update(1)
-            bar.set_postfix(
-                loss=f"{loss.item():.3f}", theta=",".join(f"{v:.2f}" for v in model.sensor.theta.tolist())
-            )
-        sched.step()
-        history.append(model.sensor.theta.detach().tolist())
-    bar.close()
     scores = evaluate_camvid(model, val)
     run = TaskRun("camvid", layout, list(size), seed, scores, model.sensor.theta.detach().tolist(), history)
     run.seconds = time.perf_counter() - t0
@@ -375,37 +359,30 @@ def train_faces(
     family, learn = ("rect", False) if layout == "uniform" else (layout, True)
     model = FaceNet(family, size, learn=learn, **(sensor or {}))
     opt = _optimizer(model, lr, theta_lr)
-    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, max(epochs, 1))
     x = _to_tensor(data["images"])
     targets = {k: torch.from_numpy(data[k]).long() for k in FaceNet.HEADS}
-    history = [model.sensor.theta.detach().tolist()]
+
+    def batch_loss(idx: torch.Tensor) -> torch.Tensor:
+        xb = x[idx].float().div_(255)
+        if bool(torch.rand((), generator=gen) < 0.5):  # horizontal flip
+            xb = xb.flip(-1)
+        out = model(xb)
+        return sum(F.cross_entropy(out[key], targets[key][idx]) for key in out)
+
     t0 = time.perf_counter()
-    tr = torch.from_numpy(train_idx)
-    steps = epochs * -(-len(tr) // batch_size)
-    bar = tqdm(
-        total=steps,
+    history = fit(
+        model,
+        torch.from_numpy(train_idx),
+        batch_loss,
+        opt,
+        gen,
+        epochs=epochs,
+        batch_size=batch_size,
+        freeze_epochs=freeze_epochs,
+        sched=torch.optim.lr_scheduler.CosineAnnealingLR(opt, max(epochs, 1)),
         desc=f"faces {layout} {size[1]}x{size[0]} seed {seed}",
-        disable=None if progress else True,
-        leave=False,
+        progress=progress,
     )
-    for epoch in range(epochs):
-        _set_theta_trainable(model, learn and epoch >= freeze_epochs)
-        model.train()
-        perm = tr[torch.randperm(len(tr), generator=gen)]
-        for k in range(0, len(perm), batch_size):
-            idx = perm[k : k + batch_size]
-            xb = x[idx].float().div_(255)
-            if bool(torch.rand((), generator=gen) < 0.5):
-                xb = xb.flip(-1)
-            out = model(xb)
-            loss = sum(F.cross_entropy(out[key], targets[key][idx]) for key in out)
-            opt.zero_grad()
-            loss.backward()
-            opt.step()
-            bar.update(1)
-        sched.step()
-        history.append(model.sensor.theta.detach().tolist())
-    bar.close()
     scores = evaluate_faces(
         model, x[torch.from_numpy(test_idx)], {k: v[torch.from_numpy(test_idx)] for k, v in targets.items()}
     )

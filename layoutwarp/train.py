@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -22,7 +23,7 @@ from tqdm import tqdm
 from .io import atomic_write, load_mnist, save_layout
 from .sensor import SensorLayer
 
-__all__ = ["MnistNet", "RunResult", "run_mnist_experiment", "train_mnist"]
+__all__ = ["MnistNet", "RunResult", "fit", "run_mnist_experiment", "train_mnist"]
 
 MNIST_MEAN, MNIST_STD = 0.1307, 0.3081
 
@@ -83,19 +84,67 @@ def train_mnist(
     opt = torch.optim.Adam(model.parameters(), lr=lr)
     x_train = torch.from_numpy(data["train_images"]).float().div(255)[:, None]
     y_train = torch.from_numpy(data["train_labels"]).long()
-    history = [model.sensor.theta.detach().tolist()]
     t0 = time.perf_counter()
-    steps = epochs * -(-len(x_train) // batch_size)
-    # tqdm draws on terminals only (disable=None), so logs stay readable
-    bar = tqdm(
-        total=steps, desc=f"mnist {layout} seed {seed}", disable=None if progress else True, leave=False
+    history = fit(
+        model,
+        torch.arange(len(x_train)),
+        lambda idx: F.cross_entropy(model(x_train[idx]), y_train[idx]),
+        opt,
+        gen,
+        epochs=epochs,
+        batch_size=batch_size,
+        desc=f"mnist {layout} seed {seed}",
+        progress=progress,
     )
-    for _ in range(epochs):
+    acc = evaluate(model, data["test_images"], data["test_labels"])
+    result = RunResult(
+        layout, seed, acc, model.sensor.theta.detach().tolist(), history, time.perf_counter() - t0
+    )
+    return result, model
+
+
+def fit(
+    model: nn.Module,
+    indices: torch.Tensor,
+    batch_loss: Callable[[torch.Tensor], torch.Tensor],
+    opt: torch.optim.Optimizer,
+    gen: torch.Generator,
+    *,
+    epochs: int,
+    batch_size: int,
+    freeze_epochs: int = 0,
+    sched: torch.optim.lr_scheduler.LRScheduler | None = None,
+    desc: str = "train",
+    progress: bool = True,
+) -> list[list[float]]:
+    """The training loop shared by every experiment; returns θ after each epoch (and at start).
+
+    Each epoch shuffles ``indices`` with ``gen`` and steps ``opt`` on ``batch_loss(idx)`` for
+    batches of ``batch_size`` indices (a last batch of one joins the one before, as batch
+    normalisation needs two samples). ``model.sensor``'s parameters are frozen for the first
+    ``freeze_epochs`` epochs; ``sched`` steps once per epoch. tqdm draws on terminals only
+    (``disable=None``), so logs stay readable.
+    """
+    sensor = list(model.sensor.parameters())
+    history = [model.sensor.theta.detach().tolist()]
+    n = len(indices)
+    starts = list(range(0, n, batch_size))
+    if len(starts) > 1 and n - starts[-1] == 1:  # no 1-sample batch: batch norm needs two
+        starts.pop()
+    bounds = list(zip(starts, [*starts[1:], n], strict=True))
+    bar = tqdm(
+        total=epochs * len(bounds),
+        desc=desc,
+        disable=None if progress else True,
+        leave=False,
+    )
+    for epoch in range(epochs):
+        for p in sensor:
+            p.requires_grad_(epoch >= freeze_epochs)
         model.train()
-        perm = torch.randperm(len(x_train), generator=gen)
-        for k in range(0, len(perm), batch_size):
-            idx = perm[k : k + batch_size]
-            loss = F.cross_entropy(model(x_train[idx]), y_train[idx])
+        perm = indices[torch.randperm(len(indices), generator=gen)]
+        for a, b in bounds:
+            loss = batch_loss(perm[a:b])
             opt.zero_grad()
             loss.backward()
             opt.step()
@@ -103,13 +152,11 @@ def train_mnist(
             bar.set_postfix(
                 loss=f"{loss.item():.3f}", theta=",".join(f"{v:.2f}" for v in model.sensor.theta.tolist())
             )
+        if sched is not None:
+            sched.step()
         history.append(model.sensor.theta.detach().tolist())
     bar.close()
-    acc = evaluate(model, data["test_images"], data["test_labels"])
-    result = RunResult(
-        layout, seed, acc, model.sensor.theta.detach().tolist(), history, time.perf_counter() - t0
-    )
-    return result, model
+    return history
 
 
 @torch.no_grad()

@@ -88,3 +88,32 @@ def test_train_mnist_quick_writes_results_layout_and_figures(tmp_path):
     assert layout.family == "curv" and info["size_hw"] == [4, 4]
     for fig in ("mnist_layouts.png", "mnist_theta.png"):
         assert (tmp_path / fig).stat().st_size > 5000
+
+
+@pytest.mark.parametrize(
+    ("n", "batch", "sizes"), [(7, 3, [3, 4]), (6, 3, [3, 3]), (1, 4, [1]), (9, 4, [4, 5])]
+)
+def test_fit_visits_every_sample_once_per_epoch_and_freezes_theta(n, batch, sizes, gen):
+    from layoutwarp.train import fit
+
+    model = torch.nn.Module()
+    model.sensor = lw.SensorLayer((3, 3), "rect")
+    model.head = torch.nn.Linear(1, 1)
+    opt = torch.optim.SGD(model.parameters(), lr=0.1)
+    indices = torch.randperm(50, generator=gen)[:n]
+    seen, grads = [], []
+
+    def batch_loss(idx):
+        seen.append(idx.clone())
+        grads.append(model.sensor.layout.rho.requires_grad)
+        img = torch.rand(len(idx), 1, 12, 12, generator=gen) + torch.arange(12.0)  # θ moves pixel (0, 0)
+        return model.head(model.sensor(img)[:, :, 0, 0]).pow(2).mean()
+
+    history = fit(model, indices, batch_loss, opt, gen, epochs=3, batch_size=batch, freeze_epochs=1)
+    per_epoch = len(sizes)
+    assert [len(s) for s in seen] == sizes * 3 and len(history) == 4
+    for e in range(3):
+        got = torch.cat(seen[e * per_epoch : (e + 1) * per_epoch])
+        assert torch.equal(got.sort().values, indices.sort().values)
+    assert grads == [False] * per_epoch + [True] * 2 * per_epoch
+    assert history[0] == history[1] == [0.0, 0.0] and history[2] != history[1]
