@@ -421,8 +421,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument(
         "--class-weights",
         choices=["none", "median"],
-        default="none",
-        help="camvid: loss class weights, none or median-frequency balancing (default none)",
+        default="median",
+        help="camvid: loss class weights, none or median-frequency balancing (default median)",
     )
     t.add_argument("--no-progress", action="store_true", help="no progress bars")
     t.add_argument("--out", default="results/mnist", help="output folder")

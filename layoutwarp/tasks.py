@@ -274,7 +274,7 @@ def train_camvid(
     theta_lr: float = 0.01,
     progress: bool = True,
     sensor: dict | None = None,
-    class_weights: str = "none",
+    class_weights: str = "median",
 ) -> tuple[TaskRun, SegNet]:
     """Train sensor + SegNet on CamVid ``train`` and score it on ``val`` (back-warped to full size).
 
@@ -437,7 +437,7 @@ def run_camvid_experiment(
     limit: int | None = None,
     progress: bool = True,
     sensor: dict | None = None,
-    class_weights: str = "none",
+    class_weights: str = "median",
 ) -> dict:
     """Every layout × sensor size × seed on CamVid; writes results.json, layouts and figures."""
     out = Path(out)
