@@ -84,7 +84,8 @@ def test_theta_stays_frozen_during_freeze_epochs():
 def test_median_frequency_weights_against_a_direct_count(gen):
     k, void = 6, 6
     labels = torch.randint(0, k + 1, (5, 13, 17), generator=gen).numpy()
-    labels[:3][labels[:3] == 2] = 0  # class 2 only in the last two images
+    labels[labels == 2] = 0
+    labels[3:, :2, :3] = 2  # class 2: 6 pixels in each of the last two images
     labels[labels == 4] = 1  # class 4 absent
     w = median_frequency_weights(labels, k, ignore=void)
     freq = {}
