@@ -355,9 +355,10 @@ def _find_label(labels: Path, rel: Path) -> Path | None:
     return None
 
 
-def _float64_copy(layout: Layout) -> Layout:
-    theta = layout.theta.detach().double()
-    return make_layout(layout.family, theta.tolist(), bound=layout.bound, dtype=torch.float64)
+def _describe(layout: Layout, size_hw) -> dict:
+    """The layout's identity as stored in the manifest (θ as float64 values)."""
+    theta = [float(v) for v in layout.theta.detach().double()]
+    return {"family": layout.family, "theta": theta, "bound": layout.bound, "size_hw": size_hw}
 
 
 def _same_layout(a: dict, b: dict) -> bool:
@@ -413,13 +414,11 @@ def preprocess_folder(
     if not src.is_dir():
         raise ValueError(f"src must be a folder, got {str(src)!r}")
     dst.mkdir(parents=True, exist_ok=True)
-    theta = [float(v) for v in layout.theta.detach().double()]
-    config = {"family": layout.family, "theta": theta, "bound": layout.bound, "size_hw": list(size)}
+    config = _describe(layout, list(size))
     layout_file = dst / "layout.json"
     if layout_file.exists():
         old_layout, old = load_layout(layout_file, dtype=torch.float64)
-        prev = {"family": old_layout.family, "theta": [float(v) for v in old_layout.theta.double()]}
-        prev |= {"bound": old_layout.bound, "size_hw": old["size_hw"]}
+        prev = _describe(old_layout, old["size_hw"])
         if not _same_layout(prev, config):
             raise ValueError(f"{dst} holds a dataset made with another layout ({prev}); use an empty folder")
     save_layout(
@@ -478,7 +477,8 @@ def preprocess_folder(
                 result.failed.append({"file": r["file"], "error": r["error"]})
             bar.update(1)
 
-        job = _Job(_float64_copy(layout), size, tol, label_rule)
+        fixed = make_layout(config["family"], config["theta"], bound=config["bound"], dtype=torch.float64)
+        job = _Job(fixed, size, tol, label_rule)
         if workers == 1 or len(tasks) <= 1:
             for task in tasks:
                 record(job.process(task))
