@@ -27,9 +27,10 @@ from kornia.augmentation import GeometricAugmentationBase2D
 from torch import Tensor
 
 from .backwarp import backwarp
+from .checks import check_choice, check_int, check_size
+from .coords import pixels_to_sensor, sensor_to_pixels
 from .layouts import Layout, make_layout
-from .mesh import check_size
-from .sensor import simulate
+from .sensor import METHODS, simulate
 
 __all__ = ["SensorAugmentation"]
 
@@ -39,13 +40,14 @@ class SensorAugmentation(GeometricAugmentationBase2D):
 
     Args:
         size: sensor size ``(h, w)``.
-        layout: ``"rect"``, ``"curv"``, ``"uniform"`` or a :class:`~layoutwarp.Layout`.
+        layout: a registered family name (``"rect"``, ``"curv"``, ``"uniform"``, ...) or a
+            :class:`~layoutwarp.Layout`.
         method: integrator (see :func:`~layoutwarp.simulate`).
         mask_rule: ``"nearest"`` or ``"majority"`` (see the module docstring).
         num_classes: number of mask classes for ``"majority"`` (labels ``>= num_classes``,
             e.g. an ignore label, are kept as a class of their own).
-        learn: train θ.
-        theta: initial θ.
+        learn: train θ (for a family name).
+        theta: initial θ (for a family name).
         **options: further :func:`~layoutwarp.simulate` options.
 
     Example:
@@ -72,10 +74,10 @@ class SensorAugmentation(GeometricAugmentationBase2D):
         super().__init__(p=1.0, same_on_batch=True, keepdim=False)
         self.size = check_size(size)
         self.layout = layout if isinstance(layout, Layout) else make_layout(layout, theta, learn=learn)
-        if mask_rule not in ("nearest", "majority"):
-            raise ValueError(f"mask_rule must be 'nearest' or 'majority', got {mask_rule!r}")
-        if mask_rule == "majority" and (num_classes is None or num_classes < 1):
-            raise ValueError(f"mask_rule='majority' needs num_classes >= 1, got {num_classes!r}")
+        check_choice(method, METHODS, "method")
+        check_choice(mask_rule, ("nearest", "majority"), "mask_rule")
+        if mask_rule == "majority":
+            check_int(num_classes, "num_classes", 1)
         self.method, self.mask_rule, self.num_classes, self.options = method, mask_rule, num_classes, options
         self.flags = {"size": self.size}
 
@@ -113,15 +115,11 @@ class SensorAugmentation(GeometricAugmentationBase2D):
     # keypoints and boxes -------------------------------------------------------------
     def _to_sensor_points(self, pts: Tensor, src_hw: tuple[int, int], inverse: bool) -> Tensor:
         """Pixel coordinates (centres at integers) between the source and the sensor."""
-        h, w = self.size
-        hs, ws = src_hw
-        a, b = ((hs, ws), (h, w)) if not inverse else ((h, w), (hs, ws))
-        scale_in = torch.tensor([2 / a[1], 2 / a[0]], dtype=torch.float64)
-        scale_out = torch.tensor([b[1] / 2, b[0] / 2], dtype=torch.float64)
-        q = (pts.double() + 0.5) * scale_in - 1
+        src, dst = (src_hw, self.size) if not inverse else (self.size, src_hw)
         theta = self.layout.theta.detach().double()
+        q = pixels_to_sensor(pts.to(theta), src, centered=True)
         p = self.layout.phi(q, theta) if inverse else self.layout.phi_inverse(q, theta)
-        return ((p + 1) * scale_out - 0.5).to(pts.dtype)
+        return sensor_to_pixels(p, dst, centered=True).to(pts)
 
     def keypoints_to_sensor(self, pts: Tensor, src_hw: tuple[int, int]) -> Tensor:
         """``(..., 2)`` source pixel ``(x, y)`` to sensor pixel coordinates via ``φ⁻¹``."""

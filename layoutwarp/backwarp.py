@@ -14,8 +14,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from .checks import check_choice, check_shape, check_size
+from .coords import pixel_centers, sensor_to_pixels
 from .layouts import Layout
-from .mesh import check_size, pixel_centers
 
 __all__ = ["backwarp", "backwarp_cross_entropy", "backwarp_numpy", "sensor_index_maps"]
 
@@ -36,33 +37,36 @@ def sensor_index_maps(
         boundary goes to the pixel on its right/below.
     """
     (h, w), target_size = check_size(size), check_size(target_size, "target_size")
+    theta = layout.theta.detach().double()
     with torch.no_grad():
-        q = pixel_centers(target_size, device=layout.theta.device)
-        p = layout.phi_inverse(q, layout.theta.detach().double())
-        col = torch.floor((p[..., 0] + 1) * (w / 2)).long().clamp(0, w - 1)
-        row = torch.floor((p[..., 1] + 1) * (h / 2)).long().clamp(0, h - 1)
-    return col, row
+        p = layout.phi_inverse(pixel_centers(target_size, device=theta.device), theta)
+        idx = torch.floor(sensor_to_pixels(p, (h, w))).long()
+    return idx[..., 0].clamp(0, w - 1), idx[..., 1].clamp(0, h - 1)
 
 
-def backwarp(pred: Tensor, layout: Layout, size: tuple[int, int], mode: str = "nearest") -> Tensor:
-    """Resample a sensor-grid tensor to the uniform grid of ``size``.
+def backwarp(pred: Tensor, layout: Layout, target_size: tuple[int, int], mode: str = "nearest") -> Tensor:
+    """Resample a sensor-grid tensor to the uniform grid of ``target_size``.
 
     Args:
         pred: ``(B, C, h, w)`` (or ``(B, h, w)`` label maps) on the sensor grid.
         layout: the layout the sensor image was taken with.
-        size: target size ``(H, W)``.
+        target_size: target size ``(H, W)``.
         mode: ``"nearest"`` (each target pixel takes the value of the sensor pixel that
             contains its centre; any dtype) or ``"bilinear"`` (smooth display of continuous
             outputs, sampled at ``φ⁻¹(q)`` with border padding; floating dtypes).
 
     Returns:
-        ``(B, C, H, W)`` (or ``(B, H, W)``) with ``pred``'s dtype.
+        ``(B, C, H, W)`` (or ``(B, H, W)``) with ``pred``'s dtype, on ``pred``'s device.
+
+    Example:
+        >>> from layoutwarp import RectLayout
+        >>> backwarp(torch.arange(4.0).view(1, 1, 2, 2), RectLayout((0.5, 0.0)), (2, 4))[0, 0]
+        tensor([[0., 1., 1., 1.],
+                [2., 3., 3., 3.]])
     """
-    if not isinstance(pred, Tensor) or pred.ndim not in (3, 4):
-        raise ValueError(
-            f"pred must be a (B, C, h, w) or (B, h, w) tensor, got {getattr(pred, 'shape', pred)!r}"
-        )
-    size = check_size(size)
+    check_shape(pred, "B C h w|B h w", "pred")
+    size = check_size(target_size, "target_size")
+    check_choice(mode, ("nearest", "bilinear"), "mode")
     h, w = pred.shape[-2:]
     if mode == "nearest":
         col, row = sensor_index_maps(layout, (h, w), size)
@@ -73,8 +77,8 @@ def backwarp(pred: Tensor, layout: Layout, size: tuple[int, int], mode: str = "n
             raise TypeError(
                 f"mode='bilinear' needs a floating-point pred, got {pred.dtype}; use mode='nearest'"
             )
-        q = pixel_centers(size, device=pred.device)
-        p = layout.phi_inverse(q, layout.theta.detach().double()).to(pred.dtype)
+        theta = layout.theta.detach().double()
+        p = layout.phi_inverse(pixel_centers(size, device=theta.device), theta).to(pred)
         x = pred if pred.ndim == 4 else pred[:, None]
         out = F.grid_sample(
             x,
@@ -84,10 +88,9 @@ def backwarp(pred: Tensor, layout: Layout, size: tuple[int, int], mode: str = "n
             align_corners=False,
         )
         return out if pred.ndim == 4 else out[:, 0]
-    raise ValueError(f"mode must be 'nearest' or 'bilinear', got {mode!r}")
 
 
-def backwarp_numpy(arr: np.ndarray, layout: Layout, size: tuple[int, int]) -> np.ndarray:
+def backwarp_numpy(arr: np.ndarray, layout: Layout, target_size: tuple[int, int]) -> np.ndarray:
     """OpenCV back-warping of an HW or HWC numpy array (nearest; ``cv2.remap``).
 
     Bit-identical to :func:`backwarp` with ``mode="nearest"``: the remap maps hold the
@@ -96,11 +99,11 @@ def backwarp_numpy(arr: np.ndarray, layout: Layout, size: tuple[int, int]) -> np
     """
     if not isinstance(arr, np.ndarray) or arr.ndim not in (2, 3):
         raise ValueError(f"arr must be an HW or HWC numpy array, got {getattr(arr, 'shape', arr)!r}")
-    col, row = sensor_index_maps(layout, arr.shape[:2], size)
+    col, row = sensor_index_maps(layout, arr.shape[:2], target_size)
     return cv2.remap(
         arr,
-        col.numpy().astype(np.float32),
-        row.numpy().astype(np.float32),
+        col.cpu().numpy().astype(np.float32),
+        row.cpu().numpy().astype(np.float32),
         cv2.INTER_NEAREST,
         borderMode=cv2.BORDER_REPLICATE,
     )
@@ -121,10 +124,12 @@ def backwarp_cross_entropy(
     Returns:
         the mean loss over non-ignored pixels, differentiable in ``logits``.
     """
-    if labels.ndim != 3:
-        raise ValueError(f"labels must be (B, H, W), got {tuple(labels.shape)}")
-    if logits.ndim != 4 or logits.shape[0] != labels.shape[0]:
-        raise ValueError(f"logits must be (B, K, h, w) with labels' B, got {tuple(logits.shape)}")
+    check_shape(labels, ["B", "H", "W"], "labels")
+    check_shape(logits, ["B", "K", "h", "w"], "logits")
+    if logits.shape[0] != labels.shape[0]:
+        raise ValueError(
+            f"logits and labels must have the same batch size, got {logits.shape[0]} and {labels.shape[0]}"
+        )
     # Nearest back-warping copies each sensor pixel to the targets it contains, so the loss is
     # a count-weighted cross-entropy on the sensor grid: count[b, c, k] = number of (non-ignored)
     # targets of class c that read sensor pixel k. Same value and gradient, without building

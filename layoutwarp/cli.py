@@ -1,105 +1,149 @@
 """Command line: ``layoutwarp <command>`` (also ``python -m layoutwarp``).
 
 Sizes on the command line are ``WIDTHxHEIGHT`` like OpenCV's ``dsize`` ("257x129" is 257
-wide); the Python API uses ``(H, W)``.
+wide); the Python API uses ``(H, W)``. Every error ends in one line on stderr that names the
+flag, the value and what is allowed, with exit status 2.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
+import os
 import sys
-import time
-from collections.abc import Sequence
+import tempfile
+from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any, NoReturn
 
-__all__ = ["main", "parse_wxh"]
+__all__ = ["build_parser", "main", "parse_theta", "parse_wxh"]
 
-DEFAULT_DATA = Path("data_samples")
+ROOT = Path(__file__).resolve().parents[1]
+DATA_SAMPLES = ROOT / "data_samples"
+SHARED_DATA = ROOT.parent / "shared" / "data"
+#: A lower bound on the memory one sensor pixel needs in any command (its mesh and weights).
+BYTES_PER_SENSOR_PIXEL = 200
 
 
+class UsageError(Exception):
+    """A bad command-line value: printed as one line, exit status 2."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """An ``ArgumentParser`` whose errors are one line (no usage block) with exit status 2."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
+class _Formatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Shows every default as ``(default: X)``, except for flags and options without one."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        if action.default in (None, False) or isinstance(action, argparse._VersionAction):
+            return action.help
+        return super()._get_help_string(action)
+
+
+# ----------------------------------------------------------------------------------------
+# Value types
+# ----------------------------------------------------------------------------------------
 def parse_wxh(text: str) -> tuple[int, int]:
     """``"257x129"`` (width x height) to ``(H, W) = (129, 257)``."""
     try:
         w, h = (int(v) for v in text.lower().split("x"))
     except ValueError:
-        raise argparse.ArgumentTypeError(f"size must be WIDTHxHEIGHT, e.g. 257x129, got {text!r}") from None
+        raise argparse.ArgumentTypeError(f"must be WIDTHxHEIGHT, e.g. 257x129, got {text!r}") from None
     if w <= 0 or h <= 0:
-        raise argparse.ArgumentTypeError(f"size must be positive, got {text!r}")
+        raise argparse.ArgumentTypeError(f"width and height must be >= 1, got {text!r}")
     return h, w
 
 
 def parse_um(text: str) -> tuple[float, float]:
-    """``"5600x4200"`` (width x height in µm) to ``(5600.0, 4200.0)``."""
+    """``"5600x4200"`` (width x height in µm) to ``(H_um, W_um) = (4200.0, 5600.0)``."""
     try:
         w, h = (float(v) for v in text.lower().split("x"))
     except ValueError:
         raise argparse.ArgumentTypeError(
-            f"extent must be WIDTHxHEIGHT in µm, e.g. 5600x4200, got {text!r}"
+            f"must be WIDTHxHEIGHT in µm, e.g. 5600x4200, got {text!r}"
         ) from None
-    if not (w > 0 and h > 0):
-        raise argparse.ArgumentTypeError(f"extent must be positive, got {text!r}")
-    return w, h
+    if not (0 < w < math.inf and 0 < h < math.inf):
+        raise argparse.ArgumentTypeError(f"width and height must be finite and > 0, got {text!r}")
+    return h, w
 
 
 def parse_theta(text: str) -> tuple[float, float]:
+    """``"0.3,-0.1"`` to ``(0.3, -0.1)``; each value finite with ``|θ| < 1``."""
     try:
         tx, ty = (float(v) for v in text.split(","))
     except ValueError:
-        raise argparse.ArgumentTypeError(f"theta must be TX,TY, e.g. 0.3,0.1, got {text!r}") from None
+        raise argparse.ArgumentTypeError(f"must be TX,TY, e.g. 0.3,0.1, got {text!r}") from None
+    if not all(math.isfinite(v) and abs(v) < 1 for v in (tx, ty)):
+        raise argparse.ArgumentTypeError(f"each θ must be finite with |θ| < 1, got {text!r}")
     return tx, ty
 
 
-def _cmd_demo(args: argparse.Namespace) -> int:
-    """Simulate the paper's layouts on a bundled photo; write figures and numbers."""
-    import cv2
-    import numpy as np
-    import torch
+def _number(lo: float, *, integer: bool = False, open_lo: bool = False) -> Callable[[str], Any]:
+    """An argparse type: a finite number ``>= lo`` (``> lo`` with ``open_lo``)."""
+    kind = "an integer" if integer else "a number"
+    bound = f"{'>' if open_lo else '>='} {lo:g}"
 
-    import layoutwarp as lw
-    from layoutwarp.io import atomic_write
-    from layoutwarp.plots import layout_figure
+    def parse(text: str) -> int | float:
+        try:
+            v = int(text) if integer else float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"must be {kind} {bound}, got {text!r}") from None
+        if not math.isfinite(v) or (v <= lo if open_lo else v < lo):
+            raise argparse.ArgumentTypeError(f"must be {kind} {bound}, got {text!r}")
+        return v
 
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    path = Path(args.image) if args.image else Path(args.data) / "photos" / "kodim20.png"
-    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if bgr is None:
-        print(f"error: cannot read image {path}", file=sys.stderr)
-        return 2
-    rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
-    img = torch.from_numpy(rgb).permute(2, 0, 1)[None]
-    size = args.size
-    tx, ty = args.theta
-    layouts = {
-        "uniform": lw.UniformLayout(),
-        f"rect θ=({tx:g}, {ty:g})": lw.RectLayout((tx, ty)),
-        f"curv θ=({tx:g}, {ty:g})": lw.CurvLayout((tx, ty)),
-    }
-    panels, numbers = [], {"image": str(path), "size_wxh": f"{size[1]}x{size[0]}", "layouts": {}}
-    for name, layout in layouts.items():
-        t0 = time.perf_counter()
-        with torch.no_grad():
-            sim, plan = lw.simulate(img, layout, size, "exact", tol=args.tol, return_plan=True)
-        elapsed = time.perf_counter() - t0
-        arr = sim[0].permute(1, 2, 0).numpy()
-        areas = lw.pixel_mesh(layout, size, tol=args.tol).areas().detach()
-        panels.append((name, layout, arr))
-        numbers["layouts"][name] = {
-            "family": layout.family,
-            "theta": [float(v) for v in layout.theta.detach()],
-            "method": plan.method,
-            "error_bound": plan.error_bound,
-            "seconds": round(elapsed, 4),
-            "pixel_area_ratio_max_over_min": float(areas.max() / areas.min()),
-        }
-        cv2.imwrite(
-            str(out / f"sensor_{layout.family}.png"),
-            cv2.cvtColor((np.clip(arr, 0, 1) * 255).round().astype(np.uint8), cv2.COLOR_RGB2BGR),
+    return parse
+
+
+positive_int = _number(1, integer=True)
+non_negative_int = _number(0, integer=True)
+positive_float = _number(0, open_lo=True)
+
+
+def _available_bytes() -> int:
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+
+
+def _check_memory(size: tuple[int, int], flag: str = "--size") -> None:
+    """Refuse a sensor whose pixels alone need more memory than is available, before allocating."""
+    h, w = size
+    need, have = h * w * BYTES_PER_SENSOR_PIXEL, _available_bytes()
+    if need > have:
+        raise UsageError(
+            f"argument {flag}: {w}x{h} is {h * w:.3g} sensor pixels and needs at least "
+            f"{_gib(need)} of memory ({BYTES_PER_SENSOR_PIXEL} bytes a pixel), "
+            f"more than the {_gib(have)} available"
         )
-    fig = layout_figure(rgb / 255.0, panels, size, out / "layouts.png")
-    atomic_write(out / "demo.json", json.dumps(numbers, indent=2))
-    print(f"wrote {fig}, {out / 'demo.json'} and sensor_*.png")
+
+
+def _gib(n: float) -> str:
+    return f"{n / 2**40:.3g} TiB" if n >= 2**40 else f"{n / 2**30:.3g} GiB"
+
+
+# ----------------------------------------------------------------------------------------
+# Commands
+# ----------------------------------------------------------------------------------------
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from .experiments.demo import run_demo
+
+    image = Path(args.image) if args.image else DATA_SAMPLES / "photos" / "kodim20.png"
+    if not image.is_file():
+        raise UsageError(f"argument --image: no such file {str(image)!r}")
+    _check_memory(args.size)
+    numbers = run_demo(image, args.out, args.size, args.theta, args.tol)
+    print(f"wrote {args.out}/layouts.png, demo.json and sensor_*.png")
     for name, d in numbers["layouts"].items():
         print(
             f"  {name:22s} method={d['method']:9s} {d['seconds'] * 1e3:7.1f} ms  "
@@ -109,9 +153,14 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
-    """Speed against error of every integrator, with anchors measured in the same run."""
-    from layoutwarp.bench import main_bench
+    import torch
 
+    from .experiments.bench import main_bench
+
+    if args.image and not Path(args.image).is_file():
+        raise UsageError(f"argument --image: no such file {args.image!r}")
+    if args.threads:
+        torch.set_num_threads(args.threads)
     main_bench(
         args.quick,
         args.json,
@@ -123,11 +172,10 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
-def _sensor_options(args: argparse.Namespace, default_tol: float | None = None) -> dict:
-    sensor = {"method": args.method}
-    tol = args.tol if args.tol is not None else default_tol
-    if args.method == "exact" and tol is not None:
-        sensor["tol"] = tol
+def _sensor_options(args: argparse.Namespace, default_tol: float) -> dict:
+    sensor: dict[str, Any] = {"method": args.method}
+    if args.method == "exact":
+        sensor["tol"] = args.tol if args.tol is not None else default_tol
     if args.method in ("montecarlo", "point"):
         sensor["radiance"] = args.radiance
     if args.method == "montecarlo":
@@ -136,128 +184,123 @@ def _sensor_options(args: argparse.Namespace, default_tol: float | None = None) 
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
-    """Train a sensor layout jointly with a network (the paper's experiments)."""
-    if args.task == "camvid":
-        return _train_task(args, "camvid")
-    if args.task == "faces":
-        return _train_task(args, "faces")
-    from layoutwarp.train import run_mnist_experiment
+    from .experiments import camvid, faces, mnist
 
-    data = Path(args.data) if args.data else (DEFAULT_DATA / "mnist" if args.quick else _shared("mnist"))
-    layouts = (args.layout,) if args.layout else ("uniform", "curv", "rect")
-    seeds = tuple(range(args.seeds)) if args.seeds else ((0,) if args.quick else (0, 1, 2))
-    epochs = args.epochs or (3 if args.quick else 14)
-    print(f"MNIST 4x4: data {data}, layouts {', '.join(layouts)}, seeds {list(seeds)}, {epochs} epochs")
-    sensor = _sensor_options(args)
-    result = run_mnist_experiment(
-        data, args.out, layouts, seeds, epochs, progress=not args.no_progress, sensor=sensor
+    module = {"mnist": mnist, "camvid": camvid, "faces": faces}[args.task]
+    d = module.DEFAULTS
+    data = (
+        Path(args.data) if args.data else (DATA_SAMPLES / d.sample if args.quick else SHARED_DATA / d.shared)
     )
-    print(f"{'layout':8s} {'test accuracy':>18s}  θ (mean)")
-    for name, s in result["summary"].items():
-        th = ", ".join(f"{v:+.2f}" for v in s["theta_mean"])
-        print(f"{name:8s} {s['accuracy_mean']:8.2f} ± {s['accuracy_std']:4.2f} %   ({th})  n={s['n']}")
-    print(f"wrote {args.out}/results.json, layout.json, mnist_layouts.png, mnist_theta.png")
-    return 0
-
-
-TASK_DEFAULTS = {
-    # task: (shared folder, data_samples folder, layouts, sizes (H, W), seeds, epochs, quick epochs)
-    "camvid": ("camvid", "camvid", ("uniform", "curv", "rect"), ((36, 48), (72, 96)), 2, 12, 1),
-    "faces": ("faces/utkface_subset", "faces/utkface", ("uniform", "rect"), ((8, 8), (16, 16)), 3, 30, 2),
-}
-
-
-def _train_task(args: argparse.Namespace, task: str) -> int:
-    from layoutwarp import tasks
-
-    shared, sample, layouts, sizes, n_seeds, epochs, quick_epochs = TASK_DEFAULTS[task]
-    data = Path(args.data) if args.data else (DEFAULT_DATA / sample if args.quick else _shared(shared))
-    if not data.exists():
-        print(f"error: no data at {data}; pass --data DIR or --quick (bundled samples)", file=sys.stderr)
-        return 2
-    layouts = (args.layout,) if args.layout else layouts
-    sizes = tuple(args.size) if args.size else (sizes[:1] if args.quick else sizes)
-    seeds = tuple(range(args.seeds)) if args.seeds else ((0,) if args.quick else tuple(range(n_seeds)))
-    epochs = args.epochs or (quick_epochs if args.quick else epochs)
-    out = args.out if args.out != "results/mnist" else f"results/{task}"
+    if not data.is_dir():
+        raise UsageError(
+            f"no {args.task} data at {str(data)!r}; pass --data DIR or --quick (bundled samples)"
+        )
+    families = tuple(dict.fromkeys(args.family)) if args.family else d.families
+    seeds = tuple(range(args.seeds or (1 if args.quick else d.seeds)))
+    epochs = args.epochs or (d.quick_epochs if args.quick else d.epochs)
+    sizes = tuple(getattr(args, "size", None) or (d.sizes[:1] if args.quick else d.sizes))
+    for size in sizes:
+        _check_memory(size)
+    out = args.out or f"results/{args.task}"
     sizes_txt = ", ".join(f"{w}x{h}" for h, w in sizes)
     print(
-        f"{task}: data {data}, layouts {', '.join(layouts)}, sensors {sizes_txt}, "
+        f"{args.task}: data {data}, families {', '.join(families)}, sensors {sizes_txt}, "
         f"seeds {list(seeds)}, {epochs} epochs"
     )
-    common = {"progress": not args.no_progress, "sensor": _sensor_options(args, 1e-3), "layouts": layouts}
-    common |= {"sizes": sizes, "seeds": seeds, "epochs": epochs}
-    if task == "camvid":
-        freeze = args.freeze_epochs if args.freeze_epochs is not None else (0 if args.quick else 3)
-        result = tasks.run_camvid_experiment(
+    sensor = _sensor_options(args, d.tol)
+    progress = not args.no_progress
+    if args.task == "mnist":
+        result = mnist.run_mnist_experiment(
+            data, out, families, seeds, epochs, progress=progress, sensor=sensor
+        )
+        print(f"{'layout':8s} {'test accuracy':>18s}  θ (mean)")
+        for name, s in result["summary"].items():
+            th = ", ".join(f"{v:+.2f}" for v in s["theta_mean"])
+            print(f"{name:8s} {s['accuracy_mean']:8.2f} ± {s['accuracy_std']:4.2f} %   ({th})  n={s['n']}")
+        print(f"wrote {out}/results.json, layout.json, mnist_layouts.png, mnist_theta.png")
+        return 0
+    common = {"families": families, "sizes": sizes, "seeds": seeds, "epochs": epochs}
+    common |= {"progress": progress, "sensor": sensor}
+    if args.task == "camvid":
+        freeze = (
+            args.freeze_epochs if args.freeze_epochs is not None else (0 if args.quick else d.freeze_epochs)
+        )
+        result = camvid.run_camvid_experiment(
             data, out, freeze_epochs=freeze, class_weights=args.class_weights, **common
         )
-        metrics = ("miou", "pixel_accuracy")
+        metrics: tuple[str, ...] = ("miou", "pixel_accuracy")
     else:
-        result = tasks.run_faces_experiment(data, out, **common)
+        result = faces.run_faces_experiment(data, out, **common)
         metrics = ("gender", "age_group", "race", "mean")
     print(f"{'layout':16s} " + " ".join(f"{m:>16s}" for m in metrics) + "  θ (mean)")
     for name, s in result["summary"].items():
         cells = " ".join(f"{s[m]['mean']:8.2f} ± {s[m]['std']:5.2f}" for m in metrics)
         th = ", ".join(f"{v:+.2f}" for v in s["theta_mean"])
         print(f"{name:16s} {cells}  ({th})  n={s['n']}")
-    print(f"wrote {out}/results.json, layout_*.json and {task}_layouts.png")
+    print(f"wrote {out}/results.json, layout_*.json and {args.task}_layouts.png")
     return 0
 
 
 def _layout_from_args(args: argparse.Namespace):
-    """The layout and sensor size from ``--layout FILE`` or ``--family/--theta``, and ``--size``."""
+    """The fixed layout and sensor size from ``--layout FILE`` or ``--family/--theta``, and ``--size``."""
     import torch
 
-    import layoutwarp as lw
+    from .layoutfile import load_layout
+    from .layouts import FAMILIES
 
+    if args.layout and (args.family or args.theta):
+        raise UsageError("argument --layout: give a layout file or --family/--theta, not both")
     if args.layout:
-        layout, info = lw.load_layout(args.layout, dtype=torch.float64)
+        layout, info = load_layout(args.layout, dtype=torch.float64)
         size = args.size or (tuple(info["size_hw"]) if info.get("size_hw") else None)
+    elif args.family:
+        cls = FAMILIES[args.family]
+        if cls.num_params and args.theta is None:
+            raise UsageError(
+                f"argument --family: {args.family!r} needs --theta TX,TY (θ = 0,0 is the uniform layout)"
+            )
+        if not cls.num_params and args.theta is not None:
+            raise UsageError(
+                f"argument --theta: the {args.family!r} layout has no parameters, got {args.theta!r}"
+            )
+        layout, size = cls(args.theta, dtype=torch.float64), args.size
     else:
-        if not args.family:
-            raise SystemExit("error: give --layout LAYOUT.json or --family (with --theta)")
-        theta = None if args.family == "uniform" else (args.theta or (0.0, 0.0))
-        layout, size = lw.make_layout(args.family, theta, dtype=torch.float64), args.size
+        raise UsageError("give --layout LAYOUT.json or --family (with --theta)")
     if size is None:
-        raise SystemExit("error: --size WIDTHxHEIGHT is needed (the layout file stores no sensor size)")
+        raise UsageError("argument --size: needed (the layout file stores no sensor size)")
+    _check_memory(size)
     return layout, size
 
 
 def _cmd_preprocess(args: argparse.Namespace) -> int:
-    """Write the sensor image of every image of a folder (and move its label maps)."""
-    from layoutwarp.io import atomic_write
-    from layoutwarp.preprocess import _walk, benchmark_baseline, preprocess_folder
+    from .files import atomic_write
+    from .preprocess import benchmark_baseline, check_destination, list_images, preprocess_folder
 
+    if not Path(args.src).is_dir():
+        raise UsageError(f"argument SRC: no such folder {args.src!r}")
+    check_destination(Path(args.dst))
     layout, size = _layout_from_args(args)
     dst = Path(args.dst)
     if args.benchmark and dst.exists() and any(dst.iterdir()):
-        print(f"error: --benchmark needs an empty DST, {dst} is not empty", file=sys.stderr)
-        return 2
+        raise UsageError(f"argument --benchmark: needs an empty DST, {str(dst)!r} is not empty")
     base = None
     if args.benchmark:  # the baseline first, both on a warm page cache
-        import tempfile
-
-        files = _walk(Path(args.src), dst.resolve())
+        files = list_images(args.src, dst)
         for path in files:
             path.read_bytes()
         with tempfile.TemporaryDirectory() as tmp:
             base = benchmark_baseline(files, size, tmp)
-    try:
-        res = preprocess_folder(
-            args.src,
-            dst,
-            layout,
-            size,
-            labels=args.labels,
-            label_rule=args.label_rule,
-            workers=args.workers,
-            tol=args.tol,
-            progress=False if args.no_progress else None,
-        )
-    except ValueError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+    res = preprocess_folder(
+        args.src,
+        dst,
+        layout,
+        size,
+        labels=args.labels,
+        label_rule=args.label_rule,
+        workers=args.workers,
+        tol=args.tol,
+        progress=False if args.no_progress else None,
+    )
     print(
         f"{res.processed} written, {res.skipped} already done, {len(res.failed)} failed "
         f"in {res.seconds:.2f} s ({res.images_per_second:.1f} images/s, {args.workers} worker(s)); "
@@ -279,160 +322,208 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
 
 
 def _cmd_export(args: argparse.Namespace) -> int:
-    """Write a layout's pixel boundaries as a GDSII/DXF/SVG/PNG fabrication mask."""
-    from layoutwarp.export import export_layout, report_json
-    from layoutwarp.io import atomic_write
+    from .export import export_layout, report_json
+    from .files import atomic_write
 
     layout, size = _layout_from_args(args)
-    try:
-        report = export_layout(
-            layout,
-            size,
-            args.out,
-            args.sensor_um,
-            format=args.format,
-            tol_um=args.tol_um,
-            grid_um=args.grid_um,
-            manhattan=args.manhattan,
-            layer=args.gds_layer,
-            datatype=args.gds_datatype,
-            px_per_um=args.px_per_um,
-            line_width=args.line_width,
-            min_feature_um=args.min_feature_um,
-        )
-    except ValueError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+    report = export_layout(
+        layout,
+        size,
+        args.out,
+        args.sensor_um,
+        format=args.format,
+        tol_um=args.tol_um,
+        grid_um=args.grid_um,
+        manhattan=args.manhattan,
+        layer=args.gds_layer,
+        datatype=args.gds_datatype,
+        px_per_um=args.px_per_um,
+        line_width=args.line_width,
+        min_feature_um=args.min_feature_um,
+    )
     print(report.summary())
     if args.report:
         atomic_write(args.report, report_json(report))
     return 0
 
 
-def _shared(name: str) -> Path:
-    return Path(__file__).resolve().parents[1].parent / "shared" / "data" / name
+# ----------------------------------------------------------------------------------------
+# Parser
+# ----------------------------------------------------------------------------------------
+def _add_layout_args(p: argparse.ArgumentParser, families: Sequence[str]) -> None:
+    p.add_argument("--layout", metavar="FILE", help="layout file (written by save_layout or train)")
+    p.add_argument("--family", choices=families, help="or a layout family (with --theta)")
+    p.add_argument("--theta", type=parse_theta, help="θ as TX,TY with --family, each |θ| < 1")
+    p.add_argument("--size", type=parse_wxh, help="sensor WIDTHxHEIGHT (default: the layout file's)")
 
 
-def _layout_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--layout", default=None, help="layout JSON file (save_layout / train output)")
-    p.add_argument("--family", choices=["uniform", "rect", "curv"], default=None, help="or a layout family")
-    p.add_argument("--theta", type=parse_theta, default=None, help="θ as TX,TY with --family")
-    p.add_argument("--size", type=parse_wxh, default=None, help="sensor WIDTHxHEIGHT (default: the file's)")
+def _add_train_parser(sub, module_name: str, families: Sequence[str]) -> None:
+    import importlib
+
+    d = importlib.import_module(f".experiments.{module_name}", __package__).DEFAULTS
+    t = sub.add_parser(
+        d.task,
+        help=f"the {d.task} experiment",
+        description=f"Train {d.task} layouts jointly with a network; compare them with the uniform baseline.",
+        formatter_class=_Formatter,
+    )
+    t.add_argument(
+        "--quick", action="store_true", help=f"bundled data_samples/{d.sample}, 1 seed, the first size"
+    )
+    t.add_argument(
+        "--family",
+        action="append",
+        choices=families,
+        help=f"a family to train, repeatable (default: {', '.join(d.families)})",
+    )
+    t.add_argument("--data", help=f"dataset folder (default: the shared data folder's {d.shared})")
+    t.add_argument("--seeds", type=positive_int, help=f"number of seeds (default: {d.seeds}; 1 with --quick)")
+    t.add_argument(
+        "--epochs", type=positive_int, help=f"epochs (default: {d.epochs}; {d.quick_epochs} with --quick)"
+    )
+    if d.task != "mnist":
+        sizes = " and ".join(f"{w}x{h}" for h, w in d.sizes)
+        t.add_argument(
+            "--size",
+            type=parse_wxh,
+            action="append",
+            help=f"sensor WIDTHxHEIGHT, repeatable (default: {sizes}; the first with --quick)",
+        )
+    t.add_argument(
+        "--method", default="exact", choices=["exact", "montecarlo", "point"], help="sensor integrator"
+    )
+    t.add_argument(
+        "--tol",
+        type=positive_float,
+        help=f"the exact integrator's curved-edge tolerance (default: {d.tol:g})",
+    )
+    t.add_argument(
+        "--samples", type=positive_int, default=4, help="Monte Carlo samples per axis (s² per pixel)"
+    )
+    t.add_argument(
+        "--radiance",
+        default="bilinear",
+        choices=["bilinear", "box"],
+        help="radiance of the sampling integrators",
+    )
+    if d.task == "camvid":
+        t.add_argument(
+            "--freeze-epochs",
+            type=non_negative_int,
+            help=f"epochs with θ frozen (default: {d.freeze_epochs}; 0 with --quick)",
+        )
+        t.add_argument(
+            "--class-weights",
+            choices=["none", "median"],
+            default="median",
+            help="loss class weights: none or median-frequency balancing",
+        )
+    t.add_argument("--no-progress", action="store_true", help="no progress bars")
+    t.add_argument("--out", help=f"output folder (default: results/{d.task})")
+    t.set_defaults(func=_cmd_train, task=d.task)
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="layoutwarp", description=__doc__.splitlines()[0])
-    sub = p.add_subparsers(dest="command", required=True)
-    d = sub.add_parser("demo", help="simulate the paper's layouts on a bundled photo and write figures")
-    d.add_argument("--data", default=str(DEFAULT_DATA), help="data folder (default: data_samples)")
-    d.add_argument("--image", default=None, help="an image file instead of the bundled photo")
-    d.add_argument("--size", type=parse_wxh, default=(24, 32), help="sensor WIDTHxHEIGHT (default 32x24)")
-    d.add_argument("--theta", type=parse_theta, default=(0.5, 0.5), help="θ as TX,TY (default 0.5,0.5)")
-    d.add_argument("--tol", type=float, default=1e-5, help="relative pixel-value tolerance")
+    """The ``layoutwarp`` argument parser."""
+    from . import __version__
+    from .layouts import FAMILIES
+
+    families = list(FAMILIES)
+    p = _Parser(
+        prog="layoutwarp",
+        description="Differentiable sensor pixel layouts: simulate, learn and export task-specific sensors.",
+        formatter_class=_Formatter,
+    )
+    p.add_argument("--version", action="version", version=f"layoutwarp {__version__}")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=_Parser)
+
+    def command(name: str, summary: str) -> argparse.ArgumentParser:
+        return sub.add_parser(name, help=summary, description=summary, formatter_class=_Formatter)
+
+    d = command("demo", "Simulate the paper's two layouts on a photo and write figures and numbers.")
+    d.add_argument("--image", help="an image file (default: the bundled kodim20 photo)")
+    d.add_argument("--size", type=parse_wxh, default=(24, 32), help="sensor WIDTHxHEIGHT (default: 32x24)")
+    d.add_argument("--theta", type=parse_theta, default=(0.5, 0.5), help="θ as TX,TY (default: 0.5,0.5)")
+    d.add_argument("--tol", type=positive_float, default=1e-5, help="relative pixel-value tolerance")
     d.add_argument("--out", default="results/demo", help="output folder")
     d.set_defaults(func=_cmd_demo)
-    b = sub.add_parser("bench", help="time and error of every integrator against anchors (one process)")
+
+    b = command("bench", "Time and error of every integrator against anchors measured in the same run.")
     b.add_argument("--quick", action="store_true", help="small sizes, few repeats")
-    b.add_argument("--json", default=None, help="also write the results to this JSON file")
-    b.add_argument("--plot", default=None, help="also draw the speed-vs-error plot to this PNG")
-    b.add_argument("--image", default=None, help="photo to use (default: the bundled kodim20)")
+    b.add_argument("--json", metavar="FILE", help="also write the results to this JSON file")
+    b.add_argument("--plot", metavar="FILE", help="also draw the speed-vs-error plot to this PNG")
+    b.add_argument("--image", help="photo to measure on (default: the bundled kodim20)")
+    b.add_argument("--threads", type=positive_int, help="torch threads (default: torch's choice)")
     b.add_argument("--no-memory", action="store_true", help="skip the peak-memory children")
     b.add_argument("--no-scaling", action="store_true", help="skip the input/sensor size scaling grid")
     b.set_defaults(func=_cmd_bench)
-    pp = sub.add_parser(
-        "preprocess", help="sensor images of a folder of images (OpenCV, precomputed weights)"
-    )
-    pp.add_argument("src", help="source folder (walked recursively)")
-    pp.add_argument("dst", help="destination folder (same relative paths)")
-    _layout_args(pp)
-    pp.add_argument("--labels", default=None, help="folder of class-index label maps (same relative paths)")
+
+    pp = command("preprocess", "Write the sensor image of every image in a folder (and move its label maps).")
+    pp.add_argument("src", metavar="SRC", help="source folder (walked recursively)")
+    pp.add_argument("dst", metavar="DST", help="destination folder (same relative paths)")
+    _add_layout_args(pp, families)
+    pp.add_argument("--labels", metavar="DIR", help="folder of class-index label maps (same relative paths)")
     pp.add_argument(
         "--label-rule",
         choices=["nearest", "majority", "inverse"],
         default="nearest",
         help="labels to the sensor grid by the label under each pixel centre (nearest) or the "
-        "largest area (majority), or keep them full size with back-warp maps (inverse)",
+        "largest area (majority), or kept full size with back-warp maps (inverse)",
     )
-    pp.add_argument("--workers", type=int, default=1, help="worker threads (default 1)")
+    pp.add_argument("--workers", type=positive_int, default=1, help="worker threads")
     pp.add_argument(
-        "--tol",
-        type=float,
-        default=None,
-        help="curved-edge tolerance (default: 1/4 level of the image dtype)",
+        "--tol", type=positive_float, help="curved-edge tolerance (default: 1/4 level of the image dtype)"
     )
     pp.add_argument("--no-progress", action="store_true", help="no progress bar")
     pp.add_argument(
         "--benchmark", action="store_true", help="also time a plain OpenCV loop on the same files"
     )
     pp.set_defaults(func=_cmd_preprocess)
-    ex = sub.add_parser("export", help="pixel boundaries as a fabrication mask (GDSII, DXF, SVG, PNG)")
-    ex.add_argument("layout", nargs="?", default=None, help="layout JSON file")
-    ex.add_argument("--family", choices=["uniform", "rect", "curv"], default=None, help="or a layout family")
-    ex.add_argument("--theta", type=parse_theta, default=None, help="θ as TX,TY with --family")
-    ex.add_argument("--size", type=parse_wxh, default=None, help="sensor WIDTHxHEIGHT in pixels")
+
+    ex = command("export", "Write a layout's pixel boundaries as a fabrication mask (GDSII, DXF, SVG, PNG).")
+    _add_layout_args(ex, families)
     ex.add_argument("--sensor-um", type=parse_um, required=True, help="sensor extent WIDTHxHEIGHT in µm")
+    ex.add_argument("--out", required=True, help="output file (*.gds, *.dxf, *.svg or *.png)")
     ex.add_argument(
-        "--format", choices=["gds", "dxf", "svg", "png"], default=None, help="default: --out's suffix"
+        "--format",
+        choices=["gds", "dxf", "svg", "png"],
+        help="must match --out's suffix (default: the suffix)",
     )
-    ex.add_argument("--out", required=True, help="output file")
-    ex.add_argument("--tol-um", type=float, default=0.01, help="curved-edge tolerance in µm (default 0.01)")
-    ex.add_argument("--grid-um", type=float, default=None, help="snap vertices to this grid (µm)")
+    ex.add_argument("--tol-um", type=positive_float, default=0.01, help="curved-edge tolerance in µm")
+    ex.add_argument(
+        "--grid-um", type=positive_float, help="snap vertices to this grid (µm), finer than a pixel"
+    )
     ex.add_argument("--manhattan", action="store_true", help="axis-aligned steps instead of slanted edges")
-    ex.add_argument("--gds-layer", type=int, default=1, help="GDSII layer (DXF layer PIXELS_<n>), default 1")
-    ex.add_argument("--gds-datatype", type=int, default=0, help="GDSII datatype, default 0")
     ex.add_argument(
-        "--px-per-um", type=float, default=None, help="PNG resolution (default: 4096 px long side)"
+        "--gds-layer", type=non_negative_int, default=1, help="GDSII layer (DXF layer PIXELS_<n>)"
     )
-    ex.add_argument("--line-width", type=int, default=1, help="PNG boundary line width in raster pixels")
-    ex.add_argument("--min-feature-um", type=float, default=None, help="warn below this pitch (µm)")
-    ex.add_argument("--report", default=None, help="also write the report as JSON to this file")
+    ex.add_argument("--gds-datatype", type=non_negative_int, default=0, help="GDSII datatype")
+    ex.add_argument(
+        "--px-per-um", type=positive_float, help="PNG resolution (default: 4096 px on the long side)"
+    )
+    ex.add_argument(
+        "--line-width", type=positive_int, default=1, help="PNG boundary line width in raster pixels"
+    )
+    ex.add_argument("--min-feature-um", type=positive_float, help="warn below this pitch (µm)")
+    ex.add_argument("--report", metavar="FILE", help="also write the report as JSON to this file")
     ex.set_defaults(func=_cmd_export)
-    t = sub.add_parser("train", help="train a layout jointly with a network (mnist, camvid, faces)")
-    t.add_argument("task", choices=["mnist", "camvid", "faces"], help="the experiment")
-    t.add_argument(
-        "--layout", choices=["uniform", "curv", "rect"], default=None, help="one layout (default: all)"
-    )
-    t.add_argument("--quick", action="store_true", help="data_samples/, 1 seed, 3 epochs (about a minute)")
-    t.add_argument("--data", default=None, help="folder with the dataset (default: ../shared/data/<task>)")
-    t.add_argument("--seeds", type=int, default=None, help="number of seeds (default 3; 1 with --quick)")
-    t.add_argument("--epochs", type=int, default=None, help="epochs (default 14; 3 with --quick)")
-    t.add_argument(
-        "--method", default="exact", choices=["exact", "montecarlo", "point"], help="sensor integrator"
-    )
-    t.add_argument("--samples", type=int, default=4, help="Monte Carlo samples per axis (s² per pixel)")
-    t.add_argument(
-        "--radiance", default="bilinear", choices=["bilinear", "box"], help="radiance for sampling"
-    )
-    t.add_argument(
-        "--size",
-        type=parse_wxh,
-        action="append",
-        default=None,
-        help="sensor WIDTHxHEIGHT for camvid/faces (repeat for several; default 48x36 and 96x72 "
-        "for camvid, 8x8 and 16x16 for faces)",
-    )
-    t.add_argument(
-        "--tol",
-        type=float,
-        default=None,
-        help="exact integrator's curved-edge tolerance (default 1e-5 for mnist, 1e-3 for camvid/faces)",
-    )
-    t.add_argument("--freeze-epochs", type=int, default=None, help="camvid: epochs with θ frozen (default 3)")
-    t.add_argument(
-        "--class-weights",
-        choices=["none", "median"],
-        default="median",
-        help="camvid: loss class weights, none or median-frequency balancing (default median)",
-    )
-    t.add_argument("--no-progress", action="store_true", help="no progress bars")
-    t.add_argument("--out", default="results/mnist", help="output folder")
-    t.set_defaults(func=_cmd_train)
+
+    t = command("train", "Train a layout jointly with a network: the paper's experiments.")
+    tasks = t.add_subparsers(dest="task", required=True, metavar="TASK", parser_class=_Parser)
+    for name in ("mnist", "camvid", "faces"):
+        _add_train_parser(tasks, name, families)
     return p
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """Run the command line; returns the exit status."""
     args = build_parser().parse_args(argv)
-    return int(args.func(args) or 0)
+    prog = f"layoutwarp {args.command}" + (f" {args.task}" if args.command == "train" else "")
+    try:
+        return int(args.func(args) or 0)
+    except (UsageError, ValueError, FileNotFoundError) as exc:
+        print(f"{prog}: error: {exc}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -1,6 +1,8 @@
 """Fabrication masks: a layout's pixels as polygons in micrometres (GDSII, DXF, SVG) or rasters.
 
-Coordinates: the sensor spans ``[0, W_um] × [0, H_um]``. SVG and the rasters keep image
+Coordinates: the sensor spans ``[0, W_um] × [0, H_um]``; in Python its extent is given as
+``sensor_um = (H_um, W_um)``, in the order of ``size = (h, w)`` (the command line writes
+``WIDTHxHEIGHT`` for both). SVG and the rasters keep image
 orientation (origin top-left, y down, row 0 at the top); GDSII and DXF use the CAD
 convention (origin bottom-left, y up), so ``y_cad = H_um − y_image`` and the picture is the
 same. Pixel ``(i, j)`` (row ``i``, column ``j``) is polygon number ``i · w + j`` in every
@@ -17,7 +19,6 @@ polygons tile the sensor without gaps or overlaps, also after snapping.
 from __future__ import annotations
 
 import json
-import math
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -25,9 +26,11 @@ import cv2
 import numpy as np
 import torch
 
-from .io import atomic_write
+from .checks import check_choice, check_number, check_size
+from .coords import sensor_to_pixels, uniform_corners
+from .files import atomic_write
 from .layouts import Layout
-from .mesh import check_size, edge_ends
+from .mesh import MeshTopology, polygon_area, smooth_pieces
 
 __all__ = ["FORMATS", "ExportReport", "export_layout", "pixel_polygons_um", "report_json"]
 
@@ -42,7 +45,7 @@ class ExportReport:
     path: str
     format: str
     pixels: int
-    sensor_um: tuple[float, float]
+    sensor_um: tuple[float, float]  # (H_um, W_um)
     min_pitch_um: float
     max_pitch_um: float
     min_area_um2: float
@@ -57,8 +60,8 @@ class ExportReport:
 
     def summary(self) -> str:
         lines = [
-            f"{self.format} mask {self.path}: {self.pixels} pixels on {self.sensor_um[0]:g} x "
-            f"{self.sensor_um[1]:g} µm, {self.vertices} vertices",
+            f"{self.format} mask {self.path}: {self.pixels} pixels on {self.sensor_um[1]:g} x "
+            f"{self.sensor_um[0]:g} µm (width x height), {self.vertices} vertices",
             f"  pitch {self.min_pitch_um:.4g} .. {self.max_pitch_um:.4g} µm, "
             f"area {self.min_area_um2:.4g} .. {self.max_area_um2:.4g} µm²",
             f"  edges within {self.max_deviation_um:.3g} µm of the layout (tolerance {self.tol_um:g} µm"
@@ -71,8 +74,8 @@ class ExportReport:
 
 def _edge_polylines(
     layout: Layout,
-    size,
-    scale: np.ndarray,
+    size: tuple[int, int],
+    sensor_um: tuple[float, float],
     tol_um: float,
     manhattan: bool,
     min_steps: np.ndarray | None = None,
@@ -84,25 +87,16 @@ def _edge_polylines(
     each smooth piece is split into ``2^k`` equal parameter steps until the curve's
     distance from every chord, measured at the step's middle, is within ``tol_um``.
     """
-    theta = layout.theta.detach().double()
-    a, b = edge_ends(size)
+    theta = layout.theta.detach().double().cpu()
+    topo = MeshTopology(size)
+    a, b = topo.edge_ends()
     ne = a.shape[0]
-    brk = layout.edge_breakpoints(a, b)
-    brk = torch.where((brk > 0) & (brk < 1), brk, torch.ones_like(brk))  # NaN / outside -> 1
-    cuts = (
-        torch.cat([torch.zeros(ne, 1, dtype=a.dtype), brk, torch.ones(ne, 1, dtype=a.dtype)], 1)
-        .sort(1)
-        .values
-    )
-    t0, t1 = cuts[:, :-1].reshape(-1), cuts[:, 1:].reshape(-1)
-    owner = torch.arange(ne).repeat_interleave(cuts.shape[1] - 1)
-    live = t1 > t0
-    t0, t1, owner = t0[live], t1[live], owner[live]
+    owner, t0, t1 = smooth_pieces(layout, a, b)
     pa = a[owner] + t0[:, None] * (b - a)[owner]  # smooth pieces in uniform coordinates
     pd = (t1 - t0)[:, None] * (b - a)[owner]
 
     def to_um(u: torch.Tensor) -> np.ndarray:
-        return ((layout.phi(u, theta) + 1) / 2).numpy() * scale
+        return sensor_to_pixels(layout.phi(u, theta), sensor_um).numpy()
 
     n = np.ones(len(owner), dtype=np.int64) if min_steps is None else min_steps[owner.numpy()].copy()
     dev = np.zeros(len(owner))
@@ -131,8 +125,7 @@ def _edge_polylines(
     chunks = np.split(pts, np.cumsum(per_edge)[:-1])
     out = [np.concatenate([c, ends[e : e + 1]]) for e, c in enumerate(chunks)]
     if manhattan:
-        nh = (size[0] + 1) * size[1]
-        out = [_staircase(p, e < nh) for e, p in enumerate(out)]
+        out = [_staircase(p, e < topo.num_horizontal) for e, p in enumerate(out)]
     return out, float(dev.max(initial=0.0))
 
 
@@ -202,9 +195,10 @@ def pixel_polygons_um(
     Args:
         layout: the pixel layout.
         size: sensor size ``(h, w)`` in pixels.
-        sensor_um: sensor extent ``(W_um, H_um)`` (width first, like the command line).
+        sensor_um: sensor extent ``(H_um, W_um)``, in the order of ``size``.
         tol_um: largest deviation of a curved edge's polyline from the edge.
-        grid_um: snap vertices to this grid (None: no snapping).
+        grid_um: snap vertices to this grid (None: no snapping); it must be finer than the
+            smallest pixel (``ValueError`` otherwise).
         manhattan: axis-aligned steps instead of slanted segments.
 
     Returns:
@@ -215,28 +209,30 @@ def pixel_polygons_um(
         corners).
     """
     h, w = check_size(size)
-    wu, hu = (float(v) for v in sensor_um)
-    if not (wu > 0 and hu > 0 and math.isfinite(wu) and math.isfinite(hu)):
-        raise ValueError(f"sensor_um must be two positive sizes in µm, got {sensor_um!r}")
-    if not tol_um > 0:
-        raise ValueError(f"tol_um must be > 0, got {tol_um!r}")
-    if grid_um is not None and not grid_um > 0:
-        raise ValueError(f"grid_um must be > 0 or None, got {grid_um!r}")
-    nh = (h + 1) * w
-    steps = np.ones((h + 1) * w + h * (w + 1), dtype=np.int64)
+    sensor_um = _check_extent(sensor_um)
+    tol_um = check_number(tol_um, "tol_um", 0, lo_open=True)
+    if grid_um is not None:
+        grid_um = check_number(grid_um, "grid_um", 0, lo_open=True)
+        pitch = _smallest_chord_um(layout, (h, w), sensor_um)
+        if grid_um >= pitch:
+            raise ValueError(
+                f"grid_um = {grid_um:g} µm is not finer than the smallest pixel (pitch {pitch:.4g} µm); "
+                f"use a grid below {pitch:.4g} µm"
+            )
+    topo = MeshTopology((h, w))
+    nh = topo.num_horizontal
+    steps = np.ones(topo.num_edges, dtype=np.int64)
     for _ in range(12):  # Manhattan: refine the edges of any ring whose steps cross, and retry
         with torch.no_grad():
-            lines, dev = _edge_polylines(layout, (h, w), np.array([wu, hu]), tol_um, manhattan, steps)
+            lines, dev = _edge_polylines(layout, (h, w), sensor_um, tol_um, manhattan, steps)
         snapped = [np.rint(p / grid_um).astype(np.int64) for p in lines] if grid_um else lines
         polys, crossed = [], []
-        for i in range(h):
-            for j in range(w):
-                edges = (i * w + j, nh + i * (w + 1) + j + 1, (i + 1) * w + j, nh + i * (w + 1) + j)
-                top, right, bottom, left = (snapped[e] for e in edges)
-                ring = _clean(np.concatenate([top[:-1], right[:-1], bottom[::-1][:-1], left[::-1][:-1]]))
-                if manhattan and _self_crossing(ring):
-                    crossed += edges
-                polys.append(ring * grid_um if grid_um else ring)
+        for edges in topo.pixel_edges().reshape(-1, 4):
+            top, right, bottom, left = (snapped[e] for e in edges)
+            ring = _clean(np.concatenate([top[:-1], right[:-1], bottom[::-1][:-1], left[::-1][:-1]]))
+            if manhattan and _self_crossing(ring):
+                crossed += edges.tolist()
+            polys.append(ring * grid_um if grid_um else ring)
         if not crossed:
             break
         steps[np.unique(crossed)] *= 2
@@ -251,9 +247,27 @@ def pixel_polygons_um(
     return polys, info
 
 
-def _shoelace(p: np.ndarray) -> float:
-    x, y = p[:, 0], p[:, 1]
-    return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(np.roll(x, -1), y)))
+def _check_extent(sensor_um: tuple[float, float]) -> tuple[float, float]:
+    try:
+        hu, wu = sensor_um
+    except (TypeError, ValueError):
+        raise ValueError(
+            f"sensor_um must be (H_um, W_um), two positive sizes in µm, got {sensor_um!r}"
+        ) from None
+    return check_number(hu, "sensor_um[0] (height)", 0, lo_open=True), check_number(
+        wu, "sensor_um[1] (width)", 0, lo_open=True
+    )
+
+
+def _smallest_chord_um(layout: Layout, size: tuple[int, int], sensor_um: tuple[float, float]) -> float:
+    """The shortest distance between neighbouring pixel corners, in µm (a bound on the pitch)."""
+    with torch.no_grad():
+        c = sensor_to_pixels(
+            layout.phi(uniform_corners(size), layout.theta.detach().double().cpu()), sensor_um
+        )
+    dx = (c[:, 1:] - c[:, :-1]).norm(dim=-1)
+    dy = (c[1:] - c[:-1]).norm(dim=-1)
+    return float(min(dx.min(), dy.min()))
 
 
 def _write_gds(path: Path, polys, hu: float, layer: int, datatype: int, cell: str) -> None:
@@ -350,7 +364,7 @@ def export_layout(
         size: sensor size ``(h, w)``.
         path: output file; ``format`` defaults to its suffix (``.gds``, ``.dxf``, ``.svg``,
             ``.png``).
-        sensor_um: sensor extent ``(W_um, H_um)``.
+        sensor_um: sensor extent ``(H_um, W_um)``, in the order of ``size``.
         format: ``"gds"`` (gdstk; unit 1 µm, precision 1 nm; one polygon per pixel on
             ``layer``/``datatype`` in cell ``cell``), ``"dxf"`` (ezdxf; R2010, units µm, one
             closed LWPOLYLINE per pixel on layer ``PIXELS_<layer>``), ``"svg"`` (viewBox in
@@ -367,23 +381,24 @@ def export_layout(
         an :class:`ExportReport` (also printed by ``layoutwarp export``).
     """
     path = Path(path)
-    fmt = (format or path.suffix.lstrip(".")).lower()
-    if fmt not in FORMATS:
-        raise ValueError(f"format must be one of {FORMATS}, got {fmt!r} (from {path.name!r})")
+    suffix = path.suffix.lstrip(".").lower()
+    fmt = check_choice((format or suffix).lower(), FORMATS, "format")
+    if format is not None and suffix != fmt:
+        raise ValueError(f"format {fmt!r} does not match the file name {path.name!r}; name it *.{fmt}")
     size = check_size(size)
-    wu, hu = (float(v) for v in sensor_um)
+    hu, wu = _check_extent(sensor_um)
     if fmt == "gds" and grid_um is None:
         grid_um = GDS_DBU_UM  # GDSII stores integers: snap here so the report matches the file
     polys, info = pixel_polygons_um(
-        layout, size, (wu, hu), tol_um=tol_um, grid_um=grid_um, manhattan=manhattan
+        layout, size, (hu, wu), tol_um=tol_um, grid_um=grid_um, manhattan=manhattan
     )
-    areas = np.array([_shoelace(p) for p in polys])
+    areas = np.array([abs(float(polygon_area(p))) for p in polys])
     pitch = np.minimum(info["width_um"], info["height_um"])
     report = ExportReport(
         path=str(path),
         format=fmt,
         pixels=len(polys),
-        sensor_um=(wu, hu),
+        sensor_um=(hu, wu),
         min_pitch_um=float(pitch.min()),
         max_pitch_um=float(np.maximum(info["width_um"], info["height_um"]).max()),
         min_area_um2=float(areas.min()),

@@ -17,33 +17,46 @@ to the sensor square by ``X = (x + 1) · W / 2``, ``Y = (y + 1) · H / 2``.
 
 from __future__ import annotations
 
+import itertools
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from .checks import check_choice, check_int, check_shape, check_size, floating_dtype
+from .coords import grid_lines, pixel_centers, sensor_to_pixels
 from .layouts import Layout
-from .mesh import (
-    PixelMesh,
-    combine_edges,
-    grid_lines,
-    pixel_centers,
-    pixel_mesh,
-    ranges,
-    sample_points,
-    sensor_to_pixels,
-)
+from .maps import sample_points
+from .mesh import MeshTopology, PixelMesh, pixel_mesh, ranges
 
 __all__ = [
+    "RADIANCES",
+    "GreenPieces",
     "Radiance",
     "axis_weights",
+    "green_pieces",
     "integrate_exact",
     "integrate_montecarlo",
     "integrate_point",
     "integrate_separable",
+    "segment_cells",
 ]
+
+#: Radiance models of a pixel image: each source pixel a constant square, or bilinear.
+RADIANCES = ("box", "bilinear")
+
+
+def _check_image(image: Tensor, name: str = "image") -> Tensor:
+    check_shape(image, ["N", "H", "W"], name)
+    if not image.is_floating_point():
+        raise TypeError(f"{name} must be a floating-point tensor, got {image.dtype}")
+    if image.shape[-1] == 0 or image.shape[-2] == 0:
+        raise ValueError(f"{name} height and width must be >= 1, got {tuple(image.shape[-2:])}")
+    return image
+
 
 #: A black-box radiance: points ``(..., 2)`` in sensor coordinates to values ``(..., N)``.
 Radiance = Callable[[Tensor], Tensor]
@@ -82,7 +95,9 @@ class _PrefixTables:
         return offset + start + frac.to(torch.float64) * lv.double()
 
 
-def _segment_cells(a: Tensor, b: Tensor, rows: int, cols: int):
+def segment_cells(
+    a: Tensor, b: Tensor, rows: int, cols: int
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
     """Cut segments ``a → b`` (source pixel units, ``(S, 2)``) into single-cell pieces.
 
     Segments are cut at integer ``Y`` (rows), then each row piece at integer ``X``
@@ -137,6 +152,57 @@ def _segment_cells(a: Tensor, b: Tensor, rows: int, cols: int):
     return piece[sub], t0, t1, row[sub], col, row2[sub] * cols + col2
 
 
+class GreenPieces(NamedTuple):
+    """Single-cell pieces of pixel boundary segments, the terms of Green's theorem.
+
+    ``∬_A L dA = ∮_∂A P dY`` with ``P(X, Y) = ∫_0^X L(s, Y) ds``; inside source cell
+    ``(row, col)`` of a box image ``P`` is linear in ``X``, so a piece contributes exactly
+    ``dy · (Σ_{c < col} L[row, c] + frac · L[row, col])``. Pieces with ``ΔY = 0`` contribute
+    nothing and are left out.
+
+    Attributes:
+        seg: the boundary segment each piece belongs to.
+        row, col: the source cell of each piece.
+        dy: ``ΔY`` of the piece.
+        frac: the piece's mid-``X`` within its cell, in ``[0, 1]``.
+    """
+
+    seg: Tensor
+    row: Tensor
+    col: Tensor
+    dy: Tensor
+    frac: Tensor
+
+
+def green_pieces(a: Tensor, b: Tensor, src_size: tuple[int, int]) -> GreenPieces:
+    """Cut boundary segments ``a → b`` (``(S, 2)``, source pixel units, inside the image)
+    into the :class:`GreenPieces` of an ``(H, W)`` box image."""
+    hs, ws = src_size
+    keep = torch.nonzero(a[:, 1] != b[:, 1]).squeeze(1)  # ΔY = 0 adds nothing
+    a, b = a[keep], b[keep]
+    seg, t0, t1, row, col, _ = segment_cells(a, b, hs, ws)
+    d = (b - a)[seg]
+    frac = (a[seg, 0] + (t0 + t1) / 2 * d[:, 0] - col.to(d.dtype)).clamp(0, 1)
+    return GreenPieces(keep[seg], row, col, (t1 - t0) * d[:, 1], frac)
+
+
+def _segment_chunks(a: Tensor, b: Tensor, max_pieces: int = 1 << 18) -> Iterator[slice]:
+    """Consecutive slices of the segments ``a → b`` that each cut into about ``max_pieces``
+    single-cell pieces or fewer, so that per-piece temporaries stay bounded."""
+    est = ((b - a).abs().ceil().sum(-1) + 2).cumsum(0)
+    n = a.shape[0]
+    if n == 0:
+        return
+    total = float(est[-1])
+    cuts = torch.searchsorted(
+        est, torch.arange(1, -(-total // max_pieces), device=est.device, dtype=est.dtype) * max_pieces
+    )
+    bounds = [0, *sorted(set(cuts.tolist())), n]
+    for lo, hi in itertools.pairwise(bounds):
+        if hi > lo:
+            yield slice(lo, hi)
+
+
 class _BoundaryFlux(torch.autograd.Function):
     """Identity on per-segment integrals; gives the vertices their exact Reynolds gradient.
 
@@ -157,14 +223,17 @@ class _BoundaryFlux(torch.autograd.Function):
         verts, image, seg_start, seg_end = ctx.saved_tensors
         n, hs, ws = image.shape
         a, b = verts[seg_start], verts[seg_end]
-        seg, t0, t1, row, col, i2 = _segment_cells(a, b, hs, ws)
         flat_img = image.reshape(n, -1)
-        lv = 0.5 * (flat_img[:, row * ws + col] + flat_img[:, i2]).to(grad.dtype)  # (N, pieces)
-        gl = (grad[:, seg] * lv).sum(0)  # Σ over channels of ∂loss/∂E_s · L
-        m1 = (t1 * t1 - t0 * t0) / 2  # ∫ t dt
-        wa = torch.zeros_like(verts[:, 0]).new_zeros(seg_start.numel())
-        wa = wa.index_add(0, seg, gl * ((t1 - t0) - m1))
-        wb = torch.zeros_like(wa).index_add(0, seg, gl * m1)
+        wa = verts.new_zeros(seg_start.numel())
+        wb = torch.zeros_like(wa)
+        for sl in _segment_chunks(a, b):
+            seg, t0, t1, row, col, i2 = segment_cells(a[sl], b[sl], hs, ws)
+            seg = seg + sl.start
+            lv = 0.5 * (flat_img[:, row * ws + col] + flat_img[:, i2]).to(grad.dtype)  # (N, pieces)
+            gl = (grad[:, seg] * lv).sum(0)  # Σ over channels of ∂loss/∂E_s · L
+            m1 = (t1 * t1 - t0 * t0) / 2  # ∫ t dt
+            wa.index_add_(0, seg, gl * ((t1 - t0) - m1))
+            wb.index_add_(0, seg, gl * m1)
         normal = torch.stack([b[:, 1] - a[:, 1], a[:, 0] - b[:, 0]], -1)
         g = torch.zeros_like(verts)
         g.index_add_(0, seg_start, wa[:, None] * normal)
@@ -179,6 +248,7 @@ def integrate_exact(
     *,
     tol: float | None = 1e-5,
     mesh: PixelMesh | None = None,
+    theta: Tensor | None = None,
 ) -> Tensor:
     """Exact mean of a piecewise-constant (box) image over every polygonal pixel.
 
@@ -196,35 +266,27 @@ def integrate_exact(
         layout: the pixel layout.
         size: sensor size ``(h, w)``.
         tol: polyline tolerance (relative pixel-value error) for curved edges.
-        mesh: a precomputed mesh (overrides ``layout``/``tol`` for the geometry).
+        mesh: a precomputed mesh (overrides ``layout``/``tol``/``theta`` for the geometry).
+        theta: use this θ instead of the layout's own (e.g. for ``gradcheck``).
 
     Returns:
         ``(N, h, w)`` in float64.
     """
-    n, hs, ws = image.shape
+    n, hs, ws = _check_image(image).shape
     if mesh is None:
-        mesh = pixel_mesh(layout, size, tol=tol, dtype=torch.float64)
-    verts = sensor_to_pixels(mesh.vertices.double(), (hs, ws))
-    verts = torch.stack([verts[:, 0].clamp(0, ws), verts[:, 1].clamp(0, hs)], -1)
+        mesh = pixel_mesh(layout, check_size(size), tol=tol, dtype=torch.float64, theta=theta)
+    verts = mesh.pixel_vertices((hs, ws))
     vd = verts.detach()
-    keep = torch.nonzero(vd[mesh.seg_start, 1] != vd[mesh.seg_end, 1]).squeeze(1)  # ΔY = 0 adds nothing
-    a, b = vd[mesh.seg_start[keep]], vd[mesh.seg_end[keep]]
-    seg, t0, t1, row, col, _ = _segment_cells(a, b, hs, ws)
-    d = (b - a)[seg]
-    dy = (t1 - t0) * d[:, 1]
-    frac = (a[seg, 0] + (t0 + t1) / 2 * d[:, 0] - col.to(d.dtype)).clamp(0, 1)  # mid-X in its cell
-    seg = keep[seg]
-    work = image if image.dtype == torch.float64 else image.float()
+    a, b = vd[mesh.seg_start], vd[mesh.seg_end]
+    work = image.to(floating_dtype(image.dtype))
     tables = _PrefixTables(work)
-    contrib = dy[None] * tables.prefix(row, col, frac)  # (N, pieces)
-    per_seg = contrib.new_zeros(n, mesh.num_segments).index_add(1, seg, contrib)
+    per_seg = vd.new_zeros(n, mesh.num_segments)
+    for sl in _segment_chunks(a, b):  # autograd records each in-place add (image gradient)
+        pcs = green_pieces(a[sl], b[sl], (hs, ws))
+        per_seg.index_add_(1, pcs.seg + sl.start, pcs.dy[None] * tables.prefix(pcs.row, pcs.col, pcs.frac))
     if verts.requires_grad:
         per_seg = _BoundaryFlux.apply(per_seg, verts, work.detach(), mesh.seg_start, mesh.seg_end)
-    integral = mesh.combine_edges(mesh.sum_over_edges(per_seg))
-    # polygon areas in source pixel units, from the same polyline
-    av, bv = verts[mesh.seg_start], verts[mesh.seg_end]
-    area = mesh.combine_edges(mesh.sum_over_edges((bv[:, 1] - av[:, 1]) * (av[:, 0] + bv[:, 0]) / 2))
-    return integral / area
+    return mesh.combine_edges(mesh.sum_over_edges(per_seg)) / mesh.areas(verts)
 
 
 # ----------------------------------------------------------------------------------------
@@ -252,15 +314,18 @@ def axis_weights(edges: Tensor, n_src: int) -> tuple[Tensor, Tensor, Tensor]:
 
 
 def _separable_edges(
-    layout: Layout, size: tuple[int, int], src: tuple[int, int], dtype
+    layout: Layout, size: tuple[int, int], src: tuple[int, int], theta: Tensor
 ) -> tuple[Tensor, Tensor]:
+    """Pixel edges along x and y in source pixel units (float64, differentiable in θ)."""
     h, w = size
     hs, ws = src
-    theta = layout.theta.to(dtype)
-    gx, gy = grid_lines(w, dtype, theta.device), grid_lines(h, dtype, theta.device)
+    theta = theta.double()
+    gx, gy = grid_lines(w, theta.dtype, theta.device), grid_lines(h, theta.dtype, theta.device)
     px = layout.phi(torch.stack([gx, torch.zeros_like(gx)], -1), theta)[:, 0]
     py = layout.phi(torch.stack([torch.zeros_like(gy), gy], -1), theta)[:, 1]
-    return ((px + 1) * (ws / 2)).clamp(0, ws), ((py + 1) * (hs / 2)).clamp(0, hs)
+    ex = sensor_to_pixels(torch.stack([px, py[:1].expand_as(px)], -1), (hs, ws))[:, 0]
+    ey = sensor_to_pixels(torch.stack([px[:1].expand_as(py), py], -1), (hs, ws))[:, 1]
+    return ex.clamp(0, ws), ey.clamp(0, hs)
 
 
 def _axis_csr(edges: Tensor, n_src: int, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
@@ -357,7 +422,9 @@ def _edge_grad(grad: Tensor, out: Tensor, vals: Tensor, edges: Tensor, dim: int)
     return F.pad(right, (1, 0)) - F.pad(left, (0, 1))
 
 
-def integrate_separable(image: Tensor, layout: Layout, size: tuple[int, int]) -> Tensor:
+def integrate_separable(
+    image: Tensor, layout: Layout, size: tuple[int, int], *, theta: Tensor | None = None
+) -> Tensor:
     """Exact box-radiance mean over the rectangular pixels of a separable layout.
 
     Two sparse passes, rows (``H → h``) then columns (``W → w``), with per-axis overlap
@@ -369,16 +436,16 @@ def integrate_separable(image: Tensor, layout: Layout, size: tuple[int, int]) ->
         image: ``(N, H, W)`` floating source image.
         layout: a layout with ``separable = True``.
         size: sensor size ``(h, w)``.
+        theta: use this θ instead of the layout's own (e.g. for ``gradcheck``).
 
     Returns:
         ``(N, h, w)`` in float64 for float64 input, else float32.
     """
+    _, hs, ws = _check_image(image).shape
     if not layout.separable:
         raise ValueError(f"integrate_separable needs a separable layout, got {type(layout).__name__}")
-    _, hs, ws = image.shape
-    dtype = torch.float64 if image.dtype == torch.float64 else torch.float32
-    ex, ey = _separable_edges(layout, size, (hs, ws), torch.float64)
-    return _SeparableArea.apply(image.to(dtype).contiguous(), ex, ey)
+    ex, ey = _separable_edges(layout, check_size(size), (hs, ws), layout.resolve_theta(theta))
+    return _SeparableArea.apply(image.to(floating_dtype(image.dtype)).contiguous(), ex, ey)
 
 
 # ----------------------------------------------------------------------------------------
@@ -400,16 +467,37 @@ def _sample(image: Tensor | Radiance, points: Tensor, radiance: str) -> Tensor:
     return F.grid_sample(image[None], grid, mode=mode, padding_mode="border", align_corners=False)[0]
 
 
+def _check_radiance(image: Tensor | Radiance, radiance: str) -> None:
+    check_choice(radiance, RADIANCES, "radiance")
+    if not callable(image) or isinstance(image, Tensor):
+        _check_image(image)
+
+
 def integrate_point(
-    image: Tensor | Radiance, layout: Layout, size: tuple[int, int], *, radiance: str = "bilinear"
+    image: Tensor | Radiance,
+    layout: Layout,
+    size: tuple[int, int],
+    *,
+    radiance: str = "bilinear",
+    theta: Tensor | None = None,
 ) -> Tensor:
     """One sample per pixel at the deformed pixel centre ``φ(c_k)``: the aliasing baseline.
 
-    Returns ``(N, h, w)``; differentiable in the image and (for bilinear or callable
-    radiance) in θ.
+    Args:
+        image: ``(N, H, W)`` tensor, or a callable radiance ``L(points (..., 2)) -> (..., N)``.
+        layout: the pixel layout.
+        size: sensor size ``(h, w)``.
+        radiance: ``"bilinear"`` or ``"box"`` for tensor images.
+        theta: use this θ instead of the layout's own.
+
+    Returns:
+        ``(N, h, w)``; differentiable in the image and (for bilinear or callable radiance)
+        in θ.
     """
-    c = pixel_centers(size, dtype=layout.theta.dtype, device=layout.theta.device)
-    return _sample(image, layout(c), radiance)
+    _check_radiance(image, radiance)
+    theta = layout.resolve_theta(theta)
+    c = pixel_centers(check_size(size), dtype=theta.dtype, device=theta.device)
+    return _sample(image, layout.phi(c, theta), radiance)
 
 
 class _FluxGrad(torch.autograd.Function):
@@ -444,30 +532,18 @@ def _flux_derivative(image, layout: Layout, theta: Tensor, size, m: int, radianc
     normal line element of the positively oriented pixel boundary is ``n ds = (ṙ_y, −ṙ_x) dt``
     with ``ṙ = J_φ γ̇``.
     """
-    h, w = size
     dtype, dev = theta.dtype, theta.device
-    gx, gy = grid_lines(w, dtype, dev), grid_lines(h, dtype, dev)
+    topo = MeshTopology(size)
+    a, b = topo.edge_ends(dtype, dev)  # (E, 2): horizontal edges run +x, vertical edges +y
     t = (torch.arange(m, dtype=dtype) + torch.rand(m, generator=generator, dtype=dtype)).to(dev) / m
-    hx = gx[:-1, None] + t * (2 / w)  # (w, m)
-    vy = gy[:-1, None] + t * (2 / h)  # (h, m)
-    edges = (  # (points (E1, E2, m, 2), γ̇): horizontal edges run +x, vertical edges +y
-        (torch.stack([hx.expand(h + 1, w, m), gy[:, None, None].expand(h + 1, w, m)], -1), (2 / w, 0.0)),
-        (
-            torch.stack([gx[None, :, None].expand(h, w + 1, m), vy[:, None, :].expand(h, w + 1, m)], -1),
-            (0.0, 2 / h),
-        ),
-    )
-    f_edges, g_edges = [], []
-    for pts, gdot in edges:
-        r = layout.phi(pts, theta)
-        rdot = layout.phi_jacobian(pts, theta) @ torch.tensor(gdot, dtype=dtype, device=dev)
-        drdth = layout.phi_dtheta(pts, theta)  # (..., 2, P)
-        flux = drdth[..., 0, :] * rdot[..., 1:2] - drdth[..., 1, :] * rdot[..., 0:1]  # (..., P)
-        lv = _sample(image, r.flatten(0, 1), radiance).to(dtype).unflatten(1, pts.shape[:2])
-        f_edges.append((lv[..., None] * flux).mean(-2).flatten(1, 2))  # (N, E_k, P)
-        g_edges.append(flux.mean(-2).flatten(0, 1))  # (E_k, P)
-    f_pix = combine_edges(torch.cat(f_edges, 1).movedim(-1, 1), size).movedim(1, -1)
-    g_pix = combine_edges(torch.cat(g_edges, 0).T, size).movedim(0, -1)
+    pts = a[:, None] + t[:, None] * (b - a)[:, None]  # (E, m, 2) stratified along every edge
+    r = layout.phi(pts, theta)
+    rdot = (layout.phi_jacobian(pts, theta) @ (b - a)[:, None, :, None])[..., 0]  # J γ̇
+    drdth = layout.phi_dtheta(pts, theta)  # (E, m, 2, P)
+    flux = drdth[..., 0, :] * rdot[..., 1:2] - drdth[..., 1, :] * rdot[..., 0:1]  # (E, m, P)
+    lv = _sample(image, r, radiance).to(dtype)  # (N, E, m)
+    f_pix = topo.combine((lv[..., None] * flux).mean(-2).movedim(-1, 1)).movedim(1, -1)  # (N, h, w, P)
+    g_pix = topo.combine(flux.mean(-2).T).movedim(0, -1)  # (h, w, P)
     return f_pix, g_pix
 
 
@@ -480,6 +556,7 @@ def integrate_montecarlo(
     radiance: str = "bilinear",
     grad: str = "reynolds",
     generator: torch.Generator | None = None,
+    theta: Tensor | None = None,
 ) -> Tensor:
     """Stratified Monte Carlo estimate of every pixel's mean radiance (the paper's method).
 
@@ -497,13 +574,16 @@ def integrate_montecarlo(
             of ``L`` needed) or ``"autograd"`` (reparameterised samples; needs a
             differentiable ``L``, so not ``"box"``).
         generator: random generator for the jitter (reproducibility).
+        theta: use this θ instead of the layout's own (e.g. for ``gradcheck``).
 
     Returns:
         ``(N, h, w)``.
     """
-    h, w = size
-    s = int(samples)
-    theta = layout.theta
+    _check_radiance(image, radiance)
+    check_choice(grad, ("reynolds", "autograd"), "grad")
+    h, w = size = check_size(size)
+    s = check_int(samples, "samples", 1)
+    theta = layout.resolve_theta(theta)
     dtype = theta.dtype if not isinstance(image, Tensor) else torch.promote_types(theta.dtype, image.dtype)
     u = sample_points(size, s, jitter=True, generator=generator, dtype=dtype, device=theta.device)
     if grad == "autograd":
@@ -513,10 +593,8 @@ def integrate_montecarlo(
                 "spatial gradient almost everywhere: use grad='reynolds'"
             )
         th = theta.to(dtype)
-    elif grad == "reynolds":
-        th = theta.detach().to(dtype)
     else:
-        raise ValueError(f"grad must be 'reynolds' or 'autograd', got {grad!r}")
+        th = theta.detach().to(dtype)
     p = layout.phi(u, th)
     wdet = torch.linalg.det(layout.phi_jacobian(u, th)).abs()
     vals = _sample(image, p, radiance)  # (N, h*s, w*s)

@@ -18,14 +18,17 @@ The functional forms (:func:`phi_rect`, :func:`phi_curv`, their inverses, Jacobi
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import Any, ClassVar, TypeVar
 
 import torch
 from torch import Tensor, nn
 
+from .checks import check_number, check_points
+
 __all__ = [
+    "FAMILIES",
     "CurvLayout",
     "FoldoverReport",
     "Layout",
@@ -41,6 +44,7 @@ __all__ = [
     "phi_rect_dtheta",
     "phi_rect_inverse",
     "phi_rect_jacobian",
+    "register_family",
 ]
 
 
@@ -68,15 +72,6 @@ def _safe_norm(p: Tensor) -> Tensor:
     r2 = x * x + y * y
     nonzero = r2 > 0
     return torch.where(nonzero, torch.sqrt(torch.where(nonzero, r2, torch.ones_like(r2))), 0.0)
-
-
-def _check_points(p: Tensor, name: str = "p") -> None:
-    if not isinstance(p, Tensor):
-        raise TypeError(f"{name} must be a torch.Tensor of shape (..., 2), got {type(p).__name__}")
-    if p.ndim == 0 or p.shape[-1] != 2:
-        raise ValueError(f"{name} must have shape (..., 2) holding (x, y), got {tuple(p.shape)}")
-    if not p.is_floating_point():
-        raise TypeError(f"{name} must be a floating-point tensor, got {p.dtype}")
 
 
 def _promote(p: Tensor, theta: Tensor) -> tuple[Tensor, Tensor]:
@@ -257,12 +252,20 @@ class Layout(nn.Module):
     * ``straight_edges``: images of the uniform grid lines are straight, so pixel edges are
       never subdivided.
 
-    The parameter is stored unconstrained as ``rho`` with ``θ = bound · tanh(ρ)``.
+    The parameter is stored unconstrained as ``rho`` with ``θ = bound · tanh(ρ)``. A layout
+    built from θ is fixed (``rho`` is a buffer) unless ``learn=True``;
+    :class:`~layoutwarp.SensorLayer` learns by default.
+
+    A new family subclasses this, sets ``family`` and is declared with
+    :func:`register_family`: layout files, :func:`make_layout` and the command line's
+    ``--family`` then know it. Families with more state than θ override :meth:`to_config`
+    and :meth:`from_config`.
 
     Args:
-        theta: initial ``θ`` (length ``num_params``), each in ``(-bound, bound)``.
+        theta: initial ``θ`` (length ``num_params``), each in ``(-bound, bound)``; a family
+            without parameters accepts ``None``, ``()`` or zeros.
         bound: the open bound on ``|θ|`` (the paper uses 1).
-        learn: make ``ρ`` a trainable parameter (``False``: a buffer, frozen layout).
+        learn: make ``ρ`` a trainable parameter (default ``False``: a buffer, fixed layout).
         dtype: dtype of ``ρ``; use ``torch.float64`` for exact round trips.
     """
 
@@ -276,13 +279,11 @@ class Layout(nn.Module):
         theta: Sequence[float] | Tensor | None = None,
         *,
         bound: float = 1.0,
-        learn: bool = True,
+        learn: bool = False,
         dtype: torch.dtype | None = None,
     ) -> None:
         super().__init__()
-        if not (isinstance(bound, (int, float)) and math.isfinite(bound) and bound > 0):
-            raise ValueError(f"bound must be a finite number > 0, got {bound!r}")
-        self.bound = float(bound)
+        self.bound = check_number(bound, "bound", 0, lo_open=True)
         dtype = dtype or torch.get_default_dtype()
         theta_t = self._validate_theta(theta, dtype)
         rho = torch.atanh(theta_t / self.bound)
@@ -296,7 +297,13 @@ class Layout(nn.Module):
         n = self.num_params
         if theta is None:
             return torch.zeros(n, dtype=dtype)
-        t = torch.as_tensor(theta, dtype=torch.float64).detach().flatten()
+        t = torch.as_tensor(theta, dtype=torch.float64).detach().flatten().cpu()
+        if n == 0 and bool((t == 0).all()):
+            return torch.zeros(0, dtype=dtype)
+        if n == 0:
+            raise ValueError(
+                f"the {self.family} layout has no parameters; theta must be empty or zeros, got {theta!r}"
+            )
         if t.numel() != n:
             raise ValueError(f"theta must have {n} values (θ_x, θ_y), got {t.numel()}: {theta!r}")
         for i, v in enumerate(t.tolist()):
@@ -323,6 +330,28 @@ class Layout(nn.Module):
         """Whether ``ρ`` is a trainable parameter that currently requires grad."""
         return isinstance(self.rho, nn.Parameter) and self.rho.requires_grad
 
+    def resolve_theta(self, theta: Tensor | None = None) -> Tensor:
+        """The θ a computation uses: ``theta`` when given (e.g. a tensor that
+        ``torch.autograd.gradcheck`` varies), else the layout's own :attr:`theta`."""
+        return self.theta if theta is None else theta
+
+    # -- files -----------------------------------------------------------------------
+    def to_config(self) -> dict[str, Any]:
+        """The JSON-able constructor arguments that rebuild this layout (see :meth:`from_config`)."""
+        return {"theta": [float(v) for v in self.theta.detach().double().cpu()], "bound": self.bound}
+
+    @classmethod
+    def from_config(
+        cls, config: dict[str, Any], *, learn: bool = False, dtype: torch.dtype | None = None
+    ) -> Layout:
+        """Rebuild a layout from :meth:`to_config`'s dict (raises ``ValueError`` on bad values)."""
+        theta = config.get("theta")
+        if theta is not None and (
+            not isinstance(theta, list) or not all(isinstance(v, (int, float)) for v in theta)
+        ):
+            raise ValueError(f"'theta' must be a list of numbers, got {theta!r}")
+        return cls(theta, bound=config.get("bound", 1.0), learn=learn, dtype=dtype)
+
     # -- the map ---------------------------------------------------------------------
     def phi(self, p: Tensor, theta: Tensor) -> Tensor:
         """``φ(p, θ)`` for points ``(..., 2)``. Subclasses must implement this."""
@@ -345,11 +374,20 @@ class Layout(nn.Module):
         return torch.stack(rows, dim=-2)
 
     def phi_dtheta(self, p: Tensor, theta: Tensor) -> Tensor:
-        """``∂φ_i/∂θ_j``, shape ``(..., 2, P)``; generic fallback by forward-mode autodiff."""
-        eye = torch.eye(theta.numel(), dtype=theta.dtype, device=theta.device)
-        cols = [torch.func.jvp(lambda t: self.phi(p.detach(), t), (theta.detach(),), (e,))[1] for e in eye]
-        if not cols:
+        """``∂φ_i/∂θ_j``, shape ``(..., 2, P)``; generic fallback by autograd.
+
+        Each column is a Jacobian-vector product, computed as the derivative of a
+        vector-Jacobian product with respect to its (dummy) cotangent.
+        """
+        if theta.numel() == 0:
             return p.new_zeros(*p.shape, 0)
+        with torch.enable_grad():
+            th = theta.detach().requires_grad_(True)
+            out = self.phi(p.detach(), th)
+            u = torch.zeros_like(out, requires_grad=True)
+            (vjp,) = torch.autograd.grad(out, th, u, create_graph=True)
+            eye = torch.eye(theta.numel(), dtype=vjp.dtype, device=vjp.device)
+            cols = [torch.autograd.grad(vjp, u, e, retain_graph=True)[0] for e in eye]
         return torch.stack(cols, dim=-1)
 
     def edge_breakpoints(self, a: Tensor, b: Tensor) -> Tensor:
@@ -366,22 +404,22 @@ class Layout(nn.Module):
 
     def forward(self, p: Tensor) -> Tensor:
         """``φ(p, θ)`` for points ``p`` of shape ``(..., 2)``; differentiable in ``p`` and ``θ``."""
-        _check_points(p)
+        check_points(p)
         return self.phi(p, self.theta)
 
     def inverse(self, q: Tensor) -> Tensor:
         """``φ⁻¹(q, θ)`` for points ``q`` of shape ``(..., 2)``."""
-        _check_points(q, "q")
+        check_points(q, "q")
         return self.phi_inverse(q, self.theta)
 
     def jacobian(self, p: Tensor) -> Tensor:
         """Spatial Jacobian ``∂φ_i/∂p_j`` at ``p``, shape ``(..., 2, 2)``."""
-        _check_points(p)
+        check_points(p)
         return self.phi_jacobian(p, self.theta)
 
     def dtheta(self, p: Tensor) -> Tensor:
         """Parameter derivative ``∂φ_i/∂θ_j`` at ``p``, shape ``(..., 2, P)``."""
-        _check_points(p)
+        check_points(p)
         return self.phi_dtheta(p, self.theta)
 
     @torch.no_grad()
@@ -413,6 +451,24 @@ class Layout(nn.Module):
         return f"theta=({th}), bound={self.bound:g}, learn={self.learnable}"
 
 
+#: Every registered layout family by name (see :func:`register_family`).
+FAMILIES: dict[str, type[Layout]] = {}
+_L = TypeVar("_L", bound=type[Layout])
+
+
+def register_family(cls: _L) -> _L:
+    """Class decorator declaring a layout family under ``cls.family``.
+
+    Registration is what layout files, :func:`make_layout` and the command line's ``--family``
+    read, so a new family is added in one place.
+    """
+    if not (isinstance(cls, type) and issubclass(cls, Layout)) or cls.family in ("", "custom"):
+        raise TypeError(f"register_family needs a Layout subclass with its own 'family' name, got {cls!r}")
+    FAMILIES[cls.family] = cls
+    return cls
+
+
+@register_family
 class UniformLayout(Layout):
     """The uniform layout ``φ(p) = p`` (no parameters): the classical sensor."""
 
@@ -420,9 +476,6 @@ class UniformLayout(Layout):
     num_params = 0
     separable = True
     straight_edges = True
-
-    def __init__(self, *, dtype: torch.dtype | None = None) -> None:
-        super().__init__(None, learn=False, dtype=dtype)
 
     def phi(self, p: Tensor, theta: Tensor) -> Tensor:
         return p
@@ -436,10 +489,14 @@ class UniformLayout(Layout):
     def phi_dtheta(self, p: Tensor, theta: Tensor) -> Tensor:
         return p.new_zeros(*p.shape, 0)
 
+    def to_config(self) -> dict[str, Any]:
+        return {}
+
     def extra_repr(self) -> str:
         return ""
 
 
+@register_family
 class RectLayout(Layout):
     """The rectangular layout φ_rect of the paper (separable; pixels are rectangles).
 
@@ -467,6 +524,7 @@ class RectLayout(Layout):
         return phi_rect_dtheta(p, theta)
 
 
+@register_family
 class CurvLayout(Layout):
     """The curvilinear layout φ_curv of the paper (radial, fixed outside the unit circle)."""
 
@@ -501,7 +559,14 @@ class CurvLayout(Layout):
 # ----------------------------------------------------------------------------------------
 # Generic numerical inverse
 # ----------------------------------------------------------------------------------------
-def newton_inverse(phi, q: Tensor, theta: Tensor, *, max_iter: int = 100, tol: float = 1e-13) -> Tensor:
+def newton_inverse(
+    phi: Callable[[Tensor, Tensor], Tensor],
+    q: Tensor,
+    theta: Tensor,
+    *,
+    max_iter: int = 100,
+    tol: float = 1e-13,
+) -> Tensor:
     """Invert a bijection ``φ(·, θ)`` of S at points ``q`` by damped Newton iteration.
 
     Solved in float64 from the start point ``p = q`` with a backtracking line search on the
@@ -560,26 +625,23 @@ def newton_inverse(phi, q: Tensor, theta: Tensor, *, max_iter: int = 100, tol: f
     return p - torch.linalg.solve(j, r.unsqueeze(-1)).squeeze(-1)
 
 
-_FAMILIES: dict[str, type[Layout]] = {
-    "uniform": UniformLayout,
-    "rect": RectLayout,
-    "curv": CurvLayout,
-}
+def make_layout(family: str | Layout, theta: Sequence[float] | Tensor | None = None, **kwargs: Any) -> Layout:
+    """Build a layout of a registered family (see :data:`FAMILIES`) or pass a layout through.
 
+    Args:
+        family: a family name (``"uniform"``, ``"rect"``, ``"curv"``, ...) or a :class:`Layout`.
+        theta: initial θ (``None``: zeros; the uniform layout takes ``None``, ``()`` or zeros).
+        **kwargs: ``bound``, ``learn`` (default ``False``), ``dtype``.
 
-def make_layout(
-    family: str | Layout,
-    theta: Sequence[float] | Tensor | None = None,
-    **kwargs,
-) -> Layout:
-    """Build a layout from a family name (``"uniform"``, ``"rect"``, ``"curv"``) or pass one through."""
+    Example:
+        >>> make_layout("rect", (0.3, -0.2)).theta
+        tensor([ 0.3000, -0.2000])
+        >>> make_layout("uniform", ()).family
+        'uniform'
+    """
     if isinstance(family, Layout):
         return family
-    cls = _FAMILIES.get(str(family).lower())
+    cls = FAMILIES.get(str(family).lower())
     if cls is None:
-        raise ValueError(f"unknown layout family {family!r}; expected one of {sorted(_FAMILIES)}")
-    if cls is UniformLayout:
-        if theta is not None and any(float(v) != 0 for v in torch.as_tensor(theta).flatten()):
-            raise ValueError(f"the uniform layout has no parameters; got theta={theta!r}")
-        return UniformLayout(dtype=kwargs.get("dtype"))
+        raise ValueError(f"family must be one of {', '.join(map(repr, FAMILIES))}; got {family!r}")
     return cls(theta, **kwargs)

@@ -46,10 +46,13 @@ import scipy.sparse as sp
 import torch
 
 from .backwarp import sensor_index_maps
-from .integrators import _segment_cells
-from .io import atomic_write, load_layout, save_layout
-from .layouts import Layout, make_layout
-from .mesh import check_size, forward_maps, pixel_mesh, sensor_to_pixels
+from .checks import check_choice, check_int, check_size
+from .files import atomic_write
+from .integrators import green_pieces
+from .layoutfile import load_layout, save_layout
+from .layouts import Layout
+from .maps import forward_maps
+from .mesh import pixel_mesh
 
 __all__ = [
     "IMAGE_SUFFIXES",
@@ -58,28 +61,14 @@ __all__ = [
     "PreprocessResult",
     "area_weights",
     "benchmark_baseline",
+    "check_destination",
     "default_tol",
+    "list_images",
     "preprocess_folder",
 ]
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
 LABEL_RULES = ("nearest", "majority", "inverse")
-
-
-def _edge_pixels(size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
-    """For every mesh edge, the two pixels it bounds with their orientation signs.
-
-    Returns ``(pix, sign)``, each ``(E, 2)``; ``pix = -1`` where the edge is on the sensor
-    border (see :func:`layoutwarp.mesh.combine_edges` for the signs).
-    """
-    h, w = size
-    i, j = np.divmod(np.arange((h + 1) * w), w)  # horizontal edges: top of (i, j), bottom of (i-1, j)
-    hp = np.stack([np.where(i < h, i * w + j, -1), np.where(i > 0, (i - 1) * w + j, -1)], 1)
-    i, j = np.divmod(np.arange(h * (w + 1)), w + 1)  # vertical: right of (i, j-1), left of (i, j)
-    vp = np.stack([np.where(j > 0, i * w + j - 1, -1), np.where(j < w, i * w + j, -1)], 1)
-    pix = np.concatenate([hp, vp])
-    sign = np.broadcast_to(np.array([1.0, -1.0]), pix.shape)
-    return pix, sign
 
 
 def area_weights(
@@ -108,29 +97,18 @@ def area_weights(
     """
     (h, w), (hs, ws) = check_size(size), check_size(src_size, "src_size")
     with torch.no_grad():
-        mesh = pixel_mesh(layout, size, tol=tol, dtype=torch.float64)
-        verts = sensor_to_pixels(mesh.vertices.double(), (hs, ws))
-        verts = torch.stack([verts[:, 0].clamp(0, ws), verts[:, 1].clamp(0, hs)], -1)
-        a, b = verts[mesh.seg_start], verts[mesh.seg_end]
-        area_seg = ((b[:, 1] - a[:, 1]) * (a[:, 0] + b[:, 0]) / 2).numpy()
-        keep = torch.nonzero(a[:, 1] != b[:, 1]).squeeze(1)
-        seg, t0, t1, row, col, _ = _segment_cells(a[keep], b[keep], hs, ws)
-        d = (b[keep] - a[keep])[seg]
-        dy = ((t1 - t0) * d[:, 1]).numpy()
-        frac = (a[keep][seg, 0] + (t0 + t1) / 2 * d[:, 0] - col.double()).clamp(0, 1).numpy()
-        edge = mesh.seg_edge[keep[seg]].numpy()
-        seg_edge = mesh.seg_edge.numpy()
-    row, col = row.numpy(), col.numpy()
-    pix, sign = _edge_pixels((h, w))
-    area = np.zeros(h * w)
-    for k in range(2):  # pixel areas (source pixel units) from the same polylines
-        p = pix[seg_edge, k]
-        np.add.at(area, p[p >= 0], sign[0, k] * area_seg[p >= 0])
+        mesh = pixel_mesh(layout, (h, w), tol=tol, dtype=torch.float64)
+        verts = mesh.pixel_vertices((hs, ws))
+        pcs = green_pieces(verts[mesh.seg_start], verts[mesh.seg_end], (hs, ws))
+        area = mesh.areas(verts).flatten().cpu().numpy()  # source pixel units, same polylines
+        edge = mesh.seg_edge[pcs.seg].cpu().numpy()
+    row, col, dy, frac = (t.cpu().numpy() for t in (pcs.row, pcs.col, pcs.dy, pcs.frac))
+    pix = mesh.topology.edge_pixels()  # (E, 2): the pixel adding each edge, the one subtracting it
     keys, cols, deltas = [], [], []
-    for k in range(2):
+    for k, sign in ((0, 1.0), (1, -1.0)):
         p = pix[edge, k]
         m = p >= 0
-        v = sign[0, k] * dy[m]
+        v = sign * dy[m]
         key = p[m].astype(np.int64) * hs + row[m]
         keys += [key, key]
         cols += [col[m], col[m] + 1]
@@ -327,7 +305,11 @@ def _npz_bytes(**arrays: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
-def _walk(src: Path, exclude: Path | None) -> list[Path]:
+def list_images(src: str | Path, exclude: str | Path | None = None) -> list[Path]:
+    """Every image file (by suffix, see :data:`IMAGE_SUFFIXES`) under ``src`` in sorted order,
+    leaving out the folder ``exclude`` (e.g. a destination inside the source)."""
+    src = Path(src)
+    exclude = Path(exclude).resolve() if exclude is not None else None
     files = []
     for root, dirs, names in os.walk(src):
         rootp = Path(root)
@@ -355,15 +337,33 @@ def _find_label(labels: Path, rel: Path) -> Path | None:
     return None
 
 
+def check_destination(dst: Path) -> None:
+    """Refuse a destination that is a file or lies under one, before anything is written."""
+    for p in (dst, *dst.parents):
+        if p.exists():
+            if not p.is_dir():
+                what = "is a file" if p == dst else f"lies under {str(p)!r}, which is a file"
+                raise ValueError(f"dst must be a folder; {str(dst)!r} {what}")
+            return
+
+
 def _describe(layout: Layout, size_hw) -> dict:
-    """The layout's identity as stored in the manifest (θ as float64 values)."""
-    theta = [float(v) for v in layout.theta.detach().double()]
-    return {"family": layout.family, "theta": theta, "bound": layout.bound, "size_hw": size_hw}
+    """The layout's identity as stored in the manifest (its family and configuration)."""
+    return {"family": layout.family, **layout.to_config(), "size_hw": size_hw}
 
 
 def _same_layout(a: dict, b: dict) -> bool:
-    keys = ("family", "bound", "size_hw")
-    return all(a.get(k) == b.get(k) for k in keys) and np.allclose(a["theta"], b["theta"], rtol=0, atol=1e-12)
+    if set(a) != set(b):
+        return False
+    for k, v in a.items():
+        if isinstance(v, list) and v and all(isinstance(x, float | int) for x in v):
+            if not (
+                isinstance(b[k], list) and len(b[k]) == len(v) and np.allclose(v, b[k], rtol=0, atol=1e-12)
+            ):
+                return False
+        elif v != b[k]:
+            return False
+    return True
 
 
 def preprocess_folder(
@@ -406,13 +406,12 @@ def preprocess_folder(
             already holds a dataset made with a different layout.
     """
     size = check_size(size)
-    if label_rule not in LABEL_RULES:
-        raise ValueError(f"label_rule must be one of {LABEL_RULES}, got {label_rule!r}")
-    if not isinstance(workers, int) or workers < 1:
-        raise ValueError(f"workers must be an int >= 1, got {workers!r}")
+    check_choice(label_rule, LABEL_RULES, "label_rule")
+    check_int(workers, "workers", 1)
     src, dst = Path(src), Path(dst)
     if not src.is_dir():
         raise ValueError(f"src must be a folder, got {str(src)!r}")
+    check_destination(dst)
     dst.mkdir(parents=True, exist_ok=True)
     config = _describe(layout, list(size))
     layout_file = dst / "layout.json"
@@ -430,7 +429,7 @@ def preprocess_folder(
     done = _read_done(done_file)
     tasks, skipped = [], 0
     exclude = dst.resolve()
-    for path in files if files is not None else _walk(src, exclude):
+    for path in files if files is not None else list_images(src, exclude):
         rel = path.relative_to(src)
         st = path.stat()
         out = dst / rel
@@ -477,7 +476,7 @@ def preprocess_folder(
                 result.failed.append({"file": r["file"], "error": r["error"]})
             bar.update(1)
 
-        fixed = make_layout(config["family"], config["theta"], bound=config["bound"], dtype=torch.float64)
+        fixed = type(layout).from_config(config, dtype=torch.float64)
         job = _Job(fixed, size, tol, label_rule)
         if workers == 1 or len(tasks) <= 1:
             for task in tasks:

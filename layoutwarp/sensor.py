@@ -9,20 +9,23 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from .checks import check_choice, check_int, check_number, check_shape, check_size
 from .integrators import (
+    RADIANCES,
     Radiance,
     integrate_exact,
     integrate_montecarlo,
     integrate_point,
     integrate_separable,
 )
+from .layoutfile import load_layout, save_layout
 from .layouts import Layout, make_layout
-from .mesh import check_size
 
 __all__ = ["METHODS", "SensorLayer", "SimulationPlan", "plan_simulation", "simulate"]
 
-METHODS = ("exact", "separable", "montecarlo", "point", "auto")
-_RADIANCE = ("box", "bilinear")
+#: The integrators :func:`simulate` runs.
+METHODS = ("exact", "separable", "montecarlo", "point")
+_OPTIONS = {"radiance", "tol", "samples", "grad", "seed", "generator", "allow_nonfinite"}
 
 
 @dataclass(frozen=True)
@@ -57,15 +60,20 @@ def plan_simulation(
     samples: int = 4,
     callable_radiance: bool = False,
 ) -> SimulationPlan:
-    """Choose the integrator for ``method`` (see :func:`simulate`) without running it."""
-    if method not in METHODS:
-        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
-    if radiance is not None and radiance not in _RADIANCE:
-        raise ValueError(f"radiance must be one of {_RADIANCE} or a callable image, got {radiance!r}")
-    if not (isinstance(tol, (int, float)) and tol > 0):
-        raise ValueError(f"tol must be a number > 0, got {tol!r}")
+    """Choose the integrator for ``method`` (see :func:`simulate`) without running it.
+
+    Example:
+        >>> from layoutwarp import CurvLayout
+        >>> plan_simulation(CurvLayout((0.3, 0.1)), (8, 8), tol=1e-4).error_bound
+        0.0001
+    """
+    check_size(size)
+    check_choice(method, METHODS, "method")
+    if radiance is not None:
+        check_choice(radiance, RADIANCES, "radiance")
+    tol = check_number(tol, "tol", 0, lo_open=True)
     rad = "callable" if callable_radiance else radiance
-    if method in ("exact", "separable", "auto"):
+    if method in ("exact", "separable"):
         if callable_radiance:
             raise ValueError(
                 f"method={method!r} integrates a pixel image exactly; a callable radiance "
@@ -89,8 +97,7 @@ def plan_simulation(
         return SimulationPlan(
             "exact", "box", float(tol), {"tol": float(tol)}, "curved edges: polylines within tol"
         )
-    if int(samples) < 1:
-        raise ValueError(f"samples must be >= 1, got {samples!r}")
+    samples = check_int(samples, "samples", 1)
     rad = rad or "bilinear"
     if method == "montecarlo":
         return SimulationPlan(
@@ -103,8 +110,7 @@ def _prepare(image: Tensor) -> tuple[Tensor, torch.dtype, tuple[int, ...]]:
     if not isinstance(image, Tensor):
         kind = type(image).__name__
         raise TypeError(f"image must be a torch.Tensor (B, C, H, W) or a callable, got {kind}")
-    if image.ndim not in (3, 4):
-        raise ValueError(f"image must have shape (B, C, H, W) or (C, H, W), got {tuple(image.shape)}")
+    check_shape(image, "B C H W|C H W", "image")
     if image.shape[-1] == 0 or image.shape[-2] == 0:
         raise ValueError(f"image height and width must be >= 1, got {tuple(image.shape[-2:])}")
     lead = tuple(image.shape[:-2])
@@ -139,7 +145,6 @@ def simulate(
     grad: str = "reynolds",
     seed: int | None = None,
     generator: torch.Generator | None = None,
-    channels: int | None = None,
     allow_nonfinite: bool = False,
     return_plan: bool = False,
 ) -> Tensor | tuple[Tensor, SimulationPlan]:
@@ -152,9 +157,9 @@ def simulate(
             black box, e.g. a renderer), for ``"montecarlo"`` and ``"point"``.
         layout: the pixel layout (θ may be learnable; gradients flow to it).
         size: sensor size ``(h, w)``.
-        method: ``"exact"`` (box radiance over the exact pixel polygons; dispatches to
-            ``"separable"`` for rectangular layouts), ``"separable"``, ``"montecarlo"``,
-            ``"point"``, or ``"auto"`` (the cheapest exact method that meets ``tol``).
+        method: ``"exact"`` (box radiance over the exact pixel polygons; runs the cheaper
+            ``"separable"`` integrator for rectangular layouts), ``"separable"``,
+            ``"montecarlo"`` or ``"point"``.
         radiance: ``"box"`` (each source pixel a constant square; the only choice for exact
             methods) or ``"bilinear"`` (the paper's choice, default for sampling methods).
         tol: the accuracy a scene needs: bound on each pixel's error relative to the
@@ -162,7 +167,6 @@ def simulate(
         samples: ``s`` for Monte Carlo (``s²`` samples per pixel).
         grad: Monte Carlo θ-gradient estimator, ``"reynolds"`` or ``"autograd"``.
         seed, generator: randomness of the Monte Carlo jitter (``seed`` makes a generator).
-        channels: number of channels of a callable radiance (default 1).
         allow_nonfinite: let NaN/Inf through instead of raising ``ValueError``.
         return_plan: also return the :class:`SimulationPlan` that ran.
 
@@ -181,9 +185,8 @@ def simulate(
     if generator is None and seed is not None:
         generator = torch.Generator().manual_seed(int(seed))
     if is_callable:
-        out = _run(plan, image, layout, size, tol, samples, grad, generator)
-        out = out if channels is None else out.reshape(channels, *size)
-        return (out[None], plan) if return_plan else out[None]
+        out = _run(plan, image, layout, size, tol, samples, grad, generator)[None]
+        return (out, plan) if return_plan else out
     work, out_dtype, lead = _prepare(image)
     if work.shape[0] == 0:
         out = work.new_zeros(*lead, *size).to(out_dtype)
@@ -221,11 +224,12 @@ class SensorLayer(nn.Module):
 
     Args:
         size: sensor size ``(h, w)``.
-        layout: ``"rect"``, ``"curv"``, ``"uniform"`` or a :class:`~layoutwarp.Layout`.
+        layout: a registered family name (``"rect"``, ``"curv"``, ``"uniform"``, ...) or a
+            :class:`~layoutwarp.Layout` (used as it is, learnable or not).
         method: integrator (see :func:`simulate`).
-        learn: train θ.
-        theta: initial θ.
-        bound: bound on ``|θ|``.
+        learn: train θ (for a family name).
+        theta: initial θ (for a family name).
+        bound: bound on ``|θ|`` (for a family name).
         **options: further :func:`simulate` options (``tol``, ``samples``, ``radiance``, ...).
 
     Example:
@@ -247,17 +251,15 @@ class SensorLayer(nn.Module):
     ) -> None:
         super().__init__()
         self.size = check_size(size)
-        if isinstance(layout, Layout):
-            self.layout = layout
-        elif str(layout) == "uniform":
-            self.layout = make_layout("uniform")
-        else:
-            self.layout = make_layout(layout, theta, bound=bound, learn=learn)
-        if method not in METHODS:
-            raise ValueError(f"method must be one of {METHODS}, got {method!r}")
-        self.method = method
+        self.layout = (
+            layout if isinstance(layout, Layout) else make_layout(layout, theta, bound=bound, learn=learn)
+        )
+        self.method = check_choice(method, METHODS, "method")
+        unknown = sorted(set(options) - _OPTIONS)
+        if unknown:
+            raise TypeError(f"unknown simulate option(s) {unknown}; expected some of {sorted(_OPTIONS)}")
         self.options = options
-        self.last_plan: SimulationPlan | None = None
+        self.describe()  # refuse bad options now, not at the first batch
 
     @property
     def theta(self) -> Tensor:
@@ -266,10 +268,7 @@ class SensorLayer(nn.Module):
 
     def forward(self, image: Tensor) -> Tensor:
         """``(B, C, H, W)`` image to ``(B, C, h, w)`` sensor image."""
-        out, self.last_plan = simulate(
-            image, self.layout, self.size, self.method, return_plan=True, **self.options
-        )
-        return out
+        return simulate(image, self.layout, self.size, self.method, **self.options)
 
     def describe(self) -> SimulationPlan:
         """The plan the layer runs with its current settings."""
@@ -284,8 +283,6 @@ class SensorLayer(nn.Module):
 
     def save_layout(self, path: str | Path, **extra: Any) -> Path:
         """Write the layer's layout, sensor size and method to a JSON file (see :func:`save_layout`)."""
-        from .io import save_layout
-
         return save_layout(self.layout, path, self.size, method=self.method, **extra)
 
     @classmethod
@@ -297,8 +294,6 @@ class SensorLayer(nn.Module):
         ``size`` defaults to the sensor size stored in the file; ``method`` to the stored
         method, else ``"exact"``; other keyword arguments go to :class:`SensorLayer`.
         """
-        from .io import load_layout
-
         layout, info = load_layout(path, learn=learn)
         size = size if size is not None else info["size_hw"]
         if size is None:

@@ -38,5 +38,11 @@ def pytest_runtest_makereport(item, call):
                 rep.sections.append(("random seed", f"LAYOUTWARP_SEED={v}"))
 
 
+@pytest.fixture(params=["cpu", "cuda"] if torch.cuda.is_available() else ["cpu"])
+def device(request) -> torch.device:
+    """Every device test runs on the CPU, and on CUDA where a GPU is present."""
+    return torch.device(request.param)
+
+
 def rand_theta(gen: torch.Generator, limit: float = 0.95) -> torch.Tensor:
     return (torch.rand(2, generator=gen, dtype=torch.float64) * 2 - 1) * limit

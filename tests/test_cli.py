@@ -20,7 +20,18 @@ def test_parse_wxh_is_width_by_height():
 
 def test_demo_writes_figures_and_numbers(tmp_path):
     assert (
-        main(["demo", "--data", str(ROOT / "data_samples"), "--size", "16x12", "--out", str(tmp_path)]) == 0
+        main(
+            [
+                "demo",
+                "--image",
+                str(ROOT / "data_samples" / "photos" / "kodim03.png"),
+                "--size",
+                "16x12",
+                "--out",
+                str(tmp_path),
+            ]
+        )
+        == 0
     )
     numbers = json.loads((tmp_path / "demo.json").read_text())
     assert set(d["family"] for d in numbers["layouts"].values()) == {"uniform", "rect", "curv"}

@@ -17,7 +17,9 @@ from layoutwarp.cli import main
 from layoutwarp.export import export_layout, pixel_polygons_um
 
 SIZE = (9, 12)  # h, w
-UM = (1200.0, 900.0)  # W_um, H_um
+W_UM, H_UM = 1200.0, 900.0
+UM = (H_UM, W_UM)  # the sensor extent in the order of size = (h, w)
+XY = np.array([W_UM, H_UM])  # µm per unit of (x, y) / 2
 
 
 def layout_of(family, gen):
@@ -33,7 +35,7 @@ def read_back(path, fmt):
         assert lib.unit == pytest.approx(1e-6) and lib.precision == pytest.approx(1e-9)
         polys = lib.cells[0].polygons
         assert {(p.layer, p.datatype) for p in polys} == {(3, 7)}
-        return [np.stack([p.points[:, 0], UM[1] - p.points[:, 1]], -1) for p in polys]
+        return [np.stack([p.points[:, 0], H_UM - p.points[:, 1]], -1) for p in polys]
     if fmt == "dxf":
         import ezdxf
 
@@ -41,7 +43,7 @@ def read_back(path, fmt):
         assert doc.header["$INSUNITS"] == 13  # micrometres
         ents = doc.modelspace().query("LWPOLYLINE")
         assert all(e.closed and e.dxf.layer == "PIXELS_3" for e in ents)
-        return [np.array([(x, UM[1] - y) for x, y in e.get_points("xy")]) for e in ents]
+        return [np.array([(x, H_UM - y) for x, y in e.get_points("xy")]) for e in ents]
     root = ET.parse(path).getroot()
     assert root.get("width") == "1200um" and root.get("viewBox") == "0 0 1200.0 900.0"
     polys = root.iter("{http://www.w3.org/2000/svg}polygon")
@@ -54,7 +56,7 @@ def assert_tiles(polys, n):
     assert all(s.is_valid for s in shapes)
     total = sum(s.area for s in shapes)
     union = shapely.union_all(shapes)
-    sensor = UM[0] * UM[1]
+    sensor = W_UM * H_UM
     assert abs(total - sensor) < 1e-6 * sensor  # areas add up: no gap, no overlap ...
     assert abs(union.area - sensor) < 1e-6 * sensor  # ... and the union is the whole sensor
     assert union.geom_type == "Polygon" and len(union.interiors) == 0
@@ -71,7 +73,7 @@ def test_vector_formats_read_back(fmt, family, gen, tmp_path):
     # file order is row-major and matches the layout's pixels
     ref = lw.pixel_mesh(layout, SIZE, tol=1e-9).polygons()
     for k in (0, 17, len(ref) - 1):
-        exact = shapely.Polygon((ref[k] + 1) / 2 * np.array(UM))
+        exact = shapely.Polygon((ref[k] + 1) / 2 * XY)
         assert shapely.Polygon(polys[k]).hausdorff_distance(exact) <= 0.05 + 1e-6
     assert rep.pixels == len(polys) and rep.max_deviation_um <= 0.05
     areas = [shapely.Polygon(p).area for p in polys]
@@ -82,7 +84,7 @@ def test_vector_formats_read_back(fmt, family, gen, tmp_path):
 def test_tolerance_snapping_and_manhattan(gen):
     layout = layout_of("curv", gen)
     fine = lw.pixel_mesh(layout, SIZE, tol=1e-10).polygons()
-    fine = [shapely.Polygon((p + 1) / 2 * np.array(UM)) for p in fine]
+    fine = [shapely.Polygon((p + 1) / 2 * XY) for p in fine]
     for tol in (1.0, 0.01):
         polys, info = pixel_polygons_um(layout, SIZE, UM, tol_um=tol)
         assert info["max_deviation_um"] <= tol
@@ -105,7 +107,7 @@ def test_tolerance_snapping_and_manhattan(gen):
     assert np.abs(allv / grid - np.round(allv / grid)).max() < 1e-9
     shapes = [shapely.Polygon(p) for p in polys]
     assert sum(not s.is_valid for s in shapes) <= info["self_touching"]
-    assert abs(sum(s.area for s in shapes) - UM[0] * UM[1]) < 1e-6
+    assert abs(sum(s.area for s in shapes) - W_UM * H_UM) < 1e-6
     if info["self_touching"] == 0:
         assert_tiles(polys, SIZE[0] * SIZE[1])
     polys, _ = pixel_polygons_um(layout, SIZE, UM, tol_um=0.01, grid_um=0.01)
@@ -123,13 +125,13 @@ def test_png_boundaries_and_index(gen, tmp_path):
     assert 0.02 < (lines > 0).mean() < 0.3
     # the raster pixel at each deformed pixel centre holds that pixel's index
     q = layout.phi(lw.pixel_centers(SIZE), layout.theta.detach())
-    xy = ((q.numpy() + 1) / 2 * np.array(UM) * 0.5).astype(int)
+    xy = ((q.numpy() + 1) / 2 * XY * 0.5).astype(int)
     assert (index[xy[..., 1], xy[..., 0]] == np.arange(1, SIZE[0] * SIZE[1] + 1).reshape(SIZE)).all()
 
 
 def test_report_pitch_and_warning(tmp_path):
     layout = lw.UniformLayout()
-    rep = export_layout(layout, (4, 6), tmp_path / "u.svg", (600, 400), min_feature_um=120)
+    rep = export_layout(layout, (4, 6), tmp_path / "u.svg", (400, 600), min_feature_um=120)
     assert rep.min_pitch_um == pytest.approx(100) and rep.max_pitch_um == pytest.approx(100)
     assert rep.min_area_um2 == pytest.approx(1e4) and rep.vertices == 96
     assert rep.warnings and "below the minimum feature size 120" in rep.warnings[0]
@@ -139,7 +141,7 @@ def test_report_pitch_and_warning(tmp_path):
 def test_cli_export_and_errors(tmp_path, capsys):
     lw.save_layout(lw.make_layout("rect", (0.5, 0.3)), tmp_path / "l.json", (SIZE[0], SIZE[1]))
     out = tmp_path / "m.gds"
-    argv = ["export", str(tmp_path / "l.json"), "--sensor-um", "1200x900", "--out", str(out)]
+    argv = ["export", "--layout", str(tmp_path / "l.json"), "--sensor-um", "1200x900", "--out", str(out)]
     assert main([*argv, "--report", str(tmp_path / "r.json")]) == 0
     assert json.loads((tmp_path / "r.json").read_text())["pixels"] == SIZE[0] * SIZE[1]
     assert "108 pixels" in capsys.readouterr().out

@@ -71,7 +71,7 @@ def test_exact_matches_polygon_clipping(family, gen):
 
 def test_segment_cells_tile_every_segment_in_order(gen):
     # random segments, including (nearly) vertical and horizontal ones and ones on cell lines
-    from layoutwarp.integrators import _segment_cells
+    from layoutwarp.integrators import segment_cells
 
     n = 400
     a = torch.rand(n, 2, generator=gen, dtype=F64) * torch.tensor([30.0, 20.0], dtype=F64)
@@ -81,7 +81,7 @@ def test_segment_cells_tile_every_segment_in_order(gen):
     a[150:200, 0] = b[150:200, 0] = a[150:200, 0].round()  # vertical on a column line
     top = torch.tensor([30.0, 20.0], dtype=F64)
     a, b = torch.minimum(a.clamp_min(0), top), torch.minimum(b.clamp_min(0), top)
-    seg, t0, t1, row, col, _ = _segment_cells(a, b, 20, 30)
+    seg, t0, t1, row, col, _ = segment_cells(a, b, 20, 30)
     for s in range(n):
         k = seg == s
         order = torch.argsort(t0[k])  # pieces come in row order, not parameter order
@@ -138,38 +138,29 @@ def test_float32_exact_within_1e5_of_float64(family, gen):
     assert float((got.double() - ref).abs().max()) <= 1e-5 * float(img.max() - img.min())
 
 
-def wrap(cls, fn, size, **kw):
-    def f(rho, image):
-        layout = cls(dtype=F64)
-        del layout.rho
-        layout.rho = rho
-        return fn(image, layout, size, **kw)
-
-    return f
-
-
 @pytest.mark.parametrize(
-    "cls,fn,kw",
+    "cls,fn",
     [
-        (lw.RectLayout, lw.integrate_separable, {}),
-        (lw.RectLayout, lw.integrate_exact, {}),
-        (lw.CurvLayout, lw.integrate_exact, {}),
+        (lw.RectLayout, lw.integrate_separable),
+        (lw.RectLayout, lw.integrate_exact),
+        (lw.CurvLayout, lw.integrate_exact),
     ],
 )
 @pytest.mark.parametrize("size", [(4, 7), (6, 3)])
-def test_gradcheck_exact_and_separable(cls, fn, kw, size, gen):
-    rho = (torch.rand(2, generator=gen, dtype=F64) - 0.5).requires_grad_(True)
+def test_gradcheck_exact_and_separable(cls, fn, size, gen):
+    theta = (torch.rand(2, generator=gen, dtype=F64) - 0.5).requires_grad_(True)
     img = torch.rand(2, 13, 17, generator=gen, dtype=F64).requires_grad_(True)
+    layout = cls(dtype=F64)
     if fn is lw.integrate_exact and cls is lw.CurvLayout:
         # fixed subdivision: the adaptive count changes with θ, finite differences must not
-        def f(r, im):
-            layout = cls(dtype=F64)
-            del layout.rho
-            layout.rho = r
-            return fn(im, layout, size, mesh=lw.pixel_mesh(layout, size, subdivisions=4))
+        def f(t, im):
+            return fn(im, layout, size, mesh=lw.pixel_mesh(layout, size, subdivisions=4, theta=t))
     else:
-        f = wrap(cls, fn, size, **kw)
-    assert torch.autograd.gradcheck(f, (rho, img), eps=1e-6, atol=1e-5, rtol=1e-4)
+
+        def f(t, im):
+            return fn(im, layout, size, theta=t)
+
+    assert torch.autograd.gradcheck(f, (theta, img), eps=1e-6, atol=1e-5, rtol=1e-4)
 
 
 @pytest.mark.parametrize("family", ["rect", "curv"])
@@ -178,7 +169,7 @@ def test_gradient_at_theta_zero_on_cell_boundaries(family, gen):
     # gradient must be the symmetric one that central differences measure.
     img = torch.rand(2, 28, 28, generator=gen, dtype=F64)
     wts = torch.randn(2, 4, 4, generator=gen, dtype=F64)
-    layout = lw.make_layout(family, (0.0, 0.0), dtype=F64)
+    layout = lw.make_layout(family, (0.0, 0.0), dtype=F64, learn=True)
     (g,) = torch.autograd.grad((lw.integrate_exact(img, layout, (4, 4)) * wts).sum(), layout.rho)
     sep = family == "rect"
     if sep:
@@ -229,7 +220,7 @@ def test_montecarlo_gradients_agree_with_finite_differences(family, size, grad, 
     )
     grads = []
     for k in range(16):
-        layout = lw.make_layout(family, theta, dtype=F64)
+        layout = lw.make_layout(family, theta, dtype=F64, learn=True)
         out = lw.integrate_montecarlo(
             img,
             layout,

@@ -72,7 +72,7 @@ def test_theta_count_and_bound_errors():
         lw.CurvLayout((0.1, 0.2), bound=0.0)
     with pytest.raises(ValueError, match=r"\|θ\| < bound = 0.5"):
         lw.CurvLayout((0.6, 0.2), bound=0.5)
-    with pytest.raises(ValueError, match="unknown layout family 'hex'"):
+    with pytest.raises(ValueError, match="family must be one of 'uniform', 'rect', 'curv'.*got 'hex'"):
         lw.make_layout("hex")
 
 
@@ -133,7 +133,7 @@ def test_curv_dtheta_is_not_the_reference_code_formula(gen):
 def test_module_derivatives_match_autograd(cls, at_zero, gen):
     # θ = 0 exactly is where the paper starts training: autograd through φ must not take a
     # zero subgradient of |θ| there
-    layout = cls((0.0, 0.0) if at_zero else rand_theta(gen), dtype=F64)
+    layout = cls((0.0, 0.0) if at_zero else rand_theta(gen), dtype=F64, learn=True)
     p = rand_points(gen, 500)
     p = p[away_from_kinks(p, cls is lw.CurvLayout)]
     assert (layout.jacobian(p) - lw.Layout.phi_jacobian(layout, p, layout.theta)).abs().max() < 1e-12
@@ -158,7 +158,7 @@ def test_finite_values_and_gradients_at_special_points(cls):
         dtype=F64,
     )
     for theta in ([0.999, -0.999], [0.0, 0.0], [1 - 1e-6, 1 - 1e-6], [-0.5, 0.7]):
-        layout = cls(theta, dtype=F64)
+        layout = cls(theta, dtype=F64, learn=True)
         for fn in (layout, layout.inverse):
             p = special.clone().requires_grad_(True)
             q = fn(p)
@@ -211,7 +211,7 @@ class Folding(lw.Layout):
 
 def test_user_layout_generic_fallbacks(gen):
     theta = rand_theta(gen, 0.9)
-    layout = Cubic(theta, dtype=F64)
+    layout = Cubic(theta, dtype=F64, learn=True)
     p = rand_points(gen, 1000)
     q = layout(p).detach()
     assert (layout.inverse(q) - p).abs().max() < 1e-10
@@ -247,3 +247,58 @@ def test_uniform_layout_is_identity(gen):
     u = lw.UniformLayout()
     assert torch.equal(u(p), p) and torch.equal(u.inverse(p), p)
     assert u.theta.numel() == 0 and list(u.parameters()) == []
+
+
+class TestRegistry:
+    def test_smoke(self):
+        assert list(lw.FAMILIES) == ["uniform", "rect", "curv"]
+        assert all(lw.FAMILIES[name].family == name for name in lw.FAMILIES)
+
+    @pytest.mark.parametrize("theta", [None, (), (0.0, 0.0), [0, 0], torch.zeros(2)])
+    def test_uniform_accepts_empty_or_zero_theta(self, theta):
+        assert lw.make_layout("uniform", theta).theta.numel() == 0
+        assert lw.make_layout("UNIFORM", theta, learn=True).family == "uniform"
+
+    def test_exception(self):
+        with pytest.raises(ValueError, match="no parameters; theta must be empty or zeros, got"):
+            lw.make_layout("uniform", (0.1, 0.0))
+        with pytest.raises(TypeError, match="needs a Layout subclass with its own 'family'"):
+            lw.register_family(Cubic.__base__)
+        with pytest.raises(TypeError, match="Layout subclass"):
+            lw.register_family(int)
+
+    def test_a_registered_family_is_known_everywhere(self, tmp_path):
+        from layoutwarp.cli import build_parser
+
+        cls = lw.register_family(type("Cubic2", (Cubic,), {"family": "cubic2"}))
+        try:
+            layout = lw.make_layout("cubic2", (0.2, -0.1), dtype=F64)
+            lw.save_layout(layout, tmp_path / "c.json", (3, 4))
+            back, _ = lw.load_layout(tmp_path / "c.json", dtype=F64)
+            assert isinstance(back, cls) and torch.allclose(back.theta, layout.theta, atol=1e-15)
+            args = build_parser().parse_args(
+                ["export", "--family", "cubic2", "--sensor-um", "1x1", "--out", "x.svg"]
+            )
+            assert args.family == "cubic2"
+        finally:
+            del lw.FAMILIES["cubic2"]
+
+
+class TestLearn:
+    @pytest.mark.parametrize("cls", FAMILIES)
+    def test_fixed_unless_asked(self, cls, gen):
+        layout = cls(rand_theta(gen))
+        assert not layout.learnable and list(layout.parameters()) == []
+        out = lw.simulate(torch.rand(1, 1, 20, 24, generator=gen), layout, (5, 6))
+        assert not out.requires_grad and out.numpy().shape == (1, 1, 5, 6)
+        assert cls(rand_theta(gen), learn=True).learnable
+        assert lw.SensorLayer((5, 6), cls.family).layout.learnable  # the sensor layer learns by default
+
+    def test_config_round_trip(self, gen):
+        layout = lw.CurvLayout(
+            rand_theta(gen), bound=1 + float(torch.rand(1, generator=gen)), dtype=F64
+        )
+        back = lw.CurvLayout.from_config(layout.to_config(), dtype=F64)
+        assert back.bound == layout.bound and torch.allclose(back.theta, layout.theta, rtol=0, atol=1e-15)
+        with pytest.raises(ValueError, match="'theta' must be a list of numbers"):
+            lw.CurvLayout.from_config({"theta": "0.1,0.2"})

@@ -11,7 +11,8 @@ from conftest import rand_theta
 from kornia.geometry.transform import remap as kornia_remap
 
 import layoutwarp as lw
-from layoutwarp.mesh import check_size, sensor_to_pixels
+from layoutwarp.checks import check_size
+from layoutwarp.coords import sensor_to_pixels
 
 F64 = torch.float64
 # sizes that break the reference code's arange(-1, 1, 2/n) (n + 1 cells), odd and even, 1xN
@@ -161,13 +162,13 @@ def test_inverse_map_composed_with_forward_map_is_identity(family, seed):
         layout, size, src, samples=2, jitter=True, generator=torch.Generator().manual_seed(seed)
     )
     u = lw.sample_points(size, 2, jitter=True, generator=torch.Generator().manual_seed(seed))
-    q = lw.mesh.pixels_to_sensor(torch.stack([fwd.map_x.double(), fwd.map_y.double()], -1) + 0.5, src)
+    q = lw.pixels_to_sensor(torch.stack([fwd.map_x.double(), fwd.map_y.double()], -1) + 0.5, src)
     back = sensor_to_pixels(layout.inverse(q), size)
     assert float((back - sensor_to_pixels(u, size)).abs().max()) < 1e-4
     # forward ∘ inverse: every target pixel centre -> float32 sensor coordinate -> back
     inv = lw.inverse_maps(layout, size, src)
     assert inv.map_x.shape == src and inv.map_x.dtype == torch.float32
-    p = lw.mesh.pixels_to_sensor(torch.stack([inv.map_x.double(), inv.map_y.double()], -1) + 0.5, size)
+    p = lw.pixels_to_sensor(torch.stack([inv.map_x.double(), inv.map_y.double()], -1) + 0.5, size)
     again = sensor_to_pixels(layout(p), src) - 0.5
     grid = torch.stack(
         torch.meshgrid(torch.arange(src[1], dtype=F64), torch.arange(src[0], dtype=F64), indexing="xy"), -1

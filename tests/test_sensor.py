@@ -14,11 +14,11 @@ F64 = torch.float64
 
 
 @pytest.mark.parametrize("family", ["uniform", "rect", "curv"])
-def test_batches_and_channels(family, gen):
-    layout = lw.make_layout(family, None if family == "uniform" else rand_theta(gen))
-    img = torch.rand(3, 5, 40, 30, generator=gen)
+def test_batches_and_channels(family, gen, device):
+    layout = lw.make_layout(family, None if family == "uniform" else rand_theta(gen)).to(device)
+    img = torch.rand(3, 5, 40, 30, generator=gen).to(device)
     out = lw.simulate(img, layout, (6, 4))
-    assert out.shape == (3, 5, 6, 4)
+    assert out.shape == (3, 5, 6, 4) and out.device == img.device
     for b in range(3):
         for c in range(5):
             single = lw.simulate(img[b : b + 1, c : c + 1], layout, (6, 4))
@@ -113,37 +113,47 @@ def test_bad_arguments_raise_clear_errors():
         lw.simulate(img, layout, (3, 3), "exact", radiance="bilinear")
     with pytest.raises(ValueError, match="tol must be"):
         lw.simulate(img, layout, (3, 3), tol=0)
-    with pytest.raises(ValueError, match="samples must be >= 1"):
+    with pytest.raises(ValueError, match="samples must be an integer >= 1, got 0"):
         lw.simulate(img, layout, (3, 3), "montecarlo", samples=0)
     with pytest.raises(TypeError, match="dtype"):
         lw.simulate(torch.ones(1, 1, 4, 4, dtype=torch.int32), layout, (2, 2))
+    with pytest.raises(
+        ValueError, match="method must be one of 'exact', 'separable', 'montecarlo', 'point'; got 'auto'"
+    ):
+        lw.simulate(img, layout, (3, 3), "auto")  # "auto" was the same as "exact"
+    with pytest.raises(TypeError, match="unexpected keyword argument 'channels'"):
+        lw.simulate(img, layout, (3, 3), channels=1)
+    with pytest.raises(TypeError, match=r"unknown simulate option\(s\) \['sample'\]"):
+        lw.SensorLayer((3, 3), "curv", sample=4)
+    with pytest.raises(ValueError, match="tol must be a finite number > 0, got -1"):
+        lw.SensorLayer((3, 3), "curv", tol=-1)
 
 
 def test_plan_models_only_what_the_scene_needs():
     assert lw.plan_simulation(lw.UniformLayout(), (9, 9), "exact").method == "separable"
-    assert lw.plan_simulation(lw.RectLayout((0.5, 0.5)), (9, 9), "auto").method == "separable"
-    plan = lw.plan_simulation(lw.CurvLayout((0.5, 0.5)), (9, 9), "auto", tol=1e-3)
+    assert lw.plan_simulation(lw.RectLayout((0.5, 0.5)), (9, 9), "exact").method == "separable"
+    plan = lw.plan_simulation(lw.CurvLayout((0.5, 0.5)), (9, 9), "exact", tol=1e-3)
     assert plan.method == "exact" and plan.error_bound == 1e-3
     _, plan = lw.simulate(torch.rand(1, 1, 20, 20), lw.RectLayout((0.2, 0.2)), (4, 4), return_plan=True)
     assert plan.method == "separable" and plan.error_bound == 0.0
 
 
-def test_sensor_layer_learns_and_freezes(gen):
-    img = torch.rand(4, 1, 28, 28, generator=gen)
-    target = torch.rand(4, 1, 4, 4, generator=gen)
+def test_sensor_layer_learns_and_freezes(gen, device):
+    img = torch.rand(4, 1, 28, 28, generator=gen).to(device)
+    target = torch.rand(4, 1, 4, 4, generator=gen).to(device)
     for family in ("rect", "curv"):
-        layer = lw.SensorLayer((4, 4), family)
-        assert torch.equal(layer.theta.detach(), torch.zeros(2))
+        layer = lw.SensorLayer((4, 4), family).to(device)
+        assert torch.equal(layer.theta.detach().cpu(), torch.zeros(2))
         opt = torch.optim.SGD(layer.parameters(), lr=0.5)
         loss = (layer(img) - target).pow(2).mean()
         loss.backward()
         assert layer.layout.rho.grad is not None and bool(layer.layout.rho.grad.abs().sum() > 0)
         opt.step()
-        assert not torch.equal(layer.theta.detach(), torch.zeros(2))
-        assert layer.last_plan is not None
-        frozen = lw.SensorLayer((4, 4), family, learn=False)
+        assert not torch.equal(layer.theta.detach().cpu(), torch.zeros(2))
+        frozen = lw.SensorLayer((4, 4), family, learn=False).to(device)
         assert list(frozen.parameters()) == []
-        assert torch.allclose(frozen(img), lw.simulate(img, lw.UniformLayout(), (4, 4)), atol=1e-6)
+        expected = lw.simulate(img, lw.UniformLayout().to(device), (4, 4))
+        assert torch.allclose(frozen(img), expected, atol=1e-6)
     assert lw.SensorLayer((4, 4), "curv", method="montecarlo").describe().method == "montecarlo"
 
 
@@ -178,3 +188,28 @@ def test_sensor_layer_saves_and_reloads_its_layout(family, gen, tmp_path):
     lw.save_layout(layer.layout, tmp_path / "nosize.json")
     with pytest.raises(ValueError, match="stores no sensor size"):
         lw.SensorLayer.from_layout_file(tmp_path / "nosize.json")
+
+
+class TestSimulate:
+    """Kornia-style slots: smoke, exception, gradcheck (θ passed as a tensor)."""
+
+    def test_smoke(self, device):
+        out, plan = lw.simulate(
+            torch.rand(2, 3, 16, 16, device=device),
+            lw.CurvLayout((0.3, -0.2)).to(device),
+            (4, 5),
+            return_plan=True,
+        )
+        assert out.shape == (2, 3, 4, 5) and plan.method == "exact" and plan.error_bound == 1e-5
+
+    def test_exception(self):
+        with pytest.raises(TypeError, match="layout must be a layoutwarp Layout"):
+            lw.simulate(torch.rand(1, 1, 4, 4), "curv", (2, 2))
+        with pytest.raises(TypeError, match="image must be a torch.Tensor"):
+            lw.simulate(np.zeros((1, 1, 4, 4)), lw.UniformLayout(), (2, 2))
+
+    @pytest.mark.parametrize("family", ["rect", "curv"])
+    def test_gradcheck(self, family, gen):
+        layout = lw.make_layout(family, rand_theta(gen, 0.8), dtype=F64)
+        img = torch.rand(1, 2, 9, 11, generator=gen, dtype=F64).requires_grad_(True)
+        assert torch.autograd.gradcheck(lambda x: lw.simulate(x, layout, (3, 4)), (img,))

@@ -10,17 +10,9 @@ from conftest import SAMPLES
 
 import layoutwarp as lw
 from layoutwarp.cli import main
-from layoutwarp.tasks import (
-    AGE_GROUPS,
-    FaceNet,
-    SegNet,
-    age_group,
-    load_camvid,
-    load_faces,
-    median_frequency_weights,
-    segmentation_scores,
-    train_camvid,
-)
+from layoutwarp.experiments.camvid import SegNet, median_frequency_weights, segmentation_scores, train_camvid
+from layoutwarp.experiments.data import AGE_GROUPS, age_group, load_camvid, load_faces
+from layoutwarp.experiments.faces import FaceNet
 
 
 def test_segmentation_scores_against_per_class_counts(gen):

@@ -1,16 +1,14 @@
-"""End-to-end experiments: a sensor layer in front of a network, trained jointly.
+"""MNIST with a 4x4 sensor: the paper's first experiment (§5).
 
-``train_mnist`` reproduces the paper's MNIST 4x4 experiment (§5): φ_curv initialised at
-θ = 0, a CNN with two conv layers (32, 64 channels), max pooling and two fully connected
-layers (hidden 128), Adam with learning rate 0.01, 14 epochs, batch 64; the baseline is the
-same with θ frozen at 0.
+``train_mnist`` trains a layout initialised at θ = 0 jointly with a CNN with two conv layers
+(32, 64 channels), max pooling and two fully connected layers (hidden 128), Adam with
+learning rate 0.01, 14 epochs, batch 64; the baseline is the uniform layout.
 """
 
 from __future__ import annotations
 
 import json
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -18,13 +16,26 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
-from tqdm import tqdm
 
-from .io import atomic_write, load_mnist, save_layout
-from .sensor import SensorLayer
+from ..files import atomic_write
+from ..layoutfile import save_layout
+from ..sensor import SensorLayer
+from .data import load_mnist
+from .training import ExperimentDefaults, fit, theta_text
 
-__all__ = ["MnistNet", "RunResult", "fit", "run_mnist_experiment", "train_mnist"]
+__all__ = ["DEFAULTS", "MnistNet", "RunResult", "run_mnist_experiment", "train_mnist"]
 
+DEFAULTS = ExperimentDefaults(
+    task="mnist",
+    shared="mnist",
+    sample="mnist",
+    families=("uniform", "curv", "rect"),
+    sizes=((4, 4),),
+    seeds=3,
+    epochs=14,
+    quick_epochs=3,
+    tol=1e-5,
+)
 MNIST_MEAN, MNIST_STD = 0.1307, 0.3081
 
 
@@ -60,27 +71,31 @@ class RunResult:
     seconds: float = 0.0
 
 
+def _sensor() -> dict:
+    """The sensor options of this experiment unless the caller gives its own."""
+    return {"method": "exact", "tol": DEFAULTS.tol}
+
+
 def train_mnist(
     data: dict[str, np.ndarray],
     layout: str = "curv",
     *,
     seed: int = 0,
-    epochs: int = 14,
+    epochs: int = DEFAULTS.epochs,
     batch_size: int = 64,
     lr: float = 0.01,
     size: tuple[int, int] = (4, 4),
     progress: bool = True,
     sensor: dict | None = None,
 ) -> tuple[RunResult, MnistNet]:
-    """Train sensor + CNN jointly (``layout="uniform"`` freezes θ at 0) and test it.
+    """Train sensor + CNN jointly (``layout="uniform"``: the fixed uniform baseline) and test it.
 
     ``sensor`` holds :class:`~layoutwarp.SensorLayer` options (``method``, ``samples``,
-    ``radiance``, ...); the default is the exact integrator.
+    ``radiance``, ...); the default is the exact integrator at ``DEFAULTS.tol``.
     """
     torch.manual_seed(seed)
     gen = torch.Generator().manual_seed(seed)
-    family, learn = ("curv", False) if layout == "uniform" else (layout, True)
-    model = MnistNet(family, size, learn=learn, **(sensor or {}))
+    model = MnistNet(layout, size, learn=layout != "uniform", **(sensor or _sensor()))
     opt = torch.optim.Adam(model.parameters(), lr=lr)
     x_train = torch.from_numpy(data["train_images"]).float().div(255)[:, None]
     y_train = torch.from_numpy(data["train_labels"]).long()
@@ -103,62 +118,6 @@ def train_mnist(
     return result, model
 
 
-def fit(
-    model: nn.Module,
-    indices: torch.Tensor,
-    batch_loss: Callable[[torch.Tensor], torch.Tensor],
-    opt: torch.optim.Optimizer,
-    gen: torch.Generator,
-    *,
-    epochs: int,
-    batch_size: int,
-    freeze_epochs: int = 0,
-    sched: torch.optim.lr_scheduler.LRScheduler | None = None,
-    desc: str = "train",
-    progress: bool = True,
-) -> list[list[float]]:
-    """The training loop shared by every experiment; returns θ after each epoch (and at start).
-
-    Each epoch shuffles ``indices`` with ``gen`` and steps ``opt`` on ``batch_loss(idx)`` for
-    batches of ``batch_size`` indices (a last batch of one joins the one before, as batch
-    normalisation needs two samples). ``model.sensor``'s parameters are frozen for the first
-    ``freeze_epochs`` epochs; ``sched`` steps once per epoch. tqdm draws on terminals only
-    (``disable=None``), so logs stay readable.
-    """
-    sensor = list(model.sensor.parameters())
-    history = [model.sensor.theta.detach().tolist()]
-    n = len(indices)
-    starts = list(range(0, n, batch_size))
-    if len(starts) > 1 and n - starts[-1] == 1:  # no 1-sample batch: batch norm needs two
-        starts.pop()
-    bounds = list(zip(starts, [*starts[1:], n], strict=True))
-    bar = tqdm(
-        total=epochs * len(bounds),
-        desc=desc,
-        disable=None if progress else True,
-        leave=False,
-    )
-    for epoch in range(epochs):
-        for p in sensor:
-            p.requires_grad_(epoch >= freeze_epochs)
-        model.train()
-        perm = indices[torch.randperm(len(indices), generator=gen)]
-        for a, b in bounds:
-            loss = batch_loss(perm[a:b])
-            opt.zero_grad()
-            loss.backward()
-            opt.step()
-            bar.update(1)
-            bar.set_postfix(
-                loss=f"{loss.item():.3f}", theta=",".join(f"{v:.2f}" for v in model.sensor.theta.tolist())
-            )
-        if sched is not None:
-            sched.step()
-        history.append(model.sensor.theta.detach().tolist())
-    bar.close()
-    return history
-
-
 @torch.no_grad()
 def evaluate(model: MnistNet, images: np.ndarray, labels: np.ndarray, batch_size: int = 1000) -> float:
     """Test accuracy in percent."""
@@ -175,16 +134,18 @@ def evaluate(model: MnistNet, images: np.ndarray, labels: np.ndarray, batch_size
 def run_mnist_experiment(
     data_dir: str | Path,
     out: str | Path,
-    layouts: tuple[str, ...] = ("uniform", "curv", "rect"),
-    seeds: tuple[int, ...] = (0, 1, 2),
-    epochs: int = 14,
+    families: tuple[str, ...] = DEFAULTS.families,
+    seeds: tuple[int, ...] = tuple(range(DEFAULTS.seeds)),
+    epochs: int = DEFAULTS.epochs,
     limit_train: int | None = None,
     progress: bool = True,
     sensor: dict | None = None,
 ) -> dict:
-    """Train every layout for every seed; write ``results.json``, ``layout.json`` and figures."""
+    """Train every family for every seed; write ``results.json``, ``layout.json`` and figures."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    sensor = sensor or _sensor()
+    layouts = families
     data = load_mnist(data_dir)
     if limit_train:
         data = {
@@ -201,7 +162,7 @@ def run_mnist_experiment(
             models.setdefault(layout, model)
             print(
                 f"  {layout:8s} seed {seed}: test accuracy {res.test_accuracy:6.2f}%  "
-                f"θ = ({res.theta[0]:+.3f}, {res.theta[1]:+.3f})  [{res.seconds:.0f} s]"
+                f"θ = ({', '.join(f'{v:+.3f}' for v in res.theta)})  [{res.seconds:.0f} s]"
             )
     summary = {}
     for layout in layouts:
@@ -219,7 +180,7 @@ def run_mnist_experiment(
         "test_size": len(data["test_images"]),
         "epochs": epochs,
         "seeds": list(seeds),
-        "sensor": sensor or {"method": "exact"},
+        "sensor": sensor,
         "summary": summary,
         "runs": [r.__dict__ for r in runs],
     }
@@ -239,17 +200,15 @@ def run_mnist_experiment(
 
 
 def _figures(data, models: dict[str, MnistNet], runs: list[RunResult], out: Path) -> None:
-    from .plots import _plt, draw_layout, save_figure
+    from .plots import draw_layout, figure, save_figure
 
-    plt = _plt()
     digit = data["test_images"][4] / 255.0  # a "4", as in the paper's figure
     names = list(models)
-    fig, axes = plt.subplots(2, len(names), figsize=(3.2 * len(names), 6.4), squeeze=False)
+    fig, axes = figure(2, len(names), figsize=(3.2 * len(names), 6.4), squeeze=False)
     for k, name in enumerate(names):
         sensor = models[name].sensor
-        th = sensor.theta.detach().tolist()
         draw_layout(axes[0, k], sensor.layout, (4, 4), image=digit, color="tab:orange", lw=1.5)
-        axes[0, k].set_title(f"{name}: θ = ({th[0]:.2f}, {th[1]:.2f})", fontsize=10)
+        axes[0, k].set_title(f"{name}: {theta_text(models[name])}", fontsize=10)
         with torch.no_grad():
             s = sensor(torch.from_numpy(digit).float()[None, None])[0, 0].numpy()
         axes[1, k].imshow(s, cmap="gray", vmin=0, vmax=1, interpolation="nearest")
@@ -257,7 +216,7 @@ def _figures(data, models: dict[str, MnistNet], runs: list[RunResult], out: Path
         axes[1, k].set_xticks([])
         axes[1, k].set_yticks([])
     save_figure(fig, out / "mnist_layouts.png", dpi=110)
-    fig, ax = plt.subplots(figsize=(6, 3.5))
+    fig, ax = figure(figsize=(6, 3.5))
     for r in runs:
         if r.layout == "uniform":
             continue

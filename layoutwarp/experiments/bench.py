@@ -7,12 +7,12 @@ stratified Monte Carlo with 16 samples per pixel. Forward errors are against a f
 reference; on the synthetic scene also against the scene's analytic pixel means
 (:class:`SineScene`). Gradient errors are against central finite differences of the float64
 exact forward. Peak memory is measured in a spawned child (growth of its resident set).
+The caller chooses torch's thread count (``layoutwarp bench --threads``); nothing here sets it.
 """
 
 from __future__ import annotations
 
 import json
-import math
 import multiprocessing as mp
 import os
 import time
@@ -26,18 +26,15 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .integrators import integrate_exact
-from .io import atomic_write
-from .layouts import Layout, make_layout
-from .mesh import combine_edges, edge_ends, forward_maps, pixel_mesh, sample_points
-from .sensor import simulate
+from ..files import atomic_write
+from ..integrators import integrate_exact
+from ..layouts import Layout, make_layout
+from ..maps import forward_maps, sample_points
+from ..mesh import pixel_mesh
+from ..sensor import simulate
+from .scene import SineScene, blurred_noise, load_photo
 
-__all__ = ["Row", "SineScene", "blurred_noise", "format_table", "load_photo", "run", "scaling"]
-
-PHOTO_CANDIDATES = (
-    Path(__file__).resolve().parents[1] / "data_samples" / "photos" / "kodim20.png",
-    Path(__file__).resolve().parents[2] / "shared" / "data" / "photos" / "kodak24" / "kodim20.png",
-)
+__all__ = ["Row", "fd_theta_gradient", "format_scaling", "format_table", "main_bench", "run", "scaling"]
 
 
 @dataclass
@@ -56,109 +53,6 @@ class Row:
     grad_rel_err: float | None = None
     peak_mb: float | None = None
     extra: dict = field(default_factory=dict)
-
-
-def blurred_noise(h: int, w: int, c: int = 3, sigma: float = 2.0, seed: int = 0) -> Tensor:
-    """A ``(1, c, h, w)`` float32 image of Gaussian-blurred uniform noise in [0, 1]."""
-    rng = np.random.default_rng(seed)
-    img = rng.random((h, w, c), dtype=np.float32)
-    img = cv2.GaussianBlur(img, (0, 0), sigma)
-    img = (img - img.min()) / (img.max() - img.min())
-    return torch.from_numpy(np.ascontiguousarray(img.reshape(h, w, c).transpose(2, 0, 1)))[None]
-
-
-def load_photo(h: int, w: int, path: str | Path | None = None) -> Tensor | None:
-    """A real photo (Kodak ``kodim20``) resized to ``(h, w)`` with INTER_CUBIC, ``(1, 3, h, w)`` in [0, 1].
-
-    Returns ``None`` when no photo is found (``path``, then ``data_samples/``, then the
-    shared data folder).
-    """
-    for p in [Path(path)] if path else PHOTO_CANDIDATES:
-        bgr = cv2.imread(str(p), cv2.IMREAD_COLOR)
-        if bgr is not None:
-            rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB).astype(np.float32) / 255
-            rgb = np.clip(cv2.resize(rgb, (w, h), interpolation=cv2.INTER_CUBIC), 0, 1)
-            return torch.from_numpy(np.ascontiguousarray(rgb.transpose(2, 0, 1)))[None]
-    if path:
-        raise FileNotFoundError(f"cannot read image {path}")
-    return None
-
-
-@dataclass(frozen=True)
-class SineScene:
-    """A synthetic radiance with known pixel integrals, one frequency pair per channel.
-
-    ``f_c(x, y) = 0.5 + 0.4 sin(a_c x + p_c) sin(b_c y + q_c)`` in sensor coordinates
-    ``[-1, 1]²``. :meth:`image` gives the exact cell averages of ``f`` on a source grid (so a
-    box integrator sees the best pixel image of the scene); :meth:`pixel_means` gives the
-    exact mean of ``f`` over every pixel of a layout, by Green's theorem along the true
-    (curved) edges with Gauss–Legendre quadrature between the kinks of φ (and the axes).
-    """
-
-    a: tuple[float, ...]
-    b: tuple[float, ...]
-    p: tuple[float, ...]
-    q: tuple[float, ...]
-
-    @classmethod
-    def random(cls, channels: int = 3, cycles: tuple[float, float] = (6.0, 30.0), seed: int = 0) -> SineScene:
-        """Frequencies of ``cycles`` periods across ``[-1, 1]`` and random phases."""
-        rng = np.random.default_rng(seed)
-        a, b = (tuple(float(v) for v in np.pi * rng.uniform(*cycles, channels)) for _ in range(2))
-        p, q = (tuple(float(v) for v in rng.uniform(0, 2 * np.pi, channels)) for _ in range(2))
-        return cls(a, b, p, q)
-
-    def _vec(self, name: str) -> Tensor:
-        return torch.tensor(getattr(self, name), dtype=torch.float64)
-
-    def image(self, h: int, w: int) -> Tensor:
-        """Cell averages on an ``h × w`` source grid, ``(1, C, h, w)`` float64."""
-
-        def avg(k: Tensor, ph: Tensor, n: int) -> Tensor:  # (C, n) mean of sin(k s + ph) per cell
-            edges = torch.linspace(-1, 1, n + 1, dtype=torch.float64)
-            c = torch.cos(k[:, None] * edges + ph[:, None])
-            return (c[:, :-1] - c[:, 1:]) / (k[:, None] * (2 / n))
-
-        sx, sy = avg(self._vec("a"), self._vec("p"), w), avg(self._vec("b"), self._vec("q"), h)
-        return (0.5 + 0.4 * sy[:, :, None] * sx[:, None, :])[None]
-
-    def pixel_means(self, layout: Layout, size: tuple[int, int], nodes: int = 16) -> Tensor:
-        """Exact mean of ``f`` over every pixel of ``layout``, ``(C, H, W)`` float64."""
-        h, w = size
-        theta = layout.theta.detach().double()
-        a, b = edge_ends(size)
-        d = b - a
-        axes = -a / torch.where(d == 0, torch.ones_like(d), d)  # where the edge crosses x = 0 or y = 0:
-        axes = torch.where(d == 0, torch.ones_like(d), axes)  # layouts built on |x|, |y| bend there
-        brk = torch.cat([layout.edge_breakpoints(a, b), axes], 1).clamp(0, 1).nan_to_num(1.0)
-        t = torch.cat([torch.zeros_like(a[:, :1]), brk, torch.ones_like(a[:, :1])], 1).sort(1).values
-        x, wq = np.polynomial.legendre.leggauss(nodes)
-        x, wq = torch.from_numpy((x + 1) / 2), torch.from_numpy(wq / 2)
-        chord = (layout.phi(b, theta) - layout.phi(a, theta)).norm(dim=-1).max()
-        panels = max(2, math.ceil(float(chord) * max(self.a + self.b)))
-        s = (torch.arange(panels, dtype=torch.float64)[:, None] + x) / panels  # (panels, nodes)
-        ak, bk, ph = self._vec("a"), self._vec("b"), (self._vec("p"), self._vec("q"))
-        out = torch.zeros(len(self.a) + 1, a.shape[0], dtype=torch.float64)
-        for lo in range(0, a.shape[0], 4096):
-            sl = slice(lo, lo + 4096)
-            t0, t1 = t[sl, :-1], t[sl, 1:]  # (e, K + 1) pieces between kinks
-            tt = t0[..., None, None] + (t1 - t0)[..., None, None] * s  # (e, K + 1, panels, nodes)
-            d = (b[sl] - a[sl])[:, None, None, None, :]
-            u = a[sl][:, None, None, None, :] + tt[..., None] * d
-            qv = layout.phi(u, theta)
-            dy = (layout.phi_jacobian(u, theta)[..., 1, :] * d).sum(-1)  # dφ_y/dt
-            weight = (t1 - t0)[..., None, None] * wq / panels * dy
-            px = [qv[..., 0]] + [
-                0.5 * qv[..., 0]
-                - 0.4
-                / ak[c]
-                * torch.cos(ak[c] * qv[..., 0] + ph[0][c])
-                * torch.sin(bk[c] * qv[..., 1] + ph[1][c])
-                for c in range(len(self.a))
-            ]  # P with ∂P/∂x = integrand: x for the area, then one per channel
-            out[:, sl] = torch.stack([(pc * weight).flatten(1).sum(1) for pc in px])
-        pix = combine_edges(out, (h, w))
-        return pix[1:] / pix[0]
 
 
 def _time(fn: Callable[[], object], repeats: int) -> float:
@@ -302,7 +196,6 @@ def run(
     mc_samples: tuple[int, ...] = (1, 2, 4, 8, 16),
     repeats: int = 5,
     memory: bool = True,
-    threads: int | None = None,
     photo: str | Path | None = None,
     progress: Callable[[str], None] | None = None,
 ) -> dict:
@@ -316,15 +209,12 @@ def run(
         mc_samples: Monte Carlo samples per axis (``s²`` per pixel).
         repeats: timed repeats after one warm-up (median reported).
         memory: measure peak memory in spawned children (photo image only).
-        threads: torch threads (default: torch's choice).
         photo: photo file (default: the bundled ``kodim20``; skipped if none is found).
         progress: called with a short message before each configuration.
 
     Returns:
         a JSON-able dict: sizes, anchors (ms), and one :class:`Row` per configuration.
     """
-    if threads:
-        torch.set_num_threads(threads)
     say = progress or (lambda msg: None)
     h, w = size
     scene = SineScene.random(3)

@@ -1,38 +1,48 @@
-"""Figures: layouts drawn over images, sensor outputs, and training curves (matplotlib)."""
+"""Figures: layouts drawn over images, sensor outputs, and the speed-vs-error plot.
+
+Figures are built with matplotlib's object-oriented API (``matplotlib.figure.Figure``), not
+pyplot, so no backend is chosen or switched: nothing here touches global state.
+"""
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
 
-from .layouts import Layout
-from .mesh import pixel_mesh
+from ..coords import sensor_to_pixels
+from ..layouts import FAMILIES, Layout
+from ..mesh import pixel_mesh
 
-__all__ = ["draw_layout", "layout_figure", "pareto_figure", "save_figure"]
+__all__ = ["draw_layout", "family_color", "figure", "layout_figure", "pareto_figure", "save_figure"]
 
 
-def _plt():
+def figure(nrows: int = 1, ncols: int = 1, *, figsize: tuple[float, float] | None = None, **kwargs: Any):
+    """A matplotlib ``Figure`` and its axes (``Figure.subplots`` arguments)."""
     try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
+        from matplotlib.figure import Figure
     except ImportError as exc:  # pragma: no cover - depends on the environment
         raise ImportError("plots need matplotlib: pip install 'layoutwarp[plot]'") from exc
-    return plt
+    fig = Figure(figsize=figsize)
+    return fig, fig.subplots(nrows, ncols, **kwargs)
 
 
 def save_figure(fig, path: str | Path, dpi: int = 110) -> Path:
-    """Lay out, save (creating the folder) and close a matplotlib figure; returns the path."""
+    """Lay out and save a figure (creating the folder); returns the path."""
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=dpi)
-    _plt().close(fig)
     return path
+
+
+def family_color(family: str) -> str:
+    """A colour per layout family, from matplotlib's default cycle in registration order."""
+    names = list(FAMILIES)
+    return f"C{names.index(family) % 10}" if family in names else "black"
 
 
 def draw_layout(
@@ -57,19 +67,14 @@ def draw_layout(
     step_h, step_w = max(1, -(-h // max_lines)), max(1, -(-w // max_lines))
     with torch.no_grad():
         mesh = pixel_mesh(layout, (h, w), tol=1e-4, dtype=torch.float64)
-        nh = (h + 1) * w
-        for e in range(mesh.num_edges):
-            if e < nh:
-                i, j = divmod(e, w)
-                if i % step_h and i != h:
-                    continue
-            else:
-                i, j = divmod(e - nh, w + 1)
-                if j % step_w and j != w:
-                    continue
-            v = mesh.edge_vertices(e).numpy()
-            x, y = (v[:, 0] + 1) * sw / 2, (v[:, 1] + 1) * sh / 2
-            ax.plot(x, y, color=color, lw=lw)
+    topo = mesh.topology
+    rows = [i for i in range(h + 1) if i % step_h == 0 or i == h]
+    cols = [j for j in range(w + 1) if j % step_w == 0 or j == w]
+    edges = [topo.horizontal(i, j) for i in rows for j in range(w)]
+    edges += [topo.vertical(i, j) for i in range(h) for j in cols]
+    for e in edges:
+        v = sensor_to_pixels(mesh.edge_vertices(e).detach().cpu(), (sh, sw)).numpy()
+        ax.plot(v[:, 0], v[:, 1], color=color, lw=lw)
     ax.set_xlim(0, sw)
     ax.set_ylim(sh, 0)
     ax.set_aspect("equal")
@@ -93,9 +98,8 @@ def layout_figure(
         size: sensor size ``(h, w)``.
         path: output PNG path.
     """
-    plt = _plt()
     n = len(panels)
-    fig, axes = plt.subplots(2, n, figsize=(4 * n, 7), squeeze=False)
+    fig, axes = figure(2, n, figsize=(4 * n, 7), squeeze=False)
     for k, (title, layout, out) in enumerate(panels):
         draw_layout(axes[0, k], layout, size, image=image, max_lines=max_lines)
         axes[0, k].set_title(title, fontsize=10)
@@ -107,7 +111,6 @@ def layout_figure(
 
 
 _METHOD_MARKERS = {"separable": "s", "exact": "D", "montecarlo": "o", "point": "^"}
-_LAYOUT_COLORS = {"uniform": "tab:gray", "rect": "tab:blue", "curv": "tab:red"}
 
 
 def pareto_figure(result: dict, path: str | Path) -> Path:
@@ -118,14 +121,14 @@ def pareto_figure(result: dict, path: str | Path) -> Path:
     lines, anchors are hollow. A last panel shows the θ-gradient error against the time of
     a forward and backward pass. Errors of 0 are drawn at 1e-12.
     """
-    plt = _plt()
     rows = result["rows"]
     images = result.get("images") or sorted({r["image"] for r in rows})
-    fig, axes = plt.subplots(1, len(images) + 1, figsize=(5.2 * (len(images) + 1), 4.6), squeeze=False)
+    fig, axes = figure(1, len(images) + 1, figsize=(5.2 * (len(images) + 1), 4.6), squeeze=False)
     axes = axes[0]
     floor = 1e-12
     for ax, image in zip(axes, images, strict=False):
-        for layout, color in _LAYOUT_COLORS.items():
+        for layout in dict.fromkeys(r["layout"] for r in rows):
+            color = family_color(layout)
             sel = [r for r in rows if r["image"] == image and r["layout"] == layout]
             for method, marker in _METHOD_MARKERS.items():
                 pts = sorted((r["forward_ms"], max(r["rmse"], floor)) for r in sel if r["method"] == method)
@@ -158,7 +161,7 @@ def pareto_figure(result: dict, path: str | Path) -> Path:
             t,
             max(r["grad_rel_err"], floor),
             marker=_METHOD_MARKERS.get(r["method"], "x"),
-            color=_LAYOUT_COLORS[r["layout"]],
+            color=family_color(r["layout"]),
             ms=5,
         )
     ax.set_xscale("log")

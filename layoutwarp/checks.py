@@ -1,0 +1,149 @@
+"""Input checks used at every public entry point.
+
+Each helper returns the validated (normalised) value or raises with a one-line message that
+names the argument, the value it got and what is allowed, in the manner of Kornia's
+``KORNIA_CHECK_SHAPE``. The command line turns these messages into its error lines.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Sequence
+from typing import Any
+
+import torch
+from torch import Tensor
+
+__all__ = [
+    "check_choice",
+    "check_int",
+    "check_number",
+    "check_points",
+    "check_shape",
+    "check_size",
+    "check_tensor",
+    "floating_dtype",
+]
+
+
+def check_size(size: Any, name: str = "size") -> tuple[int, int]:
+    """Validate an ``(H, W)`` size and return it as a tuple of two positive ints.
+
+    Example:
+        >>> check_size((129, 257))
+        (129, 257)
+    """
+    try:
+        h, w = (int(v) for v in size)
+        whole = all(float(v) == int(v) for v in size)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a pair (H, W) of positive integers, got {size!r}") from None
+    if not whole or h <= 0 or w <= 0:
+        raise ValueError(f"{name} must be a pair (H, W) of positive integers, got {size!r}")
+    return h, w
+
+
+def check_choice(value: Any, choices: Iterable[Any], name: str) -> Any:
+    """``value`` if it is one of ``choices``, else ``ValueError`` listing them."""
+    options = tuple(choices)
+    if value not in options:
+        raise ValueError(f"{name} must be one of {', '.join(map(repr, options))}; got {value!r}")
+    return value
+
+
+def check_int(value: Any, name: str, minimum: int | None = None, maximum: int | None = None) -> int:
+    """An integer within ``[minimum, maximum]`` (bools are refused)."""
+    ok = isinstance(value, int) and not isinstance(value, bool)
+    if ok and (minimum is None or value >= minimum) and (maximum is None or value <= maximum):
+        return int(value)
+    raise ValueError(f"{name} must be an integer {_interval(minimum, maximum, False, False)}, got {value!r}")
+
+
+def check_number(
+    value: Any,
+    name: str,
+    lo: float | None = None,
+    hi: float | None = None,
+    *,
+    lo_open: bool = False,
+    hi_open: bool = False,
+) -> float:
+    """A finite real number in the interval from ``lo`` to ``hi`` (open ends if asked).
+
+    Example:
+        >>> check_number(1e-3, "tol", 0, lo_open=True)
+        0.001
+    """
+    try:
+        v = float(value)
+        ok = not isinstance(value, bool) and math.isfinite(v)
+    except (TypeError, ValueError):
+        ok = False
+    if ok:
+        ok = (lo is None or (v > lo if lo_open else v >= lo)) and (
+            hi is None or (v < hi if hi_open else v <= hi)
+        )
+    if not ok:
+        raise ValueError(
+            f"{name} must be a finite number {_interval(lo, hi, lo_open, hi_open)}, got {value!r}"
+        )
+    return v
+
+
+def _interval(lo, hi, lo_open: bool, hi_open: bool) -> str:
+    if lo is None and hi is None:
+        return ""
+    if hi is None:
+        return f"{'>' if lo_open else '>='} {lo:g}"
+    if lo is None:
+        return f"{'<' if hi_open else '<='} {hi:g}"
+    return f"in {'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}"
+
+
+def check_tensor(x: Any, name: str) -> Tensor:
+    """``x`` if it is a ``torch.Tensor``, else ``TypeError``."""
+    if not isinstance(x, Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
+    return x
+
+
+def check_shape(x: Any, shape: Sequence[str], name: str) -> Tensor:
+    """Check a tensor's shape against a pattern such as ``["N", "H", "W"]``.
+
+    Letters stand for any size, digits for that size exactly, and ``"*"`` (first only) for
+    any number of leading dimensions; alternatives are separate patterns joined by ``|`` in
+    one string, e.g. ``"B C H W|C H W"``.
+
+    Example:
+        >>> check_shape(torch.zeros(2, 5, 2), ["*", "2"], "points").shape
+        torch.Size([2, 5, 2])
+    """
+    x = check_tensor(x, name)
+    patterns = [p.split() for p in shape.split("|")] if isinstance(shape, str) else [list(shape)]
+    for pat in patterns:
+        if _matches(tuple(x.shape), pat):
+            return x
+    want = " or ".join("(" + ", ".join("..." if d == "*" else d for d in p) + ")" for p in patterns)
+    raise ValueError(f"{name} must have shape {want}, got {tuple(x.shape)}")
+
+
+def _matches(dims: tuple[int, ...], pattern: Sequence[str]) -> bool:
+    if pattern and pattern[0] == "*":
+        rest = pattern[1:]
+        return len(dims) >= len(rest) and _matches(dims[len(dims) - len(rest) :], rest)
+    if len(dims) != len(pattern):
+        return False
+    return all(not p.isdigit() or int(p) == d for d, p in zip(dims, pattern, strict=True))
+
+
+def check_points(p: Any, name: str = "p") -> Tensor:
+    """A floating-point tensor of points ``(..., 2)`` holding ``(x, y)``."""
+    check_shape(p, ["*", "2"], name)
+    if not p.is_floating_point():
+        raise TypeError(f"{name} must be a floating-point tensor, got {p.dtype}")
+    return p
+
+
+def floating_dtype(dtype: torch.dtype) -> torch.dtype:
+    """The dtype computations run in: float64 stays, every other dtype becomes float32."""
+    return torch.float64 if dtype == torch.float64 else torch.float32

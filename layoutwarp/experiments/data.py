@@ -1,0 +1,118 @@
+"""Dataset readers of the experiments: MNIST (IDX files), CamVid and UTKFace.
+
+Sources and licences: ``data_samples/README.md`` (the bundled slices) and the shared data
+folder's README (the full sets). Nothing is downloaded.
+"""
+
+from __future__ import annotations
+
+import csv
+import gzip
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+__all__ = [
+    "AGE_GROUPS",
+    "CAMVID_CLASSES",
+    "VOID",
+    "age_group",
+    "load_camvid",
+    "load_faces",
+    "load_mnist",
+    "read_idx",
+    "read_rgb",
+]
+
+CAMVID_CLASSES = "Sky Building Pole Road Pavement Tree SignSymbol Fence Car Pedestrian Bicyclist".split()
+VOID = 11
+AGE_GROUPS = ((0, 14), (15, 29), (30, 44), (45, 59), (60, 200))
+
+
+def read_idx(path: str | Path) -> np.ndarray:
+    """Read an IDX file (MNIST format), gzip-compressed or not, into a numpy array."""
+    path = Path(path)
+    raw = path.read_bytes()
+    if raw[:2] == b"\x1f\x8b":
+        raw = gzip.decompress(raw)
+    if len(raw) < 4 or raw[0] != 0 or raw[1] != 0:
+        raise ValueError(f"{path}: not an IDX file")
+    dtypes = {0x08: np.uint8, 0x09: np.int8, 0x0B: ">i2", 0x0C: ">i4", 0x0D: ">f4", 0x0E: ">f8"}
+    if raw[2] not in dtypes:
+        raise ValueError(f"{path}: unknown IDX data type 0x{raw[2]:02x}")
+    ndim = raw[3]
+    dims = [int.from_bytes(raw[4 + 4 * i : 8 + 4 * i], "big") for i in range(ndim)]
+    data = np.frombuffer(raw, dtype=dtypes[raw[2]], offset=4 + 4 * ndim)
+    if data.size != int(np.prod(dims)):
+        raise ValueError(f"{path}: IDX header says {dims}, file holds {data.size} values")
+    return data.reshape(dims).copy()  # writable, independent of the file buffer
+
+
+def load_mnist(folder: str | Path) -> dict[str, np.ndarray]:
+    """MNIST from a folder with the standard IDX names (``.gz`` or not).
+
+    Returns ``{"train_images", "train_labels", "test_images", "test_labels"}`` (uint8).
+    """
+    folder = Path(folder)
+    out = {}
+    for split, prefix in (("train", "train"), ("test", "t10k")):
+        for kind, stem in (("images", "images-idx3-ubyte"), ("labels", "labels-idx1-ubyte")):
+            cands = [folder / f"{prefix}-{stem}.gz", folder / f"{prefix}-{stem}"]
+            found = next((c for c in cands if c.exists()), None)
+            if found is None:
+                raise FileNotFoundError(f"MNIST file {prefix}-{stem}[.gz] not found in {folder}")
+            out[f"{split}_{kind}"] = read_idx(found)
+    return out
+
+
+def read_rgb(path: Path) -> np.ndarray:
+    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise ValueError(f"cannot read image {path}")
+    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+
+def load_camvid(root: str | Path, split: str, limit: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """CamVid ``split`` ("train"/"val"): uint8 RGB ``(N, 360, 480, 3)`` and labels ``(N, 360, 480)``.
+
+    Reads ``root/<split>/*.png`` and the same names in ``root/<split>annot/``.
+    """
+    root = Path(root)
+    files = sorted((root / split).glob("*.png"))[:limit]
+    if not files:
+        raise FileNotFoundError(f"no CamVid images in {root / split}")
+    imgs = np.stack([read_rgb(f) for f in files])
+    labels = []
+    for f in files:
+        lab = cv2.imread(str(root / f"{split}annot" / f.name), cv2.IMREAD_UNCHANGED)
+        if lab is None:
+            raise FileNotFoundError(f"missing label map {root / f'{split}annot' / f.name}")
+        labels.append(lab)
+    return imgs, np.stack(labels)
+
+
+def age_group(age: np.ndarray) -> np.ndarray:
+    """Index into :data:`AGE_GROUPS` for ages in years."""
+    edges = np.array([lo for lo, _ in AGE_GROUPS[1:]])
+    return np.searchsorted(edges, age, side="right")
+
+
+def load_faces(root: str | Path, limit: int | None = None) -> dict[str, np.ndarray]:
+    """UTKFace subset: ``images`` uint8 ``(N, H, W, 3)``, ``gender``, ``age_group``, ``race``.
+
+    Reads ``root/labels.csv`` (``file, age, gender, race``; files relative to ``root``).
+    """
+    root = Path(root)
+    with open(root / "labels.csv", newline="") as f:
+        rows = list(csv.DictReader(f))[:limit]
+    if not rows:
+        raise FileNotFoundError(f"no faces listed in {root / 'labels.csv'}")
+    imgs = np.stack([read_rgb(root / r["file"]) for r in rows])
+    age = np.array([int(r["age"]) for r in rows])
+    return {
+        "images": imgs,
+        "gender": np.array([int(r["gender"]) for r in rows]),
+        "age_group": age_group(age),
+        "race": np.array([int(r["race"]) for r in rows]),
+    }

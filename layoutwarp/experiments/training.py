@@ -1,0 +1,163 @@
+"""What every experiment shares: its defaults, the training loop, run records and summaries."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+from tqdm import tqdm
+
+from ..files import atomic_write
+
+__all__ = ["ExperimentDefaults", "TaskRun", "fit", "optimizer", "save_runs", "summarise", "theta_text"]
+
+
+@dataclass(frozen=True)
+class ExperimentDefaults:
+    """The one set of defaults of an experiment: its run function and the command line read it.
+
+    Attributes:
+        task: the experiment's name (``layoutwarp train TASK``).
+        shared: its folder under the shared data folder (the full data set).
+        sample: its folder under ``data_samples/`` (used by ``--quick``).
+        families: the layout families it compares (``"uniform"`` is the fixed baseline).
+        sizes: sensor sizes ``(H, W)``.
+        seeds: number of seeds.
+        epochs: training epochs.
+        quick_epochs: epochs with ``--quick`` (which also uses 1 seed and the first size).
+        tol: the exact integrator's curved-edge tolerance.
+        freeze_epochs: epochs with θ frozen at the start (0 with ``--quick``).
+    """
+
+    task: str
+    shared: str
+    sample: str
+    families: tuple[str, ...]
+    sizes: tuple[tuple[int, int], ...]
+    seeds: int
+    epochs: int
+    quick_epochs: int
+    tol: float
+    freeze_epochs: int = 0
+
+
+def fit(
+    model: nn.Module,
+    indices: torch.Tensor,
+    batch_loss: Callable[[torch.Tensor], torch.Tensor],
+    opt: torch.optim.Optimizer,
+    gen: torch.Generator,
+    *,
+    epochs: int,
+    batch_size: int,
+    freeze_epochs: int = 0,
+    sched: torch.optim.lr_scheduler.LRScheduler | None = None,
+    desc: str = "train",
+    progress: bool = True,
+) -> list[list[float]]:
+    """The training loop shared by every experiment; returns θ after each epoch (and at start).
+
+    Each epoch shuffles ``indices`` with ``gen`` and steps ``opt`` on ``batch_loss(idx)`` for
+    batches of ``batch_size`` indices (a last batch of one joins the one before, as batch
+    normalisation needs two samples). ``model.sensor``'s parameters are frozen for the first
+    ``freeze_epochs`` epochs; ``sched`` steps once per epoch. tqdm draws on terminals only
+    (``disable=None``), so logs stay readable.
+    """
+    sensor = list(model.sensor.parameters())
+    history = [model.sensor.theta.detach().tolist()]
+    n = len(indices)
+    starts = list(range(0, n, batch_size))
+    if len(starts) > 1 and n - starts[-1] == 1:  # no 1-sample batch: batch norm needs two
+        starts.pop()
+    bounds = list(zip(starts, [*starts[1:], n], strict=True))
+    bar = tqdm(
+        total=epochs * len(bounds),
+        desc=desc,
+        disable=None if progress else True,
+        leave=False,
+    )
+    for epoch in range(epochs):
+        for p in sensor:
+            p.requires_grad_(epoch >= freeze_epochs)
+        model.train()
+        perm = indices[torch.randperm(len(indices), generator=gen)]
+        for a, b in bounds:
+            loss = batch_loss(perm[a:b])
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+            bar.update(1)
+            bar.set_postfix(
+                loss=f"{loss.item():.3f}", theta=",".join(f"{v:.2f}" for v in model.sensor.theta.tolist())
+            )
+        if sched is not None:
+            sched.step()
+        history.append(model.sensor.theta.detach().tolist())
+    bar.close()
+    return history
+
+
+@dataclass
+class TaskRun:
+    """One training run of a task."""
+
+    task: str
+    layout: str
+    size_hw: list[int]
+    seed: int
+    scores: dict
+    theta: list[float]
+    theta_history: list[list[float]] = field(default_factory=list)
+    seconds: float = 0.0
+
+
+def optimizer(model: nn.Module, lr: float, theta_lr: float) -> torch.optim.Optimizer:
+    """Adam with the sensor's trainable parameters in a group of their own (``theta_lr``)."""
+    sensor = [p for p in model.sensor.parameters() if p.requires_grad]
+    rest = [p for n, p in model.named_parameters() if not n.startswith("sensor.")]
+    groups = [{"params": rest, "lr": lr}] + ([{"params": sensor, "lr": theta_lr}] if sensor else [])
+    return torch.optim.Adam(groups)
+
+
+def summarise(runs: list[TaskRun], metrics: tuple[str, ...]) -> dict:
+    summary: dict = {}
+    for run in runs:
+        key = f"{run.layout} {run.size_hw[1]}x{run.size_hw[0]}"
+        summary.setdefault(key, {"layout": run.layout, "size_hw": run.size_hw, "runs": []})["runs"].append(
+            run
+        )
+    for s in summary.values():
+        rs = s.pop("runs")
+        for m in metrics:
+            v = np.array([r.scores[m] for r in rs])
+            s[m] = {"mean": float(v.mean()), "std": float(v.std(ddof=1)) if len(v) > 1 else 0.0}
+        s["theta_mean"] = np.mean([r.theta for r in rs], 0).tolist()
+        s["n"] = len(rs)
+    return summary
+
+
+def save_runs(
+    out: Path, task: str, data_dir, n_train: int, n_test: int, epochs: int, runs, metrics, sensor, **options
+) -> None:
+    result = {
+        "task": task,
+        "data": str(data_dir),
+        "train_size": n_train,
+        "test_size": n_test,
+        "epochs": epochs,
+        **options,
+        "sensor": sensor or {"method": "exact"},
+        "summary": summarise(runs, metrics),
+        "runs": [asdict(r) for r in runs],
+    }
+    atomic_write(out / "results.json", json.dumps(result, indent=2))
+
+
+def theta_text(model: nn.Module) -> str:
+    th = model.sensor.theta.detach().tolist()
+    return "θ=(" + ", ".join(f"{v:.2f}" for v in th) + ")" if th else "θ=()"

@@ -1,0 +1,77 @@
+"""Layout files: a layout, its sensor size and free-form extras as a small JSON document.
+
+A file holds ``format`` (``"layoutwarp.layout/1"``), ``family`` (a registered family, see
+:func:`~layoutwarp.layouts.register_family`), the family's constructor arguments (for the
+paper's families ``theta`` and ``bound``), ``size_hw`` (optional sensor size ``[H, W]``),
+``version`` (the package version that wrote it) and ``extra`` (anything JSON-able the
+writer adds, e.g. the training metric).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from .files import atomic_write
+from .layouts import FAMILIES, Layout
+
+__all__ = ["FORMAT", "load_layout", "save_layout"]
+
+FORMAT = "layoutwarp.layout/1"
+_RESERVED = ("format", "family", "size_hw", "version", "extra")
+
+
+def save_layout(layout: Layout, path: str | Path, size: tuple[int, int] | None = None, **extra: Any) -> Path:
+    """Write ``layout`` (family, its parameters, optional sensor size ``(H, W)``) to a JSON file.
+
+    The file is written atomically (a temporary file renamed into place). Extra keyword
+    values (JSON-serialisable) are stored under ``"extra"``.
+    """
+    from . import __version__
+
+    data: dict[str, Any] = {"format": FORMAT, "family": layout.family, **layout.to_config()}
+    data |= {"size_hw": list(size) if size is not None else None, "version": __version__, "extra": extra}
+    return atomic_write(path, json.dumps(data, indent=2))
+
+
+def load_layout(
+    path: str | Path, *, learn: bool = False, dtype: torch.dtype | None = None
+) -> tuple[Layout, dict[str, Any]]:
+    """Read a layout file written by :func:`save_layout`.
+
+    Returns:
+        ``(layout, info)`` where ``info`` holds ``size_hw``, ``version`` and ``extra``.
+
+    Raises:
+        ValueError: a missing, unreadable or malformed file, an unknown family or a
+            parameter out of range, with the file's name and the problem on one line.
+    """
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise ValueError(f"{path}: no such layout file") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{path}: not a readable layout JSON ({exc})") from None
+    if not isinstance(data, dict) or data.get("format") != FORMAT:
+        raise ValueError(f"{path}: not a layoutwarp layout file (expected format {FORMAT!r})")
+    family = data.get("family")
+    cls = FAMILIES.get(family) if isinstance(family, str) else None
+    if cls is None:
+        raise ValueError(
+            f"{path}: unknown layout family {family!r}; expected one of {', '.join(map(repr, FAMILIES))}"
+        )
+    size = data.get("size_hw")
+    if size is not None and not (
+        isinstance(size, list) and len(size) == 2 and all(isinstance(v, int) and v > 0 for v in size)
+    ):
+        raise ValueError(f"{path}: 'size_hw' must be [H, W] with positive integers, got {size!r}")
+    config = {k: v for k, v in data.items() if k not in _RESERVED}
+    try:
+        layout = cls.from_config(config, learn=learn, dtype=dtype)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{path}: {exc}") from None
+    return layout, {k: data.get(k) for k in ("size_hw", "version", "extra")}

@@ -1,0 +1,123 @@
+"""Dense remap maps of a layout and stratified sample points.
+
+Maps follow OpenCV's ``remap`` convention: float32 ``map_x``, ``map_y`` in source pixel units
+with pixel centres at integers (``sensor_to_pixels(..., centered=True)``), usable with
+``cv2.remap`` and ``kornia.geometry.transform.remap(..., align_corners=True)``.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .checks import check_int, check_size
+from .coords import pixel_centers, sensor_to_pixels
+from .layouts import Layout
+
+__all__ = ["Maps", "forward_maps", "inverse_maps", "sample_points"]
+
+
+class Maps(NamedTuple):
+    """A pair of float32 remap maps ``(map_x, map_y)``, each ``(H, W)``, OpenCV convention."""
+
+    map_x: Tensor
+    map_y: Tensor
+
+    def numpy(self) -> tuple[np.ndarray, np.ndarray]:
+        """The maps as contiguous float32 numpy arrays for ``cv2.remap``."""
+        return (
+            np.ascontiguousarray(self.map_x.detach().cpu().numpy(), dtype=np.float32),
+            np.ascontiguousarray(self.map_y.detach().cpu().numpy(), dtype=np.float32),
+        )
+
+
+def _to_maps(points: Tensor, size: tuple[int, int]) -> Maps:
+    px = sensor_to_pixels(points, size, centered=True)
+    return Maps(px[..., 0].float(), px[..., 1].float())
+
+
+def sample_points(
+    size: tuple[int, int],
+    samples: int = 1,
+    *,
+    jitter: bool = False,
+    generator: torch.Generator | None = None,
+    dtype: torch.dtype = torch.float64,
+    device: torch.device | str | None = None,
+) -> Tensor:
+    """Stratified sample points in the uniform cells, shape ``(H·s, W·s, 2)``.
+
+    Cell ``(i, j)`` gets an ``s × s`` grid of strata; the sample of stratum ``(a, b)`` sits at
+    its centre, or uniformly at random inside it with ``jitter=True``. Row ``i·s + a``,
+    column ``j·s + b`` of the result belongs to pixel ``(i, j)``.
+    """
+    h, w = check_size(size)
+    s = check_int(samples, "samples", 1)
+    if jitter:
+        off = torch.rand(h * s, w * s, 2, generator=generator, dtype=dtype).to(device)
+    else:
+        off = torch.full((h * s, w * s, 2), 0.5, dtype=dtype, device=device)
+    xs = torch.arange(w * s, dtype=dtype, device=device)
+    ys = torch.arange(h * s, dtype=dtype, device=device)
+    base = torch.stack(torch.meshgrid(xs, ys, indexing="xy"), -1)
+    scale = torch.tensor([2 / (w * s), 2 / (h * s)], dtype=dtype, device=device)
+    return (base + off) * scale - 1
+
+
+def forward_maps(
+    layout: Layout,
+    size: tuple[int, int],
+    src_size: tuple[int, int],
+    *,
+    samples: int = 1,
+    jitter: bool = False,
+    generator: torch.Generator | None = None,
+) -> Maps:
+    """Where each sample of each sensor pixel looks in the source image.
+
+    Args:
+        layout: the pixel layout.
+        size: sensor size ``(h, w)``.
+        src_size: source image size ``(H, W)``.
+        samples: ``s``: an ``s × s`` stratified grid per pixel (1: the deformed pixel centres).
+        jitter: jitter each sample inside its stratum (else stratum centres).
+        generator: random generator for the jitter.
+
+    Returns:
+        :class:`Maps` of shape ``(h·s, w·s)``. Average each ``s × s`` block of the remapped
+        image for a (uniform-weight) pixel estimate.
+
+    Example:
+        >>> from layoutwarp import UniformLayout
+        >>> forward_maps(UniformLayout(), (1, 2), (4, 8)).map_x
+        tensor([[1.5000, 5.5000]])
+    """
+    size, src_size = check_size(size), check_size(src_size, "src_size")
+    theta = layout.theta.detach().double()
+    with torch.no_grad():
+        u = sample_points(size, samples, jitter=jitter, generator=generator, device=theta.device)
+        q = layout.phi(u, theta)
+    return _to_maps(q, src_size)
+
+
+def inverse_maps(layout: Layout, size: tuple[int, int], target_size: tuple[int, int]) -> Maps:
+    """Which sensor-pixel coordinate each target pixel centre falls on.
+
+    Args:
+        layout: the pixel layout.
+        size: sensor size ``(h, w)`` (the image being sampled).
+        target_size: output size ``(H, W)`` (e.g. the ground-truth resolution).
+
+    Returns:
+        :class:`Maps` of shape ``(H, W)`` with coordinates on the sensor image: target pixel
+        centre ``q`` maps to ``sensor_to_pixels(φ⁻¹(q), (h, w), centered=True)``, so
+        ``floor(map + 0.5)`` is the index of the sensor pixel that contains ``q``.
+    """
+    size, target_size = check_size(size), check_size(target_size, "target_size")
+    theta = layout.theta.detach().double()
+    with torch.no_grad():
+        p = layout.phi_inverse(pixel_centers(target_size, device=theta.device), theta)
+    return _to_maps(p, size)
