@@ -24,6 +24,17 @@ DATA_SAMPLES = ROOT / "data_samples"
 SHARED_DATA = ROOT.parent / "shared" / "data"
 #: A lower bound on the memory one sensor pixel needs in any command (its mesh and weights).
 BYTES_PER_SENSOR_PIXEL = 200
+#: Library argument names and the command-line flags that set them, for error lines.
+FLAGS = {
+    "dst": "DST",
+    "src": "SRC",
+    "format": "--format",
+    "grid_um": "--grid-um",
+    "tol_um": "--tol-um",
+    "tol": "--tol",
+    "workers": "--workers",
+    "label_rule": "--label-rule",
+}
 
 
 class UsageError(Exception):
@@ -251,7 +262,10 @@ def _layout_from_args(args: argparse.Namespace):
     if args.layout and (args.family or args.theta):
         raise UsageError("argument --layout: give a layout file or --family/--theta, not both")
     if args.layout:
-        layout, info = load_layout(args.layout, dtype=torch.float64)
+        try:
+            layout, info = load_layout(args.layout, dtype=torch.float64)
+        except ValueError as exc:
+            raise UsageError(f"argument --layout: {exc}") from None
         size = args.size or (tuple(info["size_hw"]) if info.get("size_hw") else None)
     elif args.family:
         cls = FAMILIES[args.family]
@@ -522,8 +536,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return int(args.func(args) or 0)
     except (UsageError, ValueError, FileNotFoundError) as exc:
-        print(f"{prog}: error: {exc}", file=sys.stderr)
+        print(f"{prog}: error: {_name_the_flag(str(exc))}", file=sys.stderr)
         return 2
+
+
+def _name_the_flag(message: str) -> str:
+    """Prefix a library error about argument ``name`` with the flag that sets it."""
+    first = message.split(" ", 1)[0]
+    return f"argument {FLAGS[first]}: {message}" if first in FLAGS else message
 
 
 if __name__ == "__main__":  # pragma: no cover

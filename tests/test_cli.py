@@ -1,4 +1,6 @@
-"""The command line: the demo main job writes its figures and numbers."""
+"""The command line as a user meets it: every bad input ends in one line naming the flag, the
+value and what is allowed, with exit status 2 and no traceback; the help reads the same way
+everywhere."""
 
 from __future__ import annotations
 
@@ -7,9 +9,13 @@ import subprocess
 import sys
 
 import pytest
-from conftest import ROOT
+from conftest import ROOT, SAMPLES
 
-from layoutwarp.cli import main, parse_wxh
+import layoutwarp as lw
+from layoutwarp.cli import build_parser, main, parse_wxh
+
+CAMVID_VAL = str(SAMPLES / "camvid" / "val")
+MASK = ["--size", "4x4", "--sensor-um", "40x40"]
 
 
 def test_parse_wxh_is_width_by_height():
@@ -18,23 +24,206 @@ def test_parse_wxh_is_width_by_height():
         parse_wxh("257")
 
 
-def test_demo_writes_figures_and_numbers(tmp_path):
-    assert (
-        main(
-            [
-                "demo",
-                "--image",
-                str(ROOT / "data_samples" / "photos" / "kodim03.png"),
-                "--size",
-                "16x12",
-                "--out",
-                str(tmp_path),
-            ]
-        )
-        == 0
+@pytest.fixture
+def files(tmp_path):
+    (tmp_path / "bad.json").write_text("{not json")
+    (tmp_path / "empty.json").write_text("{}")
+    (tmp_path / "range.json").write_text(
+        json.dumps({"format": "layoutwarp.layout/1", "family": "rect", "theta": [1.5, 0]})
     )
+    (tmp_path / "afile").write_text("")
+    return tmp_path
+
+
+# (argv with {tmp} for the temporary folder, substrings the one error line must contain)
+CASES = {
+    "layout file missing": (
+        ["export", "--layout", "{tmp}/missing.json", *MASK, "--out", "{tmp}/x.svg"],
+        ["--layout", "missing.json", "no such layout file"],
+    ),
+    "layout file not JSON": (
+        ["export", "--layout", "{tmp}/bad.json", *MASK, "--out", "{tmp}/x.svg"],
+        ["--layout", "bad.json", "not a readable layout JSON"],
+    ),
+    "layout file {}": (
+        ["preprocess", CAMVID_VAL, "{tmp}/out", "--layout", "{tmp}/empty.json", "--size", "8x6"],
+        ["--layout", "empty.json", "expected format 'layoutwarp.layout/1'"],
+    ),
+    "layout file θ out of range": (
+        ["export", "--layout", "{tmp}/range.json", *MASK, "--out", "{tmp}/x.svg"],
+        ["--layout", "range.json", "theta[0] = 1.5", "|θ| < bound = 1.0"],
+    ),
+    "theta nan": (
+        ["export", "--family", "curv", "--theta", "nan,0", *MASK, "--out", "{tmp}/x.svg"],
+        ["--theta", "'nan,0'", "finite with |θ| < 1"],
+    ),
+    "DST a file": (
+        ["preprocess", CAMVID_VAL, "{tmp}/afile", "--family", "uniform", "--size", "8x6"],
+        ["DST", "afile", "is a file"],
+    ),
+    "DST under a file": (
+        ["preprocess", CAMVID_VAL, "{tmp}/afile/sub", "--family", "uniform", "--size", "8x6"],
+        ["DST", "afile/sub", "which is a file"],
+    ),
+    "mnist without data": (
+        ["train", "mnist", "--data", "{tmp}/nothing"],
+        ["no mnist data", "nothing", "--data DIR or --quick"],
+    ),
+    "epochs 0": (["train", "mnist", "--quick", "--epochs", "0"], ["--epochs", "'0'", "integer >= 1"]),
+    "epochs negative": (
+        ["train", "camvid", "--quick", "--epochs", "-3"],
+        ["--epochs", "'-3'", "integer >= 1"],
+    ),
+    "seeds 0": (["train", "faces", "--quick", "--seeds", "0"], ["--seeds", "'0'", "integer >= 1"]),
+    "samples 0": (["train", "mnist", "--quick", "--samples", "0"], ["--samples", "'0'", "integer >= 1"]),
+    "bench image missing": (
+        ["bench", "--image", "{tmp}/missing.png"],
+        ["--image", "missing.png", "no such file"],
+    ),
+    "huge size": (
+        [
+            "export",
+            "--family",
+            "uniform",
+            "--size",
+            "100000x100000",
+            "--sensor-um",
+            "1x1",
+            "--out",
+            "{tmp}/x.svg",
+        ],
+        ["--size", "100000x100000", "needs at least", "TiB", "available"],
+    ),
+    "huge size in train": (
+        ["train", "camvid", "--quick", "--size", "100000x100000"],
+        ["--size", "100000x100000", "needs at least"],
+    ),
+    "layout and family": (
+        [
+            "export",
+            "--layout",
+            "{tmp}/range.json",
+            "--family",
+            "curv",
+            "--theta",
+            "0.1,0.1",
+            *MASK,
+            "--out",
+            "{tmp}/x.svg",
+        ],
+        ["--layout", "or --family/--theta, not both"],
+    ),
+    "family without theta": (
+        ["export", "--family", "curv", *MASK, "--out", "{tmp}/x.svg"],
+        ["--family", "'curv'", "needs --theta TX,TY"],
+    ),
+    "theta for uniform": (
+        ["export", "--family", "uniform", "--theta", "0.1,0", *MASK, "--out", "{tmp}/x.svg"],
+        ["--theta", "no parameters", "(0.1, 0.0)"],
+    ),
+    "format and suffix disagree": (
+        [
+            "export",
+            "--family",
+            "curv",
+            "--theta",
+            "0.3,0.3",
+            *MASK,
+            "--format",
+            "svg",
+            "--out",
+            "{tmp}/x.gds",
+        ],
+        ["--format", "'svg'", "x.gds", "*.svg"],
+    ),
+    "unknown suffix": (
+        ["export", "--family", "uniform", *MASK, "--out", "{tmp}/x.jpg"],
+        ["--format", "'jpg'", "one of 'gds', 'dxf', 'svg', 'png'"],
+    ),
+    "unknown family": (
+        ["export", "--family", "hex", *MASK, "--out", "{tmp}/x.svg"],
+        ["--family", "'hex'", "choose from"],
+    ),
+}
+CASES |= {
+    f"grid coarser than a pixel ({fmt})": (
+        ["export", "--family", "uniform", *MASK, "--grid-um", "20", "--out", "{tmp}/x." + fmt],
+        ["--grid-um", "20", "not finer than the smallest pixel", "pitch 10"],
+    )
+    for fmt in ("gds", "dxf", "svg", "png")
+}
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_bad_input_ends_in_one_line_naming_flag_value_and_range(case, files, capsys):
+    argv, needles = CASES[case]
+    argv = [a.replace("{tmp}", str(files)) for a in argv]
+    with pytest.raises(SystemExit) as exit_info:  # argparse's own errors exit; ours return
+        sys.exit(main(argv))
+    assert exit_info.value.code == 2
+    captured = capsys.readouterr()
+    lines = captured.err.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in captured.err, captured.err
+    assert lines[0].startswith("layoutwarp ") and ": error: " in lines[0]
+    for needle in needles:
+        assert needle in lines[0], (needle, lines[0])
+    assert not any(files.glob("x.*")) and not (files / "out").exists()  # nothing written
+
+
+def test_version(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--version"])
+    assert exit_info.value.code == 0 and capsys.readouterr().out.strip() == f"layoutwarp {lw.__version__}"
+
+
+def _subparsers(parser):
+    for action in parser._actions:
+        if hasattr(action, "choices") and isinstance(action.choices, dict):
+            for name, sub in action.choices.items():
+                yield name, sub
+                yield from _subparsers(sub)
+
+
+def test_every_command_has_a_description_and_shows_defaults_the_same_way():
+    parser = build_parser()
+    assert "`" not in parser.description and "\n" not in parser.description
+    subs = dict(_subparsers(parser))
+    assert {"demo", "bench", "preprocess", "export", "train", "mnist", "camvid", "faces"} <= set(subs)
+    for name, sub in subs.items():
+        assert sub.description and "\n" not in sub.description.strip(), name
+        help_text = sub.format_help()
+        assert "(default: None)" not in help_text and "(default: False)" not in help_text
+        for action in sub._actions:
+            if (
+                action.help
+                and action.default not in (None, False)
+                and not action.option_strings == ["-h", "--help"]
+            ):
+                assert (
+                    "%(default)" in sub.formatter_class("x")._get_help_string(action)
+                    or "default" in action.help
+                ), (name, action.dest)
+    assert "--family" in subs["mnist"].format_help() and "--layout" not in subs["mnist"].format_help()
+    for name in ("export", "preprocess"):
+        assert "--layout FILE" in subs[name].format_help() and "--family" in subs[name].format_help()
+
+
+def test_each_experiment_shows_its_own_defaults():
+    from layoutwarp.experiments import camvid, faces, mnist
+
+    subs = dict(_subparsers(build_parser()))
+    for module in (mnist, camvid, faces):
+        d = module.DEFAULTS
+        text = " ".join(subs[d.task].format_help().split())
+        assert f"epochs (default: {d.epochs}; {d.quick_epochs} with --quick)" in text
+        assert f"seeds (default: {d.seeds}; 1 with --quick)" in text
+
+
+def test_demo_writes_figures_and_numbers(tmp_path):
+    image = str(SAMPLES / "photos" / "kodim03.png")
+    assert main(["demo", "--image", image, "--size", "16x12", "--out", str(tmp_path)]) == 0
     numbers = json.loads((tmp_path / "demo.json").read_text())
-    assert set(d["family"] for d in numbers["layouts"].values()) == {"uniform", "rect", "curv"}
+    assert {d["family"] for d in numbers["layouts"].values()} == {"uniform", "rect", "curv"}
     assert (tmp_path / "layouts.png").stat().st_size > 10_000
     for fam in ("uniform", "rect", "curv"):
         assert (tmp_path / f"sensor_{fam}.png").exists()
@@ -45,6 +234,7 @@ def test_python_dash_m_entry_point():
     assert res.returncode == 0 and "demo" in res.stdout
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("script", ["quickstart.py", "kornia_pipeline.py", "preprocess_and_export.py"])
 def test_examples_run(script):
     cmd = [sys.executable, str(ROOT / "examples" / script)]

@@ -72,7 +72,7 @@ def test_theta_count_and_bound_errors():
         lw.CurvLayout((0.1, 0.2), bound=0.0)
     with pytest.raises(ValueError, match=r"\|θ\| < bound = 0.5"):
         lw.CurvLayout((0.6, 0.2), bound=0.5)
-    with pytest.raises(ValueError, match="family must be one of 'uniform', 'rect', 'curv'.*got 'hex'"):
+    with pytest.raises(ValueError, match=r"family must be one of 'uniform', 'rect', 'curv'.*got 'hex'"):
         lw.make_layout("hex")
 
 
@@ -295,9 +295,7 @@ class TestLearn:
         assert lw.SensorLayer((5, 6), cls.family).layout.learnable  # the sensor layer learns by default
 
     def test_config_round_trip(self, gen):
-        layout = lw.CurvLayout(
-            rand_theta(gen), bound=1 + float(torch.rand(1, generator=gen)), dtype=F64
-        )
+        layout = lw.CurvLayout(rand_theta(gen), bound=1 + float(torch.rand(1, generator=gen)), dtype=F64)
         back = lw.CurvLayout.from_config(layout.to_config(), dtype=F64)
         assert back.bound == layout.bound and torch.allclose(back.theta, layout.theta, rtol=0, atol=1e-15)
         with pytest.raises(ValueError, match="'theta' must be a list of numbers"):

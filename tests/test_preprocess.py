@@ -14,7 +14,6 @@ from conftest import SAMPLES, rand_theta
 
 import layoutwarp as lw
 from layoutwarp.cli import main
-from layoutwarp.files import atomic_write
 from layoutwarp.preprocess import AreaResampler, area_weights, preprocess_folder
 
 F64 = torch.float64
@@ -144,19 +143,6 @@ def test_parallel_workers_give_identical_files_and_share_weights(tmp_path, monke
     assert a.processed == b.processed == 18 and len(b.failed) == 2
     for rel in [*imgs, *(f"same/{k}.png" for k in range(12))]:
         assert (tmp_path / "a" / rel).read_bytes() == (tmp_path / "b" / rel).read_bytes()
-
-
-def test_atomic_write_leaves_old_file_on_failure(tmp_path, monkeypatch):
-    target = tmp_path / "out.png"
-    target.write_bytes(b"old")
-
-    def boom(*args):
-        raise OSError("disk full")
-
-    monkeypatch.setattr("os.replace", boom)
-    with pytest.raises(OSError):
-        atomic_write(target, b"new contents")
-    assert target.read_bytes() == b"old" and list(tmp_path.iterdir()) == [target]
 
 
 def test_label_rules(tmp_path, gen):

@@ -205,7 +205,7 @@ class TestSimulate:
     def test_exception(self):
         with pytest.raises(TypeError, match="layout must be a layoutwarp Layout"):
             lw.simulate(torch.rand(1, 1, 4, 4), "curv", (2, 2))
-        with pytest.raises(TypeError, match="image must be a torch.Tensor"):
+        with pytest.raises(TypeError, match=r"image must be a torch\.Tensor"):
             lw.simulate(np.zeros((1, 1, 4, 4)), lw.UniformLayout(), (2, 2))
 
     @pytest.mark.parametrize("family", ["rect", "curv"])

@@ -1,4 +1,4 @@
-"""Saved layouts, IDX reading, and the MNIST experiment's quick mode."""
+"""The MNIST experiment: IDX reading, the shared training loop, and its quick run."""
 
 from __future__ import annotations
 
@@ -8,48 +8,12 @@ import json
 import numpy as np
 import pytest
 import torch
-from conftest import SAMPLES, SHARED, rand_theta
+from conftest import SAMPLES, SHARED
 
 import layoutwarp as lw
 from layoutwarp.cli import main
 from layoutwarp.experiments.data import load_mnist, read_idx
-from layoutwarp.layoutfile import load_layout, save_layout
-
-
-@pytest.mark.parametrize("family", ["uniform", "rect", "curv"])
-def test_layout_json_round_trip(family, gen, tmp_path):
-    theta = None if family == "uniform" else rand_theta(gen, 0.99)
-    layout = lw.make_layout(family, theta, dtype=torch.float64)
-    path = save_layout(layout, tmp_path / "l.json", size=(129, 257), note="x")
-    back, info = load_layout(path, dtype=torch.float64)
-    assert back.family == family and info["size_hw"] == [129, 257] and info["extra"] == {"note": "x"}
-    assert torch.allclose(back.theta, layout.theta.detach(), atol=1e-12)
-    assert not back.learnable and load_layout(path, learn=family != "uniform")[0].learnable == (
-        family != "uniform"
-    )
-
-
-def layout_file(**kw) -> str:
-    return json.dumps({"format": "layoutwarp.layout/1", **kw})
-
-
-def test_bad_layout_files_raise_clear_errors(tmp_path):
-    (tmp_path / "a.json").write_text("{not json")
-    with pytest.raises(ValueError, match="not a readable layout JSON"):
-        load_layout(tmp_path / "a.json")
-    (tmp_path / "b.json").write_text(
-        json.dumps({"format": "layoutwarp.layout/1", "family": "hex", "theta": [0, 0]})
-    )
-    with pytest.raises(ValueError, match="unknown layout family 'hex'"):
-        load_layout(tmp_path / "b.json")
-    (tmp_path / "c.json").write_text(json.dumps({"format": "other"}))
-    with pytest.raises(ValueError, match="not a layoutwarp layout file"):
-        load_layout(tmp_path / "c.json")
-    (tmp_path / "d.json").write_text(
-        json.dumps({"format": "layoutwarp.layout/1", "family": "rect", "theta": [2, 0]})
-    )
-    with pytest.raises(ValueError, match=r"theta\[0\] = 2"):
-        load_layout(tmp_path / "d.json")
+from layoutwarp.layoutfile import load_layout
 
 
 def test_read_idx_plain_and_gzip(tmp_path, gen):

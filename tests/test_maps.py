@@ -1,106 +1,21 @@
-"""Pixel meshes (areas, topology, adaptive subdivision) and remap maps (OpenCV and Kornia)."""
+"""Dense remap maps: OpenCV and Kornia agree, forward maps look at the deformed centres,
+inverse ∘ forward = identity."""
 
 from __future__ import annotations
 
 import cv2
 import numpy as np
 import pytest
-import shapely
 import torch
 from conftest import rand_theta
 from kornia.geometry.transform import remap as kornia_remap
 
 import layoutwarp as lw
-from layoutwarp.checks import check_size
 from layoutwarp.coords import sensor_to_pixels
 
 F64 = torch.float64
 # sizes that break the reference code's arange(-1, 1, 2/n) (n + 1 cells), odd and even, 1xN
 SIZES = [(1, 1), (1, 9), (9, 1), (49, 98), (98, 49), (7, 196), (196, 3), (4, 4), (5, 3)]
-
-
-def layouts(gen):
-    return [
-        lw.UniformLayout(dtype=F64),
-        lw.RectLayout(rand_theta(gen), dtype=F64),
-        lw.CurvLayout(rand_theta(gen), dtype=F64),
-    ]
-
-
-@pytest.mark.parametrize("size", SIZES)
-def test_mesh_areas_sum_to_sensor_area(size, gen):
-    for layout in layouts(gen):
-        mesh = lw.pixel_mesh(layout, size, tol=1e-4)
-        areas = mesh.areas()
-        assert areas.shape == size
-        assert abs(float(areas.sum()) - 4) < 1e-12
-        assert bool((areas > 0).all())
-        assert mesh.corners.shape == (size[0] + 1, size[1] + 1, 2)
-
-
-def test_uniform_corners_are_exact_at_the_border():
-    for n in (49, 98, 196, 3, 1):
-        c = lw.uniform_corners((n, n))
-        assert c.shape == (n + 1, n + 1, 2)
-        assert c[0, 0].tolist() == [-1, -1] and c[-1, -1].tolist() == [1, 1]
-
-
-@pytest.mark.parametrize("size", [(6, 9), (1, 5), (49, 3)])
-def test_mesh_polygons_tile_the_sensor(size, gen):
-    for layout in layouts(gen):
-        mesh = lw.pixel_mesh(layout, size, tol=1e-3)
-        polys = [shapely.Polygon(p) for p in mesh.polygons()]
-        assert len(polys) == size[0] * size[1]
-        assert all(p.is_valid for p in polys)
-        areas = np.array([p.area for p in polys]).reshape(size)
-        assert np.abs(areas - mesh.areas().detach().numpy()).max() < 1e-14
-        union = shapely.union_all(polys)
-        assert abs(union.area - 4) < 1e-10  # no gaps ...
-        assert abs(areas.sum() - union.area) < 1e-10  # ... and no overlaps
-        # polygons are positively oriented in (x, y)
-        assert all(shapely.is_ccw(p.exterior) for p in polys)
-
-
-def test_straight_edges_are_never_subdivided(gen):
-    for layout in (lw.UniformLayout(), lw.RectLayout(rand_theta(gen, 0.99))):
-        mesh = lw.pixel_mesh(layout, (20, 30), tol=1e-9)
-        assert int(mesh.subdivisions().max()) == 1
-
-
-def test_curved_edges_subdivide_only_where_curved(gen):
-    layout = lw.CurvLayout((0.7, -0.6), dtype=F64)
-    mesh = lw.pixel_mesh(layout, (24, 24), tol=1e-5)
-    n = mesh.subdivisions()
-    assert int(n.max()) > 1
-    # edges entirely outside the unit circle are straight: one segment
-    h = w = 24
-    c = lw.uniform_corners((h, w))
-    mids = torch.cat([((c[:, :-1] + c[:, 1:]) / 2).reshape(-1, 2), ((c[:-1] + c[1:]) / 2).reshape(-1, 2)])
-    ends_a = torch.cat([c[:, :-1].reshape(-1, 2), c[:-1].reshape(-1, 2)])
-    ends_b = torch.cat([c[:, 1:].reshape(-1, 2), c[1:].reshape(-1, 2)])
-    outside = (ends_a.norm(dim=-1) >= 1) & (ends_b.norm(dim=-1) >= 1) & (mids.norm(dim=-1) >= 1)
-    assert int(n[outside].max()) == 1
-    # looser tolerance, fewer segments
-    assert lw.pixel_mesh(layout, (24, 24), tol=1e-3).num_segments < mesh.num_segments
-
-
-@pytest.mark.parametrize("tol", [1e-3, 1e-4, 1e-5])
-def test_subdivision_meets_value_tolerance(tol, gen):
-    # The polyline error of every pixel value must stay within tol · (value range).
-    layout = lw.CurvLayout(rand_theta(gen, 0.9), dtype=F64)
-    size = (9, 13)
-    img = torch.rand(1, 64, 96, generator=gen, dtype=F64)
-    fine = lw.integrate_exact(img, layout, size, mesh=lw.pixel_mesh(layout, size, subdivisions=4096))
-    got = lw.integrate_exact(img, layout, size, tol=tol)
-    assert float((got - fine).abs().max()) <= tol * float(img.max() - img.min())
-
-
-@pytest.mark.parametrize("bad", [(0, 4), (4, -1), (2.5, 3), "ab", (1, 2, 3), None])
-def test_bad_sizes_raise(bad):
-    with pytest.raises(ValueError, match="size must be a pair"):
-        check_size(bad)
-    with pytest.raises(ValueError, match="size"):
-        lw.pixel_mesh(lw.RectLayout(), bad)
 
 
 def smooth_image(gen, h, w, c=3):

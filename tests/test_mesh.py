@@ -1,0 +1,150 @@
+"""Pixel meshes: areas, tiling (shapely), subdivision where edges curve, tolerance, topology."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import shapely
+import torch
+from conftest import rand_theta
+
+import layoutwarp as lw
+from layoutwarp.mesh import MeshTopology, polygon_area, segment_area, smooth_pieces
+
+F64 = torch.float64
+# sizes that break the reference code's arange(-1, 1, 2/n) (n + 1 cells), odd and even, 1xN
+SIZES = [(1, 1), (1, 9), (9, 1), (49, 98), (98, 49), (7, 196), (196, 3), (4, 4), (5, 3)]
+
+
+def layouts(gen):
+    return [
+        lw.UniformLayout(dtype=F64),
+        lw.RectLayout(rand_theta(gen), dtype=F64),
+        lw.CurvLayout(rand_theta(gen), dtype=F64),
+    ]
+
+
+@pytest.mark.parametrize("size", SIZES)
+def test_mesh_areas_sum_to_sensor_area(size, gen):
+    for layout in layouts(gen):
+        mesh = lw.pixel_mesh(layout, size, tol=1e-4)
+        areas = mesh.areas()
+        assert areas.shape == size
+        assert abs(float(areas.sum()) - 4) < 1e-12
+        assert bool((areas > 0).all())
+        assert mesh.corners.shape == (size[0] + 1, size[1] + 1, 2)
+
+
+@pytest.mark.parametrize("size", [(6, 9), (1, 5), (49, 3)])
+def test_mesh_polygons_tile_the_sensor(size, gen):
+    for layout in layouts(gen):
+        mesh = lw.pixel_mesh(layout, size, tol=1e-3)
+        polys = [shapely.Polygon(p) for p in mesh.polygons()]
+        assert len(polys) == size[0] * size[1]
+        assert all(p.is_valid for p in polys)
+        areas = np.array([p.area for p in polys]).reshape(size)
+        assert np.abs(areas - mesh.areas().detach().numpy()).max() < 1e-14
+        union = shapely.union_all(polys)
+        assert abs(union.area - 4) < 1e-10  # no gaps ...
+        assert abs(areas.sum() - union.area) < 1e-10  # ... and no overlaps
+        # polygons are positively oriented in (x, y)
+        assert all(shapely.is_ccw(p.exterior) for p in polys)
+
+
+def test_straight_edges_are_never_subdivided(gen):
+    for layout in (lw.UniformLayout(), lw.RectLayout(rand_theta(gen, 0.99))):
+        mesh = lw.pixel_mesh(layout, (20, 30), tol=1e-9)
+        assert int(mesh.subdivisions().max()) == 1
+
+
+def test_curved_edges_subdivide_only_where_curved(gen):
+    layout = lw.CurvLayout((0.7, -0.6), dtype=F64)
+    mesh = lw.pixel_mesh(layout, (24, 24), tol=1e-5)
+    n = mesh.subdivisions()
+    assert int(n.max()) > 1
+    # edges entirely outside the unit circle are straight: one segment
+    h = w = 24
+    c = lw.uniform_corners((h, w))
+    mids = torch.cat([((c[:, :-1] + c[:, 1:]) / 2).reshape(-1, 2), ((c[:-1] + c[1:]) / 2).reshape(-1, 2)])
+    ends_a = torch.cat([c[:, :-1].reshape(-1, 2), c[:-1].reshape(-1, 2)])
+    ends_b = torch.cat([c[:, 1:].reshape(-1, 2), c[1:].reshape(-1, 2)])
+    outside = (ends_a.norm(dim=-1) >= 1) & (ends_b.norm(dim=-1) >= 1) & (mids.norm(dim=-1) >= 1)
+    assert int(n[outside].max()) == 1
+    # looser tolerance, fewer segments
+    assert lw.pixel_mesh(layout, (24, 24), tol=1e-3).num_segments < mesh.num_segments
+
+
+@pytest.mark.parametrize("tol", [1e-3, 1e-4, 1e-5])
+def test_subdivision_meets_value_tolerance(tol, gen):
+    # The polyline error of every pixel value must stay within tol · (value range).
+    layout = lw.CurvLayout(rand_theta(gen, 0.9), dtype=F64)
+    size = (9, 13)
+    img = torch.rand(1, 64, 96, generator=gen, dtype=F64)
+    fine = lw.integrate_exact(img, layout, size, mesh=lw.pixel_mesh(layout, size, subdivisions=4096))
+    got = lw.integrate_exact(img, layout, size, tol=tol)
+    assert float((got - fine).abs().max()) <= tol * float(img.max() - img.min())
+
+
+class TestTopology:
+    @pytest.mark.parametrize("size", [(1, 1), (2, 3), (5, 4)])
+    def test_every_interior_edge_is_shared_with_opposite_signs(self, size):
+        topo = MeshTopology(size)
+        h, w = size
+        pix = topo.edge_pixels()
+        assert pix.shape == (topo.num_edges, 2) and topo.num_edges == (h + 1) * w + h * (w + 1)
+        # each pixel appears in exactly 4 edges: twice with +, twice with −
+        plus = np.bincount(pix[:, 0][pix[:, 0] >= 0], minlength=h * w)
+        minus = np.bincount(pix[:, 1][pix[:, 1] >= 0], minlength=h * w)
+        assert (plus == 2).all() and (minus == 2).all()
+        border = (pix < 0).any(1).sum()
+        assert border == 2 * (h + w)
+        edges = topo.pixel_edges()
+        for i in range(h):
+            for j in range(w):
+                top, right, bottom, left = edges[i, j]
+                assert pix[top, 0] == pix[right, 0] == pix[bottom, 1] == pix[left, 1] == i * w + j
+
+    def test_combine_matches_pixel_edges(self, gen):
+        topo = MeshTopology((3, 4))
+        vals = torch.randn(topo.num_edges, generator=gen, dtype=F64)
+        e = torch.from_numpy(topo.pixel_edges())
+        expected = vals[e[..., 0]] + vals[e[..., 1]] - vals[e[..., 2]] - vals[e[..., 3]]
+        assert torch.allclose(topo.combine(vals), expected, rtol=0, atol=1e-15)
+
+    def test_edge_ends_follow_the_numbering(self):
+        topo = MeshTopology((2, 3))
+        a, b = topo.edge_ends()
+        corners = lw.uniform_corners((2, 3))
+        assert torch.equal(a[topo.horizontal(1, 2)], corners[1, 2]) and torch.equal(
+            b[topo.horizontal(1, 2)], corners[1, 3]
+        )
+        assert torch.equal(a[topo.vertical(1, 3)], corners[1, 3]) and torch.equal(
+            b[topo.vertical(1, 3)], corners[2, 3]
+        )
+
+
+def test_polygon_area_against_shapely(gen):
+    for _ in range(20):
+        n = int(torch.randint(3, 12, (1,), generator=gen))
+        ang = torch.sort(torch.rand(n, generator=gen, dtype=F64) * 2 * np.pi).values
+        rad = 0.5 + torch.rand(n, generator=gen, dtype=F64)
+        poly = torch.stack([rad * ang.cos(), rad * ang.sin()], -1)  # star-shaped, counter-clockwise in (x, y)
+        ref = shapely.Polygon(poly.numpy()).area
+        assert abs(float(polygon_area(poly)) - ref) < 1e-12
+        assert abs(float(polygon_area(poly.numpy())) - ref) < 1e-12  # numpy too
+        assert abs(float(segment_area(poly, poly.roll(-1, 0)).sum()) - ref) < 1e-12
+
+
+def test_smooth_pieces_cut_at_the_unit_circle(gen):
+    a = torch.tensor([[-1.0, 0.3], [-1.0, 0.9], [0.2, 0.1]], dtype=F64)
+    b = torch.tensor([[1.0, 0.3], [1.0, 0.9], [0.3, 0.1]], dtype=F64)
+    edge, t0, t1 = smooth_pieces(lw.CurvLayout(rand_theta(gen), dtype=F64), a, b)
+    assert edge.tolist() == [0, 0, 0, 1, 1, 1, 2]  # two chords cross the circle twice, a segment inside never
+    crossing = a[edge[1:3]] + t0[1:3, None] * (b - a)[edge[1:3]]
+    assert torch.allclose(crossing.norm(dim=-1), torch.ones(2, dtype=F64), atol=1e-14)
+    u = a[1] + t0[4] * (b[1] - a[1])
+    assert abs(float(u.norm()) - 1) < 1e-14
+    # pieces of an edge are consecutive and cover [0, 1]
+    for e in range(3):
+        sel = edge == e
+        assert float(t0[sel][0]) == 0 and float(t1[sel][-1]) == 1 and torch.equal(t0[sel][1:], t1[sel][:-1])
