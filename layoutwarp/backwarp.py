@@ -60,9 +60,9 @@ def backwarp(pred: Tensor, layout: Layout, target_size: tuple[int, int], mode: s
 
     Example:
         >>> from layoutwarp import RectLayout
-        >>> backwarp(torch.arange(4.0).view(1, 1, 2, 2), RectLayout((0.5, 0.0)), (2, 4))[0, 0]
-        tensor([[0., 1., 1., 1.],
-                [2., 3., 3., 3.]])
+        >>> # θ_x = 0.5: the middle one of three sensor pixels is small, the outer ones wide
+        >>> backwarp(torch.arange(3.0).view(1, 1, 1, 3), RectLayout((0.5, 0.0)), (1, 8))[0, 0]
+        tensor([[0., 0., 0., 1., 1., 2., 2., 2.]])
     """
     check_shape(pred, "B C h w|B h w", "pred")
     size = check_size(target_size, "target_size")

@@ -36,6 +36,7 @@ __all__ = ["FORMATS", "ExportReport", "export_layout", "pixel_polygons_um", "rep
 
 FORMATS = ("gds", "dxf", "svg", "png")
 GDS_DBU_UM = 1e-3  # the GDSII database unit (precision 1e-9 m) in µm
+GDS_MAX_POINTS = 8190  # the most vertices one GDSII boundary record holds; longer ones are fractured
 
 
 @dataclass
@@ -277,7 +278,7 @@ def _write_gds(path: Path, polys, hu: float, layer: int, datatype: int, cell: st
     c = lib.new_cell(cell)
     for p in polys:
         c.add(gdstk.Polygon(np.stack([p[:, 0], hu - p[:, 1]], -1), layer=layer, datatype=datatype))
-    atomic_write(path, lib.write_gds)
+    atomic_write(path, lambda tmp: lib.write_gds(tmp, max_points=GDS_MAX_POINTS))
 
 
 def _write_dxf(path: Path, polys, hu: float, layer: int) -> None:
@@ -423,6 +424,12 @@ def export_layout(
         )
     if (areas <= 0).any():
         report.warnings.append(f"{int((areas <= 0).sum())} pixels collapsed to zero area (grid too coarse)")
+    longest = max(len(p) for p in polys)
+    if fmt == "gds" and longest > GDS_MAX_POINTS:
+        report.warnings.append(
+            f"a pixel outline has {longest} vertices, more than a GDSII boundary holds ({GDS_MAX_POINTS}): "
+            "it is written as several polygons; use a larger tol_um"
+        )
     if fmt == "gds":
         _write_gds(path, polys, hu, layer, datatype, cell)
     elif fmt == "dxf":

@@ -56,7 +56,7 @@ class MeshTopology:
     Example:
         >>> top = MeshTopology((2, 3))
         >>> top.num_edges, top.pixel_edges()[1, 2].tolist()  # top, right, bottom, left
-        (17, [5, 17, 8, 16])
+        (17, [5, 16, 8, 15])
     """
 
     size: tuple[int, int]

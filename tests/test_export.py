@@ -149,3 +149,16 @@ def test_cli_export_and_errors(tmp_path, capsys):
     assert "format must be one of" in capsys.readouterr().err
     with pytest.raises(ValueError, match="grid_um"):
         pixel_polygons_um(lw.UniformLayout(), SIZE, UM, grid_um=-1)
+
+
+def test_gds_keeps_a_many_vertex_pixel_in_one_polygon(tmp_path):
+    import gdstk
+
+    layout = lw.CurvLayout((0.95, -0.9), dtype=torch.float64)
+    polys, _ = pixel_polygons_um(layout, (3, 4), UM, tol_um=1e-4)
+    assert max(len(p) for p in polys) > 199  # gdstk's default would fracture these
+    rep = export_layout(layout, (3, 4), tmp_path / "m.gds", UM, tol_um=1e-4)
+    back = gdstk.read_gds(str(tmp_path / "m.gds")).cells[0].polygons
+    assert len(back) == 12 and not rep.warnings
+    snapped, _ = pixel_polygons_um(layout, (3, 4), UM, tol_um=1e-4, grid_um=1e-3)  # what the file holds
+    assert sorted(len(p.points) for p in back) == sorted(len(p) for p in snapped)
