@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 import torch
 from conftest import SAMPLES
 
@@ -110,6 +111,7 @@ def test_class_weighted_camvid_training_differs_from_plain():
         train_camvid(train, val, "uniform", (9, 12), class_weights="inverse", **opts)
 
 
+@pytest.mark.slow
 def test_quick_commands_write_results(tmp_path):
     assert main(["train", "camvid", "--quick", "--no-progress", "--out", str(tmp_path / "c")]) == 0
     res = json.loads((tmp_path / "c" / "results.json").read_text())

@@ -38,6 +38,7 @@ def test_data_samples_mnist_matches_the_full_set_prefix():
     assert np.array_equal(full["test_labels"][:1000], small["test_labels"])
 
 
+@pytest.mark.slow
 def test_train_mnist_quick_writes_results_layout_and_figures(tmp_path):
     code = main(["train", "mnist", "--quick", "--epochs", "1", "--no-progress", "--out", str(tmp_path)])
     assert code == 0

@@ -81,6 +81,7 @@ def test_vector_formats_read_back(fmt, family, gen, tmp_path):
     assert rep.max_area_um2 == pytest.approx(max(areas), rel=1e-12)
 
 
+@pytest.mark.slow
 def test_tolerance_snapping_and_manhattan(gen):
     layout = layout_of("curv", gen)
     fine = lw.pixel_mesh(layout, SIZE, tol=1e-10).polygons()

@@ -138,6 +138,7 @@ def test_hard_source_of_one_pixel(method):
         assert torch.allclose(out, torch.full_like(out, 0.3), atol=1e-6)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("family", FAMILIES)
 def test_hard_very_wide_image_float32_prefix_sums(family):
     # 1 x 8192 at 1000 ± 0.5: a plain float32 prefix sum reaches 8e6 (ulp 0.5) and would be

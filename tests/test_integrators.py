@@ -299,6 +299,7 @@ def test_montecarlo_converges_to_exact(gen):
     assert errs[2] < 2e-3
 
 
+@pytest.mark.slow
 def test_curved_tolerance_holds_for_mixed_sign_theta(gen):
     # S-shaped edges (θx, θy of opposite signs) have no sagitta at their middle; the value
     # error must still stay within tol (it was 3.4x over when only the middle was measured)

@@ -125,8 +125,9 @@ class TestTopology:
 
 def test_polygon_area_against_shapely(gen):
     for _ in range(20):
-        n = int(torch.randint(3, 12, (1,), generator=gen))
-        ang = torch.sort(torch.rand(n, generator=gen, dtype=F64) * 2 * np.pi).values
+        n = int(torch.randint(5, 13, (1,), generator=gen))
+        # jittered, evenly spaced angles: every gap < π, so the polygon is simple (star-shaped)
+        ang = (torch.arange(n, dtype=F64) + 0.9 * torch.rand(n, generator=gen, dtype=F64)) * (2 * np.pi / n)
         rad = 0.5 + torch.rand(n, generator=gen, dtype=F64)
         poly = torch.stack([rad * ang.cos(), rad * ang.sin()], -1)  # star-shaped, counter-clockwise in (x, y)
         ref = shapely.Polygon(poly.numpy()).area
