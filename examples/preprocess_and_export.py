@@ -36,7 +36,7 @@ def main(out: Path) -> None:
     print(f"back-warped labels: {full.shape}, classes {sorted(set(full.ravel().tolist()))}")
 
     for fmt in ("gds", "svg", "png"):
-        report = lw.export_layout(layout, size, out / f"mask.{fmt}", (4800, 3600), min_feature_um=30)
+        report = lw.export_layout(layout, size, out / f"mask.{fmt}", (3600, 4800), min_feature_um=30)  # (H, W) µm
         print(report.summary())
 
 

@@ -22,10 +22,12 @@ import warnings
 from collections.abc import Callable, Iterator
 from typing import NamedTuple
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from . import kernels
 from .checks import check_choice, check_int, check_shape, check_size, floating_dtype
 from .coords import grid_lines, pixel_centers, sensor_to_pixels
 from .layouts import Layout
@@ -33,6 +35,7 @@ from .maps import sample_points
 from .mesh import MeshTopology, PixelMesh, pixel_mesh, ranges
 
 __all__ = [
+    "BACKENDS",
     "RADIANCES",
     "GreenPieces",
     "Radiance",
@@ -47,6 +50,8 @@ __all__ = [
 
 #: Radiance models of a pixel image: each source pixel a constant square, or bilinear.
 RADIANCES = ("box", "bilinear")
+#: Implementations of the exact integrator (see :func:`integrate_exact`).
+BACKENDS = ("auto", "numba", "torch")
 
 
 def _check_image(image: Tensor, name: str = "image") -> Tensor:
@@ -241,6 +246,41 @@ class _BoundaryFlux(torch.autograd.Function):
         return grad, g, None, None, None
 
 
+class _ExactKernel(torch.autograd.Function):
+    """Per-segment Green integrals by the compiled kernel; its backward is the exact Reynolds
+    vertex gradient (as :class:`_BoundaryFlux`), also compiled. No image gradient."""
+
+    @staticmethod
+    def forward(ctx, verts: Tensor, image: Tensor, seg_start: Tensor, seg_end: Tensor) -> Tensor:
+        ends = _segment_ends(verts.detach(), seg_start, seg_end)
+        img = image.detach().contiguous().numpy()
+        incl, offsets = kernels.prefix_tables(img, kernels.BLOCK)
+        out = kernels.exact_forward(*ends, img, incl, offsets, kernels.BLOCK)
+        ctx.save_for_backward(verts, image, seg_start, seg_end)
+        return torch.from_numpy(out)
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):
+        verts, image, seg_start, seg_end = ctx.saved_tensors
+        vd = verts.detach()
+        ends = _segment_ends(vd, seg_start, seg_end)
+        img = image.detach().contiguous().numpy()
+        wa, wb = kernels.exact_backward(*ends, img, grad.detach().double().contiguous().numpy())
+        a, b = vd[seg_start], vd[seg_end]
+        normal = torch.stack([b[:, 1] - a[:, 1], a[:, 0] - b[:, 0]], -1)
+        g = torch.zeros_like(vd)
+        g.index_add_(0, seg_start, torch.from_numpy(wa)[:, None] * normal)
+        g.index_add_(0, seg_end, torch.from_numpy(wb)[:, None] * normal)
+        return g, None, None, None
+
+
+def _segment_ends(verts: Tensor, seg_start: Tensor, seg_end: Tensor) -> tuple:
+    """``(ax, ay, bx, by)``: contiguous float64 arrays of the segments' end points."""
+    v = verts.double().cpu().numpy()
+    a, b = v[seg_start.cpu().numpy()], v[seg_end.cpu().numpy()]
+    return tuple(np.ascontiguousarray(x) for x in (a[:, 0], a[:, 1], b[:, 0], b[:, 1]))
+
+
 def integrate_exact(
     image: Tensor,
     layout: Layout,
@@ -249,6 +289,7 @@ def integrate_exact(
     tol: float | None = 1e-5,
     mesh: PixelMesh | None = None,
     theta: Tensor | None = None,
+    backend: str = "auto",
 ) -> Tensor:
     """Exact mean of a piecewise-constant (box) image over every polygonal pixel.
 
@@ -268,17 +309,29 @@ def integrate_exact(
         tol: polyline tolerance (relative pixel-value error) for curved edges.
         mesh: a precomputed mesh (overrides ``layout``/``tol``/``theta`` for the geometry).
         theta: use this θ instead of the layout's own (e.g. for ``gradcheck``).
+        backend: ``"numba"`` (the compiled kernels of :mod:`layoutwarp.kernels`: CPU, no
+            image gradient), ``"torch"`` (the vectorised reference: any device, image
+            gradient) or ``"auto"`` (numba when it applies, else torch).
 
     Returns:
         ``(N, h, w)`` in float64.
     """
     n, hs, ws = _check_image(image).shape
+    check_choice(backend, BACKENDS, "backend")
+    kernel_ok = kernels.available() and image.device.type == "cpu" and not image.requires_grad
+    if backend == "numba" and not kernel_ok:
+        raise ValueError(
+            "backend='numba' needs numba installed, a CPU image and no image gradient; use backend='torch'"
+        )
     if mesh is None:
         mesh = pixel_mesh(layout, check_size(size), tol=tol, dtype=torch.float64, theta=theta)
     verts = mesh.pixel_vertices((hs, ws))
+    work = image.to(floating_dtype(image.dtype))
+    if backend != "torch" and kernel_ok:
+        per_seg = _ExactKernel.apply(verts, work, mesh.seg_start, mesh.seg_end)
+        return mesh.combine_edges(mesh.sum_over_edges(per_seg)) / mesh.areas(verts)
     vd = verts.detach()
     a, b = vd[mesh.seg_start], vd[mesh.seg_end]
-    work = image.to(floating_dtype(image.dtype))
     tables = _PrefixTables(work)
     per_seg = vd.new_zeros(n, mesh.num_segments)
     for sl in _segment_chunks(a, b):  # autograd records each in-place add (image gradient)

@@ -156,11 +156,6 @@ def _confusion(pred: torch.Tensor, labels: torch.Tensor, k: int, ignore: int) ->
     return torch.bincount(idx, minlength=k * k).reshape(k, k).numpy()
 
 
-def _sensor() -> dict:
-    """The sensor options of this experiment unless the caller gives its own."""
-    return {"method": "exact", "tol": DEFAULTS.tol}
-
-
 def train_camvid(
     train: tuple[np.ndarray, np.ndarray],
     val: tuple[np.ndarray, np.ndarray],
@@ -186,7 +181,7 @@ def train_camvid(
         raise ValueError(f"class_weights must be 'none' or 'median', got {class_weights!r}")
     torch.manual_seed(seed)
     gen = torch.Generator().manual_seed(seed)
-    model = SegNet(layout, size, learn=layout != "uniform", **(sensor or _sensor()))
+    model = SegNet(layout, size, learn=layout != "uniform", **(sensor or DEFAULTS.sensor()))
     opt = optimizer(model, lr, theta_lr)
     x, y = to_tensor(train[0]), torch.from_numpy(train[1]).long()
     weight = None
@@ -253,7 +248,7 @@ def run_camvid_experiment(
     """Every family × sensor size × seed on CamVid; writes results.json, layouts and figures."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    sensor = sensor or _sensor()
+    sensor = sensor or DEFAULTS.sensor()
     train, val = load_camvid(data_dir, "train", limit), load_camvid(data_dir, "val", limit)
     runs, models = [], {}
     for size in sizes:

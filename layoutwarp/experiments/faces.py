@@ -57,11 +57,6 @@ class FaceNet(nn.Module):
         return {k: head(z) for k, head in self.heads.items()}
 
 
-def _sensor() -> dict:
-    """The sensor options of this experiment unless the caller gives its own."""
-    return {"method": "exact", "tol": DEFAULTS.tol}
-
-
 def train_faces(
     data: dict[str, np.ndarray],
     train_idx: np.ndarray,
@@ -81,7 +76,7 @@ def train_faces(
     """Train sensor + FaceNet on the ``train_idx`` faces; accuracies on ``test_idx``."""
     torch.manual_seed(seed)
     gen = torch.Generator().manual_seed(seed)
-    model = FaceNet(layout, size, learn=layout != "uniform", **(sensor or _sensor()))
+    model = FaceNet(layout, size, learn=layout != "uniform", **(sensor or DEFAULTS.sensor()))
     opt = optimizer(model, lr, theta_lr)
     x = to_tensor(data["images"])
     targets = {k: torch.from_numpy(data[k]).long() for k in FaceNet.HEADS}
@@ -145,7 +140,7 @@ def run_faces_experiment(
     """Every family × sensor size × seed on UTKFace attributes; writes results.json and figures."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    sensor = sensor or _sensor()
+    sensor = sensor or DEFAULTS.sensor()
     data = load_faces(data_dir, limit)
     n = len(data["images"])
     order = np.random.default_rng(1234).permutation(n)  # one fixed split for every run

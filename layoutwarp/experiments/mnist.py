@@ -71,11 +71,6 @@ class RunResult:
     seconds: float = 0.0
 
 
-def _sensor() -> dict:
-    """The sensor options of this experiment unless the caller gives its own."""
-    return {"method": "exact", "tol": DEFAULTS.tol}
-
-
 def train_mnist(
     data: dict[str, np.ndarray],
     layout: str = "curv",
@@ -95,7 +90,7 @@ def train_mnist(
     """
     torch.manual_seed(seed)
     gen = torch.Generator().manual_seed(seed)
-    model = MnistNet(layout, size, learn=layout != "uniform", **(sensor or _sensor()))
+    model = MnistNet(layout, size, learn=layout != "uniform", **(sensor or DEFAULTS.sensor()))
     opt = torch.optim.Adam(model.parameters(), lr=lr)
     x_train = torch.from_numpy(data["train_images"]).float().div(255)[:, None]
     y_train = torch.from_numpy(data["train_labels"]).long()
@@ -144,8 +139,7 @@ def run_mnist_experiment(
     """Train every family for every seed; write ``results.json``, ``layout.json`` and figures."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    sensor = sensor or _sensor()
-    layouts = families
+    sensor = sensor or DEFAULTS.sensor()
     data = load_mnist(data_dir)
     if limit_train:
         data = {
@@ -155,7 +149,7 @@ def run_mnist_experiment(
         }
     runs: list[RunResult] = []
     models: dict[str, MnistNet] = {}
-    for layout in layouts:
+    for layout in families:
         for seed in seeds:
             res, model = train_mnist(data, layout, seed=seed, epochs=epochs, progress=progress, sensor=sensor)
             runs.append(res)
@@ -165,7 +159,7 @@ def run_mnist_experiment(
                 f"θ = ({', '.join(f'{v:+.3f}' for v in res.theta)})  [{res.seconds:.0f} s]"
             )
     summary = {}
-    for layout in layouts:
+    for layout in families:
         accs = np.array([r.test_accuracy for r in runs if r.layout == layout])
         thetas = np.array([r.theta for r in runs if r.layout == layout])
         summary[layout] = {
@@ -185,7 +179,7 @@ def run_mnist_experiment(
         "runs": [r.__dict__ for r in runs],
     }
     atomic_write(out / "results.json", json.dumps(result, indent=2))
-    best = "curv" if "curv" in models else layouts[-1]
+    best = "curv" if "curv" in models else families[-1]
     save_layout(
         models[best].sensor.layout,
         out / "layout.json",

@@ -45,6 +45,10 @@ class ExperimentDefaults:
     tol: float
     freeze_epochs: int = 0
 
+    def sensor(self) -> dict:
+        """The sensor options of the experiment unless the caller gives its own."""
+        return {"method": "exact", "tol": self.tol}
+
 
 def fit(
     model: nn.Module,

@@ -1,0 +1,115 @@
+"""The compiled kernels against the torch reference: values and θ-gradients to 1e-12 (float64)
+and 1e-6 (float32) on random layouts, sizes and the hard cases; gradcheck on the kernel."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from conftest import rand_theta
+
+import layoutwarp as lw
+from layoutwarp import kernels
+
+F64 = torch.float64
+pytestmark = pytest.mark.skipif(not kernels.available(), reason="numba is not installed")
+
+
+def rint(gen, lo, hi):
+    return int(torch.randint(lo, hi + 1, (1,), generator=gen))
+
+
+def both(img, layout, size, theta=None, weights=None, **kw):
+    """Values, and θ-gradients of Σ weights · values, from both backends."""
+    out = []
+    for backend in ("numba", "torch"):
+        th = (layout.theta.detach() if theta is None else theta).clone().requires_grad_(True)
+        val = lw.integrate_exact(img, layout, size, theta=th, backend=backend, **kw)
+        w = torch.ones_like(val) if weights is None else weights
+        (g,) = torch.autograd.grad((val * w).sum(), th)
+        out.append((val.detach(), g))
+    return out
+
+
+@pytest.mark.parametrize("family", ["rect", "curv"])
+def test_values_and_gradients_match_the_reference_in_float64(family, gen):
+    for _ in range(4):
+        src = (rint(gen, 5, 90), rint(gen, 5, 90))
+        size = (rint(gen, 1, 24), rint(gen, 1, 24))
+        layout = lw.make_layout(family, rand_theta(gen, 0.95), dtype=F64)
+        img = torch.rand(rint(gen, 1, 4), *src, generator=gen, dtype=F64) * 10 - 3
+        w = torch.randn(img.shape[0], *size, generator=gen, dtype=F64)
+        (va, ga), (vb, gb) = both(img, layout, size, weights=w, tol=1e-6)
+        assert float((va - vb).abs().max()) <= 1e-12 * float(vb.abs().max())
+        assert float((ga - gb).abs().max()) <= 1e-12 * max(float(gb.abs().max()), 1.0)
+
+
+def test_float32_matches_the_reference(gen):
+    layout = lw.CurvLayout(rand_theta(gen), dtype=F64)
+    img = torch.rand(3, 300, 257, generator=gen) + 1000  # a large offset: prefix sums must stay local
+    a = lw.integrate_exact(img, layout, (31, 29), tol=1e-4, backend="numba")
+    b = lw.integrate_exact(img, layout, (31, 29), tol=1e-4, backend="torch")
+    assert float((a - b).abs().max()) <= 1e-6 * float(b.abs().max())
+
+
+@pytest.mark.parametrize(
+    ("theta", "size", "src"),
+    [
+        ((0.0, 0.0), (4, 4), (28, 28)),  # every edge on a source cell boundary
+        ((0.3, -0.5), (1, 1), (9, 13)),
+        ((0.3, -0.5), (1, 17), (9, 13)),
+        ((0.7, 0.2), (60, 70), (20, 30)),  # pixels smaller than source cells
+        ((-0.4, 0.6), (3, 5), (1, 1)),  # one source pixel
+    ],
+)
+def test_hard_cases_match_the_reference(theta, size, src, gen):
+    layout = lw.CurvLayout(theta, dtype=F64)
+    img = torch.rand(2, *src, generator=gen, dtype=F64)
+    (va, ga), (vb, gb) = both(img, layout, size, tol=1e-5)
+    assert torch.isfinite(va).all() and torch.isfinite(ga).all()
+    assert float((va - vb).abs().max()) <= 1e-12
+    assert float((ga - gb).abs().max()) <= 1e-12 * max(float(gb.abs().max()), 1.0)
+
+
+def test_extreme_theta_matches_the_reference_to_its_rounding(gen):
+    # At θ = ±(1 − e), e = 1e-6, pixels are ~e wide and ∂φ/∂θ carries 1/D² with D down to e:
+    # values divide Green's sum (terms up to W_src · max|L| along the perimeter) by tiny
+    # areas, and the θ-gradient's rounding grows like eps / e² (measured: the backends differ
+    # by 8e-14 at e = 0.1, 1.5e-11 at 1e-2, 1.3e-9 at 1e-3, 3.6e-5 at 1e-6). Bound both by
+    # those scales.
+    e = 1e-6
+    layout = lw.CurvLayout((1 - e, -(1 - e)), dtype=F64)
+    size, src = (7, 9), (40, 50)
+    img = torch.rand(2, *src, generator=gen, dtype=F64)
+    (va, ga), (vb, gb) = both(img, layout, size, tol=1e-5)
+    assert torch.isfinite(va).all() and torch.isfinite(ga).all()
+    mesh = lw.pixel_mesh(layout, size, tol=1e-5)
+    v = mesh.pixel_vertices(src)
+    edge_len = mesh.sum_over_edges((v[mesh.seg_end] - v[mesh.seg_start]).norm(dim=-1))
+    perimeter = edge_len[torch.from_numpy(mesh.topology.pixel_edges())].sum(-1)
+    value_scale = float((src[1] * perimeter / mesh.areas(v).abs()).max())  # Σ|terms| / area
+    assert float((va - vb).abs().max()) <= 1e-15 * value_scale
+    eps = torch.finfo(F64).eps
+    assert float((ga - gb).abs().max()) <= 4 * eps / e**2 * max(float(gb.abs().max()), 1.0)
+
+
+def test_gradcheck_on_the_kernel(gen):
+    layout = lw.CurvLayout(dtype=F64)
+    img = torch.rand(2, 13, 17, generator=gen, dtype=F64)
+    size = (4, 5)
+
+    def f(t):  # fixed subdivision: the adaptive count changes with θ, finite differences must not
+        mesh = lw.pixel_mesh(layout, size, subdivisions=4, theta=t)
+        return lw.integrate_exact(img, layout, size, mesh=mesh, backend="numba")
+
+    theta = rand_theta(gen, 0.8).requires_grad_(True)
+    assert torch.autograd.gradcheck(f, (theta,), eps=1e-6, atol=1e-5, rtol=1e-4)
+
+
+def test_auto_uses_the_reference_for_image_gradients(gen):
+    layout = lw.CurvLayout(rand_theta(gen), dtype=F64)
+    img = torch.rand(1, 20, 30, generator=gen, dtype=F64, requires_grad=True)
+    out = lw.integrate_exact(img, layout, (4, 5))
+    (g,) = torch.autograd.grad(out.sum(), img)
+    assert torch.allclose(g.sum(), torch.tensor(20.0, dtype=F64))  # each pixel's weights sum to 1
+    with pytest.raises(ValueError, match="backend='numba' needs"):
+        lw.integrate_exact(img, layout, (4, 5), backend="numba")
