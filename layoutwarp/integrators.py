@@ -73,14 +73,17 @@ Radiance = Callable[[Tensor], Tensor]
 class _PrefixTables:
     """Row prefix sums of a piecewise-constant image ``(N, H, W)``, safe in float32.
 
-    ``P_r(X) = ∫_0^X L(s, r) ds`` at the start of cell ``c`` is split into a float64 block
-    offset (the sum of whole ``B``-column blocks before ``c``) and a block-local float32
-    prefix, so a value never carries more than ``B`` cells' worth of rounding however wide
-    the row is; and two look-ups of the same cell return bit-identical numbers, so the left
-    and right boundaries of a pixel narrower than a source cell cancel exactly.
+    ``P_r(X) = ∫_0^X L(s, r) ds`` is split into a float64 block offset (the sum of whole
+    ``B``-column blocks before ``X``) and a block-local inclusive prefix ``I`` in the image's
+    dtype, so a value never carries more than ``B`` cells' worth of rounding however wide the
+    row is. Inside cell ``c``, ``P`` interpolates ``I(c − 1)`` and ``I(c)`` linearly: exact for
+    the box image ``I(c) − I(c − 1)`` (``L`` up to the rounding of one block), and two
+    look-ups of the same cell use bit-identical numbers, so the left and right boundaries of
+    a pixel narrower than a source cell cancel exactly. The compiled kernels use the same
+    formula (:func:`layoutwarp.kernels.exact_forward`).
     """
 
-    def __init__(self, image: Tensor, block: int = 16):
+    def __init__(self, image: Tensor, block: int = kernels.BLOCK):
         n, h, w = image.shape
         nb = -(-w // block)
         padded = image if nb * block == w else F.pad(image, (0, nb * block - w))
@@ -88,16 +91,25 @@ class _PrefixTables:
         offs = incl[..., -1].double().cumsum(-1) - incl[..., -1].double()  # exclusive, float64
         self.block, self.nb, self.width, self.rows = block, nb, nb * block, h
         self.incl = incl.reshape(n, -1)
-        self.values = padded.reshape(n, -1)
         self.offsets = offs.reshape(n, -1)
+
+    def _ends(self, row: Tensor, col: Tensor) -> tuple[Tensor, Tensor]:
+        """``I(c − 1)`` (0 at a block start) and ``I(c)`` in float64, ``(N, pieces)`` each."""
+        idx = row * self.width + col
+        cur = self.incl[:, idx].double()
+        prev = torch.where(col % self.block == 0, 0.0, self.incl[:, idx - 1].double())
+        return prev, cur
 
     def prefix(self, row: Tensor, col: Tensor, frac: Tensor) -> Tensor:
         """``P_row(col + frac)`` for ``frac`` in ``[0, 1]``: ``(N, pieces)`` in float64."""
-        idx = row * self.width + col
-        lv = self.values[:, idx]
-        start = (self.incl[:, idx] - lv).double()  # same cell → bit-identical start
+        prev, cur = self._ends(row, col)
         offset = self.offsets[:, row * self.nb + col // self.block]
-        return offset + start + frac.to(torch.float64) * lv.double()
+        return offset + prev + frac.to(torch.float64) * (cur - prev)
+
+    def cell(self, row: Tensor, col: Tensor) -> Tensor:
+        """The box image ``I(c) − I(c − 1)`` at the cells, ``(N, pieces)`` in float64."""
+        prev, cur = self._ends(row, col)
+        return cur - prev
 
 
 def segment_cells(
@@ -219,22 +231,22 @@ class _BoundaryFlux(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(ctx, per_seg, verts, image, seg_start, seg_end):
-        ctx.save_for_backward(verts, image, seg_start, seg_end)
+    def forward(ctx, per_seg, verts, tables, src_size, seg_start, seg_end):
+        ctx.save_for_backward(verts, seg_start, seg_end)
+        ctx.tables, ctx.src_size = tables, src_size
         return per_seg.clone()
 
     @staticmethod
     def backward(ctx, grad):
-        verts, image, seg_start, seg_end = ctx.saved_tensors
-        n, hs, ws = image.shape
+        verts, seg_start, seg_end = ctx.saved_tensors
+        tables, (hs, ws) = ctx.tables, ctx.src_size
         a, b = verts[seg_start], verts[seg_end]
-        flat_img = image.reshape(n, -1)
         wa = verts.new_zeros(seg_start.numel())
         wb = torch.zeros_like(wa)
         for sl in _segment_chunks(a, b):
             seg, t0, t1, row, col, i2 = segment_cells(a[sl], b[sl], hs, ws)
             seg = seg + sl.start
-            lv = 0.5 * (flat_img[:, row * ws + col] + flat_img[:, i2]).to(grad.dtype)  # (N, pieces)
+            lv = 0.5 * (tables.cell(row, col) + tables.cell(i2 // ws, i2 % ws)).to(grad.dtype)  # (N, pieces)
             gl = (grad[:, seg] * lv).sum(0)  # Σ over channels of ∂loss/∂E_s · L
             m1 = (t1 * t1 - t0 * t0) / 2  # ∫ t dt
             wa.index_add_(0, seg, gl * ((t1 - t0) - m1))
@@ -243,42 +255,35 @@ class _BoundaryFlux(torch.autograd.Function):
         g = torch.zeros_like(verts)
         g.index_add_(0, seg_start, wa[:, None] * normal)
         g.index_add_(0, seg_end, wb[:, None] * normal)
-        return grad, g, None, None, None
+        return grad, g, None, None, None, None
 
 
 class _ExactKernel(torch.autograd.Function):
-    """Per-segment Green integrals by the compiled kernel; its backward is the exact Reynolds
-    vertex gradient (as :class:`_BoundaryFlux`), also compiled. No image gradient."""
+    """Per-segment Green integrals and areas by the compiled kernel, ``(N + 1, S)``; its
+    backward is the exact Reynolds vertex gradient (as :class:`_BoundaryFlux`), also compiled.
+    No image gradient."""
 
     @staticmethod
     def forward(ctx, verts: Tensor, image: Tensor, seg_start: Tensor, seg_end: Tensor) -> Tensor:
-        ends = _segment_ends(verts.detach(), seg_start, seg_end)
-        img = image.detach().contiguous().numpy()
-        incl, offsets = kernels.prefix_tables(img, kernels.BLOCK)
-        out = kernels.exact_forward(*ends, img, incl, offsets, kernels.BLOCK)
-        ctx.save_for_backward(verts, image, seg_start, seg_end)
-        return torch.from_numpy(out)
+        v, i0, i1 = (np.ascontiguousarray(t.detach().cpu().numpy()) for t in (verts, seg_start, seg_end))
+        incl, offsets = kernels.prefix_tables(image.detach().contiguous().numpy(), kernels.BLOCK)
+        ctx.save_for_backward(verts, seg_start, seg_end)
+        ctx.incl = incl
+        return torch.from_numpy(kernels.exact_forward(v, i0, i1, incl, offsets, kernels.BLOCK))
 
     @staticmethod
     def backward(ctx, grad: Tensor):
-        verts, image, seg_start, seg_end = ctx.saved_tensors
+        verts, seg_start, seg_end = ctx.saved_tensors
         vd = verts.detach()
-        ends = _segment_ends(vd, seg_start, seg_end)
-        img = image.detach().contiguous().numpy()
-        wa, wb = kernels.exact_backward(*ends, img, grad.detach().double().contiguous().numpy())
+        v, i0, i1 = (np.ascontiguousarray(t.cpu().numpy()) for t in (vd, seg_start, seg_end))
+        g_seg = np.ascontiguousarray(grad.detach().double().cpu().numpy())
+        wa, wb = kernels.exact_backward(v, i0, i1, ctx.incl, kernels.BLOCK, g_seg)
         a, b = vd[seg_start], vd[seg_end]
         normal = torch.stack([b[:, 1] - a[:, 1], a[:, 0] - b[:, 0]], -1)
         g = torch.zeros_like(vd)
         g.index_add_(0, seg_start, torch.from_numpy(wa)[:, None] * normal)
         g.index_add_(0, seg_end, torch.from_numpy(wb)[:, None] * normal)
         return g, None, None, None
-
-
-def _segment_ends(verts: Tensor, seg_start: Tensor, seg_end: Tensor) -> tuple:
-    """``(ax, ay, bx, by)``: contiguous float64 arrays of the segments' end points."""
-    v = verts.double().cpu().numpy()
-    a, b = v[seg_start.cpu().numpy()], v[seg_end.cpu().numpy()]
-    return tuple(np.ascontiguousarray(x) for x in (a[:, 0], a[:, 1], b[:, 0], b[:, 1]))
 
 
 def integrate_exact(
@@ -328,8 +333,10 @@ def integrate_exact(
     verts = mesh.pixel_vertices((hs, ws))
     work = image.to(floating_dtype(image.dtype))
     if backend != "torch" and kernel_ok:
-        per_seg = _ExactKernel.apply(verts, work, mesh.seg_start, mesh.seg_end)
-        return mesh.combine_edges(mesh.sum_over_edges(per_seg)) / mesh.areas(verts)
+        pix = mesh.combine_edges(
+            mesh.sum_over_edges(_ExactKernel.apply(verts, work, mesh.seg_start, mesh.seg_end))
+        )
+        return pix[:-1] / pix[-1]
     vd = verts.detach()
     a, b = vd[mesh.seg_start], vd[mesh.seg_end]
     tables = _PrefixTables(work)
@@ -338,7 +345,9 @@ def integrate_exact(
         pcs = green_pieces(a[sl], b[sl], (hs, ws))
         per_seg.index_add_(1, pcs.seg + sl.start, pcs.dy[None] * tables.prefix(pcs.row, pcs.col, pcs.frac))
     if verts.requires_grad:
-        per_seg = _BoundaryFlux.apply(per_seg, verts, work.detach(), mesh.seg_start, mesh.seg_end)
+        per_seg = _BoundaryFlux.apply(
+            per_seg, verts, _PrefixTables(work.detach()), (hs, ws), mesh.seg_start, mesh.seg_end
+        )
     return mesh.combine_edges(mesh.sum_over_edges(per_seg)) / mesh.areas(verts)
 
 

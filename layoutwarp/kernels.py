@@ -39,57 +39,61 @@ def _jit(fn):
 
 @_jit
 def prefix_tables(image: np.ndarray, block: int) -> tuple[np.ndarray, np.ndarray]:
-    """Row prefix sums of ``image (N, H, W)``, safe in float32.
+    """Row prefix sums of ``image (N, H, W)``, safe in float32, channels last.
 
-    Returns ``(incl, offsets)``: ``incl[n, r, c]`` is the inclusive prefix sum within the
-    ``block``-column block of ``c`` (the image's dtype), ``offsets[n, r, k]`` the float64
-    sum of the whole blocks before block ``k``. ``P_r(c) = offsets[r, c // block] +
-    (incl[r, c] − L[r, c])`` never carries more than one block's rounding.
+    Returns ``(incl, offsets)``: ``incl[r, c, n]`` is the inclusive prefix sum of row ``r`` of
+    channel ``n`` within the ``block``-column block of ``c`` (in the image's dtype) and
+    ``offsets[r, k, n]`` the float64 sum of the whole blocks before block ``k``, so a prefix
+    never carries more than one block's rounding. Channels last puts everything one piece
+    reads in one or two cache lines.
     """
     n, h, w = image.shape
     nb = (w + block - 1) // block
-    incl = np.empty_like(image)
-    offsets = np.empty((n, h, nb), dtype=np.float64)
-    for nr in prange(n * h):
-        k, r = nr // h, nr % h
-        total = 0.0
-        for b in range(nb):
-            offsets[k, r, b] = total
-            acc = image[k, r, b * block] * 0  # zero in the image's dtype
-            for c in range(b * block, min(w, (b + 1) * block)):
-                acc += image[k, r, c]
-                incl[k, r, c] = acc
-            total += acc
+    incl = np.empty((h, w, n), dtype=image.dtype)
+    offsets = np.empty((h, nb, n), dtype=np.float64)
+    for r in prange(h):
+        for k in range(n):
+            total = 0.0
+            for b in range(nb):
+                offsets[r, b, k] = total
+                acc = image[k, r, b * block] * 0  # zero in the image's dtype
+                for c in range(b * block, min(w, (b + 1) * block)):
+                    acc += image[k, r, c]
+                    incl[r, c, k] = acc
+                total += acc
     return incl, offsets
 
 
 @_jit
 def exact_forward(
-    ax: np.ndarray,
-    ay: np.ndarray,
-    bx: np.ndarray,
-    by: np.ndarray,
-    image: np.ndarray,
+    verts: np.ndarray,
+    seg_start: np.ndarray,
+    seg_end: np.ndarray,
     incl: np.ndarray,
     offsets: np.ndarray,
     block: int,
 ) -> np.ndarray:
-    """``∫ P dY`` along every segment ``(ax, ay) → (bx, by)`` (source pixel units, inside the
-    image), for every channel: ``(N, S)`` float64.
+    """``∫ P dY`` along every segment for every channel, and the segment's ``∫ X dY``: ``(N + 1, S)``.
 
-    A segment is cut at source rows, then each row piece at columns; a piece in cell
-    ``(r, c)`` with mid-``X`` fraction ``f`` adds ``ΔY · (P_r(c) + f · L[r, c])`` (exact for a
-    box image, see :class:`~layoutwarp.integrators.GreenPieces`).
+    ``verts`` are ``(V, 2)`` float64 in source pixel units (inside the image); segment ``s``
+    runs from ``verts[seg_start[s]]`` to ``verts[seg_end[s]]``. It is cut at source rows, then
+    each row piece at columns; a piece in cell ``(r, c)`` with mid-``X`` fraction ``f`` adds
+    ``ΔY · P_r(c + f)``, where ``P_r`` interpolates the prefix table linearly inside the cell:
+    ``P_r(c + f) = offset + I(c − 1) + f · (I(c) − I(c − 1))``, exact for the box image
+    ``L(c) = I(c) − I(c − 1)``. Row ``N`` sums to the pixel areas.
     """
-    n, h, w = image.shape
-    s_count = ax.shape[0]
-    out = np.zeros((n, s_count), dtype=np.float64)
+    h, w, n = incl.shape
+    s_count = seg_start.shape[0]
+    out = np.zeros((n + 1, s_count), dtype=np.float64)
     for s in prange(s_count):
-        x0, y0, dxv, dyv = ax[s], ay[s], bx[s] - ax[s], by[s] - ay[s]
+        x0, y0 = verts[seg_start[s], 0], verts[seg_start[s], 1]
+        x1, y1 = verts[seg_end[s], 0], verts[seg_end[s], 1]
+        dxv, dyv = x1 - x0, y1 - y0
         if dyv == 0.0:
             continue  # ΔY = 0 adds nothing
+        out[n, s] = dyv * (x0 + x1) / 2
         inv_dy = 1.0 / dyv
-        ylo, yhi = min(ay[s], by[s]), max(ay[s], by[s])
+        ylo, yhi = min(y0, y1), max(y0, y1)
         r0 = min(max(math.floor(ylo), 0), h - 1)
         r1 = max(min(max(math.ceil(yhi) - 1, 0), h - 1), r0)
         for row in range(r0, r1 + 1):
@@ -114,34 +118,44 @@ def exact_forward(
                 dy = (t1 - t0) * dyv
                 frac = min(max(x0 + (t0 + t1) / 2 * dxv - col, 0.0), 1.0)
                 blk = col // block
+                first = col % block == 0
                 for k in range(n):
-                    lv = image[k, row, col]
-                    start = np.float64(incl[k, row, col] - lv)  # in the table's dtype, as the reference
-                    out[k, s] += dy * (offsets[k, row, blk] + start + frac * np.float64(lv))
+                    cur = np.float64(incl[row, col, k])
+                    prev = 0.0 if first else np.float64(incl[row, col - 1, k])
+                    out[k, s] += dy * (offsets[row, blk, k] + prev + frac * (cur - prev))
     return out
 
 
 @_jit
 def exact_backward(
-    ax: np.ndarray, ay: np.ndarray, bx: np.ndarray, by: np.ndarray, image: np.ndarray, grad: np.ndarray
+    verts: np.ndarray,
+    seg_start: np.ndarray,
+    seg_end: np.ndarray,
+    incl: np.ndarray,
+    block: int,
+    grad: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Reynolds weights of every segment's end points for the vertex gradient.
 
-    For segment ``s`` with ``r(t) = a + t (b − a)``: ``wa = Σ_n grad[n, s] ∫ (1 − t) L dt`` and
-    ``wb = Σ_n grad[n, s] ∫ t L dt`` over its pieces; ``L`` on a cell boundary line is the mean
-    of the two cells (the symmetric derivative). The caller multiplies by the segment's
-    normal ``(ΔY, −ΔX)`` and adds to the vertices.
+    For segment ``s`` with ``r(t) = a + t (b − a)``: ``wa = Σ_n grad[n, s] ∫ (1 − t) L_n dt`` and
+    ``wb = Σ_n grad[n, s] ∫ t L_n dt`` over its pieces, with ``L`` the box image of the
+    prefix table (see :func:`exact_forward`) and ``L ≡ 1`` for the area row ``n = N``; on a
+    cell boundary line ``L`` is the mean of the two cells (the symmetric derivative). The
+    caller multiplies by the segment's normal ``(ΔY, −ΔX)`` and adds to the vertices.
     """
-    n, h, w = image.shape
-    s_count = ax.shape[0]
+    h, w, n = incl.shape
+    s_count = seg_start.shape[0]
     wa = np.zeros(s_count, dtype=np.float64)
     wb = np.zeros(s_count, dtype=np.float64)
     for s in prange(s_count):
-        x0, y0, dxv, dyv = ax[s], ay[s], bx[s] - ax[s], by[s] - ay[s]
+        x0, y0 = verts[seg_start[s], 0], verts[seg_start[s], 1]
+        x1, y1 = verts[seg_end[s], 0], verts[seg_end[s], 1]
+        dxv, dyv = x1 - x0, y1 - y0
+        wa[s] = wb[s] = grad[n, s] / 2  # the area row: ∫ (1 − t) dt = ∫ t dt = 1/2
         flat = dyv == 0.0
         vertical = dxv == 0.0
         inv_dy = 1.0 / dyv if not flat else 1.0
-        ylo, yhi = min(ay[s], by[s]), max(ay[s], by[s])
+        ylo, yhi = min(y0, y1), max(y0, y1)
         r0 = min(max(math.floor(ylo), 0), h - 1)
         r1 = max(min(max(math.ceil(yhi) - 1, 0), h - 1), r0)
         if flat:
@@ -172,10 +186,21 @@ def exact_backward(
                 col2 = col - 1 if (vertical and x0 == col and col > 0) else col  # on a column boundary
                 gl = 0.0
                 for k in range(n):
-                    gl += grad[k, s] * (
-                        0.5 * (np.float64(image[k, row, col]) + np.float64(image[k, row2, col2]))
+                    gl += (
+                        grad[k, s]
+                        * 0.5
+                        * (_cell(incl, row, col, k, block) + _cell(incl, row2, col2, k, block))
                     )
                 m1 = (t1 * t1 - t0 * t0) / 2
                 wa[s] += gl * ((t1 - t0) - m1)
                 wb[s] += gl * m1
     return wa, wb
+
+
+def _cell_py(incl: np.ndarray, row: int, col: int, k: int, block: int) -> float:
+    """The box image value ``I(c) − I(c − 1)`` of the prefix table at ``(row, col)``."""
+    cur = np.float64(incl[row, col, k])
+    return cur if col % block == 0 else cur - np.float64(incl[row, col - 1, k])
+
+
+_cell = njit(inline="always", cache=True)(_cell_py) if njit is not None else _cell_py

@@ -14,7 +14,9 @@ boundary integral is computed once per edge and pixel ``(i, j)`` collects
 
 from __future__ import annotations
 
+import json
 import math
+from collections import OrderedDict
 from dataclasses import dataclass
 from typing import TypeVar
 
@@ -24,11 +26,13 @@ from torch import Tensor
 
 from .checks import check_number, check_size
 from .coords import sensor_to_pixels, uniform_corners
-from .layouts import Layout
+from .layouts import FAMILIES, Layout
 
 __all__ = [
+    "CACHE_SIZE",
     "MeshTopology",
     "PixelMesh",
+    "clear_mesh_cache",
     "pixel_mesh",
     "polygon_area",
     "ranges",
@@ -345,6 +349,26 @@ def _edge_parameters(
     return counts, lo_f + (hi_f - lo_f) * kk.to(lo.dtype) / n_f
 
 
+#: Meshes of fixed layouts of registered families, most recently used last (see :func:`pixel_mesh`).
+_CACHE: OrderedDict[tuple, PixelMesh] = OrderedDict()
+CACHE_SIZE = 4
+
+
+def _cache_key(layout: Layout, size, tol, max_subdiv, dtype, theta: Tensor) -> tuple | None:
+    """A key that identifies the mesh, or ``None`` where caching is unsafe: θ needs a gradient,
+    or the layout is not a registered family (whose ``to_config`` holds all its state)."""
+    if theta.requires_grad or FAMILIES.get(layout.family) is not type(layout):
+        return None
+    config = json.dumps(layout.to_config(), sort_keys=True)
+    values = tuple(theta.detach().double().cpu().tolist())
+    return (type(layout), config, values, size, tol, max_subdiv, dtype, theta.device)
+
+
+def clear_mesh_cache() -> None:
+    """Forget the cached meshes of fixed layouts."""
+    _CACHE.clear()
+
+
 def pixel_mesh(
     layout: Layout,
     size: tuple[int, int],
@@ -371,7 +395,9 @@ def pixel_mesh(
         theta: use this θ instead of the layout's own (see :meth:`Layout.resolve_theta`).
 
     Returns:
-        a :class:`PixelMesh` on θ's device.
+        a :class:`PixelMesh` on θ's device. The meshes of fixed layouts (θ without gradient)
+        of registered families are cached (the last :data:`CACHE_SIZE`), so simulating many
+        images with one fixed layout builds its mesh once; do not modify a returned mesh.
 
     Example:
         >>> from layoutwarp import CurvLayout
@@ -382,6 +408,28 @@ def pixel_mesh(
     h, w = check_size(size)
     theta = layout.resolve_theta(theta)
     dtype = dtype or theta.dtype
+    key = None if subdivisions is not None else _cache_key(layout, (h, w), tol, max_subdiv, dtype, theta)
+    if key is not None and key in _CACHE:
+        _CACHE.move_to_end(key)
+        return _CACHE[key]
+    mesh = _build_mesh(layout, (h, w), theta, tol, max_subdiv, subdivisions, dtype)
+    if key is not None:
+        _CACHE[key] = mesh
+        while len(_CACHE) > CACHE_SIZE:
+            _CACHE.popitem(last=False)
+    return mesh
+
+
+def _build_mesh(
+    layout: Layout,
+    size: tuple[int, int],
+    theta: Tensor,
+    tol: float | None,
+    max_subdiv: int,
+    subdivisions: Tensor | int | None,
+    dtype: torch.dtype,
+) -> PixelMesh:
+    h, w = size
     device = theta.device
     topo = MeshTopology((h, w))
     ne = topo.num_edges

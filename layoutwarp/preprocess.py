@@ -53,6 +53,7 @@ from .layoutfile import load_layout, save_layout
 from .layouts import Layout
 from .maps import forward_maps
 from .mesh import pixel_mesh
+from .sensor import data_tolerance
 
 __all__ = [
     "IMAGE_SUFFIXES",
@@ -62,7 +63,6 @@ __all__ = [
     "area_weights",
     "benchmark_baseline",
     "check_destination",
-    "default_tol",
     "list_images",
     "preprocess_folder",
 ]
@@ -238,11 +238,6 @@ def _read(path: Path, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray:
     return img
 
 
-def default_tol(dtype: np.dtype) -> float:
-    """Curved-edge tolerance that keeps values within a quarter level of an integer dtype."""
-    return 0.25 / np.iinfo(dtype).max if np.issubdtype(dtype, np.integer) else 1e-6
-
-
 class _Job:
     """One preprocessing run: the layout and one shared resampler per source size.
 
@@ -256,7 +251,7 @@ class _Job:
         self._lock = threading.Lock()
 
     def resampler(self, src_size: tuple[int, int], dtype: np.dtype) -> AreaResampler:
-        key = (src_size, self.tol or default_tol(dtype))
+        key = (src_size, self.tol or data_tolerance(dtype)[0])
         with self._lock:
             if key not in self._cache:
                 self._cache[key] = AreaResampler(self.layout, self.size, src_size, tol=key[1])
@@ -393,8 +388,8 @@ def preprocess_folder(
         workers: worker threads (1: no pool).
         tol: polyline tolerance of curved edges, relative to the value range (default: a
             quarter of a level for integer images, i.e. 1e-3 at 8 bit and 3.8e-6 at 16 bit,
-            and 1e-6 for float images); with rounding, integer outputs stay within 0.75 levels
-            of the exact integral.
+            and 2^-12 for float images: :func:`~layoutwarp.sensor.data_tolerance`); with
+            rounding, integer outputs stay within 0.75 levels of the exact integral.
         progress: show a progress bar (default: when stderr is a terminal).
         files: process only these files (paths under ``src``).
 

@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 from torch import Tensor, nn
 
@@ -21,11 +22,40 @@ from .integrators import (
 from .layoutfile import load_layout, save_layout
 from .layouts import Layout, make_layout
 
-__all__ = ["METHODS", "SensorLayer", "SimulationPlan", "plan_simulation", "simulate"]
+__all__ = ["METHODS", "SensorLayer", "SimulationPlan", "data_tolerance", "plan_simulation", "simulate"]
 
 #: The integrators :func:`simulate` runs.
 METHODS = ("exact", "separable", "montecarlo", "point")
 _OPTIONS = {"radiance", "tol", "samples", "grad", "seed", "generator", "allow_nonfinite"}
+
+
+def data_tolerance(dtype: torch.dtype | np.dtype | type) -> tuple[float, str]:
+    """The curved-edge tolerance the data needs, relative to the image's value range, and why.
+
+    Integer images: a quarter of one quantisation step of the dtype's range (``0.25/255``
+    for uint8, ``0.25/65535`` for uint16), so an exact integral rounds to the right level.
+    float16/bfloat16: a quarter of their precision at 1.0 (``2⁻¹²``, ``2⁻⁹``). Other floats:
+    ``2⁻¹²`` (a quarter of a 10-bit step, for the 8–10-bit data most float images hold; pass
+    ``tol`` for finer).
+
+    Example:
+        >>> data_tolerance(torch.uint8)[0] == 0.25 / 255
+        True
+    """
+    if isinstance(dtype, torch.dtype):
+        if dtype in (torch.float16, torch.bfloat16):
+            eps = torch.finfo(dtype).eps
+            return eps / 4, f"{dtype}: a quarter of its precision at 1.0"
+        if not dtype.is_floating_point:
+            dtype = torch.empty((), dtype=dtype).numpy().dtype
+    if not isinstance(dtype, torch.dtype):
+        dtype = np.dtype(dtype)
+        if np.issubdtype(dtype, np.integer):
+            step = 1 / np.iinfo(dtype).max
+            return 0.25 * step, f"{dtype} input: a quarter of one step (1/{np.iinfo(dtype).max} of the range)"
+        if dtype == np.float16:
+            return float(np.finfo(dtype).eps) / 4, f"{dtype}: a quarter of its precision at 1.0"
+    return 2.0**-12, "float input: a quarter of a 10-bit step (2^-12) of the value range"
 
 
 @dataclass(frozen=True)
@@ -56,11 +86,15 @@ def plan_simulation(
     method: str = "exact",
     *,
     radiance: str | None = None,
-    tol: float = 1e-5,
+    tol: float | None = None,
     samples: int = 4,
     callable_radiance: bool = False,
+    dtype: torch.dtype = torch.float32,
 ) -> SimulationPlan:
     """Choose the integrator for ``method`` (see :func:`simulate`) without running it.
+
+    ``dtype`` is the input image's dtype; with ``tol=None`` it sets the tolerance
+    (:func:`data_tolerance`).
 
     Example:
         >>> from layoutwarp import CurvLayout
@@ -71,7 +105,10 @@ def plan_simulation(
     check_choice(method, METHODS, "method")
     if radiance is not None:
         check_choice(radiance, RADIANCES, "radiance")
-    tol = check_number(tol, "tol", 0, lo_open=True)
+    if tol is None:
+        tol, why = data_tolerance(dtype)
+    else:
+        tol, why = check_number(tol, "tol", 0, lo_open=True), "tol given"
     rad = "callable" if callable_radiance else radiance
     if method in ("exact", "separable"):
         if callable_radiance:
@@ -95,7 +132,7 @@ def plan_simulation(
         if layout.straight_edges:
             return SimulationPlan("exact", "box", 0.0, {"segments_per_edge": 1}, "straight edges: exact")
         return SimulationPlan(
-            "exact", "box", float(tol), {"tol": float(tol)}, "curved edges: polylines within tol"
+            "exact", "box", float(tol), {"tol": float(tol)}, f"curved edges: polylines within tol ({why})"
         )
     samples = check_int(samples, "samples", 1)
     rad = rad or "bilinear"
@@ -140,7 +177,7 @@ def simulate(
     method: str = "exact",
     *,
     radiance: str | None = None,
-    tol: float = 1e-5,
+    tol: float | None = None,
     samples: int = 4,
     grad: str = "reynolds",
     seed: int | None = None,
@@ -163,7 +200,9 @@ def simulate(
         radiance: ``"box"`` (each source pixel a constant square; the only choice for exact
             methods) or ``"bilinear"`` (the paper's choice, default for sampling methods).
         tol: the accuracy a scene needs: bound on each pixel's error relative to the
-            image's value range, spent on the polyline approximation of curved edges.
+            image's value range, spent on the polyline approximation of curved edges;
+            default: what the image's dtype needs (:func:`data_tolerance`: 0.25/255 for
+            uint8, 2⁻¹² for float32). The plan states the bound and why.
         samples: ``s`` for Monte Carlo (``s²`` samples per pixel).
         grad: Monte Carlo θ-gradient estimator, ``"reynolds"`` or ``"autograd"``.
         seed, generator: randomness of the Monte Carlo jitter (``seed`` makes a generator).
@@ -179,9 +218,18 @@ def simulate(
     if not isinstance(layout, Layout):
         raise TypeError(f"layout must be a layoutwarp Layout, got {type(layout).__name__}")
     is_callable = callable(image) and not isinstance(image, Tensor)
+    dtype = image.dtype if isinstance(image, Tensor) else torch.float32
     plan = plan_simulation(
-        layout, size, method, radiance=radiance, tol=tol, samples=samples, callable_radiance=is_callable
+        layout,
+        size,
+        method,
+        radiance=radiance,
+        tol=tol,
+        samples=samples,
+        callable_radiance=is_callable,
+        dtype=dtype,
     )
+    tol = plan.details.get("tol", tol)
     if generator is None and seed is not None:
         generator = torch.Generator().manual_seed(int(seed))
     if is_callable:
@@ -270,15 +318,16 @@ class SensorLayer(nn.Module):
         """``(B, C, H, W)`` image to ``(B, C, h, w)`` sensor image."""
         return simulate(image, self.layout, self.size, self.method, **self.options)
 
-    def describe(self) -> SimulationPlan:
-        """The plan the layer runs with its current settings."""
+    def describe(self, dtype: torch.dtype = torch.float32) -> SimulationPlan:
+        """The plan the layer runs with its current settings for images of ``dtype``."""
         return plan_simulation(
             self.layout,
             self.size,
             self.method,
             radiance=self.options.get("radiance"),
-            tol=self.options.get("tol", 1e-5),
+            tol=self.options.get("tol"),
             samples=self.options.get("samples", 4),
+            dtype=dtype,
         )
 
     def save_layout(self, path: str | Path, **extra: Any) -> Path:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pytest
 import shapely
@@ -149,3 +151,30 @@ def test_smooth_pieces_cut_at_the_unit_circle(gen):
     for e in range(3):
         sel = edge == e
         assert float(t0[sel][0]) == 0 and float(t1[sel][-1]) == 1 and torch.equal(t0[sel][1:], t1[sel][:-1])
+
+
+def test_meshes_of_fixed_layouts_are_cached_and_learnable_ones_never(gen):
+    from layoutwarp.mesh import clear_mesh_cache
+
+    clear_mesh_cache()
+    layout = lw.CurvLayout(rand_theta(gen), dtype=F64)
+    mesh = lw.pixel_mesh(layout, (5, 6), tol=1e-4)
+    assert lw.pixel_mesh(layout, (5, 6), tol=1e-4) is mesh  # same θ: built once
+    assert lw.pixel_mesh(copy.deepcopy(layout), (5, 6), tol=1e-4) is mesh  # equal θ, another object
+    assert lw.pixel_mesh(layout, (5, 6), tol=1e-3) is not mesh
+    layout.set_theta(-layout.theta)
+    moved = lw.pixel_mesh(layout, (5, 6), tol=1e-4)
+    assert moved is not mesh and not torch.equal(moved.vertices, mesh.vertices)
+    learn = lw.CurvLayout(rand_theta(gen), dtype=F64, learn=True)
+    first = lw.pixel_mesh(learn, (5, 6), tol=1e-4)
+    assert first.vertices.requires_grad and lw.pixel_mesh(learn, (5, 6), tol=1e-4) is not first
+    assert lw.pixel_mesh(Cubic(rand_theta(gen, 0.5), dtype=F64), (5, 6)) is not lw.pixel_mesh(
+        Cubic(rand_theta(gen, 0.5), dtype=F64), (5, 6)
+    )  # unregistered families are never cached
+
+
+class Cubic(lw.Layout):
+    family = "cubic-test"
+
+    def phi(self, p, theta):
+        return p + theta.to(p.dtype) * p * (1 - p * p) / 2

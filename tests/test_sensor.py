@@ -200,7 +200,7 @@ class TestSimulate:
             (4, 5),
             return_plan=True,
         )
-        assert out.shape == (2, 3, 4, 5) and plan.method == "exact" and plan.error_bound == 1e-5
+        assert out.shape == (2, 3, 4, 5) and plan.method == "exact" and plan.error_bound == 2**-12
 
     def test_exception(self):
         with pytest.raises(TypeError, match="layout must be a layoutwarp Layout"):
@@ -213,3 +213,26 @@ class TestSimulate:
         layout = lw.make_layout(family, rand_theta(gen, 0.8), dtype=F64)
         img = torch.rand(1, 2, 9, 11, generator=gen, dtype=F64).requires_grad_(True)
         assert torch.autograd.gradcheck(lambda x: lw.simulate(x, layout, (3, 4)), (img,))
+
+
+@pytest.mark.parametrize(
+    ("dtype", "tol", "why"),
+    [
+        (torch.uint8, 0.25 / 255, "a quarter of one step"),
+        (torch.float32, 2**-12, "a quarter of a 10-bit step"),
+        (torch.float64, 2**-12, "a quarter of a 10-bit step"),
+        (torch.float16, 2**-12, "a quarter of its precision"),
+        (torch.bfloat16, 2**-9, "a quarter of its precision"),
+    ],
+)
+def test_default_tolerance_comes_from_the_data(dtype, tol, why, gen):
+    img = (torch.rand(1, 1, 30, 40, generator=gen) * 200).to(dtype)
+    out, plan = lw.simulate(img, lw.CurvLayout((0.5, -0.3)), (6, 8), return_plan=True)
+    assert plan.error_bound == tol and why in plan.reason and plan.details["tol"] == tol
+    _, given = lw.simulate(img, lw.CurvLayout((0.5, -0.3)), (6, 8), tol=1e-6, return_plan=True)
+    assert given.error_bound == 1e-6 and "tol given" in given.reason
+    # uint8: within a quarter level of the exact value, so rounding to 8 bit is right
+    if dtype == torch.uint8:
+        ref = lw.simulate(img.double() / 255, lw.CurvLayout((0.5, -0.3), dtype=F64), (6, 8), tol=1e-9)
+        assert float((out.double() - ref).abs().max()) <= 0.25 / 255
+    assert lw.SensorLayer((6, 8), "curv").describe(torch.uint8).error_bound == 0.25 / 255
