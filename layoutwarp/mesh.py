@@ -297,7 +297,7 @@ def _edge_parameters(
     edges a quarter of the budget ``tol · A`` (``A`` the smaller adjacent pixel area), shared
     along the edge in proportion to length, bounds every pixel's value error by ``tol`` times
     the radiance range. The sagitta is bounded by ``max |φ''⊥| / 8`` from second differences
-    at 9 points per piece (an S-shaped piece or one whose bend sits near an end has no
+    at 5 points per piece (an S-shaped piece or one whose bend sits near an end has no
     sagitta at its middle), so straight edges get exactly one segment. With ``with_grad``,
     the parameter velocity ``∂φ/∂θ`` along each edge is held to the same bound, so that
     θ-gradients are as accurate as values.
@@ -321,7 +321,7 @@ def _edge_parameters(
     ua, ub = topo.edge_ends(device=dev)
     edge, lo, hi = smooth_pieces(layout, ua, ub)
     a0, d = ua[edge], (ub - ua)[edge]
-    k_s = 8
+    k_s = 4  # 5 samples a piece: worst error 0.12-0.14 of tol over random θ (9 samples: 0.11-0.14)
     s_t = torch.linspace(0, 1, k_s + 1, dtype=ua.dtype, device=dev)
     pts = a0[:, None] + (lo[:, None] + (hi - lo)[:, None] * s_t)[..., None] * d[:, None]  # (pieces, K+1, 2)
     pts = pts.transpose(0, 1)  # (K+1, pieces, 2)
@@ -401,7 +401,7 @@ def pixel_mesh(
 
     Example:
         >>> from layoutwarp import CurvLayout
-        >>> mesh = pixel_mesh(CurvLayout((0.5, 0.2)), (3, 4), tol=1e-4)
+        >>> mesh = pixel_mesh(CurvLayout((0.5, 0.2)), (3, 4), tol=1e-4, dtype=torch.float64)
         >>> round(float(mesh.areas().sum()), 12)
         4.0
     """

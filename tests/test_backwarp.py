@@ -69,10 +69,10 @@ def test_bilinear_backwarp_converges_at_second_order(gen):
         c = layout(lw.pixel_centers(size)).detach()
         field = (torch.sin(2 * c[..., 0]) + c[..., 1] ** 2)[None, None]
         out = lw.backwarp(field, layout, (50, 70), mode="bilinear")[0, 0]
-        errs.append(float((out - expected)[inner].abs().max()))
+        errs.append(float((out - expected)[inner].pow(2).mean().sqrt()))  # RMS: max-norm orders are noisy
     order = [math.log2(a / b) for a, b in itertools.pairwise(errs)]
     overall = math.log2(errs[0] / errs[-1]) / (len(errs) - 1)
-    assert overall > 1.8 and min(order) > 1.4, (errs, order)  # second order (max-norm, so noisy per step)
+    assert overall > 1.8 and min(order) > 1.5, (errs, order)  # second order
     with pytest.raises(TypeError, match="nearest"):
         lw.backwarp(torch.zeros(1, 1, 4, 4, dtype=torch.long), layout, (8, 8), mode="bilinear")
 
