@@ -259,31 +259,42 @@ class _BoundaryFlux(torch.autograd.Function):
 
 
 class _ExactKernel(torch.autograd.Function):
-    """Per-segment Green integrals and areas by the compiled kernel, ``(N + 1, S)``; its
-    backward is the exact Reynolds vertex gradient (as :class:`_BoundaryFlux`), also compiled.
-    No image gradient."""
+    """Per-edge Green integrals and areas by the compiled kernel, ``(N + 1, E)``; its backward
+    is the exact Reynolds vertex gradient (as :class:`_BoundaryFlux`), also compiled. No image
+    gradient."""
 
     @staticmethod
-    def forward(ctx, verts: Tensor, image: Tensor, seg_start: Tensor, seg_end: Tensor) -> Tensor:
-        v, i0, i1 = (np.ascontiguousarray(t.detach().cpu().numpy()) for t in (verts, seg_start, seg_end))
+    def forward(ctx, verts: Tensor, image: Tensor, mesh: PixelMesh) -> Tensor:
+        arrays = _kernel_arrays(verts, mesh)
         incl, offsets = kernels.prefix_tables(image.detach().contiguous().numpy(), kernels.BLOCK)
-        ctx.save_for_backward(verts, seg_start, seg_end)
-        ctx.incl = incl
-        return torch.from_numpy(kernels.exact_forward(v, i0, i1, incl, offsets, kernels.BLOCK))
+        ctx.save_for_backward(verts)
+        ctx.mesh, ctx.incl = mesh, incl
+        out = kernels.exact_forward(*arrays, incl, offsets, kernels.BLOCK, kernels.threads())
+        return torch.from_numpy(out)
 
     @staticmethod
     def backward(ctx, grad: Tensor):
-        verts, seg_start, seg_end = ctx.saved_tensors
+        (verts,) = ctx.saved_tensors
+        mesh = ctx.mesh
+        g_edge = np.ascontiguousarray(grad.detach().double().cpu().numpy())
+        v, seg_start, seg_end, _ = _kernel_arrays(verts, mesh)
+        seg_edge = np.ascontiguousarray(mesh.seg_edge.cpu().numpy())
+        wa, wb = kernels.exact_backward(
+            v, seg_start, seg_end, seg_edge, ctx.incl, kernels.BLOCK, g_edge, kernels.threads()
+        )
         vd = verts.detach()
-        v, i0, i1 = (np.ascontiguousarray(t.cpu().numpy()) for t in (vd, seg_start, seg_end))
-        g_seg = np.ascontiguousarray(grad.detach().double().cpu().numpy())
-        wa, wb = kernels.exact_backward(v, i0, i1, ctx.incl, kernels.BLOCK, g_seg)
-        a, b = vd[seg_start], vd[seg_end]
+        a, b = vd[mesh.seg_start], vd[mesh.seg_end]
         normal = torch.stack([b[:, 1] - a[:, 1], a[:, 0] - b[:, 0]], -1)
         g = torch.zeros_like(vd)
-        g.index_add_(0, seg_start, torch.from_numpy(wa)[:, None] * normal)
-        g.index_add_(0, seg_end, torch.from_numpy(wb)[:, None] * normal)
-        return g, None, None, None
+        g.index_add_(0, mesh.seg_start, torch.from_numpy(wa)[:, None] * normal)
+        g.index_add_(0, mesh.seg_end, torch.from_numpy(wb)[:, None] * normal)
+        return g, None, None
+
+
+def _kernel_arrays(verts: Tensor, mesh: PixelMesh) -> list[np.ndarray]:
+    """Vertices (float64) and the mesh's segment and edge indices as contiguous arrays."""
+    tensors = (verts.detach().double(), mesh.seg_start, mesh.seg_end, mesh.edge_offsets)
+    return [np.ascontiguousarray(t.cpu().numpy()) for t in tensors]
 
 
 def integrate_exact(
@@ -333,9 +344,7 @@ def integrate_exact(
     verts = mesh.pixel_vertices((hs, ws))
     work = image.to(floating_dtype(image.dtype))
     if backend != "torch" and kernel_ok:
-        pix = mesh.combine_edges(
-            mesh.sum_over_edges(_ExactKernel.apply(verts, work, mesh.seg_start, mesh.seg_end))
-        )
+        pix = mesh.combine_edges(_ExactKernel.apply(verts, work, mesh))
         return pix[:-1] / pix[-1]
     vd = verts.detach()
     a, b = vd[mesh.seg_start], vd[mesh.seg_end]

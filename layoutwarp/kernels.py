@@ -2,9 +2,12 @@
 
 Each kernel fuses what the torch reference in :mod:`layoutwarp.integrators` does in some
 forty vectorised passes: cutting every pixel-boundary segment into single-cell pieces, the
-prefix-table look-ups of Green's theorem and the accumulation, one segment per loop
-iteration (``prange``, so segments run in parallel and no two iterations write the same
-output). The arithmetic mirrors the reference step for step, so both agree to rounding.
+prefix-table look-ups of Green's theorem and the accumulation. Segments run in parallel
+(``prange`` over chunks of segments dealt to the threads in turn, so that curved edges,
+which have many segments and are often all of one orientation, are shared out evenly), each
+writing its own output, and a second pass sums each pixel edge's segments (contiguous in a
+:class:`~layoutwarp.PixelMesh`). The
+arithmetic mirrors the reference step for step, so both agree to rounding.
 
 Compiled code is cached on disk (``cache=True``): a second process loads it instead of
 compiling again. :func:`available` says whether numba is installed; without it the torch
@@ -18,14 +21,16 @@ import math
 import numpy as np
 
 try:  # numba is a dependency, but the torch reference keeps working without it
-    from numba import njit, prange
+    from numba import get_num_threads, njit, prange
 except ImportError:  # pragma: no cover - depends on the environment
-    njit = prange = None
+    njit = prange = get_num_threads = None
 
 __all__ = ["BLOCK", "available", "exact_backward", "exact_forward", "prefix_tables"]
 
 #: Columns per block of the prefix tables (see :func:`prefix_tables`).
 BLOCK = 16
+#: Segments per work chunk; chunks go to the threads in turn.
+CHUNK = 256
 
 
 def available() -> bool:
@@ -33,8 +38,17 @@ def available() -> bool:
     return njit is not None
 
 
+def threads() -> int:
+    """The number of threads the kernels share their work out to (numba's setting)."""
+    return get_num_threads() if get_num_threads is not None else 1
+
+
 def _jit(fn):
     return njit(parallel=True, cache=True, nogil=True)(fn) if njit is not None else fn
+
+
+def _inline(fn):
+    return njit(inline="always", cache=True)(fn) if njit is not None else fn
 
 
 @_jit
@@ -64,65 +78,107 @@ def prefix_tables(image: np.ndarray, block: int) -> tuple[np.ndarray, np.ndarray
     return incl, offsets
 
 
+@_inline
+def _row_span(y0: float, y1: float, h: int) -> tuple[int, int]:
+    """The source rows a segment from ``y0`` to ``y1`` crosses, clamped to the image."""
+    ylo, yhi = min(y0, y1), max(y0, y1)
+    r0 = min(max(math.floor(ylo), 0), h - 1)
+    return r0, max(min(max(math.ceil(yhi) - 1, 0), h - 1), r0)
+
+
+@_inline
+def _cell(incl: np.ndarray, row: int, col: int, k: int, block: int) -> float:
+    """The box image value ``I(c) − I(c − 1)`` of the prefix table at ``(row, col)``."""
+    cur = np.float64(incl[row, col, k])
+    return cur if col % block == 0 else cur - np.float64(incl[row, col - 1, k])
+
+
+@_inline
+def _row_span(y0: float, y1: float, h: int) -> tuple[int, int]:
+    """The source rows a segment from ``y0`` to ``y1`` crosses, clamped to the image."""
+    ylo, yhi = min(y0, y1), max(y0, y1)
+    r0 = min(max(math.floor(ylo), 0), h - 1)
+    return r0, max(min(max(math.ceil(yhi) - 1, 0), h - 1), r0)
+
+
+@_inline
+def _cell(incl: np.ndarray, row: int, col: int, k: int, block: int) -> float:
+    """The box image value ``I(c) − I(c − 1)`` of the prefix table at ``(row, col)``."""
+    cur = np.float64(incl[row, col, k])
+    return cur if col % block == 0 else cur - np.float64(incl[row, col - 1, k])
+
+
 @_jit
 def exact_forward(
     verts: np.ndarray,
     seg_start: np.ndarray,
     seg_end: np.ndarray,
+    edge_offsets: np.ndarray,
     incl: np.ndarray,
     offsets: np.ndarray,
     block: int,
+    threads: int,
 ) -> np.ndarray:
-    """``∫ P dY`` along every segment for every channel, and the segment's ``∫ X dY``: ``(N + 1, S)``.
+    """``∫ P dY`` along every edge for every channel, and the edge's ``∫ X dY``: ``(N + 1, E)``.
 
     ``verts`` are ``(V, 2)`` float64 in source pixel units (inside the image); segment ``s``
-    runs from ``verts[seg_start[s]]`` to ``verts[seg_end[s]]``. It is cut at source rows, then
-    each row piece at columns; a piece in cell ``(r, c)`` with mid-``X`` fraction ``f`` adds
-    ``ΔY · P_r(c + f)``, where ``P_r`` interpolates the prefix table linearly inside the cell:
-    ``P_r(c + f) = offset + I(c − 1) + f · (I(c) − I(c − 1))``, exact for the box image
-    ``L(c) = I(c) − I(c − 1)``. Row ``N`` sums to the pixel areas.
+    runs from ``verts[seg_start[s]]`` to ``verts[seg_end[s]]`` and edge ``e`` is made of the
+    segments ``edge_offsets[e] .. edge_offsets[e + 1] − 1``. Each segment is cut at source
+    rows, then each row piece at columns; a piece in cell ``(r, c)`` with mid-``X`` fraction
+    ``f`` adds ``ΔY · P_r(c + f)``, where ``P_r`` interpolates the prefix table linearly inside
+    the cell: ``P_r(c + f) = offset + I(c − 1) + f · (I(c) − I(c − 1))``, exact for the box
+    image ``L(c) = I(c) − I(c − 1)``. Row ``N`` sums to the pixel areas. ``threads``: see
+    :func:`threads`.
     """
     h, w, n = incl.shape
     s_count = seg_start.shape[0]
-    out = np.zeros((n + 1, s_count), dtype=np.float64)
-    for s in prange(s_count):
-        x0, y0 = verts[seg_start[s], 0], verts[seg_start[s], 1]
-        x1, y1 = verts[seg_end[s], 0], verts[seg_end[s], 1]
-        dxv, dyv = x1 - x0, y1 - y0
-        if dyv == 0.0:
-            continue  # ΔY = 0 adds nothing
-        out[n, s] = dyv * (x0 + x1) / 2
-        inv_dy = 1.0 / dyv
-        ylo, yhi = min(y0, y1), max(y0, y1)
-        r0 = min(max(math.floor(ylo), 0), h - 1)
-        r1 = max(min(max(math.ceil(yhi) - 1, 0), h - 1), r0)
-        for row in range(r0, r1 + 1):
-            ta = min(max((max(ylo, row) - y0) * inv_dy, 0.0), 1.0)
-            tb = min(max((min(yhi, row + 1.0) - y0) * inv_dy, 0.0), 1.0)
-            t_lo, t_hi = min(ta, tb), max(ta, tb)
-            xa, xb = x0 + t_lo * dxv, x0 + t_hi * dxv
-            xlo, xhi = min(xa, xb), max(xa, xb)
-            c0 = min(max(math.floor(xlo), 0), w - 1)
-            c1 = max(min(max(math.ceil(xhi) - 1, 0), w - 1), c0)
-            if dxv == 0.0:
-                c1 = c0
-            one_column = c1 == c0
-            inv_dx = 1.0 / dxv if not one_column else 1.0
-            for col in range(c0, c1 + 1):
-                if one_column:  # keep the row piece's range (X → t is ill-conditioned)
-                    t0, t1 = t_lo, t_hi
-                else:
-                    u0 = min(max((max(xlo, col) - x0) * inv_dx, 0.0), 1.0)
-                    u1 = min(max((min(xhi, col + 1.0) - x0) * inv_dx, 0.0), 1.0)
-                    t0, t1 = max(min(u0, u1), t_lo), min(max(u0, u1), t_hi)
-                dy = (t1 - t0) * dyv
-                frac = min(max(x0 + (t0 + t1) / 2 * dxv - col, 0.0), 1.0)
-                blk = col // block
-                first = col % block == 0
-                for k in range(n):
-                    cur = np.float64(incl[row, col, k])
-                    prev = 0.0 if first else np.float64(incl[row, col - 1, k])
-                    out[k, s] += dy * (offsets[row, blk, k] + prev + frac * (cur - prev))
+    per_seg = np.zeros((s_count, n + 1), dtype=np.float64)
+    n_chunks = (s_count + CHUNK - 1) // CHUNK
+    for thread in prange(threads):
+        for chunk in range(thread, n_chunks, threads):
+            for s in range(chunk * CHUNK, min((chunk + 1) * CHUNK, s_count)):
+                x0, y0 = verts[seg_start[s], 0], verts[seg_start[s], 1]
+                x1, y1 = verts[seg_end[s], 0], verts[seg_end[s], 1]
+                dxv, dyv = x1 - x0, y1 - y0
+                if dyv == 0.0:
+                    continue  # ΔY = 0 adds nothing
+                per_seg[s, n] = dyv * (x0 + x1) / 2
+                inv_dy = 1.0 / dyv
+                ylo, yhi = min(y0, y1), max(y0, y1)
+                r0, r1 = _row_span(y0, y1, h)
+                for row in range(r0, r1 + 1):
+                    ta = min(max((max(ylo, row) - y0) * inv_dy, 0.0), 1.0)
+                    tb = min(max((min(yhi, row + 1.0) - y0) * inv_dy, 0.0), 1.0)
+                    t_lo, t_hi = min(ta, tb), max(ta, tb)
+                    xa, xb = x0 + t_lo * dxv, x0 + t_hi * dxv
+                    xlo, xhi = min(xa, xb), max(xa, xb)
+                    c0 = min(max(math.floor(xlo), 0), w - 1)
+                    c1 = max(min(max(math.ceil(xhi) - 1, 0), w - 1), c0)
+                    if dxv == 0.0:
+                        c1 = c0
+                    one_column = c1 == c0
+                    inv_dx = 1.0 / dxv if not one_column else 1.0
+                    for col in range(c0, c1 + 1):
+                        if one_column:  # keep the row piece's range (X → t is ill-conditioned)
+                            t0, t1 = t_lo, t_hi
+                        else:
+                            u0 = min(max((max(xlo, col) - x0) * inv_dx, 0.0), 1.0)
+                            u1 = min(max((min(xhi, col + 1.0) - x0) * inv_dx, 0.0), 1.0)
+                            t0, t1 = max(min(u0, u1), t_lo), min(max(u0, u1), t_hi)
+                        dy = (t1 - t0) * dyv
+                        frac = min(max(x0 + (t0 + t1) / 2 * dxv - col, 0.0), 1.0)
+                        blk = col // block
+                        first = col % block == 0
+                        for k in range(n):
+                            cur = np.float64(incl[row, col, k])
+                            prev = 0.0 if first else np.float64(incl[row, col - 1, k])
+                            per_seg[s, k] += dy * (offsets[row, blk, k] + prev + frac * (cur - prev))
+    e_count = edge_offsets.shape[0] - 1
+    out = np.zeros((n + 1, e_count), dtype=np.float64)
+    for e in prange(e_count):
+        for s in range(edge_offsets[e], edge_offsets[e + 1]):
+            for k in range(n + 1):
+                out[k, e] += per_seg[s, k]
     return out
 
 
@@ -131,76 +187,73 @@ def exact_backward(
     verts: np.ndarray,
     seg_start: np.ndarray,
     seg_end: np.ndarray,
+    seg_edge: np.ndarray,
     incl: np.ndarray,
     block: int,
     grad: np.ndarray,
+    threads: int,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Reynolds weights of every segment's end points for the vertex gradient.
 
-    For segment ``s`` with ``r(t) = a + t (b − a)``: ``wa = Σ_n grad[n, s] ∫ (1 − t) L_n dt`` and
-    ``wb = Σ_n grad[n, s] ∫ t L_n dt`` over its pieces, with ``L`` the box image of the
-    prefix table (see :func:`exact_forward`) and ``L ≡ 1`` for the area row ``n = N``; on a
-    cell boundary line ``L`` is the mean of the two cells (the symmetric derivative). The
-    caller multiplies by the segment's normal ``(ΔY, −ΔX)`` and adds to the vertices.
+    ``grad`` is ``(N + 1, E)``, the gradient of :func:`exact_forward`'s output, and segment
+    ``s`` belongs to edge ``seg_edge[s]``. For segment ``s`` of edge ``e`` with
+    ``r(t) = a + t (b − a)``: ``wa = Σ_n grad[n, e] ∫ (1 − t) L_n dt`` and
+    ``wb = Σ_n grad[n, e] ∫ t L_n dt`` over its pieces, with ``L`` the box image of the prefix
+    table (see :func:`exact_forward`) and ``L ≡ 1`` for the area row ``n = N``; on a cell
+    boundary line ``L`` is the mean of the two cells (the symmetric derivative). The caller
+    multiplies by the segment's normal ``(ΔY, −ΔX)`` and adds to the vertices.
     """
     h, w, n = incl.shape
     s_count = seg_start.shape[0]
     wa = np.zeros(s_count, dtype=np.float64)
     wb = np.zeros(s_count, dtype=np.float64)
-    for s in prange(s_count):
-        x0, y0 = verts[seg_start[s], 0], verts[seg_start[s], 1]
-        x1, y1 = verts[seg_end[s], 0], verts[seg_end[s], 1]
-        dxv, dyv = x1 - x0, y1 - y0
-        wa[s] = wb[s] = grad[n, s] / 2  # the area row: ∫ (1 − t) dt = ∫ t dt = 1/2
-        flat = dyv == 0.0
-        vertical = dxv == 0.0
-        inv_dy = 1.0 / dyv if not flat else 1.0
-        ylo, yhi = min(y0, y1), max(y0, y1)
-        r0 = min(max(math.floor(ylo), 0), h - 1)
-        r1 = max(min(max(math.ceil(yhi) - 1, 0), h - 1), r0)
-        if flat:
-            r1 = r0
-        for row in range(r0, r1 + 1):
-            if flat:
-                t_lo, t_hi = 0.0, 1.0
-            else:
-                ta = min(max((max(ylo, row) - y0) * inv_dy, 0.0), 1.0)
-                tb = min(max((min(yhi, row + 1.0) - y0) * inv_dy, 0.0), 1.0)
-                t_lo, t_hi = min(ta, tb), max(ta, tb)
-            row2 = row - 1 if (flat and y0 == row and row > 0) else row  # on a row boundary
-            xa, xb = x0 + t_lo * dxv, x0 + t_hi * dxv
-            xlo, xhi = min(xa, xb), max(xa, xb)
-            c0 = min(max(math.floor(xlo), 0), w - 1)
-            c1 = max(min(max(math.ceil(xhi) - 1, 0), w - 1), c0)
-            if vertical:
-                c1 = c0
-            one_column = c1 == c0
-            inv_dx = 1.0 / dxv if not one_column else 1.0
-            for col in range(c0, c1 + 1):
-                if one_column:
-                    t0, t1 = t_lo, t_hi
-                else:
-                    u0 = min(max((max(xlo, col) - x0) * inv_dx, 0.0), 1.0)
-                    u1 = min(max((min(xhi, col + 1.0) - x0) * inv_dx, 0.0), 1.0)
-                    t0, t1 = max(min(u0, u1), t_lo), min(max(u0, u1), t_hi)
-                col2 = col - 1 if (vertical and x0 == col and col > 0) else col  # on a column boundary
-                gl = 0.0
-                for k in range(n):
-                    gl += (
-                        grad[k, s]
-                        * 0.5
-                        * (_cell(incl, row, col, k, block) + _cell(incl, row2, col2, k, block))
-                    )
-                m1 = (t1 * t1 - t0 * t0) / 2
-                wa[s] += gl * ((t1 - t0) - m1)
-                wb[s] += gl * m1
+    n_chunks = (s_count + CHUNK - 1) // CHUNK
+    for thread in prange(threads):
+        for chunk in range(thread, n_chunks, threads):
+            for s in range(chunk * CHUNK, min((chunk + 1) * CHUNK, s_count)):
+                e = seg_edge[s]
+                x0, y0 = verts[seg_start[s], 0], verts[seg_start[s], 1]
+                x1, y1 = verts[seg_end[s], 0], verts[seg_end[s], 1]
+                dxv, dyv = x1 - x0, y1 - y0
+                wa[s] = wb[s] = grad[n, e] / 2  # the area row: ∫ (1 − t) dt = ∫ t dt = 1/2
+                flat = dyv == 0.0
+                vertical = dxv == 0.0
+                inv_dy = 1.0 / dyv if not flat else 1.0
+                ylo, yhi = min(y0, y1), max(y0, y1)
+                r0, r1 = _row_span(y0, y1, h)
+                if flat:
+                    r1 = r0
+                for row in range(r0, r1 + 1):
+                    if flat:
+                        t_lo, t_hi = 0.0, 1.0
+                    else:
+                        ta = min(max((max(ylo, row) - y0) * inv_dy, 0.0), 1.0)
+                        tb = min(max((min(yhi, row + 1.0) - y0) * inv_dy, 0.0), 1.0)
+                        t_lo, t_hi = min(ta, tb), max(ta, tb)
+                    row2 = row - 1 if (flat and y0 == row and row > 0) else row  # on a row boundary
+                    xa, xb = x0 + t_lo * dxv, x0 + t_hi * dxv
+                    xlo, xhi = min(xa, xb), max(xa, xb)
+                    c0 = min(max(math.floor(xlo), 0), w - 1)
+                    c1 = max(min(max(math.ceil(xhi) - 1, 0), w - 1), c0)
+                    if vertical:
+                        c1 = c0
+                    one_column = c1 == c0
+                    inv_dx = 1.0 / dxv if not one_column else 1.0
+                    for col in range(c0, c1 + 1):
+                        if one_column:
+                            t0, t1 = t_lo, t_hi
+                        else:
+                            u0 = min(max((max(xlo, col) - x0) * inv_dx, 0.0), 1.0)
+                            u1 = min(max((min(xhi, col + 1.0) - x0) * inv_dx, 0.0), 1.0)
+                            t0, t1 = max(min(u0, u1), t_lo), min(max(u0, u1), t_hi)
+                        col2 = (
+                            col - 1 if (vertical and x0 == col and col > 0) else col
+                        )  # on a column boundary
+                        gl = 0.0
+                        for k in range(n):
+                            lv = 0.5 * (_cell(incl, row, col, k, block) + _cell(incl, row2, col2, k, block))
+                            gl += grad[k, e] * lv
+                        m1 = (t1 * t1 - t0 * t0) / 2
+                        wa[s] += gl * ((t1 - t0) - m1)
+                        wb[s] += gl * m1
     return wa, wb
-
-
-def _cell_py(incl: np.ndarray, row: int, col: int, k: int, block: int) -> float:
-    """The box image value ``I(c) − I(c − 1)`` of the prefix table at ``(row, col)``."""
-    cur = np.float64(incl[row, col, k])
-    return cur if col % block == 0 else cur - np.float64(incl[row, col - 1, k])
-
-
-_cell = njit(inline="always", cache=True)(_cell_py) if njit is not None else _cell_py
