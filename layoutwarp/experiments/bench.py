@@ -31,7 +31,7 @@ from ..integrators import integrate_exact
 from ..layouts import Layout, make_layout
 from ..maps import forward_maps, sample_points
 from ..mesh import pixel_mesh
-from ..sensor import simulate
+from ..sensor import data_tolerance, simulate
 from .scene import SineScene, blurred_noise, load_photo
 
 __all__ = ["Row", "fd_theta_gradient", "format_scaling", "format_table", "main_bench", "run", "scaling"]
@@ -90,7 +90,7 @@ def _memory_child(spec: dict, conn) -> None:  # pragma: no cover - runs in a spa
     torch.set_num_threads(spec["threads"])
     img = blurred_noise(*spec["src"])
     npimg = np.ascontiguousarray(img[0].permute(1, 2, 0).numpy())
-    layout = make_layout(spec["layout"], None if spec["layout"] == "uniform" else spec["theta"])
+    layout = make_layout(spec["family"], spec["theta"])
     maps = forward_maps(layout, spec["size"], spec["src"]).numpy() if spec["method"] == "remap" else None
     with open("/proc/self/clear_refs", "w") as f:
         f.write("5")  # reset the peak resident set (VmHWM) to the current one
@@ -177,10 +177,11 @@ def fd_theta_gradient(
     return torch.tensor(grads, dtype=torch.float64)
 
 
-def _settings(name: str, tols, mc_samples) -> list[tuple[str, dict, str]]:
-    exact = (
-        [("exact", {"tol": t}, f"tol={t:g}") for t in tols] if name == "curv" else [("exact", {}, "exact")]
-    )
+def _settings(family: str, tols, mc_samples) -> list[tuple[str, dict, str]]:
+    if family == "curv":  # the default call (tolerance from the data), then given tolerances
+        exact = [("exact", {}, "default")] + [("exact", {"tol": t}, f"tol={t:g}") for t in tols]
+    else:
+        exact = [("exact", {}, "exact")]
     return (
         exact
         + [("montecarlo", {"samples": s, "seed": 0}, f"{s * s} spp") for s in mc_samples]
@@ -228,13 +229,19 @@ def run(
     input_mb = first.numel() * 4 / 2**20
 
     def mem(layout_name, method, opts):
-        spec = {"layout": layout_name, "theta": theta, "method": method, "opts": opts, "src": src}
+        family, th = setups[layout_name]
+        spec = {"family": family, "theta": th, "method": method, "opts": opts, "src": src}
         spec |= {"size": size, "threads": torch.get_num_threads()}
         return peak_memory_mb(spec) if memory else None
 
-    layouts = {
-        name: make_layout(name, None if name == "uniform" else theta) for name in ("uniform", "rect", "curv")
+    mixed = (theta[0], -theta[1])
+    setups = {  # row name: (family, θ); "curv ±" has mixed-sign θ (S-shaped pixel edges)
+        "uniform": ("uniform", None),
+        "rect": ("rect", theta),
+        "curv": ("curv", theta),
+        "curv ±": ("curv", mixed),
     }
+    layouts = {name: make_layout(family, th) for name, (family, th) in setups.items()}
     say("anchors")
     t_area = _time(lambda: cv2.resize(npimg, (w, h), interpolation=cv2.INTER_AREA), repeats)
     gen = torch.Generator().manual_seed(0)
@@ -244,13 +251,14 @@ def run(
         img64 = img.double()
         npi = np.ascontiguousarray(img[0].permute(1, 2, 0).numpy())
         for name, layout in layouts.items():
+            family = setups[name][0]
             say(f"{image_name} {name}: float64 references")
             with torch.no_grad():
                 ref = simulate(img64, layout, size, tol=1e-7)
             truth = scene.pixel_means(layout, size)[None] if image_name == "synthetic" else None
             gw = 1 + torch.rand(ref.shape, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
             g_ref = (
-                fd_theta_gradient(img64, name, layout.theta.detach(), size, gw)
+                fd_theta_gradient(img64, family, layout.theta.detach(), size, gw)
                 if layout.theta.numel()
                 else None
             )
@@ -291,7 +299,7 @@ def run(
                 out = _grid_sample_mc(img, layout, size, 4, torch.Generator().manual_seed(0))
                 rows.append(Row(image_name, name, "anchor: grid_sample MC", "16 spp", t_gs, **errors(out)))
 
-            for method, opts, setting in _settings(name, tols, mc_samples):
+            for method, opts, setting in _settings(family, tols, mc_samples):
                 say(f"{image_name} {name}: {method} {setting}")
 
                 def fwd(method=method, opts=opts, layout=layout, img=img):
@@ -310,7 +318,7 @@ def run(
 
                     t_fg = _time(fwd_grad, repeats)
                     row.backward_ms = _time_backward(fwd_grad, layout, repeats)
-                    row.extra["forward_with_grad_ms"] = t_fg
+                    row.extra["forward_with_grad_ms"] = t_fg  # learnable: the mesh is rebuilt every call
                     (simulate(img, layout, size, method, **opts).double() * gw).sum().backward()
                     dtheta = layout.bound * (1 - torch.tanh(layout.rho.detach()) ** 2)
                     g = layout.rho.grad.double() / dtheta.double()
@@ -325,6 +333,7 @@ def run(
         "src_hw": list(src),
         "sensor_hw": list(size),
         "theta": list(theta),
+        "default_tol": data_tolerance(torch.float32)[0],
         "threads": torch.get_num_threads(),
         "input_mb": input_mb,
         "images": list(images),
@@ -332,6 +341,44 @@ def run(
         "anchors_ms": anchors,
         "rows": [asdict(r) for r in rows],
     }
+
+
+_COMPILE_PROBE = """
+import time
+t0 = time.perf_counter()
+import torch, layoutwarp as lw
+t1 = time.perf_counter()
+layout = lw.CurvLayout((0.35, -0.25), learn=True)
+lw.integrate_exact(torch.rand(3, 64, 80), layout, (9, 11), tol=1e-3, backend="numba").sum().backward()
+t2 = time.perf_counter()
+print(t1 - t0, t2 - t1)
+"""
+
+
+def compile_times() -> dict:
+    """Seconds of the first exact forward + backward in a fresh process, with an empty numba
+    cache (the kernels compile) and again in a second process (they load from the cache).
+
+    Each process also reports its import time; a third call in the first process would cost
+    milliseconds. Run in children with ``NUMBA_CACHE_DIR`` pointing at a new folder, so the
+    user's cache is left alone.
+    """
+    import subprocess
+    import sys
+    import tempfile
+
+    out = {}
+    with tempfile.TemporaryDirectory() as cache:
+        env = {**os.environ, "NUMBA_CACHE_DIR": cache}
+        for label in ("first_process", "second_process"):
+            res = subprocess.run(
+                [sys.executable, "-c", _COMPILE_PROBE], env=env, capture_output=True, text=True
+            )
+            if res.returncode:
+                raise RuntimeError(f"compile probe failed: {res.stderr[-2000:]}")
+            imp, first = (float(v) for v in res.stdout.split())
+            out[label] = {"import_s": imp, "first_call_s": first}
+    return out
 
 
 def _forward_fn(img: Tensor, layout: Layout, size, method: str, opts: dict) -> Callable[[], object]:
@@ -410,19 +457,24 @@ def format_table(result: dict) -> str:
         f"grid_sample MC-16 {a['grid_sample_mc16']:.2f} ms",
         "errors: RMSE/max against float64 exact; 'scene' RMSE against the analytic pixel means "
         "(synthetic only); grad: relative error of dL/dθ against float64 finite differences",
+        "fwd ms: a fixed layout (its mesh is built once and reused); train ms: forward + backward "
+        "of a learnable layout (mesh rebuilt every call, as in training); bwd/fwd within training",
         f"{'image':9s} {'layout':7s} {'method':25s} {'setting':8s} {'fwd ms':>8s} {'/AREA':>6s} "
-        f"{'/GS16':>6s} {'bwd/fwd':>7s} {'RMSE':>8s} {'max err':>8s} {'scene':>8s} {'grad':>8s} "
-        f"{'peak/in':>7s}",
+        f"{'/GS16':>6s} {'train ms':>8s} {'bwd/fwd':>7s} {'RMSE':>8s} {'max err':>8s} {'scene':>8s} "
+        f"{'grad':>8s} {'peak/in':>7s}",
     ]
     for r in result["rows"]:
         fg = r["extra"].get("forward_with_grad_ms")
         bwd = None if r["backward_ms"] is None else r["backward_ms"] / fg
+        train = None if r["backward_ms"] is None else r["backward_ms"] + fg
         peak = None if r["peak_mb"] is None else r["peak_mb"] / result["input_mb"]
         lines.append(
             f"{r['image']:9s} {r['layout']:7s} {r['method']:25s} {r['setting']:8s} {r['forward_ms']:8.2f} "
             f"{r['forward_ms'] / a['inter_area']:6.2f} {r['forward_ms'] / a['grid_sample_mc16']:6.2f} "
-            f"{_fmt(bwd, '.2f'):>7s} {_fmt(r['rmse'], '.2e'):>8s} {_fmt(r['max_err'], '.2e'):>8s} "
-            f"{_fmt(r['scene_rmse'], '.2e'):>8s} {_fmt(r['grad_rel_err'], '.1e'):>8s} {_fmt(peak, '.2f'):>7s}"
+            f"{_fmt(train, '8.1f'):>8s} {_fmt(bwd, '.2f'):>7s} {_fmt(r['rmse'], '.2e'):>8s} "
+            f"{_fmt(r['max_err'], '.2e'):>8s} "
+            f"{_fmt(r['scene_rmse'], '.2e'):>8s} {_fmt(r['grad_rel_err'], '.1e'):>8s} "
+            f"{_fmt(peak, '.2f'):>7s}"
         )
     return "\n".join(lines)
 
@@ -469,7 +521,14 @@ def main_bench(
         result = run(memory=memory, photo=photo, progress=say)
         if with_scaling:
             result["scaling"] = scaling()
+    say("compile time of the kernels")
+    result["compile"] = compile_times()
     print(format_table(result))
+    c = result["compile"]
+    print(
+        f"first exact forward+backward in a new process: {c['first_process']['first_call_s']:.2f} s with an "
+        f"empty kernel cache (compiling), {c['second_process']['first_call_s']:.2f} s with the cache filled"
+    )
     if "scaling" in result:
         print(format_scaling(result["scaling"]))
     if json_path:

@@ -128,13 +128,14 @@ def pareto_figure(result: dict, path: str | Path) -> Path:
     floor = 1e-12
     for ax, image in zip(axes, images, strict=False):
         for layout in dict.fromkeys(r["layout"] for r in rows):
-            color = family_color(layout)
+            color = family_color(layout.split()[0])  # "curv ±" (mixed-sign θ): curv's colour, dashed
+            ls = "--" if "±" in layout else "-"
             sel = [r for r in rows if r["image"] == image and r["layout"] == layout]
             for method, marker in _METHOD_MARKERS.items():
                 pts = sorted((r["forward_ms"], max(r["rmse"], floor)) for r in sel if r["method"] == method)
                 if pts:
                     x, y = zip(*pts, strict=True)
-                    ax.plot(x, y, marker=marker, color=color, lw=0.8, ms=5, label=f"{layout} {method}")
+                    ax.plot(x, y, marker=marker, color=color, ls=ls, lw=0.8, ms=5, label=f"{layout} {method}")
             for r in sel:
                 if r["method"].startswith("anchor"):
                     ax.plot(
@@ -161,7 +162,7 @@ def pareto_figure(result: dict, path: str | Path) -> Path:
             t,
             max(r["grad_rel_err"], floor),
             marker=_METHOD_MARKERS.get(r["method"], "x"),
-            color=family_color(r["layout"]),
+            color=family_color(r["layout"].split()[0]),
             ms=5,
         )
     ax.set_xscale("log")
