@@ -93,21 +93,6 @@ def _cell(incl: np.ndarray, row: int, col: int, k: int, block: int) -> float:
     return cur if col % block == 0 else cur - np.float64(incl[row, col - 1, k])
 
 
-@_inline
-def _row_span(y0: float, y1: float, h: int) -> tuple[int, int]:
-    """The source rows a segment from ``y0`` to ``y1`` crosses, clamped to the image."""
-    ylo, yhi = min(y0, y1), max(y0, y1)
-    r0 = min(max(math.floor(ylo), 0), h - 1)
-    return r0, max(min(max(math.ceil(yhi) - 1, 0), h - 1), r0)
-
-
-@_inline
-def _cell(incl: np.ndarray, row: int, col: int, k: int, block: int) -> float:
-    """The box image value ``I(c) − I(c − 1)`` of the prefix table at ``(row, col)``."""
-    cur = np.float64(incl[row, col, k])
-    return cur if col % block == 0 else cur - np.float64(incl[row, col - 1, k])
-
-
 @_jit
 def exact_forward(
     verts: np.ndarray,
