@@ -667,8 +667,7 @@ def integrate_montecarlo(
     else:
         th = theta.detach().to(dtype)
     p = layout.phi(u, th)
-    jac = layout.phi_jacobian(u, th)
-    wdet = (jac[..., 0, 0] * jac[..., 1, 1] - jac[..., 0, 1] * jac[..., 1, 0]).abs()  # 2x2 det, closed form
+    wdet = layout.phi_jacobian_det(u, th).abs()
     vals = _sample(image, p, radiance)  # (N, h*s, w*s)
     n = vals.shape[0]
     num = (vals * wdet.to(vals.dtype)).reshape(n, h, s, w, s).sum((2, 4))

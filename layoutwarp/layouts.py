@@ -40,6 +40,7 @@ __all__ = [
     "phi_curv_dtheta",
     "phi_curv_inverse",
     "phi_curv_jacobian",
+    "phi_curv_jacobian_det",
     "phi_rect",
     "phi_rect_dtheta",
     "phi_rect_inverse",
@@ -196,6 +197,26 @@ def phi_curv_jacobian(p: Tensor, theta: Tensor) -> Tensor:
     jac = torch.diag_embed(s) + (p * ds)[..., :, None] * u[..., None, :]
     eye = torch.eye(2, dtype=p.dtype, device=p.device).expand_as(jac)
     return torch.where(inside, jac, eye)
+
+
+def phi_curv_jacobian_det(p: Tensor, theta: Tensor) -> Tensor:
+    """``det ∂φ/∂p`` of :func:`phi_curv`, shape ``(...)``, in closed form.
+
+    The Jacobian is ``diag(s) + a uᵀ`` with ``a = p s'(r)`` and ``u = p / r``, so by the matrix
+    determinant lemma ``det = s_x s_y + (s_y s_x' p_x² + s_x s_y' p_y²) / r``; 1 outside the unit
+    circle.
+    """
+    p, theta = _promote(p, theta)
+    r2 = (p * p).sum(-1)
+    r = _safe_norm(p).clamp(max=1)[..., None]
+    d = _denom(r, theta)
+    s = (1 - theta) / d
+    ds = 2 * theta * (1 - theta) / d**2
+    r_safe = torch.where(r > 0, r, torch.ones_like(r))[..., 0]
+    sx, sy, dsx, dsy = s[..., 0], s[..., 1], ds[..., 0], ds[..., 1]
+    px2, py2 = p[..., 0] ** 2, p[..., 1] ** 2
+    det = sx * sy + (sy * dsx * px2 + sx * dsy * py2) / r_safe
+    return torch.where(r2 < 1, det, 1.0)
 
 
 def phi_curv_dtheta(p: Tensor, theta: Tensor) -> Tensor:
@@ -373,6 +394,12 @@ class Layout(nn.Module):
         rows = [torch.zeros_like(p) if g is None else g for g in rows]
         return torch.stack(rows, dim=-2)
 
+    def phi_jacobian_det(self, p: Tensor, theta: Tensor) -> Tensor:
+        """``det ∂φ/∂p``, shape ``(...)``: the local area scale (Monte Carlo weights); generic
+        fallback from :meth:`phi_jacobian` in closed 2x2 form."""
+        j = self.phi_jacobian(p, theta)
+        return j[..., 0, 0] * j[..., 1, 1] - j[..., 0, 1] * j[..., 1, 0]
+
     def phi_dtheta(self, p: Tensor, theta: Tensor) -> Tensor:
         """``∂φ_i/∂θ_j``, shape ``(..., 2, P)``; generic fallback by autograd.
 
@@ -486,6 +513,9 @@ class UniformLayout(Layout):
     def phi_jacobian(self, p: Tensor, theta: Tensor) -> Tensor:
         return torch.eye(2, dtype=p.dtype, device=p.device).expand(*p.shape, 2).clone()
 
+    def phi_jacobian_det(self, p: Tensor, theta: Tensor) -> Tensor:
+        return torch.ones_like(p[..., 0])
+
     def phi_dtheta(self, p: Tensor, theta: Tensor) -> Tensor:
         return p.new_zeros(*p.shape, 0)
 
@@ -520,6 +550,9 @@ class RectLayout(Layout):
     def phi_jacobian(self, p: Tensor, theta: Tensor) -> Tensor:
         return phi_rect_jacobian(p, theta)
 
+    def phi_jacobian_det(self, p: Tensor, theta: Tensor) -> Tensor:
+        return torch.diagonal(phi_rect_jacobian(p, theta), dim1=-2, dim2=-1).prod(-1)
+
     def phi_dtheta(self, p: Tensor, theta: Tensor) -> Tensor:
         return phi_rect_dtheta(p, theta)
 
@@ -538,6 +571,9 @@ class CurvLayout(Layout):
 
     def phi_jacobian(self, p: Tensor, theta: Tensor) -> Tensor:
         return phi_curv_jacobian(p, theta)
+
+    def phi_jacobian_det(self, p: Tensor, theta: Tensor) -> Tensor:
+        return phi_curv_jacobian_det(p, theta)
 
     def phi_dtheta(self, p: Tensor, theta: Tensor) -> Tensor:
         return phi_curv_dtheta(p, theta)

@@ -300,3 +300,14 @@ class TestLearn:
         assert back.bound == layout.bound and torch.allclose(back.theta, layout.theta, rtol=0, atol=1e-15)
         with pytest.raises(ValueError, match="'theta' must be a list of numbers"):
             lw.CurvLayout.from_config({"theta": "0.1,0.2"})
+
+
+@pytest.mark.parametrize("cls", [*FAMILIES, Cubic])
+def test_jacobian_determinant_closed_forms(cls, gen):
+    a = 1 / math.sqrt(2)
+    special = torch.tensor([[0.0, 0.0], [a, a], [1.0, 0.0], [0.6, -0.8], [-1.0, 1.0]], dtype=F64)
+    p = torch.cat([rand_points(gen, 2000), special])
+    for theta in (rand_theta(gen, 0.99), torch.zeros(2, dtype=F64)):
+        layout = cls(theta, dtype=F64)
+        expected = torch.linalg.det(layout.phi_jacobian(p, layout.theta))
+        assert (layout.phi_jacobian_det(p, layout.theta) - expected).abs().max() < 1e-12
