@@ -354,9 +354,7 @@ def integrate_exact(
         pcs = green_pieces(a[sl], b[sl], (hs, ws))
         per_seg.index_add_(1, pcs.seg + sl.start, pcs.dy[None] * tables.prefix(pcs.row, pcs.col, pcs.frac))
     if verts.requires_grad:
-        per_seg = _BoundaryFlux.apply(
-            per_seg, verts, _PrefixTables(work.detach()), (hs, ws), mesh.seg_start, mesh.seg_end
-        )
+        per_seg = _BoundaryFlux.apply(per_seg, verts, tables, (hs, ws), mesh.seg_start, mesh.seg_end)
     return mesh.combine_edges(mesh.sum_over_edges(per_seg)) / mesh.areas(verts)
 
 
