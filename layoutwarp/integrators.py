@@ -266,10 +266,11 @@ class _ExactKernel(torch.autograd.Function):
     @staticmethod
     def forward(ctx, verts: Tensor, image: Tensor, mesh: PixelMesh) -> Tensor:
         arrays = _kernel_arrays(verts, mesh)
-        incl, offsets = kernels.prefix_tables(image.detach().contiguous().numpy(), kernels.BLOCK)
+        with kernels.LOCK:
+            incl, offsets = kernels.prefix_tables(image.detach().contiguous().numpy(), kernels.BLOCK)
+            out = kernels.exact_forward(*arrays, incl, offsets, kernels.BLOCK, kernels.threads())
         ctx.save_for_backward(verts)
         ctx.mesh, ctx.incl = mesh, incl
-        out = kernels.exact_forward(*arrays, incl, offsets, kernels.BLOCK, kernels.threads())
         return torch.from_numpy(out)
 
     @staticmethod
@@ -279,9 +280,10 @@ class _ExactKernel(torch.autograd.Function):
         g_edge = np.ascontiguousarray(grad.detach().double().cpu().numpy())
         v, seg_start, seg_end, _ = _kernel_arrays(verts, mesh)
         seg_edge = np.ascontiguousarray(mesh.seg_edge.cpu().numpy())
-        wa, wb = kernels.exact_backward(
-            v, seg_start, seg_end, seg_edge, ctx.incl, kernels.BLOCK, g_edge, kernels.threads()
-        )
+        with kernels.LOCK:
+            wa, wb = kernels.exact_backward(
+                v, seg_start, seg_end, seg_edge, ctx.incl, kernels.BLOCK, g_edge, kernels.threads()
+            )
         vd = verts.detach()
         a, b = vd[mesh.seg_start], vd[mesh.seg_end]
         normal = torch.stack([b[:, 1] - a[:, 1], a[:, 0] - b[:, 0]], -1)

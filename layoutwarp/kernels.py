@@ -17,6 +17,7 @@ reference runs.
 from __future__ import annotations
 
 import math
+import threading
 
 import numpy as np
 
@@ -25,12 +26,16 @@ try:  # numba is a dependency, but the torch reference keeps working without it
 except ImportError:  # pragma: no cover - depends on the environment
     njit = prange = get_num_threads = None
 
-__all__ = ["BLOCK", "available", "exact_backward", "exact_forward", "prefix_tables"]
+__all__ = ["BLOCK", "LOCK", "available", "exact_backward", "exact_forward", "prefix_tables", "threads"]
 
 #: Columns per block of the prefix tables (see :func:`prefix_tables`).
 BLOCK = 16
 #: Segments per work chunk; chunks go to the threads in turn.
 CHUNK = 256
+#: Held around every launch of a parallel kernel: numba's ``workqueue`` threading layer (used
+#: where no OpenMP or TBB runtime is installed) aborts the process on concurrent launches from
+#: several Python threads. Each launch uses every core anyway.
+LOCK = threading.Lock()
 
 
 def available() -> bool:

@@ -113,3 +113,28 @@ def test_auto_uses_the_reference_for_image_gradients(gen):
     assert torch.allclose(g.sum(), torch.tensor(20.0, dtype=F64))  # each pixel's weights sum to 1
     with pytest.raises(ValueError, match="backend='numba' needs"):
         lw.integrate_exact(img, layout, (4, 5), backend="numba")
+
+
+def test_concurrent_calls_from_threads(gen):
+    import threading
+
+    layout = lw.CurvLayout(rand_theta(gen), learn=True)
+    img = torch.rand(3, 120, 150, generator=gen)
+    expected = lw.integrate_exact(img, layout, (12, 15), tol=1e-4).detach()
+    results, errors = [], []
+
+    def work():
+        try:
+            for _ in range(5):
+                out = lw.integrate_exact(img, layout, (12, 15), tol=1e-4)
+                out.sum().backward()
+                results.append(out.detach())
+        except Exception as exc:  # pragma: no cover - reported below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=work) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors and len(results) == 20 and all(torch.equal(r, expected) for r in results)
