@@ -388,7 +388,9 @@ def pixel_mesh(
         tol: polyline tolerance as a bound on the relative pixel-value error (see
             :func:`_edge_parameters`), and on the θ-gradient's when θ requires grad;
             ignored for straight-edged layouts, which always use one segment per edge.
-        max_subdiv: cap on segments per edge.
+        max_subdiv: cap on segments per smooth piece of an edge. Where the cap binds (very
+            fine ``tol`` with long, strongly curved edges: few large pixels, θ near ±1) the
+            error can exceed ``tol``; raise it for such references.
         subdivisions: force a segment count per edge (an int, or an ``(E,)`` tensor) instead
             of the adaptive choice; used for reference computations.
         dtype: vertex dtype (default: θ's dtype).
