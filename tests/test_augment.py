@@ -18,10 +18,10 @@ def data(gen, b=2, h=48, w=64, k=5):
 
 
 @pytest.mark.parametrize("family", ["rect", "curv"])
-def test_container_matches_simulate_and_backwarp(family, gen):
-    img, mask = data(gen)
+def test_container_matches_simulate_and_backwarp(family, gen, device):
+    img, mask = (t.to(device) for t in data(gen))
     theta = tuple(rand_theta(gen, 0.8).tolist())
-    aug = SensorAugmentation((12, 16), family, theta=theta)
+    aug = SensorAugmentation((12, 16), family, theta=theta).to(device)
     seq = K.AugmentationSequential(aug, data_keys=["input", "mask"])
     out, m = seq(img, mask)
     assert out.shape == (2, 3, 12, 16) and m.shape == (2, 1, 12, 16)

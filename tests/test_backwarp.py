@@ -94,8 +94,11 @@ def test_backwarp_cross_entropy_equals_manual_and_has_gradients(gen):
         lw.backwarp_cross_entropy(logits, labels + 1, layout, ignore_index=5)
 
 
-def test_backwarp_uniform_integer_ratio_is_nearest_upsampling(gen):
-    x = torch.rand(2, 3, 4, 5, generator=gen)
-    out = lw.backwarp(x, lw.UniformLayout(), (12, 20))
-    assert torch.equal(out, x.repeat_interleave(3, -2).repeat_interleave(4, -1))
+def test_backwarp_uniform_integer_ratio_is_nearest_upsampling(gen, device):
+    x = torch.rand(2, 3, 4, 5, generator=gen).to(device)
+    out = lw.backwarp(x, lw.UniformLayout().to(device), (12, 20))
+    assert out.device == x.device and torch.equal(out, x.repeat_interleave(3, -2).repeat_interleave(4, -1))
     assert lw.backwarp(x[:, 0], lw.UniformLayout(), (12, 20)).shape == (2, 12, 20)
+    layout = lw.CurvLayout(rand_theta(gen)).to(device)  # nearest and bilinear on the device
+    for mode in ("nearest", "bilinear"):
+        assert lw.backwarp(x, layout, (9, 11), mode=mode).device == x.device
