@@ -251,11 +251,17 @@ class _BoundaryFlux(torch.autograd.Function):
             m1 = (t1 * t1 - t0 * t0) / 2  # ∫ t dt
             wa.index_add_(0, seg, gl * ((t1 - t0) - m1))
             wb.index_add_(0, seg, gl * m1)
-        normal = torch.stack([b[:, 1] - a[:, 1], a[:, 0] - b[:, 0]], -1)
-        g = torch.zeros_like(verts)
-        g.index_add_(0, seg_start, wa[:, None] * normal)
-        g.index_add_(0, seg_end, wb[:, None] * normal)
-        return grad, g, None, None, None, None
+        return grad, _vertex_gradient(verts, seg_start, seg_end, wa, wb), None, None, None, None
+
+
+def _vertex_gradient(verts: Tensor, seg_start: Tensor, seg_end: Tensor, wa: Tensor, wb: Tensor) -> Tensor:
+    """Vertex gradients from each segment's Reynolds weights: ``wa`` (start) and ``wb`` (end)
+    times the segment's normal line element ``(ΔY, −ΔX)``, summed over the segments."""
+    a, b = verts[seg_start], verts[seg_end]
+    normal = torch.stack([b[:, 1] - a[:, 1], a[:, 0] - b[:, 0]], -1)
+    g = torch.zeros_like(verts)
+    g.index_add_(0, seg_start, wa[:, None] * normal)
+    return g.index_add_(0, seg_end, wb[:, None] * normal)
 
 
 class _ExactKernel(torch.autograd.Function):
@@ -284,13 +290,8 @@ class _ExactKernel(torch.autograd.Function):
             wa, wb = kernels.exact_backward(
                 v, seg_start, seg_end, seg_edge, ctx.incl, kernels.BLOCK, g_edge, kernels.threads()
             )
-        vd = verts.detach()
-        a, b = vd[mesh.seg_start], vd[mesh.seg_end]
-        normal = torch.stack([b[:, 1] - a[:, 1], a[:, 0] - b[:, 0]], -1)
-        g = torch.zeros_like(vd)
-        g.index_add_(0, mesh.seg_start, torch.from_numpy(wa)[:, None] * normal)
-        g.index_add_(0, mesh.seg_end, torch.from_numpy(wb)[:, None] * normal)
-        return g, None, None
+        wa_t, wb_t = torch.from_numpy(wa), torch.from_numpy(wb)
+        return _vertex_gradient(verts.detach(), mesh.seg_start, mesh.seg_end, wa_t, wb_t), None, None
 
 
 def _kernel_arrays(verts: Tensor, mesh: PixelMesh) -> list[np.ndarray]:
@@ -392,10 +393,10 @@ def _separable_edges(
     hs, ws = src
     theta = theta.double()
     gx, gy = grid_lines(w, theta.dtype, theta.device), grid_lines(h, theta.dtype, theta.device)
-    px = layout.phi(torch.stack([gx, torch.zeros_like(gx)], -1), theta)[:, 0]
-    py = layout.phi(torch.stack([torch.zeros_like(gy), gy], -1), theta)[:, 1]
-    ex = sensor_to_pixels(torch.stack([px, py[:1].expand_as(px)], -1), (hs, ws))[:, 0]
-    ey = sensor_to_pixels(torch.stack([px[:1].expand_as(py), py], -1), (hs, ws))[:, 1]
+    qx = layout.phi(torch.stack([gx, torch.zeros_like(gx)], -1), theta)  # the column edges on y = 0
+    qy = layout.phi(torch.stack([torch.zeros_like(gy), gy], -1), theta)  # the row edges on x = 0
+    ex = sensor_to_pixels(qx, (hs, ws))[:, 0]
+    ey = sensor_to_pixels(qy, (hs, ws))[:, 1]
     return ex.clamp(0, ws), ey.clamp(0, hs)
 
 
