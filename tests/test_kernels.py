@@ -75,7 +75,9 @@ def test_extreme_theta_matches_the_reference_to_its_rounding(gen):
     # values divide Green's sum (terms up to W_src · max|L| along the perimeter) by tiny
     # areas, and the θ-gradient's rounding grows like eps / e² (measured: the backends differ
     # by 8e-14 at e = 0.1, 1.5e-11 at 1e-2, 1.3e-9 at 1e-3, 3.6e-5 at 1e-6). Bound both by
-    # those scales.
+    # those scales. The gradient's rounding is heavy-tailed over random images: relative to
+    # max|g| it was 0.4 eps/e² at the median and 12 eps/e² at the worst of 400 seeds (4 eps/e²
+    # failed for seed 2875913243), so the bound is 64 eps/e² (1.4 %); a wrong term is O(1).
     e = 1e-6
     layout = lw.CurvLayout((1 - e, -(1 - e)), dtype=F64)
     size, src = (7, 9), (40, 50)
@@ -89,7 +91,7 @@ def test_extreme_theta_matches_the_reference_to_its_rounding(gen):
     value_scale = float((src[1] * perimeter / mesh.areas(v).abs()).max())  # Σ|terms| / area
     assert float((va - vb).abs().max()) <= 1e-15 * value_scale
     eps = torch.finfo(F64).eps
-    assert float((ga - gb).abs().max()) <= 4 * eps / e**2 * max(float(gb.abs().max()), 1.0)
+    assert float((ga - gb).abs().max()) <= 64 * eps / e**2 * max(float(gb.abs().max()), 1.0)
 
 
 def test_gradcheck_on_the_kernel(gen):
