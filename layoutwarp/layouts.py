@@ -270,12 +270,15 @@ class Layout(nn.Module):
 
     * ``separable``: ``φ_x`` depends on ``x`` only and ``φ_y`` on ``y`` only, so pixels are
       axis-aligned rectangles (the fast separable integrator applies);
-    * ``straight_edges``: images of the uniform grid lines are straight, so pixel edges are
-      never subdivided.
+    * ``straight_edges``: images of the uniform grid lines are straight between the cuts of
+      :meth:`edge_breakpoints`, so pixel edges are polylines with a vertex at each cut and are
+      never subdivided further (exact meshes at any tolerance).
 
-    The parameter is stored unconstrained as ``rho`` with ``θ = bound · tanh(ρ)``. A layout
-    built from θ is fixed (``rho`` is a buffer) unless ``learn=True``;
-    :class:`~layoutwarp.SensorLayer` learns by default.
+    The parameter is stored unconstrained as ``rho`` with ``θ = bound · tanh(ρ)`` (families
+    with unbounded parameters override :meth:`_to_theta` and :meth:`_to_rho`). A layout built
+    from θ is fixed (``rho`` is a buffer) unless ``learn=True``;
+    :class:`~layoutwarp.SensorLayer` learns by default. ``num_params`` is the length of θ
+    (``None`` on the class for families whose instances choose it).
 
     A new family subclasses this, sets ``family`` and is declared with
     :func:`register_family`: layout files, :func:`make_layout` and the command line's
@@ -291,7 +294,7 @@ class Layout(nn.Module):
     """
 
     family: ClassVar[str] = "custom"
-    num_params: ClassVar[int] = 2
+    num_params: int | None = 2
     separable: ClassVar[bool] = False
     straight_edges: ClassVar[bool] = False
 
@@ -306,16 +309,35 @@ class Layout(nn.Module):
         super().__init__()
         self.bound = check_number(bound, "bound", 0, lo_open=True)
         dtype = dtype or torch.get_default_dtype()
-        theta_t = self._validate_theta(theta, dtype)
-        rho = torch.atanh(theta_t / self.bound)
-        if learn and self.num_params > 0:
+        rho = self._to_rho(self._validate_theta(theta, dtype))
+        if learn and self.num_params:
             self.rho = nn.Parameter(rho)
         else:
             self.register_buffer("rho", rho)
 
     # -- parameters ------------------------------------------------------------------
+    def _bounds(self) -> Tensor:
+        """The open bound on each entry of θ, ``(P,)`` float64."""
+        return torch.full((self.num_params or 0,), self.bound, dtype=torch.float64)
+
+    def _to_theta(self, rho: Tensor) -> Tensor:
+        """θ from the stored unconstrained ``ρ`` (default ``bound · tanh(ρ)``)."""
+        return self._bounds().to(rho) * torch.tanh(rho)
+
+    def _to_rho(self, theta: Tensor) -> Tensor:
+        """Inverse of :meth:`_to_theta`."""
+        return torch.atanh(theta / self._bounds().to(theta))
+
+    def _check_theta(self, theta: Tensor) -> None:
+        """Raise ``ValueError`` naming the first entry of a (float64, CPU) θ that is not allowed."""
+        for i, (v, b) in enumerate(zip(theta.tolist(), self._bounds().tolist(), strict=True)):
+            if not math.isfinite(v) or abs(v) >= b:
+                raise ValueError(
+                    f"theta[{i}] = {v!r} is out of range: each θ must be finite with |θ| < bound = {b}"
+                )
+
     def _validate_theta(self, theta: Sequence[float] | Tensor | None, dtype: torch.dtype) -> Tensor:
-        n = self.num_params
+        n = self.num_params or 0
         if theta is None:
             return torch.zeros(n, dtype=dtype)
         t = torch.as_tensor(theta, dtype=torch.float64).detach().flatten().cpu()
@@ -326,25 +348,21 @@ class Layout(nn.Module):
                 f"the {self.family} layout has no parameters; theta must be empty or zeros, got {theta!r}"
             )
         if t.numel() != n:
-            raise ValueError(f"theta must have {n} values (θ_x, θ_y), got {t.numel()}: {theta!r}")
-        for i, v in enumerate(t.tolist()):
-            if not math.isfinite(v) or abs(v) >= self.bound:
-                raise ValueError(
-                    f"theta[{i}] = {v!r} is out of range: each θ must be finite with "
-                    f"|θ| < bound = {self.bound}"
-                )
+            what = " (θ_x, θ_y)" if n == 2 else ""
+            raise ValueError(f"theta must have {n} values{what}, got {t.numel()}: {theta!r}")
+        self._check_theta(t)
         return t.to(dtype)
 
     @property
     def theta(self) -> Tensor:
-        """The constrained parameters ``θ = bound · tanh(ρ)``, shape ``(P,)``."""
-        return self.bound * torch.tanh(self.rho)
+        """The constrained parameters (``θ = bound · tanh(ρ)`` by default), shape ``(P,)``."""
+        return self._to_theta(self.rho)
 
     @torch.no_grad()
     def set_theta(self, theta: Sequence[float] | Tensor) -> None:
         """Set ``θ`` in place (validated like the constructor)."""
         t = self._validate_theta(theta, self.rho.dtype)
-        self.rho.copy_(torch.atanh(t / self.bound).to(self.rho.device))
+        self.rho.copy_(self._to_rho(t).to(self.rho.device))
 
     @property
     def learnable(self) -> bool:
@@ -355,6 +373,18 @@ class Layout(nn.Module):
         """The θ a computation uses: ``theta`` when given (e.g. a tensor that
         ``torch.autograd.gradcheck`` varies), else the layout's own :attr:`theta`."""
         return self.theta if theta is None else theta
+
+    def project_(self) -> bool:
+        """Pull the parameters back into the valid set after an optimiser step.
+
+        Families whose every θ is a bijection (the default) have nothing to do; others (e.g.
+        :class:`~layoutwarp.GridLayout`) undo the part of a step that would fold the layout.
+        :class:`~layoutwarp.SensorLayer` calls this before each forward pass.
+
+        Returns:
+            whether the parameters were changed.
+        """
+        return False
 
     # -- files -----------------------------------------------------------------------
     def to_config(self) -> dict[str, Any]:
@@ -526,70 +556,258 @@ class UniformLayout(Layout):
         return ""
 
 
+def _side_scale(p: Tensor, center: Tensor) -> Tensor:
+    """Per-axis half-width of the side of ``center`` that ``p`` lies on: ``1 − c`` or ``1 + c``."""
+    return torch.where(p >= center, 1 - center, 1 + center)
+
+
+class _FoveaLayout(Layout):
+    """A paper family deformed about a movable centre ``c = (c_x, c_y)``, ``|c_j| < 1``.
+
+    The square is mapped onto itself by the per-axis piecewise-affine ``T(p)_j = (p_j − c_j) /
+    s_j`` with ``s_j = 1 − c_j`` right of (below) the centre and ``1 + c_j`` left of (above) it:
+    ``T`` sends ``c`` to the origin and each of the four rectangles between ``c`` and a sensor
+    corner onto a quadrant of S. The layout is ``T⁻¹ ∘ φ ∘ T``; φ keeps every point in its
+    quadrant, so this is again a bijection of S fixing its border, and ``c = (0, 0)`` gives the
+    centred layout bit for bit. The unit circle of φ_curv becomes four quarter-ellipses through
+    ``c ± (s_x, 0)`` and ``c ± (0, s_y)``, touching the sensor's sides; the unit interval of
+    φ_rect stays the whole side, with its density peak (``θ > 0``) at ``c``. Off the centre,
+    φ is not smooth across the lines ``x = c_x`` and ``y = c_y`` (the scale changes there).
+
+    Args:
+        theta: ``(θ_x, θ_y)``.
+        center: the centre ``(c_x, c_y)`` in sensor coordinates.
+        learn_center: make the centre part of θ, which becomes ``(θ_x, θ_y, c_x, c_y)`` (each
+            centre entry bounded by 1), so that it is learned with θ (``learn=True``).
+        bound, learn, dtype: as :class:`Layout`.
+    """
+
+    num_params: int | None = 2
+
+    def __init__(
+        self,
+        theta: Sequence[float] | Tensor | None = None,
+        *,
+        center: Sequence[float] | Tensor = (0.0, 0.0),
+        learn_center: bool = False,
+        bound: float = 1.0,
+        learn: bool = False,
+        dtype: torch.dtype | None = None,
+    ) -> None:
+        c = torch.as_tensor(center, dtype=torch.float64).detach().flatten().cpu()
+        if c.numel() != 2 or not bool(torch.isfinite(c).all()) or bool((c.abs() >= 1).any()):
+            raise ValueError(f"center must be (c_x, c_y) with |c| < 1 each, got {center!r}")
+        self.learn_center = bool(learn_center)
+        self.num_params = 4 if learn_center else 2
+        self._centred = not learn_center and bool((c == 0).all())
+        if learn_center:
+            t = torch.zeros(2, dtype=torch.float64) if theta is None else torch.as_tensor(theta).double()
+            if t.numel() != 2:
+                raise ValueError(f"theta must have 2 values (θ_x, θ_y), got {t.numel()}: {theta!r}")
+            theta = torch.cat([t.flatten().cpu(), c])
+        super().__init__(theta, bound=bound, learn=learn, dtype=dtype)
+        self.register_buffer("fixed_center", c.to(dtype or torch.get_default_dtype()))
+
+    def _bounds(self) -> Tensor:
+        b = torch.full((self.num_params or 0,), self.bound, dtype=torch.float64)
+        if self.learn_center:
+            b[2:] = 1.0
+        return b
+
+    @property
+    def center(self) -> Tensor:
+        """The centre ``(c_x, c_y)`` the deformation is about."""
+        return self.theta[2:] if self.learn_center else self.fixed_center
+
+    def _split(self, theta: Tensor) -> tuple[Tensor, Tensor | None]:
+        """``(θ_x, θ_y)`` and the centre (``None`` for the centred fast path)."""
+        if theta.numel() == 4:
+            return theta[:2], theta[2:]
+        return theta, None if self._centred else self.fixed_center.to(theta)
+
+    # the centred functions of the family
+    def _phi0(self, p: Tensor, theta: Tensor) -> Tensor:
+        raise NotImplementedError
+
+    def _inverse0(self, q: Tensor, theta: Tensor) -> Tensor:
+        raise NotImplementedError
+
+    def _jacobian0(self, p: Tensor, theta: Tensor) -> Tensor:
+        raise NotImplementedError
+
+    def _det0(self, p: Tensor, theta: Tensor) -> Tensor:
+        raise NotImplementedError
+
+    def _dtheta0(self, p: Tensor, theta: Tensor) -> Tensor:
+        raise NotImplementedError
+
+    def _local(self, p: Tensor, c: Tensor) -> tuple[Tensor, Tensor]:
+        p, c = _promote(p, c)
+        s = _side_scale(p, c)
+        return (p - c) / s, s
+
+    def phi(self, p: Tensor, theta: Tensor) -> Tensor:
+        th, c = self._split(theta)
+        if c is None:
+            return self._phi0(p, th)
+        u, s = self._local(p, c)
+        return c.to(u) + s * self._phi0(u, th)
+
+    def phi_inverse(self, q: Tensor, theta: Tensor) -> Tensor:
+        th, c = self._split(theta)
+        if c is None:
+            return self._inverse0(q, th)
+        u, s = self._local(q, c)
+        return c.to(u) + s * self._inverse0(u, th)
+
+    def phi_jacobian(self, p: Tensor, theta: Tensor) -> Tensor:
+        th, c = self._split(theta)
+        if c is None:
+            return self._jacobian0(p, th)
+        u, s = self._local(p, c)
+        return self._jacobian0(u, th) * s[..., :, None] / s[..., None, :]
+
+    def phi_jacobian_det(self, p: Tensor, theta: Tensor) -> Tensor:
+        th, c = self._split(theta)
+        return self._det0(p if c is None else self._local(p, c)[0], th)
+
+    def phi_dtheta(self, p: Tensor, theta: Tensor) -> Tensor:
+        if theta.numel() == 4:
+            return super().phi_dtheta(p, theta)
+        th, c = self._split(theta)
+        if c is None:
+            return self._dtheta0(p, th)
+        u, s = self._local(p, c)
+        return s[..., :, None] * self._dtheta0(u, th)
+
+    def to_config(self) -> dict[str, Any]:
+        th = self.theta.detach().double().cpu()
+        c = self.center.detach().double().cpu()
+        return {
+            "theta": [float(v) for v in th[:2]],
+            "bound": self.bound,
+            "center": [float(v) for v in c],
+            "learn_center": self.learn_center,
+        }
+
+    @classmethod
+    def from_config(
+        cls, config: dict[str, Any], *, learn: bool = False, dtype: torch.dtype | None = None
+    ) -> Layout:
+        theta = config.get("theta")
+        if theta is not None and (
+            not isinstance(theta, list) or not all(isinstance(v, (int, float)) for v in theta)
+        ):
+            raise ValueError(f"'theta' must be a list of numbers, got {theta!r}")
+        center = config.get("center", [0.0, 0.0])
+        if not isinstance(center, list) or not all(isinstance(v, (int, float)) for v in center):
+            raise ValueError(f"'center' must be a list of two numbers, got {center!r}")
+        return cls(
+            theta,
+            center=center,
+            learn_center=bool(config.get("learn_center", False)),
+            bound=config.get("bound", 1.0),
+            learn=learn,
+            dtype=dtype,
+        )
+
+    def extra_repr(self) -> str:
+        th = ", ".join(f"{v:.4g}" for v in self.theta.detach()[:2].tolist())
+        c = ", ".join(f"{v:.4g}" for v in self.center.detach().tolist())
+        return f"theta=({th}), center=({c}), bound={self.bound:g}, learn={self.learnable}"
+
+
 @register_family
-class RectLayout(Layout):
-    """The rectangular layout φ_rect of the paper (separable; pixels are rectangles).
+class RectLayout(_FoveaLayout):
+    """The rectangular layout φ_rect of the paper (separable; pixels are rectangles), about a
+    movable centre (see :class:`_FoveaLayout`: ``center``, ``learn_center``).
 
     Example:
         >>> layout = RectLayout(theta=(0.3, -0.2))
         >>> q = layout(torch.tensor([[0.5, 0.5]]))
         >>> torch.allclose(layout.inverse(q), torch.tensor([[0.5, 0.5]]), atol=1e-6)
         True
+        >>> RectLayout((0.5, 0.5), center=(0.25, -0.5))(torch.tensor([[0.25, -0.5]]))
+        tensor([[ 0.2500, -0.5000]])
     """
 
     family = "rect"
     separable = True
     straight_edges = True
 
-    def phi(self, p: Tensor, theta: Tensor) -> Tensor:
+    def _phi0(self, p: Tensor, theta: Tensor) -> Tensor:
         return phi_rect(p, theta)
 
-    def phi_inverse(self, q: Tensor, theta: Tensor) -> Tensor:
+    def _inverse0(self, q: Tensor, theta: Tensor) -> Tensor:
         return phi_rect_inverse(q, theta)
 
-    def phi_jacobian(self, p: Tensor, theta: Tensor) -> Tensor:
+    def _jacobian0(self, p: Tensor, theta: Tensor) -> Tensor:
         return phi_rect_jacobian(p, theta)
 
-    def phi_jacobian_det(self, p: Tensor, theta: Tensor) -> Tensor:
+    def _det0(self, p: Tensor, theta: Tensor) -> Tensor:
         return torch.diagonal(phi_rect_jacobian(p, theta), dim1=-2, dim2=-1).prod(-1)
 
-    def phi_dtheta(self, p: Tensor, theta: Tensor) -> Tensor:
+    def _dtheta0(self, p: Tensor, theta: Tensor) -> Tensor:
         return phi_rect_dtheta(p, theta)
 
 
+def _circle_crossings(a: Tensor, d: Tensor, lo: Tensor, hi: Tensor, scale: Tensor) -> Tensor:
+    """Parameters ``t ∈ (lo, hi)`` where ``Σ_j ((a_j + t d_j) / scale_j)² = 1``: ``(E, 2)``, NaN for none."""
+    ds, as_ = d / scale, a / scale
+    qa = (ds * ds).sum(-1)
+    qb = 2 * (as_ * ds).sum(-1)
+    qc = (as_ * as_).sum(-1) - 1
+    disc = qb * qb - 4 * qa * qc
+    sq = torch.sqrt(disc.clamp_min(0))
+    qa_safe = torch.where(qa > 0, qa, torch.ones_like(qa))
+    t = torch.stack([(-qb - sq) / (2 * qa_safe), (-qb + sq) / (2 * qa_safe)], -1)
+    ok = (disc > 0)[:, None] & (qa > 0)[:, None] & (t > lo[:, None]) & (t < hi[:, None])
+    return torch.where(ok, t, torch.full_like(t, float("nan")))
+
+
 @register_family
-class CurvLayout(Layout):
-    """The curvilinear layout φ_curv of the paper (radial, fixed outside the unit circle)."""
+class CurvLayout(_FoveaLayout):
+    """The curvilinear layout φ_curv of the paper (radial, fixed outside the unit circle), about
+    a movable centre (see :class:`_FoveaLayout`: ``center``, ``learn_center``)."""
 
     family = "curv"
 
-    def phi(self, p: Tensor, theta: Tensor) -> Tensor:
+    def _phi0(self, p: Tensor, theta: Tensor) -> Tensor:
         return phi_curv(p, theta)
 
-    def phi_inverse(self, q: Tensor, theta: Tensor) -> Tensor:
+    def _inverse0(self, q: Tensor, theta: Tensor) -> Tensor:
         return phi_curv_inverse(q, theta)
 
-    def phi_jacobian(self, p: Tensor, theta: Tensor) -> Tensor:
+    def _jacobian0(self, p: Tensor, theta: Tensor) -> Tensor:
         return phi_curv_jacobian(p, theta)
 
-    def phi_jacobian_det(self, p: Tensor, theta: Tensor) -> Tensor:
+    def _det0(self, p: Tensor, theta: Tensor) -> Tensor:
         return phi_curv_jacobian_det(p, theta)
 
-    def phi_dtheta(self, p: Tensor, theta: Tensor) -> Tensor:
+    def _dtheta0(self, p: Tensor, theta: Tensor) -> Tensor:
         return phi_curv_dtheta(p, theta)
 
     def edge_breakpoints(self, a: Tensor, b: Tensor) -> Tensor:
-        """Where the segment crosses the unit circle (the kink of φ_curv): ``|a + t d|² = 1``."""
+        """Where the segment crosses the (adapted) unit circle, the kink of φ_curv, and, off the
+        centre, the lines ``x = c_x`` and ``y = c_y``."""
         d = b - a
-        qa = (d * d).sum(-1)
-        qb = 2 * (a * d).sum(-1)
-        qc = (a * a).sum(-1) - 1
-        disc = qb * qb - 4 * qa * qc
-        ok = (disc > 0) & (qa > 0)
-        sq = torch.sqrt(disc.clamp_min(0))
-        qa_safe = torch.where(qa > 0, qa, torch.ones_like(qa))
-        t = torch.stack([(-qb - sq) / (2 * qa_safe), (-qb + sq) / (2 * qa_safe)], -1)
-        return torch.where(ok[:, None], t, torch.full_like(t, float("nan")))
+        if self._centred:
+            lo, hi = torch.zeros_like(d[:, 0]), torch.ones_like(d[:, 0])
+            return _circle_crossings(a, d, lo - 1, hi + 1, torch.ones_like(d))
+        c = self.center.detach().to(a)
+        with torch.no_grad():
+            dsafe = torch.where(d != 0, d, torch.ones_like(d))
+            cut = torch.where(d != 0, (c - a) / dsafe, torch.full_like(d, float("nan")))
+            cut = torch.where((cut > 0) & (cut < 1), cut, torch.full_like(cut, float("nan")))
+            bounds = torch.cat(
+                [torch.zeros_like(d[:, :1]), cut.nan_to_num(1.0).sort(1).values, torch.ones_like(d[:, :1])], 1
+            )
+            out = [cut]
+            for k in range(3):  # the crossings on each piece between the cuts, in local scale
+                lo, hi = bounds[:, k], bounds[:, k + 1]
+                mid = a + ((lo + hi) / 2)[:, None] * d
+                out.append(_circle_crossings(a - c, d, lo, hi, _side_scale(mid, c)))
+        return torch.cat(out, 1)
 
 
 # ----------------------------------------------------------------------------------------
