@@ -24,6 +24,7 @@ from .integrators import (
     integrate_point,
     integrate_separable,
 )
+from .grids import GridLayout
 from .layoutfile import load_layout, save_layout
 from .layouts import (
     FAMILIES,
@@ -43,6 +44,7 @@ from .layouts import (
 from .maps import Maps, forward_maps, inverse_maps, sample_points
 from .mesh import MeshTopology, PixelMesh, pixel_mesh
 from .sensor import SensorLayer, SimulationPlan, plan_simulation, simulate
+from .splines import SplineLayout
 
 if TYPE_CHECKING:
     from .augment import SensorAugmentation
@@ -80,6 +82,7 @@ __all__ = [
     "CurvLayout",
     "ExportReport",
     "FoldoverReport",
+    "GridLayout",
     "Layout",
     "Maps",
     "MeshTopology",
@@ -88,6 +91,7 @@ __all__ = [
     "SensorAugmentation",
     "SensorLayer",
     "SimulationPlan",
+    "SplineLayout",
     "UniformLayout",
     "__version__",
     "area_weights",

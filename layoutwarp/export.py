@@ -10,7 +10,7 @@ format.
 
 Curved pixel edges become polylines whose deviation from the true edge (measured at the
 middle of every segment) is at most ``tol_um``; straight-edged layouts need one segment per
-edge. ``manhattan=True`` replaces every segment by an axis-aligned step, for processes that
+straight piece. ``manhattan=True`` replaces every segment by an axis-aligned step, for processes that
 only allow Manhattan geometry. ``grid_um`` snaps every vertex to the manufacturing grid.
 Neighbouring pixels share their edge vertices exactly (each edge is built once), so the
 polygons tile the sensor without gaps or overlaps, also after snapping.

@@ -242,13 +242,15 @@ class FoldoverReport:
         min_det: smallest Jacobian determinant found.
         num_nonpositive: number of grid points with ``det J <= 0`` (fold-overs).
         worst_point: ``(x, y)`` where ``det J`` is smallest.
-        grid: the grid side ``n``.
+        grid: the grid side ``n`` (0 for an exact check, e.g. :class:`~layoutwarp.GridLayout`'s).
+        cell: the first folded control cell ``(row, col)`` of an exact check, else ``None``.
     """
 
     min_det: float
     num_nonpositive: int
     worst_point: tuple[float, float]
     grid: int
+    cell: tuple[int, int] | None = None
 
     @property
     def ok(self) -> bool:

@@ -387,7 +387,8 @@ def pixel_mesh(
         size: sensor size ``(H, W)``.
         tol: polyline tolerance as a bound on the relative pixel-value error (see
             :func:`_edge_parameters`), and on the θ-gradient's when θ requires grad;
-            ignored for straight-edged layouts, which always use one segment per edge.
+            ignored for straight-edged layouts, which always use one segment per straight
+            piece (between the cuts of :meth:`Layout.edge_breakpoints`).
         max_subdiv: cap on segments per smooth piece of an edge. Where the cap binds (very
             fine ``tol`` with long, strongly curved edges: few large pixels, θ near ±1) the
             error can exceed ``tol``; raise it for such references.
@@ -440,7 +441,10 @@ def _build_mesh(
         if bool((n < 1).any()):
             raise ValueError(f"subdivisions must be >= 1, got {subdivisions!r}")
         t_start = None
-    elif layout.straight_edges or tol is None:
+    elif layout.straight_edges:  # one segment per straight piece
+        edge, t_start, _ = smooth_pieces(layout, *topo.edge_ends(device=device))
+        n = torch.bincount(edge, minlength=ne)
+    elif tol is None:
         n = torch.ones(ne, dtype=torch.long, device=device)
         t_start = None
     else:

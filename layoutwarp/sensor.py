@@ -127,10 +127,12 @@ def plan_simulation(
             )
         if method == "separable":
             raise ValueError(
-                f"method='separable' needs a separable layout (uniform or rect), got {type(layout).__name__}"
+                f"method='separable' needs a separable layout (uniform, rect or spline), got {type(layout).__name__}"
             )
         if layout.straight_edges:
-            return SimulationPlan("exact", "box", 0.0, {"segments_per_edge": 1}, "straight edges: exact")
+            return SimulationPlan(
+                "exact", "box", 0.0, {"segments_per_piece": 1}, "straight edges (between kinks): exact"
+            )
         return SimulationPlan(
             "exact", "box", float(tol), {"tol": float(tol)}, f"curved edges: polylines within tol ({why})"
         )

@@ -1,0 +1,457 @@
+"""Grid layouts: any layout given as a control grid, bilinear inside each control cell.
+
+A :class:`GridLayout` maps the uniform ``(g_h + 1) × (g_w + 1)`` control grid of S onto given
+control points and interpolates bilinearly inside each control cell. Restricted to a line
+parallel to an axis, a bilinear map is affine, so the image of a uniform pixel edge is a
+polyline with a vertex where it crosses a control line: the pixel mesh is exact, with no
+tolerance. Border points stay on the border and the four corners are fixed.
+
+A bilinear cell is one-to-one exactly when its corner quadrilateral is strictly convex and
+positively oriented: ``det J`` is affine in the cell's local coordinates, so it is positive
+everywhere once it is positive at the four corners, where it is the cross product of the two
+edges meeting there. With the border fixed, that makes the whole grid a bijection of S.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .checks import check_choice, check_size
+from .coords import pixels_to_sensor, uniform_corners
+from .layouts import FoldoverReport, Layout, register_family
+
+__all__ = ["GridLayout", "cell_corner_dets", "inverse_bilinear"]
+
+
+def _cell(x: Tensor, n: int) -> tuple[Tensor, Tensor]:
+    """Control cell index and local coordinate ``∈ [0, 1]`` of points ``x ∈ [-1, 1]`` (``n`` cells)."""
+    u = (x.clamp(-1, 1) + 1) * (n / 2)
+    i = u.detach().floor().clamp(0, n - 1)
+    return i.long(), u - i
+
+
+def _cross(a: Tensor, b: Tensor) -> Tensor:
+    return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+
+
+def cell_corner_dets(control: Tensor) -> Tensor:
+    """``det J`` of the bilinear map at the four corners of every control cell, ``(g_h, g_w, 4)``.
+
+    In units of the uniform cell (1 for the uniform grid); the order is top-left, top-right,
+    bottom-right, bottom-left. All positive exactly when no cell folds.
+    """
+    gh, gw = control.shape[0] - 1, control.shape[1] - 1
+    a, b = control[:-1, :-1], control[:-1, 1:]
+    c, d = control[1:, 1:], control[1:, :-1]
+    dets = torch.stack(
+        [_cross(b - a, d - a), _cross(c - b, a - b), _cross(d - c, b - c), _cross(a - d, c - d)], -1
+    )
+    return dets * (gh * gw / 4)
+
+
+def inverse_bilinear(a: Tensor, b: Tensor, c: Tensor, d: Tensor, q: Tensor) -> Tensor:
+    """Local coordinates ``(u, v)`` with ``q = bilerp(u, v)`` in the quadrilaterals ``a, b, c, d``.
+
+    ``a, b, c, d`` (``(..., 2)``) are the corners at ``(u, v) = (0, 0), (1, 0), (1, 1), (0, 1)``.
+    Eliminating ``u`` from ``q − a = u (e + v g) + v f`` (``e = b − a``, ``f = d − a``,
+    ``g = a − b + c − d``) leaves ``(f × g) v² + (f × e − h × g) v − h × e = 0`` with
+    ``h = q − a``; the root nearest ``[0, 1]`` is taken (cancellation-free form) and ``u`` follows
+    by least squares. Points outside the quadrilateral get coordinates outside ``[0, 1]²``.
+    """
+    e, f, g, h = b - a, d - a, a - b + c - d, q - a
+    k2 = _cross(f, g)
+    k1 = _cross(f, e) - _cross(h, g)
+    k0 = -_cross(h, e)
+    disc = (k1 * k1 - 4 * k2 * k0).clamp_min(0)
+    sq = torch.sqrt(disc)
+    qq = -0.5 * (k1 + torch.where(k1 >= 0, sq, -sq))
+    scale = k1.abs() + (e * e).sum(-1) + (f * f).sum(-1)
+    linear = k2.abs() <= 1e-14 * scale
+    one = torch.ones_like(k1)
+    v_lin = -k0 / torch.where(k1 != 0, k1, one)
+    r1 = qq / torch.where(k2 != 0, k2, one)
+    r2 = k0 / torch.where(qq != 0, qq, one)
+    dist1 = (r1 - r1.clamp(0, 1)).abs() + torch.where(k2 != 0, 0.0, math.inf)
+    dist2 = (r2 - r2.clamp(0, 1)).abs() + torch.where(qq != 0, 0.0, math.inf)
+    v = torch.where(linear, v_lin, torch.where(dist1 <= dist2, r1, r2))
+    w = e + v[..., None] * g
+    u = ((h - v[..., None] * f) * w).sum(-1) / (w * w).sum(-1).clamp_min(1e-300)
+    return torch.stack([u, v], -1)
+
+
+@register_family
+class GridLayout(Layout):
+    """A layout given by control points, bilinear in each control cell (see :mod:`layoutwarp.grids`).
+
+    θ holds the free control coordinates: ``(x, y)`` of interior points and the coordinate
+    along the border of border points (corners have none), in row-major order. Every pixel edge
+    is straight between control lines, so the exact integrator is exact at any tolerance.
+
+    A learnable grid could fold under a large optimiser step; :meth:`project_` (called by
+    :class:`~layoutwarp.SensorLayer` before every forward pass) undoes the part of a step that
+    would bring any cell's corner determinant below ``min_det``, by halving the step from the
+    last valid control points.
+
+    Args:
+        control: ``(g_h + 1, g_w + 1, 2)`` control points in sensor coordinates (``None``: the
+            uniform grid of ``grid``). Border points must lie on the border (within 1e-9) and
+            are snapped onto it; the corners must be the sensor's corners.
+        grid: ``(g_h, g_w)`` control cells when ``control`` is ``None``.
+        min_det: the smallest corner determinant (in units of the uniform cell) a learning step
+            may produce; a grid given below it is kept but not made worse.
+        bound: unused (accepted for :func:`make_layout`).
+        learn, dtype: as :class:`~layoutwarp.Layout`.
+
+    Raises:
+        ValueError: a malformed grid, or a folded one (naming the first bad cell).
+
+    Example:
+        >>> ctrl = uniform_corners((2, 2)).clone()
+        >>> ctrl[1, 1] = torch.tensor([0.3, -0.2], dtype=torch.float64)
+        >>> layout = GridLayout(ctrl, dtype=torch.float64)
+        >>> layout(torch.tensor([[0.0, 0.0]], dtype=torch.float64))
+        tensor([[ 0.3000, -0.2000]], dtype=torch.float64)
+    """
+
+    family = "grid"
+    num_params: int | None = None
+    straight_edges = True
+
+    def __init__(
+        self,
+        control: Tensor | Sequence | None = None,
+        *,
+        grid: Sequence[int] = (4, 4),
+        min_det: float = 0.05,
+        bound: float = 1.0,
+        learn: bool = False,
+        dtype: torch.dtype | None = None,
+    ) -> None:
+        if control is None:
+            gh, gw = check_size(grid, "grid")
+            ctrl = uniform_corners((gh, gw))
+        else:
+            ctrl = torch.as_tensor(control, dtype=torch.float64).detach().cpu().clone()
+            if ctrl.ndim != 3 or ctrl.shape[-1] != 2 or ctrl.shape[0] < 2 or ctrl.shape[1] < 2:
+                raise ValueError(
+                    f"control must have shape (gh + 1, gw + 1, 2) with gh, gw >= 1, got {tuple(ctrl.shape)}"
+                )
+            gh, gw = ctrl.shape[0] - 1, ctrl.shape[1] - 1
+            ctrl = _snap_border(ctrl)
+        self.grid = (gh, gw)
+        self.min_det = float(min_det)
+        mask = torch.ones(gh + 1, gw + 1, 2, dtype=torch.bool)
+        mask[:, [0, -1], 0] = False  # left and right columns keep x
+        mask[[0, -1], :, 1] = False  # top and bottom rows keep y
+        self.num_params = int(mask.sum())
+        _raise_if_folded(ctrl)
+        super().__init__(ctrl[mask], bound=bound, learn=learn, dtype=dtype)
+        self.register_buffer("free", mask, persistent=False)
+        self.register_buffer("last_valid", self.rho.detach().clone(), persistent=False)
+
+    # -- constructors ----------------------------------------------------------------
+    @classmethod
+    def from_layout(cls, layout: Layout, grid: Sequence[int], **kwargs: Any) -> GridLayout:
+        """Sample any layout at the ``(g_h + 1) × (g_w + 1)`` uniform control points.
+
+        Exact (the same φ) for separable layouts that are affine between control lines, e.g. a
+        piecewise-linear :class:`~layoutwarp.SplineLayout` whose knots lie on the grid; for
+        others the pixel corners on control points agree and the edges between are chords.
+        """
+        gh, gw = check_size(grid, "grid")
+        with torch.no_grad():
+            ctrl = layout.phi(uniform_corners((gh, gw)), layout.theta.detach().double())
+        return cls(ctrl, **kwargs)
+
+    @classmethod
+    def from_maps(
+        cls,
+        map_x: Tensor | np.ndarray,
+        map_y: Tensor | np.ndarray,
+        src_size: Sequence[int],
+        *,
+        points: str = "centers",
+        **kwargs: Any,
+    ) -> GridLayout:
+        """A grid layout from OpenCV ``remap`` maps (source pixel centres at integers).
+
+        Args:
+            map_x, map_y: ``(m, n)`` maps into a source image of ``src_size = (H, W)``.
+            points: ``"corners"``: the maps hold the ``(g_h + 1) × (g_w + 1)`` pixel corners,
+                used as control points (border points must lie on the source border
+                ``−0.5`` / ``W − 0.5`` within 1e-3 px); ``"centers"``: they hold the ``g_h × g_w``
+                pixel centres (e.g. :func:`~layoutwarp.forward_maps`); each interior corner is
+                the mean of its four neighbouring centres and each border corner the mean of its
+                two, moved onto the border (an approximation of the layout the centres came
+                from, exact for affine cells).
+            **kwargs: passed to the constructor (``learn``, ``dtype``, ``min_det``).
+        """
+        check_choice(points, ("centers", "corners"), "points")
+        hs, ws = check_size(src_size, "src_size")
+        mx = torch.as_tensor(np.asarray(map_x), dtype=torch.float64)
+        my = torch.as_tensor(np.asarray(map_y), dtype=torch.float64)
+        if mx.ndim != 2 or mx.shape != my.shape:
+            raise ValueError(
+                f"map_x and map_y must be 2-D of the same shape, got {tuple(mx.shape)} and {tuple(my.shape)}"
+            )
+        pts = pixels_to_sensor(torch.stack([mx, my], -1), (hs, ws), centered=True)
+        if points == "corners":
+            tol = 2e-3 / min(hs, ws)
+            return cls(_snap_border(pts, tol=tol), **kwargs)
+        pad = torch.nn.functional.pad(pts.permute(2, 0, 1)[None], (1, 1, 1, 1), mode="replicate")[0]
+        corners = (pad[:, :-1, :-1] + pad[:, :-1, 1:] + pad[:, 1:, :-1] + pad[:, 1:, 1:]).permute(1, 2, 0) / 4
+        corners[:, 0, 0], corners[:, -1, 0] = -1.0, 1.0
+        corners[0, :, 1], corners[-1, :, 1] = -1.0, 1.0
+        return cls(corners, **kwargs)
+
+    # -- parameters ------------------------------------------------------------------
+    def _bounds(self) -> Tensor:
+        return torch.full((self.num_params or 0,), math.inf, dtype=torch.float64)
+
+    def _to_theta(self, rho: Tensor) -> Tensor:
+        return rho
+
+    def _to_rho(self, theta: Tensor) -> Tensor:
+        return theta.clone()
+
+    def control_points(self, theta: Tensor | None = None) -> Tensor:
+        """The control points ``(g_h + 1, g_w + 1, 2)`` for θ (default: the layout's own)."""
+        th = self.resolve_theta(theta)
+        gh, gw = self.grid
+        base = uniform_corners((gh, gw), dtype=th.dtype, device=th.device)
+        return base.masked_scatter(self.free.to(th.device), th)
+
+    def check_foldover(self, n: int = 0) -> FoldoverReport:
+        """Exact fold check: ``det J`` at every control cell's corners (``n`` is ignored).
+
+        ``worst_point`` is the uniform position of the worst corner and ``cell`` the first
+        folded cell ``(row, col)`` in row-major order (``None`` when none folds).
+        """
+        with torch.no_grad():
+            ctrl = self.control_points().detach().double().cpu()
+        return _foldover_report(ctrl)
+
+    @torch.no_grad()
+    def project_(self) -> bool:
+        cur = self.rho.detach()
+        level = min(self.min_det, _min_det(self.control_points(self.last_valid)))
+        if _min_det(self.control_points(cur)) >= level:
+            self.last_valid.copy_(cur)
+            return False
+        start, step = self.last_valid.clone(), cur - self.last_valid
+        cand = start
+        for k in range(1, 40):
+            trial = start + step * 0.5**k
+            if _min_det(self.control_points(trial)) >= level:
+                cand = trial
+                break
+        self.rho.copy_(cand)
+        self.last_valid.copy_(cand)
+        return True
+
+    # -- the map ---------------------------------------------------------------------
+    def _corners(self, p: Tensor, theta: Tensor) -> tuple[Tensor, ...]:
+        dtype = torch.promote_types(p.dtype, theta.dtype)
+        ctrl = self.control_points(theta.to(device=p.device, dtype=dtype))
+        gh, gw = self.grid
+        p = p.to(dtype)
+        j, u = _cell(p[..., 0], gw)
+        i, v = _cell(p[..., 1], gh)
+        flat = ctrl.reshape(-1, 2)
+        k = i * (gw + 1) + j
+        return p, u[..., None], v[..., None], flat[k], flat[k + 1], flat[k + gw + 2], flat[k + gw + 1]
+
+    def phi(self, p: Tensor, theta: Tensor) -> Tensor:
+        p, u, v, a, b, c, d = self._corners(p, theta)
+        out = (1 - v) * ((1 - u) * a + u * b) + v * ((1 - u) * d + u * c)
+        inside = (p.abs() <= 1).all(-1, keepdim=True)
+        return torch.where(inside, out, p)
+
+    def phi_jacobian(self, p: Tensor, theta: Tensor) -> Tensor:
+        p, u, v, a, b, c, d = self._corners(p, theta)
+        gh, gw = self.grid
+        dx = ((1 - v) * (b - a) + v * (c - d)) * (gw / 2)
+        dy = ((1 - u) * (d - a) + u * (c - b)) * (gh / 2)
+        jac = torch.stack([dx, dy], -1)
+        inside = (p.abs() <= 1).all(-1)[..., None, None]
+        eye = torch.eye(2, dtype=jac.dtype, device=jac.device).expand_as(jac)
+        return torch.where(inside, jac, eye)
+
+    def phi_dtheta(self, p: Tensor, theta: Tensor) -> Tensor:
+        """``∂φ_i/∂θ_j``, ``(..., 2, P)``: the bilinear weight of θ_j's control point, on its axis."""
+        dtype = torch.promote_types(p.dtype, theta.dtype)
+        gh, gw = self.grid
+        index = torch.full((gh + 1, gw + 1, 2), -1, dtype=torch.long, device=p.device)
+        free = self.free.to(p.device)
+        index[free] = torch.arange(int(free.sum()), device=p.device)
+        pp = p.to(dtype)
+        j, u = _cell(pp[..., 0], gw)
+        i, v = _cell(pp[..., 1], gh)
+        inside = (pp.abs() <= 1).all(-1)
+        out = pp.new_zeros(*pp.shape[:-1], 2, theta.numel())
+        for di, dj, wt in (
+            (0, 0, (1 - u) * (1 - v)),
+            (0, 1, u * (1 - v)),
+            (1, 0, (1 - u) * v),
+            (1, 1, u * v),
+        ):
+            idx = index[i + di, j + dj]  # (..., 2)
+            val = torch.where((idx >= 0) & inside[..., None], wt[..., None], 0.0)
+            out.scatter_add_(-1, idx.clamp_min(0)[..., None], val[..., None])
+        return out
+
+    def phi_inverse(self, q: Tensor, theta: Tensor) -> Tensor:
+        """Exact inverse: walk to the control cell that contains ``q`` (inverse bilinear in the
+        current cell says which way to step), fall back to testing every cell for points the
+        walk leaves unresolved, and polish with one Newton step."""
+        gh, gw = self.grid
+        with torch.no_grad():
+            ctrl = self.control_points(theta.detach().to(device=q.device, dtype=torch.float64))
+            q64 = q.detach().double().reshape(-1, 2)
+            inside = (q64.abs() <= 1).all(-1)
+            qc = q64.clamp(-1, 1)
+            j, _ = _cell(qc[:, 0], gw)
+            i, _ = _cell(qc[:, 1], gh)
+            flat = ctrl.reshape(-1, 2)
+            eps = 1e-12
+            for _ in range(gh + gw + 2):
+                uv = self._local(flat, i, j, qc)
+                dj = (uv[:, 0] > 1 + eps).long() - (uv[:, 0] < -eps).long()
+                di = (uv[:, 1] > 1 + eps).long() - (uv[:, 1] < -eps).long()
+                nj, ni = (j + dj).clamp(0, gw - 1), (i + di).clamp(0, gh - 1)
+                if bool(((nj == j) & (ni == i)).all()):
+                    break
+                i, j = ni, nj
+            uv = self._local(flat, i, j, qc)
+            lost = ((uv < -1e-9) | (uv > 1 + 1e-9)).any(-1)
+            if bool(lost.any()):
+                i[lost], j[lost] = self._search(flat, qc[lost])
+                uv = self._local(flat, i, j, qc)
+            uv = uv.clamp(0, 1)
+            p = torch.stack([(j + uv[:, 0]) * (2 / gw) - 1, (i + uv[:, 1]) * (2 / gh) - 1], -1)
+            th64 = theta.detach().double().to(q.device)
+            jac = self.phi_jacobian(p, th64)
+            p = p - torch.linalg.solve(jac, (self.phi(p, th64) - qc)[..., None])[..., 0]
+            p = torch.where(inside[:, None], p.clamp(-1, 1), q64).reshape(q.shape)
+        p = p.to(q.dtype)
+        if not (q.requires_grad or theta.requires_grad):
+            return p
+        jac = self.phi_jacobian(p.detach(), theta.detach()).to(q.dtype)
+        r = self.phi(p, theta) - q
+        return p - torch.linalg.solve(jac, r[..., None])[..., 0]
+
+    def _local(self, flat: Tensor, i: Tensor, j: Tensor, q: Tensor) -> Tensor:
+        k = i * (self.grid[1] + 1) + j
+        gw1 = self.grid[1] + 1
+        return inverse_bilinear(flat[k], flat[k + 1], flat[k + gw1 + 1], flat[k + gw1], q)
+
+    def _search(self, flat: Tensor, q: Tensor) -> tuple[Tensor, Tensor]:
+        """The first cell whose quadrilateral contains each point (brute force, chunked)."""
+        gh, gw = self.grid
+        ci, cj = torch.meshgrid(
+            torch.arange(gh, device=q.device), torch.arange(gw, device=q.device), indexing="ij"
+        )
+        ci, cj = ci.flatten(), cj.flatten()
+        best = torch.full((q.shape[0],), math.inf, dtype=q.dtype, device=q.device)
+        bi, bj = torch.zeros_like(best, dtype=torch.long), torch.zeros_like(best, dtype=torch.long)
+        for lo in range(0, q.shape[0], 4096):
+            qq = q[lo : lo + 4096]
+            uv = self._local(
+                flat, ci[:, None].expand(-1, qq.shape[0]), cj[:, None].expand(-1, qq.shape[0]), qq
+            )
+            out = (uv - uv.clamp(0, 1)).abs().amax(-1)  # 0 inside the cell
+            val, k = out.min(0)
+            best[lo : lo + 4096], bi[lo : lo + 4096], bj[lo : lo + 4096] = val, ci[k], cj[k]
+        return bi, bj
+
+    def edge_breakpoints(self, a: Tensor, b: Tensor) -> Tensor:
+        """Where the segment crosses a control line (a kink of the piecewise-bilinear φ)."""
+        gh, gw = self.grid
+        d = b - a
+        cols = [((2 * k - gw) / gw - a[:, 0]) / d[:, 0] for k in range(1, gw)]
+        rows = [((2 * k - gh) / gh - a[:, 1]) / d[:, 1] for k in range(1, gh)]
+        if not cols and not rows:
+            return a.new_zeros(a.shape[0], 0)
+        t = torch.stack(cols + rows, -1)
+        return torch.where(torch.isfinite(t) & (t > 0) & (t < 1), t, torch.full_like(t, float("nan")))
+
+    # -- files -----------------------------------------------------------------------
+    def to_config(self) -> dict[str, Any]:
+        ctrl = self.control_points().detach().double().cpu()
+        return {"grid": list(self.grid), "control": ctrl.tolist(), "min_det": self.min_det}
+
+    @classmethod
+    def from_config(
+        cls, config: dict[str, Any], *, learn: bool = False, dtype: torch.dtype | None = None
+    ) -> Layout:
+        control = config.get("control")
+        if control is None:
+            return cls(grid=tuple(config.get("grid", (4, 4))), learn=learn, dtype=dtype)
+        try:
+            ctrl = torch.tensor(control, dtype=torch.float64)
+        except (TypeError, ValueError):
+            raise ValueError("'control' must be a nested list of shape (gh + 1, gw + 1, 2)") from None
+        return cls(ctrl, min_det=float(config.get("min_det", 0.05)), learn=learn, dtype=dtype)
+
+    def extra_repr(self) -> str:
+        return f"grid={self.grid}, learn={self.learnable}"
+
+
+def _snap_border(ctrl: Tensor, tol: float = 1e-9) -> Tensor:
+    """Move border control points exactly onto the border; refuse ones farther than ``tol``."""
+    ctrl = ctrl.clone()
+    if not bool(torch.isfinite(ctrl).all()):
+        raise ValueError("control points must be finite")
+    for name, sl, axis, value in (
+        ("left column", (slice(None), 0), 0, -1.0),
+        ("right column", (slice(None), -1), 0, 1.0),
+        ("top row", (0, slice(None)), 1, -1.0),
+        ("bottom row", (-1, slice(None)), 1, 1.0),
+    ):
+        off = (ctrl[sl][:, axis] - value).abs()
+        if bool((off > tol).any()):
+            k = int(off.argmax())
+            raise ValueError(
+                f"control points of the {name} must have {'xy'[axis]} = {value:+g} (the sensor border); "
+                f"point {k} is {float(off[k]):.3g} away"
+            )
+        ctrl[(*sl, axis)] = value
+    return ctrl
+
+
+def _min_det(ctrl: Tensor) -> float:
+    return float(cell_corner_dets(ctrl.double()).min())
+
+
+def _foldover_report(ctrl: Tensor) -> FoldoverReport:
+    dets = cell_corner_dets(ctrl)
+    gh, gw = dets.shape[:2]
+    k = int(torch.argmin(dets))
+    ci, rest = divmod(k, gw * 4)
+    cj, corner = divmod(rest, 4)
+    ui, uj = ci + (corner in (2, 3)), cj + (corner in (1, 2))
+    bad = (dets <= 0).any(-1)
+    first = torch.nonzero(bad)
+    return FoldoverReport(
+        min_det=float(dets.min()),
+        num_nonpositive=int(bad.sum()),
+        worst_point=((2 * uj - gw) / gw, (2 * ui - gh) / gh),
+        grid=0,
+        cell=(int(first[0, 0]), int(first[0, 1])) if first.numel() else None,
+    )
+
+
+def _raise_if_folded(ctrl: Tensor) -> None:
+    report = _foldover_report(ctrl)
+    if not report.ok:
+        i, j = report.cell or (0, 0)
+        raise ValueError(
+            f"control grid folds: cell (row {i}, col {j}) is not a convex, positively oriented "
+            f"quadrilateral ({report.num_nonpositive} such cells; smallest corner det J {report.min_det:.3g})"
+        )
