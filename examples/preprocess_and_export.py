@@ -36,7 +36,8 @@ def main(out: Path) -> None:
     print(f"back-warped labels: {full.shape}, classes {sorted(set(full.ravel().tolist()))}")
 
     for fmt in ("gds", "svg", "png"):
-        report = lw.export_layout(layout, size, out / f"mask.{fmt}", (3600, 4800), min_feature_um=30)  # (H, W) µm
+        # the sensor is 4.8 x 3.6 mm: (H, W) in µm
+        report = lw.export_layout(layout, size, out / f"mask.{fmt}", (3600, 4800), min_feature_um=30)
         print(report.summary())
 
 

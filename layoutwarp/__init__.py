@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Any
 
 from .backwarp import backwarp, backwarp_cross_entropy, backwarp_numpy, sensor_index_maps
 from .coords import grid_lines, pixel_centers, pixels_to_sensor, sensor_to_pixels, uniform_corners
+from .grids import GridLayout
 from .integrators import (
     green_pieces,
     integrate_exact,
@@ -24,7 +25,6 @@ from .integrators import (
     integrate_point,
     integrate_separable,
 )
-from .grids import GridLayout
 from .layoutfile import load_layout, save_layout
 from .layouts import (
     FAMILIES,

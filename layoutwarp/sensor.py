@@ -127,7 +127,8 @@ def plan_simulation(
             )
         if method == "separable":
             raise ValueError(
-                f"method='separable' needs a separable layout (uniform, rect or spline), got {type(layout).__name__}"
+                "method='separable' needs a separable layout (uniform, rect or spline), "
+                f"got {type(layout).__name__}"
             )
         if layout.straight_edges:
             return SimulationPlan(
