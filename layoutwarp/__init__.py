@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Any
 
 from .backwarp import backwarp, backwarp_cross_entropy, backwarp_numpy, sensor_index_maps
 from .coords import grid_lines, pixel_centers, pixels_to_sensor, sensor_to_pixels, uniform_corners
+from .density import edge_density, layout_from_density
 from .grids import GridLayout
 from .integrators import (
     green_pieces,
@@ -30,6 +31,7 @@ from .layouts import (
     FAMILIES,
     CurvLayout,
     FoldoverReport,
+    FoveaLayout,
     Layout,
     RectLayout,
     UniformLayout,
@@ -41,7 +43,7 @@ from .layouts import (
     phi_rect_inverse,
     register_family,
 )
-from .maps import Maps, forward_maps, inverse_maps, sample_points
+from .maps import Maps, forward_maps, inverse_maps, raster_index_map, sample_points
 from .mesh import MeshTopology, PixelMesh, pixel_mesh
 from .sensor import SensorLayer, SimulationPlan, plan_simulation, simulate
 from .splines import SplineLayout
@@ -82,6 +84,7 @@ __all__ = [
     "CurvLayout",
     "ExportReport",
     "FoldoverReport",
+    "FoveaLayout",
     "GridLayout",
     "Layout",
     "Maps",
@@ -98,6 +101,7 @@ __all__ = [
     "backwarp",
     "backwarp_cross_entropy",
     "backwarp_numpy",
+    "edge_density",
     "export_layout",
     "forward_maps",
     "green_pieces",
@@ -107,6 +111,7 @@ __all__ = [
     "integrate_point",
     "integrate_separable",
     "inverse_maps",
+    "layout_from_density",
     "load_layout",
     "make_layout",
     "newton_inverse",
@@ -120,6 +125,7 @@ __all__ = [
     "pixels_to_sensor",
     "plan_simulation",
     "preprocess_folder",
+    "raster_index_map",
     "register_family",
     "sample_points",
     "save_layout",

@@ -17,12 +17,17 @@ from torch import Tensor
 from .checks import check_choice, check_shape, check_size
 from .coords import pixel_centers, sensor_to_pixels
 from .layouts import Layout
+from .maps import raster_index_map
 
 __all__ = ["backwarp", "backwarp_cross_entropy", "backwarp_numpy", "sensor_index_maps"]
 
 
+#: How nearest back-warping finds the sensor pixel of a target pixel.
+INDEX_METHODS = ("inverse", "raster")
+
+
 def sensor_index_maps(
-    layout: Layout, size: tuple[int, int], target_size: tuple[int, int]
+    layout: Layout, size: tuple[int, int], target_size: tuple[int, int], method: str = "inverse"
 ) -> tuple[Tensor, Tensor]:
     """Integer sensor pixel ``(col, row)`` containing each target pixel centre.
 
@@ -30,6 +35,10 @@ def sensor_index_maps(
         layout: the pixel layout.
         size: sensor size ``(h, w)``.
         target_size: target size ``(H, W)``.
+        method: ``"inverse"`` (the exact point inverse φ⁻¹ of every target centre) or
+            ``"raster"`` (the pixel polygons filled into the target grid by OpenCV, see
+            :func:`~layoutwarp.maps.raster_index_map`: no inverse needed; differs from
+            ``"inverse"`` only in target pixels that a pixel boundary passes through).
 
     Returns:
         two ``(H, W)`` int64 tensors ``col = floor((φ⁻¹(q)_x + 1) w / 2)`` and likewise
@@ -37,6 +46,10 @@ def sensor_index_maps(
         boundary goes to the pixel on its right/below.
     """
     (h, w), target_size = check_size(size), check_size(target_size, "target_size")
+    check_choice(method, INDEX_METHODS, "method")
+    if method == "raster":
+        idx = raster_index_map(layout, (h, w), target_size).to(layout.rho.device)
+        return idx % w, idx // w
     theta = layout.theta.detach().double()
     with torch.no_grad():
         p = layout.phi_inverse(pixel_centers(target_size, device=theta.device), theta)
@@ -44,7 +57,13 @@ def sensor_index_maps(
     return idx[..., 0].clamp(0, w - 1), idx[..., 1].clamp(0, h - 1)
 
 
-def backwarp(pred: Tensor, layout: Layout, target_size: tuple[int, int], mode: str = "nearest") -> Tensor:
+def backwarp(
+    pred: Tensor,
+    layout: Layout,
+    target_size: tuple[int, int],
+    mode: str = "nearest",
+    index_method: str = "inverse",
+) -> Tensor:
     """Resample a sensor-grid tensor to the uniform grid of ``target_size``.
 
     Args:
@@ -54,6 +73,8 @@ def backwarp(pred: Tensor, layout: Layout, target_size: tuple[int, int], mode: s
         mode: ``"nearest"`` (each target pixel takes the value of the sensor pixel that
             contains its centre; any dtype) or ``"bilinear"`` (smooth display of continuous
             outputs, sampled at ``φ⁻¹(q)`` with border padding; floating dtypes).
+        index_method: how ``"nearest"`` finds each target's sensor pixel (see
+            :func:`sensor_index_maps`).
 
     Returns:
         ``(B, C, H, W)`` (or ``(B, H, W)``) with ``pred``'s dtype, on ``pred``'s device.
@@ -69,7 +90,7 @@ def backwarp(pred: Tensor, layout: Layout, target_size: tuple[int, int], mode: s
     check_choice(mode, ("nearest", "bilinear"), "mode")
     h, w = pred.shape[-2:]
     if mode == "nearest":
-        col, row = sensor_index_maps(layout, (h, w), size)
+        col, row = sensor_index_maps(layout, (h, w), size, index_method)
         idx = (row * w + col).to(pred.device).flatten()
         return pred.flatten(-2).index_select(-1, idx).unflatten(-1, size)
     if mode == "bilinear":
@@ -90,16 +111,19 @@ def backwarp(pred: Tensor, layout: Layout, target_size: tuple[int, int], mode: s
         return out if pred.ndim == 4 else out[:, 0]
 
 
-def backwarp_numpy(arr: np.ndarray, layout: Layout, target_size: tuple[int, int]) -> np.ndarray:
+def backwarp_numpy(
+    arr: np.ndarray, layout: Layout, target_size: tuple[int, int], index_method: str = "inverse"
+) -> np.ndarray:
     """OpenCV back-warping of an HW or HWC numpy array (nearest; ``cv2.remap``).
 
-    Bit-identical to :func:`backwarp` with ``mode="nearest"``: the remap maps hold the
-    integer sensor indices, so ``INTER_NEAREST`` reads exactly the same pixel.
+    Bit-identical to :func:`backwarp` with ``mode="nearest"`` and the same ``index_method``:
+    the remap maps hold the integer sensor indices, so ``INTER_NEAREST`` reads exactly the
+    same pixel.
     Supports the dtypes ``cv2.remap`` does (uint8, uint16, int16, float32, float64).
     """
     if not isinstance(arr, np.ndarray) or arr.ndim not in (2, 3):
         raise ValueError(f"arr must be an HW or HWC numpy array, got {getattr(arr, 'shape', arr)!r}")
-    col, row = sensor_index_maps(layout, arr.shape[:2], target_size)
+    col, row = sensor_index_maps(layout, arr.shape[:2], target_size, index_method)
     return cv2.remap(
         arr,
         col.cpu().numpy().astype(np.float32),

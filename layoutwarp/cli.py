@@ -269,6 +269,11 @@ def _layout_from_args(args: argparse.Namespace):
         size = args.size or (tuple(info["size_hw"]) if info.get("size_hw") else None)
     elif args.family:
         cls = FAMILIES[args.family]
+        if cls.num_params is None:
+            raise UsageError(
+                f"argument --family: a {args.family!r} layout has more parameters than --theta holds; "
+                "give it as --layout FILE (e.g. written by train or save_layout)"
+            )
         if cls.num_params and args.theta is None:
             raise UsageError(
                 f"argument --family: {args.family!r} needs --theta TX,TY (θ = 0,0 is the uniform layout)"

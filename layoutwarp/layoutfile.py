@@ -1,10 +1,16 @@
 """Layout files: a layout, its sensor size and free-form extras as a small JSON document.
 
-A file holds ``format`` (``"layoutwarp.layout/1"``), ``family`` (a registered family, see
-:func:`~layoutwarp.layouts.register_family`), the family's constructor arguments (for the
-paper's families ``theta`` and ``bound``), ``size_hw`` (optional sensor size ``[H, W]``),
-``version`` (the package version that wrote it) and ``extra`` (anything JSON-able the
-writer adds, e.g. the training metric).
+A file holds ``format`` (``"layoutwarp.layout/2"``), ``family`` (a registered family, see
+:func:`~layoutwarp.layouts.register_family`), the family's constructor arguments
+(:meth:`~layoutwarp.Layout.to_config`: for the paper's families ``theta``, ``bound``,
+``center`` and ``learn_center``; for splines ``theta``, ``knots`` and ``kind``; for grids
+``grid`` and ``control``), ``size_hw`` (optional sensor size ``[H, W]``), ``version`` (the
+package version that wrote it) and ``extra`` (anything JSON-able the writer adds, e.g. the
+training metric).
+
+Format history: ``/1`` (layoutwarp 0.1–0.2: uniform, rect and curv with ``theta`` and
+``bound``) still loads, as a centred layout; ``/2`` adds the centre and the spline and grid
+families. A file of a later format is refused with a message saying so.
 """
 
 from __future__ import annotations
@@ -18,9 +24,11 @@ import torch
 from .files import atomic_write
 from .layouts import FAMILIES, Layout
 
-__all__ = ["FORMAT", "load_layout", "save_layout"]
+__all__ = ["FORMAT", "READS", "load_layout", "save_layout"]
 
-FORMAT = "layoutwarp.layout/1"
+FORMAT = "layoutwarp.layout/2"
+#: Every format this version reads.
+READS = ("layoutwarp.layout/1", FORMAT)
 _RESERVED = ("format", "family", "size_hw", "version", "extra")
 
 
@@ -56,7 +64,13 @@ def load_layout(
         raise ValueError(f"{path}: no such layout file") from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise ValueError(f"{path}: not a readable layout JSON ({exc})") from None
-    if not isinstance(data, dict) or data.get("format") != FORMAT:
+    fmt = data.get("format") if isinstance(data, dict) else None
+    if isinstance(fmt, str) and fmt.startswith("layoutwarp.layout/") and fmt not in READS:
+        raise ValueError(
+            f"{path}: layout file format {fmt!r} is newer than this layoutwarp reads "
+            f"({', '.join(READS)}); upgrade layoutwarp"
+        )
+    if fmt not in READS:
         raise ValueError(f"{path}: not a layoutwarp layout file (expected format {FORMAT!r})")
     family = data.get("family")
     cls = FAMILIES.get(family) if isinstance(family, str) else None

@@ -31,6 +31,7 @@ __all__ = [
     "FAMILIES",
     "CurvLayout",
     "FoldoverReport",
+    "FoveaLayout",
     "Layout",
     "RectLayout",
     "UniformLayout",
@@ -810,6 +811,32 @@ class CurvLayout(_FoveaLayout):
                 mid = a + ((lo + hi) / 2)[:, None] * d
                 out.append(_circle_crossings(a - c, d, lo, hi, _side_scale(mid, c)))
         return torch.cat(out, 1)
+
+
+@register_family
+class FoveaLayout(CurvLayout):
+    """φ_curv about a learnable centre: :class:`CurvLayout` with ``learn_center=True``, so θ is
+    ``(θ_x, θ_y, c_x, c_y)`` and a learned layout moves its fovea to where the task needs it.
+
+    Example:
+        >>> FoveaLayout((0.5, 0.2), center=(0.3, -0.1)).theta
+        tensor([ 0.5000,  0.2000,  0.3000, -0.1000])
+    """
+
+    family = "fovea"
+
+    def __init__(
+        self,
+        theta: Sequence[float] | Tensor | None = None,
+        *,
+        center: Sequence[float] | Tensor = (0.0, 0.0),
+        learn_center: bool = True,
+        bound: float = 1.0,
+        learn: bool = False,
+        dtype: torch.dtype | None = None,
+    ) -> None:
+        kw = {"bound": bound, "learn": learn, "dtype": dtype}
+        super().__init__(theta, center=center, learn_center=learn_center, **kw)
 
 
 # ----------------------------------------------------------------------------------------

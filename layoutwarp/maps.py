@@ -9,15 +9,17 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import cv2
 import numpy as np
 import torch
 from torch import Tensor
 
-from .checks import check_int, check_size
+from .checks import check_int, check_number, check_size
 from .coords import pixel_centers, sensor_to_pixels
 from .layouts import Layout
+from .mesh import pixel_mesh
 
-__all__ = ["Maps", "forward_maps", "inverse_maps", "sample_points"]
+__all__ = ["Maps", "forward_maps", "inverse_maps", "raster_index_map", "sample_points"]
 
 
 class Maps(NamedTuple):
@@ -121,3 +123,44 @@ def inverse_maps(layout: Layout, size: tuple[int, int], target_size: tuple[int, 
     with torch.no_grad():
         p = layout.phi_inverse(pixel_centers(target_size, device=theta.device), theta)
     return _to_maps(p, size)
+
+
+def raster_index_map(
+    layout: Layout, size: tuple[int, int], target_size: tuple[int, int], *, tol: float = 1e-4
+) -> Tensor:
+    """The sensor pixel under each target pixel, by rasterising the pixel polygons with OpenCV.
+
+    Every pixel polygon of the mesh (curved edges as polylines within ``tol``) is filled into
+    the target grid with ``cv2.fillPoly`` (8 bits of sub-pixel precision), its value the pixel's
+    row-major index. This needs no inverse of φ, so it serves any layout, and it agrees with the
+    point-in-polygon rule (the pixel whose polygon contains the target pixel centre) except for
+    target pixels whose centre lies within about half a target pixel of a pixel boundary, where
+    a neighbour may win. A target pixel that no polygon claims (a sensor pixel smaller than a
+    target pixel can hide one) takes the index of the nearest claimed one.
+
+    Args:
+        layout: the pixel layout.
+        size: sensor size ``(h, w)``.
+        target_size: target size ``(H, W)``.
+        tol: polyline tolerance of curved edges (relative, as :func:`~layoutwarp.pixel_mesh`).
+
+    Returns:
+        ``(H, W)`` int64 tensor of sensor pixel indices ``row · w + col`` (on the CPU).
+    """
+    (h, w), (ht, wt) = check_size(size), check_size(target_size, "target_size")
+    tol = check_number(tol, "tol", 0, lo_open=True)
+    with torch.no_grad():
+        mesh = pixel_mesh(layout, (h, w), tol=tol, dtype=torch.float64, theta=layout.theta.detach().double())
+    shift = 8
+    canvas = np.full((ht, wt), -1, dtype=np.int32)
+    for k, poly in enumerate(mesh.polygons()):
+        px = sensor_to_pixels(torch.from_numpy(poly), (ht, wt), centered=True).numpy()
+        cv2.fillPoly(canvas, [np.round(px * (1 << shift)).astype(np.int32)], k, cv2.LINE_8, shift)
+    missing = canvas < 0
+    if missing.any():  # the nearest claimed target pixel's index
+        _, labels = cv2.distanceTransformWithLabels(
+            missing.astype(np.uint8), cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL
+        )
+        claimed = canvas.ravel()[np.flatnonzero(~missing.ravel())]
+        canvas[missing] = claimed[labels[missing] - 1]
+    return torch.from_numpy(canvas.astype(np.int64))

@@ -318,7 +318,14 @@ class SensorLayer(nn.Module):
         return self.layout.theta
 
     def forward(self, image: Tensor) -> Tensor:
-        """``(B, C, H, W)`` image to ``(B, C, h, w)`` sensor image."""
+        """``(B, C, H, W)`` image to ``(B, C, h, w)`` sensor image.
+
+        A learnable layout is first pulled back into its valid set (:meth:`Layout.project_`:
+        a no-op for the paper's families, the fold guard of a :class:`~layoutwarp.GridLayout`),
+        so any training loop gets the guarded step.
+        """
+        if self.layout.learnable:
+            self.layout.project_()
         return simulate(image, self.layout, self.size, self.method, **self.options)
 
     def describe(self, dtype: torch.dtype = torch.float32) -> SimulationPlan:

@@ -47,7 +47,7 @@ CASES = {
     ),
     "layout file {}": (
         ["preprocess", CAMVID_VAL, "{tmp}/out", "--layout", "{tmp}/empty.json", "--size", "8x6"],
-        ["--layout", "empty.json", "expected format 'layoutwarp.layout/1'"],
+        ["--layout", "empty.json", "expected format 'layoutwarp.layout/2'"],
     ),
     "layout file θ out of range": (
         ["export", "--layout", "{tmp}/range.json", *MASK, "--out", "{tmp}/x.svg"],
