@@ -196,6 +196,7 @@ def _sensor_options(args: argparse.Namespace, default_tol: float) -> dict:
 
 def _cmd_train(args: argparse.Namespace) -> int:
     from .experiments import camvid, faces, mnist
+    from .experiments.training import format_theta
 
     module = {"mnist": mnist, "camvid": camvid, "faces": faces}[args.task]
     d = module.DEFAULTS
@@ -226,8 +227,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
         )
         print(f"{'layout':8s} {'test accuracy':>18s}  θ (mean)")
         for name, s in result["summary"].items():
-            th = ", ".join(f"{v:+.2f}" for v in s["theta_mean"])
-            print(f"{name:8s} {s['accuracy_mean']:8.2f} ± {s['accuracy_std']:4.2f} %   ({th})  n={s['n']}")
+            th = format_theta(s["theta_mean"], 2)
+            print(f"{name:8s} {s['accuracy_mean']:8.2f} ± {s['accuracy_std']:4.2f} %   {th}  n={s['n']}")
         print(f"wrote {out}/results.json, layout.json, mnist_layouts.png, mnist_theta.png")
         return 0
     common = {"families": families, "sizes": sizes, "seeds": seeds, "epochs": epochs}
@@ -246,8 +247,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
     print(f"{'layout':16s} " + " ".join(f"{m:>16s}" for m in metrics) + "  θ (mean)")
     for name, s in result["summary"].items():
         cells = " ".join(f"{s[m]['mean']:8.2f} ± {s[m]['std']:5.2f}" for m in metrics)
-        th = ", ".join(f"{v:+.2f}" for v in s["theta_mean"])
-        print(f"{name:16s} {cells}  ({th})  n={s['n']}")
+        th = format_theta(s["theta_mean"], 2)
+        print(f"{name:16s} {cells}  {th}  n={s['n']}")
     print(f"wrote {out}/results.json, layout_*.json and {args.task}_layouts.png")
     return 0
 

@@ -21,7 +21,7 @@ from ..backwarp import backwarp, backwarp_cross_entropy
 from ..layoutfile import save_layout
 from ..sensor import SensorLayer
 from .data import CAMVID_CLASSES, VOID, load_camvid
-from .training import ExperimentDefaults, TaskRun, fit, optimizer, save_runs, theta_text
+from .training import ExperimentDefaults, TaskRun, fit, format_theta, optimizer, save_runs, theta_text
 
 __all__ = [
     "DEFAULTS",
@@ -268,10 +268,10 @@ def run_camvid_experiment(
                 )
                 runs.append(run)
                 models.setdefault((layout, tuple(size)), model)
-                th = ", ".join(f"{v:+.3f}" for v in run.theta)
+                th = format_theta(run.theta)
                 print(
                     f"  camvid {layout:8s} {size[1]}x{size[0]} seed {seed}: mIoU {run.scores['miou']:5.2f}%  "
-                    f"pixel acc {run.scores['pixel_accuracy']:5.2f}%  θ = ({th})  [{run.seconds:.0f} s]",
+                    f"pixel acc {run.scores['pixel_accuracy']:5.2f}%  θ = {th}  [{run.seconds:.0f} s]",
                     flush=True,
                 )
                 save_runs(

@@ -21,7 +21,7 @@ from ..layoutfile import save_layout
 from ..sensor import SensorLayer
 from .camvid import RGB_MEAN, RGB_STD, conv_block, to_tensor
 from .data import AGE_GROUPS, load_faces
-from .training import ExperimentDefaults, TaskRun, fit, optimizer, save_runs, theta_text
+from .training import ExperimentDefaults, TaskRun, fit, format_theta, optimizer, save_runs, theta_text
 
 __all__ = ["DEFAULTS", "FaceNet", "evaluate_faces", "run_faces_experiment", "train_faces"]
 
@@ -165,10 +165,10 @@ def run_faces_experiment(
                 runs.append(run)
                 models.setdefault((layout, tuple(size)), model)
                 accs = "  ".join(f"{k} {run.scores[k]:5.1f}" for k in metrics)
-                th = ", ".join(f"{v:+.3f}" for v in run.theta)
+                th = format_theta(run.theta)
                 print(
                     f"  faces {layout:8s} {size[1]}x{size[0]} seed {seed}: {accs}  "
-                    f"θ = ({th})  [{run.seconds:.0f} s]",
+                    f"θ = {th}  [{run.seconds:.0f} s]",
                     flush=True,
                 )
                 save_runs(

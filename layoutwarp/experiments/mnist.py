@@ -21,7 +21,7 @@ from ..files import atomic_write
 from ..layoutfile import save_layout
 from ..sensor import SensorLayer
 from .data import load_mnist
-from .training import ExperimentDefaults, fit, theta_text
+from .training import ExperimentDefaults, fit, format_theta, theta_text
 
 __all__ = ["DEFAULTS", "MnistNet", "RunResult", "run_mnist_experiment", "train_mnist"]
 
@@ -156,7 +156,7 @@ def run_mnist_experiment(
             models.setdefault(layout, model)
             print(
                 f"  {layout:8s} seed {seed}: test accuracy {res.test_accuracy:6.2f}%  "
-                f"θ = ({', '.join(f'{v:+.3f}' for v in res.theta)})  [{res.seconds:.0f} s]"
+                f"θ = {format_theta(res.theta)}  [{res.seconds:.0f} s]"
             )
     summary = {}
     for layout in families:

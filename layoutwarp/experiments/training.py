@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import json
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -14,7 +14,16 @@ from tqdm import tqdm
 
 from ..files import atomic_write
 
-__all__ = ["ExperimentDefaults", "TaskRun", "fit", "optimizer", "save_runs", "summarise", "theta_text"]
+__all__ = [
+    "ExperimentDefaults",
+    "TaskRun",
+    "fit",
+    "format_theta",
+    "optimizer",
+    "save_runs",
+    "summarise",
+    "theta_text",
+]
 
 
 @dataclass(frozen=True)
@@ -162,6 +171,14 @@ def save_runs(
     atomic_write(out / "results.json", json.dumps(result, indent=2))
 
 
+def format_theta(values: Sequence[float], digits: int = 3) -> str:
+    """θ as ``(+0.100, -0.200)``; more than four values (spline logits, grid control points) are
+    summarised as ``(16 values, max |θ| 0.52)``."""
+    values = list(values)
+    if len(values) > 4:
+        return f"({len(values)} values, max |θ| {max(abs(v) for v in values):.2f})"
+    return "(" + ", ".join(f"{v:+.{digits}f}" for v in values) + ")"
+
+
 def theta_text(model: nn.Module) -> str:
-    th = model.sensor.theta.detach().tolist()
-    return "θ=(" + ", ".join(f"{v:.2f}" for v in th) + ")" if th else "θ=()"
+    return "θ=" + format_theta(model.sensor.theta.detach().tolist(), 2)
