@@ -649,19 +649,25 @@ class _FoveaLayout(Layout):
         s = _side_scale(p, c)
         return (p - c) / s, s
 
+    def _fixed(self, p: Tensor, u: Tensor) -> Tensor:
+        """Where the centred map is the identity (coordinate-wise mask): on and outside the border."""
+        return p.abs() >= 1
+
     def phi(self, p: Tensor, theta: Tensor) -> Tensor:
         th, c = self._split(theta)
         if c is None:
             return self._phi0(p, th)
         u, s = self._local(p, c)
-        return c.to(u) + s * self._phi0(u, th)
+        p = p.to(u)  # points φ fixes keep their exact coordinates (no rounding through T)
+        return torch.where(self._fixed(p, u), p, c.to(u) + s * self._phi0(u, th))
 
     def phi_inverse(self, q: Tensor, theta: Tensor) -> Tensor:
         th, c = self._split(theta)
         if c is None:
             return self._inverse0(q, th)
         u, s = self._local(q, c)
-        return c.to(u) + s * self._inverse0(u, th)
+        q = q.to(u)
+        return torch.where(self._fixed(q, u), q, c.to(u) + s * self._inverse0(u, th))
 
     def phi_jacobian(self, p: Tensor, theta: Tensor) -> Tensor:
         th, c = self._split(theta)
@@ -774,6 +780,9 @@ class CurvLayout(_FoveaLayout):
     a movable centre (see :class:`_FoveaLayout`: ``center``, ``learn_center``)."""
 
     family = "curv"
+
+    def _fixed(self, p: Tensor, u: Tensor) -> Tensor:
+        return (p.abs() >= 1) | ((u * u).sum(-1, keepdim=True) >= 1)  # outside the adapted circle
 
     def _phi0(self, p: Tensor, theta: Tensor) -> Tensor:
         return phi_curv(p, theta)

@@ -126,36 +126,49 @@ def inverse_maps(layout: Layout, size: tuple[int, int], target_size: tuple[int, 
 
 
 def raster_index_map(
-    layout: Layout, size: tuple[int, int], target_size: tuple[int, int], *, tol: float = 1e-4
+    layout: Layout,
+    size: tuple[int, int],
+    target_size: tuple[int, int],
+    *,
+    tol: float = 1e-4,
+    oversample: int = 3,
 ) -> Tensor:
     """The sensor pixel under each target pixel, by rasterising the pixel polygons with OpenCV.
 
-    Every pixel polygon of the mesh (curved edges as polylines within ``tol``) is filled into
-    the target grid with ``cv2.fillPoly`` (8 bits of sub-pixel precision), its value the pixel's
-    row-major index. This needs no inverse of φ, so it serves any layout, and it agrees with the
-    point-in-polygon rule (the pixel whose polygon contains the target pixel centre) except for
-    target pixels whose centre lies within about half a target pixel of a pixel boundary, where
-    a neighbour may win. A target pixel that no polygon claims (a sensor pixel smaller than a
-    target pixel can hide one) takes the index of the nearest claimed one.
+    Every pixel polygon of the mesh (curved edges as polylines within ``tol``) is filled with
+    ``cv2.fillPoly`` into a grid ``oversample`` times finer than the target, its value the
+    pixel's row-major index, and each target pixel reads the fine pixel at its centre (an odd
+    ``oversample`` puts one exactly there). This needs no inverse of φ, so it serves any layout.
+    OpenCV rounds vertex rows to the nearest scan line, so a fill can reach half a fine pixel
+    past a nearly horizontal edge; the result is the point-in-polygon rule (the pixel whose
+    polygon contains the target centre) except for target centres within ``1 / (2·oversample)``
+    of a target pixel (about) from a pixel boundary. A target pixel that no polygon claims
+    (possible only around pixels smaller than a fine pixel) takes the nearest claimed index.
 
     Args:
         layout: the pixel layout.
         size: sensor size ``(h, w)``.
         target_size: target size ``(H, W)``.
         tol: polyline tolerance of curved edges (relative, as :func:`~layoutwarp.pixel_mesh`).
+        oversample: odd refinement of the drawing grid (memory: ``oversample²`` int32 per target
+            pixel).
 
     Returns:
         ``(H, W)`` int64 tensor of sensor pixel indices ``row · w + col`` (on the CPU).
     """
     (h, w), (ht, wt) = check_size(size), check_size(target_size, "target_size")
     tol = check_number(tol, "tol", 0, lo_open=True)
+    k = check_int(oversample, "oversample", 1)
+    if k % 2 == 0:
+        raise ValueError(f"oversample must be an odd integer >= 1, got {oversample!r}")
     with torch.no_grad():
         mesh = pixel_mesh(layout, (h, w), tol=tol, dtype=torch.float64, theta=layout.theta.detach().double())
     shift = 8
-    canvas = np.full((ht, wt), -1, dtype=np.int32)
-    for k, poly in enumerate(mesh.polygons()):
-        px = sensor_to_pixels(torch.from_numpy(poly), (ht, wt), centered=True).numpy()
-        cv2.fillPoly(canvas, [np.round(px * (1 << shift)).astype(np.int32)], k, cv2.LINE_8, shift)
+    canvas = np.full((ht * k, wt * k), -1, dtype=np.int32)
+    for index, poly in enumerate(mesh.polygons()):
+        px = sensor_to_pixels(torch.from_numpy(poly), (ht * k, wt * k), centered=True).numpy()
+        cv2.fillPoly(canvas, [np.round(px * (1 << shift)).astype(np.int32)], index, cv2.LINE_8, shift)
+    canvas = np.ascontiguousarray(canvas[k // 2 :: k, k // 2 :: k])
     missing = canvas < 0
     if missing.any():  # the nearest claimed target pixel's index
         _, labels = cv2.distanceTransformWithLabels(

@@ -3,10 +3,13 @@ and LAYOUTWARP_SEED=<seed> replays it."""
 
 from __future__ import annotations
 
+import math
 import os
 from pathlib import Path
 
+import numpy as np
 import pytest
+import shapely
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -46,3 +49,20 @@ def device(request) -> torch.device:
 
 def rand_theta(gen: torch.Generator, limit: float = 0.95) -> torch.Tensor:
     return (torch.rand(2, generator=gen, dtype=torch.float64) * 2 - 1) * limit
+
+
+def clip_reference(img: torch.Tensor, polys: list[np.ndarray], size) -> np.ndarray:
+    """Mean of a piecewise-constant image over each polygon by shapely clipping (float64)."""
+    n, hs, ws = img.shape
+    arr = img.numpy()
+    out = np.zeros((n, len(polys)))
+    for k, p in enumerate(polys):
+        poly = shapely.Polygon(np.stack([(p[:, 0] + 1) * ws / 2, (p[:, 1] + 1) * hs / 2], 1))
+        x0, y0, x1, y1 = poly.bounds
+        acc = np.zeros(n)
+        for r in range(max(0, math.floor(y0)), min(hs, math.ceil(y1))):
+            for c in range(max(0, math.floor(x0)), min(ws, math.ceil(x1))):
+                a = poly.intersection(shapely.box(c, r, c + 1, r + 1)).area
+                acc += a * arr[:, r, c]
+        out[:, k] = acc / poly.area
+    return out.reshape(n, *size)

@@ -140,6 +140,10 @@ CASES = {
         ["export", "--family", "uniform", *MASK, "--out", "{tmp}/x.jpg"],
         ["--format", "'jpg'", "one of 'gds', 'dxf', 'svg', 'png'"],
     ),
+    "family without a file": (
+        ["export", "--family", "spline", *MASK, "--out", "{tmp}/x.svg"],
+        ["--family", "'spline'", "--layout FILE"],
+    ),
     "unknown family": (
         ["export", "--family", "hex", *MASK, "--out", "{tmp}/x.svg"],
         ["--family", "'hex'", "choose from"],

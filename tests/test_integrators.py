@@ -8,9 +8,8 @@ import math
 import cv2
 import numpy as np
 import pytest
-import shapely
 import torch
-from conftest import rand_theta
+from conftest import clip_reference, rand_theta
 
 import layoutwarp as lw
 
@@ -34,23 +33,6 @@ def test_uniform_equals_inter_area(gen):
                 got = lw.simulate(img[None], lw.UniformLayout(), (h, w), method)[0]
                 assert float((got - ref).abs().max()) < 1e-5, (hs, ws, h, w, method)
             assert lw.plan_simulation(lw.UniformLayout(), (h, w)).method == "separable"
-
-
-def clip_reference(img: torch.Tensor, polys: list[np.ndarray], size) -> np.ndarray:
-    """Mean of a piecewise-constant image over each polygon by shapely clipping (float64)."""
-    n, hs, ws = img.shape
-    arr = img.numpy()
-    out = np.zeros((n, len(polys)))
-    for k, p in enumerate(polys):
-        poly = shapely.Polygon(np.stack([(p[:, 0] + 1) * ws / 2, (p[:, 1] + 1) * hs / 2], 1))
-        x0, y0, x1, y1 = poly.bounds
-        acc = np.zeros(n)
-        for r in range(max(0, math.floor(y0)), min(hs, math.ceil(y1))):
-            for c in range(max(0, math.floor(x0)), min(ws, math.ceil(x1))):
-                a = poly.intersection(shapely.box(c, r, c + 1, r + 1)).area
-                acc += a * arr[:, r, c]
-        out[:, k] = acc / poly.area
-    return out.reshape(n, *size)
 
 
 @pytest.mark.parametrize("family", ["rect", "curv"])
