@@ -3,8 +3,9 @@
 :func:`layout_from_density` makes the pixel density (pixels per unit sensor area) follow a
 non-negative importance map ``d``, e.g. a dataset's mean edge strength (:func:`edge_density`)
 or label-boundary density. The map is first mixed with the uniform density,
-``d' = (1 − floor) d / mean(d) + floor``, so no pixel grows beyond ``1 / floor`` times the
-uniform pixel. Then, with ``F`` a cumulative distribution of ``d'`` (piecewise linear between
+``d' = (1 − floor) d / mean(d) + floor``, which bounds how far pixels can grow: a spline
+layout's pixel rows and columns, and a grid layout's control rows, are at most ``1 / floor``
+times their uniform width. Then, with ``F`` a cumulative distribution of ``d'`` (piecewise linear between
 the map's cells):
 
 * ``kind="spline"`` (separable, rectangular pixels): each axis is the inverse of the CDF of
@@ -73,7 +74,8 @@ def layout_from_density(
         knots: ``(k_x, k_y)`` spline pieces (default ``(min(W, 64), min(H, 64))``; with one piece
             per pixel every pixel row and column holds an equal share of the mass).
         grid: ``(g_h, g_w)`` control cells for ``kind="grid"`` (default ``(min(H, 32), min(W, 32))``).
-        floor: share of the uniform density mixed in, in ``(0, 1]`` (1 gives the uniform layout).
+        floor: share of the uniform density mixed in, in ``(0, 1]`` (1 gives the uniform layout;
+            smaller lets pixels grow more where the map is empty).
         learn, dtype: passed to the layout (it can start a learned layout).
 
     Example:

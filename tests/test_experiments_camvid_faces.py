@@ -123,3 +123,23 @@ def test_quick_commands_write_results(tmp_path):
     assert set(res["summary"]) == {"uniform 8x8", "rect 8x8"}
     assert {"gender", "age_group", "race", "mean"} <= set(res["summary"]["rect 8x8"])
     assert (tmp_path / "f" / "faces_layouts.png").exists()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("task", ["mnist", "camvid", "faces"])
+def test_quick_runs_train_the_new_families(task, tmp_path):
+    argv = ["train", task, "--quick", "--epochs", "1", "--no-progress", "--out", str(tmp_path)]
+    families = ["spline", "grid", "fovea"] if task == "mnist" else ["spline"]
+    assert main([*argv, *(a for f in families for a in ("--family", f))]) == 0
+    res = json.loads((tmp_path / "results.json").read_text())
+    assert {key.split()[0] for key in res["summary"]} == set(families)
+    for s in res["summary"].values():
+        assert any(abs(v) > 1e-4 for v in s["theta_mean"])  # the layout learned
+    for family in families:
+        name = (
+            f"layout_{family}.json"
+            if task == "mnist"
+            else f"layout_{family}_{'48x36' if task == 'camvid' else '8x8'}.json"
+        )
+        layout, _ = lw.load_layout(tmp_path / name)
+        assert layout.family == family and layout.check_foldover().ok
