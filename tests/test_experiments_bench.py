@@ -82,7 +82,7 @@ def test_fd_gradient_matches_exact_autograd(seed):
     for family in ("rect", "curv"):
         theta = rand_theta(gen, 0.8).requires_grad_(True)
         layout = lw.make_layout(family, dtype=F64)
-        fd = fd_theta_gradient(img, family, theta.detach(), size, w, subdiv=128)
+        fd = fd_theta_gradient(img, layout, theta.detach(), size, w, subdiv=128)
         # the same 128-segment polylines that the finite differences see
         mesh = lw.pixel_mesh(layout, size, subdivisions=1 if family == "rect" else 128, theta=theta)
         (g,) = torch.autograd.grad((lw.integrate_exact(img[0], layout, size, mesh=mesh) * w[0]).sum(), theta)

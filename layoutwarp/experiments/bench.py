@@ -26,15 +26,26 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from ..coords import uniform_corners
 from ..files import atomic_write
 from ..integrators import integrate_exact
-from ..layouts import Layout, make_layout
+from ..layouts import FAMILIES, Layout, make_layout
 from ..maps import forward_maps, sample_points
 from ..mesh import pixel_mesh
 from ..sensor import data_tolerance, simulate
 from .scene import SineScene, blurred_noise, load_photo
 
-__all__ = ["Row", "fd_theta_gradient", "format_scaling", "format_table", "main_bench", "run", "scaling"]
+__all__ = [
+    "Row",
+    "bench_layouts",
+    "fd_theta_gradient",
+    "format_scaling",
+    "format_table",
+    "layout_from_spec",
+    "main_bench",
+    "run",
+    "scaling",
+]
 
 
 @dataclass
@@ -90,7 +101,7 @@ def _memory_child(spec: dict, conn) -> None:  # pragma: no cover - runs in a spa
     torch.set_num_threads(spec["threads"])
     img = blurred_noise(*spec["src"])
     npimg = np.ascontiguousarray(img[0].permute(1, 2, 0).numpy())
-    layout = make_layout(spec["family"], spec["theta"])
+    layout = layout_from_spec(spec["layout"])
     maps = forward_maps(layout, spec["size"], spec["src"]).numpy() if spec["method"] == "remap" else None
     if spec["method"] not in ("inter_area", "remap"):  # load the code (compiled kernels) once, on a
         with torch.no_grad():  # small image and sensor: the measured call builds its own mesh
@@ -115,9 +126,9 @@ def peak_memory_mb(spec: dict) -> float | None:
     The child first runs the method once on a small image and sensor, so that loading code
     (the compiled kernels) is not counted; the measured call builds its mesh and tables anew.
 
-    ``spec`` names the run: ``family``, ``theta``, ``method`` (a :func:`simulate` method,
-    ``"inter_area"`` or ``"remap"``), ``opts``, ``src``, ``size``, ``threads``. (A forked child
-    would deadlock in torch's thread pool.)
+    ``spec`` names the run: ``layout`` (a :func:`layout_from_spec` dict), ``method`` (a
+    :func:`simulate` method, ``"inter_area"`` or ``"remap"``), ``opts``, ``src``, ``size``,
+    ``threads``. (A forked child would deadlock in torch's thread pool.)
     """
     if not os.path.exists("/proc/self/clear_refs"):
         return None
@@ -145,15 +156,26 @@ def _grid_sample_mc(img: Tensor, layout: Layout, size, s: int, gen) -> Tensor:
     return out.reshape(n, c, h, s, w, s).mean((3, 5))
 
 
-def _exact64(img64: Tensor, layout: Layout, size, subdivisions: int) -> Tensor:
-    """Float64 exact forward on a fixed-subdivision mesh (smooth in θ, for finite differences)."""
-    mesh = pixel_mesh(layout, size, subdivisions=1 if layout.straight_edges else subdivisions)
+def layout_from_spec(spec: dict, dtype: torch.dtype | None = None) -> Layout:
+    """A layout from ``{"family": name, **config}`` (a registered family's
+    :meth:`~layoutwarp.Layout.to_config` dict), e.g. ``{"family": "curv", "theta": [0.3, 0.2]}``."""
+    config = {k: v for k, v in spec.items() if k != "family"}
+    return FAMILIES[spec["family"]].from_config(config, dtype=dtype)
+
+
+def _exact64(img64: Tensor, layout: Layout, size, subdivisions: int, theta: Tensor) -> Tensor:
+    """Float64 exact forward with θ; curved edges on a fixed-subdivision mesh (smooth in θ, for
+    finite differences), straight-edged layouts on their exact mesh."""
+    if layout.straight_edges:
+        mesh = pixel_mesh(layout, size, theta=theta)
+    else:
+        mesh = pixel_mesh(layout, size, subdivisions=subdivisions, theta=theta)
     return integrate_exact(img64.flatten(0, 1), layout, size, mesh=mesh)
 
 
 def fd_theta_gradient(
     img64: Tensor,
-    family: str,
+    layout: Layout,
     theta: Sequence[float] | Tensor,
     size,
     weights: Tensor,
@@ -172,8 +194,7 @@ def fd_theta_gradient(
 
     def loss(t: Tensor) -> float:
         with torch.no_grad():
-            layout = make_layout(family, t, dtype=torch.float64)
-            return float((_exact64(img64, layout, size, subdiv) * weights).sum())
+            return float((_exact64(img64, layout, size, subdiv, t) * weights).sum())
 
     grads = []
     for k in range(th.numel()):
@@ -183,16 +204,48 @@ def fd_theta_gradient(
     return torch.tensor(grads, dtype=torch.float64)
 
 
-def _settings(family: str, tols, mc_samples) -> list[tuple[str, dict, str]]:
-    if family == "curv":  # the default call (tolerance from the data), then given tolerances
-        exact = [("exact", {}, "default")] + [("exact", {"tol": t}, f"tol={t:g}") for t in tols]
-    else:
+def _theta_grad(layout: Layout) -> Tensor:
+    """``∂loss/∂θ`` from the gradient in ``layout.rho`` (θ's transform is elementwise)."""
+    (dtheta,) = torch.autograd.grad(layout.theta.sum(), layout.rho)
+    return layout.rho.grad.double() / dtheta.double()
+
+
+def _settings(layout: Layout, name: str, tols, mc_samples) -> list[tuple[str, dict, str]]:
+    if layout.straight_edges:
         exact = [("exact", {}, "exact")]
+    else:  # the default call (tolerance from the data), then given tolerances
+        exact = [("exact", {}, "default")] + [
+            ("exact", {"tol": t}, f"tol={t:g}") for t in (tols if name in PAPER_ROWS else (1e-3,))
+        ]
+    samples = mc_samples if name in PAPER_ROWS else (4,)
     return (
         exact
-        + [("montecarlo", {"samples": s, "seed": 0}, f"{s * s} spp") for s in mc_samples]
+        + [("montecarlo", {"samples": s, "seed": 0}, f"{s * s} spp") for s in samples]
         + [("point", {}, "1 spp")]
     )
+
+
+#: Rows with every tolerance and sample count; the other families get the default, 1e-3, 16 spp.
+PAPER_ROWS = ("uniform", "rect", "curv", "curv ±")
+
+
+def bench_layouts(theta: tuple[float, float]) -> dict[str, dict]:
+    """The benchmark's layouts by row name, as :func:`layout_from_spec` dicts: the paper's
+    families at θ (``"curv ±"`` with mixed-sign θ: S-shaped pixel edges), a smooth spline and an
+    8x8 control grid (fixed pseudo-random parameters) and the curvilinear fovea off the centre."""
+    gen = torch.Generator().manual_seed(20261122)
+    logits = (torch.randn(16, generator=gen, dtype=torch.float64) * 0.5).tolist()
+    ctrl = uniform_corners((8, 8)).clone()
+    ctrl[1:-1, 1:-1] += (torch.rand(7, 7, 2, generator=gen, dtype=torch.float64) - 0.5) * 0.1
+    return {
+        "uniform": {"family": "uniform"},
+        "rect": {"family": "rect", "theta": list(theta)},
+        "curv": {"family": "curv", "theta": list(theta)},
+        "curv ±": {"family": "curv", "theta": [theta[0], -theta[1]]},
+        "spline": {"family": "spline", "theta": logits, "knots": [8, 8], "kind": "smooth"},
+        "grid 8x8": {"family": "grid", "control": ctrl.tolist()},
+        "fovea": {"family": "fovea", "theta": list(theta), "center": [0.3, -0.2], "learn_center": True},
+    }
 
 
 def run(
@@ -235,19 +288,12 @@ def run(
     input_mb = first.numel() * 4 / 2**20
 
     def mem(layout_name, method, opts):
-        family, th = setups[layout_name]
-        spec = {"family": family, "theta": th, "method": method, "opts": opts, "src": src}
+        spec = {"layout": setups[layout_name], "method": method, "opts": opts, "src": src}
         spec |= {"size": size, "threads": torch.get_num_threads()}
         return peak_memory_mb(spec) if memory else None
 
-    mixed = (theta[0], -theta[1])
-    setups = {  # row name: (family, θ); "curv ±" has mixed-sign θ (S-shaped pixel edges)
-        "uniform": ("uniform", None),
-        "rect": ("rect", theta),
-        "curv": ("curv", theta),
-        "curv ±": ("curv", mixed),
-    }
-    layouts = {name: make_layout(family, th) for name, (family, th) in setups.items()}
+    setups = bench_layouts(theta)
+    layouts = {name: layout_from_spec(spec) for name, spec in setups.items()}
     say("anchors")
     t_area = _time(lambda: cv2.resize(npimg, (w, h), interpolation=cv2.INTER_AREA), repeats)
     gen = torch.Generator().manual_seed(0)
@@ -257,14 +303,15 @@ def run(
         img64 = img.double()
         npi = np.ascontiguousarray(img[0].permute(1, 2, 0).numpy())
         for name, layout in layouts.items():
-            family = setups[name][0]
             say(f"{image_name} {name}: float64 references")
             with torch.no_grad():
                 ref = simulate(img64, layout, size, tol=1e-7)
             truth = scene.pixel_means(layout, size)[None] if image_name == "synthetic" else None
             gw = 1 + torch.rand(ref.shape, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
             g_ref = (
-                fd_theta_gradient(img64, family, layout.theta.detach(), size, gw)
+                fd_theta_gradient(
+                    img64, layout_from_spec(setups[name], torch.float64), layout.theta.detach(), size, gw
+                )
                 if layout.theta.numel()
                 else None
             )
@@ -305,7 +352,7 @@ def run(
                 out = _grid_sample_mc(img, layout, size, 4, torch.Generator().manual_seed(0))
                 rows.append(Row(image_name, name, "anchor: grid_sample MC", "16 spp", t_gs, **errors(out)))
 
-            for method, opts, setting in _settings(family, tols, mc_samples):
+            for method, opts, setting in _settings(layout, name, tols, mc_samples):
                 say(f"{image_name} {name}: {method} {setting}")
 
                 def fwd(method=method, opts=opts, layout=layout, img=img):
@@ -326,8 +373,7 @@ def run(
                     row.backward_ms = _time_backward(fwd_grad, layout, repeats)
                     row.extra["forward_with_grad_ms"] = t_fg  # learnable: the mesh is rebuilt every call
                     (simulate(img, layout, size, method, **opts).double() * gw).sum().backward()
-                    dtheta = layout.bound * (1 - torch.tanh(layout.rho.detach()) ** 2)
-                    g = layout.rho.grad.double() / dtheta.double()
+                    g = _theta_grad(layout)
                     layout.rho.grad = None
                     row.grad_rel_err = float((g - g_ref).norm() / g_ref.norm())
                     row.extra["grad"] = g.tolist()
@@ -465,7 +511,7 @@ def format_table(result: dict) -> str:
         "(synthetic only); grad: relative error of dL/dθ against float64 finite differences",
         "fwd ms: a fixed layout (its mesh is built once and reused); train ms: forward + backward "
         "of a learnable layout (mesh rebuilt every call, as in training); bwd/fwd within training",
-        f"{'image':9s} {'layout':7s} {'method':25s} {'setting':8s} {'fwd ms':>8s} {'/AREA':>6s} "
+        f"{'image':9s} {'layout':8s} {'method':25s} {'setting':8s} {'fwd ms':>8s} {'/AREA':>6s} "
         f"{'/GS16':>6s} {'train ms':>8s} {'bwd/fwd':>7s} {'RMSE':>8s} {'max err':>8s} {'scene':>8s} "
         f"{'grad':>8s} {'peak/in':>7s}",
     ]
@@ -475,7 +521,7 @@ def format_table(result: dict) -> str:
         train = None if r["backward_ms"] is None else r["backward_ms"] + fg
         peak = None if r["peak_mb"] is None else r["peak_mb"] / result["input_mb"]
         lines.append(
-            f"{r['image']:9s} {r['layout']:7s} {r['method']:25s} {r['setting']:8s} {r['forward_ms']:8.2f} "
+            f"{r['image']:9s} {r['layout']:8s} {r['method']:25s} {r['setting']:8s} {r['forward_ms']:8.2f} "
             f"{r['forward_ms'] / a['inter_area']:6.2f} {r['forward_ms'] / a['grid_sample_mc16']:6.2f} "
             f"{_fmt(train, '8.1f'):>8s} {_fmt(bwd, '.2f'):>7s} {_fmt(r['rmse'], '.2e'):>8s} "
             f"{_fmt(r['max_err'], '.2e'):>8s} "
