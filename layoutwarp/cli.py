@@ -460,7 +460,7 @@ def build_parser() -> argparse.ArgumentParser:
     def command(name: str, summary: str) -> argparse.ArgumentParser:
         return sub.add_parser(name, help=summary, description=summary, formatter_class=_Formatter)
 
-    d = command("demo", "Simulate the paper's two layouts on a photo and write figures and numbers.")
+    d = command("demo", "Simulate the layout families on a photo and write figures and numbers.")
     d.add_argument("--image", help="an image file (default: the bundled kodim20 photo)")
     d.add_argument("--size", type=parse_wxh, default=(24, 32), help="sensor WIDTHxHEIGHT (default: 32x24)")
     d.add_argument("--theta", type=parse_theta, default=(0.5, 0.5), help="θ as TX,TY (default: 0.5,0.5)")

@@ -227,10 +227,12 @@ def test_demo_writes_figures_and_numbers(tmp_path):
     image = str(SAMPLES / "photos" / "kodim03.png")
     assert main(["demo", "--image", image, "--size", "16x12", "--out", str(tmp_path)]) == 0
     numbers = json.loads((tmp_path / "demo.json").read_text())
-    assert {d["family"] for d in numbers["layouts"].values()} == {"uniform", "rect", "curv"}
+    assert {d["family"] for d in numbers["layouts"].values()} == {"uniform", "rect", "curv", "spline", "grid"}
     assert (tmp_path / "layouts.png").stat().st_size > 10_000
-    for fam in ("uniform", "rect", "curv"):
-        assert (tmp_path / f"sensor_{fam}.png").exists()
+    for name in ("uniform", "rect", "curv", "fovea", "spline", "grid"):
+        assert (tmp_path / f"sensor_{name}.png").exists()
+    # the layouts fitted to the photo's edges are not uniform
+    assert numbers["layouts"]["grid from edges"]["pixel_area_ratio_max_over_min"] > 1.5
 
 
 def test_python_dash_m_entry_point():

@@ -1,4 +1,4 @@
-"""The demo: the paper's two layouts over a photo, with their sensor images and numbers."""
+"""The demo: the layout families over a photo, with their sensor images and numbers."""
 
 from __future__ import annotations
 
@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 import torch
 
+from ..density import edge_density, layout_from_density
 from ..files import atomic_write
 from ..layouts import CurvLayout, RectLayout, UniformLayout
 from ..mesh import pixel_mesh
@@ -22,7 +23,8 @@ __all__ = ["run_demo"]
 def run_demo(
     image: str | Path, out: str | Path, size: tuple[int, int], theta: tuple[float, float], tol: float
 ) -> dict:
-    """Simulate the uniform, rect and curv layouts on ``image``; write figures and ``demo.json``.
+    """Simulate the uniform, rect and curv layouts, an off-centre fovea and the spline and grid
+    layouts that follow the photo's own edge density on ``image``; write figures and ``demo.json``.
 
     Returns:
         the numbers written to ``demo.json`` (per layout: method, error bound, seconds, the
@@ -40,7 +42,11 @@ def run_demo(
         "uniform": UniformLayout(),
         f"rect θ=({tx:g}, {ty:g})": RectLayout((tx, ty)),
         f"curv θ=({tx:g}, {ty:g})": CurvLayout((tx, ty)),
+        "fovea at (0.3, -0.2)": CurvLayout((tx, ty), center=(0.3, -0.2)),
     }
+    density = edge_density(img.float(), size)  # where this photo has detail, at sensor resolution
+    layouts["spline from edges"] = layout_from_density(density, size, "spline", dtype=torch.float32)
+    layouts["grid from edges"] = layout_from_density(density, size, "grid", dtype=torch.float32)
     panels, numbers = [], {"image": str(image), "size_wxh": f"{size[1]}x{size[0]}", "layouts": {}}
     for name, layout in layouts.items():
         t0 = time.perf_counter()
@@ -58,7 +64,7 @@ def run_demo(
             "pixel_area_ratio_max_over_min": float(areas.max() / areas.min()),
         }
         cv2.imwrite(
-            str(out / f"sensor_{layout.family}.png"),
+            str(out / f"sensor_{name.split()[0]}.png"),
             cv2.cvtColor((np.clip(arr, 0, 1) * 255).round().astype(np.uint8), cv2.COLOR_RGB2BGR),
         )
     layout_figure(rgb / 255.0, panels, size, out / "layouts.png")
