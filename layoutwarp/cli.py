@@ -253,6 +253,62 @@ def _cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_study(args: argparse.Namespace) -> int:
+    from dataclasses import replace
+
+    from .experiments import camvid, faces, mnist
+    from .experiments.study import PLANS, run_study
+
+    d = {"mnist": mnist, "camvid": camvid, "faces": faces}[args.task].DEFAULTS
+    data = (
+        Path(args.data) if args.data else (DATA_SAMPLES / d.sample if args.quick else SHARED_DATA / d.shared)
+    )
+    if not data.is_dir():
+        raise UsageError(
+            f"no {args.task} data at {str(data)!r}; pass --data DIR or --quick (bundled samples)"
+        )
+    plan = PLANS[args.task]
+    if args.quick:  # the smallest study that exercises every step
+        plan = replace(
+            plan, uniform_sizes=plan.uniform_sizes[:2], learned_sizes=plan.learned_sizes[:1], seeds=1
+        )
+        plan = replace(plan, families=tuple(args.family or ("rect", "density")))
+    elif args.family:
+        plan = replace(plan, families=tuple(dict.fromkeys(args.family)))
+    for size in plan.uniform_sizes + plan.learned_sizes:
+        _check_memory(size)
+    epochs = args.epochs or (1 if args.quick else None)
+    out = args.out or f"results/study-{args.task}"
+    summary = run_study(
+        args.task, data, out, plan=plan, seeds=args.seeds, epochs=epochs, progress=not args.no_progress
+    )
+    from .experiments.study import study_table
+
+    print(study_table(summary), end="")
+    print(f"wrote {out}/study.json, study.md and study_{args.task}.png")
+    return 0
+
+
+def _cmd_evaluate(args: argparse.Namespace) -> int:
+    from .experiments.models import evaluate_model, load_model
+
+    if not Path(args.data).is_dir():
+        raise UsageError(f"argument --data: no such folder {args.data!r}")
+    try:
+        model, info = load_model(args.model, args.task)
+    except ValueError as exc:
+        raise UsageError(f"argument --model: {exc}") from None
+    try:
+        scores = evaluate_model(args.task, model, args.data, args.split)
+    except (FileNotFoundError, ValueError) as exc:
+        raise UsageError(f"argument --data: {exc}") from None
+    layout = {k: v for k, v in info["layout"].items() if k in ("family", "theta", "center", "knots", "grid")}
+    out = {"task": args.task, "model": str(args.model), "data": str(args.data), "split": args.split}
+    out |= {"layout": layout, "size_hw": info["size_hw"], **scores}
+    print(json.dumps(out, indent=2))
+    return 0
+
+
 def _layout_from_args(args: argparse.Namespace):
     """The fixed layout and sensor size from ``--layout FILE`` or ``--family/--theta``, and ``--size``."""
     import torch
@@ -477,6 +533,42 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--no-memory", action="store_true", help="skip the peak-memory children")
     b.add_argument("--no-scaling", action="store_true", help="skip the input/sensor size scaling grid")
     b.set_defaults(func=_cmd_bench)
+
+    st = command(
+        "study",
+        "The pixel-budget study: uniform layouts at several sizes, every family at some; resumable.",
+    )
+    st.add_argument(
+        "task", choices=["mnist", "camvid", "faces"], metavar="TASK", help="mnist, camvid or faces"
+    )
+    st.add_argument("--quick", action="store_true", help="bundled samples, 1 seed, 1 epoch, 2+1 sizes")
+    st.add_argument("--data", help="dataset folder (default: the shared data folder's)")
+    st.add_argument(
+        "--family",
+        action="append",
+        choices=[*families, "density"],
+        help="families besides uniform, repeatable",
+    )
+    st.add_argument("--seeds", type=positive_int, help="seeds per configuration (default: 3; 1 with --quick)")
+    st.add_argument("--epochs", type=positive_int, help="epochs (default: the experiment's; 1 with --quick)")
+    st.add_argument("--no-progress", action="store_true", help="no progress bars")
+    st.add_argument("--out", help="output folder (default: results/study-TASK); rerun to resume")
+    st.set_defaults(func=_cmd_study)
+
+    ev = command("evaluate", "Score a saved model (a train run's model_*.pt) on a data folder; print JSON.")
+    ev.add_argument(
+        "task", choices=["mnist", "camvid", "faces"], metavar="TASK", help="mnist, camvid or faces"
+    )
+    ev.add_argument("--model", required=True, metavar="FILE", help="a model file written by train")
+    ev.add_argument(
+        "--data",
+        required=True,
+        metavar="DIR",
+        help="a folder laid out like the training data (MNIST: IDX files; CamVid: NAME/ and NAMEannot/; "
+        "faces: images and labels.csv)",
+    )
+    ev.add_argument("--split", help="MNIST: test or train (default: test); CamVid: NAME (default: val)")
+    ev.set_defaults(func=_cmd_evaluate)
 
     pp = command("preprocess", "Write the sensor image of every image in a folder (and move its label maps).")
     pp.add_argument("src", metavar="SRC", help="source folder (walked recursively)")

@@ -370,8 +370,9 @@ class GridLayout(Layout):
             best[lo : lo + 4096], bi[lo : lo + 4096], bj[lo : lo + 4096] = val, ci[k], cj[k]
         return bi, bj
 
-    def edge_breakpoints(self, a: Tensor, b: Tensor) -> Tensor:
-        """Where the segment crosses a control line (a kink of the piecewise-bilinear φ)."""
+    def edge_breakpoints(self, a: Tensor, b: Tensor, theta: Tensor | None = None) -> Tensor:
+        """Where the segment crosses a control line (a kink of the piecewise-bilinear φ; the
+        control lines do not move with θ)."""
         gh, gw = self.grid
         d = b - a
         cols = [((2 * k - gw) / gw - a[:, 0]) / d[:, 0] for k in range(1, gw)]

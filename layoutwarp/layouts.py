@@ -450,11 +450,16 @@ class Layout(nn.Module):
             cols = [torch.autograd.grad(vjp, u, e, retain_graph=True)[0] for e in eye]
         return torch.stack(cols, dim=-1)
 
-    def edge_breakpoints(self, a: Tensor, b: Tensor) -> Tensor:
+    def edge_breakpoints(self, a: Tensor, b: Tensor, theta: Tensor | None = None) -> Tensor:
         """Parameters ``t ∈ (0, 1)`` where φ is not smooth along the segments ``a + t (b − a)``.
+
+        Where the kinks move with θ (e.g. a learned fovea centre), the parameters are
+        differentiable in ``theta``, so that mesh vertices follow the kinks and θ-gradients stay
+        as accurate as values.
 
         Args:
             a, b: ``(E, 2)`` segment ends in uniform sensor coordinates.
+            theta: the θ the mesh is built for (default: the layout's own, without gradient).
 
         Returns:
             ``(E, K)`` parameters (NaN where there are fewer than ``K``); the mesh puts a
@@ -767,7 +772,7 @@ def _circle_crossings(a: Tensor, d: Tensor, lo: Tensor, hi: Tensor, scale: Tenso
     qb = 2 * (as_ * ds).sum(-1)
     qc = (as_ * as_).sum(-1) - 1
     disc = qb * qb - 4 * qa * qc
-    sq = torch.sqrt(disc.clamp_min(0))
+    sq = torch.sqrt(torch.where(disc > 0, disc, torch.ones_like(disc))) * (disc > 0)  # NaN-free gradient
     qa_safe = torch.where(qa > 0, qa, torch.ones_like(qa))
     t = torch.stack([(-qb - sq) / (2 * qa_safe), (-qb + sq) / (2 * qa_safe)], -1)
     ok = (disc > 0)[:, None] & (qa > 0)[:, None] & (t > lo[:, None]) & (t < hi[:, None])
@@ -799,26 +804,26 @@ class CurvLayout(_FoveaLayout):
     def _dtheta0(self, p: Tensor, theta: Tensor) -> Tensor:
         return phi_curv_dtheta(p, theta)
 
-    def edge_breakpoints(self, a: Tensor, b: Tensor) -> Tensor:
+    def edge_breakpoints(self, a: Tensor, b: Tensor, theta: Tensor | None = None) -> Tensor:
         """Where the segment crosses the (adapted) unit circle, the kink of φ_curv, and, off the
-        centre, the lines ``x = c_x`` and ``y = c_y``."""
+        centre, the lines ``x = c_x`` and ``y = c_y`` (differentiable in a learned centre)."""
         d = b - a
-        if self._centred:
+        _, c = self._split(self.theta.detach() if theta is None else theta)
+        if c is None:
             lo, hi = torch.zeros_like(d[:, 0]), torch.ones_like(d[:, 0])
             return _circle_crossings(a, d, lo - 1, hi + 1, torch.ones_like(d))
-        c = self.center.detach().to(a)
-        with torch.no_grad():
-            dsafe = torch.where(d != 0, d, torch.ones_like(d))
-            cut = torch.where(d != 0, (c - a) / dsafe, torch.full_like(d, float("nan")))
-            cut = torch.where((cut > 0) & (cut < 1), cut, torch.full_like(cut, float("nan")))
-            bounds = torch.cat(
-                [torch.zeros_like(d[:, :1]), cut.nan_to_num(1.0).sort(1).values, torch.ones_like(d[:, :1])], 1
-            )
-            out = [cut]
-            for k in range(3):  # the crossings on each piece between the cuts, in local scale
-                lo, hi = bounds[:, k], bounds[:, k + 1]
-                mid = a + ((lo + hi) / 2)[:, None] * d
-                out.append(_circle_crossings(a - c, d, lo, hi, _side_scale(mid, c)))
+        c = c.to(a)
+        nan = torch.full_like(d, float("nan"))
+        dsafe = torch.where(d != 0, d, torch.ones_like(d))
+        cut = torch.where(d != 0, (c - a) / dsafe, nan)
+        cut = torch.where((cut > 0) & (cut < 1), cut, nan)
+        one = torch.ones_like(d[:, :1])
+        bounds = torch.cat([0 * one, torch.where(cut.isnan(), 1.0, cut).sort(1).values, one], 1)
+        out = [cut]
+        for k in range(3):  # the crossings on each piece between the cuts, in local scale
+            lo, hi = bounds[:, k], bounds[:, k + 1]
+            mid = a + ((lo + hi) / 2)[:, None].detach() * d
+            out.append(_circle_crossings(a - c, d, lo, hi, _side_scale(mid, c)))
         return torch.cat(out, 1)
 
 

@@ -162,25 +162,26 @@ def ranges(lo: Tensor, count: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def smooth_pieces(
-    layout: Layout, a: Tensor, b: Tensor, extra: Tensor | None = None
+    layout: Layout, a: Tensor, b: Tensor, extra: Tensor | None = None, theta: Tensor | None = None
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Cut the uniform segments ``a → b`` (``(E, 2)``) where φ is not smooth along them.
 
-    The cuts are :meth:`Layout.edge_breakpoints` (e.g. the unit circle of φ_curv) and any
-    ``extra`` parameters ``(E, K)`` (NaN for none); cuts within ``1e-6`` of an end are
-    dropped.
+    The cuts are :meth:`Layout.edge_breakpoints` for ``theta`` (e.g. the unit circle of
+    φ_curv; differentiable where they move with θ) and any ``extra`` parameters ``(E, K)``
+    (NaN for none); cuts within ``1e-6`` of an end are dropped.
 
     Returns:
         ``(edge, t0, t1)``: for every smooth piece, its segment and parameter range, in
         segment order.
     """
     ne = a.shape[0]
-    brk = layout.edge_breakpoints(a, b).to(a.dtype).reshape(ne, -1)
+    brk = layout.edge_breakpoints(a, b, theta).to(a.dtype).reshape(ne, -1)
     if extra is not None:
         brk = torch.cat([brk, extra.to(a.dtype).reshape(ne, -1)], 1)
-    brk = torch.where(torch.isfinite(brk) & (brk > 1e-6) & (brk < 1 - 1e-6), brk, torch.ones_like(brk))
+    keep = torch.isfinite(brk) & (brk > 1e-6) & (brk < 1 - 1e-6)
+    brk = torch.where(keep, brk, torch.ones_like(brk))
     bounds = torch.cat([torch.zeros_like(a[:, :1]), brk, torch.ones_like(a[:, :1])], 1).sort(1).values
-    edge, k = torch.nonzero(bounds[:, 1:] - bounds[:, :-1] > 1e-12, as_tuple=True)
+    edge, k = torch.nonzero(bounds[:, 1:].detach() - bounds[:, :-1].detach() > 1e-12, as_tuple=True)
     return edge, bounds[edge, k], bounds[edge, k + 1]
 
 
@@ -319,7 +320,8 @@ def _edge_parameters(
     area_v = torch.minimum(torch.cat([inf, area], 1), torch.cat([area, inf], 1))  # (H, W+1)
     amin = torch.cat([area_h.flatten(), area_v.flatten()])
     ua, ub = topo.edge_ends(device=dev)
-    edge, lo, hi = smooth_pieces(layout, ua, ub)
+    edge, lo_g, hi_g = smooth_pieces(layout, ua, ub, theta=theta if with_grad else th)
+    lo, hi = lo_g.detach(), hi_g.detach()  # the counts need no gradient; the vertices do
     a0, d = ua[edge], (ub - ua)[edge]
     k_s = 4  # 5 samples a piece: worst error 0.12-0.14 of tol over random θ (9 samples: 0.11-0.14)
     s_t = torch.linspace(0, 1, k_s + 1, dtype=ua.dtype, device=dev)
@@ -345,7 +347,7 @@ def _edge_parameters(
     n = torch.where(sag <= 1e-15 * length, torch.ones_like(n), n).long()
     counts = torch.zeros(ne, dtype=torch.long, device=dev).index_add_(0, edge, n)
     piece, kk = ranges(torch.zeros_like(n), n)
-    lo_f, hi_f, n_f = lo[piece], hi[piece], n[piece].to(lo.dtype)
+    lo_f, hi_f, n_f = lo_g[piece], hi_g[piece], n[piece].to(lo.dtype)
     return counts, lo_f + (hi_f - lo_f) * kk.to(lo.dtype) / n_f
 
 
@@ -392,8 +394,9 @@ def pixel_mesh(
         max_subdiv: cap on segments per smooth piece of an edge. Where the cap binds (very
             fine ``tol`` with long, strongly curved edges: few large pixels, θ near ±1) the
             error can exceed ``tol``; raise it for such references.
-        subdivisions: force a segment count per edge (an int, or an ``(E,)`` tensor) instead
-            of the adaptive choice; used for reference computations.
+        subdivisions: force a segment count per smooth piece of each edge (an int, or an
+            ``(E,)`` tensor) instead of the adaptive choice, with a vertex on every kink; used for
+            reference computations (smooth in θ, for finite differences).
         dtype: vertex dtype (default: θ's dtype).
         theta: use this θ instead of the layout's own (see :meth:`Layout.resolve_theta`).
 
@@ -436,13 +439,17 @@ def _build_mesh(
     device = theta.device
     topo = MeshTopology((h, w))
     ne = topo.num_edges
-    if subdivisions is not None:
-        n = torch.as_tensor(subdivisions, dtype=torch.long, device=device).expand(ne).clone()
-        if bool((n < 1).any()):
+    if subdivisions is not None:  # equal parameter steps on every smooth piece
+        per_edge = torch.as_tensor(subdivisions, dtype=torch.long, device=device).expand(ne)
+        if bool((per_edge < 1).any()):
             raise ValueError(f"subdivisions must be >= 1, got {subdivisions!r}")
-        t_start = None
+        edge, lo, hi = smooth_pieces(layout, *topo.edge_ends(device=device), theta=theta)
+        m = per_edge[edge]
+        n = torch.zeros(ne, dtype=torch.long, device=device).index_add_(0, edge, m)
+        piece, kk = ranges(torch.zeros_like(m), m)
+        t_start = lo[piece] + (hi - lo)[piece] * kk.to(lo.dtype) / m[piece].to(lo.dtype)
     elif layout.straight_edges:  # one segment per straight piece
-        edge, t_start, _ = smooth_pieces(layout, *topo.edge_ends(device=device))
+        edge, t_start, _ = smooth_pieces(layout, *topo.edge_ends(device=device), theta=theta)
         n = torch.bincount(edge, minlength=ne)
     elif tol is None:
         n = torch.ones(ne, dtype=torch.long, device=device)

@@ -21,7 +21,17 @@ from ..backwarp import backwarp, backwarp_cross_entropy
 from ..layoutfile import save_layout
 from ..sensor import SensorLayer
 from .data import CAMVID_CLASSES, VOID, load_camvid
-from .training import ExperimentDefaults, TaskRun, fit, format_theta, optimizer, save_runs, theta_text
+from .models import save_model
+from .training import (
+    ExperimentDefaults,
+    TaskRun,
+    fit,
+    format_theta,
+    layout_name,
+    optimizer,
+    save_runs,
+    theta_text,
+)
 
 __all__ = [
     "DEFAULTS",
@@ -205,11 +215,13 @@ def train_camvid(
         batch_size=batch_size,
         freeze_epochs=freeze_epochs,
         sched=torch.optim.lr_scheduler.CosineAnnealingLR(opt, max(epochs, 1)),
-        desc=f"camvid {layout} {size[1]}x{size[0]} seed {seed}",
+        desc=f"camvid {layout_name(layout)} {size[1]}x{size[0]} seed {seed}",
         progress=progress,
     )
     scores = evaluate_camvid(model, val)
-    run = TaskRun("camvid", layout, list(size), seed, scores, model.sensor.theta.detach().tolist(), history)
+    run = TaskRun(
+        "camvid", layout_name(layout), list(size), seed, scores, model.sensor.theta.detach().tolist(), history
+    )
     run.seconds = time.perf_counter() - t0
     return run, model
 
@@ -268,6 +280,18 @@ def run_camvid_experiment(
                 )
                 runs.append(run)
                 models.setdefault((layout, tuple(size)), model)
+                save_model(
+                    out / f"model_{layout}_{size[1]}x{size[0]}_seed{seed}.pt",
+                    "camvid",
+                    model,
+                    sensor=sensor,
+                    training={
+                        "seed": seed,
+                        "epochs": epochs,
+                        "class_weights": class_weights,
+                        "scores": run.scores,
+                    },
+                )
                 th = format_theta(run.theta)
                 print(
                     f"  camvid {layout:8s} {size[1]}x{size[0]} seed {seed}: mIoU {run.scores['miou']:5.2f}%  "

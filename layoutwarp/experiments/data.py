@@ -21,6 +21,7 @@ __all__ = [
     "load_camvid",
     "load_faces",
     "load_mnist",
+    "load_mnist_split",
     "read_idx",
     "read_rgb",
 ]
@@ -49,20 +50,30 @@ def read_idx(path: str | Path) -> np.ndarray:
     return data.reshape(dims).copy()  # writable, independent of the file buffer
 
 
+def load_mnist_split(folder: str | Path, split: str = "test") -> tuple[np.ndarray, np.ndarray]:
+    """One MNIST split (``"train"`` or ``"test"``, the ``t10k-*`` files): uint8 images and labels."""
+    if split not in ("train", "test"):
+        raise ValueError(f"split must be 'train' or 'test' for MNIST, got {split!r}")
+    folder = Path(folder)
+    prefix = "train" if split == "train" else "t10k"
+    out = []
+    for stem in ("images-idx3-ubyte", "labels-idx1-ubyte"):
+        cands = [folder / f"{prefix}-{stem}.gz", folder / f"{prefix}-{stem}"]
+        found = next((c for c in cands if c.exists()), None)
+        if found is None:
+            raise FileNotFoundError(f"MNIST file {prefix}-{stem}[.gz] not found in {folder}")
+        out.append(read_idx(found))
+    return out[0], out[1]
+
+
 def load_mnist(folder: str | Path) -> dict[str, np.ndarray]:
     """MNIST from a folder with the standard IDX names (``.gz`` or not).
 
     Returns ``{"train_images", "train_labels", "test_images", "test_labels"}`` (uint8).
     """
-    folder = Path(folder)
     out = {}
-    for split, prefix in (("train", "train"), ("test", "t10k")):
-        for kind, stem in (("images", "images-idx3-ubyte"), ("labels", "labels-idx1-ubyte")):
-            cands = [folder / f"{prefix}-{stem}.gz", folder / f"{prefix}-{stem}"]
-            found = next((c for c in cands if c.exists()), None)
-            if found is None:
-                raise FileNotFoundError(f"MNIST file {prefix}-{stem}[.gz] not found in {folder}")
-            out[f"{split}_{kind}"] = read_idx(found)
+    for split in ("train", "test"):
+        out[f"{split}_images"], out[f"{split}_labels"] = load_mnist_split(folder, split)
     return out
 
 

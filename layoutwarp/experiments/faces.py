@@ -21,7 +21,17 @@ from ..layoutfile import save_layout
 from ..sensor import SensorLayer
 from .camvid import RGB_MEAN, RGB_STD, conv_block, to_tensor
 from .data import AGE_GROUPS, load_faces
-from .training import ExperimentDefaults, TaskRun, fit, format_theta, optimizer, save_runs, theta_text
+from .models import save_model
+from .training import (
+    ExperimentDefaults,
+    TaskRun,
+    fit,
+    format_theta,
+    layout_name,
+    optimizer,
+    save_runs,
+    theta_text,
+)
 
 __all__ = ["DEFAULTS", "FaceNet", "evaluate_faces", "run_faces_experiment", "train_faces"]
 
@@ -99,13 +109,15 @@ def train_faces(
         batch_size=batch_size,
         freeze_epochs=freeze_epochs,
         sched=torch.optim.lr_scheduler.CosineAnnealingLR(opt, max(epochs, 1)),
-        desc=f"faces {layout} {size[1]}x{size[0]} seed {seed}",
+        desc=f"faces {layout_name(layout)} {size[1]}x{size[0]} seed {seed}",
         progress=progress,
     )
     scores = evaluate_faces(
         model, x[torch.from_numpy(test_idx)], {k: v[torch.from_numpy(test_idx)] for k, v in targets.items()}
     )
-    run = TaskRun("faces", layout, list(size), seed, scores, model.sensor.theta.detach().tolist(), history)
+    run = TaskRun(
+        "faces", layout_name(layout), list(size), seed, scores, model.sensor.theta.detach().tolist(), history
+    )
     run.seconds = time.perf_counter() - t0
     return run, model
 
@@ -164,6 +176,13 @@ def run_faces_experiment(
                 )
                 runs.append(run)
                 models.setdefault((layout, tuple(size)), model)
+                save_model(
+                    out / f"model_{layout}_{size[1]}x{size[0]}_seed{seed}.pt",
+                    "faces",
+                    model,
+                    sensor=sensor,
+                    training={"seed": seed, "epochs": epochs, "scores": run.scores},
+                )
                 accs = "  ".join(f"{k} {run.scores[k]:5.1f}" for k in metrics)
                 th = format_theta(run.theta)
                 print(

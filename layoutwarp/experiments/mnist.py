@@ -21,7 +21,8 @@ from ..files import atomic_write
 from ..layoutfile import save_layout
 from ..sensor import SensorLayer
 from .data import load_mnist
-from .training import ExperimentDefaults, fit, format_theta, theta_text
+from .models import save_model
+from .training import ExperimentDefaults, fit, format_theta, layout_name, theta_text
 
 __all__ = ["DEFAULTS", "MnistNet", "RunResult", "run_mnist_experiment", "train_mnist"]
 
@@ -103,12 +104,17 @@ def train_mnist(
         gen,
         epochs=epochs,
         batch_size=batch_size,
-        desc=f"mnist {layout} seed {seed}",
+        desc=f"mnist {layout_name(layout)} seed {seed}",
         progress=progress,
     )
     acc = evaluate(model, data["test_images"], data["test_labels"])
     result = RunResult(
-        layout, seed, acc, model.sensor.theta.detach().tolist(), history, time.perf_counter() - t0
+        layout_name(layout),
+        seed,
+        acc,
+        model.sensor.theta.detach().tolist(),
+        history,
+        time.perf_counter() - t0,
     )
     return result, model
 
@@ -152,6 +158,13 @@ def run_mnist_experiment(
     for layout in families:
         for seed in seeds:
             res, model = train_mnist(data, layout, seed=seed, epochs=epochs, progress=progress, sensor=sensor)
+            save_model(
+                out / f"model_{layout}_4x4_seed{seed}.pt",
+                "mnist",
+                model,
+                sensor=sensor,
+                training={"seed": seed, "epochs": epochs, "scores": {"accuracy": res.test_accuracy}},
+            )
             runs.append(res)
             models.setdefault(layout, model)
             print(

@@ -19,6 +19,7 @@ __all__ = [
     "TaskRun",
     "fit",
     "format_theta",
+    "layout_name",
     "optimizer",
     "save_runs",
     "summarise",
@@ -178,6 +179,12 @@ def format_theta(values: Sequence[float], digits: int = 3) -> str:
     if len(values) > 4:
         return f"({len(values)} values, max |θ| {max(abs(v) for v in values):.2f})"
     return "(" + ", ".join(f"{v:+.{digits}f}" for v in values) + ")"
+
+
+def layout_name(layout: str | nn.Module) -> str:
+    """A layout's name in run records and progress bars: the family name it was given, or the
+    family of a layout instance."""
+    return layout if isinstance(layout, str) else str(getattr(layout, "family", type(layout).__name__))
 
 
 def theta_text(model: nn.Module) -> str:

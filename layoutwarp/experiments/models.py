@@ -1,0 +1,149 @@
+"""Model files: a trained network with its sensor, one file per training run, and scoring them.
+
+A model file (``torch.save`` of a plain dict, read with ``weights_only=True``) holds
+``format`` (``"layoutwarp.model/1"``), ``task``, ``version`` (the package version that wrote
+it), ``layout`` (the family and :meth:`~layoutwarp.Layout.to_config`), ``size_hw``, ``sensor``
+(the :class:`~layoutwarp.SensorLayer` options), ``training`` (seed, epochs and the like) and
+``state_dict`` (the network's weights, the sensor's θ included). :func:`load_model` rebuilds
+the network with the layout fixed, so scoring never changes it.
+"""
+
+from __future__ import annotations
+
+import io
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from ..files import atomic_write
+from ..layouts import FAMILIES
+
+__all__ = ["FORMAT", "TASKS", "evaluate_model", "load_model", "save_model"]
+
+FORMAT = "layoutwarp.model/1"
+#: The tasks whose models these files hold.
+TASKS = ("mnist", "camvid", "faces")
+
+
+def _network(task: str) -> type[nn.Module]:
+    from .camvid import SegNet
+    from .faces import FaceNet
+    from .mnist import MnistNet
+
+    return {"mnist": MnistNet, "camvid": SegNet, "faces": FaceNet}[task]
+
+
+def save_model(
+    path: str | Path, task: str, model: nn.Module, *, sensor: dict, training: dict, half: bool = False
+) -> Path:
+    """Write ``model`` (a task network with a ``sensor``) to a model file, atomically.
+
+    Args:
+        path: the file to write.
+        task: ``"mnist"``, ``"camvid"`` or ``"faces"``.
+        model: the trained network.
+        sensor: the sensor options it was trained with (``method``, ``tol``, ...).
+        training: anything JSON-able that describes the run (seed, epochs, scores, ...).
+        half: store floating weights as float16 (half the size; scores can shift slightly),
+            the sensor's θ always in full precision.
+    """
+    layout = model.sensor.layout
+    state = {
+        k: (v.half() if half and v.is_floating_point() and not k.startswith("sensor.") else v)
+        for k, v in model.state_dict().items()
+    }
+    from .. import __version__
+
+    data = {
+        "format": FORMAT,
+        "task": task,
+        "version": __version__,
+        "layout": {"family": layout.family, **layout.to_config()},
+        "size_hw": list(model.sensor.size),
+        "sensor": dict(sensor),
+        "training": dict(training),
+        "state_dict": state,
+    }
+    buf = io.BytesIO()
+    torch.save(data, buf)
+    return atomic_write(path, buf.getvalue())
+
+
+def load_model(path: str | Path, task: str | None = None) -> tuple[nn.Module, dict[str, Any]]:
+    """Rebuild a network from a model file (in eval mode, its layout fixed).
+
+    Args:
+        path: a file written by :func:`save_model`.
+        task: the task the caller expects (``None``: any).
+
+    Returns:
+        ``(model, info)`` with ``info`` the file's other entries.
+
+    Raises:
+        ValueError: not a model file, another format version or task, or weights that do not
+            fit the network, with the file's name and the problem on one line.
+    """
+    path = Path(path)
+    try:
+        data = torch.load(path, map_location="cpu", weights_only=True)
+    except FileNotFoundError:
+        raise ValueError(f"{path}: no such model file") from None
+    except Exception as exc:  # pickle, zip and torch errors alike: not a model file
+        raise ValueError(f"{path}: not a readable layoutwarp model file ({type(exc).__name__})") from None
+    fmt = data.get("format") if isinstance(data, dict) else None
+    if fmt != FORMAT:
+        what = f"format {fmt!r}" if isinstance(fmt, str) else "no model format"
+        raise ValueError(f"{path}: {what}; this layoutwarp reads {FORMAT!r}")
+    if task is not None and data.get("task") != task:
+        raise ValueError(f"{path}: a {data.get('task')!r} model, not a {task!r} model")
+    spec = dict(data["layout"])
+    family = spec.pop("family", None)
+    if family not in FAMILIES:
+        raise ValueError(f"{path}: unknown layout family {family!r}")
+    layout = FAMILIES[family].from_config(spec)
+    net = _network(data["task"])(layout, tuple(data["size_hw"]), learn=False, **data["sensor"])
+    state = {k: v.float() if v.dtype == torch.float16 else v for k, v in data["state_dict"].items()}
+    try:
+        net.load_state_dict(state)
+    except RuntimeError as exc:
+        first = str(exc).splitlines()[0]
+        raise ValueError(f"{path}: the weights do not fit the {data['task']} network ({first})") from None
+    net.eval()
+    return net, {k: v for k, v in data.items() if k != "state_dict"}
+
+
+def evaluate_model(task: str, model: nn.Module, data_dir: str | Path, split: str | None = None) -> dict:
+    """Score a model on a folder laid out like the task's training data.
+
+    * MNIST: IDX files; ``split`` ``"test"`` (default, ``t10k-*``) or ``"train"``;
+    * CamVid: ``NAME/`` images and ``NAMEannot/`` label maps, ``split`` = NAME (default ``"val"``);
+      mIoU, pixel accuracy and per-class IoU (percent) at full resolution;
+    * faces: images and ``labels.csv`` (every face listed; ``split`` must not be given).
+    """
+    from .data import load_camvid, load_faces, load_mnist_split
+
+    if task == "mnist":
+        from .mnist import evaluate
+
+        images, labels = load_mnist_split(data_dir, split or "test")
+        return {"n": len(images), "accuracy": evaluate(model, images, labels)}
+    if task == "camvid":
+        from .camvid import evaluate_camvid
+
+        val = load_camvid(data_dir, split or "val")
+        return {"n": len(val[0]), **evaluate_camvid(model, val)}
+    if split is not None:
+        raise ValueError(
+            f"--split: a faces folder has no splits (every face in labels.csv is scored), got {split!r}"
+        )
+    from .faces import FaceNet, evaluate_faces
+
+    faces = load_faces(data_dir)
+    x = torch.from_numpy(np.ascontiguousarray(faces["images"])).permute(0, 3, 1, 2)
+    return {
+        "n": len(x),
+        **evaluate_faces(model, x, {k: torch.from_numpy(faces[k]).long() for k in FaceNet.HEADS}),
+    }

@@ -1,0 +1,298 @@
+"""The pixel-budget study: how many uniform pixels is a learned layout worth?
+
+For one task, the uniform layout is trained at several sensor sizes (the *uniform curve*: the
+task metric against the number of sensor pixels) and every other family at some of them;
+each learned result is then read back through the uniform curve: its *equivalent uniform pixel
+count* is the pixel count at which the (log-linearly interpolated) uniform curve reaches the
+learned metric, and the *pixel saving factor* is that count over the learned sensor's pixels.
+The interval maps the learned metric's mean ± one seed standard deviation the same way.
+
+``density`` is the unlearned baseline :func:`~layoutwarp.layout_from_density` on the training
+set's statistics (mean edge strength of the images; of the label maps for CamVid).
+
+Every run writes its record (``runs/<family>_<W>x<H>_seed<s>.json``) and model file
+(``models/…pt``) when it finishes, atomically; a restarted study skips finished runs, so it can
+be stopped at any time. Nothing is chosen on the report split: fixed epochs, no early stopping.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..density import edge_density, layout_from_density
+from ..files import atomic_write
+from ..layouts import Layout
+from .models import save_model
+
+__all__ = ["PLANS", "StudyPlan", "equivalent_pixels", "run_study", "study_runs", "summarise_study"]
+
+
+@dataclass(frozen=True)
+class StudyPlan:
+    """What a task's study trains.
+
+    Attributes:
+        metric: the score read from each run (higher is better) and its label.
+        uniform_sizes: sensor sizes ``(H, W)`` of the uniform curve.
+        learned_sizes: sizes at which every other family is trained.
+        families: the other families (``"density"``: the unlearned baseline).
+        seeds: seeds per configuration.
+    """
+
+    metric: str
+    label: str
+    uniform_sizes: tuple[tuple[int, int], ...]
+    learned_sizes: tuple[tuple[int, int], ...]
+    families: tuple[str, ...] = ("rect", "curv", "fovea", "spline", "grid", "density")
+    seeds: int = 3
+
+
+PLANS = {
+    "mnist": StudyPlan(
+        "accuracy", "test accuracy (%)", ((2, 2), (3, 3), (4, 4), (5, 5), (6, 6)), ((3, 3), (4, 4))
+    ),
+    "camvid": StudyPlan(
+        "miou", "val mIoU (%)", ((18, 24), (27, 36), (36, 48), (54, 72), (72, 96)), ((36, 48), (72, 96))
+    ),
+    "faces": StudyPlan(
+        "mean", "mean test accuracy (%)", ((4, 4), (6, 6), (8, 8), (12, 12), (16, 16)), ((6, 6), (8, 8))
+    ),
+}
+
+
+def study_runs(plan: StudyPlan, seeds: int) -> list[tuple[str, tuple[int, int], int]]:
+    """Every ``(family, size, seed)`` of a plan, uniform curve first."""
+    runs = [("uniform", s, k) for s in plan.uniform_sizes for k in range(seeds)]
+    runs += [(f, s, k) for s in plan.learned_sizes for f in plan.families for k in range(seeds)]
+    return runs
+
+
+def _run_name(family: str, size: tuple[int, int], seed: int) -> str:
+    return f"{family}_{size[1]}x{size[0]}_seed{seed}"
+
+
+class _Task:
+    """Loads a task's data once and trains one configuration of it."""
+
+    def __init__(self, task: str, data_dir: Path, epochs: int | None, progress: bool) -> None:
+        self.task, self.progress = task, progress
+        if task == "mnist":
+            from .data import load_mnist
+            from .mnist import DEFAULTS
+
+            self.data = load_mnist(data_dir)
+            stats = torch.from_numpy(self.data["train_images"][:4000]).float()
+        elif task == "camvid":
+            from .camvid import DEFAULTS
+            from .data import load_camvid
+
+            self.train, self.val = load_camvid(data_dir, "train"), load_camvid(data_dir, "val")
+            stats = torch.from_numpy(self.train[1]).float()  # label boundaries
+        else:
+            from .data import load_faces
+            from .faces import DEFAULTS
+
+            self.data = load_faces(data_dir)
+            n = len(self.data["images"])
+            order = np.random.default_rng(1234).permutation(n)  # the experiment's fixed split
+            n_test = max(1, round(n * 0.2))
+            self.test_idx, self.train_idx = np.sort(order[:n_test]), np.sort(order[n_test:])
+            stats = torch.from_numpy(self.data["images"][self.train_idx[:1000]]).float().permute(0, 3, 1, 2)
+        self.defaults = DEFAULTS
+        self.epochs = epochs or DEFAULTS.epochs
+        self.sensor = DEFAULTS.sensor()
+        self.density = edge_density(stats)
+
+    def layout(self, family: str, size: tuple[int, int]) -> str | Layout:
+        if family == "density":
+            return layout_from_density(self.density, size, "grid", dtype=torch.float32)
+        return family
+
+    def train(self, family: str, size: tuple[int, int], seed: int) -> tuple[dict, torch.nn.Module, list]:
+        layout = self.layout(family, size)
+        kw = {"seed": seed, "epochs": self.epochs, "progress": self.progress, "sensor": self.sensor}
+        if self.task == "mnist":
+            from .mnist import train_mnist
+
+            res, model = train_mnist(self.data, layout, size=size, **kw)
+            return {"accuracy": res.test_accuracy}, model, res.theta
+        if self.task == "camvid":
+            from .camvid import train_camvid
+
+            freeze = min(self.defaults.freeze_epochs, max(self.epochs - 1, 0))
+            run, model = train_camvid(self.train, self.val, layout, size, freeze_epochs=freeze, **kw)
+            return run.scores, model, run.theta
+        from .faces import train_faces
+
+        run, model = train_faces(self.data, self.train_idx, self.test_idx, layout, size, **kw)
+        return run.scores, model, run.theta
+
+
+def run_study(
+    task: str,
+    data_dir: str | Path,
+    out: str | Path,
+    *,
+    plan: StudyPlan | None = None,
+    seeds: int | None = None,
+    epochs: int | None = None,
+    progress: bool = True,
+    say: Callable[[str], None] = print,
+) -> dict:
+    """Run (or resume) a task's study; write ``study.json``, ``study.md`` and ``study_<task>.png``.
+
+    Returns:
+        the summary written to ``study.json``.
+    """
+    plan = plan or PLANS[task]
+    out = Path(out)
+    seeds = seeds or plan.seeds
+    todo = study_runs(plan, seeds)
+    done = sum((out / "runs" / f"{_run_name(*r)}.json").exists() for r in todo)
+    say(f"{task} study: {len(todo)} runs, {done} already done, in {out}")
+    runner = None
+    for k, (family, size, seed) in enumerate(todo):
+        name = _run_name(family, size, seed)
+        record = out / "runs" / f"{name}.json"
+        if record.exists():
+            continue
+        runner = runner or _Task(task, Path(data_dir), epochs, progress)
+        t0 = time.perf_counter()
+        scores, model, theta = runner.train(family, size, seed)
+        seconds = time.perf_counter() - t0
+        save_model(
+            out / "models" / f"{name}.pt",
+            task,
+            model,
+            sensor=runner.sensor,
+            training={"seed": seed, "epochs": runner.epochs, "family": family, "scores": scores},
+        )
+        rec = {"family": family, "size_hw": list(size), "seed": seed, "scores": scores}
+        rec |= {"theta": list(theta), "epochs": runner.epochs, "seconds": seconds}
+        atomic_write(record, json.dumps(rec, indent=2))
+        say(f"  [{k + 1}/{len(todo)}] {name}: {plan.metric} {scores[plan.metric]:.2f}  [{seconds:.0f} s]")
+    records = [json.loads(p.read_text()) for p in sorted((out / "runs").glob("*.json"))]
+    summary = summarise_study(task, plan, records)
+    atomic_write(out / "study.json", json.dumps(summary, indent=2))
+    atomic_write(out / "study.md", study_table(summary))
+    study_figure(summary, out / f"study_{task}.png")
+    return summary
+
+
+def equivalent_pixels(curve: Sequence[tuple[float, float]], metric: float) -> tuple[float, str]:
+    """The pixel count at which the uniform ``curve`` ((pixels, metric) points) reaches ``metric``.
+
+    The curve is made non-decreasing (running maximum) and interpolated linearly in
+    ``log(pixels)``. Outside its range the nearest end is returned with ``"<"`` or ``">"`` (a
+    bound, not a value); inside, ``"="``.
+    """
+    pts = sorted(curve)
+    pixels = [float(p) for p, _ in pts]
+    px = np.log(pixels)
+    m = np.maximum.accumulate([v for _, v in pts])
+    if metric <= m[0]:
+        return pixels[0], "<" if metric < m[0] else "="
+    if metric > m[-1]:
+        return pixels[-1], ">"
+    k = int(np.searchsorted(m, metric))  # first point with m >= metric
+    if m[k] == metric or m[k] == m[k - 1]:
+        return pixels[k], "="
+    t = (metric - m[k - 1]) / (m[k] - m[k - 1])
+    return float(math.exp(px[k - 1] + t * (px[k] - px[k - 1]))), "="
+
+
+def summarise_study(task: str, plan: StudyPlan, records: list[dict]) -> dict:
+    """Mean ± std per family and size, the uniform curve, and every learned result's equivalent
+    uniform pixel count and saving factor (with the interval from the seed spread)."""
+    groups: dict[tuple[str, tuple[int, int]], list[float]] = {}
+    for r in records:
+        groups.setdefault((r["family"], tuple(r["size_hw"])), []).append(float(r["scores"][plan.metric]))
+    rows = []
+    for (family, size), vals in sorted(groups.items(), key=lambda kv: (kv[0][1][0] * kv[0][1][1], kv[0][0])):
+        v = np.array(vals)
+        rows.append(
+            {
+                "family": family,
+                "size_hw": list(size),
+                "pixels": size[0] * size[1],
+                "mean": float(v.mean()),
+                "std": float(v.std(ddof=1)) if len(v) > 1 else 0.0,
+                "n": len(v),
+            }
+        )
+    curve = [(r["pixels"], r["mean"]) for r in rows if r["family"] == "uniform"]
+    for r in rows:
+        if r["family"] == "uniform" or len(curve) < 2:
+            continue
+        eq, rel = equivalent_pixels(curve, r["mean"])
+        lo, _ = equivalent_pixels(curve, r["mean"] - r["std"])
+        hi, _ = equivalent_pixels(curve, r["mean"] + r["std"])
+        r |= {"equivalent_pixels": eq, "bound": rel, "saving": eq / r["pixels"]}
+        r |= {"saving_interval": [lo / r["pixels"], hi / r["pixels"]]}
+    return {"task": task, "metric": plan.metric, "label": plan.label, "rows": rows, "runs": len(records)}
+
+
+def study_table(summary: dict) -> str:
+    """The study as a Markdown table."""
+    lines = [
+        f"| family | sensor | pixels | {summary['label']} | equivalent uniform pixels | pixel saving |",
+        "|---|---|---|---|---|---|",
+    ]
+    for r in summary["rows"]:
+        h, w = r["size_hw"]
+        eq = sav = "—"
+        if "equivalent_pixels" in r:
+            mark = {"=": "", "<": "< ", ">": "> "}[r["bound"]]
+            eq = f"{mark}{r['equivalent_pixels']:.0f}"
+            lo, hi = r["saving_interval"]
+            sav = f"{mark}{r['saving']:.2f}x [{lo:.2f}, {hi:.2f}]"
+        score = f"{r['mean']:.2f} ± {r['std']:.2f} (n={r['n']})"
+        lines.append(f"| {r['family']} | {w}x{h} | {r['pixels']} | {score} | {eq} | {sav} |")
+    return "\n".join(lines) + "\n"
+
+
+def study_figure(summary: dict, path: str | Path) -> Path:
+    """Metric against sensor pixels (log scale): uniform as a line with error bars, the other
+    families as points."""
+    from .plots import family_color, figure, save_figure
+
+    fig, ax = figure(figsize=(6.4, 4.4))
+    rows = summary["rows"]
+    uni = [r for r in rows if r["family"] == "uniform"]
+    ax.errorbar(
+        [r["pixels"] for r in uni],
+        [r["mean"] for r in uni],
+        [r["std"] for r in uni],
+        color="black",
+        marker="o",
+        capsize=3,
+        label="uniform",
+    )
+    families = list(dict.fromkeys(r["family"] for r in rows if r["family"] != "uniform"))
+    for k, fam in enumerate(families):
+        pts = [r for r in rows if r["family"] == fam]
+        jitter = 1 + 0.03 * (k - (len(families) - 1) / 2)  # side by side at equal pixel counts
+        ax.errorbar(
+            [r["pixels"] * jitter for r in pts],
+            [r["mean"] for r in pts],
+            [r["std"] for r in pts],
+            color=family_color(fam) if fam != "density" else "tab:gray",
+            marker="s",
+            ls="none",
+            capsize=3,
+            label=fam,
+        )
+    ax.set_xscale("log")
+    ax.set_xlabel("sensor pixels")
+    ax.set_ylabel(summary["label"])
+    ax.set_title(f"{summary['task']}: metric against pixel budget")
+    ax.legend(fontsize=8)
+    return save_figure(fig, path)
