@@ -237,6 +237,51 @@ def test_montecarlo_and_point_gradients_reach_every_parameter(gen):
             assert torch.isfinite(g).all() and bool((g != 0).any())
 
 
+@pytest.mark.parametrize("name", ["spline-smooth", "grid", "fovea-curv"])
+def test_montecarlo_reynolds_gradient_agrees_with_the_exact_one(name, gen):
+    # the Reynolds estimator (needs ∂φ/∂θ and the Jacobian of each family) against central
+    # differences of the exact integral of the same box radiance, as for the paper's families
+    yy, xx = torch.meshgrid(
+        torch.linspace(0, 1, 90, dtype=F64), torch.linspace(0, 1, 150, dtype=F64), indexing="ij"
+    )
+    img = torch.stack([torch.sin(6 * xx + 2 * yy) + xx * yy, torch.cos(5 * yy - 3 * xx * xx)])
+    extra = {"grid": (3, 3)} if name == "grid" else {"learn_center": True} if name.startswith("fovea") else {}
+    if name == "spline-smooth":
+        extra = {"knots": (3, 2)}
+    layout = make(name, gen, learn=True, **extra)
+    size = (6, 8)
+    wts = torch.randn(2, *size, generator=gen, dtype=F64)
+
+    def exact_loss(t):
+        mesh = None if layout.straight_edges else lw.pixel_mesh(layout, size, subdivisions=64, theta=t)
+        return float((lw.integrate_exact(img, layout, size, theta=t, mesh=mesh) * wts).sum())
+
+    th0 = layout.theta.detach().clone()
+    h = 1e-5
+    fd = torch.stack(
+        [
+            torch.tensor((exact_loss(th0 + h * e) - exact_loss(th0 - h * e)) / (2 * h))
+            for e in torch.eye(th0.numel(), dtype=F64)
+        ]
+    )
+    (dtheta,) = torch.autograd.grad(layout.theta.sum(), layout.rho)
+    grads = []
+    for k in range(16):
+        out = lw.integrate_montecarlo(
+            img,
+            layout,
+            size,
+            samples=8,
+            radiance="box",
+            generator=torch.Generator().manual_seed(1000 * k + 7),
+        )
+        grads.append(torch.autograd.grad((out * wts).sum(), layout.rho)[0] / dtheta)
+    g = torch.stack(grads)
+    mean, se = g.mean(0), g.std(0) / 4
+    assert bool(((mean - fd).abs() <= 5.5 * se + 1e-3).all()), (mean, se, fd)
+    assert bool((se < 0.2 * fd.abs().max() + 0.05).all())
+
+
 def test_montecarlo_converges_to_exact_for_new_families(gen):
     yy, xx = torch.meshgrid(
         torch.linspace(0, 1, 64, dtype=F64), torch.linspace(0, 1, 64, dtype=F64), indexing="ij"
