@@ -445,10 +445,12 @@ class Layout(nn.Module):
             th = theta.detach().requires_grad_(True)
             out = self.phi(p.detach(), th)
             u = torch.zeros_like(out, requires_grad=True)
-            (vjp,) = torch.autograd.grad(out, th, u, create_graph=True)
+            (vjp,) = torch.autograd.grad(out, th, u, create_graph=True, allow_unused=True)
+            if vjp is None or not vjp.requires_grad:  # φ does not depend on θ here
+                return out.new_zeros(*out.shape, theta.numel())
             eye = torch.eye(theta.numel(), dtype=vjp.dtype, device=vjp.device)
-            cols = [torch.autograd.grad(vjp, u, e, retain_graph=True)[0] for e in eye]
-        return torch.stack(cols, dim=-1)
+            cols = [torch.autograd.grad(vjp, u, e, retain_graph=True, allow_unused=True)[0] for e in eye]
+        return torch.stack([torch.zeros_like(out) if c is None else c for c in cols], dim=-1)
 
     def edge_breakpoints(self, a: Tensor, b: Tensor, theta: Tensor | None = None) -> Tensor:
         """Parameters ``t ∈ (0, 1)`` where φ is not smooth along the segments ``a + t (b − a)``.
