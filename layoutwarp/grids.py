@@ -121,6 +121,7 @@ class GridLayout(Layout):
 
     family = "grid"
     num_params: int | None = None
+    unbounded = True
     straight_edges = True
 
     def __init__(
@@ -211,15 +212,6 @@ class GridLayout(Layout):
         return cls(corners, **kwargs)
 
     # -- parameters ------------------------------------------------------------------
-    def _bounds(self) -> Tensor:
-        return torch.full((self.num_params or 0,), math.inf, dtype=torch.float64)
-
-    def _to_theta(self, rho: Tensor) -> Tensor:
-        return rho
-
-    def _to_rho(self, theta: Tensor) -> Tensor:
-        return theta.clone()
-
     def control_points(self, theta: Tensor | None = None) -> Tensor:
         """The control points ``(g_h + 1, g_w + 1, 2)`` for θ (default: the layout's own)."""
         th = self.resolve_theta(theta)

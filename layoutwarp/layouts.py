@@ -275,7 +275,8 @@ class Layout(nn.Module):
       axis-aligned rectangles (the fast separable integrator applies);
     * ``straight_edges``: images of the uniform grid lines are straight between the cuts of
       :meth:`edge_breakpoints`, so pixel edges are polylines with a vertex at each cut and are
-      never subdivided further (exact meshes at any tolerance).
+      never subdivided further (exact meshes at any tolerance);
+    * ``unbounded``: every finite θ is a valid layout, so θ is stored as it is (no ``tanh``).
 
     The parameter is stored unconstrained as ``rho`` with ``θ = bound · tanh(ρ)`` (families
     with unbounded parameters override :meth:`_to_theta` and :meth:`_to_rho`). A layout built
@@ -300,6 +301,7 @@ class Layout(nn.Module):
     num_params: int | None = 2
     separable: ClassVar[bool] = False
     straight_edges: ClassVar[bool] = False
+    unbounded: ClassVar[bool] = False
 
     def __init__(
         self,
@@ -320,16 +322,18 @@ class Layout(nn.Module):
 
     # -- parameters ------------------------------------------------------------------
     def _bounds(self) -> Tensor:
-        """The open bound on each entry of θ, ``(P,)`` float64."""
-        return torch.full((self.num_params or 0,), self.bound, dtype=torch.float64)
+        """The open bound on each entry of θ, ``(P,)`` float64 (infinite for unbounded families)."""
+        value = math.inf if self.unbounded else self.bound
+        return torch.full((self.num_params or 0,), value, dtype=torch.float64)
 
     def _to_theta(self, rho: Tensor) -> Tensor:
-        """θ from the stored unconstrained ``ρ`` (default ``bound · tanh(ρ)``)."""
-        return self._bounds().to(rho) * torch.tanh(rho)
+        """θ from the stored unconstrained ``ρ``: ``bound · tanh(ρ)``, or ``ρ`` itself for
+        families whose every θ is valid (``unbounded``)."""
+        return rho if self.unbounded else self._bounds().to(rho) * torch.tanh(rho)
 
     def _to_rho(self, theta: Tensor) -> Tensor:
         """Inverse of :meth:`_to_theta`."""
-        return torch.atanh(theta / self._bounds().to(theta))
+        return theta.clone() if self.unbounded else torch.atanh(theta / self._bounds().to(theta))
 
     def _check_theta(self, theta: Tensor) -> None:
         """Raise ``ValueError`` naming the first entry of a (float64, CPU) θ that is not allowed."""
@@ -842,17 +846,9 @@ class FoveaLayout(CurvLayout):
     family = "fovea"
 
     def __init__(
-        self,
-        theta: Sequence[float] | Tensor | None = None,
-        *,
-        center: Sequence[float] | Tensor = (0.0, 0.0),
-        learn_center: bool = True,
-        bound: float = 1.0,
-        learn: bool = False,
-        dtype: torch.dtype | None = None,
+        self, theta: Sequence[float] | Tensor | None = None, *, learn_center: bool = True, **kwargs: Any
     ) -> None:
-        kw = {"bound": bound, "learn": learn, "dtype": dtype}
-        super().__init__(theta, center=center, learn_center=learn_center, **kw)
+        super().__init__(theta, learn_center=learn_center, **kwargs)
 
 
 # ----------------------------------------------------------------------------------------

@@ -14,7 +14,6 @@ Both have a closed-form inverse. The functional forms take the knot outputs expl
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from typing import Any
 
@@ -148,6 +147,7 @@ class SplineLayout(Layout):
 
     family = "spline"
     num_params: int | None = None
+    unbounded = True
     separable = True
     straight_edges = True
 
@@ -201,15 +201,6 @@ class SplineLayout(Layout):
             learn=learn,
             dtype=dtype,
         )
-
-    def _bounds(self) -> Tensor:
-        return torch.full((self.num_params or 0,), math.inf, dtype=torch.float64)
-
-    def _to_theta(self, rho: Tensor) -> Tensor:
-        return rho
-
-    def _to_rho(self, theta: Tensor) -> Tensor:
-        return theta.clone()
 
     def knot_outputs(self, theta: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """Knot outputs along x ``(k_x + 1,)`` and y ``(k_y + 1,)``."""
