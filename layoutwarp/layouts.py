@@ -35,6 +35,7 @@ __all__ = [
     "Layout",
     "RectLayout",
     "UniformLayout",
+    "config_numbers",
     "make_layout",
     "newton_inverse",
     "phi_curv",
@@ -79,6 +80,21 @@ def _safe_norm(p: Tensor) -> Tensor:
 def _promote(p: Tensor, theta: Tensor) -> tuple[Tensor, Tensor]:
     dtype = torch.promote_types(p.dtype, theta.dtype)
     return p.to(dtype), theta.to(device=p.device, dtype=dtype)
+
+
+def config_numbers(
+    config: dict[str, Any], key: str, default: list[float] | None = None
+) -> list[float] | None:
+    """``config[key]`` as a list of numbers (``default`` when absent); ``ValueError`` otherwise.
+
+    Used by :meth:`Layout.from_config` of every family to read layout files.
+    """
+    value = config.get(key, default)
+    if value is not None and (
+        not isinstance(value, list) or not all(isinstance(v, (int, float)) for v in value)
+    ):
+        raise ValueError(f"{key!r} must be a list of numbers, got {value!r}")
+    return value
 
 
 # ----------------------------------------------------------------------------------------
@@ -403,11 +419,7 @@ class Layout(nn.Module):
         cls, config: dict[str, Any], *, learn: bool = False, dtype: torch.dtype | None = None
     ) -> Layout:
         """Rebuild a layout from :meth:`to_config`'s dict (raises ``ValueError`` on bad values)."""
-        theta = config.get("theta")
-        if theta is not None and (
-            not isinstance(theta, list) or not all(isinstance(v, (int, float)) for v in theta)
-        ):
-            raise ValueError(f"'theta' must be a list of numbers, got {theta!r}")
+        theta = config_numbers(config, "theta")
         return cls(theta, bound=config.get("bound", 1.0), learn=learn, dtype=dtype)
 
     # -- the map ---------------------------------------------------------------------
@@ -714,14 +726,8 @@ class _FoveaLayout(Layout):
     def from_config(
         cls, config: dict[str, Any], *, learn: bool = False, dtype: torch.dtype | None = None
     ) -> Layout:
-        theta = config.get("theta")
-        if theta is not None and (
-            not isinstance(theta, list) or not all(isinstance(v, (int, float)) for v in theta)
-        ):
-            raise ValueError(f"'theta' must be a list of numbers, got {theta!r}")
-        center = config.get("center", [0.0, 0.0])
-        if not isinstance(center, list) or not all(isinstance(v, (int, float)) for v in center):
-            raise ValueError(f"'center' must be a list of two numbers, got {center!r}")
+        theta = config_numbers(config, "theta")
+        center = config_numbers(config, "center", [0.0, 0.0])
         return cls(
             theta,
             center=center,

@@ -21,7 +21,7 @@ import torch
 from torch import Tensor
 
 from .checks import check_choice, check_int
-from .layouts import Layout, register_family
+from .layouts import Layout, config_numbers, register_family
 
 __all__ = ["KINDS", "SplineLayout", "knot_outputs", "spline_1d", "spline_1d_derivative", "spline_1d_inverse"]
 
@@ -242,11 +242,7 @@ class SplineLayout(Layout):
     def from_config(
         cls, config: dict[str, Any], *, learn: bool = False, dtype: torch.dtype | None = None
     ) -> Layout:
-        theta, knots = config.get("theta"), config.get("knots", [8, 8])
-        if theta is not None and (
-            not isinstance(theta, list) or not all(isinstance(v, (int, float)) for v in theta)
-        ):
-            raise ValueError(f"'theta' must be a list of numbers, got {theta!r}")
+        theta, knots = config_numbers(config, "theta"), config_numbers(config, "knots", [8, 8])
         if not isinstance(knots, list) or len(knots) != 2:
             raise ValueError(f"'knots' must be [k_x, k_y], got {knots!r}")
         return cls(theta, knots=tuple(knots), kind=config.get("kind", "linear"), learn=learn, dtype=dtype)
