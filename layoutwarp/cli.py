@@ -221,9 +221,10 @@ def _cmd_train(args: argparse.Namespace) -> int:
     )
     sensor = _sensor_options(args, d.tol)
     progress = not args.no_progress
+    run = {"device": _device(args.device), "amp": args.amp}
     if args.task == "mnist":
         result = mnist.run_mnist_experiment(
-            data, out, families, seeds, epochs, progress=progress, sensor=sensor
+            data, out, families, seeds, epochs, progress=progress, sensor=sensor, **run
         )
         print(f"{'layout':8s} {'test accuracy':>18s}  θ (mean)")
         for name, s in result["summary"].items():
@@ -232,7 +233,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         print(f"wrote {out}/results.json, layout.json, mnist_layouts.png, mnist_theta.png")
         return 0
     common = {"families": families, "sizes": sizes, "seeds": seeds, "epochs": epochs}
-    common |= {"progress": progress, "sensor": sensor}
+    common |= {"progress": progress, "sensor": sensor, **run}
     if args.task == "camvid":
         freeze = (
             args.freeze_epochs if args.freeze_epochs is not None else (0 if args.quick else d.freeze_epochs)
@@ -251,6 +252,36 @@ def _cmd_train(args: argparse.Namespace) -> int:
         print(f"{name:16s} {cells}  {th}  n={s['n']}")
     print(f"wrote {out}/results.json, layout_*.json and {args.task}_layouts.png")
     return 0
+
+
+def _device(name: str | None) -> str:
+    """``--device``: the given torch device, checked, or CUDA when available, else the CPU."""
+    import torch
+
+    from .experiments.training import default_device
+
+    if name is None:
+        return default_device()
+    try:
+        dev = torch.device(name)
+    except RuntimeError:
+        raise UsageError(
+            f"argument --device: {name!r} is not a torch device (e.g. cpu, cuda, cuda:1)"
+        ) from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise UsageError(f"argument --device: {name!r} asked for, but no CUDA GPU is available here")
+    return str(dev)
+
+
+def _add_run_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--device", help="torch device, e.g. cpu, cuda, cuda:1 (default: cuda when available, else cpu)"
+    )
+    p.add_argument(
+        "--amp",
+        action="store_true",
+        help="mixed precision for the network (float16 on CUDA, bfloat16 on CPU); the sensor stays float32",
+    )
 
 
 def _cmd_study(args: argparse.Namespace) -> int:
@@ -280,7 +311,15 @@ def _cmd_study(args: argparse.Namespace) -> int:
     epochs = args.epochs or (1 if args.quick else None)
     out = args.out or f"results/study-{args.task}"
     summary = run_study(
-        args.task, data, out, plan=plan, seeds=args.seeds, epochs=epochs, progress=not args.no_progress
+        args.task,
+        data,
+        out,
+        plan=plan,
+        seeds=args.seeds,
+        epochs=epochs,
+        progress=not args.no_progress,
+        device=_device(args.device),
+        amp=args.amp,
     )
     from .experiments.study import study_table
 
@@ -295,7 +334,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     if not Path(args.data).is_dir():
         raise UsageError(f"argument --data: no such folder {args.data!r}")
     try:
-        model, info = load_model(args.model, args.task)
+        model, info = load_model(args.model, args.task, _device(args.device))
     except ValueError as exc:
         raise UsageError(f"argument --model: {exc}") from None
     try:
@@ -495,6 +534,7 @@ def _add_train_parser(sub, module_name: str, families: Sequence[str]) -> None:
             help="loss class weights: none or median-frequency balancing",
         )
     t.add_argument("--no-progress", action="store_true", help="no progress bars")
+    _add_run_args(t)
     t.add_argument("--out", help=f"output folder (default: results/{d.task})")
     t.set_defaults(func=_cmd_train, task=d.task)
 
@@ -553,6 +593,7 @@ def build_parser() -> argparse.ArgumentParser:
     st.add_argument("--epochs", type=positive_int, help="epochs (default: the experiment's; 1 with --quick)")
     st.add_argument("--no-progress", action="store_true", help="no progress bars")
     st.add_argument("--out", help="output folder (default: results/study-TASK); rerun to resume")
+    _add_run_args(st)
     st.set_defaults(func=_cmd_study)
 
     ev = command("evaluate", "Score a saved model (a train run's model_*.pt) on a data folder; print JSON.")
@@ -568,6 +609,7 @@ def build_parser() -> argparse.ArgumentParser:
         "faces: images and labels.csv)",
     )
     ev.add_argument("--split", help="MNIST: test or train (default: test); CamVid: NAME (default: val)")
+    _add_run_args(ev)
     ev.set_defaults(func=_cmd_evaluate)
 
     pp = command("preprocess", "Write the sensor image of every image in a folder (and move its label maps).")

@@ -192,7 +192,8 @@ def simulate(
 
     Args:
         image: ``(B, C, H, W)`` (or ``(C, H, W)``) radiance image, float or uint8 (uint8 is
-            scaled to ``[0, 1]``; float16/bfloat16 are computed in float32); or a callable
+            scaled to ``[0, 1]``; float16/bfloat16 are computed in float32, and so is
+            everything inside an autocast (mixed-precision) context); or a callable
             radiance ``L(points (..., 2)) -> (..., C)`` in sensor coordinates (the paper's
             black box, e.g. a renderer), for ``"montecarlo"`` and ``"point"``.
         layout: the pixel layout (θ may be learnable; gradients flow to it).
@@ -255,6 +256,16 @@ def simulate(
 
 
 def _run(plan: SimulationPlan, work, layout: Layout, size, tol, samples, grad, generator) -> Tensor:
+    """Run the plan with autocast off: the sensor integrates in float32 (float64 for float64
+    input) inside any mixed-precision context, as its tolerances assume."""
+    device = work.device.type if isinstance(work, Tensor) else layout.rho.device.type
+    if device in ("cpu", "cuda", "mps", "xpu"):
+        with torch.autocast(device_type=device, enabled=False):
+            return _dispatch(plan, work, layout, size, tol, samples, grad, generator)
+    return _dispatch(plan, work, layout, size, tol, samples, grad, generator)
+
+
+def _dispatch(plan: SimulationPlan, work, layout: Layout, size, tol, samples, grad, generator) -> Tensor:
     if plan.method == "separable":
         return integrate_separable(work, layout, size)
     if plan.method == "exact":

@@ -13,6 +13,7 @@ from conftest import SAMPLES, SHARED
 import layoutwarp as lw
 from layoutwarp.cli import main
 from layoutwarp.experiments.data import load_mnist, read_idx
+from layoutwarp.experiments.mnist import train_mnist
 from layoutwarp.layoutfile import load_layout
 
 
@@ -83,3 +84,22 @@ def test_fit_visits_every_sample_once_per_epoch_and_freezes_theta(n, batch, size
         assert torch.equal(got.sort().values, indices.sort().values)
     assert grads == [False] * per_epoch + [True] * 2 * per_epoch
     assert history[0] == history[1] == [0.0, 0.0] and history[2] != history[1]
+
+
+def test_training_runs_on_the_device_with_mixed_precision(device):
+    # the training path on the device fixture (CPU here; CUDA where present), with --amp
+    data = load_mnist(SAMPLES / "mnist")
+    small = {k: v[:256] for k, v in data.items()}
+    res, model = train_mnist(small, "curv", epochs=1, progress=False, device=device, amp=True, batch_size=64)
+    assert next(model.parameters()).device.type == device.type
+    assert 0 <= res.test_accuracy <= 100 and len(res.theta) == 2
+    assert any(abs(v) > 0 for v in res.theta)  # θ moved: gradients reached it through autocast
+
+
+def test_device_flag_errors_name_the_value(capsys):
+    argv = ["train", "mnist", "--quick", "--no-progress", "--device"]
+    assert main([*argv, "tpu9"]) == 2
+    assert "argument --device: 'tpu9' is not a torch device" in capsys.readouterr().err
+    if not torch.cuda.is_available():
+        assert main([*argv, "cuda"]) == 2
+        assert "no CUDA GPU is available here" in capsys.readouterr().err

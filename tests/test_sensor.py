@@ -236,3 +236,21 @@ def test_default_tolerance_comes_from_the_data(dtype, tol, why, gen):
         ref = lw.simulate(img.double() / 255, lw.CurvLayout((0.5, -0.3), dtype=F64), (6, 8), tol=1e-9)
         assert float((out.double() - ref).abs().max()) <= 0.25 / 255
     assert lw.SensorLayer((6, 8), "curv").describe(torch.uint8).error_bound == 0.25 / 255
+
+
+@pytest.mark.parametrize(
+    ("family", "method"), [("rect", "exact"), ("curv", "exact"), ("curv", "montecarlo"), ("grid", "point")]
+)
+def test_the_sensor_integrates_in_float32_under_autocast(family, method, gen, device):
+    # mixed precision (--amp) runs the network in bfloat16/float16; the sensor must not follow:
+    # before autocast was turned off inside simulate, CPU autocast even crashed the separable
+    # path (sparse CSR products have no bfloat16 kernel)
+    img = torch.rand(2, 3, 40, 56, generator=gen).to(device)
+    layout = lw.make_layout(family, None if family == "grid" else rand_theta(gen, 0.7)).to(device)
+    ref = lw.simulate(img, layout, (7, 9), method, seed=0)
+    low = torch.bfloat16 if device.type == "cpu" else torch.float16
+    with torch.autocast(device_type=device.type, dtype=low):
+        out = lw.simulate(img, layout, (7, 9), method, seed=0)
+        layer_out = lw.SensorLayer((7, 9), layout, method, seed=0)(img)
+    assert out.dtype == torch.float32 and torch.equal(out, ref)
+    assert layer_out.dtype == torch.float32 and torch.equal(layer_out, ref)

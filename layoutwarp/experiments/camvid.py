@@ -28,6 +28,7 @@ from .training import (
     fit,
     format_theta,
     layout_name,
+    model_device,
     optimizer,
     save_runs,
     theta_text,
@@ -181,6 +182,8 @@ def train_camvid(
     progress: bool = True,
     sensor: dict | None = None,
     class_weights: str = "median",
+    device: str | torch.device = "cpu",
+    amp: bool = False,
 ) -> tuple[TaskRun, SegNet]:
     """Train sensor + SegNet on CamVid ``train`` and score it on ``val`` (back-warped to full size).
 
@@ -191,15 +194,15 @@ def train_camvid(
         raise ValueError(f"class_weights must be 'none' or 'median', got {class_weights!r}")
     torch.manual_seed(seed)
     gen = torch.Generator().manual_seed(seed)
-    model = SegNet(layout, size, learn=layout != "uniform", **(sensor or DEFAULTS.sensor()))
+    model = SegNet(layout, size, learn=layout != "uniform", **(sensor or DEFAULTS.sensor())).to(device)
     opt = optimizer(model, lr, theta_lr)
     x, y = to_tensor(train[0]), torch.from_numpy(train[1]).long()
     weight = None
     if class_weights == "median":
-        weight = torch.from_numpy(median_frequency_weights(train[1], len(CAMVID_CLASSES)))
+        weight = torch.from_numpy(median_frequency_weights(train[1], len(CAMVID_CLASSES))).to(device)
 
     def batch_loss(idx: torch.Tensor) -> torch.Tensor:
-        xb, yb = x[idx].float().div_(255), y[idx]
+        xb, yb = x[idx].to(device).float().div_(255), y[idx].to(device)
         if bool(torch.rand((), generator=gen) < 0.5):  # horizontal flip
             xb, yb = xb.flip(-1), yb.flip(-1)
         return backwarp_cross_entropy(model(xb), yb, model.sensor.layout, ignore_index=VOID, weight=weight)
@@ -217,6 +220,7 @@ def train_camvid(
         sched=torch.optim.lr_scheduler.CosineAnnealingLR(opt, max(epochs, 1)),
         desc=f"camvid {layout_name(layout)} {size[1]}x{size[0]} seed {seed}",
         progress=progress,
+        amp=amp,
     )
     scores = evaluate_camvid(model, val)
     run = TaskRun(
@@ -233,8 +237,8 @@ def predict_camvid(model: SegNet, images: np.ndarray, batch_size: int = 8) -> to
     x = to_tensor(images)
     out = []
     for k in range(0, len(x), batch_size):
-        logits = model(x[k : k + batch_size].float().div(255))
-        out.append(backwarp(logits.argmax(1), model.sensor.layout, tuple(x.shape[-2:])))
+        logits = model(x[k : k + batch_size].to(model_device(model)).float().div(255))
+        out.append(backwarp(logits.argmax(1), model.sensor.layout, tuple(x.shape[-2:])).cpu())
     return torch.cat(out)
 
 
@@ -256,6 +260,8 @@ def run_camvid_experiment(
     progress: bool = True,
     sensor: dict | None = None,
     class_weights: str = "median",
+    device: str | torch.device = "cpu",
+    amp: bool = False,
 ) -> dict:
     """Every family × sensor size × seed on CamVid; writes results.json, layouts and figures."""
     out = Path(out)
@@ -277,6 +283,8 @@ def run_camvid_experiment(
                     progress=progress,
                     sensor=sensor,
                     class_weights=class_weights,
+                    device=device,
+                    amp=amp,
                 )
                 runs.append(run)
                 models.setdefault((layout, tuple(size)), model)
@@ -324,6 +332,8 @@ def run_camvid_experiment(
 def _camvid_figures(val, models: dict, out: Path) -> None:
     """Fig. 5 analogue (layouts over a street scene) and back-warped example predictions."""
     from .plots import draw_layout, figure, save_figure
+
+    models = {key: model.cpu() for key, model in models.items()}  # figures are drawn on the CPU
 
     img, lab = val[0][0], val[1][0]
     palette = np.array(

@@ -28,6 +28,7 @@ from .training import (
     fit,
     format_theta,
     layout_name,
+    model_device,
     optimizer,
     save_runs,
     theta_text,
@@ -82,21 +83,23 @@ def train_faces(
     theta_lr: float = 0.01,
     progress: bool = True,
     sensor: dict | None = None,
+    device: str | torch.device = "cpu",
+    amp: bool = False,
 ) -> tuple[TaskRun, FaceNet]:
     """Train sensor + FaceNet on the ``train_idx`` faces; accuracies on ``test_idx``."""
     torch.manual_seed(seed)
     gen = torch.Generator().manual_seed(seed)
-    model = FaceNet(layout, size, learn=layout != "uniform", **(sensor or DEFAULTS.sensor()))
+    model = FaceNet(layout, size, learn=layout != "uniform", **(sensor or DEFAULTS.sensor())).to(device)
     opt = optimizer(model, lr, theta_lr)
     x = to_tensor(data["images"])
-    targets = {k: torch.from_numpy(data[k]).long() for k in FaceNet.HEADS}
+    targets = {k: torch.from_numpy(data[k]).long().to(device) for k in FaceNet.HEADS}
 
     def batch_loss(idx: torch.Tensor) -> torch.Tensor:
-        xb = x[idx].float().div_(255)
+        xb = x[idx].to(device).float().div_(255)
         if bool(torch.rand((), generator=gen) < 0.5):  # horizontal flip
             xb = xb.flip(-1)
         out = model(xb)
-        return sum(F.cross_entropy(out[key], targets[key][idx]) for key in out)
+        return sum(F.cross_entropy(out[key], targets[key][idx.to(device)]) for key in out)
 
     t0 = time.perf_counter()
     history = fit(
@@ -111,10 +114,10 @@ def train_faces(
         sched=torch.optim.lr_scheduler.CosineAnnealingLR(opt, max(epochs, 1)),
         desc=f"faces {layout_name(layout)} {size[1]}x{size[0]} seed {seed}",
         progress=progress,
+        amp=amp,
     )
-    scores = evaluate_faces(
-        model, x[torch.from_numpy(test_idx)], {k: v[torch.from_numpy(test_idx)] for k, v in targets.items()}
-    )
+    test = torch.from_numpy(test_idx)
+    scores = evaluate_faces(model, x[test], {k: v[test.to(device)] for k, v in targets.items()})
     run = TaskRun(
         "faces", layout_name(layout), list(size), seed, scores, model.sensor.theta.detach().tolist(), history
     )
@@ -128,11 +131,12 @@ def evaluate_faces(
 ) -> dict:
     """Accuracy (percent) per attribute and their mean."""
     model.eval()
+    device = model_device(model)
     correct = dict.fromkeys(targets, 0)
     for k in range(0, len(x), batch_size):
-        out = model(x[k : k + batch_size].float().div(255))
+        out = model(x[k : k + batch_size].to(device).float().div(255))
         for key in targets:
-            correct[key] += int((out[key].argmax(1) == targets[key][k : k + batch_size]).sum())
+            correct[key] += int((out[key].argmax(1) == targets[key][k : k + batch_size].to(device)).sum())
     acc = {key: 100.0 * c / len(x) for key, c in correct.items()}
     return {**acc, "mean": float(np.mean(list(acc.values())))}
 
@@ -148,6 +152,8 @@ def run_faces_experiment(
     test_fraction: float = 0.2,
     progress: bool = True,
     sensor: dict | None = None,
+    device: str | torch.device = "cpu",
+    amp: bool = False,
 ) -> dict:
     """Every family × sensor size × seed on UTKFace attributes; writes results.json and figures."""
     out = Path(out)
@@ -173,6 +179,8 @@ def run_faces_experiment(
                     epochs=epochs,
                     progress=progress,
                     sensor=sensor,
+                    device=device,
+                    amp=amp,
                 )
                 runs.append(run)
                 models.setdefault((layout, tuple(size)), model)
@@ -206,6 +214,8 @@ def run_faces_experiment(
 
 def _faces_figure(images: np.ndarray, models: dict, out: Path) -> None:
     from .plots import draw_layout, figure, save_figure
+
+    models = {key: model.cpu() for key, model in models.items()}  # figures are drawn on the CPU
 
     keys = list(models)
     fig, axes = figure(2, len(keys), figsize=(3 * len(keys), 6), squeeze=False)

@@ -22,7 +22,7 @@ from ..layoutfile import save_layout
 from ..sensor import SensorLayer
 from .data import load_mnist
 from .models import save_model
-from .training import ExperimentDefaults, fit, format_theta, layout_name, theta_text
+from .training import ExperimentDefaults, fit, format_theta, layout_name, model_device, theta_text
 
 __all__ = ["DEFAULTS", "MnistNet", "RunResult", "run_mnist_experiment", "train_mnist"]
 
@@ -83,6 +83,8 @@ def train_mnist(
     size: tuple[int, int] = (4, 4),
     progress: bool = True,
     sensor: dict | None = None,
+    device: str | torch.device = "cpu",
+    amp: bool = False,
 ) -> tuple[RunResult, MnistNet]:
     """Train sensor + CNN jointly (``layout="uniform"``: the fixed uniform baseline) and test it.
 
@@ -91,10 +93,10 @@ def train_mnist(
     """
     torch.manual_seed(seed)
     gen = torch.Generator().manual_seed(seed)
-    model = MnistNet(layout, size, learn=layout != "uniform", **(sensor or DEFAULTS.sensor()))
+    model = MnistNet(layout, size, learn=layout != "uniform", **(sensor or DEFAULTS.sensor())).to(device)
     opt = torch.optim.Adam(model.parameters(), lr=lr)
-    x_train = torch.from_numpy(data["train_images"]).float().div(255)[:, None]
-    y_train = torch.from_numpy(data["train_labels"]).long()
+    x_train = torch.from_numpy(data["train_images"]).float().div(255)[:, None].to(device)
+    y_train = torch.from_numpy(data["train_labels"]).long().to(device)
     t0 = time.perf_counter()
     history = fit(
         model,
@@ -106,6 +108,7 @@ def train_mnist(
         batch_size=batch_size,
         desc=f"mnist {layout_name(layout)} seed {seed}",
         progress=progress,
+        amp=amp,
     )
     acc = evaluate(model, data["test_images"], data["test_labels"])
     result = RunResult(
@@ -123,8 +126,9 @@ def train_mnist(
 def evaluate(model: MnistNet, images: np.ndarray, labels: np.ndarray, batch_size: int = 1000) -> float:
     """Test accuracy in percent."""
     model.eval()
-    x = torch.from_numpy(images).float().div(255)[:, None]
-    y = torch.from_numpy(labels).long()
+    device = model_device(model)
+    x = torch.from_numpy(images).float().div(255)[:, None].to(device)
+    y = torch.from_numpy(labels).long().to(device)
     correct = sum(
         int((model(x[k : k + batch_size]).argmax(1) == y[k : k + batch_size]).sum())
         for k in range(0, len(x), batch_size)
@@ -141,6 +145,8 @@ def run_mnist_experiment(
     limit_train: int | None = None,
     progress: bool = True,
     sensor: dict | None = None,
+    device: str | torch.device = "cpu",
+    amp: bool = False,
 ) -> dict:
     """Train every family for every seed; write ``results.json``, ``layout.json`` and figures."""
     out = Path(out)
@@ -157,7 +163,16 @@ def run_mnist_experiment(
     models: dict[str, MnistNet] = {}
     for layout in families:
         for seed in seeds:
-            res, model = train_mnist(data, layout, seed=seed, epochs=epochs, progress=progress, sensor=sensor)
+            res, model = train_mnist(
+                data,
+                layout,
+                seed=seed,
+                epochs=epochs,
+                progress=progress,
+                sensor=sensor,
+                device=device,
+                amp=amp,
+            )
             save_model(
                 out / f"model_{layout}_4x4_seed{seed}.pt",
                 "mnist",
@@ -217,7 +232,7 @@ def _figures(data, models: dict[str, MnistNet], runs: list[RunResult], out: Path
         draw_layout(axes[0, k], sensor.layout, (4, 4), image=digit, color="tab:orange", lw=1.5)
         axes[0, k].set_title(f"{name}: {theta_text(models[name])}", fontsize=10)
         with torch.no_grad():
-            s = sensor(torch.from_numpy(digit).float()[None, None])[0, 0].numpy()
+            s = sensor.cpu()(torch.from_numpy(digit).float()[None, None])[0, 0].numpy()
         axes[1, k].imshow(s, cmap="gray", vmin=0, vmax=1, interpolation="nearest")
         axes[1, k].set_title("4x4 sensor output", fontsize=9)
         axes[1, k].set_xticks([])

@@ -72,12 +72,15 @@ def save_model(
     return atomic_write(path, buf.getvalue())
 
 
-def load_model(path: str | Path, task: str | None = None) -> tuple[nn.Module, dict[str, Any]]:
+def load_model(
+    path: str | Path, task: str | None = None, device: str | torch.device = "cpu"
+) -> tuple[nn.Module, dict[str, Any]]:
     """Rebuild a network from a model file (in eval mode, its layout fixed).
 
     Args:
         path: a file written by :func:`save_model`.
         task: the task the caller expects (``None``: any).
+        device: where to put the network.
 
     Returns:
         ``(model, info)`` with ``info`` the file's other entries.
@@ -111,7 +114,7 @@ def load_model(path: str | Path, task: str | None = None) -> tuple[nn.Module, di
     except RuntimeError as exc:
         first = str(exc).splitlines()[0]
         raise ValueError(f"{path}: the weights do not fit the {data['task']} network ({first})") from None
-    net.eval()
+    net.to(device).eval()
     return net, {k: v for k, v in data.items() if k != "state_dict"}
 
 

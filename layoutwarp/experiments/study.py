@@ -82,8 +82,10 @@ def _run_name(family: str, size: tuple[int, int], seed: int) -> str:
 class _Task:
     """Loads a task's data once and trains one configuration of it."""
 
-    def __init__(self, task: str, data_dir: Path, epochs: int | None, progress: bool) -> None:
-        self.task, self.progress = task, progress
+    def __init__(
+        self, task: str, data_dir: Path, epochs: int | None, progress: bool, device: str, amp: bool
+    ) -> None:
+        self.task, self.progress, self.device, self.amp = task, progress, device, amp
         if task == "mnist":
             from .data import load_mnist
             from .mnist import DEFAULTS
@@ -119,6 +121,7 @@ class _Task:
     def train(self, family: str, size: tuple[int, int], seed: int) -> tuple[dict, torch.nn.Module, list]:
         layout = self.layout(family, size)
         kw = {"seed": seed, "epochs": self.epochs, "progress": self.progress, "sensor": self.sensor}
+        kw |= {"device": self.device, "amp": self.amp}
         if self.task == "mnist":
             from .mnist import train_mnist
 
@@ -145,6 +148,8 @@ def run_study(
     seeds: int | None = None,
     epochs: int | None = None,
     progress: bool = True,
+    device: str = "cpu",
+    amp: bool = False,
     say: Callable[[str], None] = print,
 ) -> dict:
     """Run (or resume) a task's study; write ``study.json``, ``study.md`` and ``study_<task>.png``.
@@ -164,7 +169,7 @@ def run_study(
         record = out / "runs" / f"{name}.json"
         if record.exists():
             continue
-        runner = runner or _Task(task, Path(data_dir), epochs, progress)
+        runner = runner or _Task(task, Path(data_dir), epochs, progress, device, amp)
         t0 = time.perf_counter()
         scores, model, theta = runner.train(family, size, seed)
         seconds = time.perf_counter() - t0
@@ -176,7 +181,13 @@ def run_study(
             training={"seed": seed, "epochs": runner.epochs, "family": family, "scores": scores},
         )
         rec = {"family": family, "size_hw": list(size), "seed": seed, "scores": scores}
-        rec |= {"theta": list(theta), "epochs": runner.epochs, "seconds": seconds}
+        rec |= {
+            "theta": list(theta),
+            "epochs": runner.epochs,
+            "seconds": seconds,
+            "device": device,
+            "amp": amp,
+        }
         atomic_write(record, json.dumps(rec, indent=2))
         say(f"  [{k + 1}/{len(todo)}] {name}: {plan.metric} {scores[plan.metric]:.2f}  [{seconds:.0f} s]")
     records = [json.loads(p.read_text()) for p in sorted((out / "runs").glob("*.json"))]

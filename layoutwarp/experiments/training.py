@@ -17,9 +17,12 @@ from ..files import atomic_write
 __all__ = [
     "ExperimentDefaults",
     "TaskRun",
+    "autocast",
+    "default_device",
     "fit",
     "format_theta",
     "layout_name",
+    "model_device",
     "optimizer",
     "save_runs",
     "summarise",
@@ -73,6 +76,7 @@ def fit(
     sched: torch.optim.lr_scheduler.LRScheduler | None = None,
     desc: str = "train",
     progress: bool = True,
+    amp: bool = False,
 ) -> list[list[float]]:
     """The training loop shared by every experiment; returns θ after each epoch (and at start).
 
@@ -80,10 +84,14 @@ def fit(
     batches of ``batch_size`` indices (a last batch of one joins the one before, as batch
     normalisation needs two samples). ``model.sensor``'s parameters are frozen for the first
     ``freeze_epochs`` epochs; ``sched`` steps once per epoch. tqdm draws on terminals only
-    (``disable=None``), so logs stay readable.
+    (``disable=None``), so logs stay readable. ``amp`` runs the network under autocast
+    (:func:`autocast`; the sensor itself always integrates in float32).
     """
     sensor = list(model.sensor.parameters())
     history = [model.sensor.theta.detach().tolist()]
+    device = model_device(model)
+    # float16 (CUDA autocast) needs loss scaling; bfloat16 (CPU autocast) and float32 do not
+    scaler = torch.amp.GradScaler(device.type, enabled=amp and device.type == "cuda")
     n = len(indices)
     starts = list(range(0, n, batch_size))
     if len(starts) > 1 and n - starts[-1] == 1:  # no 1-sample batch: batch norm needs two
@@ -101,10 +109,12 @@ def fit(
         model.train()
         perm = indices[torch.randperm(len(indices), generator=gen)]
         for a, b in bounds:
-            loss = batch_loss(perm[a:b])
+            with autocast(model, amp):
+                loss = batch_loss(perm[a:b])
             opt.zero_grad()
-            loss.backward()
-            opt.step()
+            scaler.scale(loss).backward()
+            scaler.step(opt)
+            scaler.update()
             bar.update(1)
             bar.set_postfix(
                 loss=f"{loss.item():.3f}", theta=",".join(f"{v:.2f}" for v in model.sensor.theta.tolist())
@@ -179,6 +189,24 @@ def format_theta(values: Sequence[float], digits: int = 3) -> str:
     if len(values) > 4:
         return f"({len(values)} values, max |θ| {max(abs(v) for v in values):.2f})"
     return "(" + ", ".join(f"{v:+.{digits}f}" for v in values) + ")"
+
+
+def model_device(model: nn.Module) -> torch.device:
+    """The device of a model's parameters (where its batches must go)."""
+    return next(model.parameters()).device
+
+
+def default_device() -> str:
+    """``"cuda"`` when a CUDA GPU is available, else ``"cpu"`` (the command line's default)."""
+    return "cuda" if torch.cuda.is_available() else "cpu"
+
+
+def autocast(model: nn.Module, enabled: bool) -> torch.autocast:
+    """Mixed precision for ``model``'s device: float16 on CUDA, bfloat16 on the CPU. The
+    sensor layer turns it off for its own integration (:func:`~layoutwarp.simulate`)."""
+    device = model_device(model).type
+    dtype = torch.float16 if device == "cuda" else torch.bfloat16
+    return torch.autocast(device_type=device, dtype=dtype, enabled=enabled)
 
 
 def layout_name(layout: str | nn.Module) -> str:
