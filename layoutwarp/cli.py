@@ -214,6 +214,11 @@ def _cmd_train(args: argparse.Namespace) -> int:
     for size in sizes:
         _check_memory(size)
     out = args.out or f"results/{args.task}"
+    from .experiments.training import world
+
+    if world()[0] != 0:  # under torchrun rank 0 alone reports and writes; the others train alike
+        out = tempfile.mkdtemp(prefix="layoutwarp-rank-")
+        sys.stdout = open(os.devnull, "w")  # for the rest of this process
     sizes_txt = ", ".join(f"{w}x{h}" for h, w in sizes)
     print(
         f"{args.task}: data {data}, families {', '.join(families)}, sensors {sizes_txt}, "
@@ -260,8 +265,9 @@ def _device(name: str | None) -> str:
 
     from .experiments.training import default_device
 
-    if name is None:
-        return default_device()
+    if name is None:  # under torchrun each rank takes the GPU of its local rank
+        local = os.environ.get("LOCAL_RANK")
+        return f"cuda:{local}" if local is not None and torch.cuda.is_available() else default_device()
     try:
         dev = torch.device(name)
     except RuntimeError:

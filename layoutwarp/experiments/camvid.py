@@ -201,11 +201,11 @@ def train_camvid(
     if class_weights == "median":
         weight = torch.from_numpy(median_frequency_weights(train[1], len(CAMVID_CLASSES))).to(device)
 
-    def batch_loss(idx: torch.Tensor) -> torch.Tensor:
+    def batch_loss(idx: torch.Tensor, net: nn.Module) -> torch.Tensor:
         xb, yb = x[idx].to(device).float().div_(255), y[idx].to(device)
         if bool(torch.rand((), generator=gen) < 0.5):  # horizontal flip
             xb, yb = xb.flip(-1), yb.flip(-1)
-        return backwarp_cross_entropy(model(xb), yb, model.sensor.layout, ignore_index=VOID, weight=weight)
+        return backwarp_cross_entropy(net(xb), yb, model.sensor.layout, ignore_index=VOID, weight=weight)
 
     t0 = time.perf_counter()
     history = fit(

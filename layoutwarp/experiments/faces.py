@@ -94,11 +94,11 @@ def train_faces(
     x = to_tensor(data["images"])
     targets = {k: torch.from_numpy(data[k]).long().to(device) for k in FaceNet.HEADS}
 
-    def batch_loss(idx: torch.Tensor) -> torch.Tensor:
+    def batch_loss(idx: torch.Tensor, net: nn.Module) -> torch.Tensor:
         xb = x[idx].to(device).float().div_(255)
         if bool(torch.rand((), generator=gen) < 0.5):  # horizontal flip
             xb = xb.flip(-1)
-        out = model(xb)
+        out = net(xb)
         return sum(F.cross_entropy(out[key], targets[key][idx.to(device)]) for key in out)
 
     t0 = time.perf_counter()

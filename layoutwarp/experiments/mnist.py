@@ -101,7 +101,7 @@ def train_mnist(
     history = fit(
         model,
         torch.arange(len(x_train)),
-        lambda idx: F.cross_entropy(model(x_train[idx]), y_train[idx]),
+        lambda idx, net: F.cross_entropy(net(x_train[idx]), y_train[idx]),
         opt,
         gen,
         epochs=epochs,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -27,6 +28,7 @@ __all__ = [
     "save_runs",
     "summarise",
     "theta_text",
+    "world",
 ]
 
 
@@ -63,10 +65,34 @@ class ExperimentDefaults:
         return {"method": "exact", "tol": self.tol}
 
 
+def world() -> tuple[int, int]:
+    """``(rank, world size)`` of this process: ``(0, 1)`` alone; under ``torchrun`` (``WORLD_SIZE``
+    > 1) the process group is initialised once from its environment, with NCCL when CUDA is
+    available and gloo otherwise."""
+    import torch.distributed as dist
+
+    if int(os.environ.get("WORLD_SIZE", "1")) <= 1 or not dist.is_available():
+        return 0, 1
+    if not dist.is_initialized():
+        dist.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
+    return dist.get_rank(), dist.get_world_size()
+
+
+def _check_same_theta(theta: torch.Tensor) -> None:
+    """Raise if the ranks of a distributed run hold different θ (they must stay identical)."""
+    import torch.distributed as dist
+
+    hi, lo = theta.detach().clone(), -theta.detach().clone()
+    dist.all_reduce(hi, op=dist.ReduceOp.MAX)
+    dist.all_reduce(lo, op=dist.ReduceOp.MAX)
+    if not torch.equal(hi, -lo):
+        raise RuntimeError(f"θ differs between ranks by up to {float((hi + lo).abs().max()):.3g}")
+
+
 def fit(
     model: nn.Module,
     indices: torch.Tensor,
-    batch_loss: Callable[[torch.Tensor], torch.Tensor],
+    batch_loss: Callable[[torch.Tensor, nn.Module], torch.Tensor],
     opt: torch.optim.Optimizer,
     gen: torch.Generator,
     *,
@@ -80,12 +106,19 @@ def fit(
 ) -> list[list[float]]:
     """The training loop shared by every experiment; returns θ after each epoch (and at start).
 
-    Each epoch shuffles ``indices`` with ``gen`` and steps ``opt`` on ``batch_loss(idx)`` for
+    Each epoch shuffles ``indices`` with ``gen`` and steps ``opt`` on ``batch_loss(idx, net)``
+    (``net``: the module to call, ``model`` or its DistributedDataParallel wrapper) for
     batches of ``batch_size`` indices (a last batch of one joins the one before, as batch
     normalisation needs two samples). ``model.sensor``'s parameters are frozen for the first
     ``freeze_epochs`` epochs; ``sched`` steps once per epoch. tqdm draws on terminals only
     (``disable=None``), so logs stay readable. ``amp`` runs the network under autocast
     (:func:`autocast`; the sensor itself always integrates in float32).
+
+    Under ``torchrun`` (:func:`world`) every rank draws the same permutation and takes its
+    share ``batch[rank::world_size]`` of each global batch; DistributedDataParallel averages
+    the gradients (θ included, as an ordinary parameter), so a step equals the single-process
+    step on the global batch. After every epoch the ranks' θ are compared (they must agree
+    exactly); only rank 0 draws a progress bar.
     """
     sensor = list(model.sensor.parameters())
     history = [model.sensor.theta.detach().tolist()]
@@ -97,20 +130,26 @@ def fit(
     if len(starts) > 1 and n - starts[-1] == 1:  # no 1-sample batch: batch norm needs two
         starts.pop()
     bounds = list(zip(starts, [*starts[1:], n], strict=True))
+    rank, size = world()
     bar = tqdm(
         total=epochs * len(bounds),
         desc=desc,
-        disable=None if progress else True,
+        disable=None if progress and rank == 0 else True,
         leave=False,
     )
     for epoch in range(epochs):
         for p in sensor:
             p.requires_grad_(epoch >= freeze_epochs)
         model.train()
+        net = model
+        if size > 1:  # rebuilt each epoch: which parameters train can change (freeze_epochs)
+            from torch.nn.parallel import DistributedDataParallel
+
+            net = DistributedDataParallel(model, device_ids=[device] if device.type == "cuda" else None)
         perm = indices[torch.randperm(len(indices), generator=gen)]
         for a, b in bounds:
             with autocast(model, amp):
-                loss = batch_loss(perm[a:b])
+                loss = batch_loss(perm[a:b][rank::size], net)
             opt.zero_grad()
             scaler.scale(loss).backward()
             scaler.step(opt)
@@ -121,6 +160,8 @@ def fit(
             )
         if sched is not None:
             sched.step()
+        if size > 1:
+            _check_same_theta(model.sensor.theta)
         history.append(model.sensor.theta.detach().tolist())
     bar.close()
     return history
