@@ -34,6 +34,8 @@ FLAGS = {
     "tol": "--tol",
     "workers": "--workers",
     "label_rule": "--label-rule",
+    "engine": "--engine",
+    "address": "--address",
 }
 
 
@@ -421,6 +423,8 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
         workers=args.workers,
         tol=args.tol,
         progress=False if args.no_progress else None,
+        engine=args.engine,
+        address=args.address,
     )
     print(
         f"{res.processed} written, {res.skipped} already done, {len(res.failed)} failed "
@@ -630,7 +634,23 @@ def build_parser() -> argparse.ArgumentParser:
         help="labels to the sensor grid by the label under each pixel centre (nearest) or the "
         "largest area (majority), or kept full size with back-warp maps (inverse)",
     )
-    pp.add_argument("--workers", type=positive_int, default=1, help="worker threads")
+    pp.add_argument(
+        "--workers",
+        type=positive_int,
+        default=1,
+        help="worker threads (local) or processes (new Dask cluster)",
+    )
+    pp.add_argument(
+        "--engine",
+        choices=["local", "dask"],
+        default="local",
+        help="threads here, or tasks on a Dask cluster (pip install 'layoutwarp[dask]')",
+    )
+    pp.add_argument(
+        "--address",
+        metavar="HOST:PORT",
+        help="with --engine dask: join this running scheduler (default: start one)",
+    )
     pp.add_argument(
         "--tol", type=positive_float, help="curved-edge tolerance (default: 1/4 level of the image dtype)"
     )

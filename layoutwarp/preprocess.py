@@ -35,7 +35,7 @@ import sys
 import threading
 import time
 import warnings
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -50,7 +50,7 @@ from .checks import check_choice, check_int, check_size
 from .files import atomic_write
 from .integrators import green_pieces
 from .layoutfile import load_layout, save_layout
-from .layouts import Layout
+from .layouts import FAMILIES, Layout
 from .maps import forward_maps
 from .mesh import pixel_mesh
 from .sensor import data_tolerance
@@ -292,6 +292,31 @@ class _Job:
         return {"label": str(dst), "label_bytes": dst.stat().st_size}
 
 
+#: Where preprocessing runs: threads of this process, or the workers of a Dask cluster.
+ENGINES = ("local", "dask")
+_WORKER_JOBS: dict[str, _Job] = {}
+_WORKER_LOCK = threading.Lock()
+
+
+def _remote_process(spec: str, task: dict) -> dict:
+    """A Dask task: process one file with this worker process's job for ``spec`` (a JSON layout
+    description), built on the worker's first task and kept, so every worker builds the area
+    weights of a source size once, however many files it gets."""
+    with _WORKER_LOCK:
+        job = _WORKER_JOBS.get(spec)
+        if job is None:
+            d = json.loads(spec)
+            config = {k: v for k, v in d["layout"].items() if k not in ("family", "size_hw")}
+            layout = FAMILIES[d["layout"]["family"]].from_config(config, dtype=torch.float64)
+            job = _WORKER_JOBS[spec] = _Job(layout, tuple(d["size"]), d["tol"], d["label_rule"])
+    return job.process(task)
+
+
+def worker_weight_builds() -> int:
+    """How many area-weight matrices this process's Dask jobs have built (for tests and logs)."""
+    return sum(len(job._cache) for job in _WORKER_JOBS.values())
+
+
 def _npz_bytes(**arrays: np.ndarray) -> bytes:
     import io
 
@@ -373,6 +398,8 @@ def preprocess_folder(
     tol: float | None = None,
     progress: bool | None = None,
     files: Iterable[Path] | None = None,
+    engine: str = "local",
+    address: str | None = None,
 ) -> PreprocessResult:
     """Write the sensor image of every image under ``src`` to the same relative path in ``dst``.
 
@@ -392,6 +419,13 @@ def preprocess_folder(
             rounding, integer outputs stay within 0.75 levels of the exact integral.
         progress: show a progress bar (default: when stderr is a terminal).
         files: process only these files (paths under ``src``).
+        engine: ``"local"`` (``workers`` threads here) or ``"dask"`` (the optional extra
+            ``layoutwarp[dask]``): every file is a task on a Dask cluster, each worker process
+            builds the area weights of a source size once; the outputs are the same bytes, and
+            ``done.jsonl``/the manifest are written here as they arrive. Without ``address`` a
+            local cluster of ``workers`` single-threaded processes is started and stopped.
+        address: a running Dask scheduler to join (``"tcp://host:8786"``); its workers must see
+            ``src`` and ``dst`` at the same paths (a shared file system).
 
     Returns:
         a :class:`PreprocessResult`; failures (unreadable files) are listed, not raised.
@@ -403,6 +437,9 @@ def preprocess_folder(
     size = check_size(size)
     check_choice(label_rule, LABEL_RULES, "label_rule")
     check_int(workers, "workers", 1)
+    check_choice(engine, ENGINES, "engine")
+    if address is not None and engine != "dask":
+        raise ValueError(f"address needs engine='dask', got engine={engine!r}")
     src, dst = Path(src), Path(dst)
     if not src.is_dir():
         raise ValueError(f"src must be a folder, got {str(src)!r}")
@@ -473,7 +510,10 @@ def preprocess_folder(
 
         fixed = type(layout).from_config(config, dtype=torch.float64)
         job = _Job(fixed, size, tol, label_rule)
-        if workers == 1 or len(tasks) <= 1:
+        if engine == "dask" and tasks:
+            spec = json.dumps({"layout": config, "size": list(size), "tol": tol, "label_rule": label_rule})
+            _run_on_dask(spec, tasks, record, workers, address)
+        elif workers == 1 or len(tasks) <= 1:
             for task in tasks:
                 record(job.process(task))
         else:
@@ -492,10 +532,36 @@ def preprocess_folder(
         "failed": result.failed,
         "seconds": round(result.seconds, 3),
         "workers": workers,
+        "engine": engine if address is None else f"{engine} at {address}",
     }
     result.manifest = dst / "manifest.json"
     atomic_write(result.manifest, json.dumps(manifest, indent=2).encode())
     return result
+
+
+def _run_on_dask(
+    spec: str, tasks: list[dict], record: Callable[[dict], None], workers: int, address: str | None
+) -> None:
+    """Run every task on a Dask cluster (a new local one, or the one at ``address``) and record
+    the results here as they complete."""
+    try:
+        from dask.distributed import Client, LocalCluster
+        from dask.distributed import as_completed as completed
+    except ImportError:
+        raise ValueError("engine='dask' needs the optional extra: pip install 'layoutwarp[dask]'") from None
+    cluster = None
+    if address is None:
+        cluster = LocalCluster(
+            n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None
+        )
+    try:
+        with Client(address or cluster) as client:
+            futures = client.map(_remote_process, [spec] * len(tasks), tasks, pure=False)
+            for fut in completed(futures):
+                record(fut.result())
+    finally:
+        if cluster is not None:
+            cluster.close()
 
 
 def benchmark_baseline(files: list[Path], size: tuple[int, int], out: str | Path) -> float:

@@ -140,6 +140,20 @@ CASES = {
         ["export", "--family", "uniform", *MASK, "--out", "{tmp}/x.jpg"],
         ["--format", "'jpg'", "one of 'gds', 'dxf', 'svg', 'png'"],
     ),
+    "address without dask": (
+        [
+            "preprocess",
+            CAMVID_VAL,
+            "{tmp}/out",
+            "--family",
+            "uniform",
+            "--size",
+            "8x6",
+            "--address",
+            "tcp://h:1",
+        ],
+        ["--address", "needs engine='dask'"],
+    ),
     "family without a file": (
         ["export", "--family", "spline", *MASK, "--out", "{tmp}/x.svg"],
         ["--family", "'spline'", "--layout FILE"],

@@ -194,3 +194,56 @@ def test_cli_preprocess_with_benchmark(tmp_path, capsys):
     assert lab.shape == (45, 60) and lab.max() <= 11
     assert main(["preprocess", str(SAMPLES / "camvid" / "val"), str(tmp_path / "x")]) == 2
     assert "give --layout LAYOUT.json or --family" in capsys.readouterr().err
+
+
+def _tree(root: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+@pytest.mark.slow
+def test_dask_engine_writes_the_same_bytes_and_reports_the_same_failures(tmp_path):
+    pytest.importorskip("distributed")
+    src = tmp_path / "src"
+    _images(src)  # mixed dtypes and sizes, plus two unreadable files
+    layout, size = fixed("grid", None), (9, 13)
+    a = preprocess_folder(src, tmp_path / "local", layout, size, workers=2, progress=False)
+    b = preprocess_folder(src, tmp_path / "dask", layout, size, workers=2, engine="dask", progress=False)
+    assert (a.processed, b.processed) == (6, 6)
+    assert sorted(f["file"] for f in a.failed) == sorted(f["file"] for f in b.failed)
+    skip = {"done.jsonl", "manifest.json", "layout.json"}  # record order and timings differ
+    local, dask = _tree(tmp_path / "local"), _tree(tmp_path / "dask")
+    assert {k: v for k, v in local.items() if k not in skip} == {
+        k: v for k, v in dask.items() if k not in skip
+    }
+    done = [json.loads(x) for x in (tmp_path / "dask" / "done.jsonl").read_text().splitlines()]
+    assert (
+        len(done) == 6 and json.loads((tmp_path / "dask" / "manifest.json").read_text())["engine"] == "dask"
+    )
+
+
+@pytest.mark.slow
+def test_dask_engine_joins_a_cluster_builds_weights_once_per_worker_and_resumes(tmp_path):
+    distributed = pytest.importorskip("distributed")
+    from layoutwarp.preprocess import worker_weight_builds
+
+    src, labels = SAMPLES / "camvid" / "train", SAMPLES / "camvid" / "trainannot"
+    layout, size = fixed("curv", (0.5, 0.3)), (18, 24)
+    with (
+        distributed.LocalCluster(
+            n_workers=2, threads_per_worker=2, processes=True, dashboard_address=None
+        ) as cluster,
+        distributed.Client(cluster) as client,
+    ):
+        kw = {"labels": labels, "engine": "dask", "address": cluster.scheduler_address, "progress": False}
+        res = preprocess_folder(src, tmp_path / "d", layout, size, **kw)
+        assert res.processed == 6 and not res.failed
+        builds = client.run(worker_weight_builds)  # one source size (480x360): at most one each
+        assert sum(builds.values()) >= 1 and max(builds.values()) <= 1
+        again = preprocess_folder(src, tmp_path / "d", layout, size, **kw)
+        assert (again.processed, again.skipped) == (0, 6)  # resumed from done.jsonl
+    ref = preprocess_folder(src, tmp_path / "l", layout, size, labels=labels, progress=False)
+    assert ref.processed == 6
+    skip = {"done.jsonl", "manifest.json", "layout.json"}
+    assert {k: v for k, v in _tree(tmp_path / "l").items() if k not in skip} == {
+        k: v for k, v in _tree(tmp_path / "d").items() if k not in skip
+    }
