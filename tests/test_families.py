@@ -503,7 +503,7 @@ def test_backwarp_agrees_with_point_in_polygon_and_opencv(name, gen):
     size, target = (6, 7), (41, 37)
     index = torch.arange(size[0] * size[1]).view(1, 1, *size)
     got = lw.backwarp(index, layout, target)[0, 0].numpy()
-    mesh = lw.pixel_mesh(layout, size, tol=1e-9)
+    mesh = lw.pixel_mesh(layout, size, tol=1e-7)  # edges within ~1e-8 of the curves: far inside `near`
     polys = [shapely.Polygon(p) for p in mesh.polygons()]
     pts = shapely.points(lw.pixel_centers(target).reshape(-1, 2).numpy())
     near = shapely.distance(pts, shapely.union_all([p.boundary for p in polys])) < 1e-6
