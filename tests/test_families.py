@@ -133,7 +133,8 @@ def test_grid_from_layout_equals_the_layout_where_knots_align(gen):
     size = (rint(gen, 2, 9), rint(gen, 2, 9))
     img = torch.rand(3, 31, 27, generator=gen, dtype=F64)
     grid = lw.GridLayout.from_layout(rect, grid=size, dtype=F64)
-    assert torch.equal(lw.pixel_mesh(grid, size).corners, lw.pixel_mesh(rect, size).corners)
+    # corners agree to rounding (a corner's cell coordinate can come out as 1 - ε instead of 0)
+    assert (lw.pixel_mesh(grid, size).corners - lw.pixel_mesh(rect, size).corners).abs().max() <= 1e-14
     assert (
         np.abs((lw.simulate(img[None], grid, size) - lw.simulate(img[None], rect, size)).numpy()).max()
         <= 1e-12
@@ -597,7 +598,8 @@ def test_layout_files_round_trip(name, gen, tmp_path):
     back, info = lw.load_layout(tmp_path / "l.json", dtype=F64)
     assert type(back) is type(layout) and info["size_hw"] == [4, 5]
     p = torch.rand(300, 2, generator=gen, dtype=F64) * 2 - 1
-    assert torch.equal(back(p), layout(p))
+    # θ = bound·tanh(ρ) goes through atanh and back on loading: equal to an ulp or two
+    assert (back(p) - layout(p)).abs().max() <= 1e-14
     data = json.loads((tmp_path / "l.json").read_text())
     assert data["format"] == "layoutwarp.layout/2"
     data["format"] = "layoutwarp.layout/9"
