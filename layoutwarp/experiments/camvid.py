@@ -21,7 +21,7 @@ from ..backwarp import backwarp, backwarp_cross_entropy
 from ..layoutfile import save_layout
 from ..sensor import SensorLayer
 from .data import CAMVID_CLASSES, VOID, load_camvid
-from .models import save_model
+from .models import save_run_model
 from .training import (
     ExperimentDefaults,
     TaskRun,
@@ -288,17 +288,15 @@ def run_camvid_experiment(
                 )
                 runs.append(run)
                 models.setdefault((layout, tuple(size)), model)
-                save_model(
-                    out / f"model_{layout}_{size[1]}x{size[0]}_seed{seed}.pt",
+                save_run_model(
+                    out,
                     "camvid",
+                    layout,
+                    size,
+                    seed,
                     model,
                     sensor=sensor,
-                    training={
-                        "seed": seed,
-                        "epochs": epochs,
-                        "class_weights": class_weights,
-                        "scores": run.scores,
-                    },
+                    training={"epochs": epochs, "class_weights": class_weights, "scores": run.scores},
                 )
                 th = format_theta(run.theta)
                 print(

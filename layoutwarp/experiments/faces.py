@@ -21,7 +21,7 @@ from ..layoutfile import save_layout
 from ..sensor import SensorLayer
 from .camvid import RGB_MEAN, RGB_STD, conv_block, to_tensor
 from .data import AGE_GROUPS, load_faces
-from .models import save_model
+from .models import save_run_model
 from .training import (
     ExperimentDefaults,
     TaskRun,
@@ -184,12 +184,15 @@ def run_faces_experiment(
                 )
                 runs.append(run)
                 models.setdefault((layout, tuple(size)), model)
-                save_model(
-                    out / f"model_{layout}_{size[1]}x{size[0]}_seed{seed}.pt",
+                save_run_model(
+                    out,
                     "faces",
+                    layout,
+                    size,
+                    seed,
                     model,
                     sensor=sensor,
-                    training={"seed": seed, "epochs": epochs, "scores": run.scores},
+                    training={"epochs": epochs, "scores": run.scores},
                 )
                 accs = "  ".join(f"{k} {run.scores[k]:5.1f}" for k in metrics)
                 th = format_theta(run.theta)

@@ -21,7 +21,7 @@ from ..files import atomic_write
 from ..layoutfile import save_layout
 from ..sensor import SensorLayer
 from .data import load_mnist
-from .models import save_model
+from .models import save_run_model
 from .training import ExperimentDefaults, fit, format_theta, layout_name, model_device, theta_text
 
 __all__ = ["DEFAULTS", "MnistNet", "RunResult", "run_mnist_experiment", "train_mnist"]
@@ -173,12 +173,15 @@ def run_mnist_experiment(
                 device=device,
                 amp=amp,
             )
-            save_model(
-                out / f"model_{layout}_4x4_seed{seed}.pt",
+            save_run_model(
+                out,
                 "mnist",
+                layout,
+                (4, 4),
+                seed,
                 model,
                 sensor=sensor,
-                training={"seed": seed, "epochs": epochs, "scores": {"accuracy": res.test_accuracy}},
+                training={"epochs": epochs, "scores": {"accuracy": res.test_accuracy}},
             )
             runs.append(res)
             models.setdefault(layout, model)

@@ -11,6 +11,7 @@ the network with the layout fixed, so scoring never changes it.
 from __future__ import annotations
 
 import io
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -21,7 +22,7 @@ from torch import nn
 from ..files import atomic_write
 from ..layouts import FAMILIES
 
-__all__ = ["FORMAT", "TASKS", "evaluate_model", "load_model", "save_model"]
+__all__ = ["FORMAT", "TASKS", "evaluate_model", "load_model", "run_name", "save_model", "save_run_model"]
 
 FORMAT = "layoutwarp.model/1"
 #: The tasks whose models these files hold.
@@ -70,6 +71,21 @@ def save_model(
     buf = io.BytesIO()
     torch.save(data, buf)
     return atomic_write(path, buf.getvalue())
+
+
+def run_name(family: str, size: Sequence[int], seed: int) -> str:
+    """The name of one training run in file names: ``<family>_<W>x<H>_seed<s>``."""
+    return f"{family}_{size[1]}x{size[0]}_seed{seed}"
+
+
+def save_run_model(
+    folder: str | Path, task: str, family: str, size: Sequence[int], seed: int, model: nn.Module, **info: Any
+) -> Path:
+    """Save a training run's model as ``folder/model_<run name>.pt`` (``info``: ``sensor`` and
+    the training record, as :func:`save_model`)."""
+    path = Path(folder) / f"model_{run_name(family, size, seed)}.pt"
+    training = {"family": family, "seed": seed, **info.get("training", {})}
+    return save_model(path, task, model, sensor=info["sensor"], training=training)
 
 
 def load_model(

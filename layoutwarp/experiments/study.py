@@ -30,7 +30,7 @@ import torch
 from ..density import edge_density, layout_from_density
 from ..files import atomic_write
 from ..layouts import Layout
-from .models import save_model
+from .models import run_name, save_model
 
 __all__ = ["PLANS", "StudyPlan", "equivalent_pixels", "run_study", "study_runs", "summarise_study"]
 
@@ -73,10 +73,6 @@ def study_runs(plan: StudyPlan, seeds: int) -> list[tuple[str, tuple[int, int], 
     runs = [("uniform", s, k) for s in plan.uniform_sizes for k in range(seeds)]
     runs += [(f, s, k) for s in plan.learned_sizes for f in plan.families for k in range(seeds)]
     return runs
-
-
-def _run_name(family: str, size: tuple[int, int], seed: int) -> str:
-    return f"{family}_{size[1]}x{size[0]}_seed{seed}"
 
 
 class _Task:
@@ -161,11 +157,11 @@ def run_study(
     out = Path(out)
     seeds = seeds or plan.seeds
     todo = study_runs(plan, seeds)
-    done = sum((out / "runs" / f"{_run_name(*r)}.json").exists() for r in todo)
+    done = sum((out / "runs" / f"{run_name(*r)}.json").exists() for r in todo)
     say(f"{task} study: {len(todo)} runs, {done} already done, in {out}")
     runner = None
     for k, (family, size, seed) in enumerate(todo):
-        name = _run_name(family, size, seed)
+        name = run_name(family, size, seed)
         record = out / "runs" / f"{name}.json"
         if record.exists():
             continue
