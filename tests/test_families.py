@@ -222,7 +222,7 @@ def test_learned_centre_gradient_is_as_accurate_as_values(gen):
 def test_montecarlo_and_point_gradients_reach_every_parameter(gen):
     img = torch.rand(1, 1, 32, 32, generator=gen, dtype=F64)
     for layout in (
-        rand_spline(gen, learn=True),
+        rand_spline(gen, learn=True, knots=(3, 2)),  # one piece per axis would have no parameter to move
         rand_grid(gen, (3, 3), learn=True),
         rand_fovea(gen, learn=True, learn_center=True),
     ):
@@ -531,7 +531,8 @@ def test_backwarp_agrees_with_point_in_polygon_and_opencv(name, gen):
 
 @pytest.mark.parametrize("name", ["spline", "grid", "fovea-curv"])
 def test_kornia_container_and_keypoints(name, gen):
-    layout = make(name, gen, learn=True, **({"grid": (3, 2)} if name == "grid" else {}))
+    extra = {"grid": (3, 2)} if name == "grid" else {"knots": (3, 2)} if name == "spline" else {}
+    layout = make(name, gen, learn=True, **extra)  # at least one parameter that moves pixels
     aug = SensorAugmentation((9, 11), layout)
     img = torch.rand(2, 3, 40, 48, generator=gen)
     seq = K.AugmentationSequential(aug, data_keys=["input", "keypoints"])
