@@ -459,7 +459,11 @@ def test_spline_piece_of_width_1e6(gen):
         :, 1
     ]
     ref = box_reference(img, ex.detach().numpy(), ey.detach().numpy())
-    assert np.abs(out.detach().numpy() - ref).max() <= 1e-9
+    # the thin pixels are ~2.5e-5 source pixels wide (area ~7e-5): the integral-image reference
+    # itself cancels to eps · ΣL / area ≈ 1.5e-9 there (seed 3505533219 measured 1.2e-9)
+    area = np.outer(np.diff(ey.detach().numpy()), np.diff(ex.detach().numpy()))
+    bound = 1e-9 + 8 * np.finfo(np.float64).eps * float(img.sum()) / area
+    assert bool((np.abs(out.detach().numpy() - ref) <= bound).all())
     (g,) = torch.autograd.grad(out.sum(), layout.rho)
     assert torch.isfinite(g).all()
     p = torch.rand(2000, 2, generator=gen, dtype=F64) * 2 - 1
