@@ -278,6 +278,8 @@ class GridLayout(Layout):
     def phi_dtheta(self, p: Tensor, theta: Tensor) -> Tensor:
         """``∂φ_i/∂θ_j``, ``(..., 2, P)``: the bilinear weight of θ_j's control point, on its axis."""
         dtype = torch.promote_types(p.dtype, theta.dtype)
+        if theta.numel() == 0:  # a 1x1 grid: only corners, nothing to move
+            return p.to(dtype).new_zeros(*p.shape, 0)
         gh, gw = self.grid
         index = torch.full((gh + 1, gw + 1, 2), -1, dtype=torch.long, device=p.device)
         free = self.free.to(p.device)
