@@ -181,6 +181,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         memory=not args.no_memory,
         with_scaling=not args.no_scaling,
         photo=args.image,
+        device=_device(args.device) if args.device else "cpu",
     )
     return 0
 
@@ -580,6 +581,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--plot", metavar="FILE", help="also draw the speed-vs-error plot to this PNG")
     b.add_argument("--image", help="photo to measure on (default: the bundled kodim20)")
     b.add_argument("--threads", type=positive_int, help="torch threads (default: torch's choice)")
+    b.add_argument(
+        "--device", help="where the integrators run, e.g. cpu, cuda (default: cpu; anchors stay on the CPU)"
+    )
     b.add_argument("--no-memory", action="store_true", help="skip the peak-memory children")
     b.add_argument("--no-scaling", action="store_true", help="skip the input/sensor size scaling grid")
     b.set_defaults(func=_cmd_bench)

@@ -66,12 +66,20 @@ class Row:
     extra: dict = field(default_factory=dict)
 
 
+def _sync() -> None:
+    """Wait for queued GPU work, so that a timed call is really done (a no-op without CUDA)."""
+    if torch.cuda.is_available():
+        torch.cuda.synchronize()
+
+
 def _time(fn: Callable[[], object], repeats: int) -> float:
     fn()
     times = []
     for _ in range(repeats):
+        _sync()
         t0 = time.perf_counter()
         fn()
+        _sync()
         times.append(time.perf_counter() - t0)
     return float(np.median(times) * 1e3)
 
@@ -81,8 +89,10 @@ def _time_backward(forward: Callable[[], Tensor], layout: Layout, repeats: int) 
     times = []
     for k in range(repeats + 1):
         loss = forward().sum()
+        _sync()
         t0 = time.perf_counter()
         loss.backward()
+        _sync()
         if k:
             times.append(time.perf_counter() - t0)
         layout.rho.grad = None
@@ -258,6 +268,7 @@ def run(
     memory: bool = True,
     photo: str | Path | None = None,
     progress: Callable[[str], None] | None = None,
+    device: str = "cpu",
 ) -> dict:
     """Measure every integrator against the anchors on a photo and a synthetic scene.
 
@@ -271,6 +282,9 @@ def run(
         memory: measure peak memory in spawned children (photo image only).
         photo: photo file (default: the bundled ``kodim20``; skipped if none is found).
         progress: called with a short message before each configuration.
+        device: where the integrators and the ``grid_sample`` anchor run (images and layouts
+            are moved there; times wait for the GPU); the OpenCV anchors and every reference
+            stay on the CPU, and peak memory (host RSS) is measured for ``"cpu"`` only.
 
     Returns:
         a JSON-able dict: sizes, anchors (ms), and one :class:`Row` per configuration.
@@ -294,10 +308,13 @@ def run(
 
     setups = bench_layouts(theta)
     layouts = {name: layout_from_spec(spec) for name, spec in setups.items()}
+    on_device = {name: layout_from_spec(spec).to(device) for name, spec in setups.items()}
+    memory = memory and torch.device(device).type == "cpu"
     say("anchors")
     t_area = _time(lambda: cv2.resize(npimg, (w, h), interpolation=cv2.INTER_AREA), repeats)
     gen = torch.Generator().manual_seed(0)
-    t_gs = _time(lambda: _grid_sample_mc(first, layouts["curv"], size, 4, gen), repeats)
+    first_dev = first.to(device)
+    t_gs = _time(lambda: _grid_sample_mc(first_dev, on_device["curv"], size, 4, gen), repeats)
     anchors = {"inter_area": t_area, "grid_sample_mc16": t_gs}
     for image_name, img in images.items():
         img64 = img.double()
@@ -352,29 +369,30 @@ def run(
                 out = _grid_sample_mc(img, layout, size, 4, torch.Generator().manual_seed(0))
                 rows.append(Row(image_name, name, "anchor: grid_sample MC", "16 spp", t_gs, **errors(out)))
 
-            for method, opts, setting in _settings(layout, name, tols, mc_samples):
+            dev_layout, dev_img = on_device[name], img.to(device)  # the timed copies
+            for method, opts, setting in _settings(dev_layout, name, tols, mc_samples):
                 say(f"{image_name} {name}: {method} {setting}")
 
-                def fwd(method=method, opts=opts, layout=layout, img=img):
+                def fwd(method=method, opts=opts, layout=dev_layout, img=dev_img):
                     with torch.no_grad():
                         return simulate(img, layout, size, method, **opts)
 
                 t_f = _time(fwd, repeats)
-                row = Row(image_name, name, method, setting, t_f, **errors(fwd()))
-                if method == "exact" and layout.separable:
+                row = Row(image_name, name, method, setting, t_f, **errors(fwd().cpu()))
+                if method == "exact" and dev_layout.separable:
                     row.method = "separable"
                 if g_ref is not None:
-                    layout.rho.requires_grad_(True)
+                    dev_layout.rho.requires_grad_(True)
 
-                    def fwd_grad(method=method, opts=opts, layout=layout, img=img):
+                    def fwd_grad(method=method, opts=opts, layout=dev_layout, img=dev_img):
                         return simulate(img, layout, size, method, **opts)
 
                     t_fg = _time(fwd_grad, repeats)
-                    row.backward_ms = _time_backward(fwd_grad, layout, repeats)
+                    row.backward_ms = _time_backward(fwd_grad, dev_layout, repeats)
                     row.extra["forward_with_grad_ms"] = t_fg  # learnable: the mesh is rebuilt every call
-                    (simulate(img, layout, size, method, **opts).double() * gw).sum().backward()
-                    g = _theta_grad(layout)
-                    layout.rho.grad = None
+                    (simulate(dev_img, dev_layout, size, method, **opts).double().cpu() * gw).sum().backward()
+                    g = _theta_grad(dev_layout).cpu()
+                    dev_layout.rho.grad = None
                     row.grad_rel_err = float((g - g_ref).norm() / g_ref.norm())
                     row.extra["grad"] = g.tolist()
                     row.extra["grad_ref"] = g_ref.tolist()
@@ -387,6 +405,7 @@ def run(
         "theta": list(theta),
         "default_tol": data_tolerance(torch.float32)[0],
         "threads": torch.get_num_threads(),
+        "device": str(device),
         "input_mb": input_mb,
         "images": list(images),
         "scene": asdict(scene),
@@ -505,7 +524,8 @@ def format_table(result: dict) -> str:
     lines = [
         f"source {result['src_hw'][1]}x{result['src_hw'][0]}x3 float32 -> sensor "
         f"{result['sensor_hw'][1]}x{result['sensor_hw'][0]}, θ={tuple(result['theta'])}, "
-        f"{result['threads']} threads; anchors: INTER_AREA {a['inter_area']:.2f} ms, "
+        f"{result['threads']} threads, {result.get('device', 'cpu')}; "
+        f"anchors: INTER_AREA {a['inter_area']:.2f} ms, "
         f"grid_sample MC-16 {a['grid_sample_mc16']:.2f} ms",
         "errors: RMSE/max against float64 exact; 'scene' RMSE against the analytic pixel means "
         "(synthetic only); grad: relative error of dL/dθ against float64 finite differences",
@@ -554,6 +574,7 @@ def main_bench(
     memory: bool = True,
     with_scaling: bool = True,
     photo: str | None = None,
+    device: str = "cpu",
 ) -> dict:
     """Run the benchmark (``quick``: small sizes, few repeats), print tables, write JSON and plot."""
     say = lambda msg: print(f"  .. {msg}", flush=True)  # noqa: E731
@@ -566,11 +587,12 @@ def main_bench(
             mc_samples=(1, 4, 16),
             photo=photo,
             progress=say,
+            device=device,
         )
         if with_scaling:
             result["scaling"] = scaling(((128, 256), (256, 512)), ((17, 33), (33, 65)), repeats=2)
     else:
-        result = run(memory=memory, photo=photo, progress=say)
+        result = run(memory=memory, photo=photo, progress=say, device=device)
         if with_scaling:
             result["scaling"] = scaling()
     say("compile time of the kernels")
