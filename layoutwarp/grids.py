@@ -231,6 +231,12 @@ class GridLayout(Layout):
 
     @torch.no_grad()
     def project_(self) -> bool:
+        """Undo the part of the last step that folds the grid (see :meth:`Layout.project_`).
+
+        The current control points are kept if every corner determinant is at least
+        ``min(min_det, the last valid grid's)``; otherwise the step from the last valid points is
+        halved until it is (at most 39 times; then the last valid points are restored).
+        """
         cur = self.rho.detach()
         level = min(self.min_det, _min_det(self.control_points(self.last_valid)))
         if _min_det(self.control_points(cur)) >= level:
