@@ -297,7 +297,7 @@ def _cmd_study(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
     from .experiments import camvid, faces, mnist
-    from .experiments.study import PLANS, run_study
+    from .experiments.study import PLANS, run_study, study_table
 
     d = {"mnist": mnist, "camvid": camvid, "faces": faces}[args.task].DEFAULTS
     data = (
@@ -330,8 +330,6 @@ def _cmd_study(args: argparse.Namespace) -> int:
         device=_device(args.device),
         amp=args.amp,
     )
-    from .experiments.study import study_table
-
     print(study_table(summary), end="")
     print(f"wrote {out}/study.json, study.md and study_{args.task}.png")
     return 0

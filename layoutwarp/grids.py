@@ -352,22 +352,23 @@ class GridLayout(Layout):
         return inverse_bilinear(flat[k], flat[k + 1], flat[k + gw1 + 1], flat[k + gw1], q)
 
     def _search(self, flat: Tensor, q: Tensor) -> tuple[Tensor, Tensor]:
-        """The first cell whose quadrilateral contains each point (brute force, chunked)."""
+        """The cell whose quadrilateral contains each point, or comes closest to it in local
+        coordinates (brute force over all cells, chunked)."""
         gh, gw = self.grid
         ci, cj = torch.meshgrid(
             torch.arange(gh, device=q.device), torch.arange(gw, device=q.device), indexing="ij"
         )
         ci, cj = ci.flatten(), cj.flatten()
-        best = torch.full((q.shape[0],), math.inf, dtype=q.dtype, device=q.device)
-        bi, bj = torch.zeros_like(best, dtype=torch.long), torch.zeros_like(best, dtype=torch.long)
+        bi = torch.zeros(q.shape[0], dtype=torch.long, device=q.device)
+        bj = torch.zeros_like(bi)
         for lo in range(0, q.shape[0], 4096):
             qq = q[lo : lo + 4096]
             uv = self._local(
                 flat, ci[:, None].expand(-1, qq.shape[0]), cj[:, None].expand(-1, qq.shape[0]), qq
             )
             out = (uv - uv.clamp(0, 1)).abs().amax(-1)  # 0 inside the cell
-            val, k = out.min(0)
-            best[lo : lo + 4096], bi[lo : lo + 4096], bj[lo : lo + 4096] = val, ci[k], cj[k]
+            k = out.argmin(0)
+            bi[lo : lo + 4096], bj[lo : lo + 4096] = ci[k], cj[k]
         return bi, bj
 
     def edge_breakpoints(self, a: Tensor, b: Tensor, theta: Tensor | None = None) -> Tensor:
