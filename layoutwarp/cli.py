@@ -297,7 +297,7 @@ def _cmd_study(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
     from .experiments import camvid, faces, mnist
-    from .experiments.study import PLANS, run_study, study_table
+    from .experiments.study import PLANS, run_study, ship_study, study_scene, study_table
 
     d = {"mnist": mnist, "camvid": camvid, "faces": faces}[args.task].DEFAULTS
     data = (
@@ -307,6 +307,16 @@ def _cmd_study(args: argparse.Namespace) -> int:
         raise UsageError(
             f"no {args.task} data at {str(data)!r}; pass --data DIR or --quick (bundled samples)"
         )
+    out = args.out or f"results/study-{args.task}"
+    if args.ship:
+        if not (Path(out) / "runs").is_dir():
+            raise UsageError(
+                f"no study in {out!r} to ship; run `layoutwarp study {args.task} --out DIR` first"
+            )
+        summary = ship_study(args.task, out, args.ship, scene=study_scene(args.task, data))
+        print(study_table(summary), end="")
+        print(f"shipped {out} to {args.ship}")
+        return 0
     plan = PLANS[args.task]
     if args.quick:  # the smallest study that exercises every step
         plan = replace(
@@ -318,7 +328,6 @@ def _cmd_study(args: argparse.Namespace) -> int:
     for size in plan.uniform_sizes + plan.learned_sizes:
         _check_memory(size)
     epochs = args.epochs or (1 if args.quick else None)
-    out = args.out or f"results/study-{args.task}"
     summary = run_study(
         args.task,
         data,
@@ -605,6 +614,12 @@ def build_parser() -> argparse.ArgumentParser:
     st.add_argument("--epochs", type=positive_int, help="epochs (default: the experiment's; 1 with --quick)")
     st.add_argument("--no-progress", action="store_true", help="no progress bars")
     st.add_argument("--out", help="output folder (default: results/study-TASK); rerun to resume")
+    st.add_argument(
+        "--ship",
+        metavar="DIR",
+        help="train nothing: summarise the runs in --out so far and copy the results, learned layouts, "
+        "the best models and a figure of the layouts to DIR",
+    )
     _add_run_args(st)
     st.set_defaults(func=_cmd_study)
 

@@ -12,6 +12,7 @@ from conftest import SAMPLES
 from layoutwarp.cli import main
 from layoutwarp.experiments.models import FORMAT, load_model
 from layoutwarp.experiments.study import PLANS, equivalent_pixels, study_table, summarise_study
+from layoutwarp.layoutfile import load_layout
 
 
 def test_equivalent_pixels_interpolates_in_log_pixels():
@@ -87,6 +88,39 @@ def test_quick_study_resumes_and_its_models_evaluate(tmp_path, capsys):
     assert scores["n"] == 1000 and scores["layout"]["family"] == "grid"
     assert main(["evaluate", "camvid", "--model", str(model), "--data", str(SAMPLES / "camvid")]) == 2
     assert "a 'mnist' model, not a 'camvid' model" in capsys.readouterr().err
+    # shipping: results, every learned layout, the best model per family and learned size
+    ship = tmp_path / "ship"
+    assert main([*argv, "--ship", str(ship)]) == 0
+    assert json.loads((ship / "study.json").read_text())["rows"] == summary["rows"]
+    assert sorted(p.name for p in (ship / "layouts").iterdir()) == [
+        "density_3x3_seed0.json",
+        "rect_3x3_seed0.json",
+    ]
+    layout, info = load_layout(ship / "layouts" / "rect_3x3_seed0.json")
+    assert layout.family == "rect" and info["size_hw"] == [3, 3]
+    assert sorted(p.name for p in (ship / "models").iterdir()) == [
+        f"{f}_3x3_seed0.pt" for f in ("density", "rect", "uniform")
+    ]
+    assert (ship / "layouts_mnist.png").stat().st_size > 5000
+    capsys.readouterr()
+    assert (
+        main(
+            [
+                "evaluate",
+                "mnist",
+                "--model",
+                str(ship / "models" / "rect_3x3_seed0.pt"),
+                "--data",
+                str(SAMPLES / "mnist"),
+            ]
+        )
+        == 0
+    )
+    half = json.loads(capsys.readouterr().out)["accuracy"]
+    full = json.loads((out / "runs" / "rect_3x3_seed0.json").read_text())["scores"]["accuracy"]
+    assert half == pytest.approx(full, abs=0.5)  # float16 weights: at most a few of 1000 digits change
+    assert main(["study", "mnist", "--quick", "--out", str(tmp_path / "none"), "--ship", str(ship)]) == 2
+    assert "no study in" in capsys.readouterr().err
 
 
 @pytest.mark.slow
@@ -101,3 +135,32 @@ def test_train_saves_camvid_models_that_evaluate_to_the_reported_scores(tmp_path
     scores = json.loads(capsys.readouterr().out)
     assert scores["miou"] == pytest.approx(res["runs"][0]["scores"]["miou"], abs=1e-9)
     assert len(scores["iou"]) == 11 and scores["split"] is None and scores["n"] == 3
+
+
+def test_camvid_summary_has_per_class_iou_changes_and_counts_planned_runs():
+    rng = torch.Generator().manual_seed(int(torch.seed() % 2**31))
+    iou = {f: torch.rand(3, 11, generator=rng).mul(100).tolist() for f in ("uniform", "curv")}
+    iou["curv"][0][6] = None  # a class absent from one seed's val split: left out of its mean
+    recs = [
+        {"family": f, "size_hw": [36, 48], "seed": k, "scores": {"miou": 50.0 + k, "iou": iou[f][k]}}
+        for f in ("uniform", "curv")
+        for k in range(3)
+    ]
+    recs += [
+        {
+            "family": "uniform",
+            "size_hw": [18, 24],
+            "seed": 0,
+            "scores": {"miou": 40.0, "iou": iou["uniform"][0]},
+        }
+    ]
+    summary = summarise_study("camvid", PLANS["camvid"], recs) | {"planned": 51}
+    curv = next(r for r in summary["rows"] if r["family"] == "curv")
+    uni = next(r for r in summary["rows"] if r["family"] == "uniform" and r["pixels"] == 36 * 48)
+    assert curv["iou"][6] == pytest.approx((iou["curv"][1][6] + iou["curv"][2][6]) / 2)
+    assert uni["iou"][0] == pytest.approx(sum(v[0] for v in iou["uniform"]) / 3)
+    assert curv["scores"] == {"miou": 51.0}
+    table = study_table(summary)
+    assert "7 of 51 planned runs finished so far." in table
+    sky = curv["iou"][0] - uni["iou"][0]
+    assert f"| curv | 48x36 | {sky:+.1f} |" in table

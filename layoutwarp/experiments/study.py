@@ -32,7 +32,16 @@ from ..files import atomic_write
 from ..layouts import Layout
 from .models import run_name, save_model
 
-__all__ = ["PLANS", "StudyPlan", "equivalent_pixels", "run_study", "study_runs", "summarise_study"]
+__all__ = [
+    "PLANS",
+    "StudyPlan",
+    "equivalent_pixels",
+    "run_study",
+    "ship_study",
+    "study_runs",
+    "summarise_study",
+    "write_summary",
+]
 
 
 @dataclass(frozen=True)
@@ -186,8 +195,21 @@ def run_study(
         }
         atomic_write(record, json.dumps(rec, indent=2))
         say(f"  [{k + 1}/{len(todo)}] {name}: {plan.metric} {scores[plan.metric]:.2f}  [{seconds:.0f} s]")
+        write_summary(task, out, plan, planned=len(todo))  # a stopped study still has its figures
+    return write_summary(task, out, plan, planned=len(todo))
+
+
+def write_summary(
+    task: str, out: str | Path, plan: StudyPlan | None = None, planned: int | None = None
+) -> dict:
+    """Summarise the runs a study folder holds so far into ``study.json``, ``study.md`` and
+    ``study_<task>.png``; returns the summary."""
+    plan = plan or PLANS[task]
+    out = Path(out)
     records = [json.loads(p.read_text()) for p in sorted((out / "runs").glob("*.json"))]
-    summary = summarise_study(task, plan, records)
+    if not records:
+        raise FileNotFoundError(f"no finished runs in {out / 'runs'}")
+    summary = summarise_study(task, plan, records) | {"planned": planned}
     atomic_write(out / "study.json", json.dumps(summary, indent=2))
     atomic_write(out / "study.md", study_table(summary))
     study_figure(summary, out / f"study_{task}.png")
@@ -219,22 +241,31 @@ def equivalent_pixels(curve: Sequence[tuple[float, float]], metric: float) -> tu
 def summarise_study(task: str, plan: StudyPlan, records: list[dict]) -> dict:
     """Mean ± std per family and size, the uniform curve, and every learned result's equivalent
     uniform pixel count and saving factor (with the interval from the seed spread)."""
-    groups: dict[tuple[str, tuple[int, int]], list[float]] = {}
+    groups: dict[tuple[str, tuple[int, int]], list[dict]] = {}
     for r in records:
-        groups.setdefault((r["family"], tuple(r["size_hw"])), []).append(float(r["scores"][plan.metric]))
+        groups.setdefault((r["family"], tuple(r["size_hw"])), []).append(r["scores"])
     rows = []
-    for (family, size), vals in sorted(groups.items(), key=lambda kv: (kv[0][1][0] * kv[0][1][1], kv[0][0])):
-        v = np.array(vals)
-        rows.append(
-            {
-                "family": family,
-                "size_hw": list(size),
-                "pixels": size[0] * size[1],
-                "mean": float(v.mean()),
-                "std": float(v.std(ddof=1)) if len(v) > 1 else 0.0,
-                "n": len(v),
-            }
-        )
+    for (family, size), scores in sorted(
+        groups.items(), key=lambda kv: (kv[0][1][0] * kv[0][1][1], kv[0][0])
+    ):
+        v = np.array([float(s[plan.metric]) for s in scores])
+        row = {
+            "family": family,
+            "size_hw": list(size),
+            "pixels": size[0] * size[1],
+            "mean": float(v.mean()),
+            "std": float(v.std(ddof=1)) if len(v) > 1 else 0.0,
+            "n": len(v),
+            "scores": {  # every scalar score, averaged over the seeds
+                k: float(np.mean([s[k] for s in scores]))
+                for k, x in scores[0].items()
+                if isinstance(x, int | float)
+            },
+        }
+        if "iou" in scores[0]:  # CamVid: per-class IoU averaged over the seeds (None: class absent)
+            iou = np.array([[np.nan if x is None else x for x in s["iou"]] for s in scores], dtype=float)
+            row["iou"] = [None if np.isnan(x) else float(x) for x in np.nanmean(iou, 0)] if iou.size else []
+        rows.append(row)
     curve = [(r["pixels"], r["mean"]) for r in rows if r["family"] == "uniform"]
     for r in rows:
         if r["family"] == "uniform" or len(curve) < 2:
@@ -263,6 +294,33 @@ def study_table(summary: dict) -> str:
             sav = f"{mark}{r['saving']:.2f}x [{lo:.2f}, {hi:.2f}]"
         score = f"{r['mean']:.2f} ± {r['std']:.2f} (n={r['n']})"
         lines.append(f"| {r['family']} | {w}x{h} | {r['pixels']} | {score} | {eq} | {sav} |")
+    if summary.get("planned") and summary["runs"] < summary["planned"]:
+        lines.append(f"\n{summary['runs']} of {summary['planned']} planned runs finished so far.")
+    return "\n".join(lines) + "\n" + class_table(summary)
+
+
+def class_table(summary: dict) -> str:
+    """CamVid: each family's per-class IoU change against uniform at the same size (points);
+    empty for tasks without per-class scores."""
+    from .data import CAMVID_CLASSES
+
+    rows = [r for r in summary["rows"] if r.get("iou")]
+    uniform = {tuple(r["size_hw"]): r["iou"] for r in rows if r["family"] == "uniform"}
+    rows = [r for r in rows if r["family"] != "uniform" and tuple(r["size_hw"]) in uniform]
+    if not rows:
+        return ""
+    names = CAMVID_CLASSES[: len(rows[0]["iou"])]
+    lines = [
+        "\nPer-class IoU change against uniform at the same size (points, mean over seeds):\n",
+        "| family | sensor | " + " | ".join(names) + " |",
+        "|---|---|" + "---|" * len(names),
+    ]
+    for r in rows:
+        base = uniform[tuple(r["size_hw"])]
+        cells = [
+            "—" if a is None or b is None else f"{a - b:+.1f}" for a, b in zip(r["iou"], base, strict=False)
+        ]
+        lines.append(f"| {r['family']} | {r['size_hw'][1]}x{r['size_hw'][0]} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 
@@ -302,4 +360,93 @@ def study_figure(summary: dict, path: str | Path) -> Path:
     ax.set_ylabel(summary["label"])
     ax.set_title(f"{summary['task']}: metric against pixel budget")
     ax.legend(fontsize=8)
+    return save_figure(fig, path)
+
+
+def study_scene(task: str, data_dir: str | Path) -> np.ndarray:
+    """The image learned layouts are drawn over: the mean test digit (MNIST), the mean
+    training face (faces), the first validation frame (CamVid); HW or HWC in ``[0, 1]``."""
+    if task == "mnist":
+        from .data import load_mnist_split
+
+        return load_mnist_split(data_dir, "test")[0][:2000].mean(0) / 255
+    if task == "camvid":
+        from .data import load_camvid
+
+        return load_camvid(data_dir, "val", limit=1)[0][0] / 255
+    from .data import load_faces
+
+    return load_faces(data_dir, limit=500)["images"].mean(0) / 255
+
+
+def ship_study(
+    task: str, out: str | Path, dest: str | Path, scene: np.ndarray | None = None, models: bool = True
+) -> dict:
+    """Copy what a study folder holds so far into a small folder to commit and share.
+
+    Writes ``dest/study.json``, ``study.md``, ``study_<task>.png``; ``layouts/<run>.json``, the
+    layout file of every run with a non-uniform layout; with ``models``,
+    ``models/<run>.pt`` (float16 weights) of each family's best seed at each learned size;
+    with a ``scene``, ``layouts_<task>.png``: those best layouts drawn over it.
+
+    Returns:
+        the summary.
+    """
+    from ..layoutfile import save_layout
+    from .models import load_model
+
+    out, dest = Path(out), Path(dest)
+    summary = write_summary(task, out)
+    for name in ("study.json", "study.md", f"study_{task}.png"):
+        atomic_write(dest / name, (out / name).read_bytes())
+    records = [json.loads(p.read_text()) for p in sorted((out / "runs").glob("*.json"))]
+    learned = set(PLANS[task].learned_sizes)
+    best: dict[tuple[str, tuple[int, int]], dict] = {}
+    for r in records:
+        name, size = run_name(r["family"], r["size_hw"], r["seed"]), tuple(r["size_hw"])
+        net, info = load_model(out / "models" / f"{name}.pt", task)
+        if r["family"] != "uniform":
+            extra = {"task": task, "run": name, "scores": r["scores"]}
+            save_layout(net.sensor.layout, dest / "layouts" / f"{name}.json", size, **extra)
+        key = (r["family"], size)
+        if size in learned and (key not in best or r["scores"][PLANS[task].metric] > best[key]["score"]):
+            best[key] = {"score": r["scores"][PLANS[task].metric], "name": name, "net": net, "info": info}
+    for b in best.values() if models else ():
+        save_model(
+            dest / "models" / f"{b['name']}.pt",
+            task,
+            b["net"],
+            sensor=b["info"]["sensor"],
+            training=b["info"]["training"],
+            half=True,
+        )
+    if scene is not None and best:
+        layouts_figure(
+            scene,
+            {k: b["net"].sensor.layout for k, b in best.items() if k[0] != "uniform"},
+            dest / f"layouts_{task}.png",
+        )
+    return summary
+
+
+def layouts_figure(
+    scene: np.ndarray, layouts: dict[tuple[str, tuple[int, int]], Layout], path: str | Path
+) -> Path:
+    """Learned layouts over a scene: one row per sensor size, one column per family."""
+    from .plots import draw_layout, family_color, figure, save_figure
+
+    sizes = sorted({s for _, s in layouts}, key=lambda s: s[0] * s[1])
+    families = list(dict.fromkeys(f for f, _ in sorted(layouts, key=lambda k: k[0])))
+    fig, axes = figure(
+        len(sizes), len(families), figsize=(2.6 * len(families), 2.6 * len(sizes)), squeeze=False
+    )
+    for i, size in enumerate(sizes):
+        for j, fam in enumerate(families):
+            ax = axes[i, j]
+            if (fam, size) in layouts:
+                color = family_color(fam) if fam != "density" else "tab:gray"
+                draw_layout(ax, layouts[fam, size], size, image=scene, color=color, lw=0.5)
+                ax.set_title(f"{fam} {size[1]}x{size[0]}", fontsize=9)
+            else:
+                ax.axis("off")
     return save_figure(fig, path)
