@@ -16,6 +16,7 @@ from torch import Tensor
 
 __all__ = [
     "check_choice",
+    "check_device",
     "check_int",
     "check_number",
     "check_points",
@@ -98,6 +99,18 @@ def _interval(lo, hi, lo_open: bool, hi_open: bool) -> str:
     if lo is None:
         return f"{'<' if hi_open else '<='} {hi:g}"
     return f"in {'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}"
+
+
+def check_device(device: Any, name: str = "device") -> torch.device:
+    """``device`` as a ``torch.device``; ``ValueError`` for a name torch does not know or a
+    CUDA device on a machine without CUDA."""
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError):
+        raise ValueError(f"{name} must be a torch device (e.g. cpu, cuda, cuda:1), got {device!r}") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"{name} {str(dev)!r} asked for, but no CUDA GPU is available here")
+    return dev
 
 
 def check_tensor(x: Any, name: str) -> Tensor:

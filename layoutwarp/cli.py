@@ -271,15 +271,12 @@ def _device(name: str | None) -> str:
     if name is None:  # under torchrun each rank takes the GPU of its local rank
         local = os.environ.get("LOCAL_RANK")
         return f"cuda:{local}" if local is not None and torch.cuda.is_available() else default_device()
+    from .checks import check_device
+
     try:
-        dev = torch.device(name)
-    except RuntimeError:
-        raise UsageError(
-            f"argument --device: {name!r} is not a torch device (e.g. cpu, cuda, cuda:1)"
-        ) from None
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise UsageError(f"argument --device: {name!r} asked for, but no CUDA GPU is available here")
-    return str(dev)
+        return str(check_device(name, "argument --device"))
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
 
 
 def _add_run_args(p: argparse.ArgumentParser) -> None:
@@ -433,6 +430,7 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
         progress=False if args.no_progress else None,
         engine=args.engine,
         address=args.address,
+        device=_device(args.device),
     )
     print(
         f"{res.processed} written, {res.skipped} already done, {len(res.failed)} failed "
@@ -670,6 +668,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     pp.add_argument(
         "--tol", type=positive_float, help="curved-edge tolerance (default: 1/4 level of the image dtype)"
+    )
+    pp.add_argument(
+        "--device",
+        help="where the sparse products run: cpu, cuda, ... (default: cuda when available, else cpu)",
     )
     pp.add_argument("--no-progress", action="store_true", help="no progress bar")
     pp.add_argument(

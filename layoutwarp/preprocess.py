@@ -143,10 +143,19 @@ class AreaResampler:
 
     Call with an ``(H, W)`` or ``(H, W, C)`` numpy image of any real dtype; returns a float32
     ``(h, w)`` / ``(h, w, C)`` array in the input's units (no rescaling of uint8/uint16).
+    The sparse product runs on ``device`` (the weights are built on the CPU once, then moved):
+    CPU or CUDA; a CUDA product sums in another order, so its float32 values can differ from
+    the CPU's in the last bits (a rounded integer output by one level, rarely).
     """
 
     def __init__(
-        self, layout: Layout, size: tuple[int, int], src_size: tuple[int, int], *, tol: float = 1e-4
+        self,
+        layout: Layout,
+        size: tuple[int, int],
+        src_size: tuple[int, int],
+        *,
+        tol: float = 1e-4,
+        device: str | torch.device = "cpu",
     ):
         self.size, self.src_size = check_size(size), check_size(src_size, "src_size")
         self.layout, self.tol = layout, tol
@@ -160,7 +169,8 @@ class AreaResampler:
                 torch.from_numpy(w.data),
                 size=w.shape,
                 check_invariants=False,
-            )
+            ).to(device)
+        self.device = torch.device(device)
         self._maps: tuple[np.ndarray, np.ndarray] | None = None
 
     def __call__(self, image: np.ndarray) -> np.ndarray:
@@ -168,7 +178,7 @@ class AreaResampler:
             raise ValueError(f"image has size {image.shape[:2]}, this resampler expects {self.src_size}")
         flat = np.ascontiguousarray(image.reshape(self.src_size[0] * self.src_size[1], -1), np.float32)
         with torch.no_grad():  # torch's CSR product: 2-3x scipy's for a few channels
-            out = (self._csr @ torch.from_numpy(flat)).numpy()
+            out = (self._csr @ torch.from_numpy(flat).to(self.device)).cpu().numpy()
         return out.reshape(*self.size, *image.shape[2:])
 
     def labels(self, label: np.ndarray, rule: str = "nearest") -> np.ndarray:
@@ -245,8 +255,11 @@ class _Job:
     the GIL, and the weights of a source size are built once (under a lock) for all.
     """
 
-    def __init__(self, layout: Layout, size: tuple[int, int], tol: float | None, label_rule: str):
+    def __init__(
+        self, layout: Layout, size: tuple[int, int], tol: float | None, label_rule: str, device: str = "cpu"
+    ):
         self.layout, self.size, self.tol, self.label_rule = layout, size, tol, label_rule
+        self.device = device
         self._cache: dict[tuple, AreaResampler] = {}
         self._lock = threading.Lock()
 
@@ -254,7 +267,9 @@ class _Job:
         key = (src_size, self.tol or data_tolerance(dtype)[0])
         with self._lock:
             if key not in self._cache:
-                self._cache[key] = AreaResampler(self.layout, self.size, src_size, tol=key[1])
+                self._cache[key] = AreaResampler(
+                    self.layout, self.size, src_size, tol=key[1], device=self.device
+                )
             return self._cache[key]
 
     def process(self, task: dict) -> dict:
@@ -308,7 +323,8 @@ def _remote_process(spec: str, task: dict) -> dict:
             d = json.loads(spec)
             config = {k: v for k, v in d["layout"].items() if k not in ("family", "size_hw")}
             layout = FAMILIES[d["layout"]["family"]].from_config(config, dtype=torch.float64)
-            job = _WORKER_JOBS[spec] = _Job(layout, tuple(d["size"]), d["tol"], d["label_rule"])
+            job = _Job(layout, tuple(d["size"]), d["tol"], d["label_rule"], d["device"])
+            _WORKER_JOBS[spec] = job
     return job.process(task)
 
 
@@ -405,6 +421,7 @@ def preprocess_folder(
     files: Iterable[Path] | None = None,
     engine: str = "local",
     address: str | None = None,
+    device: str | torch.device = "cpu",
 ) -> PreprocessResult:
     """Write the sensor image of every image under ``src`` to the same relative path in ``dst``.
 
@@ -431,6 +448,9 @@ def preprocess_folder(
             local cluster of ``workers`` single-threaded processes is started and stopped.
         address: a running Dask scheduler to join (``"tcp://host:8786"``); its workers must see
             ``src`` and ``dst`` at the same paths (a shared file system).
+        device: where the sparse products run (``"cpu"``, ``"cuda"``; on a Dask cluster, the
+            device of each worker). The CPU's outputs are the reference; see
+            :class:`AreaResampler` for CUDA's.
 
     Returns:
         a :class:`PreprocessResult`; failures (unreadable files) are listed, not raised.
@@ -514,9 +534,10 @@ def preprocess_folder(
             bar.update(1)
 
         fixed = type(layout).from_config(config, dtype=torch.float64)
-        job = _Job(fixed, size, tol, label_rule)
+        job = _Job(fixed, size, tol, label_rule, str(device))
         if engine == "dask" and tasks:
-            spec = json.dumps({"layout": config, "size": list(size), "tol": tol, "label_rule": label_rule})
+            spec = {"layout": config, "size": list(size), "tol": tol, "label_rule": label_rule}
+            spec = json.dumps(spec | {"device": str(device)})
             _run_on_dask(spec, tasks, record, workers, address)
         elif workers == 1 or len(tasks) <= 1:
             for task in tasks:
@@ -538,6 +559,7 @@ def preprocess_folder(
         "seconds": round(result.seconds, 3),
         "workers": workers,
         "engine": engine if address is None else f"{engine} at {address}",
+        "device": str(device),
     }
     result.manifest = dst / "manifest.json"
     atomic_write(result.manifest, json.dumps(manifest, indent=2).encode())

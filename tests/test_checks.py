@@ -6,7 +6,7 @@ import pytest
 import torch
 
 import layoutwarp as lw
-from layoutwarp.checks import check_choice, check_int, check_number, check_shape, check_size
+from layoutwarp.checks import check_choice, check_device, check_int, check_number, check_shape, check_size
 
 F64 = torch.float64
 # sizes that break the reference code's arange(-1, 1, 2/n) (n + 1 cells), odd and even, 1xN
@@ -46,6 +46,11 @@ def test_check_shape_patterns():
             lambda: check_choice("auto", ("exact", "point"), "method"),
             r"method must be one of 'exact', 'point'; got 'auto'",
         ),
+        (
+            lambda: check_device("gpu0"),
+            r"device must be a torch device \(e.g. cpu, cuda, cuda:1\), got 'gpu0'",
+        ),
+        (lambda: check_device(3.5, "dev"), r"dev must be a torch device .*, got 3.5"),
     ],
 )
 def test_messages_name_argument_value_and_range(call, message):
@@ -56,6 +61,10 @@ def test_messages_name_argument_value_and_range(call, message):
 def test_checks_return_normalised_values():
     assert check_size([3.0, 4]) == (3, 4) and check_int(5, "n", 1, 9) == 5 and check_number("0.5", "t") == 0.5
     assert check_choice("exact", ("exact",), "method") == "exact"
+    assert check_device("cpu") == torch.device("cpu")
+    if not torch.cuda.is_available():
+        with pytest.raises(ValueError, match="device 'cuda:1' asked for, but no CUDA GPU is available here"):
+            check_device("cuda:1")
 
 
 @pytest.mark.parametrize(

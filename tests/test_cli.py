@@ -154,6 +154,10 @@ CASES = {
         ],
         ["--address", "needs engine='dask'"],
     ),
+    "preprocess on an unknown device": (
+        ["preprocess", CAMVID_VAL, "{tmp}/out", "--family", "uniform", "--size", "8x6", "--device", "gpu0"],
+        ["--device", "'gpu0'", "torch device"],
+    ),
     "family without a file": (
         ["export", "--family", "spline", *MASK, "--out", "{tmp}/x.svg"],
         ["--family", "'spline'", "--layout FILE"],
