@@ -118,7 +118,11 @@ def fit(
     share ``batch[rank::world_size]`` of each global batch; DistributedDataParallel averages
     the gradients (θ included, as an ordinary parameter), so a step equals the single-process
     step on the global batch. After every epoch the ranks' θ are compared (they must agree
-    exactly); only rank 0 draws a progress bar.
+    exactly); only rank 0 draws a progress bar. With CUDA, the batch-norm layers become
+    ``SyncBatchNorm`` (statistics over the global batch; untested here for lack of GPUs).
+
+    Nothing in the loop reads a device value back except the progress bar's loss and θ
+    (every 20th step, only when the bar is drawn) and the θ check between epochs.
     """
     sensor = list(model.sensor.parameters())
     history = [model.sensor.theta.detach().tolist()]
@@ -131,6 +135,8 @@ def fit(
         starts.pop()
     bounds = list(zip(starts, [*starts[1:], n], strict=True))
     rank, size = world()
+    if size > 1 and device.type == "cuda":  # batch statistics over the global batch (in place:
+        nn.SyncBatchNorm.convert_sync_batchnorm(model)  # the parameters, and so `opt`, stay)
     bar = tqdm(
         total=epochs * len(bounds),
         desc=desc,
@@ -155,9 +161,9 @@ def fit(
             scaler.step(opt)
             scaler.update()
             bar.update(1)
-            bar.set_postfix(
-                loss=f"{loss.item():.3f}", theta=",".join(f"{v:.2f}" for v in model.sensor.theta.tolist())
-            )
+            if not bar.disable and bar.n % 20 == 1:  # reading the loss waits for the device
+                th = model.sensor.theta.detach()
+                bar.set_postfix(loss=f"{loss.item():.3f}", theta=format_theta(th.tolist()))
         if sched is not None:
             sched.step()
         if size > 1:
