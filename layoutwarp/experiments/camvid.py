@@ -21,15 +21,14 @@ from ..backwarp import backwarp, backwarp_cross_entropy
 from ..layoutfile import save_layout
 from ..sensor import SensorLayer
 from .data import CAMVID_CLASSES, VOID, load_camvid
-from .models import save_run_model
 from .training import (
     ExperimentDefaults,
     TaskRun,
     fit,
-    format_theta,
     layout_name,
     model_device,
     optimizer,
+    run_grid,
     save_runs,
     theta_text,
 )
@@ -268,54 +267,43 @@ def run_camvid_experiment(
     out.mkdir(parents=True, exist_ok=True)
     sensor = sensor or DEFAULTS.sensor()
     train, val = load_camvid(data_dir, "train", limit), load_camvid(data_dir, "val", limit)
-    runs, models = [], {}
-    for size in sizes:
-        for layout in families:
-            for seed in seeds:
-                run, model = train_camvid(
-                    train,
-                    val,
-                    layout,
-                    size,
-                    seed=seed,
-                    epochs=epochs,
-                    freeze_epochs=min(freeze_epochs, max(epochs - 1, 0)),
-                    progress=progress,
-                    sensor=sensor,
-                    class_weights=class_weights,
-                    device=device,
-                    amp=amp,
-                )
-                runs.append(run)
-                models.setdefault((layout, tuple(size)), model)
-                save_run_model(
-                    out,
-                    "camvid",
-                    layout,
-                    size,
-                    seed,
-                    model,
-                    sensor=sensor,
-                    training={"epochs": epochs, "class_weights": class_weights, "scores": run.scores},
-                )
-                th = format_theta(run.theta)
-                print(
-                    f"  camvid {layout:8s} {size[1]}x{size[0]} seed {seed}: mIoU {run.scores['miou']:5.2f}%  "
-                    f"pixel acc {run.scores['pixel_accuracy']:5.2f}%  θ = {th}  [{run.seconds:.0f} s]",
-                    flush=True,
-                )
-                save_runs(
-                    out,
-                    "camvid",
-                    data_dir,
-                    len(train[0]),
-                    len(val[0]),
-                    epochs,
-                    runs,
-                    ("miou", "pixel_accuracy"),
-                    sensor,
-                    class_weights=class_weights,
-                )
+    configs = [(f, tuple(size), seed) for size in sizes for f in families for seed in seeds]
+    models = run_grid(
+        "camvid",
+        out,
+        configs,
+        lambda layout, size, seed: train_camvid(
+            train,
+            val,
+            layout,
+            size,
+            seed=seed,
+            epochs=epochs,
+            freeze_epochs=min(freeze_epochs, max(epochs - 1, 0)),
+            progress=progress,
+            sensor=sensor,
+            class_weights=class_weights,
+            device=device,
+            amp=amp,
+        ),
+        sensor=sensor,
+        training={"epochs": epochs, "class_weights": class_weights},
+        describe=lambda run: (
+            f"mIoU {run.scores['miou']:5.2f}%  pixel acc {run.scores['pixel_accuracy']:5.2f}%"
+        ),
+        save=lambda runs: save_runs(
+            out,
+            "camvid",
+            data_dir,
+            len(train[0]),
+            len(val[0]),
+            epochs,
+            runs,
+            ("miou", "pixel_accuracy"),
+            sensor,
+            class_weights=class_weights,
+        ),
+    )
     for (layout, size), model in models.items():
         save_layout(
             model.sensor.layout,

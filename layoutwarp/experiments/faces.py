@@ -21,15 +21,14 @@ from ..layoutfile import save_layout
 from ..sensor import SensorLayer
 from .camvid import RGB_MEAN, RGB_STD, conv_block, to_tensor
 from .data import AGE_GROUPS, load_faces
-from .models import save_run_model
 from .training import (
     ExperimentDefaults,
     TaskRun,
     fit,
-    format_theta,
     layout_name,
     model_device,
     optimizer,
+    run_grid,
     save_runs,
     theta_text,
 )
@@ -164,46 +163,32 @@ def run_faces_experiment(
     order = np.random.default_rng(1234).permutation(n)  # one fixed split for every run
     n_test = max(1, round(n * test_fraction))
     test_idx, train_idx = np.sort(order[:n_test]), np.sort(order[n_test:])
-    runs, models = [], {}
     metrics = (*FaceNet.HEADS, "mean")
-    for size in sizes:
-        for layout in families:
-            for seed in seeds:
-                run, model = train_faces(
-                    data,
-                    train_idx,
-                    test_idx,
-                    layout,
-                    size,
-                    seed=seed,
-                    epochs=epochs,
-                    progress=progress,
-                    sensor=sensor,
-                    device=device,
-                    amp=amp,
-                )
-                runs.append(run)
-                models.setdefault((layout, tuple(size)), model)
-                save_run_model(
-                    out,
-                    "faces",
-                    layout,
-                    size,
-                    seed,
-                    model,
-                    sensor=sensor,
-                    training={"epochs": epochs, "scores": run.scores},
-                )
-                accs = "  ".join(f"{k} {run.scores[k]:5.1f}" for k in metrics)
-                th = format_theta(run.theta)
-                print(
-                    f"  faces {layout:8s} {size[1]}x{size[0]} seed {seed}: {accs}  "
-                    f"θ = {th}  [{run.seconds:.0f} s]",
-                    flush=True,
-                )
-                save_runs(
-                    out, "faces", data_dir, len(train_idx), len(test_idx), epochs, runs, metrics, sensor
-                )
+    configs = [(f, tuple(size), seed) for size in sizes for f in families for seed in seeds]
+    models = run_grid(
+        "faces",
+        out,
+        configs,
+        lambda layout, size, seed: train_faces(
+            data,
+            train_idx,
+            test_idx,
+            layout,
+            size,
+            seed=seed,
+            epochs=epochs,
+            progress=progress,
+            sensor=sensor,
+            device=device,
+            amp=amp,
+        ),
+        sensor=sensor,
+        training={"epochs": epochs},
+        describe=lambda run: "  ".join(f"{k} {run.scores[k]:5.1f}" for k in metrics),
+        save=lambda runs: save_runs(
+            out, "faces", data_dir, len(train_idx), len(test_idx), epochs, runs, metrics, sensor
+        ),
+    )
     for (layout, size), model in models.items():
         save_layout(
             model.sensor.layout,

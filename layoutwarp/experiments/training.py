@@ -14,6 +14,7 @@ from torch import nn
 from tqdm import tqdm
 
 from ..files import atomic_write
+from .models import save_run_model
 
 __all__ = [
     "ExperimentDefaults",
@@ -25,6 +26,7 @@ __all__ = [
     "layout_name",
     "model_device",
     "optimizer",
+    "run_grid",
     "save_runs",
     "summarise",
     "theta_text",
@@ -227,6 +229,38 @@ def save_runs(
         "runs": [asdict(r) for r in runs],
     }
     atomic_write(out / "results.json", json.dumps(result, indent=2))
+
+
+def run_grid(
+    task: str,
+    out: Path,
+    configs: Sequence[tuple[str, tuple[int, int], int]],
+    train: Callable[[str, tuple[int, int], int], tuple[TaskRun, nn.Module]],
+    *,
+    sensor: dict,
+    training: dict,
+    describe: Callable[[TaskRun], str],
+    save: Callable[[list[TaskRun]], None],
+) -> dict[tuple[str, tuple[int, int]], nn.Module]:
+    """Train every ``(family, size, seed)`` of ``configs`` with ``train``; after each run save its
+    model in ``out`` (the ``training`` record plus its scores), print one line (``describe``)
+    and call ``save`` with the runs so far. Returns the first seed's model of every family and
+    size (for figures)."""
+    runs: list[TaskRun] = []
+    models: dict[tuple[str, tuple[int, int]], nn.Module] = {}
+    for family, size, seed in configs:
+        run, model = train(family, size, seed)
+        runs.append(run)
+        models.setdefault((family, tuple(size)), model)
+        info = {"sensor": sensor, "training": {**training, "scores": run.scores}}
+        save_run_model(out, task, family, size, seed, model, **info)
+        print(
+            f"  {task} {family:8s} {size[1]}x{size[0]} seed {seed}: {describe(run)}  "
+            f"θ = {format_theta(run.theta)}  [{run.seconds:.0f} s]",
+            flush=True,
+        )
+        save(runs)
+    return models
 
 
 def format_theta(values: Sequence[float], digits: int = 3) -> str:
