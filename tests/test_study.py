@@ -7,7 +7,7 @@ import math
 
 import pytest
 import torch
-from conftest import SAMPLES
+from conftest import ROOT, SAMPLES
 
 from layoutwarp.cli import main
 from layoutwarp.experiments.models import FORMAT, load_model
@@ -164,3 +164,26 @@ def test_camvid_summary_has_per_class_iou_changes_and_counts_planned_runs():
     assert "7 of 51 planned runs finished so far." in table
     sky = curv["iou"][0] - uni["iou"][0]
     assert f"| curv | 48x36 | {sky:+.1f} |" in table
+
+
+SHIPPED = sorted((ROOT / "examples" / "study").glob("*/models/*.pt"))
+# how far a shipped model may score from its recorded full-data score on the small bundled
+# slice: MNIST 1000 test digits (binomial σ ≈ 1 point), faces 64 faces, CamVid 3 frames; a
+# broken model (wrong layout, weights or normalisation) scores near chance, far outside
+SLACK = {"mnist": 4.0, "faces": 15.0, "camvid": 15.0}
+
+
+def test_the_study_ships_models():
+    assert {p.parents[1].name for p in SHIPPED} >= {"mnist"}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("path", SHIPPED, ids=[f"{p.parents[1].name}/{p.stem}" for p in SHIPPED])
+def test_shipped_models_evaluate_on_the_bundled_samples(path, capsys):
+    task = path.parents[1].name
+    data = SAMPLES / {"mnist": "mnist", "camvid": "camvid", "faces": "faces/utkface"}[task]
+    assert main(["evaluate", task, "--model", str(path), "--data", str(data)]) == 0
+    scores = json.loads(capsys.readouterr().out)
+    recorded = load_model(path, task)[1]["training"]["scores"]
+    metric = PLANS[task].metric
+    assert scores[metric] == pytest.approx(recorded[metric], abs=SLACK[task])

@@ -396,7 +396,9 @@ def ship_study(
     from .models import load_model
 
     out, dest = Path(out), Path(dest)
-    summary = write_summary(task, out)
+    previous = out / "study.json"  # the planned number of runs, as the study wrote it
+    planned = json.loads(previous.read_text()).get("planned") if previous.exists() else None
+    summary = write_summary(task, out, planned=planned)
     for name in ("study.json", "study.md", f"study_{task}.png"):
         atomic_write(dest / name, (out / name).read_bytes())
     records = [json.loads(p.read_text()) for p in sorted((out / "runs").glob("*.json"))]
@@ -420,12 +422,9 @@ def ship_study(
             training=b["info"]["training"],
             half=True,
         )
-    if scene is not None and best:
-        layouts_figure(
-            scene,
-            {k: b["net"].sensor.layout for k, b in best.items() if k[0] != "uniform"},
-            dest / f"layouts_{task}.png",
-        )
+    layouts = {k: b["net"].sensor.layout for k, b in best.items() if k[0] != "uniform"}
+    if scene is not None and layouts:
+        layouts_figure(scene, layouts, dest / f"layouts_{task}.png")
     return summary
 
 
