@@ -310,7 +310,8 @@ def _cmd_study(args: argparse.Namespace) -> int:
             raise UsageError(
                 f"no study in {out!r} to ship; run `layoutwarp study {args.task} --out DIR` first"
             )
-        summary = ship_study(args.task, out, args.ship, scene=study_scene(args.task, data))
+        scene = study_scene(args.task, data)
+        summary = ship_study(args.task, out, args.ship, scene=scene, weights=args.weights)
         print(study_table(summary), end="")
         print(f"shipped {out} to {args.ship}")
         return 0
@@ -617,6 +618,13 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="DIR",
         help="train nothing: summarise the runs in --out so far and copy the results, learned layouts, "
         "the best models and a figure of the layouts to DIR",
+    )
+    st.add_argument(
+        "--weights",
+        choices=["float32", "float16", "int8"],
+        default="float16",
+        help="with --ship: the precision of the shipped models' weights (int8: conv and linear "
+        "weights at 255 levels per output channel)",
     )
     _add_run_args(st)
     st.set_defaults(func=_cmd_study)

@@ -10,7 +10,8 @@ import torch
 from conftest import ROOT, SAMPLES
 
 from layoutwarp.cli import main
-from layoutwarp.experiments.models import FORMAT, load_model
+from layoutwarp.experiments.mnist import DEFAULTS, MnistNet
+from layoutwarp.experiments.models import FORMAT, load_model, save_model
 from layoutwarp.experiments.study import PLANS, equivalent_pixels, study_table, summarise_study
 from layoutwarp.layoutfile import load_layout
 
@@ -54,7 +55,9 @@ def test_model_files_refuse_other_tasks_and_formats(tmp_path):
     with pytest.raises(ValueError, match="not a readable layoutwarp model file"):
         load_model(tmp_path / "junk.pt")
     torch.save({"format": "layoutwarp.model/9", "task": "mnist"}, tmp_path / "new.pt")
-    with pytest.raises(ValueError, match=f"format 'layoutwarp.model/9'; this layoutwarp reads '{FORMAT}'"):
+    with pytest.raises(
+        ValueError, match=f"format 'layoutwarp.model/9'; this layoutwarp reads .* and '{FORMAT}'"
+    ):
         load_model(tmp_path / "new.pt")
     with pytest.raises(ValueError, match="no such model file"):
         load_model(tmp_path / "missing.pt")
@@ -187,3 +190,29 @@ def test_shipped_models_evaluate_on_the_bundled_samples(path, capsys):
     recorded = load_model(path, task)[1]["training"]["scores"]
     metric = PLANS[task].metric
     assert scores[metric] == pytest.approx(recorded[metric], abs=SLACK[task])
+
+
+def test_model_weights_precisions_round_trip(tmp_path, gen):
+    torch.manual_seed(int(torch.randint(0, 2**31, (), generator=gen)))
+    net = MnistNet("curv", (4, 4), **DEFAULTS.sensor())
+    with torch.no_grad():
+        net.sensor.layout.rho.copy_(torch.rand(2, generator=gen) - 0.5)
+    x = torch.rand(32, 1, 28, 28, generator=gen)
+    net.eval()
+    with torch.no_grad():
+        ref = net(x)
+    sizes, formats = {}, {}
+    for weights, rel in (("float32", 0.0), ("float16", 2e-3), ("int8", 3e-2)):
+        path = save_model(
+            tmp_path / f"{weights}.pt", "mnist", net, sensor=DEFAULTS.sensor(), training={}, weights=weights
+        )
+        back = load_model(path, "mnist")[0]
+        assert torch.equal(back.sensor.theta, net.sensor.theta)  # θ is never rounded
+        with torch.no_grad():
+            out = back(x)
+        assert float((out - ref).norm() / ref.norm()) <= rel
+        sizes[weights], formats[weights] = path.stat().st_size, torch.load(path, weights_only=True)["format"]
+    assert formats == {"float32": "layoutwarp.model/1", "float16": "layoutwarp.model/1", "int8": FORMAT}
+    assert sizes["int8"] < 0.3 * sizes["float32"] and sizes["float16"] < 0.55 * sizes["float32"]
+    with pytest.raises(ValueError, match="weights must be one of 'float32', 'float16', 'int8'; got 'int4'"):
+        save_model(tmp_path / "x.pt", "mnist", net, sensor={}, training={}, weights="int4")

@@ -6,6 +6,10 @@ it), ``layout`` (the family and :meth:`~layoutwarp.Layout.to_config`), ``size_hw
 (the :class:`~layoutwarp.SensorLayer` options), ``training`` (seed, epochs and the like) and
 ``state_dict`` (the network's weights, the sensor's θ included). :func:`load_model` rebuilds
 the network with the layout fixed, so scoring never changes it.
+
+Format ``layoutwarp.model/2`` adds int8 weights for shipping (``quantized``: the float32
+per-output-channel scale of every int8 tensor); files without them are still written as
+``/1``, which older readers load.
 """
 
 from __future__ import annotations
@@ -24,7 +28,11 @@ from ..layouts import FAMILIES
 
 __all__ = ["FORMAT", "TASKS", "evaluate_model", "load_model", "run_name", "save_model", "save_run_model"]
 
-FORMAT = "layoutwarp.model/1"
+FORMAT = "layoutwarp.model/2"
+#: Formats :func:`load_model` reads.
+READS = ("layoutwarp.model/1", FORMAT)
+#: Precisions :func:`save_model` stores the network's weights in.
+WEIGHTS = ("float32", "float16", "int8")
 #: The tasks whose models these files hold.
 TASKS = ("mnist", "camvid", "faces")
 
@@ -38,7 +46,7 @@ def _network(task: str) -> type[nn.Module]:
 
 
 def save_model(
-    path: str | Path, task: str, model: nn.Module, *, sensor: dict, training: dict, half: bool = False
+    path: str | Path, task: str, model: nn.Module, *, sensor: dict, training: dict, weights: str = "float32"
 ) -> Path:
     """Write ``model`` (a task network with a ``sensor``) to a model file, atomically.
 
@@ -48,18 +56,28 @@ def save_model(
         model: the trained network.
         sensor: the sensor options it was trained with (``method``, ``tol``, ...).
         training: anything JSON-able that describes the run (seed, epochs, scores, ...).
-        half: store floating weights as float16 (half the size; scores can shift slightly),
-            the sensor's θ always in full precision.
+        weights: ``"float32"``; ``"float16"`` (half the size); ``"int8"`` (a quarter: conv and
+            linear weights rounded to 255 levels per output channel, the rest float16). Scores
+            can shift slightly with either; the sensor's θ is always kept in full precision.
     """
+    from ..checks import check_choice
+
+    check_choice(weights, WEIGHTS, "weights")
     layout = model.sensor.layout
-    state = {
-        k: (v.half() if half and v.is_floating_point() and not k.startswith("sensor.") else v)
-        for k, v in model.state_dict().items()
-    }
+    state, scales = {}, {}
+    for k, v in model.state_dict().items():
+        if k.startswith("sensor.") or not v.is_floating_point() or weights == "float32":
+            state[k] = v
+        elif weights == "int8" and v.ndim >= 2:
+            scale = v.detach().abs().amax(dim=tuple(range(1, v.ndim))).float().clamp_min(1e-30) / 127
+            state[k] = (v / scale.view(-1, *[1] * (v.ndim - 1))).round().clamp(-127, 127).to(torch.int8)
+            scales[k] = scale
+        else:
+            state[k] = v.half()
     from .. import __version__
 
     data = {
-        "format": FORMAT,
+        "format": FORMAT if scales else READS[0],
         "task": task,
         "version": __version__,
         "layout": {"family": layout.family, **layout.to_config()},
@@ -67,7 +85,7 @@ def save_model(
         "sensor": dict(sensor),
         "training": dict(training),
         "state_dict": state,
-    }
+    } | ({"quantized": scales} if scales else {})
     buf = io.BytesIO()
     torch.save(data, buf)
     return atomic_write(path, buf.getvalue())
@@ -113,9 +131,9 @@ def load_model(
     except Exception as exc:  # pickle, zip and torch errors alike: not a model file
         raise ValueError(f"{path}: not a readable layoutwarp model file ({type(exc).__name__})") from None
     fmt = data.get("format") if isinstance(data, dict) else None
-    if fmt != FORMAT:
+    if fmt not in READS:
         what = f"format {fmt!r}" if isinstance(fmt, str) else "no model format"
-        raise ValueError(f"{path}: {what}; this layoutwarp reads {FORMAT!r}")
+        raise ValueError(f"{path}: {what}; this layoutwarp reads {' and '.join(map(repr, READS))}")
     if task is not None and data.get("task") != task:
         raise ValueError(f"{path}: a {data.get('task')!r} model, not a {task!r} model")
     spec = dict(data["layout"])
@@ -124,14 +142,19 @@ def load_model(
         raise ValueError(f"{path}: unknown layout family {family!r}")
     layout = FAMILIES[family].from_config(spec)
     net = _network(data["task"])(layout, tuple(data["size_hw"]), learn=False, **data["sensor"])
-    state = {k: v.float() if v.dtype == torch.float16 else v for k, v in data["state_dict"].items()}
+    scales = data.get("quantized", {})
+    state = {}
+    for k, v in data["state_dict"].items():
+        if k in scales:
+            v = v.float() * scales[k].view(-1, *[1] * (v.ndim - 1))
+        state[k] = v.float() if v.dtype == torch.float16 else v
     try:
         net.load_state_dict(state)
     except RuntimeError as exc:
         first = str(exc).splitlines()[0]
         raise ValueError(f"{path}: the weights do not fit the {data['task']} network ({first})") from None
     net.to(device).eval()
-    return net, {k: v for k, v in data.items() if k != "state_dict"}
+    return net, {k: v for k, v in data.items() if k not in ("state_dict", "quantized")}
 
 
 def evaluate_model(task: str, model: nn.Module, data_dir: str | Path, split: str | None = None) -> dict:

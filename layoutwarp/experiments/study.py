@@ -380,13 +380,19 @@ def study_scene(task: str, data_dir: str | Path) -> np.ndarray:
 
 
 def ship_study(
-    task: str, out: str | Path, dest: str | Path, scene: np.ndarray | None = None, models: bool = True
+    task: str,
+    out: str | Path,
+    dest: str | Path,
+    scene: np.ndarray | None = None,
+    models: bool = True,
+    weights: str = "float16",
 ) -> dict:
     """Copy what a study folder holds so far into a small folder to commit and share.
 
     Writes ``dest/study.json``, ``study.md``, ``study_<task>.png``; ``layouts/<run>.json``, the
     layout file of every run with a non-uniform layout; with ``models``,
-    ``models/<run>.pt`` (float16 weights) of each family's best seed at each learned size;
+    ``models/<run>.pt`` (in ``weights`` precision, see :func:`~.models.save_model`) of each
+    family's best seed at each learned size;
     with a ``scene``, ``layouts_<task>.png``: those best layouts drawn over it.
 
     Returns:
@@ -420,7 +426,7 @@ def ship_study(
             b["net"],
             sensor=b["info"]["sensor"],
             training=b["info"]["training"],
-            half=True,
+            weights=weights,
         )
     layouts = {k: b["net"].sensor.layout for k, b in best.items() if k[0] != "uniform"}
     if scene is not None and layouts:
