@@ -704,13 +704,23 @@ class _FoveaLayout(Layout):
         return self._det0(p if c is None else self._local(p, c)[0], th)
 
     def phi_dtheta(self, p: Tensor, theta: Tensor) -> Tensor:
-        if theta.numel() == 4:
-            return super().phi_dtheta(p, theta)
+        """``∂φ/∂θ`` in closed form, ``(..., 2, P)``. For a learned centre, with ``σ_j = ±1``
+        the side of ``c_j`` that ``p_j`` lies on (``∂s_j/∂c_j = −σ_j``, ``∂u_j/∂c_j =
+        (σ_j u_j − 1)/s_j``): ``∂φ_i/∂c_j = δ_ij (1 − σ_i φ0_i(u)) + s_i J0_ij(u) (σ_j u_j −
+        1)/s_j``; coordinates φ keeps fixed have zero derivative."""
         th, c = self._split(theta)
         if c is None:
             return self._dtheta0(p, th)
         u, s = self._local(p, c)
-        return s[..., :, None] * self._dtheta0(u, th)
+        d = s[..., :, None] * self._dtheta0(u, th)
+        if theta.numel() < 4:
+            return d
+        sigma = torch.where(p.to(u) >= c.to(u), 1.0, -1.0)
+        eye = torch.eye(2, dtype=u.dtype, device=u.device)
+        dc = eye * (1 - sigma * self._phi0(u, th))[..., :, None]
+        dc = dc + s[..., :, None] * self._jacobian0(u, th) * ((sigma * u - 1) / s)[..., None, :]
+        d = torch.cat([d, dc], -1)
+        return torch.where(self._fixed(p.to(u), u)[..., :, None], torch.zeros_like(d), d)
 
     def to_config(self) -> dict[str, Any]:
         th = self.theta.detach().double().cpu()

@@ -168,6 +168,24 @@ def test_jacobian_and_dtheta_match_autograd(name, gen):
     assert torch.allclose(det, torch.linalg.det(jac), atol=1e-10)
 
 
+@pytest.mark.parametrize("family", ["curv", "rect"])
+def test_learned_centre_dtheta_in_closed_form_matches_autograd(family, gen):
+    layout = rand_fovea(gen, family, learn_center=True)
+    c = layout.center.detach()
+    p = torch.rand(400, 2, generator=gen, dtype=F64) * 2 - 1
+    p[:40, 0] = c[0]  # on the centre lines, where the side (σ) switches
+    p[40:80, 1] = c[1]
+    p[80:100] = torch.tensor([[1.0, 0.4], [-1.0, -0.2], [0.3, 1.0], [0.1, -1.0]], dtype=F64).repeat(5, 1)
+    th = layout.theta.detach()
+    d = layout.phi_dtheta(p, th)
+    assert d.shape == (400, 2, 4)
+    assert (d - lw.Layout.phi_dtheta(layout, p, th)).abs().max() <= 1e-12
+    assert (
+        d[80:100].abs().amax(-1)[torch.tensor([[1, 0], [1, 0], [0, 1], [0, 1]]).repeat(5, 1).bool()].max()
+        == 0
+    )
+
+
 # ----------------------------------------------------------------------------------------
 # θ-gradients against central differences of the float64 exact forward
 # ----------------------------------------------------------------------------------------
