@@ -182,8 +182,23 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         with_scaling=not args.no_scaling,
         photo=args.image,
         device=_device(args.device) if args.device else "cpu",
+        only=_bench_rows(args.layouts),
     )
     return 0
+
+
+def _bench_rows(text: str | None) -> list[str] | None:
+    """``--layouts``: comma-separated rows of the benchmark, checked."""
+    if text is None:
+        return None
+    from .experiments.bench import bench_layouts
+
+    names = list(bench_layouts((0.0, 0.0)))
+    rows = [t.strip() for t in text.split(",")]
+    for r in rows:
+        if r not in names:
+            raise UsageError(f"argument --layouts: {r!r} is not a row; choose from {', '.join(names)}")
+    return rows
 
 
 def _sensor_options(args: argparse.Namespace, default_tol: float) -> dict:
@@ -592,6 +607,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     b.add_argument("--no-memory", action="store_true", help="skip the peak-memory children")
     b.add_argument("--no-scaling", action="store_true", help="skip the input/sensor size scaling grid")
+    b.add_argument(
+        "--layouts",
+        metavar="ROWS",
+        help="only these comma-separated layout rows (uniform, rect, curv, 'curv ±', spline, 'grid 8x8', "
+        "fovea); the anchors are always measured",
+    )
     b.set_defaults(func=_cmd_bench)
 
     st = command(

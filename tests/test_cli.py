@@ -154,6 +154,7 @@ CASES = {
         ],
         ["--address", "needs engine='dask'"],
     ),
+    "unknown bench row": (["bench", "--quick", "--layouts", "curv,hex"], ["--layouts", "'hex'", "fovea"]),
     "preprocess on an unknown device": (
         ["preprocess", CAMVID_VAL, "{tmp}/out", "--family", "uniform", "--size", "8x6", "--device", "gpu0"],
         ["--device", "'gpu0'", "torch device"],

@@ -269,6 +269,7 @@ def run(
     photo: str | Path | None = None,
     progress: Callable[[str], None] | None = None,
     device: str = "cpu",
+    only: Sequence[str] | None = None,
 ) -> dict:
     """Measure every integrator against the anchors on a photo and a synthetic scene.
 
@@ -285,6 +286,7 @@ def run(
         device: where the integrators and the ``grid_sample`` anchor run (images and layouts
             are moved there; times wait for the GPU); the OpenCV anchors and every reference
             stay on the CPU, and peak memory (host RSS) is measured for ``"cpu"`` only.
+        only: measure only these rows of :func:`bench_layouts` (the anchors always).
 
     Returns:
         a JSON-able dict: sizes, anchors (ms), and one :class:`Row` per configuration.
@@ -320,6 +322,8 @@ def run(
         img64 = img.double()
         npi = np.ascontiguousarray(img[0].permute(1, 2, 0).numpy())
         for name, layout in layouts.items():
+            if only and name not in only:
+                continue
             say(f"{image_name} {name}: float64 references")
             with torch.no_grad():
                 ref = simulate(img64, layout, size, tol=1e-7)
@@ -575,6 +579,7 @@ def main_bench(
     with_scaling: bool = True,
     photo: str | None = None,
     device: str = "cpu",
+    only: Sequence[str] | None = None,
 ) -> dict:
     """Run the benchmark (``quick``: small sizes, few repeats), print tables, write JSON and plot."""
     say = lambda msg: print(f"  .. {msg}", flush=True)  # noqa: E731
@@ -588,11 +593,12 @@ def main_bench(
             photo=photo,
             progress=say,
             device=device,
+            only=only,
         )
         if with_scaling:
             result["scaling"] = scaling(((128, 256), (256, 512)), ((17, 33), (33, 65)), repeats=2)
     else:
-        result = run(memory=memory, photo=photo, progress=say, device=device)
+        result = run(memory=memory, photo=photo, progress=say, device=device, only=only)
         if with_scaling:
             result["scaling"] = scaling()
     say("compile time of the kernels")
