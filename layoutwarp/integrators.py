@@ -272,11 +272,13 @@ class _ExactKernel(torch.autograd.Function):
     @staticmethod
     def forward(ctx, verts: Tensor, image: Tensor, mesh: PixelMesh) -> Tensor:
         arrays = _kernel_arrays(verts, mesh)
+        img = image.detach().contiguous().numpy()
         with kernels.LOCK:
-            incl, offsets = kernels.prefix_tables(image.detach().contiguous().numpy(), kernels.BLOCK)
-            out = kernels.exact_forward(*arrays, incl, offsets, kernels.BLOCK, kernels.threads())
+            out = kernels.exact_forward(
+                *arrays, img, kernels.BLOCK, kernels.band_rows(img), kernels.threads()
+            )
         ctx.save_for_backward(verts)
-        ctx.mesh, ctx.incl = mesh, incl
+        ctx.mesh, ctx.image = mesh, img  # the backward builds the whole prefix table when called
         return torch.from_numpy(out)
 
     @staticmethod
@@ -287,8 +289,9 @@ class _ExactKernel(torch.autograd.Function):
         v, seg_start, seg_end, _ = _kernel_arrays(verts, mesh)
         seg_edge = np.ascontiguousarray(mesh.seg_edge.cpu().numpy())
         with kernels.LOCK:
+            incl, _ = kernels.prefix_tables(ctx.image, kernels.BLOCK)
             wa, wb = kernels.exact_backward(
-                v, seg_start, seg_end, seg_edge, ctx.incl, kernels.BLOCK, g_edge, kernels.threads()
+                v, seg_start, seg_end, seg_edge, incl, kernels.BLOCK, g_edge, kernels.threads()
             )
         wa_t, wb_t = torch.from_numpy(wa), torch.from_numpy(wb)
         return _vertex_gradient(verts.detach(), mesh.seg_start, mesh.seg_end, wa_t, wb_t), None, None

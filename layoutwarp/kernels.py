@@ -2,11 +2,13 @@
 
 Each kernel fuses what the torch reference in :mod:`layoutwarp.integrators` does in some
 forty vectorised passes: cutting every pixel-boundary segment into single-cell pieces, the
-prefix-table look-ups of Green's theorem and the accumulation. Segments run in parallel
-(``prange`` over chunks of segments dealt to the threads in turn, so that curved edges,
-which have many segments and are often all of one orientation, are shared out evenly), each
-writing its own output, and a second pass sums each pixel edge's segments (contiguous in a
-:class:`~layoutwarp.PixelMesh`). The
+prefix-table look-ups of Green's theorem and the accumulation. The forward runs over bands of
+source rows, each thread building one band's prefix table at a time in a buffer of its own,
+so the whole image's table is never held (memory) and look-ups stay in cache; the backward
+runs over chunks of segments dealt to the threads in turn (curved edges, which have many
+segments often all of one orientation, are shared out evenly) on the whole table, built when
+it is called. Each writes its own output, and a last pass sums each pixel edge's segments
+(contiguous in a :class:`~layoutwarp.PixelMesh`). The
 arithmetic mirrors the reference step for step, so both agree to rounding.
 
 Compiled code is cached on disk (``cache=True``): a second process loads it instead of
@@ -26,7 +28,16 @@ try:  # numba is a dependency, but the torch reference keeps working without it
 except ImportError:  # pragma: no cover - depends on the environment
     njit = prange = get_num_threads = None
 
-__all__ = ["BLOCK", "LOCK", "available", "exact_backward", "exact_forward", "prefix_tables", "threads"]
+__all__ = [
+    "BLOCK",
+    "LOCK",
+    "available",
+    "band_rows",
+    "exact_backward",
+    "exact_forward",
+    "prefix_tables",
+    "threads",
+]
 
 #: Columns per block of the prefix tables (see :func:`prefix_tables`).
 BLOCK = 16
@@ -98,45 +109,93 @@ def _cell(incl: np.ndarray, row: int, col: int, k: int, block: int) -> float:
     return cur if col % block == 0 else cur - np.float64(incl[row, col - 1, k])
 
 
+@_inline
+def _band_prefix(
+    image: np.ndarray, ra: int, rb: int, block: int, incl: np.ndarray, offsets: np.ndarray
+) -> None:
+    """:func:`prefix_tables` of rows ``ra .. rb − 1`` into the band buffers ``incl``/``offsets``
+    (row ``ra`` at index 0), with the same arithmetic."""
+    n, _, w = image.shape
+    nb = (w + block - 1) // block
+    for rr in range(rb - ra):
+        for k in range(n):
+            total = 0.0
+            for b in range(nb):
+                offsets[rr, b, k] = total
+                acc = image[k, ra + rr, b * block] * 0  # zero in the image's dtype
+                for c in range(b * block, min(w, (b + 1) * block)):
+                    acc += image[k, ra + rr, c]
+                    incl[rr, c, k] = acc
+                total += acc
+
+
 @_jit
 def exact_forward(
     verts: np.ndarray,
     seg_start: np.ndarray,
     seg_end: np.ndarray,
     edge_offsets: np.ndarray,
-    incl: np.ndarray,
-    offsets: np.ndarray,
+    image: np.ndarray,
     block: int,
+    band: int,
     threads: int,
 ) -> np.ndarray:
     """``∫ P dY`` along every edge for every channel, and the edge's ``∫ X dY``: ``(N + 1, E)``.
 
     ``verts`` are ``(V, 2)`` float64 in source pixel units (inside the image); segment ``s``
     runs from ``verts[seg_start[s]]`` to ``verts[seg_end[s]]`` and edge ``e`` is made of the
-    segments ``edge_offsets[e] .. edge_offsets[e + 1] − 1``. Each segment is cut at source
-    rows, then each row piece at columns; a piece in cell ``(r, c)`` with mid-``X`` fraction
-    ``f`` adds ``ΔY · P_r(c + f)``, where ``P_r`` interpolates the prefix table linearly inside
-    the cell: ``P_r(c + f) = offset + I(c − 1) + f · (I(c) − I(c − 1))``, exact for the box
-    image ``L(c) = I(c) − I(c − 1)``. Row ``N`` sums to the pixel areas. ``threads``: see
-    :func:`threads`.
+    segments ``edge_offsets[e] .. edge_offsets[e + 1] − 1``; ``image`` is ``(N, H, W)``. Each
+    segment is cut at source rows, then each row piece at columns; a piece in cell ``(r, c)``
+    with mid-``X`` fraction ``f`` adds ``ΔY · P_r(c + f)``, where ``P_r`` interpolates the
+    prefix table (:func:`prefix_tables`) linearly inside the cell: ``P_r(c + f) = offset +
+    I(c − 1) + f · (I(c) − I(c − 1))``, exact for the box image ``L(c) = I(c) − I(c − 1)``. Row
+    ``N`` sums to the pixel areas. ``threads``: see :func:`threads`.
+
+    The image is taken in bands of ``band`` rows: each thread builds the prefix table of one
+    band at a time in a buffer of its own (that stays in cache) and integrates every segment
+    piece in those rows, so no table of the whole image is ever held. Segments are first
+    listed per band (a segment crossing several bands is listed in each).
     """
-    h, w, n = incl.shape
+    n, h, w = image.shape
+    nb = (w + block - 1) // block
     s_count = seg_start.shape[0]
-    per_seg = np.zeros((s_count, n + 1), dtype=np.float64)
-    n_chunks = (s_count + CHUNK - 1) // CHUNK
+    n_bands = (h + band - 1) // band
+    # list the segments of every band (counting sort; segments with ΔY = 0 add nothing)
+    first = np.zeros(n_bands + 1, dtype=np.int64)
+    for s in range(s_count):
+        y0, y1 = verts[seg_start[s], 1], verts[seg_end[s], 1]
+        if y1 != y0:
+            r0, r1 = _row_span(y0, y1, h)
+            for b in range(r0 // band, r1 // band + 1):
+                first[b + 1] += 1
+    for b in range(n_bands):
+        first[b + 1] += first[b]
+    fill = first[:-1].copy()
+    listed = np.empty(first[n_bands], dtype=np.int64)
+    for s in range(s_count):
+        y0, y1 = verts[seg_start[s], 1], verts[seg_end[s], 1]
+        if y1 != y0:
+            r0, r1 = _row_span(y0, y1, h)
+            for b in range(r0 // band, r1 // band + 1):
+                listed[fill[b]] = s
+                fill[b] += 1
+    per_entry = np.zeros((listed.shape[0], n), dtype=np.float64)
     for thread in prange(threads):
-        for chunk in range(thread, n_chunks, threads):
-            for s in range(chunk * CHUNK, min((chunk + 1) * CHUNK, s_count)):
+        incl = np.empty((band, w, n), dtype=image.dtype)
+        offsets = np.empty((band, nb, n), dtype=np.float64)
+        for bi in range(thread, n_bands, threads):
+            ra = bi * band
+            rb = min(h, ra + band)
+            _band_prefix(image, ra, rb, block, incl, offsets)
+            for j in range(first[bi], first[bi + 1]):
+                s = listed[j]
                 x0, y0 = verts[seg_start[s], 0], verts[seg_start[s], 1]
                 x1, y1 = verts[seg_end[s], 0], verts[seg_end[s], 1]
                 dxv, dyv = x1 - x0, y1 - y0
-                if dyv == 0.0:
-                    continue  # ΔY = 0 adds nothing
-                per_seg[s, n] = dyv * (x0 + x1) / 2
                 inv_dy = 1.0 / dyv
                 ylo, yhi = min(y0, y1), max(y0, y1)
                 r0, r1 = _row_span(y0, y1, h)
-                for row in range(r0, r1 + 1):
+                for row in range(max(r0, ra), min(r1, rb - 1) + 1):
                     ta = min(max((max(ylo, row) - y0) * inv_dy, 0.0), 1.0)
                     tb = min(max((min(yhi, row + 1.0) - y0) * inv_dy, 0.0), 1.0)
                     t_lo, t_hi = min(ta, tb), max(ta, tb)
@@ -148,6 +207,7 @@ def exact_forward(
                         c1 = c0
                     one_column = c1 == c0
                     inv_dx = 1.0 / dxv if not one_column else 1.0
+                    rr = row - ra
                     for col in range(c0, c1 + 1):
                         if one_column:  # keep the row piece's range (X → t is ill-conditioned)
                             t0, t1 = t_lo, t_hi
@@ -158,11 +218,19 @@ def exact_forward(
                         dy = (t1 - t0) * dyv
                         frac = min(max(x0 + (t0 + t1) / 2 * dxv - col, 0.0), 1.0)
                         blk = col // block
-                        first = col % block == 0
+                        at_start = col % block == 0
                         for k in range(n):
-                            cur = np.float64(incl[row, col, k])
-                            prev = 0.0 if first else np.float64(incl[row, col - 1, k])
-                            per_seg[s, k] += dy * (offsets[row, blk, k] + prev + frac * (cur - prev))
+                            cur = np.float64(incl[rr, col, k])
+                            prev = 0.0 if at_start else np.float64(incl[rr, col - 1, k])
+                            per_entry[j, k] += dy * (offsets[rr, blk, k] + prev + frac * (cur - prev))
+    per_seg = np.zeros((s_count, n + 1), dtype=np.float64)
+    for j in range(listed.shape[0]):  # in band order: a segment's rows top to bottom
+        for k in range(n):
+            per_seg[listed[j], k] += per_entry[j, k]
+    for s in prange(s_count):
+        x0, y0 = verts[seg_start[s], 0], verts[seg_start[s], 1]
+        x1, y1 = verts[seg_end[s], 0], verts[seg_end[s], 1]
+        per_seg[s, n] = (y1 - y0) * (x0 + x1) / 2
     e_count = edge_offsets.shape[0] - 1
     out = np.zeros((n + 1, e_count), dtype=np.float64)
     for e in prange(e_count):
@@ -170,6 +238,12 @@ def exact_forward(
             for k in range(n + 1):
                 out[k, e] += per_seg[s, k]
     return out
+
+
+def band_rows(image: np.ndarray, cache_bytes: int = 1 << 20) -> int:
+    """Rows per band of :func:`exact_forward`: a band's prefix table fills about ``cache_bytes``."""
+    n, h, w = image.shape
+    return max(1, min(h, cache_bytes // max(1, w * n * image.itemsize)))
 
 
 @_jit
