@@ -356,6 +356,9 @@ def study_figure(summary: dict, path: str | Path) -> Path:
             label=fam,
         )
     ax.set_xscale("log")
+    sizes = {r["pixels"]: r["size_hw"] for r in rows}
+    ax.set_xticks(sorted(sizes), [f"{p}\n{sizes[p][1]}x{sizes[p][0]}" for p in sorted(sizes)])
+    ax.minorticks_off()
     ax.set_xlabel("sensor pixels")
     ax.set_ylabel(summary["label"])
     ax.set_title(f"{summary['task']}: metric against pixel budget")
