@@ -273,12 +273,17 @@ class _ExactKernel(torch.autograd.Function):
     def forward(ctx, verts: Tensor, image: Tensor, mesh: PixelMesh) -> Tensor:
         arrays = _kernel_arrays(verts, mesh)
         img = image.detach().contiguous().numpy()
+        nt = kernels.threads()
+        tables = None
         with kernels.LOCK:
-            out = kernels.exact_forward(
-                *arrays, img, kernels.BLOCK, kernels.band_rows(img), kernels.threads()
-            )
+            if img.nbytes <= kernels.WHOLE_TABLE_BYTES:  # small: one table, kept for the backward
+                tables = kernels.prefix_tables(img, kernels.BLOCK)
+                out = kernels.exact_forward(*arrays, *tables, kernels.BLOCK, nt)
+            else:  # large: in bands of rows, no whole table held
+                band = kernels.band_rows(img, nt)
+                out = kernels.exact_forward_banded(*arrays, img, kernels.BLOCK, band, nt)
         ctx.save_for_backward(verts)
-        ctx.mesh, ctx.image = mesh, img  # the backward builds the whole prefix table when called
+        ctx.mesh, ctx.image, ctx.tables = mesh, img, tables
         return torch.from_numpy(out)
 
     @staticmethod
@@ -289,7 +294,7 @@ class _ExactKernel(torch.autograd.Function):
         v, seg_start, seg_end, _ = _kernel_arrays(verts, mesh)
         seg_edge = np.ascontiguousarray(mesh.seg_edge.cpu().numpy())
         with kernels.LOCK:
-            incl, _ = kernels.prefix_tables(ctx.image, kernels.BLOCK)
+            incl = (ctx.tables or kernels.prefix_tables(ctx.image, kernels.BLOCK))[0]
             wa, wb = kernels.exact_backward(
                 v, seg_start, seg_end, seg_edge, incl, kernels.BLOCK, g_edge, kernels.threads()
             )

@@ -2,12 +2,13 @@
 
 Each kernel fuses what the torch reference in :mod:`layoutwarp.integrators` does in some
 forty vectorised passes: cutting every pixel-boundary segment into single-cell pieces, the
-prefix-table look-ups of Green's theorem and the accumulation. The forward runs over bands of
-source rows, each thread building one band's prefix table at a time in a buffer of its own,
-so the whole image's table is never held (memory) and look-ups stay in cache; the backward
-runs over chunks of segments dealt to the threads in turn (curved edges, which have many
-segments often all of one orientation, are shared out evenly) on the whole table, built when
-it is called. Each writes its own output, and a last pass sums each pixel edge's segments
+prefix-table look-ups of Green's theorem and the accumulation. For an image up to
+:data:`WHOLE_TABLE_BYTES` the forward builds the whole prefix table once (kept for the
+backward) and runs over chunks of segments dealt to the threads in turn (curved edges, which
+have many segments often all of one orientation, are shared out evenly); a larger image is
+integrated in bands of rows, each thread building one band's table at a time in a buffer of
+its own, so no whole table is held (the backward builds it when it is called). Each writes
+its own output, and a last pass sums each pixel edge's segments
 (contiguous in a :class:`~layoutwarp.PixelMesh`). The
 arithmetic mirrors the reference step for step, so both agree to rounding.
 
@@ -31,10 +32,12 @@ except ImportError:  # pragma: no cover - depends on the environment
 __all__ = [
     "BLOCK",
     "LOCK",
+    "WHOLE_TABLE_BYTES",
     "available",
     "band_rows",
     "exact_backward",
     "exact_forward",
+    "exact_forward_banded",
     "prefix_tables",
     "threads",
 ]
@@ -129,8 +132,111 @@ def _band_prefix(
                 total += acc
 
 
+@_inline
+def _segment_rows(
+    x0: float,
+    y0: float,
+    x1: float,
+    y1: float,
+    rlo: int,
+    rhi: int,
+    ra: int,
+    incl: np.ndarray,
+    offsets: np.ndarray,
+    block: int,
+    w: int,
+    out: np.ndarray,
+    at: int,
+) -> None:
+    """Add segment ``(x0, y0) → (x1, y1)``'s ``∫ P dY`` over source rows ``rlo .. rhi`` to
+    ``out[at, :]``; the tables hold rows from ``ra`` on (see :func:`exact_forward`)."""
+    n = incl.shape[2]
+    dxv, dyv = x1 - x0, y1 - y0
+    inv_dy = 1.0 / dyv
+    ylo, yhi = min(y0, y1), max(y0, y1)
+    for row in range(rlo, rhi + 1):
+        ta = min(max((max(ylo, row) - y0) * inv_dy, 0.0), 1.0)
+        tb = min(max((min(yhi, row + 1.0) - y0) * inv_dy, 0.0), 1.0)
+        t_lo, t_hi = min(ta, tb), max(ta, tb)
+        xa, xb = x0 + t_lo * dxv, x0 + t_hi * dxv
+        xlo, xhi = min(xa, xb), max(xa, xb)
+        c0 = min(max(math.floor(xlo), 0), w - 1)
+        c1 = max(min(max(math.ceil(xhi) - 1, 0), w - 1), c0)
+        if dxv == 0.0:
+            c1 = c0
+        one_column = c1 == c0
+        inv_dx = 1.0 / dxv if not one_column else 1.0
+        rr = row - ra
+        for col in range(c0, c1 + 1):
+            if one_column:  # keep the row piece's range (X → t is ill-conditioned)
+                t0, t1 = t_lo, t_hi
+            else:
+                u0 = min(max((max(xlo, col) - x0) * inv_dx, 0.0), 1.0)
+                u1 = min(max((min(xhi, col + 1.0) - x0) * inv_dx, 0.0), 1.0)
+                t0, t1 = max(min(u0, u1), t_lo), min(max(u0, u1), t_hi)
+            dy = (t1 - t0) * dyv
+            frac = min(max(x0 + (t0 + t1) / 2 * dxv - col, 0.0), 1.0)
+            blk = col // block
+            at_start = col % block == 0
+            for k in range(n):
+                cur = np.float64(incl[rr, col, k])
+                prev = 0.0 if at_start else np.float64(incl[rr, col - 1, k])
+                out[at, k] += dy * (offsets[rr, blk, k] + prev + frac * (cur - prev))
+
+
+@_jit
+def _edge_sums(per_seg: np.ndarray, edge_offsets: np.ndarray) -> np.ndarray:
+    """Sum each edge's segments: ``(S, N + 1)`` → ``(N + 1, E)``."""
+    e_count = edge_offsets.shape[0] - 1
+    out = np.zeros((per_seg.shape[1], e_count), dtype=np.float64)
+    for e in prange(e_count):
+        for s in range(edge_offsets[e], edge_offsets[e + 1]):
+            for k in range(per_seg.shape[1]):
+                out[k, e] += per_seg[s, k]
+    return out
+
+
 @_jit
 def exact_forward(
+    verts: np.ndarray,
+    seg_start: np.ndarray,
+    seg_end: np.ndarray,
+    edge_offsets: np.ndarray,
+    incl: np.ndarray,
+    offsets: np.ndarray,
+    block: int,
+    threads: int,
+) -> np.ndarray:
+    """``∫ P dY`` along every edge for every channel, and the edge's ``∫ X dY``: ``(N + 1, E)``.
+
+    ``verts`` are ``(V, 2)`` float64 in source pixel units (inside the image); segment ``s``
+    runs from ``verts[seg_start[s]]`` to ``verts[seg_end[s]]`` and edge ``e`` is made of the
+    segments ``edge_offsets[e] .. edge_offsets[e + 1] − 1``; ``incl``/``offsets`` are the
+    image's :func:`prefix_tables`. Each segment is cut at source rows, then each row piece at
+    columns; a piece in cell ``(r, c)`` with mid-``X`` fraction ``f`` adds ``ΔY · P_r(c + f)``,
+    where ``P_r`` interpolates the prefix table linearly inside the cell: ``P_r(c + f) =
+    offset + I(c − 1) + f · (I(c) − I(c − 1))``, exact for the box image ``L(c) = I(c) −
+    I(c − 1)``. Row ``N`` sums to the pixel areas. ``threads``: see :func:`threads`.
+    """
+    h, w, n = incl.shape
+    s_count = seg_start.shape[0]
+    per_seg = np.zeros((s_count, n + 1), dtype=np.float64)
+    n_chunks = (s_count + CHUNK - 1) // CHUNK
+    for thread in prange(threads):
+        for chunk in range(thread, n_chunks, threads):
+            for s in range(chunk * CHUNK, min((chunk + 1) * CHUNK, s_count)):
+                x0, y0 = verts[seg_start[s], 0], verts[seg_start[s], 1]
+                x1, y1 = verts[seg_end[s], 0], verts[seg_end[s], 1]
+                if y1 == y0:
+                    continue  # ΔY = 0 adds nothing
+                per_seg[s, n] = (y1 - y0) * (x0 + x1) / 2
+                r0, r1 = _row_span(y0, y1, h)
+                _segment_rows(x0, y0, x1, y1, r0, r1, 0, incl, offsets, block, w, per_seg, s)
+    return _edge_sums(per_seg, edge_offsets)
+
+
+@_jit
+def exact_forward_banded(
     verts: np.ndarray,
     seg_start: np.ndarray,
     seg_end: np.ndarray,
@@ -140,28 +246,16 @@ def exact_forward(
     band: int,
     threads: int,
 ) -> np.ndarray:
-    """``∫ P dY`` along every edge for every channel, and the edge's ``∫ X dY``: ``(N + 1, E)``.
-
-    ``verts`` are ``(V, 2)`` float64 in source pixel units (inside the image); segment ``s``
-    runs from ``verts[seg_start[s]]`` to ``verts[seg_end[s]]`` and edge ``e`` is made of the
-    segments ``edge_offsets[e] .. edge_offsets[e + 1] − 1``; ``image`` is ``(N, H, W)``. Each
-    segment is cut at source rows, then each row piece at columns; a piece in cell ``(r, c)``
-    with mid-``X`` fraction ``f`` adds ``ΔY · P_r(c + f)``, where ``P_r`` interpolates the
-    prefix table (:func:`prefix_tables`) linearly inside the cell: ``P_r(c + f) = offset +
-    I(c − 1) + f · (I(c) − I(c − 1))``, exact for the box image ``L(c) = I(c) − I(c − 1)``. Row
-    ``N`` sums to the pixel areas. ``threads``: see :func:`threads`.
-
-    The image is taken in bands of ``band`` rows: each thread builds the prefix table of one
-    band at a time in a buffer of its own (that stays in cache) and integrates every segment
-    piece in those rows, so no table of the whole image is ever held. Segments are first
-    listed per band (a segment crossing several bands is listed in each).
-    """
+    """:func:`exact_forward` from the image ``(N, H, W)`` itself, in bands of ``band`` rows:
+    each thread builds the prefix table of one band at a time in a buffer of its own (that
+    stays in cache) and integrates every segment piece in those rows, so no table of the
+    whole image is held. Segments are first listed per band (a segment crossing several bands
+    is listed in each, its rows split between them)."""
     n, h, w = image.shape
     nb = (w + block - 1) // block
     s_count = seg_start.shape[0]
     n_bands = (h + band - 1) // band
-    # list the segments of every band (counting sort; segments with ΔY = 0 add nothing)
-    first = np.zeros(n_bands + 1, dtype=np.int64)
+    first = np.zeros(n_bands + 1, dtype=np.int64)  # counting sort of the segments by band
     for s in range(s_count):
         y0, y1 = verts[seg_start[s], 1], verts[seg_end[s], 1]
         if y1 != y0:
@@ -191,38 +285,9 @@ def exact_forward(
                 s = listed[j]
                 x0, y0 = verts[seg_start[s], 0], verts[seg_start[s], 1]
                 x1, y1 = verts[seg_end[s], 0], verts[seg_end[s], 1]
-                dxv, dyv = x1 - x0, y1 - y0
-                inv_dy = 1.0 / dyv
-                ylo, yhi = min(y0, y1), max(y0, y1)
                 r0, r1 = _row_span(y0, y1, h)
-                for row in range(max(r0, ra), min(r1, rb - 1) + 1):
-                    ta = min(max((max(ylo, row) - y0) * inv_dy, 0.0), 1.0)
-                    tb = min(max((min(yhi, row + 1.0) - y0) * inv_dy, 0.0), 1.0)
-                    t_lo, t_hi = min(ta, tb), max(ta, tb)
-                    xa, xb = x0 + t_lo * dxv, x0 + t_hi * dxv
-                    xlo, xhi = min(xa, xb), max(xa, xb)
-                    c0 = min(max(math.floor(xlo), 0), w - 1)
-                    c1 = max(min(max(math.ceil(xhi) - 1, 0), w - 1), c0)
-                    if dxv == 0.0:
-                        c1 = c0
-                    one_column = c1 == c0
-                    inv_dx = 1.0 / dxv if not one_column else 1.0
-                    rr = row - ra
-                    for col in range(c0, c1 + 1):
-                        if one_column:  # keep the row piece's range (X → t is ill-conditioned)
-                            t0, t1 = t_lo, t_hi
-                        else:
-                            u0 = min(max((max(xlo, col) - x0) * inv_dx, 0.0), 1.0)
-                            u1 = min(max((min(xhi, col + 1.0) - x0) * inv_dx, 0.0), 1.0)
-                            t0, t1 = max(min(u0, u1), t_lo), min(max(u0, u1), t_hi)
-                        dy = (t1 - t0) * dyv
-                        frac = min(max(x0 + (t0 + t1) / 2 * dxv - col, 0.0), 1.0)
-                        blk = col // block
-                        at_start = col % block == 0
-                        for k in range(n):
-                            cur = np.float64(incl[rr, col, k])
-                            prev = 0.0 if at_start else np.float64(incl[rr, col - 1, k])
-                            per_entry[j, k] += dy * (offsets[rr, blk, k] + prev + frac * (cur - prev))
+                rlo, rhi = max(r0, ra), min(r1, rb - 1)
+                _segment_rows(x0, y0, x1, y1, rlo, rhi, ra, incl, offsets, block, w, per_entry, j)
     per_seg = np.zeros((s_count, n + 1), dtype=np.float64)
     for j in range(listed.shape[0]):  # in band order: a segment's rows top to bottom
         for k in range(n):
@@ -231,19 +296,20 @@ def exact_forward(
         x0, y0 = verts[seg_start[s], 0], verts[seg_start[s], 1]
         x1, y1 = verts[seg_end[s], 0], verts[seg_end[s], 1]
         per_seg[s, n] = (y1 - y0) * (x0 + x1) / 2
-    e_count = edge_offsets.shape[0] - 1
-    out = np.zeros((n + 1, e_count), dtype=np.float64)
-    for e in prange(e_count):
-        for s in range(edge_offsets[e], edge_offsets[e + 1]):
-            for k in range(n + 1):
-                out[k, e] += per_seg[s, k]
-    return out
+    return _edge_sums(per_seg, edge_offsets)
 
 
-def band_rows(image: np.ndarray, cache_bytes: int = 1 << 20) -> int:
-    """Rows per band of :func:`exact_forward`: a band's prefix table fills about ``cache_bytes``."""
+#: Whole-image prefix tables up to this size are built once and kept for the backward; larger
+#: images are integrated in bands (:func:`exact_forward_banded`), which holds no whole table.
+WHOLE_TABLE_BYTES = 8 << 20
+
+
+def band_rows(image: np.ndarray, workers: int, cache_bytes: int = 1 << 20) -> int:
+    """Rows per band of :func:`exact_forward_banded`: a band's prefix table fills about
+    ``cache_bytes``, and there are at least four bands per worker thread."""
     n, h, w = image.shape
-    return max(1, min(h, cache_bytes // max(1, w * n * image.itemsize)))
+    by_cache = cache_bytes // max(1, w * n * image.itemsize)
+    return max(1, min(h, by_cache, -(-h // (4 * workers))))
 
 
 @_jit

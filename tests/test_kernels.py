@@ -143,8 +143,9 @@ def test_concurrent_calls_from_threads(gen):
 
 
 def test_bands_of_any_height_give_the_same_sums(gen):
-    """The forward integrates the image in bands of rows (one band's prefix table at a time);
-    segments crossing bands are split between them, so every band height must agree."""
+    """A large image is integrated in bands of rows (one band's prefix table at a time);
+    segments crossing bands are split between them: every band height must give the sums of
+    the whole-table kernel."""
     import numpy as np
 
     src = (rint(gen, 20, 70), rint(gen, 20, 70))
@@ -153,9 +154,25 @@ def test_bands_of_any_height_give_the_same_sums(gen):
     mesh = lw.pixel_mesh(layout, (rint(gen, 2, 12), rint(gen, 2, 12)), tol=1e-5, dtype=F64)
     tensors = (mesh.pixel_vertices(src).double(), mesh.seg_start, mesh.seg_end, mesh.edge_offsets)
     arrays = [np.ascontiguousarray(t.numpy()) for t in tensors]
-    one = kernels.exact_forward(*arrays, img, kernels.BLOCK, src[0], kernels.threads())
-    for band in (1, 2, rint(gen, 3, src[0] - 1)):
-        out = kernels.exact_forward(*arrays, img, kernels.BLOCK, band, kernels.threads())
+    one = kernels.exact_forward(*arrays, *kernels.prefix_tables(img, kernels.BLOCK), kernels.BLOCK, 2)
+    for band in (1, 2, rint(gen, 3, src[0] - 1), src[0]):
+        out = kernels.exact_forward_banded(*arrays, img, kernels.BLOCK, band, kernels.threads())
         assert np.abs(out - one).max() <= 1e-13 * np.abs(one).max()
-    assert kernels.band_rows(np.zeros((3, 1024, 2048), np.float32)) == 42  # a 1 MiB table
-    assert kernels.band_rows(np.zeros((1, 5, 10**7), np.float64)) == 1
+    assert kernels.band_rows(np.zeros((3, 1024, 2048), np.float32), 2) == 42  # a 1 MiB table
+    assert kernels.band_rows(np.zeros((1, 5, 10**7), np.float64), 2) == 1
+    assert kernels.band_rows(np.zeros((64, 28, 28), np.float32), 2) == 4  # 7 bands for 2 threads
+
+
+def test_the_banded_path_matches_the_reference(gen, monkeypatch):
+    """Images above ``WHOLE_TABLE_BYTES`` take the banded forward (and the backward builds its
+    own table): values and θ-gradients as the reference's, forced here on small images."""
+    monkeypatch.setattr(kernels, "WHOLE_TABLE_BYTES", 0)
+    for _ in range(3):
+        src = (rint(gen, 20, 90), rint(gen, 5, 90))
+        size = (rint(gen, 1, 16), rint(gen, 1, 16))
+        layout = lw.CurvLayout(rand_theta(gen, 0.95), dtype=F64)
+        img = torch.rand(rint(gen, 1, 3), *src, generator=gen, dtype=F64) * 10 - 3
+        w = torch.randn(img.shape[0], *size, generator=gen, dtype=F64)
+        (va, ga), (vb, gb) = both(img, layout, size, weights=w, tol=1e-6)
+        assert float((va - vb).abs().max()) <= 1e-12 * float(vb.abs().max())
+        assert float((ga - gb).abs().max()) <= 1e-12 * max(float(gb.abs().max()), 1.0)
