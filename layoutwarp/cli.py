@@ -326,7 +326,15 @@ def _cmd_study(args: argparse.Namespace) -> int:
                 f"no study in {out!r} to ship; run `layoutwarp study {args.task} --out DIR` first"
             )
         scene = study_scene(args.task, data)
-        summary = ship_study(args.task, out, args.ship, scene=scene, weights=args.weights)
+        samples = DATA_SAMPLES / d.sample
+        summary = ship_study(
+            args.task,
+            out,
+            args.ship,
+            scene=scene,
+            weights=args.weights,
+            samples=samples if samples.is_dir() else None,
+        )
         print(study_table(summary), end="")
         print(f"shipped {out} to {args.ship}")
         return 0

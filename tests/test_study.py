@@ -170,26 +170,27 @@ def test_camvid_summary_has_per_class_iou_changes_and_counts_planned_runs():
 
 
 SHIPPED = sorted((ROOT / "examples" / "study").glob("*/models/*.pt"))
-# how far a shipped model may score from its recorded full-data score on the small bundled
-# slice: MNIST 1000 test digits (binomial σ ≈ 1 point), faces 64 faces, CamVid 3 frames; a
-# broken model (wrong layout, weights or normalisation) scores near chance, far outside
-SLACK = {"mnist": 4.0, "faces": 15.0, "camvid": 15.0}
+#: far above chance (MNIST 10 %, faces' majority classes about 48 % on average, CamVid a few %)
+ABOVE = {"mnist": 60.0, "faces": 60.0, "camvid": 25.0}
 
 
 def test_the_study_ships_models():
-    assert {p.parents[1].name for p in SHIPPED} >= {"mnist"}
+    assert {p.parents[1].name for p in SHIPPED} >= {"mnist", "faces"}
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("path", SHIPPED, ids=[f"{p.parents[1].name}/{p.stem}" for p in SHIPPED])
 def test_shipped_models_evaluate_on_the_bundled_samples(path, capsys):
+    """``evaluate`` reproduces the scores recorded when the model was shipped, on the bundled
+    slice (most bundled faces were training faces, so its scores are not the test's)."""
     task = path.parents[1].name
     data = SAMPLES / {"mnist": "mnist", "camvid": "camvid", "faces": "faces/utkface"}[task]
     assert main(["evaluate", task, "--model", str(path), "--data", str(data)]) == 0
     scores = json.loads(capsys.readouterr().out)
-    recorded = load_model(path, task)[1]["training"]["scores"]
+    recorded = json.loads((path.parents[1] / "samples_scores.json").read_text())[path.name]
     metric = PLANS[task].metric
-    assert scores[metric] == pytest.approx(recorded[metric], abs=SLACK[task])
+    assert scores[metric] == pytest.approx(recorded[metric], abs=1e-9)
+    assert scores[metric] > ABOVE[task]
 
 
 def test_model_weights_precisions_round_trip(tmp_path, gen):

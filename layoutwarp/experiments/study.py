@@ -389,6 +389,7 @@ def ship_study(
     scene: np.ndarray | None = None,
     models: bool = True,
     weights: str = "float16",
+    samples: str | Path | None = None,
 ) -> dict:
     """Copy what a study folder holds so far into a small folder to commit and share.
 
@@ -396,13 +397,16 @@ def ship_study(
     layout file of every run with a non-uniform layout; with ``models``,
     ``models/<run>.pt`` (in ``weights`` precision, see :func:`~.models.save_model`) of each
     family's best seed at each learned size;
-    with a ``scene``, ``layouts_<task>.png``: those best layouts drawn over it.
+    with a ``scene``, ``layouts_<task>.png``: those best layouts drawn over it; with
+    ``samples`` (a small data folder, e.g. the bundled ``data_samples/``),
+    ``samples_scores.json``: each shipped model's scores there, read back from its shipped
+    file (so anyone can check that ``evaluate`` reproduces them).
 
     Returns:
         the summary.
     """
     from ..layoutfile import save_layout
-    from .models import load_model
+    from .models import evaluate_model, load_model
 
     out, dest = Path(out), Path(dest)
     previous = out / "study.json"  # the planned number of runs, as the study wrote it
@@ -422,8 +426,9 @@ def ship_study(
         key = (r["family"], size)
         if size in learned and (key not in best or r["scores"][PLANS[task].metric] > best[key]["score"]):
             best[key] = {"score": r["scores"][PLANS[task].metric], "name": name, "net": net, "info": info}
+    sample_scores = {}
     for b in best.values() if models else ():
-        save_model(
+        path = save_model(
             dest / "models" / f"{b['name']}.pt",
             task,
             b["net"],
@@ -431,6 +436,11 @@ def ship_study(
             training=b["info"]["training"],
             weights=weights,
         )
+        if samples is not None:
+            shipped, _ = load_model(path, task)
+            sample_scores[path.name] = evaluate_model(task, shipped, samples)
+    if sample_scores:
+        atomic_write(dest / "samples_scores.json", json.dumps(sample_scores, indent=2, sort_keys=True))
     layouts = {k: b["net"].sensor.layout for k, b in best.items() if k[0] != "uniform"}
     if scene is not None and layouts:
         layouts_figure(scene, layouts, dest / f"layouts_{task}.png")
