@@ -70,6 +70,26 @@ def _inline(fn):
     return njit(inline="always", cache=True)(fn) if njit is not None else fn
 
 
+@_inline
+def _band_prefix(
+    image: np.ndarray, ra: int, rb: int, block: int, incl: np.ndarray, offsets: np.ndarray
+) -> None:
+    """The prefix tables (see :func:`prefix_tables`) of rows ``ra .. rb − 1`` into ``incl``/
+    ``offsets`` (row ``ra`` at index 0): the one home of their arithmetic."""
+    n, _, w = image.shape
+    nb = (w + block - 1) // block
+    for rr in range(rb - ra):
+        for k in range(n):
+            total = 0.0
+            for b in range(nb):
+                offsets[rr, b, k] = total
+                acc = image[k, ra + rr, b * block] * 0  # zero in the image's dtype
+                for c in range(b * block, min(w, (b + 1) * block)):
+                    acc += image[k, ra + rr, c]
+                    incl[rr, c, k] = acc
+                total += acc
+
+
 @_jit
 def prefix_tables(image: np.ndarray, block: int) -> tuple[np.ndarray, np.ndarray]:
     """Row prefix sums of ``image (N, H, W)``, safe in float32, channels last.
@@ -85,15 +105,7 @@ def prefix_tables(image: np.ndarray, block: int) -> tuple[np.ndarray, np.ndarray
     incl = np.empty((h, w, n), dtype=image.dtype)
     offsets = np.empty((h, nb, n), dtype=np.float64)
     for r in prange(h):
-        for k in range(n):
-            total = 0.0
-            for b in range(nb):
-                offsets[r, b, k] = total
-                acc = image[k, r, b * block] * 0  # zero in the image's dtype
-                for c in range(b * block, min(w, (b + 1) * block)):
-                    acc += image[k, r, c]
-                    incl[r, c, k] = acc
-                total += acc
+        _band_prefix(image, r, r + 1, block, incl[r : r + 1], offsets[r : r + 1])
     return incl, offsets
 
 
@@ -110,26 +122,6 @@ def _cell(incl: np.ndarray, row: int, col: int, k: int, block: int) -> float:
     """The box image value ``I(c) − I(c − 1)`` of the prefix table at ``(row, col)``."""
     cur = np.float64(incl[row, col, k])
     return cur if col % block == 0 else cur - np.float64(incl[row, col - 1, k])
-
-
-@_inline
-def _band_prefix(
-    image: np.ndarray, ra: int, rb: int, block: int, incl: np.ndarray, offsets: np.ndarray
-) -> None:
-    """:func:`prefix_tables` of rows ``ra .. rb − 1`` into the band buffers ``incl``/``offsets``
-    (row ``ra`` at index 0), with the same arithmetic."""
-    n, _, w = image.shape
-    nb = (w + block - 1) // block
-    for rr in range(rb - ra):
-        for k in range(n):
-            total = 0.0
-            for b in range(nb):
-                offsets[rr, b, k] = total
-                acc = image[k, ra + rr, b * block] * 0  # zero in the image's dtype
-                for c in range(b * block, min(w, (b + 1) * block)):
-                    acc += image[k, ra + rr, c]
-                    incl[rr, c, k] = acc
-                total += acc
 
 
 @_inline

@@ -419,6 +419,8 @@ def ship_study(
     best: dict[tuple[str, tuple[int, int]], dict] = {}
     for r in records:
         name, size = run_name(r["family"], r["size_hw"], r["seed"]), tuple(r["size_hw"])
+        if r["family"] == "uniform" and size not in learned:
+            continue  # no layout to ship and never a shipped model: not worth loading
         net, info = load_model(out / "models" / f"{name}.pt", task)
         if r["family"] != "uniform":
             extra = {"task": task, "run": name, "scores": r["scores"]}
