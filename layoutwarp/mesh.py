@@ -14,6 +14,7 @@ boundary integral is computed once per edge and pixel ``(i, j)`` collects
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 from collections import OrderedDict
@@ -84,20 +85,16 @@ class MeshTopology:
         return self.num_horizontal + i * (self.size[1] + 1) + j
 
     def edge_corners(self, device: torch.device | str | None = None) -> tuple[Tensor, Tensor]:
-        """Start and end corner of every edge, ``(E,)`` each, as row-major corner indices."""
-        h, w = self.size
-        cid = torch.arange((h + 1) * (w + 1), device=device).view(h + 1, w + 1)
-        start = torch.cat([cid[:, :-1].flatten(), cid[:-1, :].flatten()])
-        end = torch.cat([cid[:, 1:].flatten(), cid[1:, :].flatten()])
-        return start, end
+        """Start and end corner of every edge, ``(E,)`` each, as row-major corner indices.
+
+        Cached per size and device, as is :meth:`edge_ends`: do not modify the tensors."""
+        return _edge_corners(self.size, torch.device(device or "cpu"))
 
     def edge_ends(
         self, dtype: torch.dtype = torch.float64, device: torch.device | str | None = None
     ) -> tuple[Tensor, Tensor]:
         """Uniform end points ``(a, b)``, each ``(E, 2)`` in sensor coordinates, of every edge."""
-        corners = uniform_corners(self.size, dtype, device).reshape(-1, 2)
-        start, end = self.edge_corners(device)
-        return corners[start], corners[end]
+        return _edge_ends(self.size, dtype, torch.device(device or "cpu"))
 
     def pixel_edges(self) -> np.ndarray:
         """``(H, W, 4)`` int64 edge indices of every pixel: top, right, bottom, left."""
@@ -126,6 +123,22 @@ class MeshTopology:
         eh = edge_values[..., :nh].unflatten(-1, (h + 1, w))
         ev = edge_values[..., nh:].unflatten(-1, (h, w + 1))
         return (eh[..., :-1, :] - eh[..., 1:, :]) + (ev[..., :, 1:] - ev[..., :, :-1])
+
+
+@functools.lru_cache(maxsize=64)
+def _edge_corners(size: tuple[int, int], device: torch.device) -> tuple[Tensor, Tensor]:
+    h, w = size
+    cid = torch.arange((h + 1) * (w + 1), device=device).view(h + 1, w + 1)
+    start = torch.cat([cid[:, :-1].flatten(), cid[:-1, :].flatten()])
+    end = torch.cat([cid[:, 1:].flatten(), cid[1:, :].flatten()])
+    return start, end
+
+
+@functools.lru_cache(maxsize=64)
+def _edge_ends(size: tuple[int, int], dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor]:
+    corners = uniform_corners(size, dtype, device).reshape(-1, 2)
+    start, end = _edge_corners(size, device)
+    return corners[start], corners[end]
 
 
 def segment_area(a: _A, b: _A) -> _A:

@@ -89,6 +89,8 @@ def test_quick_study_resumes_and_its_models_evaluate(tmp_path, capsys):
     scores = json.loads(capsys.readouterr().out)
     assert scores["accuracy"] == pytest.approx(record["scores"]["accuracy"], abs=1e-9)
     assert scores["n"] == 1000 and scores["layout"]["family"] == "grid"
+    # every run integrates at the plan's tolerance, not the experiment's (changed) default
+    assert load_model(model)[1]["sensor"]["tol"] == PLANS["mnist"].tol != DEFAULTS.tol
     assert main(["evaluate", "camvid", "--model", str(model), "--data", str(SAMPLES / "camvid")]) == 2
     assert "a 'mnist' model, not a 'camvid' model" in capsys.readouterr().err
     # shipping: results, every learned layout, the best model per family and learned size

@@ -19,7 +19,7 @@ from torch import nn
 
 from ..files import atomic_write
 from ..layoutfile import save_layout
-from ..sensor import SensorLayer
+from ..sensor import SensorLayer, data_tolerance
 from .data import load_mnist
 from .models import save_run_model
 from .training import ExperimentDefaults, fit, format_theta, layout_name, model_device, theta_text
@@ -35,7 +35,7 @@ DEFAULTS = ExperimentDefaults(
     seeds=3,
     epochs=14,
     quick_epochs=3,
-    tol=1e-5,
+    tol=data_tolerance(np.uint8)[0],  # MNIST is 8-bit: a quarter of one level
 )
 MNIST_MEAN, MNIST_STD = 0.1307, 0.3081
 
