@@ -261,9 +261,7 @@ class GridLayout(Layout):
         p = p.to(dtype)
         j, u = _cell(p[..., 0], gw)
         i, v = _cell(p[..., 1], gh)
-        flat = ctrl.reshape(-1, 2)
-        k = i * (gw + 1) + j
-        return p, u[..., None], v[..., None], flat[k], flat[k + 1], flat[k + gw + 2], flat[k + gw + 1]
+        return p, u[..., None], v[..., None], *self._cell_quads(ctrl.reshape(-1, 2), i, j)
 
     def phi(self, p: Tensor, theta: Tensor) -> Tensor:
         p, u, v, a, b, c, d = self._corners(p, theta)
@@ -320,14 +318,21 @@ class GridLayout(Layout):
             i, _ = _cell(qc[:, 1], gh)
             flat = ctrl.reshape(-1, 2)
             eps = 1e-12
+            walking = torch.arange(qc.shape[0], device=q.device)  # points whose cell still changes
+            before = torch.full_like(i, -1)  # the cell each point came from (row-major index)
             for _ in range(gh + gw + 2):
-                uv = self._local(flat, i, j, qc)
-                dj = (uv[:, 0] > 1 + eps).long() - (uv[:, 0] < -eps).long()
-                di = (uv[:, 1] > 1 + eps).long() - (uv[:, 1] < -eps).long()
-                nj, ni = (j + dj).clamp(0, gw - 1), (i + di).clamp(0, gh - 1)
-                if bool(((nj == j) & (ni == i)).all()):
+                iw, jw = i[walking], j[walking]
+                top, right, bottom, left = self._sides(flat, iw, jw, qc[walking])
+                dj = (right < -eps).long() - (left < -eps).long()
+                di = (bottom < -eps).long() - (top < -eps).long()
+                nj, ni = (jw + dj).clamp(0, gw - 1), (iw + di).clamp(0, gh - 1)
+                back = ni * gw + nj == before[walking]  # stepping back and forth: left to the search
+                moved = ((nj != jw) | (ni != iw)) & ~back
+                before[walking] = iw * gw + jw
+                i[walking], j[walking] = torch.where(back, iw, ni), torch.where(back, jw, nj)
+                walking = walking[moved]
+                if walking.numel() == 0:
                     break
-                i, j = ni, nj
             uv = self._local(flat, i, j, qc)
             lost = ((uv < -1e-9) | (uv > 1 + 1e-9)).any(-1)
             if bool(lost.any()):
@@ -346,30 +351,51 @@ class GridLayout(Layout):
         r = self.phi(p, theta) - q
         return p - torch.linalg.solve(jac, r[..., None])[..., 0]
 
-    def _local(self, flat: Tensor, i: Tensor, j: Tensor, q: Tensor) -> Tensor:
-        k = i * (self.grid[1] + 1) + j
+    def _sides(self, flat: Tensor, i: Tensor, j: Tensor, q: Tensor) -> tuple[Tensor, ...]:
+        """Signed distances of ``q`` from the lines through the top, right, bottom and left
+        sides of cells ``(i, j)``, positive on the cell's side. A cell's image is the convex
+        quadrilateral of its control points (no cell folds), so ``q`` is in it when all four
+        are ``>= 0`` and the negative ones say which neighbour to step to."""
+        corners = self._cell_quads(flat, i, j)
+        out = []
+        for s in range(4):
+            a, b = corners[s], corners[(s + 1) % 4]
+            e = b - a
+            out.append(_cross(e, q - a) / torch.sqrt(e[:, 0] ** 2 + e[:, 1] ** 2).clamp_min(1e-300))
+        return tuple(out)
+
+    def _cell_quads(self, flat: Tensor, i: Tensor, j: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Control points of cells ``(i, j)``: top-left, top-right, bottom-right, bottom-left."""
         gw1 = self.grid[1] + 1
-        return inverse_bilinear(flat[k], flat[k + 1], flat[k + gw1 + 1], flat[k + gw1], q)
+        k = i * gw1 + j
+        return flat[k], flat[k + 1], flat[k + gw1 + 1], flat[k + gw1]
+
+    def _local(self, flat: Tensor, i: Tensor, j: Tensor, q: Tensor) -> Tensor:
+        return inverse_bilinear(*self._cell_quads(flat, i, j), q)
 
     def _search(self, flat: Tensor, q: Tensor) -> tuple[Tensor, Tensor]:
         """The cell whose quadrilateral contains each point, or comes closest to it in local
-        coordinates (brute force over all cells, chunked)."""
+        coordinates (the first such cell in row-major order). A cell's image is the
+        quadrilateral of its four control points, so only cells whose bounding box holds the
+        point are tried; a point outside every box (only by rounding) tries them all."""
         gh, gw = self.grid
-        ci, cj = torch.meshgrid(
-            torch.arange(gh, device=q.device), torch.arange(gw, device=q.device), indexing="ij"
-        )
-        ci, cj = ci.flatten(), cj.flatten()
-        bi = torch.zeros(q.shape[0], dtype=torch.long, device=q.device)
-        bj = torch.zeros_like(bi)
-        for lo in range(0, q.shape[0], 4096):
-            qq = q[lo : lo + 4096]
-            uv = self._local(
-                flat, ci[:, None].expand(-1, qq.shape[0]), cj[:, None].expand(-1, qq.shape[0]), qq
-            )
+        cells = torch.arange(gh * gw, device=q.device)
+        quad = torch.stack(self._cell_quads(flat, cells // gw, cells % gw), 1)  # (cells, 4, 2)
+        lo, hi = quad.amin(1) - 1e-9, quad.amax(1) + 1e-9  # (cells, 2)
+        best = torch.zeros(q.shape[0], dtype=torch.long, device=q.device)
+        for start in range(0, q.shape[0], 8192):
+            qq = q[start : start + 8192]
+            boxed = ((qq >= lo[:, None]) & (qq <= hi[:, None])).all(-1)  # (cells, points)
+            boxed[:, ~boxed.any(0)] = True
+            cell, point = torch.nonzero(boxed, as_tuple=True)  # cell-major: row-major cells first
+            c = quad[cell]
+            uv = inverse_bilinear(c[:, 0], c[:, 1], c[:, 2], c[:, 3], qq[point])
             out = (uv - uv.clamp(0, 1)).abs().amax(-1)  # 0 inside the cell
-            k = out.argmin(0)
-            bi[lo : lo + 4096], bj[lo : lo + 4096] = ci[k], cj[k]
-        return bi, bj
+            order = torch.argsort(out, stable=True)
+            order = order[torch.argsort(point[order], stable=True)]  # by point, then out, then cell
+            _, counts = torch.unique_consecutive(point[order], return_counts=True)
+            best[start : start + qq.shape[0]] = cell[order[torch.cumsum(counts, 0) - counts]]
+        return best // gw, best % gw
 
     def edge_breakpoints(self, a: Tensor, b: Tensor, theta: Tensor | None = None) -> Tensor:
         """Where the segment crosses a control line (a kink of the piecewise-bilinear φ; the

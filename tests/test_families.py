@@ -156,6 +156,26 @@ def test_inverse_round_trips(name, gen):
     assert layout.check_foldover(101).ok
 
 
+def test_fine_strongly_deformed_grid_inverts_exactly(gen):
+    # a 32x32 control grid from a peaked density: points start many cells away from their own
+    density = torch.rand(64, 64, generator=gen, dtype=F64) ** 8 * 50 + 0.01
+    layout = lw.layout_from_density(density, (48, 64), "grid", floor=0.05)
+    q = torch.rand(20000, 2, generator=gen, dtype=F64) * 2 - 1
+    q[:4] = layout(layout.control_points()[[0, 5, 17, 31], [3, 9, 22, 31]])  # control points
+    p = layout.inverse(q)
+    assert (layout(p) - q).abs().max() <= 1e-12
+    assert (p.abs() <= 1).all()
+    # the cell search (the walk's fallback) finds the same cells
+    gh, gw = layout.grid
+    flat = layout.control_points().reshape(-1, 2)
+    i, j = layout._search(flat, q[:3000])
+    uv = layout._local(flat, i, j, q[:3000])
+    assert ((uv >= -1e-9) & (uv <= 1 + 1e-9)).all()
+    cell = ((p[:3000] + 1) * torch.tensor([gw / 2, gh / 2], dtype=F64)).floor().long()
+    same = (cell[:, 0].clamp(max=gw - 1) == j) & (cell[:, 1].clamp(max=gh - 1) == i)
+    assert float(same.double().mean()) >= 0.999  # all but points on a control line
+
+
 @pytest.mark.parametrize("name", NEW)
 def test_jacobian_and_dtheta_match_autograd(name, gen):
     layout = make(name, gen)

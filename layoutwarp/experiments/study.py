@@ -114,8 +114,8 @@ class _Task:
             from .camvid import DEFAULTS
             from .data import load_camvid
 
-            self.train, self.val = load_camvid(data_dir, "train"), load_camvid(data_dir, "val")
-            stats = torch.from_numpy(self.train[1]).float()  # label boundaries
+            self.train_set, self.val_set = load_camvid(data_dir, "train"), load_camvid(data_dir, "val")
+            stats = torch.from_numpy(self.train_set[1]).float()  # label boundaries
         else:
             from .data import load_faces
             from .faces import DEFAULTS
@@ -149,7 +149,7 @@ class _Task:
             from .camvid import train_camvid
 
             freeze = min(self.defaults.freeze_epochs, max(self.epochs - 1, 0))
-            run, model = train_camvid(self.train, self.val, layout, size, freeze_epochs=freeze, **kw)
+            run, model = train_camvid(self.train_set, self.val_set, layout, size, freeze_epochs=freeze, **kw)
             return run.scores, model, run.theta
         from .faces import train_faces
 
