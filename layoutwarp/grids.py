@@ -305,9 +305,9 @@ class GridLayout(Layout):
         return out
 
     def phi_inverse(self, q: Tensor, theta: Tensor) -> Tensor:
-        """Exact inverse: walk to the control cell that contains ``q`` (inverse bilinear in the
-        current cell says which way to step), fall back to testing every cell for points the
-        walk leaves unresolved, and polish with one Newton step."""
+        """Exact inverse: walk to the control cell that contains ``q`` (the sides of the current
+        cell's quadrilateral say which way to step), search the cells around the points the
+        walk leaves unresolved, invert the cell's bilinear map and polish with one Newton step."""
         gh, gw = self.grid
         with torch.no_grad():
             ctrl = self.control_points(theta.detach().to(device=q.device, dtype=torch.float64))
