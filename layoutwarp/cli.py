@@ -309,7 +309,7 @@ def _cmd_study(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
     from .experiments import camvid, faces, mnist
-    from .experiments.study import PLANS, run_study, ship_study, study_scene, study_table
+    from .experiments.study import PLANS, run_study, ship_study, study_runs, study_scene, study_table
 
     d = {"mnist": mnist, "camvid": camvid, "faces": faces}[args.task].DEFAULTS
     data = (
@@ -320,6 +320,14 @@ def _cmd_study(args: argparse.Namespace) -> int:
             f"no {args.task} data at {str(data)!r}; pass --data DIR or --quick (bundled samples)"
         )
     out = args.out or f"results/study-{args.task}"
+    plan = PLANS[args.task]
+    if args.quick:  # the smallest study that exercises every step
+        plan = replace(
+            plan, uniform_sizes=plan.uniform_sizes[:2], learned_sizes=plan.learned_sizes[:1], seeds=1
+        )
+        plan = replace(plan, families=tuple(args.family or ("rect", "density")))
+    elif args.family:
+        plan = replace(plan, families=tuple(dict.fromkeys(args.family)))
     if args.ship:
         if not (Path(out) / "runs").is_dir():
             raise UsageError(
@@ -334,18 +342,11 @@ def _cmd_study(args: argparse.Namespace) -> int:
             scene=scene,
             weights=args.weights,
             samples=samples if samples.is_dir() else None,
+            planned=len(study_runs(plan, args.seeds or plan.seeds)),
         )
         print(study_table(summary), end="")
         print(f"shipped {out} to {args.ship}")
         return 0
-    plan = PLANS[args.task]
-    if args.quick:  # the smallest study that exercises every step
-        plan = replace(
-            plan, uniform_sizes=plan.uniform_sizes[:2], learned_sizes=plan.learned_sizes[:1], seeds=1
-        )
-        plan = replace(plan, families=tuple(args.family or ("rect", "density")))
-    elif args.family:
-        plan = replace(plan, families=tuple(dict.fromkeys(args.family)))
     for size in plan.uniform_sizes + plan.learned_sizes:
         _check_memory(size)
     epochs = args.epochs or (1 if args.quick else None)

@@ -408,6 +408,7 @@ def ship_study(
     models: bool = True,
     weights: str = "float16",
     samples: str | Path | None = None,
+    planned: int | None = None,
 ) -> dict:
     """Copy what a study folder holds so far into a small folder to commit and share.
 
@@ -418,7 +419,8 @@ def ship_study(
     with a ``scene``, ``layouts_<task>.png``: those best layouts drawn over it; with
     ``samples`` (a small data folder, e.g. the bundled ``data_samples/``),
     ``samples_scores.json``: each shipped model's scores there, read back from its shipped
-    file (so anyone can check that ``evaluate`` reproduces them).
+    file (so anyone can check that ``evaluate`` reproduces them). ``planned``: the number of
+    runs the study plans (default: as the study last wrote it).
 
     Returns:
         the summary.
@@ -427,8 +429,9 @@ def ship_study(
     from .models import evaluate_model, load_model
 
     out, dest = Path(out), Path(dest)
-    previous = out / "study.json"  # the planned number of runs, as the study wrote it
-    planned = json.loads(previous.read_text()).get("planned") if previous.exists() else None
+    previous = out / "study.json"
+    if planned is None and previous.exists():
+        planned = json.loads(previous.read_text()).get("planned")
     summary = write_summary(task, out, planned=planned)
     for name in ("study.json", "study.md", f"study_{task}.png"):
         atomic_write(dest / name, (out / name).read_bytes())
