@@ -388,8 +388,7 @@ class GridLayout(Layout):
             boxed = ((qq >= lo[:, None]) & (qq <= hi[:, None])).all(-1)  # (cells, points)
             boxed[:, ~boxed.any(0)] = True
             cell, point = torch.nonzero(boxed, as_tuple=True)  # cell-major: row-major cells first
-            c = quad[cell]
-            uv = inverse_bilinear(c[:, 0], c[:, 1], c[:, 2], c[:, 3], qq[point])
+            uv = inverse_bilinear(*quad[cell].unbind(1), qq[point])
             out = (uv - uv.clamp(0, 1)).abs().amax(-1)  # 0 inside the cell
             order = torch.argsort(out, stable=True)
             order = order[torch.argsort(point[order], stable=True)]  # by point, then out, then cell

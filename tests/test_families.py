@@ -173,7 +173,7 @@ def test_fine_strongly_deformed_grid_inverts_exactly(gen):
     assert ((uv >= -1e-9) & (uv <= 1 + 1e-9)).all()
     cell = ((p[:3000] + 1) * torch.tensor([gw / 2, gh / 2], dtype=F64)).floor().long()
     same = (cell[:, 0].clamp(max=gw - 1) == j) & (cell[:, 1].clamp(max=gh - 1) == i)
-    assert float(same.double().mean()) >= 0.999  # all but points on a control line
+    assert same[4:].all()  # the control points (on the lines between cells) may go either way
 
 
 @pytest.mark.parametrize("name", NEW)
