@@ -96,6 +96,10 @@ class MeshTopology:
         """Uniform end points ``(a, b)``, each ``(E, 2)`` in sensor coordinates, of every edge."""
         return _edge_ends(self.size, dtype, torch.device(device or "cpu"))
 
+    def corners(self, dtype: torch.dtype = torch.float64, device: torch.device | str | None = None) -> Tensor:
+        """:func:`~layoutwarp.uniform_corners` flattened to ``(V, 2)``, row-major (cached)."""
+        return _corners(self.size, dtype, torch.device(device or "cpu"))
+
     def pixel_edges(self) -> np.ndarray:
         """``(H, W, 4)`` int64 edge indices of every pixel: top, right, bottom, left."""
         h, w = self.size
@@ -135,8 +139,13 @@ def _edge_corners(size: tuple[int, int], device: torch.device) -> tuple[Tensor, 
 
 
 @functools.lru_cache(maxsize=64)
+def _corners(size: tuple[int, int], dtype: torch.dtype, device: torch.device) -> Tensor:
+    return uniform_corners(size, dtype, device).reshape(-1, 2)
+
+
+@functools.lru_cache(maxsize=64)
 def _edge_ends(size: tuple[int, int], dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor]:
-    corners = uniform_corners(size, dtype, device).reshape(-1, 2)
+    corners = _corners(size, dtype, device)
     start, end = _edge_corners(size, device)
     return corners[start], corners[end]
 
@@ -320,11 +329,34 @@ def _edge_parameters(
         ``(n, t)``: segments per edge ``(E,)`` and the parameter in ``[0, 1)`` of every
         segment's start vertex ``(S,)``, edge by edge.
     """
-    h, w = size
     th = theta.detach().double()
     dev = th.device
     topo = MeshTopology(size)
-    cd = layout.phi(uniform_corners(size, device=dev), th)
+    ua, ub = topo.edge_ends(device=dev)
+    edge, lo_g, hi_g = smooth_pieces(layout, ua, ub, theta=theta if with_grad else th)
+    with torch.no_grad():  # the counts need no gradient (only the vertices do)
+        counts, piece, frac = _segment_counts(layout, topo, th, edge, lo_g, hi_g, tol, max_subdiv, with_grad)
+    return counts, lo_g[piece] + (hi_g - lo_g)[piece] * frac
+
+
+def _segment_counts(
+    layout: Layout,
+    topo: MeshTopology,
+    th: Tensor,
+    edge: Tensor,
+    lo: Tensor,
+    hi: Tensor,
+    tol: float,
+    max_subdiv: int,
+    with_grad: bool,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """The count stage of :func:`_edge_parameters` (all without gradient): segments per edge
+    ``(E,)``, and for every segment its smooth piece and fraction of the piece's range."""
+    h, w = topo.size
+    dev = th.device
+    lo, hi = lo.detach(), hi.detach()
+    ua, ub = topo.edge_ends(device=dev)
+    cd = layout.phi(topo.corners(device=dev), th).view(h + 1, w + 1, 2)
     quads = torch.stack([cd[:-1, :-1], cd[:-1, 1:], cd[1:, 1:], cd[1:, :-1]], -2)
     area = polygon_area(quads).abs()  # (H, W)
     inf = torch.full((1, w), math.inf, dtype=area.dtype, device=dev)
@@ -332,9 +364,6 @@ def _edge_parameters(
     inf = torch.full((h, 1), math.inf, dtype=area.dtype, device=dev)
     area_v = torch.minimum(torch.cat([inf, area], 1), torch.cat([area, inf], 1))  # (H, W+1)
     amin = torch.cat([area_h.flatten(), area_v.flatten()])
-    ua, ub = topo.edge_ends(device=dev)
-    edge, lo_g, hi_g = smooth_pieces(layout, ua, ub, theta=theta if with_grad else th)
-    lo, hi = lo_g.detach(), hi_g.detach()  # the counts need no gradient; the vertices do
     a0, d = ua[edge], (ub - ua)[edge]
     k_s = 4  # 5 samples a piece: worst error 0.12-0.14 of tol over random θ (9 samples: 0.11-0.14)
     s_t = torch.linspace(0, 1, k_s + 1, dtype=ua.dtype, device=dev)
@@ -360,8 +389,7 @@ def _edge_parameters(
     n = torch.where(sag <= 1e-15 * length, torch.ones_like(n), n).long()
     counts = torch.zeros(ne, dtype=torch.long, device=dev).index_add_(0, edge, n)
     piece, kk = ranges(torch.zeros_like(n), n)
-    lo_f, hi_f, n_f = lo_g[piece], hi_g[piece], n[piece].to(lo.dtype)
-    return counts, lo_f + (hi_f - lo_f) * kk.to(lo.dtype) / n_f
+    return counts, piece, kk.to(lo.dtype) / n[piece].to(lo.dtype)
 
 
 #: Meshes of fixed layouts of registered families, most recently used last (see :func:`pixel_mesh`).
@@ -485,7 +513,7 @@ def _build_mesh(
     seg_start = torch.where(interior, vid, ea[seg_edge])
     last = k == nn_ - 1
     seg_end = torch.where(last, eb[seg_edge], torch.roll(vid, -1))
-    cu = uniform_corners((h, w), dtype=dtype, device=device).reshape(-1, 2)
+    cu = topo.corners(dtype, device)
     if t_start is None:  # equal parameter steps
         frac = k[interior].to(dtype) / nn_[interior].to(dtype)
     else:
