@@ -281,7 +281,8 @@ class _ExactKernel(torch.autograd.Function):
                 out = kernels.exact_forward(*arrays, *tables, kernels.BLOCK, nt)
             else:  # large: in bands of rows, no whole table held
                 band = kernels.band_rows(img, nt)
-                out = kernels.exact_forward_banded(*arrays, img, kernels.BLOCK, band, nt)
+                seg_edge = np.ascontiguousarray(mesh.seg_edge.cpu().numpy())
+                out = kernels.exact_forward_banded(*arrays, seg_edge, img, kernels.BLOCK, band, nt)
         ctx.save_for_backward(verts)
         ctx.mesh, ctx.image, ctx.tables = mesh, img, tables
         return torch.from_numpy(out)

@@ -7,9 +7,10 @@ prefix-table look-ups of Green's theorem and the accumulation. For an image up t
 backward) and runs over chunks of segments dealt to the threads in turn (curved edges, which
 have many segments often all of one orientation, are shared out evenly); a larger image is
 integrated in bands of rows, each thread building one band's table at a time in a buffer of
-its own, so no whole table is held (the backward builds it when it is called). Each writes
-its own output, and a last pass sums each pixel edge's segments
-(contiguous in a :class:`~layoutwarp.PixelMesh`). The
+its own, adding every piece straight into per-edge sums of its own, so neither a whole table
+nor a value per segment and channel is held (the backward builds the table when it is called). The
+whole-table forward writes one value per segment and a last pass sums each pixel edge's
+segments (contiguous in a :class:`~layoutwarp.PixelMesh`). The
 arithmetic mirrors the reference step for step, so both agree to rounding.
 
 Compiled code is cached on disk (``cache=True``): a second process loads it instead of
@@ -233,6 +234,7 @@ def exact_forward_banded(
     seg_start: np.ndarray,
     seg_end: np.ndarray,
     edge_offsets: np.ndarray,
+    seg_edge: np.ndarray,
     image: np.ndarray,
     block: int,
     band: int,
@@ -240,12 +242,15 @@ def exact_forward_banded(
 ) -> np.ndarray:
     """:func:`exact_forward` from the image ``(N, H, W)`` itself, in bands of ``band`` rows:
     each thread builds the prefix table of one band at a time in a buffer of its own (that
-    stays in cache) and integrates every segment piece in those rows, so no table of the
-    whole image is held. Segments are first listed per band (a segment crossing several bands
-    is listed in each, its rows split between them)."""
+    stays in cache) and adds every segment piece in those rows to its own per-edge sums, so
+    neither a table of the whole image nor anything per segment and channel is held (memory
+    beyond the mesh: ``threads × E × N`` sums). Segments are first listed per band (a
+    segment crossing several bands is listed in each, its rows split between them);
+    ``seg_edge[s]`` is the edge of segment ``s``."""
     n, h, w = image.shape
     nb = (w + block - 1) // block
     s_count = seg_start.shape[0]
+    e_count = edge_offsets.shape[0] - 1
     n_bands = (h + band - 1) // band
     first = np.zeros(n_bands + 1, dtype=np.int64)  # counting sort of the segments by band
     for s in range(s_count):
@@ -265,7 +270,7 @@ def exact_forward_banded(
             for b in range(r0 // band, r1 // band + 1):
                 listed[fill[b]] = s
                 fill[b] += 1
-    per_entry = np.zeros((listed.shape[0], n), dtype=np.float64)
+    sums = np.zeros((threads, e_count, n), dtype=np.float64)
     for thread in prange(threads):
         incl = np.empty((band, w, n), dtype=image.dtype)
         offsets = np.empty((band, nb, n), dtype=np.float64)
@@ -279,16 +284,18 @@ def exact_forward_banded(
                 x1, y1 = verts[seg_end[s], 0], verts[seg_end[s], 1]
                 r0, r1 = _row_span(y0, y1, h)
                 rlo, rhi = max(r0, ra), min(r1, rb - 1)
-                _segment_rows(x0, y0, x1, y1, rlo, rhi, ra, incl, offsets, block, w, per_entry, j)
-    per_seg = np.zeros((s_count, n + 1), dtype=np.float64)
-    for j in range(listed.shape[0]):  # in band order: a segment's rows top to bottom
+                e = seg_edge[s]
+                _segment_rows(x0, y0, x1, y1, rlo, rhi, ra, incl, offsets, block, w, sums[thread], e)
+    out = np.zeros((n + 1, e_count), dtype=np.float64)
+    for e in prange(e_count):
         for k in range(n):
-            per_seg[listed[j], k] += per_entry[j, k]
-    for s in prange(s_count):
-        x0, y0 = verts[seg_start[s], 0], verts[seg_start[s], 1]
-        x1, y1 = verts[seg_end[s], 0], verts[seg_end[s], 1]
-        per_seg[s, n] = (y1 - y0) * (x0 + x1) / 2
-    return _edge_sums(per_seg, edge_offsets)
+            for t in range(threads):
+                out[k, e] += sums[t, e, k]
+        for s in range(edge_offsets[e], edge_offsets[e + 1]):
+            x0, y0 = verts[seg_start[s], 0], verts[seg_start[s], 1]
+            x1, y1 = verts[seg_end[s], 0], verts[seg_end[s], 1]
+            out[n, e] += (y1 - y0) * (x0 + x1) / 2
+    return out
 
 
 #: Whole-image prefix tables up to this size are built once and kept for the backward; larger

@@ -156,7 +156,8 @@ def test_bands_of_any_height_give_the_same_sums(gen):
     arrays = [np.ascontiguousarray(t.numpy()) for t in tensors]
     one = kernels.exact_forward(*arrays, *kernels.prefix_tables(img, kernels.BLOCK), kernels.BLOCK, 2)
     for band in (1, 2, rint(gen, 3, src[0] - 1), src[0]):
-        out = kernels.exact_forward_banded(*arrays, img, kernels.BLOCK, band, kernels.threads())
+        seg_edge = mesh.seg_edge.numpy()
+        out = kernels.exact_forward_banded(*arrays, seg_edge, img, kernels.BLOCK, band, kernels.threads())
         assert np.abs(out - one).max() <= 1e-13 * np.abs(one).max()
     assert kernels.band_rows(np.zeros((3, 1024, 2048), np.float32), 2) == 42  # a 1 MiB table
     assert kernels.band_rows(np.zeros((1, 5, 10**7), np.float64), 2) == 1
