@@ -392,6 +392,9 @@ def _segment_counts(
     return counts, piece, kk.to(lo.dtype) / n[piece].to(lo.dtype)
 
 
+#: Points per call of φ when the mesh's vertices are mapped (bounds φ's temporaries).
+PHI_CHUNK = 1 << 16
+
 #: Meshes of fixed layouts of registered families, most recently used last (see :func:`pixel_mesh`).
 _CACHE: OrderedDict[tuple, PixelMesh] = OrderedDict()
 CACHE_SIZE = 4
@@ -520,7 +523,8 @@ def _build_mesh(
         frac = t_start[interior].to(dtype)
     ua, ub = cu[ea[seg_edge[interior]]], cu[eb[seg_edge[interior]]]
     upts = torch.cat([cu, ua + frac[:, None] * (ub - ua)])
-    verts = layout.phi(upts, theta.to(dtype))
+    th = theta.to(dtype)  # in chunks: φ holds several temporaries the size of its input
+    verts = torch.cat([layout.phi(chunk, th) for chunk in upts.split(PHI_CHUNK)])
     return PixelMesh(
         size=(h, w),
         vertices=verts,
