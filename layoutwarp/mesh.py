@@ -350,11 +350,10 @@ def _segment_counts(
     max_subdiv: int,
     with_grad: bool,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """The count stage of :func:`_edge_parameters` (all without gradient): segments per edge
+    """The count stage of :func:`_edge_parameters` (its caller runs it under ``no_grad``): segments per edge
     ``(E,)``, and for every segment its smooth piece and fraction of the piece's range."""
     h, w = topo.size
     dev = th.device
-    lo, hi = lo.detach(), hi.detach()
     ua, ub = topo.edge_ends(device=dev)
     cd = layout.phi(topo.corners(device=dev), th).view(h + 1, w + 1, 2)
     quads = torch.stack([cd[:-1, :-1], cd[:-1, 1:], cd[1:, 1:], cd[1:, :-1]], -2)
