@@ -271,6 +271,11 @@ class _ExactKernel(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, verts: Tensor, image: Tensor, mesh: PixelMesh) -> Tensor:
+        ctx.save_for_backward(verts)
+        ctx.mesh = mesh
+        if image.is_cuda:
+            out, ctx.tables = _cuda_forward(verts, image.detach().contiguous(), mesh)
+            return out
         arrays = _kernel_arrays(verts, mesh)
         img = image.detach().contiguous().numpy()
         nt = kernels.threads()
@@ -283,14 +288,15 @@ class _ExactKernel(torch.autograd.Function):
                 band = kernels.band_rows(img, nt)
                 seg_edge = np.ascontiguousarray(mesh.seg_edge.cpu().numpy())
                 out = kernels.exact_forward_banded(*arrays, seg_edge, img, kernels.BLOCK, band, nt)
-        ctx.save_for_backward(verts)
-        ctx.mesh, ctx.image, ctx.tables = mesh, img, tables
+        ctx.image, ctx.tables = img, tables
         return torch.from_numpy(out)
 
     @staticmethod
     def backward(ctx, grad: Tensor):
         (verts,) = ctx.saved_tensors
         mesh = ctx.mesh
+        if verts.is_cuda:
+            return _cuda_backward(verts, ctx.tables, mesh, grad), None, None
         g_edge = np.ascontiguousarray(grad.detach().double().cpu().numpy())
         v, seg_start, seg_end, _ = _kernel_arrays(verts, mesh)
         seg_edge = np.ascontiguousarray(mesh.seg_edge.cpu().numpy())
@@ -307,6 +313,40 @@ def _kernel_arrays(verts: Tensor, mesh: PixelMesh) -> list[np.ndarray]:
     """Vertices (float64) and the mesh's segment and edge indices as contiguous arrays."""
     tensors = (verts.detach().double(), mesh.seg_start, mesh.seg_end, mesh.edge_offsets)
     return [np.ascontiguousarray(t.cpu().numpy()) for t in tensors]
+
+
+def _cuda_forward(verts: Tensor, image: Tensor, mesh: PixelMesh) -> tuple[Tensor, Tensor]:
+    """:class:`_ExactKernel`'s forward on a CUDA device: ``(N + 1, E)`` and the prefix table
+    ``incl`` (kept for the backward); the tables and a value per segment are the memory it takes."""
+    n, h, w = image.shape
+    stream = torch.cuda.current_stream(image.device).cuda_stream
+    v = verts.detach().double().contiguous()
+    seg_start, seg_end, edge_offsets = (
+        t.to(image.device) for t in (mesh.seg_start, mesh.seg_end, mesh.edge_offsets)
+    )
+    incl = image.new_empty(h, w, n)
+    offsets = image.new_empty(h, -(-w // kernels.BLOCK), n, dtype=torch.float64)
+    kernels.cuda_launch("prefix", h, stream, image, kernels.BLOCK, incl, offsets)
+    per_seg = v.new_zeros(mesh.num_segments, n + 1)
+    kernels.cuda_launch(
+        "forward", mesh.num_segments, stream, v, seg_start, seg_end, incl, offsets, kernels.BLOCK, per_seg
+    )
+    out = v.new_zeros(n + 1, edge_offsets.numel() - 1)
+    kernels.cuda_launch("edge_sums", out.shape[1], stream, per_seg, edge_offsets, out)
+    return out, incl
+
+
+def _cuda_backward(verts: Tensor, incl: Tensor, mesh: PixelMesh, grad: Tensor) -> Tensor:
+    """:class:`_ExactKernel`'s vertex gradient on a CUDA device."""
+    stream = torch.cuda.current_stream(verts.device).cuda_stream
+    v = verts.detach().double().contiguous()
+    seg_start, seg_end, seg_edge = (t.to(verts.device) for t in (mesh.seg_start, mesh.seg_end, mesh.seg_edge))
+    wa, wb = v.new_zeros(mesh.num_segments), v.new_zeros(mesh.num_segments)
+    g = grad.detach().double().contiguous()
+    kernels.cuda_launch(
+        "backward", mesh.num_segments, stream, v, seg_start, seg_end, seg_edge, incl, kernels.BLOCK, g, wa, wb
+    )
+    return _vertex_gradient(verts.detach(), seg_start, seg_end, wa, wb)
 
 
 def integrate_exact(
@@ -337,19 +377,23 @@ def integrate_exact(
         tol: polyline tolerance (relative pixel-value error) for curved edges.
         mesh: a precomputed mesh (overrides ``layout``/``tol``/``theta`` for the geometry).
         theta: use this θ instead of the layout's own (e.g. for ``gradcheck``).
-        backend: ``"numba"`` (the compiled kernels of :mod:`layoutwarp.kernels`: CPU, no
-            image gradient), ``"torch"`` (the vectorised reference: any device, image
-            gradient) or ``"auto"`` (numba when it applies, else torch).
+        backend: ``"numba"`` (the compiled kernels of :mod:`layoutwarp.kernels`: CPU, and
+            CUDA where numba's CUDA target runs; no image gradient), ``"torch"`` (the
+            vectorised reference: any device, image gradient) or ``"auto"`` (numba when it
+            applies, else torch).
 
     Returns:
         ``(N, h, w)`` in float64.
     """
     n, hs, ws = _check_image(image).shape
     check_choice(backend, BACKENDS, "backend")
-    kernel_ok = kernels.available() and image.device.type == "cpu" and not image.requires_grad
+    kernel_ok = kernels.available() and not image.requires_grad
+    if kernel_ok and image.device.type != "cpu":
+        kernel_ok = image.is_cuda and kernels.cuda_available(str(floating_dtype(image.dtype)).split(".")[1])
     if backend == "numba" and not kernel_ok:
         raise ValueError(
-            "backend='numba' needs numba installed, a CPU image and no image gradient; use backend='torch'"
+            "backend='numba' needs numba installed, a CPU image or a CUDA image where numba's CUDA "
+            "target runs, and no image gradient; use backend='torch'"
         )
     if mesh is None:
         mesh = pixel_mesh(layout, check_size(size), tol=tol, dtype=torch.float64, theta=theta)

@@ -177,15 +177,44 @@ def _segment_rows(
                 out[at, k] += dy * (offsets[rr, blk, k] + prev + frac * (cur - prev))
 
 
+@_inline
+def _segment_forward(
+    s: int,
+    verts: np.ndarray,
+    seg_start: np.ndarray,
+    seg_end: np.ndarray,
+    incl: np.ndarray,
+    offsets: np.ndarray,
+    block: int,
+    per_seg: np.ndarray,
+) -> None:
+    """Segment ``s``'s ``∫ P dY`` per channel and its ``∫ X dY`` into ``per_seg[s, :]``, from
+    the whole image's tables (see :func:`exact_forward`)."""
+    h, w, n = incl.shape
+    x0, y0 = verts[seg_start[s], 0], verts[seg_start[s], 1]
+    x1, y1 = verts[seg_end[s], 0], verts[seg_end[s], 1]
+    if y1 == y0:
+        return  # ΔY = 0 adds nothing
+    per_seg[s, n] = (y1 - y0) * (x0 + x1) / 2
+    r0, r1 = _row_span(y0, y1, h)
+    _segment_rows(x0, y0, x1, y1, r0, r1, 0, incl, offsets, block, w, per_seg, s)
+
+
+@_inline
+def _edge_sum(e: int, per_seg: np.ndarray, edge_offsets: np.ndarray, out: np.ndarray) -> None:
+    """Add edge ``e``'s segments ``per_seg[s, :]`` into ``out[:, e]``, in order."""
+    for s in range(edge_offsets[e], edge_offsets[e + 1]):
+        for k in range(per_seg.shape[1]):
+            out[k, e] += per_seg[s, k]
+
+
 @_jit
 def _edge_sums(per_seg: np.ndarray, edge_offsets: np.ndarray) -> np.ndarray:
     """Sum each edge's segments: ``(S, N + 1)`` → ``(N + 1, E)``."""
     e_count = edge_offsets.shape[0] - 1
     out = np.zeros((per_seg.shape[1], e_count), dtype=np.float64)
     for e in prange(e_count):
-        for s in range(edge_offsets[e], edge_offsets[e + 1]):
-            for k in range(per_seg.shape[1]):
-                out[k, e] += per_seg[s, k]
+        _edge_sum(e, per_seg, edge_offsets, out)
     return out
 
 
@@ -211,20 +240,13 @@ def exact_forward(
     offset + I(c − 1) + f · (I(c) − I(c − 1))``, exact for the box image ``L(c) = I(c) −
     I(c − 1)``. Row ``N`` sums to the pixel areas. ``threads``: see :func:`threads`.
     """
-    h, w, n = incl.shape
     s_count = seg_start.shape[0]
-    per_seg = np.zeros((s_count, n + 1), dtype=np.float64)
+    per_seg = np.zeros((s_count, incl.shape[2] + 1), dtype=np.float64)
     n_chunks = (s_count + CHUNK - 1) // CHUNK
     for thread in prange(threads):
         for chunk in range(thread, n_chunks, threads):
             for s in range(chunk * CHUNK, min((chunk + 1) * CHUNK, s_count)):
-                x0, y0 = verts[seg_start[s], 0], verts[seg_start[s], 1]
-                x1, y1 = verts[seg_end[s], 0], verts[seg_end[s], 1]
-                if y1 == y0:
-                    continue  # ΔY = 0 adds nothing
-                per_seg[s, n] = (y1 - y0) * (x0 + x1) / 2
-                r0, r1 = _row_span(y0, y1, h)
-                _segment_rows(x0, y0, x1, y1, r0, r1, 0, incl, offsets, block, w, per_seg, s)
+                _segment_forward(s, verts, seg_start, seg_end, incl, offsets, block, per_seg)
     return _edge_sums(per_seg, edge_offsets)
 
 
@@ -311,6 +333,66 @@ def band_rows(image: np.ndarray, workers: int, cache_bytes: int = 1 << 20) -> in
     return max(1, min(h, by_cache, -(-h // (4 * workers))))
 
 
+@_inline
+def _segment_weights(
+    s: int,
+    verts: np.ndarray,
+    seg_start: np.ndarray,
+    seg_end: np.ndarray,
+    seg_edge: np.ndarray,
+    incl: np.ndarray,
+    block: int,
+    grad: np.ndarray,
+    wa: np.ndarray,
+    wb: np.ndarray,
+) -> None:
+    """Segment ``s``'s Reynolds weights into ``wa[s]``/``wb[s]`` (see :func:`exact_backward`)."""
+    h, w, n = incl.shape
+    e = seg_edge[s]
+    x0, y0 = verts[seg_start[s], 0], verts[seg_start[s], 1]
+    x1, y1 = verts[seg_end[s], 0], verts[seg_end[s], 1]
+    dxv, dyv = x1 - x0, y1 - y0
+    wa[s] = wb[s] = grad[n, e] / 2  # the area row: ∫ (1 − t) dt = ∫ t dt = 1/2
+    flat = dyv == 0.0
+    vertical = dxv == 0.0
+    inv_dy = 1.0 / dyv if not flat else 1.0
+    ylo, yhi = min(y0, y1), max(y0, y1)
+    r0, r1 = _row_span(y0, y1, h)
+    if flat:
+        r1 = r0
+    for row in range(r0, r1 + 1):
+        if flat:
+            t_lo, t_hi = 0.0, 1.0
+        else:
+            ta = min(max((max(ylo, row) - y0) * inv_dy, 0.0), 1.0)
+            tb = min(max((min(yhi, row + 1.0) - y0) * inv_dy, 0.0), 1.0)
+            t_lo, t_hi = min(ta, tb), max(ta, tb)
+        row2 = row - 1 if (flat and y0 == row and row > 0) else row  # on a row boundary
+        xa, xb = x0 + t_lo * dxv, x0 + t_hi * dxv
+        xlo, xhi = min(xa, xb), max(xa, xb)
+        c0 = min(max(math.floor(xlo), 0), w - 1)
+        c1 = max(min(max(math.ceil(xhi) - 1, 0), w - 1), c0)
+        if vertical:
+            c1 = c0
+        one_column = c1 == c0
+        inv_dx = 1.0 / dxv if not one_column else 1.0
+        for col in range(c0, c1 + 1):
+            if one_column:
+                t0, t1 = t_lo, t_hi
+            else:
+                u0 = min(max((max(xlo, col) - x0) * inv_dx, 0.0), 1.0)
+                u1 = min(max((min(xhi, col + 1.0) - x0) * inv_dx, 0.0), 1.0)
+                t0, t1 = max(min(u0, u1), t_lo), min(max(u0, u1), t_hi)
+            col2 = col - 1 if (vertical and x0 == col and col > 0) else col  # on a column boundary
+            gl = 0.0
+            for k in range(n):
+                lv = 0.5 * (_cell(incl, row, col, k, block) + _cell(incl, row2, col2, k, block))
+                gl += grad[k, e] * lv
+            m1 = (t1 * t1 - t0 * t0) / 2
+            wa[s] += gl * ((t1 - t0) - m1)
+            wb[s] += gl * m1
+
+
 @_jit
 def exact_backward(
     verts: np.ndarray,
@@ -332,7 +414,6 @@ def exact_backward(
     boundary line ``L`` is the mean of the two cells (the symmetric derivative). The caller
     multiplies by the segment's normal ``(ΔY, −ΔX)`` and adds to the vertices.
     """
-    h, w, n = incl.shape
     s_count = seg_start.shape[0]
     wa = np.zeros(s_count, dtype=np.float64)
     wb = np.zeros(s_count, dtype=np.float64)
@@ -340,49 +421,113 @@ def exact_backward(
     for thread in prange(threads):
         for chunk in range(thread, n_chunks, threads):
             for s in range(chunk * CHUNK, min((chunk + 1) * CHUNK, s_count)):
-                e = seg_edge[s]
-                x0, y0 = verts[seg_start[s], 0], verts[seg_start[s], 1]
-                x1, y1 = verts[seg_end[s], 0], verts[seg_end[s], 1]
-                dxv, dyv = x1 - x0, y1 - y0
-                wa[s] = wb[s] = grad[n, e] / 2  # the area row: ∫ (1 − t) dt = ∫ t dt = 1/2
-                flat = dyv == 0.0
-                vertical = dxv == 0.0
-                inv_dy = 1.0 / dyv if not flat else 1.0
-                ylo, yhi = min(y0, y1), max(y0, y1)
-                r0, r1 = _row_span(y0, y1, h)
-                if flat:
-                    r1 = r0
-                for row in range(r0, r1 + 1):
-                    if flat:
-                        t_lo, t_hi = 0.0, 1.0
-                    else:
-                        ta = min(max((max(ylo, row) - y0) * inv_dy, 0.0), 1.0)
-                        tb = min(max((min(yhi, row + 1.0) - y0) * inv_dy, 0.0), 1.0)
-                        t_lo, t_hi = min(ta, tb), max(ta, tb)
-                    row2 = row - 1 if (flat and y0 == row and row > 0) else row  # on a row boundary
-                    xa, xb = x0 + t_lo * dxv, x0 + t_hi * dxv
-                    xlo, xhi = min(xa, xb), max(xa, xb)
-                    c0 = min(max(math.floor(xlo), 0), w - 1)
-                    c1 = max(min(max(math.ceil(xhi) - 1, 0), w - 1), c0)
-                    if vertical:
-                        c1 = c0
-                    one_column = c1 == c0
-                    inv_dx = 1.0 / dxv if not one_column else 1.0
-                    for col in range(c0, c1 + 1):
-                        if one_column:
-                            t0, t1 = t_lo, t_hi
-                        else:
-                            u0 = min(max((max(xlo, col) - x0) * inv_dx, 0.0), 1.0)
-                            u1 = min(max((min(xhi, col + 1.0) - x0) * inv_dx, 0.0), 1.0)
-                            t0, t1 = max(min(u0, u1), t_lo), min(max(u0, u1), t_hi)
-                        col2 = (
-                            col - 1 if (vertical and x0 == col and col > 0) else col
-                        )  # on a column boundary
-                        gl = 0.0
-                        for k in range(n):
-                            lv = 0.5 * (_cell(incl, row, col, k, block) + _cell(incl, row2, col2, k, block))
-                            gl += grad[k, e] * lv
-                        m1 = (t1 * t1 - t0 * t0) / 2
-                        wa[s] += gl * ((t1 - t0) - m1)
-                        wb[s] += gl * m1
+                _segment_weights(s, verts, seg_start, seg_end, seg_edge, incl, block, grad, wa, wb)
     return wa, wb
+
+
+# ----------------------------------------------------------------------------------------
+# CUDA: the same per-segment arithmetic, one GPU thread per segment (or row, or edge)
+# ----------------------------------------------------------------------------------------
+cuda = None  # numba.cuda, imported by the first CUDA call (it costs a tenth of a second)
+_CUDA_KERNELS: dict = {}
+_CUDA_OK: dict = {}
+
+
+def _cuda_prefix(image, block, incl, offsets):  # one thread per image row
+    r = cuda.grid(1)
+    if r < image.shape[1]:
+        _band_prefix(image, r, r + 1, block, incl[r : r + 1], offsets[r : r + 1])
+
+
+def _cuda_forward(verts, seg_start, seg_end, incl, offsets, block, per_seg):  # per segment
+    s = cuda.grid(1)
+    if s < seg_start.shape[0]:
+        _segment_forward(s, verts, seg_start, seg_end, incl, offsets, block, per_seg)
+
+
+def _cuda_edge_sums(per_seg, edge_offsets, out):  # one thread per pixel edge
+    e = cuda.grid(1)
+    if e < edge_offsets.shape[0] - 1:
+        _edge_sum(e, per_seg, edge_offsets, out)
+
+
+def _cuda_backward(verts, seg_start, seg_end, seg_edge, incl, block, grad, wa, wb):  # per segment
+    s = cuda.grid(1)
+    if s < seg_start.shape[0]:
+        _segment_weights(s, verts, seg_start, seg_end, seg_edge, incl, block, grad, wa, wb)
+
+
+_CUDA_SOURCES = {
+    "prefix": _cuda_prefix,
+    "forward": _cuda_forward,
+    "edge_sums": _cuda_edge_sums,
+    "backward": _cuda_backward,
+}
+#: Threads per block of the CUDA kernels.
+CUDA_THREADS = 128
+
+
+def cuda_launch(name: str, count: int, stream: int, *args) -> None:
+    """Launch CUDA kernel ``name`` (``"prefix"``, ``"forward"``, ``"edge_sums"``,
+    ``"backward"``) with one thread per item, ``count`` items, on the CUDA stream whose handle
+    is ``stream`` (0: the default stream). Array arguments are torch CUDA tensors or numba
+    device arrays (anything with ``__cuda_array_interface__``): the kernels read and write
+    them in place, as :func:`prefix_tables`, :func:`exact_forward` and :func:`exact_backward`
+    do on the CPU, step for step. Kernels compile on first use and are cached on disk."""
+    global cuda
+    if cuda is None:
+        from numba import cuda as numba_cuda
+
+        cuda = numba_cuda
+    if name not in _CUDA_KERNELS:
+        _CUDA_KERNELS[name] = cuda.jit(cache=True)(_CUDA_SOURCES[name])
+    if count == 0:
+        return
+    arrays = [cuda.as_cuda_array(a) if hasattr(type(a), "__cuda_array_interface__") else a for a in args]
+    on = cuda.external_stream(stream) if stream else cuda.default_stream()
+    _CUDA_KERNELS[name][(count + CUDA_THREADS - 1) // CUDA_THREADS, CUDA_THREADS, on](*arrays)
+
+
+def cuda_available(dtype: str = "float32") -> bool:
+    """Whether the CUDA kernels run here for images of ``dtype`` (``"float32"``/``"float64"``):
+    numba's CUDA target imports, sees a GPU, and compiles and runs all four kernels on a
+    one-pixel mesh (checked once per dtype; a failure warns once, and the caller falls back to
+    the torch reference)."""
+    if dtype not in _CUDA_OK:
+        _CUDA_OK[dtype] = _cuda_smoke_test(dtype)
+    return _CUDA_OK[dtype]
+
+
+def _cuda_smoke_test(dtype: str) -> bool:
+    try:
+        from numba import cuda as numba_cuda
+
+        if njit is None or not numba_cuda.is_available():
+            return False
+        dev = numba_cuda.to_device
+        image = dev(np.full((1, 2, 2), 0.25, dtype=dtype))
+        verts = dev(np.array([[0.5, 0.5], [1.5, 0.5], [1.5, 1.5], [0.5, 1.5]]))
+        seg_start, seg_end = dev(np.arange(4)), dev((np.arange(4) + 1) % 4)
+        seg_edge, edge_offsets = dev(np.zeros(4, dtype=np.int64)), dev(np.array([0, 4]))
+        incl = numba_cuda.device_array((2, 2, 1), dtype=dtype)
+        offsets = numba_cuda.device_array((2, 1, 1), dtype=np.float64)
+        per_seg = dev(np.zeros((4, 2)))
+        out, wa, wb = dev(np.zeros((2, 1))), dev(np.zeros(4)), dev(np.zeros(4))
+        cuda_launch("prefix", 2, 0, image, BLOCK, incl, offsets)
+        cuda_launch("forward", 4, 0, verts, seg_start, seg_end, incl, offsets, BLOCK, per_seg)
+        cuda_launch("edge_sums", 1, 0, per_seg, edge_offsets, out)
+        cuda_launch("backward", 4, 0, verts, seg_start, seg_end, seg_edge, incl, BLOCK, out, wa, wb)
+        total = out.copy_to_host()
+        if not np.allclose(total[:, 0], [0.25, 1.0]):  # ∮ P dY = ∬ L, ∮ X dY = the area
+            raise RuntimeError(f"a one-pixel test integral came out {total[:, 0]}, not [0.25, 1]")
+        return True
+    except Exception as err:  # any failure of an optional accelerator means: use the fallback
+        import warnings
+
+        warnings.warn(
+            f"layoutwarp: numba's CUDA kernels do not run here ({type(err).__name__}: {err}); "
+            "the exact integrator uses its torch path on CUDA",
+            RuntimeWarning,
+            stacklevel=3,
+        )
+        return False

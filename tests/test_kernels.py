@@ -3,6 +3,8 @@ and 1e-6 (float32) on random layouts, sizes and the hard cases; gradcheck on the
 
 from __future__ import annotations
 
+import warnings
+
 import pytest
 import torch
 from conftest import rand_theta
@@ -177,3 +179,97 @@ def test_the_banded_path_matches_the_reference(gen, monkeypatch):
         (va, ga), (vb, gb) = both(img, layout, size, weights=w, tol=1e-6)
         assert float((va - vb).abs().max()) <= 1e-12 * float(vb.abs().max())
         assert float((ga - gb).abs().max()) <= 1e-12 * max(float(gb.abs().max()), 1.0)
+
+
+# ----------------------------------------------------------------------------------------
+# CUDA: the same kernels on the GPU against the torch reference on the CPU
+# ----------------------------------------------------------------------------------------
+def cuda_kernels_or_skip(dtype: str = "float64") -> None:
+    if not torch.cuda.is_available():
+        pytest.skip("no CUDA GPU here")
+    if not kernels.cuda_available(dtype):
+        pytest.skip("numba's CUDA target does not run here (the torch path serves CUDA; see the warning)")
+
+
+def on_cuda(img, layout, size, theta, weights, **kw):
+    """Values and θ-gradients of Σ weights · values from the CUDA kernels, back on the CPU."""
+    th = theta.cuda().requires_grad_(True)
+    val = lw.integrate_exact(img.cuda(), layout.to("cuda"), size, theta=th, backend="numba", **kw)
+    (g,) = torch.autograd.grad((val * weights.cuda()).sum(), th)
+    return val.detach().cpu(), g.cpu()
+
+
+def on_cpu_reference(img, layout, size, theta, weights, **kw):
+    th = theta.clone().requires_grad_(True)
+    val = lw.integrate_exact(img, layout.to("cpu"), size, theta=th, backend="torch", **kw)
+    (g,) = torch.autograd.grad((val * weights).sum(), th)
+    return val.detach(), g
+
+
+@pytest.mark.parametrize("family", ["rect", "curv"])
+def test_cuda_kernels_match_the_reference_in_float64(family, gen):
+    cuda_kernels_or_skip()
+    for _ in range(4):
+        src = (rint(gen, 5, 90), rint(gen, 5, 90))
+        size = (rint(gen, 1, 24), rint(gen, 1, 24))
+        layout = lw.make_layout(family, rand_theta(gen, 0.95), dtype=F64)
+        img = torch.rand(rint(gen, 1, 4), *src, generator=gen, dtype=F64) * 10 - 3
+        w = torch.randn(img.shape[0], *size, generator=gen, dtype=F64)
+        theta = layout.theta.detach()
+        va, ga = on_cuda(img, layout, size, theta, w, tol=1e-6)
+        vb, gb = on_cpu_reference(img, layout, size, theta, w, tol=1e-6)
+        assert float((va - vb).abs().max()) <= 1e-12 * float(vb.abs().max())
+        assert float((ga - gb).abs().max()) <= 1e-12 * max(float(gb.abs().max()), 1.0)
+
+
+@pytest.mark.parametrize(
+    ("theta", "size", "src"),
+    [((0.0, 0.0), (4, 4), (28, 28)), ((0.3, -0.5), (1, 17), (9, 13)), ((0.7, 0.2), (60, 70), (20, 30))],
+)
+def test_cuda_kernels_match_the_reference_on_hard_cases(theta, size, src, gen):
+    cuda_kernels_or_skip()
+    layout = lw.CurvLayout(theta, dtype=F64)
+    img = torch.rand(2, *src, generator=gen, dtype=F64)
+    w = torch.randn(2, *size, generator=gen, dtype=F64)
+    va, ga = on_cuda(img, layout, size, layout.theta.detach(), w, tol=1e-5)
+    vb, gb = on_cpu_reference(img, layout, size, layout.theta.detach(), w, tol=1e-5)
+    assert float((va - vb).abs().max()) <= 1e-12
+    assert float((ga - gb).abs().max()) <= 1e-12 * max(float(gb.abs().max()), 1.0)
+
+
+def test_cuda_kernels_match_the_reference_in_float32(gen):
+    cuda_kernels_or_skip("float32")
+    layout = lw.CurvLayout(rand_theta(gen), dtype=F64)
+    img = torch.rand(3, 300, 257, generator=gen) + 1000  # prefix sums must stay local
+    a = lw.integrate_exact(img.cuda(), layout.to("cuda"), (31, 29), tol=1e-4, backend="numba").cpu()
+    b = lw.integrate_exact(img, layout.to("cpu"), (31, 29), tol=1e-4, backend="torch")
+    assert float((a - b).abs().max()) <= 1e-6 * float(b.abs().max())
+
+
+def test_gradcheck_on_the_cuda_kernels(gen):
+    cuda_kernels_or_skip()
+    layout = lw.CurvLayout(dtype=F64).to("cuda")
+    img = torch.rand(2, 13, 17, generator=gen, dtype=F64).cuda()
+
+    def f(t):
+        mesh = lw.pixel_mesh(layout, (4, 5), subdivisions=4, theta=t)
+        return lw.integrate_exact(img, layout, (4, 5), mesh=mesh, backend="numba")
+
+    theta = rand_theta(gen, 0.8).cuda().requires_grad_(True)
+    assert torch.autograd.gradcheck(f, (theta,), eps=1e-6, atol=1e-5, rtol=1e-4)
+
+
+def test_a_failing_cuda_target_warns_once_and_leaves_the_torch_path(monkeypatch):
+    numba_cuda = pytest.importorskip("numba.cuda")
+
+    def broken(*args):
+        raise RuntimeError("no kernel image is available")
+
+    monkeypatch.setattr(kernels, "_CUDA_OK", {})
+    monkeypatch.setattr(kernels, "cuda_launch", broken)
+    monkeypatch.setattr(numba_cuda, "is_available", lambda: True)
+    with pytest.warns(RuntimeWarning, match="CUDA kernels do not run here.*torch path on CUDA"):
+        assert not kernels.cuda_available("float32")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # answered from the first check: no second warning
+        assert not kernels.cuda_available("float32")

@@ -6,7 +6,8 @@ measured in the same run: ``cv2.resize(INTER_AREA)`` (the uniform box integral),
 stratified Monte Carlo with 16 samples per pixel. Forward errors are against a float64 exact
 reference; on the synthetic scene also against the scene's analytic pixel means
 (:class:`SineScene`). Gradient errors are against central finite differences of the float64
-exact forward. Peak memory is measured in a spawned child (growth of its resident set).
+exact forward. Peak memory is measured in a spawned child (growth of its resident set) on the
+CPU, and as the growth of allocated GPU memory on a CUDA device.
 The caller chooses torch's thread count (``layoutwarp bench --threads``); nothing here sets it.
 """
 
@@ -99,6 +100,16 @@ def _time_backward(forward: Callable[[], Tensor], layout: Layout, repeats: int) 
     return float(np.median(times) * 1e3)
 
 
+def _cuda_peak_mb(fn: Callable[[], object]) -> float:
+    """Growth of allocated GPU memory (MiB) over what was allocated before ``fn`` ran, at its peak."""
+    _sync()
+    torch.cuda.reset_peak_memory_stats()
+    base = torch.cuda.memory_allocated()
+    fn()
+    _sync()
+    return (torch.cuda.max_memory_allocated() - base) / 2**20
+
+
 def _status_mb(key: str) -> float:
     with open("/proc/self/status") as f:
         for line in f:
@@ -159,7 +170,7 @@ def _remap(npimg: np.ndarray, maps: tuple[np.ndarray, np.ndarray]) -> np.ndarray
 def _grid_sample_mc(img: Tensor, layout: Layout, size, s: int, gen) -> Tensor:
     """Anchor: stratified Monte Carlo as saliency samplers do it (φ, grid_sample, mean)."""
     h, w = size
-    u = sample_points(size, s, jitter=True, generator=gen, dtype=torch.float32)
+    u = sample_points(size, s, jitter=True, generator=gen, dtype=torch.float32, device=img.device)
     p = layout.phi(u, layout.theta.detach().float())
     n, c = img.shape[:2]
     out = F.grid_sample(img.reshape(1, n * c, *img.shape[-2:]), p[None], mode="bilinear", align_corners=False)
@@ -285,7 +296,9 @@ def run(
         progress: called with a short message before each configuration.
         device: where the integrators and the ``grid_sample`` anchor run (images and layouts
             are moved there; times wait for the GPU); the OpenCV anchors and every reference
-            stay on the CPU, and peak memory (host RSS) is measured for ``"cpu"`` only.
+            stay on the CPU. Peak memory is host RSS in children on ``"cpu"``, the growth of
+            allocated GPU memory on ``"cuda"`` (then also ``extra["train_peak_mb"]``, forward +
+            backward of the learnable layout).
         only: measure only these rows of :func:`bench_layouts` (the anchors always).
 
     Returns:
@@ -311,6 +324,7 @@ def run(
     setups = bench_layouts(theta)
     layouts = {name: layout_from_spec(spec) for name, spec in setups.items()}
     on_device = {name: layout_from_spec(spec).to(device) for name, spec in setups.items()}
+    on_cuda = torch.device(device).type == "cuda"
     memory = memory and torch.device(device).type == "cpu"
     say("anchors")
     t_area = _time(lambda: cv2.resize(npimg, (w, h), interpolation=cv2.INTER_AREA), repeats)
@@ -372,6 +386,9 @@ def run(
             if name == "curv":
                 out = _grid_sample_mc(img, layout, size, 4, torch.Generator().manual_seed(0))
                 rows.append(Row(image_name, name, "anchor: grid_sample MC", "16 spp", t_gs, **errors(out)))
+                if on_cuda and image_name == "photo":
+                    gs = lambda: _grid_sample_mc(first_dev, on_device["curv"], size, 4, gen)  # noqa: E731
+                    rows[-1].peak_mb = _cuda_peak_mb(gs)
 
             dev_layout, dev_img = on_device[name], img.to(device)  # the timed copies
             for method, opts, setting in _settings(dev_layout, name, tols, mc_samples):
@@ -401,7 +418,11 @@ def run(
                     row.extra["grad"] = g.tolist()
                     row.extra["grad_ref"] = g_ref.tolist()
                 if image_name == "photo":
-                    row.peak_mb = mem(name, method, opts)
+                    row.peak_mb = _cuda_peak_mb(fwd) if on_cuda else mem(name, method, opts)
+                    if on_cuda and g_ref is not None:
+                        dev_layout.rho.requires_grad_(True)
+                        row.extra["train_peak_mb"] = _cuda_peak_mb(lambda f=fwd_grad: f().sum().backward())
+                        dev_layout.rho.grad = None
                 rows.append(row)
     return {
         "src_hw": list(src),
