@@ -525,7 +525,8 @@ def _cuda_smoke_test(dtype: str) -> bool:
         import warnings
 
         warnings.warn(
-            f"layoutwarp: numba's CUDA kernels do not run here ({type(err).__name__}: {err}); "
+            f"layoutwarp: numba's CUDA kernels do not run here ({type(err).__name__}: "
+            f"{' '.join(str(err).split())}); "
             "the exact integrator uses its torch path on CUDA",
             RuntimeWarning,
             stacklevel=3,
