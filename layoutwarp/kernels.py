@@ -22,13 +22,16 @@ from __future__ import annotations
 
 import math
 import threading
+import warnings
 
 import numpy as np
 
 try:  # numba is a dependency, but the torch reference keeps working without it
     from numba import get_num_threads, njit, prange
+    from numba.core.errors import NumbaPerformanceWarning
 except ImportError:  # pragma: no cover - depends on the environment
     njit = prange = get_num_threads = None
+    NumbaPerformanceWarning = Warning
 
 __all__ = [
     "BLOCK",
@@ -485,7 +488,9 @@ def cuda_launch(name: str, count: int, stream: int, *args) -> None:
         return
     arrays = [cuda.as_cuda_array(a) if hasattr(type(a), "__cuda_array_interface__") else a for a in args]
     on = cuda.external_stream(stream) if stream else cuda.default_stream()
-    _CUDA_KERNELS[name][(count + CUDA_THREADS - 1) // CUDA_THREADS, CUDA_THREADS, on](*arrays)
+    with warnings.catch_warnings():  # numba warns of low occupancy on small meshes: not the user's concern
+        warnings.simplefilter("ignore", NumbaPerformanceWarning)
+        _CUDA_KERNELS[name][(count + CUDA_THREADS - 1) // CUDA_THREADS, CUDA_THREADS, on](*arrays)
 
 
 def cuda_available(dtype: str = "float32") -> bool:
@@ -522,8 +527,6 @@ def _cuda_smoke_test(dtype: str) -> bool:
             raise RuntimeError(f"a one-pixel test integral came out {total[:, 0]}, not [0.25, 1]")
         return True
     except Exception as err:  # any failure of an optional accelerator means: use the fallback
-        import warnings
-
         warnings.warn(
             f"layoutwarp: numba's CUDA kernels do not run here ({type(err).__name__}: "
             f"{' '.join(str(err).split())}); "

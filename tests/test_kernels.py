@@ -231,8 +231,9 @@ def test_cuda_kernels_match_the_reference_on_hard_cases(theta, size, src, gen):
     layout = lw.CurvLayout(theta, dtype=F64)
     img = torch.rand(2, *src, generator=gen, dtype=F64)
     w = torch.randn(2, *size, generator=gen, dtype=F64)
-    va, ga = on_cuda(img, layout, size, layout.theta.detach(), w, tol=1e-5)
-    vb, gb = on_cpu_reference(img, layout, size, layout.theta.detach(), w, tol=1e-5)
+    th = layout.theta.detach()
+    va, ga = on_cuda(img, layout, size, th, w, tol=1e-5)
+    vb, gb = on_cpu_reference(img, layout, size, th, w, tol=1e-5)
     assert float((va - vb).abs().max()) <= 1e-12
     assert float((ga - gb).abs().max()) <= 1e-12 * max(float(gb.abs().max()), 1.0)
 
