@@ -28,10 +28,8 @@ import numpy as np
 
 try:  # numba is a dependency, but the torch reference keeps working without it
     from numba import get_num_threads, njit, prange
-    from numba.core.errors import NumbaPerformanceWarning
 except ImportError:  # pragma: no cover - depends on the environment
     njit = prange = get_num_threads = None
-    NumbaPerformanceWarning = Warning
 
 __all__ = [
     "BLOCK",
@@ -489,7 +487,7 @@ def cuda_launch(name: str, count: int, stream: int, *args) -> None:
     arrays = [cuda.as_cuda_array(a) if hasattr(type(a), "__cuda_array_interface__") else a for a in args]
     on = cuda.external_stream(stream) if stream else cuda.default_stream()
     with warnings.catch_warnings():  # numba warns of low occupancy on small meshes: not the user's concern
-        warnings.simplefilter("ignore", NumbaPerformanceWarning)
+        warnings.filterwarnings("ignore", message=".*GPU under-utilization")
         _CUDA_KERNELS[name][(count + CUDA_THREADS - 1) // CUDA_THREADS, CUDA_THREADS, on](*arrays)
 
 
