@@ -660,7 +660,11 @@ def _flux_derivative(image, layout: Layout, theta: Tensor, size, m: int, radianc
     dtype, dev = theta.dtype, theta.device
     topo = MeshTopology(size)
     a, b = topo.edge_ends(dtype, dev)  # (E, 2): horizontal edges run +x, vertical edges +y
-    t = (torch.arange(m, dtype=dtype) + torch.rand(m, generator=generator, dtype=dtype)).to(dev) / m
+    at = generator.device if generator is not None else dev  # drawn where the generator is
+    t = (
+        torch.arange(m, dtype=dtype, device=dev)
+        + torch.rand(m, generator=generator, dtype=dtype, device=at).to(dev)
+    ) / m
     pts = a[:, None] + t[:, None] * (b - a)[:, None]  # (E, m, 2) stratified along every edge
     r = layout.phi(pts, theta)
     rdot = (layout.phi_jacobian(pts, theta) @ (b - a)[:, None, :, None])[..., 0]  # J γ̇

@@ -59,7 +59,8 @@ def sample_points(
     h, w = check_size(size)
     s = check_int(samples, "samples", 1)
     if jitter:
-        off = torch.rand(h * s, w * s, 2, generator=generator, dtype=dtype).to(device)
+        at = generator.device if generator is not None else device  # drawn where the generator is
+        off = torch.rand(h * s, w * s, 2, generator=generator, dtype=dtype, device=at).to(device)
     else:
         off = torch.full((h * s, w * s, 2), 0.5, dtype=dtype, device=device)
     xs = torch.arange(w * s, dtype=dtype, device=device)

@@ -209,7 +209,8 @@ def simulate(
             uint8, 2⁻¹² for float32). The plan states the bound and why.
         samples: ``s`` for Monte Carlo (``s²`` samples per pixel).
         grad: Monte Carlo θ-gradient estimator, ``"reynolds"`` or ``"autograd"``.
-        seed, generator: randomness of the Monte Carlo jitter (``seed`` makes a generator).
+        seed, generator: randomness of the Monte Carlo jitter (``seed`` makes a generator on
+            the image's device, so one seed gives other samples on another device).
         allow_nonfinite: let NaN/Inf through instead of raising ``ValueError``.
         return_plan: also return the :class:`SimulationPlan` that ran.
 
@@ -235,7 +236,10 @@ def simulate(
     )
     tol = plan.details.get("tol", tol)
     if generator is None and seed is not None:
-        generator = torch.Generator().manual_seed(int(seed))
+        # on the image's device: drawing there is what keeps Monte Carlo fast on a GPU (a seed
+        # gives the same samples on every call on one device, not across devices)
+        at = image.device if isinstance(image, Tensor) else None
+        generator = torch.Generator(at).manual_seed(int(seed))
     if is_callable:
         out = _run(plan, image, layout, size, tol, samples, grad, generator)[None]
         return (out, plan) if return_plan else out

@@ -328,7 +328,7 @@ def run(
     memory = memory and torch.device(device).type == "cpu"
     say("anchors")
     t_area = _time(lambda: cv2.resize(npimg, (w, h), interpolation=cv2.INTER_AREA), repeats)
-    gen = torch.Generator().manual_seed(0)
+    gen = torch.Generator(device).manual_seed(0)  # samples drawn on the device, as a GPU user would
     first_dev = first.to(device)
     t_gs = _time(lambda: _grid_sample_mc(first_dev, on_device["curv"], size, 4, gen), repeats)
     anchors = {"inter_area": t_area, "grid_sample_mc16": t_gs}
