@@ -326,7 +326,8 @@ def _cuda_forward(verts: Tensor, image: Tensor, mesh: PixelMesh) -> tuple[Tensor
     )
     incl = image.new_empty(h, w, n)
     offsets = image.new_empty(h, -(-w // kernels.BLOCK), n, dtype=torch.float64)
-    kernels.cuda_launch("prefix", h, stream, image, kernels.BLOCK, incl, offsets)
+    kernels.cuda_launch("prefix_blocks", h * offsets.shape[1] * n, stream, image, kernels.BLOCK, incl)
+    kernels.cuda_launch("prefix_offsets", h * n, stream, kernels.BLOCK, incl, offsets)
     per_seg = v.new_zeros(mesh.num_segments, n + 1)
     kernels.cuda_launch(
         "forward", mesh.num_segments, stream, v, seg_start, seg_end, incl, offsets, kernels.BLOCK, per_seg

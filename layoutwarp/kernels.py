@@ -73,23 +73,39 @@ def _inline(fn):
 
 
 @_inline
+def _block_prefix(image: np.ndarray, r: int, rr: int, b: int, k: int, block: int, incl: np.ndarray) -> None:
+    """Inclusive sums of block ``b`` of row ``r``, channel ``k``, into ``incl[rr, :, k]``."""
+    w = image.shape[2]
+    acc = image[k, r, b * block] * 0  # zero in the image's dtype
+    for c in range(b * block, min(w, (b + 1) * block)):
+        acc += image[k, r, c]
+        incl[rr, c, k] = acc
+
+
+@_inline
+def _row_offsets(rr: int, k: int, block: int, incl: np.ndarray, offsets: np.ndarray) -> None:
+    """The float64 sums of the whole blocks before each block of ``incl[rr, :, k]``."""
+    w = incl.shape[1]
+    total = 0.0
+    for b in range(offsets.shape[1]):
+        offsets[rr, b, k] = total
+        total += incl[rr, min(w, (b + 1) * block) - 1, k]
+
+
+@_inline
 def _band_prefix(
     image: np.ndarray, ra: int, rb: int, block: int, incl: np.ndarray, offsets: np.ndarray
 ) -> None:
     """The prefix tables (see :func:`prefix_tables`) of rows ``ra .. rb − 1`` into ``incl``/
-    ``offsets`` (row ``ra`` at index 0): the one home of their arithmetic."""
+    ``offsets`` (row ``ra`` at index 0); :func:`_block_prefix` and :func:`_row_offsets` are
+    the one home of their arithmetic."""
     n, _, w = image.shape
     nb = (w + block - 1) // block
     for rr in range(rb - ra):
         for k in range(n):
-            total = 0.0
             for b in range(nb):
-                offsets[rr, b, k] = total
-                acc = image[k, ra + rr, b * block] * 0  # zero in the image's dtype
-                for c in range(b * block, min(w, (b + 1) * block)):
-                    acc += image[k, ra + rr, c]
-                    incl[rr, c, k] = acc
-                total += acc
+                _block_prefix(image, ra + rr, rr, b, k, block, incl)
+            _row_offsets(rr, k, block, incl, offsets)
 
 
 @_jit
@@ -434,10 +450,20 @@ _CUDA_KERNELS: dict = {}
 _CUDA_OK: dict = {}
 
 
-def _cuda_prefix(image, block, incl, offsets):  # one thread per image row
-    r = cuda.grid(1)
-    if r < image.shape[1]:
-        _band_prefix(image, r, r + 1, block, incl[r : r + 1], offsets[r : r + 1])
+def _cuda_prefix_blocks(image, block, incl):  # one thread per (row, block, channel)
+    i = cuda.grid(1)
+    n, h, w = image.shape
+    nb = (w + block - 1) // block
+    if i < h * nb * n:
+        r, b, k = i // (nb * n), (i // n) % nb, i % n
+        _block_prefix(image, r, r, b, k, block, incl)
+
+
+def _cuda_prefix_offsets(block, incl, offsets):  # one thread per (row, channel)
+    i = cuda.grid(1)
+    h, _, n = incl.shape
+    if i < h * n:
+        _row_offsets(i // n, i % n, block, incl, offsets)
 
 
 def _cuda_forward(verts, seg_start, seg_end, incl, offsets, block, per_seg):  # per segment
@@ -459,7 +485,8 @@ def _cuda_backward(verts, seg_start, seg_end, seg_edge, incl, block, grad, wa, w
 
 
 _CUDA_SOURCES = {
-    "prefix": _cuda_prefix,
+    "prefix_blocks": _cuda_prefix_blocks,
+    "prefix_offsets": _cuda_prefix_offsets,
     "forward": _cuda_forward,
     "edge_sums": _cuda_edge_sums,
     "backward": _cuda_backward,
@@ -469,12 +496,14 @@ CUDA_THREADS = 128
 
 
 def cuda_launch(name: str, count: int, stream: int, *args) -> None:
-    """Launch CUDA kernel ``name`` (``"prefix"``, ``"forward"``, ``"edge_sums"``,
-    ``"backward"``) with one thread per item, ``count`` items, on the CUDA stream whose handle
-    is ``stream`` (0: the default stream). Array arguments are torch CUDA tensors or numba
-    device arrays (anything with ``__cuda_array_interface__``): the kernels read and write
-    them in place, as :func:`prefix_tables`, :func:`exact_forward` and :func:`exact_backward`
-    do on the CPU, step for step. Kernels compile on first use and are cached on disk."""
+    """Launch CUDA kernel ``name`` with one thread per item, ``count`` items, on the CUDA
+    stream whose handle is ``stream`` (0: the default stream). The kernels, by name:
+    ``"prefix_blocks"`` (items: row × block × channel) and ``"prefix_offsets"`` (row ×
+    channel) build :func:`prefix_tables`; ``"forward"`` (segment) and ``"edge_sums"`` (pixel
+    edge) do :func:`exact_forward`; ``"backward"`` (segment) does :func:`exact_backward`,
+    each step for step as on the CPU. Array arguments are torch CUDA tensors or numba device
+    arrays (anything with ``__cuda_array_interface__``), read and written in place. Kernels
+    compile on first use and are cached on disk."""
     global cuda
     if cuda is None:
         from numba import cuda as numba_cuda
@@ -493,7 +522,7 @@ def cuda_launch(name: str, count: int, stream: int, *args) -> None:
 
 def cuda_available(dtype: str = "float32") -> bool:
     """Whether the CUDA kernels run here for images of ``dtype`` (``"float32"``/``"float64"``):
-    numba's CUDA target imports, sees a GPU, and compiles and runs all four kernels on a
+    numba's CUDA target imports, sees a GPU, and compiles and runs all its kernels on a
     one-pixel mesh (checked once per dtype; a failure warns once, and the caller falls back to
     the torch reference)."""
     if dtype not in _CUDA_OK:
@@ -516,7 +545,8 @@ def _cuda_smoke_test(dtype: str) -> bool:
         offsets = numba_cuda.device_array((2, 1, 1), dtype=np.float64)
         per_seg = dev(np.zeros((4, 2)))
         out, wa, wb = dev(np.zeros((2, 1))), dev(np.zeros(4)), dev(np.zeros(4))
-        cuda_launch("prefix", 2, 0, image, BLOCK, incl, offsets)
+        cuda_launch("prefix_blocks", 2, 0, image, BLOCK, incl)
+        cuda_launch("prefix_offsets", 2, 0, BLOCK, incl, offsets)
         cuda_launch("forward", 4, 0, verts, seg_start, seg_end, incl, offsets, BLOCK, per_seg)
         cuda_launch("edge_sums", 1, 0, per_seg, edge_offsets, out)
         cuda_launch("backward", 4, 0, verts, seg_start, seg_end, seg_edge, incl, BLOCK, out, wa, wb)
