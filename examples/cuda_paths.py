@@ -19,6 +19,7 @@ import torch.nn.functional as F
 
 import layoutwarp as lw
 from layoutwarp.experiments.scene import load_photo
+from layoutwarp.sensor import data_tolerance
 
 SIZE = (129, 257)
 
@@ -67,7 +68,7 @@ def main() -> None:
             f"{theta!s:14s} {'-':8s} {'grid_sample MC-16':22s} {t_gs:7.2f} {1:6.2f} {'':>8s} "
             f"{peak_mib(anchor) / input_mib:7.2f}"
         )
-        for tol in (lw.data_tolerance(torch.float32)[0], 1e-3, 1e-4):
+        for tol in (data_tolerance(torch.float32)[0], 1e-3, 1e-4):
             mesh = lw.pixel_mesh(layout, SIZE, tol=tol, dtype=torch.float64)
             learnable = lw.CurvLayout(theta, learn=True).cuda()
             for backend in ("numba", "torch"):

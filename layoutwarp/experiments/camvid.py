@@ -60,6 +60,11 @@ RGB_MEAN = torch.tensor([0.45, 0.45, 0.45]).view(1, 3, 1, 1)
 RGB_STD = torch.tensor([0.28, 0.28, 0.28]).view(1, 3, 1, 1)
 
 
+def normalise_rgb(s: torch.Tensor) -> torch.Tensor:
+    """Sensor values ``(B, 3, h, w)`` centred and scaled for the networks (on ``s``'s device)."""
+    return (s - RGB_MEAN.to(s)) / RGB_STD.to(s)
+
+
 def to_tensor(imgs: np.ndarray) -> torch.Tensor:
     return torch.from_numpy(imgs).permute(0, 3, 1, 2).contiguous()  # uint8 (N, 3, H, W)
 
@@ -102,7 +107,7 @@ class SegNet(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """``(B, 3, H, W)`` images in [0, 1] (or uint8) to sensor-grid logits ``(B, K, h, w)``."""
-        s = (self.sensor(x) - RGB_MEAN) / RGB_STD
+        s = normalise_rgb(self.sensor(x))
         e1 = self.enc1(s)
         e2 = self.enc2(F.max_pool2d(e1, 2, ceil_mode=True))
         e3 = self.enc3(F.max_pool2d(e2, 2, ceil_mode=True))

@@ -19,7 +19,7 @@ from torch import nn
 
 from ..layoutfile import save_layout
 from ..sensor import SensorLayer
-from .camvid import RGB_MEAN, RGB_STD, conv_block, to_tensor
+from .camvid import conv_block, normalise_rgb, to_tensor
 from .data import AGE_GROUPS, load_faces
 from .training import (
     ExperimentDefaults,
@@ -62,7 +62,7 @@ class FaceNet(nn.Module):
         self.heads = nn.ModuleDict({k: nn.Linear(128, n) for k, n in self.HEADS.items()})
 
     def forward(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
-        s = (self.sensor(x) - RGB_MEAN) / RGB_STD
+        s = normalise_rgb(self.sensor(x))
         z = self.fc(self.pool(self.body(s)))
         return {k: head(z) for k, head in self.heads.items()}
 
