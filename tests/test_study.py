@@ -187,7 +187,7 @@ def test_shipped_models_evaluate_on_the_bundled_samples(path, capsys):
     slice (most bundled faces were training faces, so its scores are not the test's)."""
     task = path.parents[1].name
     data = SAMPLES / {"mnist": "mnist", "camvid": "camvid", "faces": "faces/utkface"}[task]
-    assert main(["evaluate", task, "--model", str(path), "--data", str(data)]) == 0
+    assert main(["evaluate", task, "--model", str(path), "--data", str(data), "--device", "cpu"]) == 0
     scores = json.loads(capsys.readouterr().out)
     recorded = json.loads((path.parents[1] / "samples_scores.json").read_text())[path.name]
     metric = PLANS[task].metric

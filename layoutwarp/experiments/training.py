@@ -69,14 +69,14 @@ class ExperimentDefaults:
 
 def world() -> tuple[int, int]:
     """``(rank, world size)`` of this process: ``(0, 1)`` alone; under ``torchrun`` (``WORLD_SIZE``
-    > 1) the process group is initialised once from its environment, with NCCL when CUDA is
-    available and gloo otherwise."""
+    > 1) the process group is initialised once from its environment: gloo for CPU tensors, and
+    NCCL for CUDA tensors where CUDA is available (so ``--device cpu`` works on a GPU machine)."""
     import torch.distributed as dist
 
     if int(os.environ.get("WORLD_SIZE", "1")) <= 1 or not dist.is_available():
         return 0, 1
     if not dist.is_initialized():
-        dist.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
+        dist.init_process_group("cpu:gloo,cuda:nccl" if torch.cuda.is_available() else "gloo")
     return dist.get_rank(), dist.get_world_size()
 
 
