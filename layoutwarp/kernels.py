@@ -1,4 +1,4 @@
-"""Compiled CPU kernels of the exact integrator (numba; no compiler needed on the user's machine).
+"""Compiled kernels of the exact integrator, CPU and CUDA (numba; no compiler needed on the user's machine).
 
 Each kernel fuses what the torch reference in :mod:`layoutwarp.integrators` does in some
 forty vectorised passes: cutting every pixel-boundary segment into single-cell pieces, the
@@ -12,6 +12,11 @@ nor a value per segment and channel is held (the backward builds the table when 
 whole-table forward writes one value per segment and a last pass sums each pixel edge's
 segments (contiguous in a :class:`~layoutwarp.PixelMesh`). The
 arithmetic mirrors the reference step for step, so both agree to rounding.
+
+The per-segment steps are ``@njit`` functions that numba also compiles for CUDA: there the
+whole-table forward runs one GPU thread per segment (and per table row × block × channel, per
+pixel edge), launched by :func:`cuda_launch`; :func:`cuda_available` says whether that target
+works here.
 
 Compiled code is cached on disk (``cache=True``): a second process loads it instead of
 compiling again. :func:`available` says whether numba is installed; without it the torch
@@ -33,10 +38,13 @@ except ImportError:  # pragma: no cover - depends on the environment
 
 __all__ = [
     "BLOCK",
+    "CUDA_THREADS",
     "LOCK",
     "WHOLE_TABLE_BYTES",
     "available",
     "band_rows",
+    "cuda_available",
+    "cuda_launch",
     "exact_backward",
     "exact_forward",
     "exact_forward_banded",
@@ -450,7 +458,8 @@ _CUDA_KERNELS: dict = {}
 _CUDA_OK: dict = {}
 
 
-def _cuda_prefix_blocks(image, block, incl):  # one thread per (row, block, channel)
+def _cuda_prefix_blocks(image: np.ndarray, block: int, incl: np.ndarray) -> None:
+    """One thread per (row, block, channel): :func:`_block_prefix`."""
     i = cuda.grid(1)
     n, h, w = image.shape
     nb = (w + block - 1) // block
@@ -459,26 +468,48 @@ def _cuda_prefix_blocks(image, block, incl):  # one thread per (row, block, chan
         _block_prefix(image, r, r, b, k, block, incl)
 
 
-def _cuda_prefix_offsets(block, incl, offsets):  # one thread per (row, channel)
+def _cuda_prefix_offsets(block: int, incl: np.ndarray, offsets: np.ndarray) -> None:
+    """One thread per (row, channel): :func:`_row_offsets`."""
     i = cuda.grid(1)
     h, _, n = incl.shape
     if i < h * n:
         _row_offsets(i // n, i % n, block, incl, offsets)
 
 
-def _cuda_forward(verts, seg_start, seg_end, incl, offsets, block, per_seg):  # per segment
+def _cuda_forward(
+    verts: np.ndarray,
+    seg_start: np.ndarray,
+    seg_end: np.ndarray,
+    incl: np.ndarray,
+    offsets: np.ndarray,
+    block: int,
+    per_seg: np.ndarray,
+) -> None:
+    """One thread per segment: :func:`_segment_forward`."""
     s = cuda.grid(1)
     if s < seg_start.shape[0]:
         _segment_forward(s, verts, seg_start, seg_end, incl, offsets, block, per_seg)
 
 
-def _cuda_edge_sums(per_seg, edge_offsets, out):  # one thread per pixel edge
+def _cuda_edge_sums(per_seg: np.ndarray, edge_offsets: np.ndarray, out: np.ndarray) -> None:
+    """One thread per pixel edge: :func:`_edge_sum`."""
     e = cuda.grid(1)
     if e < edge_offsets.shape[0] - 1:
         _edge_sum(e, per_seg, edge_offsets, out)
 
 
-def _cuda_backward(verts, seg_start, seg_end, seg_edge, incl, block, grad, wa, wb):  # per segment
+def _cuda_backward(
+    verts: np.ndarray,
+    seg_start: np.ndarray,
+    seg_end: np.ndarray,
+    seg_edge: np.ndarray,
+    incl: np.ndarray,
+    block: int,
+    grad: np.ndarray,
+    wa: np.ndarray,
+    wb: np.ndarray,
+) -> None:
+    """One thread per segment: :func:`_segment_weights`."""
     s = cuda.grid(1)
     if s < seg_start.shape[0]:
         _segment_weights(s, verts, seg_start, seg_end, seg_edge, incl, block, grad, wa, wb)
