@@ -391,7 +391,7 @@ def _segment_counts(
     return counts, piece, kk.to(lo.dtype) / n[piece].to(lo.dtype)
 
 
-#: Points per call of φ when the mesh's vertices are mapped (bounds φ's temporaries).
+#: Segments per chunk when the mesh's vertices are mapped (bounds φ's temporaries and its input).
 PHI_CHUNK = 1 << 16
 
 #: Meshes of fixed layouts of registered families, most recently used last (see :func:`pixel_mesh`).
@@ -505,25 +505,32 @@ def _build_mesh(
     ea, eb = topo.edge_corners(device)
     offsets = torch.zeros(ne + 1, dtype=torch.long, device=device)
     offsets[1:] = torch.cumsum(n, 0)
-    nseg = int(offsets[-1])
     seg_edge, k = ranges(torch.zeros_like(n), n)  # k: segment index within its edge
-    nn_ = n[seg_edge]
-    # interior vertices: segment k > 0 starts at a new vertex
+    # every segment but an edge's first starts at a new (interior) vertex, numbered after the
+    # corners in segment order: segment s's is ncorner + (interior segments up to s) − 1
     interior = k > 0
-    vid = torch.full((nseg,), -1, dtype=torch.long, device=device)
-    vid[interior] = ncorner + torch.arange(int(interior.sum()), device=device)
-    seg_start = torch.where(interior, vid, ea[seg_edge])
-    last = k == nn_ - 1
-    seg_end = torch.where(last, eb[seg_edge], torch.roll(vid, -1))
+    after = ncorner + torch.cumsum(interior, 0)
+    seg_start = torch.where(interior, after - 1, ea[seg_edge])
+    seg_end = torch.where(k == n[seg_edge] - 1, eb[seg_edge], after)
+    del after
+    if t_start is not None:
+        t_start = t_start.to(dtype)
+        del k  # only equal parameter steps (no t_start) need it below
     cu = topo.corners(dtype, device)
-    if t_start is None:  # equal parameter steps
-        frac = k[interior].to(dtype) / nn_[interior].to(dtype)
-    else:
-        frac = t_start[interior].to(dtype)
-    ua, ub = cu[ea[seg_edge[interior]]], cu[eb[seg_edge[interior]]]
-    upts = torch.cat([cu, ua + frac[:, None] * (ub - ua)])
-    th = theta.to(dtype)  # in chunks: φ holds several temporaries the size of its input
-    verts = torch.cat([layout.phi(chunk, th) for chunk in upts.split(PHI_CHUNK)])
+    th = theta.to(dtype)
+    # the interior vertices in chunks of segments: φ and the points it maps stay chunk-sized
+    verts = [layout.phi(cu, th)]
+    for lo in range(0, seg_edge.numel(), PHI_CHUNK):
+        sl = slice(lo, lo + PHI_CHUNK)
+        keep = interior[sl]
+        e = seg_edge[sl][keep]
+        if t_start is None:  # equal parameter steps
+            frac = k[sl][keep].to(dtype) / n[e].to(dtype)
+        else:
+            frac = t_start[sl][keep]
+        ua, ub = cu[ea[e]], cu[eb[e]]
+        verts.append(layout.phi(ua + frac[:, None] * (ub - ua), th))
+    verts = torch.cat(verts)
     return PixelMesh(
         size=(h, w),
         vertices=verts,
