@@ -326,17 +326,17 @@ def _edge_parameters(
     θ-gradients are as accurate as values.
 
     Returns:
-        ``(n, t)``: segments per edge ``(E,)`` and the parameter in ``[0, 1)`` of every
-        segment's start vertex ``(S,)``, edge by edge.
+        ``(edge, lo, hi, n)``: the smooth pieces (their edge and parameter range, ordered by
+        edge and parameter; differentiable in θ with ``with_grad``) and the segments of each,
+        ``(pieces,)``.
     """
     th = theta.detach().double()
-    dev = th.device
     topo = MeshTopology(size)
-    ua, ub = topo.edge_ends(device=dev)
+    ua, ub = topo.edge_ends(device=th.device)
     edge, lo_g, hi_g = smooth_pieces(layout, ua, ub, theta=theta if with_grad else th)
     with torch.no_grad():  # the counts need no gradient (only the vertices do)
-        counts, piece, frac = _segment_counts(layout, topo, th, edge, lo_g, hi_g, tol, max_subdiv, with_grad)
-    return counts, lo_g[piece] + (hi_g - lo_g)[piece] * frac
+        n = _segment_counts(layout, topo, th, edge, lo_g, hi_g, tol, max_subdiv, with_grad)
+    return edge, lo_g, hi_g, n
 
 
 def _segment_counts(
@@ -350,8 +350,8 @@ def _segment_counts(
     max_subdiv: int,
     with_grad: bool,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """The count stage of :func:`_edge_parameters` (its caller runs it under ``no_grad``): segments per edge
-    ``(E,)``, and for every segment its smooth piece and fraction of the piece's range."""
+    """The count stage of :func:`_edge_parameters` (its caller runs it under ``no_grad``):
+    segments per smooth piece, ``(pieces,)``."""
     h, w = topo.size
     dev = th.device
     ua, ub = topo.edge_ends(device=dev)
@@ -376,10 +376,7 @@ def _segment_counts(
     edge_len = torch.zeros(ne, dtype=ua.dtype, device=dev).index_add_(0, edge, length)
     budget = 3 * tol * amin[edge] / (8 * edge_len[edge].clamp_min(1e-300))
     n = torch.sqrt(2 * sag / budget).ceil().clamp(1, max_subdiv)
-    n = torch.where(sag <= 1e-15 * length, torch.ones_like(n), n).long()
-    counts = torch.zeros(ne, dtype=torch.long, device=dev).index_add_(0, edge, n)
-    piece, kk = ranges(torch.zeros_like(n), n)
-    return counts, piece, kk.to(lo.dtype) / n[piece].to(lo.dtype)
+    return torch.where(sag <= 1e-15 * length, torch.ones_like(n), n).long()
 
 
 def _chord_and_sagitta(
@@ -498,54 +495,54 @@ def _build_mesh(
     device = theta.device
     topo = MeshTopology((h, w))
     ne = topo.num_edges
+    ends = topo.edge_ends(device=device)
     if subdivisions is not None:  # equal parameter steps on every smooth piece
         per_edge = torch.as_tensor(subdivisions, dtype=torch.long, device=device).expand(ne)
         if bool((per_edge < 1).any()):
             raise ValueError(f"subdivisions must be >= 1, got {subdivisions!r}")
-        edge, lo, hi = smooth_pieces(layout, *topo.edge_ends(device=device), theta=theta)
+        edge, lo, hi = smooth_pieces(layout, *ends, theta=theta)
         m = per_edge[edge]
-        n = torch.zeros(ne, dtype=torch.long, device=device).index_add_(0, edge, m)
-        piece, kk = ranges(torch.zeros_like(m), m)
-        t_start = lo[piece] + (hi - lo)[piece] * kk.to(lo.dtype) / m[piece].to(lo.dtype)
     elif layout.straight_edges:  # one segment per straight piece
-        edge, t_start, _ = smooth_pieces(layout, *topo.edge_ends(device=device), theta=theta)
-        n = torch.bincount(edge, minlength=ne)
-    elif tol is None:
-        n = torch.ones(ne, dtype=torch.long, device=device)
-        t_start = None
+        edge, lo, hi = smooth_pieces(layout, *ends, theta=theta)
+        m = torch.ones_like(edge)
+    elif tol is None:  # one segment per edge
+        edge, lo, hi = torch.arange(ne, device=device), ends[0].new_zeros(ne), ends[0].new_ones(ne)
+        m = torch.ones_like(edge)
     else:
         tol = check_number(tol, "tol", 0, lo_open=True)
         with_grad = torch.is_grad_enabled() and theta.requires_grad
-        n, t_start = _edge_parameters(layout, (h, w), theta, tol, max_subdiv, with_grad)
-    ncorner = (h + 1) * (w + 1)
-    ea, eb = topo.edge_corners(device)
+        edge, lo, hi, m = _edge_parameters(layout, (h, w), theta, tol, max_subdiv, with_grad)
+    # segments: piece p holds m[p] equal parameter steps of [lo[p], hi[p]]; the pieces of an
+    # edge are contiguous and in order, so its segments are too
     offsets = torch.zeros(ne + 1, dtype=torch.long, device=device)
-    offsets[1:] = torch.cumsum(n, 0)
-    seg_edge, k = ranges(torch.zeros_like(n), n)  # k: segment index within its edge
+    offsets[1:] = torch.cumsum(torch.zeros(ne, dtype=torch.long, device=device).index_add_(0, edge, m), 0)
+    nseg = int(offsets[-1])
+    seg_edge = torch.repeat_interleave(edge, m)
     # every segment but an edge's first starts at a new (interior) vertex, numbered after the
     # corners in segment order: segment s's is ncorner + (interior segments up to s) − 1
-    interior = k > 0
+    ncorner = (h + 1) * (w + 1)
+    ea, eb = topo.edge_corners(device)
+    interior = torch.ones(nseg, dtype=torch.bool, device=device)
+    interior[offsets[:-1]] = False
+    last = torch.zeros(nseg, dtype=torch.bool, device=device)
+    last[offsets[1:] - 1] = True
     after = ncorner + torch.cumsum(interior, 0)
     seg_start = torch.where(interior, after - 1, ea[seg_edge])
-    seg_end = torch.where(k == n[seg_edge] - 1, eb[seg_edge], after)
-    del after
-    if t_start is not None:
-        t_start = t_start.to(dtype)
-        del k  # only equal parameter steps (no t_start) need it below
+    seg_end = torch.where(last, eb[seg_edge], after)
+    del after, last
+    # the interior vertices chunk by chunk of segments: their parameters, the points and φ's
+    # temporaries stay chunk-sized
     cu = topo.corners(dtype, device)
     th = theta.to(dtype)
-    # the interior vertices in chunks of segments: φ and the points it maps stay chunk-sized
+    piece_end, span = torch.cumsum(m, 0), hi - lo
     verts = [layout.phi(cu, th)]
-    for lo in range(0, seg_edge.numel(), PHI_CHUNK):
-        sl = slice(lo, lo + PHI_CHUNK)
-        keep = interior[sl]
-        e = seg_edge[sl][keep]
-        if t_start is None:  # equal parameter steps
-            frac = k[sl][keep].to(dtype) / n[e].to(dtype)
-        else:
-            frac = t_start[sl][keep]
-        ua, ub = cu[ea[e]], cu[eb[e]]
-        verts.append(layout.phi(ua + frac[:, None] * (ub - ua), th))
+    for s0 in range(0, nseg, PHI_CHUNK):
+        s = torch.arange(s0, min(nseg, s0 + PHI_CHUNK), device=device)[interior[s0 : s0 + PHI_CHUNK]]
+        p = torch.searchsorted(piece_end, s, right=True)  # the piece of each segment
+        k = s - (piece_end[p] - m[p])  # its step within the piece
+        t = (lo[p] + span[p] * (k.to(lo.dtype) / m[p].to(lo.dtype))).to(dtype)
+        ua, ub = cu[ea[edge[p]]], cu[eb[edge[p]]]
+        verts.append(layout.phi(ua + t[:, None] * (ub - ua), th))
     verts = torch.cat(verts)
     return PixelMesh(
         size=(h, w),
