@@ -32,14 +32,20 @@ def both(img, layout, size, theta=None, weights=None, **kw):
     return out
 
 
+def random_case(family: str, gen: torch.Generator) -> tuple:
+    """A random float64 image (1-4 channels, 5-90 px a side, values in [-3, 7)), a layout of
+    ``family`` with θ in ±0.95, a sensor size (1-24 a side) and loss weights."""
+    src = (rint(gen, 5, 90), rint(gen, 5, 90))
+    size = (rint(gen, 1, 24), rint(gen, 1, 24))
+    layout = lw.make_layout(family, rand_theta(gen, 0.95), dtype=F64)
+    img = torch.rand(rint(gen, 1, 4), *src, generator=gen, dtype=F64) * 10 - 3
+    return img, layout, size, torch.randn(img.shape[0], *size, generator=gen, dtype=F64)
+
+
 @pytest.mark.parametrize("family", ["rect", "curv"])
 def test_values_and_gradients_match_the_reference_in_float64(family, gen):
     for _ in range(4):
-        src = (rint(gen, 5, 90), rint(gen, 5, 90))
-        size = (rint(gen, 1, 24), rint(gen, 1, 24))
-        layout = lw.make_layout(family, rand_theta(gen, 0.95), dtype=F64)
-        img = torch.rand(rint(gen, 1, 4), *src, generator=gen, dtype=F64) * 10 - 3
-        w = torch.randn(img.shape[0], *size, generator=gen, dtype=F64)
+        img, layout, size, w = random_case(family, gen)
         (va, ga), (vb, gb) = both(img, layout, size, weights=w, tol=1e-6)
         assert float((va - vb).abs().max()) <= 1e-12 * float(vb.abs().max())
         assert float((ga - gb).abs().max()) <= 1e-12 * max(float(gb.abs().max()), 1.0)
@@ -210,11 +216,7 @@ def on_cpu_reference(img, layout, size, theta, weights, **kw):
 def test_cuda_kernels_match_the_reference_in_float64(family, gen):
     cuda_kernels_or_skip()
     for _ in range(4):
-        src = (rint(gen, 5, 90), rint(gen, 5, 90))
-        size = (rint(gen, 1, 24), rint(gen, 1, 24))
-        layout = lw.make_layout(family, rand_theta(gen, 0.95), dtype=F64)
-        img = torch.rand(rint(gen, 1, 4), *src, generator=gen, dtype=F64) * 10 - 3
-        w = torch.randn(img.shape[0], *size, generator=gen, dtype=F64)
+        img, layout, size, w = random_case(family, gen)
         theta = layout.theta.detach()
         va, ga = on_cuda(img, layout, size, theta, w, tol=1e-6)
         vb, gb = on_cpu_reference(img, layout, size, theta, w, tol=1e-6)
