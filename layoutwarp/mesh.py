@@ -310,7 +310,7 @@ class PixelMesh:
 
 def _edge_parameters(
     layout: Layout, size: tuple[int, int], theta: Tensor, tol: float, max_subdiv: int, with_grad: bool
-) -> tuple[Tensor, Tensor]:
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Polyline parameters of every edge so that pixel values stay within ``tol``.
 
     Each uniform edge is first cut where φ is not smooth along it (:func:`smooth_pieces`),
@@ -349,7 +349,7 @@ def _segment_counts(
     tol: float,
     max_subdiv: int,
     with_grad: bool,
-) -> tuple[Tensor, Tensor, Tensor]:
+) -> Tensor:
     """The count stage of :func:`_edge_parameters` (its caller runs it under ``no_grad``):
     segments per smooth piece, ``(pieces,)``."""
     h, w = topo.size
