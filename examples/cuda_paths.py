@@ -19,7 +19,7 @@ import torch.nn.functional as F
 
 import layoutwarp as lw
 from layoutwarp.experiments.scene import load_photo
-from layoutwarp.sensor import data_tolerance
+from layoutwarp.integrators import data_tolerance
 
 SIZE = (129, 257)
 
@@ -58,7 +58,7 @@ def main() -> None:
         layout = lw.CurvLayout(theta).cuda()
 
         def anchor(layout=layout):
-            u = lw.sample_points(SIZE, 4, jitter=True, generator=gen, dtype=torch.float32, device="cuda")
+            u = lw.maps.sample_points(SIZE, 4, jitter=True, generator=gen, dtype=torch.float32, device="cuda")
             p = layout.phi(u, layout.theta.detach().float())
             out = F.grid_sample(img, p[None], mode="bilinear", align_corners=False)
             return out.reshape(1, 3, SIZE[0], 4, SIZE[1], 4).mean((3, 5))
@@ -75,10 +75,14 @@ def main() -> None:
 
                 def fwd(layout=layout, mesh=mesh, backend=backend):
                     with torch.no_grad():
-                        return lw.integrate_exact(planes, layout, SIZE, mesh=mesh, backend=backend)
+                        return lw.integrators.integrate_exact(
+                            planes, layout, SIZE, mesh=mesh, backend=backend
+                        )
 
                 def train(learnable=learnable, tol=tol, backend=backend):
-                    lw.integrate_exact(planes, learnable, SIZE, tol=tol, backend=backend).sum().backward()
+                    lw.integrators.integrate_exact(
+                        planes, learnable, SIZE, tol=tol, backend=backend
+                    ).sum().backward()
 
                 t_f, t_t = timed(fwd), timed(train, 10)
                 print(

@@ -3,11 +3,12 @@
 :class:`SensorAugmentation` fits inside ``kornia.augmentation.AugmentationSequential`` next
 to Kornia's own augmentations. Per data key:
 
-* ``input`` images go through :func:`~layoutwarp.simulate` (differentiable in θ, which is a
-  parameter of the augmentation and therefore of the container);
-* ``mask`` label maps go to the sensor grid by ``mask_rule``: ``"nearest"`` (the label at
-  the deformed pixel centre) or ``"majority"`` (the label covering most of the pixel's
-  area, computed exactly as the area integral of the one-hot mask);
+* ``input`` images go through a :class:`~layoutwarp.SensorLayer` (differentiable in θ, which is
+  a parameter of the augmentation and therefore of the container; a learnable layout is
+  guarded as the layer guards it, e.g. a :class:`~layoutwarp.GridLayout` against folding);
+* ``mask`` label maps go to the sensor grid by ``mask_rule``
+  (:func:`~layoutwarp.labels.labels_to_sensor`): ``"nearest"`` (the label at the deformed
+  pixel centre) or ``"majority"`` (the label covering most of the pixel's area);
 * ``keypoints`` go through ``φ⁻¹`` to sensor pixel coordinates (Kornia's convention: pixel
   centres at integers), and back through ``φ`` on ``inverse``;
 * ``bbox`` boxes: exact for separable (rectangular) layouts, where an axis-aligned box maps
@@ -27,10 +28,12 @@ from kornia.augmentation import GeometricAugmentationBase2D
 from torch import Tensor
 
 from .backwarp import backwarp
-from .checks import check_choice, check_int, check_size
+from .checks import check_choice
 from .coords import pixels_to_sensor, sensor_to_pixels
-from .layouts import Layout, make_layout
-from .sensor import METHODS, simulate
+from .labels import LABEL_RULES, labels_to_sensor
+from .layouts import Layout
+from .maps import map_points
+from .sensor import SensorLayer
 
 __all__ = ["SensorAugmentation"]
 
@@ -44,11 +47,8 @@ class SensorAugmentation(GeometricAugmentationBase2D):
             :class:`~layoutwarp.Layout`.
         method: integrator (see :func:`~layoutwarp.simulate`).
         mask_rule: ``"nearest"`` or ``"majority"`` (see the module docstring).
-        num_classes: number of mask classes for ``"majority"`` (labels ``>= num_classes``,
-            e.g. an ignore label, are kept as a class of their own).
-        learn: train θ (for a family name).
-        theta: initial θ (for a family name).
-        **options: further :func:`~layoutwarp.simulate` options.
+        learn, theta, **options: as :class:`~layoutwarp.SensorLayer` (unknown options are
+            refused here, not at the first batch).
 
     Example:
         >>> import kornia.augmentation as K
@@ -66,20 +66,25 @@ class SensorAugmentation(GeometricAugmentationBase2D):
         method: str = "exact",
         *,
         mask_rule: str = "nearest",
-        num_classes: int | None = None,
         learn: bool = True,
         theta=None,
         **options: Any,
     ) -> None:
         super().__init__(p=1.0, same_on_batch=True, keepdim=False)
-        self.size = check_size(size)
-        self.layout = layout if isinstance(layout, Layout) else make_layout(layout, theta, learn=learn)
-        check_choice(method, METHODS, "method")
-        check_choice(mask_rule, ("nearest", "majority"), "mask_rule")
-        if mask_rule == "majority":
-            check_int(num_classes, "num_classes", 1)
-        self.method, self.mask_rule, self.num_classes, self.options = method, mask_rule, num_classes, options
+        self.sensor = SensorLayer(size, layout, method, learn=learn, theta=theta, **options)
+        check_choice(mask_rule, LABEL_RULES, "mask_rule")
+        self.mask_rule = mask_rule
         self.flags = {"size": self.size}
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """The sensor size ``(h, w)``."""
+        return self.sensor.size
+
+    @property
+    def layout(self) -> Layout:
+        """The sensor's layout (θ is a parameter of this module)."""
+        return self.sensor.layout
 
     # Kornia plumbing: the sensor is not a matrix; an identity keeps the container's
     # matrix bookkeeping consistent, and every data path below ignores it.
@@ -87,7 +92,7 @@ class SensorAugmentation(GeometricAugmentationBase2D):
         return torch.eye(3, device=input.device, dtype=input.dtype).expand(input.shape[0], 3, 3)
 
     def apply_transform(self, input: Tensor, params, flags, transform=None) -> Tensor:
-        return simulate(input, self.layout, self.size, self.method, **self.options)
+        return self.sensor(input)
 
     def apply_non_transform(self, input: Tensor, params, flags, transform=None) -> Tensor:
         return self.apply_transform(input, params, flags, transform)  # p = 1: never reached
@@ -102,23 +107,14 @@ class SensorAugmentation(GeometricAugmentationBase2D):
 
     def masks_to_sensor(self, masks: Tensor) -> Tensor:
         """Label maps ``(B, 1, H, W)`` (any dtype holding integers) to the sensor grid."""
-        if self.mask_rule == "nearest":
-            out = simulate(masks.to(torch.float64), self.layout, self.size, "point", radiance="box")
-            return out.to(masks.dtype)
-        labels = masks.long()
-        k = max(self.num_classes, int(labels.max()) + 1 if labels.numel() else 1)
-        onehot = torch.nn.functional.one_hot(labels[:, 0], k).permute(0, 3, 1, 2).to(torch.float32)
-        with torch.no_grad():
-            frac = simulate(onehot, self.layout, self.size, "exact")
-        return frac.argmax(1, keepdim=True).to(masks.dtype)
+        return labels_to_sensor(masks, self.layout, self.size, self.mask_rule)
 
     # keypoints and boxes -------------------------------------------------------------
     def _to_sensor_points(self, pts: Tensor, src_hw: tuple[int, int], inverse: bool) -> Tensor:
         """Pixel coordinates (centres at integers) between the source and the sensor."""
         src, dst = (src_hw, self.size) if not inverse else (self.size, src_hw)
-        theta = self.layout.theta.detach().double()
-        q = pixels_to_sensor(pts.to(theta), src, centered=True)
-        p = self.layout.phi(q, theta) if inverse else self.layout.phi_inverse(q, theta)
+        q = pixels_to_sensor(pts.double(), src, centered=True)
+        p = map_points(self.layout, q, inverse=not inverse)
         return sensor_to_pixels(p, dst, centered=True).to(pts)
 
     def keypoints_to_sensor(self, pts: Tensor, src_hw: tuple[int, int]) -> Tensor:

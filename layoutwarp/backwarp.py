@@ -15,9 +15,9 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from .checks import check_choice, check_shape, check_size
-from .coords import pixel_centers, sensor_to_pixels
+from .coords import sensor_to_pixels
 from .layouts import Layout
-from .maps import raster_index_map
+from .maps import inverse_coords, raster_index_map
 
 __all__ = ["backwarp", "backwarp_cross_entropy", "backwarp_numpy", "sensor_index_maps"]
 
@@ -50,10 +50,7 @@ def sensor_index_maps(
     if method == "raster":
         idx = raster_index_map(layout, (h, w), target_size).to(layout.rho.device)
         return idx % w, idx // w
-    theta = layout.theta.detach().double()
-    with torch.no_grad():
-        p = layout.phi_inverse(pixel_centers(target_size, device=theta.device), theta)
-        idx = torch.floor(sensor_to_pixels(p, (h, w))).long()
+    idx = torch.floor(sensor_to_pixels(inverse_coords(layout, target_size), (h, w))).long()
     return idx[..., 0].clamp(0, w - 1), idx[..., 1].clamp(0, h - 1)
 
 
@@ -98,8 +95,7 @@ def backwarp(
             raise TypeError(
                 f"mode='bilinear' needs a floating-point pred, got {pred.dtype}; use mode='nearest'"
             )
-        theta = layout.theta.detach().double()
-        p = layout.phi_inverse(pixel_centers(size, device=theta.device), theta).to(pred)
+        p = inverse_coords(layout, size).to(pred)
         x = pred if pred.ndim == 4 else pred[:, None]
         out = F.grid_sample(
             x,

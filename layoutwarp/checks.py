@@ -2,7 +2,8 @@
 
 Each helper returns the validated (normalised) value or raises with a one-line message that
 names the argument, the value it got and what is allowed, in the manner of Kornia's
-``KORNIA_CHECK_SHAPE``. The command line turns these messages into its error lines.
+``KORNIA_CHECK_SHAPE``. Bad values raise :class:`ArgumentError` (a ``ValueError`` that also
+carries the argument's name), which the command line turns into an error line naming its flag.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ import torch
 from torch import Tensor
 
 __all__ = [
+    "ArgumentError",
     "check_choice",
     "check_device",
     "check_int",
@@ -25,6 +27,29 @@ __all__ = [
     "check_tensor",
     "floating_dtype",
 ]
+
+
+class ArgumentError(ValueError):
+    """A bad argument value. A ``ValueError`` whose message names the argument, the value and
+    what is allowed; :attr:`argument` holds the argument's name for callers that map it to
+    their own (the command line to its flag).
+
+    Example:
+        >>> try:
+        ...     check_number(-1, "tol", 0, lo_open=True)
+        ... except ArgumentError as exc:
+        ...     print(exc.argument)
+        tol
+    """
+
+    def __init__(self, argument: str, message: str) -> None:
+        super().__init__(message)
+        self.argument = argument
+
+
+def _argument(name: str) -> str:
+    """The argument a check's ``name`` speaks of: ``"sensor_um[0] (height)"`` → ``"sensor_um"``."""
+    return name.split("[")[0].split(" ")[0]
 
 
 def check_size(size: Any, name: str = "size") -> tuple[int, int]:
@@ -38,9 +63,13 @@ def check_size(size: Any, name: str = "size") -> tuple[int, int]:
         h, w = (int(v) for v in size)
         whole = all(float(v) == int(v) for v in size)
     except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a pair (H, W) of positive integers, got {size!r}") from None
+        raise ArgumentError(
+            _argument(name), f"{name} must be a pair (H, W) of positive integers, got {size!r}"
+        ) from None
     if not whole or h <= 0 or w <= 0:
-        raise ValueError(f"{name} must be a pair (H, W) of positive integers, got {size!r}")
+        raise ArgumentError(
+            _argument(name), f"{name} must be a pair (H, W) of positive integers, got {size!r}"
+        )
     return h, w
 
 
@@ -48,7 +77,9 @@ def check_choice(value: Any, choices: Iterable[Any], name: str) -> Any:
     """``value`` if it is one of ``choices``, else ``ValueError`` listing them."""
     options = tuple(choices)
     if value not in options:
-        raise ValueError(f"{name} must be one of {', '.join(map(repr, options))}; got {value!r}")
+        raise ArgumentError(
+            _argument(name), f"{name} must be one of {', '.join(map(repr, options))}; got {value!r}"
+        )
     return value
 
 
@@ -57,7 +88,10 @@ def check_int(value: Any, name: str, minimum: int | None = None, maximum: int | 
     ok = isinstance(value, int) and not isinstance(value, bool)
     if ok and (minimum is None or value >= minimum) and (maximum is None or value <= maximum):
         return int(value)
-    raise ValueError(f"{name} must be an integer {_interval(minimum, maximum, False, False)}, got {value!r}")
+    raise ArgumentError(
+        _argument(name),
+        f"{name} must be an integer {_interval(minimum, maximum, False, False)}, got {value!r}",
+    )
 
 
 def check_number(
@@ -85,8 +119,9 @@ def check_number(
             hi is None or (v < hi if hi_open else v <= hi)
         )
     if not ok:
-        raise ValueError(
-            f"{name} must be a finite number {_interval(lo, hi, lo_open, hi_open)}, got {value!r}"
+        raise ArgumentError(
+            _argument(name),
+            f"{name} must be a finite number {_interval(lo, hi, lo_open, hi_open)}, got {value!r}",
         )
     return v
 
@@ -107,9 +142,13 @@ def check_device(device: Any, name: str = "device") -> torch.device:
     try:
         dev = torch.device(device)
     except (RuntimeError, TypeError):
-        raise ValueError(f"{name} must be a torch device (e.g. cpu, cuda, cuda:1), got {device!r}") from None
+        raise ArgumentError(
+            _argument(name), f"{name} must be a torch device (e.g. cpu, cuda, cuda:1), got {device!r}"
+        ) from None
     if dev.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError(f"{name} {str(dev)!r} asked for, but no CUDA GPU is available here")
+        raise ArgumentError(
+            _argument(name), f"{name} {str(dev)!r} asked for, but no CUDA GPU is available here"
+        )
     return dev
 
 
@@ -137,7 +176,7 @@ def check_shape(x: Any, shape: Sequence[str], name: str) -> Tensor:
         if _matches(tuple(x.shape), pat):
             return x
     want = " or ".join("(" + ", ".join("..." if d == "*" else d for d in p) + ")" for p in patterns)
-    raise ValueError(f"{name} must have shape {want}, got {tuple(x.shape)}")
+    raise ArgumentError(_argument(name), f"{name} must have shape {want}, got {tuple(x.shape)}")
 
 
 def _matches(dims: tuple[int, ...], pattern: Sequence[str]) -> bool:

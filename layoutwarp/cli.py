@@ -426,8 +426,9 @@ def _layout_from_args(args: argparse.Namespace):
 
 
 def _cmd_preprocess(args: argparse.Namespace) -> int:
+    from .experiments.bench import preprocess_baseline
     from .files import atomic_write
-    from .preprocess import benchmark_baseline, check_destination, list_images, preprocess_folder
+    from .preprocess import check_destination, list_images, preprocess_folder
 
     if not Path(args.src).is_dir():
         raise UsageError(f"argument SRC: no such folder {args.src!r}")
@@ -442,7 +443,7 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
         for path in files:
             path.read_bytes()
         with tempfile.TemporaryDirectory() as tmp:
-            base = benchmark_baseline(files, size, tmp)
+            base = preprocess_baseline(files, size, tmp)
     res = preprocess_folder(
         args.src,
         dst,
@@ -759,14 +760,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return int(args.func(args) or 0)
     except (UsageError, ValueError, FileNotFoundError) as exc:
-        print(f"{prog}: error: {_name_the_flag(str(exc))}", file=sys.stderr)
+        print(f"{prog}: error: {_name_the_flag(exc)}", file=sys.stderr)
         return 2
 
 
-def _name_the_flag(message: str) -> str:
-    """Prefix a library error about argument ``name`` with the flag that sets it."""
-    first = message.split(" ", 1)[0]
-    return f"argument {FLAGS[first]}: {message}" if first in FLAGS else message
+def _name_the_flag(exc: Exception) -> str:
+    """A library error about an argument (:class:`~layoutwarp.checks.ArgumentError`) prefixed
+    with the flag that sets it; any other error's message as it is."""
+    from .checks import ArgumentError
+
+    flag = FLAGS.get(exc.argument) if isinstance(exc, ArgumentError) else None
+    return f"argument {flag}: {exc}" if flag else str(exc)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -19,7 +19,14 @@ from torch import Tensor
 
 from .checks import check_size
 
-__all__ = ["grid_lines", "pixel_centers", "pixels_to_sensor", "sensor_to_pixels", "uniform_corners"]
+__all__ = [
+    "cell_index",
+    "grid_lines",
+    "pixel_centers",
+    "pixels_to_sensor",
+    "sensor_to_pixels",
+    "uniform_corners",
+]
 
 
 def grid_lines(
@@ -33,6 +40,21 @@ def grid_lines(
     """
     k = torch.arange(n + 1, dtype=dtype, device=device)
     return (2 * k - n) / n
+
+
+def cell_index(x: Tensor, n: int) -> tuple[Tensor, Tensor]:
+    """The uniform cell of ``[-1, 1]`` (``n`` cells) holding each of ``x``, and the position in it.
+
+    Points are clamped to ``[-1, 1]``; ``+1`` belongs to the last cell (position 1). The
+    position ``∈ [0, 1]`` is differentiable in ``x``; the index is not.
+
+    Example:
+        >>> cell_index(torch.tensor([-1.0, 0.25, 1.0]), 4)
+        (tensor([0, 2, 3]), tensor([0.0000, 0.5000, 1.0000]))
+    """
+    u = (x.clamp(-1, 1) + 1) * (n / 2)
+    i = u.detach().floor().clamp(0, n - 1)
+    return i.long(), u - i
 
 
 def uniform_corners(

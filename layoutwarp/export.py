@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 import torch
 
-from .checks import check_choice, check_number, check_size
+from .checks import ArgumentError, check_choice, check_number, check_size
 from .coords import sensor_to_pixels, uniform_corners
 from .files import atomic_write
 from .layouts import Layout
@@ -216,9 +216,10 @@ def pixel_polygons_um(
         grid_um = check_number(grid_um, "grid_um", 0, lo_open=True)
         pitch = _smallest_chord_um(layout, (h, w), sensor_um)
         if grid_um >= pitch:
-            raise ValueError(
+            raise ArgumentError(
+                "grid_um",
                 f"grid_um = {grid_um:g} µm is not finer than the smallest pixel (pitch {pitch:.4g} µm); "
-                f"use a grid below {pitch:.4g} µm"
+                f"use a grid below {pitch:.4g} µm",
             )
     topo = MeshTopology((h, w))
     nh = topo.num_horizontal
@@ -252,8 +253,8 @@ def _check_extent(sensor_um: tuple[float, float]) -> tuple[float, float]:
     try:
         hu, wu = sensor_um
     except (TypeError, ValueError):
-        raise ValueError(
-            f"sensor_um must be (H_um, W_um), two positive sizes in µm, got {sensor_um!r}"
+        raise ArgumentError(
+            "sensor_um", f"sensor_um must be (H_um, W_um), two positive sizes in µm, got {sensor_um!r}"
         ) from None
     return check_number(hu, "sensor_um[0] (height)", 0, lo_open=True), check_number(
         wu, "sensor_um[1] (width)", 0, lo_open=True
@@ -385,7 +386,9 @@ def export_layout(
     suffix = path.suffix.lstrip(".").lower()
     fmt = check_choice((format or suffix).lower(), FORMATS, "format")
     if format is not None and suffix != fmt:
-        raise ValueError(f"format {fmt!r} does not match the file name {path.name!r}; name it *.{fmt}")
+        raise ArgumentError(
+            "format", f"format {fmt!r} does not match the file name {path.name!r}; name it *.{fmt}"
+        )
     size = check_size(size)
     hu, wu = _check_extent(sensor_um)
     if fmt == "gds" and grid_um is None:

@@ -23,17 +23,10 @@ import torch
 from torch import Tensor
 
 from .checks import check_choice, check_size
-from .coords import pixels_to_sensor, uniform_corners
+from .coords import cell_index, pixels_to_sensor, uniform_corners
 from .layouts import FoldoverReport, Layout, register_family
 
 __all__ = ["GridLayout", "cell_corner_dets", "inverse_bilinear"]
-
-
-def _cell(x: Tensor, n: int) -> tuple[Tensor, Tensor]:
-    """Control cell index and local coordinate ``∈ [0, 1]`` of points ``x ∈ [-1, 1]`` (``n`` cells)."""
-    u = (x.clamp(-1, 1) + 1) * (n / 2)
-    i = u.detach().floor().clamp(0, n - 1)
-    return i.long(), u - i
 
 
 def _cross(a: Tensor, b: Tensor) -> Tensor:
@@ -259,8 +252,8 @@ class GridLayout(Layout):
         ctrl = self.control_points(theta.to(device=p.device, dtype=dtype))
         gh, gw = self.grid
         p = p.to(dtype)
-        j, u = _cell(p[..., 0], gw)
-        i, v = _cell(p[..., 1], gh)
+        j, u = cell_index(p[..., 0], gw)
+        i, v = cell_index(p[..., 1], gh)
         return p, u[..., None], v[..., None], *self._cell_quads(ctrl.reshape(-1, 2), i, j)
 
     def phi(self, p: Tensor, theta: Tensor) -> Tensor:
@@ -289,8 +282,8 @@ class GridLayout(Layout):
         free = self.free.to(p.device)
         index[free] = torch.arange(int(free.sum()), device=p.device)
         pp = p.to(dtype)
-        j, u = _cell(pp[..., 0], gw)
-        i, v = _cell(pp[..., 1], gh)
+        j, u = cell_index(pp[..., 0], gw)
+        i, v = cell_index(pp[..., 1], gh)
         inside = (pp.abs() <= 1).all(-1)
         out = pp.new_zeros(*pp.shape[:-1], 2, theta.numel())
         for di, dj, wt in (
@@ -314,8 +307,8 @@ class GridLayout(Layout):
             q64 = q.detach().double().reshape(-1, 2)
             inside = (q64.abs() <= 1).all(-1)
             qc = q64.clamp(-1, 1)
-            j, _ = _cell(qc[:, 0], gw)
-            i, _ = _cell(qc[:, 1], gh)
+            j, _ = cell_index(qc[:, 0], gw)
+            i, _ = cell_index(qc[:, 1], gh)
             flat = ctrl.reshape(-1, 2)
             eps = 1e-12
             walking = torch.arange(qc.shape[0], device=q.device)  # points whose cell still changes

@@ -32,7 +32,7 @@ from .checks import check_choice, check_int, check_shape, check_size, floating_d
 from .coords import grid_lines, pixel_centers, sensor_to_pixels
 from .layouts import Layout
 from .maps import sample_points
-from .mesh import MeshTopology, PixelMesh, pixel_mesh, ranges
+from .mesh import MeshTopology, PixelMesh, pixel_mesh
 
 __all__ = [
     "BACKENDS",
@@ -40,6 +40,7 @@ __all__ = [
     "GreenPieces",
     "Radiance",
     "axis_weights",
+    "data_tolerance",
     "green_pieces",
     "integrate_exact",
     "integrate_montecarlo",
@@ -61,6 +62,48 @@ def _check_image(image: Tensor, name: str = "image") -> Tensor:
     if image.shape[-1] == 0 or image.shape[-2] == 0:
         raise ValueError(f"{name} height and width must be >= 1, got {tuple(image.shape[-2:])}")
     return image
+
+
+def data_tolerance(dtype: torch.dtype | np.dtype | type) -> tuple[float, str]:
+    """The curved-edge tolerance the data needs, relative to the image's value range, and why.
+
+    Integer images: a quarter of one quantisation step of the dtype's range (``0.25/255``
+    for uint8, ``0.25/65535`` for uint16), so an exact integral rounds to the right level.
+    float16/bfloat16: a quarter of their precision at 1.0 (``2⁻¹²``, ``2⁻⁹``). Other floats:
+    ``2⁻¹²`` (a quarter of a 10-bit step, for the 8–10-bit data most float images hold; pass
+    ``tol`` for finer).
+
+    Example:
+        >>> data_tolerance(torch.uint8)[0] == 0.25 / 255
+        True
+    """
+    if isinstance(dtype, torch.dtype):
+        if dtype in (torch.float16, torch.bfloat16):
+            eps = torch.finfo(dtype).eps
+            return eps / 4, f"{dtype}: a quarter of its precision at 1.0"
+        if not dtype.is_floating_point:
+            dtype = torch.empty((), dtype=dtype).numpy().dtype
+    if not isinstance(dtype, torch.dtype):
+        dtype = np.dtype(dtype)
+        if np.issubdtype(dtype, np.integer):
+            step = 1 / np.iinfo(dtype).max
+            return 0.25 * step, f"{dtype} input: a quarter of one step (1/{np.iinfo(dtype).max} of the range)"
+        if dtype == np.float16:
+            return float(np.finfo(dtype).eps) / 4, f"{dtype}: a quarter of its precision at 1.0"
+    return 2.0**-12, "float input: a quarter of a 10-bit step (2^-12) of the value range"
+
+
+def _ranges(lo: Tensor, count: Tensor) -> tuple[Tensor, Tensor]:
+    """Expand runs: for ``count[i]`` consecutive integers from ``lo[i]``, the pair
+    ``(parent index i, integer)`` of every element, in order.
+
+    Example:
+        >>> _ranges(torch.tensor([5, 0]), torch.tensor([2, 3]))
+        (tensor([0, 0, 1, 1, 1]), tensor([5, 6, 0, 1, 2]))
+    """
+    parent = torch.repeat_interleave(torch.arange(count.numel(), device=count.device), count)
+    first = torch.cumsum(count, 0) - count
+    return parent, lo[parent] + (torch.arange(parent.numel(), device=count.device) - first[parent])
 
 
 #: A black-box radiance: points ``(..., 2)`` in sensor coordinates to values ``(..., N)``.
@@ -132,7 +175,7 @@ def segment_cells(
     r0 = ylo.floor().clamp(0, rows - 1).long()
     r1 = torch.maximum((yhi.ceil().long() - 1).clamp(0, rows - 1), r0)
     r1 = torch.where(flat, r0, r1)
-    piece, row = ranges(r0, r1 - r0 + 1)
+    piece, row = _ranges(r0, r1 - r0 + 1)
     pa, pb, fl = a[piece], b[piece], flat[piece]
     rowf = row.to(a.dtype)
     dyv = pb[:, 1] - pa[:, 1]
@@ -153,7 +196,7 @@ def segment_cells(
     c1 = torch.maximum((xhi.ceil().long() - 1).clamp(0, cols - 1), c0)
     vertical = dxv == 0
     c1 = torch.where(vertical, c0, c1)
-    sub, col = ranges(c0, c1 - c0 + 1)
+    sub, col = _ranges(c0, c1 - c0 + 1)
     colf = col.to(a.dtype)
     sa = pa[sub]
     # one column: keep the row piece's range (X → t is ill-conditioned for tiny ΔX)
@@ -355,7 +398,7 @@ def integrate_exact(
     layout: Layout,
     size: tuple[int, int],
     *,
-    tol: float | None = 1e-5,
+    tol: float | None = None,
     mesh: PixelMesh | None = None,
     theta: Tensor | None = None,
     backend: str = "auto",
@@ -375,7 +418,9 @@ def integrate_exact(
             float64 for float64).
         layout: the pixel layout.
         size: sensor size ``(h, w)``.
-        tol: polyline tolerance (relative pixel-value error) for curved edges.
+        tol: bound on each pixel's error relative to the image's value range, spent on the
+            polyline approximation of curved edges; ``None``: what the image's dtype resolves
+            (:func:`data_tolerance`), as :func:`~layoutwarp.simulate` does.
         mesh: a precomputed mesh (overrides ``layout``/``tol``/``theta`` for the geometry).
         theta: use this θ instead of the layout's own (e.g. for ``gradcheck``).
         backend: ``"numba"`` (the compiled kernels of :mod:`layoutwarp.kernels`: CPU, and
@@ -397,6 +442,7 @@ def integrate_exact(
             "target runs, and no image gradient; use backend='torch'"
         )
     if mesh is None:
+        tol = data_tolerance(image.dtype)[0] if tol is None else tol
         mesh = pixel_mesh(layout, check_size(size), tol=tol, dtype=torch.float64, theta=theta)
     verts = mesh.pixel_vertices((hs, ws))
     work = image.to(floating_dtype(image.dtype))
@@ -433,7 +479,7 @@ def axis_weights(edges: Tensor, n_src: int) -> tuple[Tensor, Tensor, Tensor]:
     lo, hi = edges[:-1], edges[1:]
     c0 = lo.detach().floor().clamp(0, n_src - 1).long()
     c1 = (hi.detach().ceil().long() - 1).clamp(0, n_src - 1)
-    dst, src = ranges(c0, torch.maximum(c1, c0) - c0 + 1)
+    dst, src = _ranges(c0, torch.maximum(c1, c0) - c0 + 1)
     cf = src.to(edges.dtype)
     overlap = (torch.minimum(hi[dst], cf + 1) - torch.maximum(lo[dst], cf)).clamp_min(0)
     return dst, src, overlap / (hi - lo)[dst]

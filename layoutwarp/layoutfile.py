@@ -24,12 +24,66 @@ import torch
 from .files import atomic_write
 from .layouts import FAMILIES, Layout
 
-__all__ = ["FORMAT", "READS", "load_layout", "save_layout"]
+__all__ = ["FORMAT", "READS", "layout_from_spec", "layout_spec", "load_layout", "same_spec", "save_layout"]
 
 FORMAT = "layoutwarp.layout/2"
 #: Every format this version reads.
 READS = ("layoutwarp.layout/1", FORMAT)
+#: Keys of a layout file (or description) that are not the family's constructor arguments.
 _RESERVED = ("format", "family", "size_hw", "version", "extra")
+
+
+def layout_spec(layout: Layout) -> dict[str, Any]:
+    """A layout's description: ``{"family": name, **layout.to_config()}``, JSON-able.
+
+    The one form in which a layout travels: in layout files, model files, preprocessing
+    manifests, benchmark rows and to the workers of a cluster.
+
+    Example:
+        >>> from layoutwarp import RectLayout
+        >>> layout_spec(RectLayout((0.5, 0.25), dtype=torch.float64))["family"]
+        'rect'
+    """
+    return {"family": layout.family, **layout.to_config()}
+
+
+def layout_from_spec(
+    spec: dict[str, Any], *, learn: bool = False, dtype: torch.dtype | None = None
+) -> Layout:
+    """Rebuild a layout from :func:`layout_spec`'s dict (other keys, e.g. ``size_hw``, are ignored
+    by the families that do not take them).
+
+    Raises:
+        ValueError: an unknown family or a bad parameter, on one line.
+    """
+    family = spec.get("family")
+    cls = FAMILIES.get(family) if isinstance(family, str) else None
+    if cls is None:
+        raise ValueError(
+            f"unknown layout family {family!r}; expected one of {', '.join(map(repr, FAMILIES))}"
+        )
+    config = {k: v for k, v in spec.items() if k not in _RESERVED}
+    try:
+        return cls.from_config(config, learn=learn, dtype=dtype)
+    except TypeError as exc:
+        raise ValueError(str(exc)) from None
+
+
+def same_spec(a: dict[str, Any], b: dict[str, Any], atol: float = 1e-12) -> bool:
+    """Whether two layout descriptions describe the same layout (numbers within ``atol``)."""
+    if set(a) != set(b):
+        return False
+    for k, v in a.items():
+        numbers = isinstance(v, list) and v and all(isinstance(x, float | int) for x in v)
+        if numbers:
+            w = b[k]
+            if not (
+                isinstance(w, list) and len(w) == len(v) and all(abs(x - y) <= atol for x, y in zip(v, w, strict=True))
+            ):
+                return False
+        elif v != b[k]:
+            return False
+    return True
 
 
 def save_layout(layout: Layout, path: str | Path, size: tuple[int, int] | None = None, **extra: Any) -> Path:
@@ -40,7 +94,7 @@ def save_layout(layout: Layout, path: str | Path, size: tuple[int, int] | None =
     """
     from . import __version__
 
-    data: dict[str, Any] = {"format": FORMAT, "family": layout.family, **layout.to_config()}
+    data: dict[str, Any] = {"format": FORMAT, **layout_spec(layout)}
     data |= {"size_hw": list(size) if size is not None else None, "version": __version__, "extra": extra}
     return atomic_write(path, json.dumps(data, indent=2))
 
@@ -72,20 +126,13 @@ def load_layout(
         )
     if fmt not in READS:
         raise ValueError(f"{path}: not a layoutwarp layout file (expected format {FORMAT!r})")
-    family = data.get("family")
-    cls = FAMILIES.get(family) if isinstance(family, str) else None
-    if cls is None:
-        raise ValueError(
-            f"{path}: unknown layout family {family!r}; expected one of {', '.join(map(repr, FAMILIES))}"
-        )
     size = data.get("size_hw")
     if size is not None and not (
         isinstance(size, list) and len(size) == 2 and all(isinstance(v, int) and v > 0 for v in size)
     ):
         raise ValueError(f"{path}: 'size_hw' must be [H, W] with positive integers, got {size!r}")
-    config = {k: v for k, v in data.items() if k not in _RESERVED}
     try:
-        layout = cls.from_config(config, learn=learn, dtype=dtype)
-    except (TypeError, ValueError) as exc:
+        layout = layout_from_spec(data, learn=learn, dtype=dtype)
+    except ValueError as exc:
         raise ValueError(f"{path}: {exc}") from None
     return layout, {k: data.get(k) for k in ("size_hw", "version", "extra")}

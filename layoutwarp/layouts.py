@@ -29,6 +29,7 @@ from .checks import check_number, check_points
 
 __all__ = [
     "FAMILIES",
+    "CenteredLayout",
     "CurvLayout",
     "FoldoverReport",
     "FoveaLayout",
@@ -587,8 +588,11 @@ def _side_scale(p: Tensor, center: Tensor) -> Tensor:
     return torch.where(p >= center, 1 - center, 1 + center)
 
 
-class _FoveaLayout(Layout):
-    """A paper family deformed about a movable centre ``c = (c_x, c_y)``, ``|c_j| < 1``.
+class CenteredLayout(Layout):
+    """Base of the paper's two families: a centred map φ0 deformed about a movable centre
+    ``c = (c_x, c_y)``, ``|c_j| < 1``. Not a family itself: subclasses (:class:`RectLayout`,
+    :class:`CurvLayout`) write the centred map's ``_phi0``, ``_inverse0``, ``_jacobian0``,
+    ``_det0`` and ``_dtheta0``.
 
     The square is mapped onto itself by the per-axis piecewise-affine ``T(p)_j = (p_j − c_j) /
     s_j`` with ``s_j = 1 − c_j`` right of (below) the centre and ``1 + c_j`` left of (above) it:
@@ -754,9 +758,9 @@ class _FoveaLayout(Layout):
 
 
 @register_family
-class RectLayout(_FoveaLayout):
+class RectLayout(CenteredLayout):
     """The rectangular layout φ_rect of the paper (separable; pixels are rectangles), about a
-    movable centre (see :class:`_FoveaLayout`: ``center``, ``learn_center``).
+    movable centre (see :class:`CenteredLayout`: ``center``, ``learn_center``).
 
     Example:
         >>> layout = RectLayout(theta=(0.3, -0.2))
@@ -802,9 +806,9 @@ def _circle_crossings(a: Tensor, d: Tensor, lo: Tensor, hi: Tensor, scale: Tenso
 
 
 @register_family
-class CurvLayout(_FoveaLayout):
+class CurvLayout(CenteredLayout):
     """The curvilinear layout φ_curv of the paper (radial, fixed outside the unit circle), about
-    a movable centre (see :class:`_FoveaLayout`: ``center``, ``learn_center``)."""
+    a movable centre (see :class:`CenteredLayout`: ``center``, ``learn_center``)."""
 
     family = "curv"
 

@@ -19,7 +19,15 @@ from .coords import pixel_centers, sensor_to_pixels
 from .layouts import Layout
 from .mesh import pixel_mesh
 
-__all__ = ["Maps", "forward_maps", "inverse_maps", "raster_index_map", "sample_points"]
+__all__ = [
+    "Maps",
+    "forward_maps",
+    "inverse_coords",
+    "inverse_maps",
+    "map_points",
+    "raster_index_map",
+    "sample_points",
+]
 
 
 class Maps(NamedTuple):
@@ -70,6 +78,32 @@ def sample_points(
     return (base + off) * scale - 1
 
 
+def map_points(layout: Layout, points: Tensor, *, inverse: bool = False) -> Tensor:
+    """``φ(points)`` (or ``φ⁻¹`` with ``inverse``) in float64 for the layout's current θ, without
+    gradient: how every fixed-layout path (maps, back-warping, labels, keypoints) moves points.
+
+    Args:
+        layout: the pixel layout.
+        points: ``(..., 2)`` sensor coordinates (moved to θ's device).
+        inverse: map through ``φ⁻¹`` instead of ``φ``.
+
+    Returns:
+        ``(..., 2)`` float64 sensor coordinates on θ's device.
+    """
+    theta = layout.theta.detach().double()
+    p = points.detach().to(device=theta.device, dtype=torch.float64)
+    with torch.no_grad():
+        return layout.phi_inverse(p, theta) if inverse else layout.phi(p, theta)
+
+
+def inverse_coords(layout: Layout, target_size: tuple[int, int]) -> Tensor:
+    """``φ⁻¹`` of every pixel centre of a uniform ``target_size = (H, W)`` grid, ``(H, W, 2)``
+    float64 sensor coordinates on θ's device: where each target pixel lies on the sensor (the
+    inverse coordinate map of a warp, as scikit-image's ``warp_coords``)."""
+    target_size = check_size(target_size, "target_size")
+    return map_points(layout, pixel_centers(target_size, device=layout.theta.device), inverse=True)
+
+
 def forward_maps(
     layout: Layout,
     size: tuple[int, int],
@@ -99,11 +133,8 @@ def forward_maps(
         tensor([[1.5000, 5.5000]])
     """
     size, src_size = check_size(size), check_size(src_size, "src_size")
-    theta = layout.theta.detach().double()
-    with torch.no_grad():
-        u = sample_points(size, samples, jitter=jitter, generator=generator, device=theta.device)
-        q = layout.phi(u, theta)
-    return _to_maps(q, src_size)
+    u = sample_points(size, samples, jitter=jitter, generator=generator, device=layout.theta.device)
+    return _to_maps(map_points(layout, u), src_size)
 
 
 def inverse_maps(layout: Layout, size: tuple[int, int], target_size: tuple[int, int]) -> Maps:
@@ -119,11 +150,8 @@ def inverse_maps(layout: Layout, size: tuple[int, int], target_size: tuple[int, 
         centre ``q`` maps to ``sensor_to_pixels(φ⁻¹(q), (h, w), centered=True)``, so
         ``floor(map + 0.5)`` is the index of the sensor pixel that contains ``q``.
     """
-    size, target_size = check_size(size), check_size(target_size, "target_size")
-    theta = layout.theta.detach().double()
-    with torch.no_grad():
-        p = layout.phi_inverse(pixel_centers(target_size, device=theta.device), theta)
-    return _to_maps(p, size)
+    size = check_size(size)
+    return _to_maps(inverse_coords(layout, target_size), size)
 
 
 def raster_index_map(

@@ -36,7 +36,6 @@ __all__ = [
     "clear_mesh_cache",
     "pixel_mesh",
     "polygon_area",
-    "ranges",
     "segment_area",
     "smooth_pieces",
 ]
@@ -168,19 +167,6 @@ def polygon_area(poly: _A) -> _A:
     """
     n = poly.shape[-2]
     return segment_area(poly, poly[..., [*range(1, n), 0], :]).sum(-1)
-
-
-def ranges(lo: Tensor, count: Tensor) -> tuple[Tensor, Tensor]:
-    """Expand runs: for ``count[i]`` consecutive integers from ``lo[i]``, the pair
-    ``(parent index i, integer)`` of every element, in order.
-
-    Example:
-        >>> ranges(torch.tensor([5, 0]), torch.tensor([2, 3]))
-        (tensor([0, 0, 1, 1, 1]), tensor([5, 6, 0, 1, 2]))
-    """
-    parent = torch.repeat_interleave(torch.arange(count.numel(), device=count.device), count)
-    first = torch.cumsum(count, 0) - count
-    return parent, lo[parent] + (torch.arange(parent.numel(), device=count.device) - first[parent])
 
 
 def smooth_pieces(

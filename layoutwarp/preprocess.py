@@ -1,11 +1,7 @@
 """Dataset preprocessing: a folder of images to their sensor images for a fixed layout.
 
-For a fixed layout nothing needs gradients, so the exact integrator becomes a sparse matrix:
-:func:`area_weights` gives, for every sensor pixel, the fraction of its area that falls in
-every source cell (row-normalised, exact for straight edges and within ``tol`` for curved
-ones, the same geometry as ``simulate(..., method="exact")``). :class:`AreaResampler` builds
-it once per source size and applies it to each image with one sparse product; OpenCV reads
-and writes the files and resamples label maps.
+Each source size gets one :class:`~layoutwarp.AreaResampler` (the exact integrator as a sparse
+matrix), shared by every file of that size; OpenCV reads and writes the files.
 
 :func:`preprocess_folder` walks a folder tree (PNG, JPEG, TIFF, BMP; 8/16-bit or float,
 gray, colour or with alpha: every channel is integrated alike, straight alpha) and writes
@@ -34,7 +30,6 @@ import os
 import sys
 import threading
 import time
-import warnings
 from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass, field
@@ -42,170 +37,29 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import scipy.sparse as sp
 import torch
 
 from .backwarp import sensor_index_maps
-from .checks import check_choice, check_int, check_size
+from .checks import ArgumentError, check_choice, check_int, check_size
 from .files import atomic_write
-from .integrators import green_pieces
-from .layoutfile import load_layout, save_layout
-from .layouts import FAMILIES, Layout
-from .maps import forward_maps
-from .mesh import pixel_mesh
-from .sensor import data_tolerance
+from .labels import LABEL_RULES as SENSOR_RULES
+from .layoutfile import layout_from_spec, layout_spec, load_layout, same_spec, save_layout
+from .layouts import Layout
+from .resampler import AreaResampler
 
 __all__ = [
     "IMAGE_SUFFIXES",
     "LABEL_RULES",
-    "AreaResampler",
     "PreprocessResult",
-    "area_weights",
-    "benchmark_baseline",
     "check_destination",
     "list_images",
     "preprocess_folder",
+    "read_image",
 ]
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
-LABEL_RULES = ("nearest", "majority", "inverse")
-
-
-def area_weights(
-    layout: Layout, size: tuple[int, int], src_size: tuple[int, int], *, tol: float = 1e-4
-) -> sp.csr_matrix:
-    """Exact area weights of every sensor pixel over the source cells, as a sparse matrix.
-
-    ``W[k, r · W_src + c]`` is the fraction of pixel ``k``'s area (row-major sensor index)
-    inside source cell ``(r, c)``; rows sum to 1, and ``W @ image.reshape(-1, C)`` equals
-    ``simulate(image, layout, size, method="exact", tol=tol)`` up to rounding.
-
-    Built from the same Green's-theorem pieces as the exact integrator: a boundary piece in
-    cell ``(r, c)`` contributes ``ΔY · (Σ_{c' < c} L[r, c'] + f · L[r, c])``, a step in ``c'``;
-    the steps of one pixel and row are summed by a sort and a cumulative sum, so only the
-    cells inside the pixel get (non-zero) weights. float64; ``nnz ≈`` source pixels plus
-    the cells on pixel boundaries.
-
-    Args:
-        layout: the pixel layout.
-        size: sensor size ``(h, w)``.
-        src_size: source size ``(H, W)``.
-        tol: polyline tolerance of curved edges (relative pixel-value error).
-
-    Returns:
-        a ``(h · w, H · W)`` ``scipy.sparse.csr_matrix``.
-    """
-    (h, w), (hs, ws) = check_size(size), check_size(src_size, "src_size")
-    with torch.no_grad():
-        mesh = pixel_mesh(layout, (h, w), tol=tol, dtype=torch.float64)
-        verts = mesh.pixel_vertices((hs, ws))
-        pcs = green_pieces(verts[mesh.seg_start], verts[mesh.seg_end], (hs, ws))
-        area = mesh.areas(verts).flatten().cpu().numpy()  # source pixel units, same polylines
-        edge = mesh.seg_edge[pcs.seg].cpu().numpy()
-    row, col, dy, frac = (t.cpu().numpy() for t in (pcs.row, pcs.col, pcs.dy, pcs.frac))
-    pix = mesh.topology.edge_pixels()  # (E, 2): the pixel adding each edge, the one subtracting it
-    keys, cols, deltas = [], [], []
-    for k, sign in ((0, 1.0), (1, -1.0)):
-        p = pix[edge, k]
-        m = p >= 0
-        v = sign * dy[m]
-        key = p[m].astype(np.int64) * hs + row[m]
-        keys += [key, key]
-        cols += [col[m], col[m] + 1]
-        deltas += [v * (frac[m] - 1), -v * frac[m]]
-    key, c, delta = np.concatenate(keys), np.concatenate(cols), np.concatenate(deltas)
-    order = np.lexsort((c, key))
-    key, c, delta = key[order], c[order], delta[order]
-    cum = np.cumsum(delta)
-    start = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
-    cum -= np.repeat(np.r_[0.0, cum[start[1:] - 1]], np.diff(np.r_[start, key.size]))  # per group
-    last = np.r_[key[1:] != key[:-1], True]
-    run = np.where(last, 0, np.r_[c[1:], 0] - c)  # cells from this step to the next
-    scale = np.abs(delta).max(initial=1.0)
-    live = (run > 0) & (np.abs(cum) > 1e-12 * scale)
-    key, c, cum, run = key[live], c[live], cum[live], run[live]
-    rep = np.repeat(np.arange(key.size), run)
-    offs = np.arange(rep.size) - np.repeat(np.cumsum(run) - run, run)
-    pixel, r = np.divmod(key[rep], hs)
-    cells = r * ws + c[rep] + offs
-    vals = cum[rep] / area[pixel]
-    return sp.csr_matrix((vals, (pixel, cells)), shape=(h * w, hs * ws))
-
-
-class AreaResampler:
-    """Exact sensor resampling for a fixed layout and source size (precomputed weights).
-
-    Args:
-        layout: the pixel layout (its current θ is frozen in the weights).
-        size: sensor size ``(h, w)``.
-        src_size: source image size ``(H, W)``.
-        tol: polyline tolerance of curved edges.
-
-    Call with an ``(H, W)`` or ``(H, W, C)`` numpy image of any real dtype; returns a float32
-    ``(h, w)`` / ``(h, w, C)`` array in the input's units (no rescaling of uint8/uint16).
-    The sparse product runs on ``device`` (the weights are built on the CPU once, then moved):
-    CPU or CUDA; a CUDA product sums in another order, so its float32 values can differ from
-    the CPU's in the last bits (a rounded integer output by one level, rarely).
-    """
-
-    def __init__(
-        self,
-        layout: Layout,
-        size: tuple[int, int],
-        src_size: tuple[int, int],
-        *,
-        tol: float = 1e-4,
-        device: str | torch.device = "cpu",
-    ):
-        self.size, self.src_size = check_size(size), check_size(src_size, "src_size")
-        self.layout, self.tol = layout, tol
-        self.weights = area_weights(layout, self.size, self.src_size, tol=tol).astype(np.float32)
-        w = self.weights
-        with warnings.catch_warnings():  # "sparse CSR support is in beta"
-            warnings.simplefilter("ignore", UserWarning)
-            self._csr = torch.sparse_csr_tensor(
-                torch.from_numpy(w.indptr.astype(np.int64)),
-                torch.from_numpy(w.indices.astype(np.int64)),
-                torch.from_numpy(w.data),
-                size=w.shape,
-                check_invariants=False,
-            ).to(device)
-        self.device = torch.device(device)
-        self._maps: tuple[np.ndarray, np.ndarray] | None = None
-
-    def __call__(self, image: np.ndarray) -> np.ndarray:
-        if image.shape[:2] != self.src_size:
-            raise ValueError(f"image has size {image.shape[:2]}, this resampler expects {self.src_size}")
-        flat = np.ascontiguousarray(image.reshape(self.src_size[0] * self.src_size[1], -1), np.float32)
-        with torch.no_grad():  # torch's CSR product: 2-3x scipy's for a few channels
-            out = (self._csr @ torch.from_numpy(flat).to(self.device)).cpu().numpy()
-        return out.reshape(*self.size, *image.shape[2:])
-
-    def labels(self, label: np.ndarray, rule: str = "nearest") -> np.ndarray:
-        """Move an integer label map to the sensor grid.
-
-        ``"nearest"``: the label under each deformed pixel centre (``cv2.remap``
-        INTER_NEAREST on the forward maps). ``"majority"``: the label covering the largest
-        area of the pixel (exact area weights; ties go to the smaller label).
-        """
-        if label.ndim != 2 or label.shape != self.src_size:
-            raise ValueError(f"label map must be {self.src_size} (H, W), got shape {label.shape}")
-        if rule == "nearest":
-            if self._maps is None:
-                self._maps = forward_maps(self.layout, self.size, self.src_size).numpy()
-            src = label if label.dtype in (np.uint8, np.uint16, np.int16) else label.astype(np.int32)
-            out = cv2.remap(src, *self._maps, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)
-            return out.astype(label.dtype, copy=False)
-        if rule == "majority":
-            best = np.full(self.size[0] * self.size[1], -1.0, dtype=np.float32)
-            out = np.zeros(best.shape, dtype=label.dtype)
-            flat = label.reshape(-1)
-            for k in np.unique(flat):  # ascending: a tie keeps the smaller label
-                share = self.weights @ (flat == k).astype(np.float32)
-                better = share > best + 1e-6
-                best[better], out[better] = share[better], k
-            return out.reshape(self.size)
-        raise ValueError(f"rule must be 'nearest' or 'majority', got {rule!r}")
+#: Label rules: the sensor-grid rules of :mod:`layoutwarp.labels`, or full-size copies with back-warp maps.
+LABEL_RULES = (*SENSOR_RULES, "inverse")
 
 
 # ----------------------------------------------------------------------------------------
@@ -240,7 +94,11 @@ def _to_dtype(values: np.ndarray, dtype: np.dtype) -> np.ndarray:
     return values.astype(dtype)
 
 
-def _read(path: Path, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray:
+def read_image(path: Path, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray:
+    """An image file as OpenCV decodes it (HW or HWC, its own dtype); ``ValueError`` if unreadable.
+
+    Read as bytes first, so paths OpenCV's own reader cannot open (non-ASCII names) work too.
+    """
     data = np.fromfile(str(path), dtype=np.uint8)
     img = cv2.imdecode(data, flags) if data.size else None
     if img is None:
@@ -264,11 +122,12 @@ class _Job:
         self._lock = threading.Lock()
 
     def resampler(self, src_size: tuple[int, int], dtype: np.dtype) -> AreaResampler:
-        key = (src_size, self.tol or data_tolerance(dtype)[0])
+        """The shared resampler of a source size (and, with ``tol=None``, of a dtype's tolerance)."""
+        key = (src_size, None if self.tol is not None else np.dtype(dtype).str)
         with self._lock:
             if key not in self._cache:
                 self._cache[key] = AreaResampler(
-                    self.layout, self.size, src_size, tol=key[1], device=self.device
+                    self.layout, self.size, src_size, tol=self.tol, dtype=dtype, device=self.device
                 )
             return self._cache[key]
 
@@ -276,7 +135,7 @@ class _Job:
         """Process one file; never raises, reports errors instead."""
         rel = task["rel"]
         try:
-            img = _read(Path(task["src"]))
+            img = read_image(Path(task["src"]))
             res = self.resampler(img.shape[:2], img.dtype)
             out = _to_dtype(res(img), img.dtype)
             dst = Path(task["dst"])
@@ -300,7 +159,7 @@ class _Job:
                     buf = _npz_bytes(row=row.numpy().astype(np.int32), col=col.numpy().astype(np.int32))
                     atomic_write(maps, buf)
         else:
-            label = _read(src)
+            label = read_image(src)
             if label.ndim != 2:
                 raise ValueError(f"label map {src} must be single-channel, has shape {label.shape}")
             atomic_write(dst, _encode(dst, res.labels(label, self.label_rule)))
@@ -321,8 +180,7 @@ def _remote_process(spec: str, task: dict) -> dict:
         job = _WORKER_JOBS.get(spec)
         if job is None:
             d = json.loads(spec)
-            config = {k: v for k, v in d["layout"].items() if k not in ("family", "size_hw")}
-            layout = FAMILIES[d["layout"]["family"]].from_config(config, dtype=torch.float64)
+            layout = layout_from_spec(d["layout"], dtype=torch.float64)
             job = _Job(layout, tuple(d["size"]), d["tol"], d["label_rule"], d["device"])
             _WORKER_JOBS[spec] = job
     return job.process(task)
@@ -384,27 +242,8 @@ def check_destination(dst: Path) -> None:
         if p.exists():
             if not p.is_dir():
                 what = "is a file" if p == dst else f"lies under {str(p)!r}, which is a file"
-                raise ValueError(f"dst must be a folder; {str(dst)!r} {what}")
+                raise ArgumentError("dst", f"dst must be a folder; {str(dst)!r} {what}")
             return
-
-
-def _describe(layout: Layout, size_hw) -> dict:
-    """The layout's identity as stored in the manifest (its family and configuration)."""
-    return {"family": layout.family, **layout.to_config(), "size_hw": size_hw}
-
-
-def _same_layout(a: dict, b: dict) -> bool:
-    if set(a) != set(b):
-        return False
-    for k, v in a.items():
-        if isinstance(v, list) and v and all(isinstance(x, float | int) for x in v):
-            if not (
-                isinstance(b[k], list) and len(b[k]) == len(v) and np.allclose(v, b[k], rtol=0, atol=1e-12)
-            ):
-                return False
-        elif v != b[k]:
-            return False
-    return True
 
 
 def preprocess_folder(
@@ -433,12 +272,13 @@ def preprocess_folder(
         labels: folder of class-index label maps with the same relative paths (a ``.png``
             of the same stem is also accepted), or None.
         label_rule: ``"nearest"``, ``"majority"`` (sensor-grid labels) or ``"inverse"``
-            (full-resolution copies plus back-warp maps); see :class:`AreaResampler`.
+            (full-resolution copies plus back-warp maps); see :mod:`layoutwarp.labels`.
         workers: worker threads (1: no pool).
-        tol: polyline tolerance of curved edges, relative to the value range (default: a
-            quarter of a level for integer images, i.e. 1e-3 at 8 bit and 3.8e-6 at 16 bit,
-            and 2^-12 for float images: :func:`~layoutwarp.sensor.data_tolerance`); with
-            rounding, integer outputs stay within 0.75 levels of the exact integral.
+        tol: bound on each pixel's error relative to the value range, spent on curved edges
+            (default ``None``: what each file's dtype resolves, :func:`~layoutwarp.data_tolerance`:
+            a quarter of a level for integer images, i.e. 9.8e-4 at 8 bit and 3.8e-6 at 16 bit,
+            and 2^-12 for float images); with rounding, integer outputs stay within 0.75 levels
+            of the exact integral.
         progress: show a progress bar (default: when stderr is a terminal).
         files: process only these files (paths under ``src``).
         engine: ``"local"`` (``workers`` threads here) or ``"dask"`` (the optional extra
@@ -450,7 +290,7 @@ def preprocess_folder(
             ``src`` and ``dst`` at the same paths (a shared file system).
         device: where the sparse products run (``"cpu"``, ``"cuda"``; on a Dask cluster, the
             device of each worker). The CPU's outputs are the reference; see
-            :class:`AreaResampler` for CUDA's.
+            :class:`~layoutwarp.AreaResampler` for CUDA's.
 
     Returns:
         a :class:`PreprocessResult`; failures (unreadable files) are listed, not raised.
@@ -464,19 +304,21 @@ def preprocess_folder(
     check_int(workers, "workers", 1)
     check_choice(engine, ENGINES, "engine")
     if address is not None and engine != "dask":
-        raise ValueError(f"address needs engine='dask', got engine={engine!r}")
+        raise ArgumentError("address", f"address needs engine='dask', got engine={engine!r}")
     src, dst = Path(src), Path(dst)
     if not src.is_dir():
-        raise ValueError(f"src must be a folder, got {str(src)!r}")
+        raise ArgumentError("src", f"src must be a folder, got {str(src)!r}")
     check_destination(dst)
     dst.mkdir(parents=True, exist_ok=True)
-    config = _describe(layout, list(size))
+    config = layout_spec(layout) | {"size_hw": list(size)}
     layout_file = dst / "layout.json"
     if layout_file.exists():
         old_layout, old = load_layout(layout_file, dtype=torch.float64)
-        prev = _describe(old_layout, old["size_hw"])
-        if not _same_layout(prev, config):
-            raise ValueError(f"{dst} holds a dataset made with another layout ({prev}); use an empty folder")
+        prev = layout_spec(old_layout) | {"size_hw": old["size_hw"]}
+        if not same_spec(prev, config):
+            raise ArgumentError(
+                "dst", f"{dst} holds a dataset made with another layout ({prev}); use an empty folder"
+            )
     save_layout(
         layout, layout_file, size, tol=tol, label_rule=label_rule if labels else None, source=str(src)
     )
@@ -533,7 +375,7 @@ def preprocess_folder(
                 result.failed.append({"file": r["file"], "error": r["error"]})
             bar.update(1)
 
-        fixed = type(layout).from_config(config, dtype=torch.float64)
+        fixed = layout_from_spec(config, dtype=torch.float64)
         job = _Job(fixed, size, tol, label_rule, str(device))
         if engine == "dask" and tasks:
             spec = {"layout": config, "size": list(size), "tol": tol, "label_rule": label_rule}
@@ -575,7 +417,9 @@ def _run_on_dask(
         from dask.distributed import Client, LocalCluster
         from dask.distributed import as_completed as completed
     except ImportError:
-        raise ValueError("engine='dask' needs the optional extra: pip install 'layoutwarp[dask]'") from None
+        raise ArgumentError(
+            "engine", "engine='dask' needs the optional extra: pip install 'layoutwarp[dask]'"
+        ) from None
     cluster = None
     if address is None:
         cluster = LocalCluster(
@@ -593,17 +437,3 @@ def _run_on_dask(
     finally:
         if cluster is not None:
             cluster.close()
-
-
-def benchmark_baseline(files: list[Path], size: tuple[int, int], out: str | Path) -> float:
-    """Seconds for the plain OpenCV loop over ``files``: imread, resize INTER_AREA, imwrite."""
-    h, w = check_size(size)
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    t0 = time.perf_counter()
-    for k, path in enumerate(files):
-        img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-        if img is None:
-            continue
-        cv2.imwrite(str(out / f"{k}{path.suffix}"), cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA))
-    return time.perf_counter() - t0

@@ -6,7 +6,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 from torch import Tensor, nn
 
@@ -14,6 +13,7 @@ from .checks import check_choice, check_int, check_number, check_shape, check_si
 from .integrators import (
     RADIANCES,
     Radiance,
+    data_tolerance,
     integrate_exact,
     integrate_montecarlo,
     integrate_point,
@@ -22,40 +22,11 @@ from .integrators import (
 from .layoutfile import load_layout, save_layout
 from .layouts import Layout, make_layout
 
-__all__ = ["METHODS", "SensorLayer", "SimulationPlan", "data_tolerance", "plan_simulation", "simulate"]
+__all__ = ["METHODS", "SensorLayer", "SimulationPlan", "plan_simulation", "simulate"]
 
 #: The integrators :func:`simulate` runs.
 METHODS = ("exact", "separable", "montecarlo", "point")
 _OPTIONS = {"radiance", "tol", "samples", "grad", "seed", "generator", "allow_nonfinite"}
-
-
-def data_tolerance(dtype: torch.dtype | np.dtype | type) -> tuple[float, str]:
-    """The curved-edge tolerance the data needs, relative to the image's value range, and why.
-
-    Integer images: a quarter of one quantisation step of the dtype's range (``0.25/255``
-    for uint8, ``0.25/65535`` for uint16), so an exact integral rounds to the right level.
-    float16/bfloat16: a quarter of their precision at 1.0 (``2⁻¹²``, ``2⁻⁹``). Other floats:
-    ``2⁻¹²`` (a quarter of a 10-bit step, for the 8–10-bit data most float images hold; pass
-    ``tol`` for finer).
-
-    Example:
-        >>> data_tolerance(torch.uint8)[0] == 0.25 / 255
-        True
-    """
-    if isinstance(dtype, torch.dtype):
-        if dtype in (torch.float16, torch.bfloat16):
-            eps = torch.finfo(dtype).eps
-            return eps / 4, f"{dtype}: a quarter of its precision at 1.0"
-        if not dtype.is_floating_point:
-            dtype = torch.empty((), dtype=dtype).numpy().dtype
-    if not isinstance(dtype, torch.dtype):
-        dtype = np.dtype(dtype)
-        if np.issubdtype(dtype, np.integer):
-            step = 1 / np.iinfo(dtype).max
-            return 0.25 * step, f"{dtype} input: a quarter of one step (1/{np.iinfo(dtype).max} of the range)"
-        if dtype == np.float16:
-            return float(np.finfo(dtype).eps) / 4, f"{dtype}: a quarter of its precision at 1.0"
-    return 2.0**-12, "float input: a quarter of a 10-bit step (2^-12) of the value range"
 
 
 @dataclass(frozen=True)
@@ -240,8 +211,9 @@ def simulate(
         # gives the same samples on every call on one device, not across devices)
         at = image.device if isinstance(image, Tensor) else None
         generator = torch.Generator(at).manual_seed(int(seed))
+    run = _Integration(plan, layout, size, tol, samples, grad, generator)
     if is_callable:
-        out = _run(plan, image, layout, size, tol, samples, grad, generator)[None]
+        out = run(image)[None]
         return (out, plan) if return_plan else out
     work, out_dtype, lead = _prepare(image)
     if work.shape[0] == 0:
@@ -250,7 +222,7 @@ def simulate(
         exact = plan.method in ("exact", "separable")
         if not (allow_nonfinite or exact):  # samples may miss a bad pixel: look at the input
             _raise_nonfinite(work)
-        out = _run(plan, work, layout, size, tol, samples, grad, generator)
+        out = run(work)
         # Every source pixel reaches some sensor pixel with positive weight, so NaN/Inf in the
         # input always reaches the (small) output of an exact method: check that instead.
         if exact and not allow_nonfinite and not bool(torch.isfinite(out).all()):
@@ -259,27 +231,46 @@ def simulate(
     return (out, plan) if return_plan else out
 
 
-def _run(plan: SimulationPlan, work, layout: Layout, size, tol, samples, grad, generator) -> Tensor:
-    """Run the plan with autocast off: the sensor integrates in float32 (float64 for float64
-    input) inside any mixed-precision context, as its tolerances assume."""
-    device = work.device.type if isinstance(work, Tensor) else layout.rho.device.type
-    if device in ("cpu", "cuda", "mps", "xpu"):
-        with torch.autocast(device_type=device, enabled=False):
-            return _dispatch(plan, work, layout, size, tol, samples, grad, generator)
-    return _dispatch(plan, work, layout, size, tol, samples, grad, generator)
+@dataclass(frozen=True)
+class _Integration:
+    """One :func:`simulate` call's integrator, with the options its plan needs."""
 
+    plan: SimulationPlan
+    layout: Layout
+    size: tuple[int, int]
+    tol: float | None
+    samples: int
+    grad: str
+    generator: torch.Generator | None
 
-def _dispatch(plan: SimulationPlan, work, layout: Layout, size, tol, samples, grad, generator) -> Tensor:
-    if plan.method == "separable":
-        return integrate_separable(work, layout, size)
-    if plan.method == "exact":
-        return integrate_exact(work, layout, size, tol=tol)
-    radiance = "bilinear" if plan.radiance == "callable" else plan.radiance  # ignored for callables
-    if plan.method == "montecarlo":
-        return integrate_montecarlo(
-            work, layout, size, samples=samples, radiance=radiance, grad=grad, generator=generator
-        )
-    return integrate_point(work, layout, size, radiance=radiance)
+    def __call__(self, work: Tensor | Radiance) -> Tensor:
+        """Integrate ``work`` (``(N, H, W)`` or a callable radiance) with autocast off: the sensor
+        integrates in float32 (float64 for float64 input) inside any mixed-precision context, as
+        its tolerances assume."""
+        device = work.device.type if isinstance(work, Tensor) else self.layout.rho.device.type
+        if device in ("cpu", "cuda", "mps", "xpu"):
+            with torch.autocast(device_type=device, enabled=False):
+                return self._dispatch(work)
+        return self._dispatch(work)
+
+    def _dispatch(self, work: Tensor | Radiance) -> Tensor:
+        plan, layout, size = self.plan, self.layout, self.size
+        if plan.method == "separable":
+            return integrate_separable(work, layout, size)
+        if plan.method == "exact":
+            return integrate_exact(work, layout, size, tol=self.tol)
+        radiance = "bilinear" if plan.radiance == "callable" else plan.radiance  # ignored for callables
+        if plan.method == "montecarlo":
+            return integrate_montecarlo(
+                work,
+                layout,
+                size,
+                samples=self.samples,
+                radiance=radiance,
+                grad=self.grad,
+                generator=self.generator,
+            )
+        return integrate_point(work, layout, size, radiance=radiance)
 
 
 class SensorLayer(nn.Module):

@@ -21,6 +21,7 @@ import torch
 from torch import Tensor
 
 from .checks import check_choice, check_int
+from .coords import cell_index
 from .layouts import Layout, config_numbers, register_family
 
 __all__ = ["KINDS", "SplineLayout", "knot_outputs", "spline_1d", "spline_1d_derivative", "spline_1d_inverse"]
@@ -51,13 +52,6 @@ def _slopes(y: Tensor) -> tuple[Tensor, Tensor]:
     return s, torch.cat([s[:1], inner, s[-1:]])
 
 
-def _piece(x: Tensor, k: int) -> tuple[Tensor, Tensor]:
-    """Piece index and position ``ξ ∈ [0, 1]`` within it of points ``x ∈ [-1, 1]``."""
-    u = (x.clamp(-1, 1) + 1) * (k / 2)
-    i = u.detach().floor().clamp(0, k - 1)
-    return i.long(), u - i
-
-
 def _rq_fraction(xi: Tensor, s: Tensor, d0: Tensor, d1: Tensor) -> Tensor:
     """The rational-quadratic piece's output fraction ``r(ξ) ∈ [0, 1]`` (``r(0) = 0``, ``r(1) = 1``)."""
     t = xi * (1 - xi)
@@ -73,7 +67,7 @@ def spline_1d(x: Tensor, y: Tensor, kind: str = "linear") -> Tensor:
         kind: ``"linear"`` or ``"smooth"``.
     """
     k = y.numel() - 1
-    i, xi = _piece(x, k)
+    i, xi = cell_index(x, k)
     y0, y1 = y[i], y[i + 1]
     if kind == "linear":
         r = xi
@@ -86,7 +80,7 @@ def spline_1d(x: Tensor, y: Tensor, kind: str = "linear") -> Tensor:
 def spline_1d_derivative(x: Tensor, y: Tensor, kind: str = "linear") -> Tensor:
     """``dφ/dx`` of :func:`spline_1d` (the right-hand value at a knot); 1 outside ``[-1, 1]``."""
     k = y.numel() - 1
-    i, xi = _piece(x, k)
+    i, xi = cell_index(x, k)
     s, d = _slopes(y)
     si = s[i]
     if kind == "linear":

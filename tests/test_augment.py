@@ -26,9 +26,12 @@ def test_container_matches_simulate_and_backwarp(family, gen, device):
     out, m = seq(img, mask)
     assert out.shape == (2, 3, 12, 16) and m.shape == (2, 1, 12, 16)
     assert torch.allclose(out, lw.simulate(img, aug.layout, (12, 16)), atol=1e-6)
-    # masks (nearest rule): the label of the source pixel under each deformed pixel centre
-    ref_mask = lw.simulate(mask.double(), aug.layout, (12, 16), "point", radiance="box").float()
-    assert torch.equal(m, ref_mask)
+    # masks (nearest rule): the label of the source pixel under each deformed pixel centre (the
+    # pixel to the right/below where a centre lies on a cell boundary, as back-warping takes it)
+    q = aug.layout.phi(lw.coords.pixel_centers((12, 16)), aug.layout.theta.detach().cpu().double())
+    col = torch.floor((q[..., 0] + 1) / 2 * 64).long().clamp(0, 63).to(device)
+    row = torch.floor((q[..., 1] + 1) / 2 * 48).long().clamp(0, 47).to(device)
+    assert torch.equal(m, mask[..., row, col])
     inv_img, inv_mask = seq.inverse(out, m, data_keys=["input", "mask"])
     assert inv_img.shape == img.shape and inv_mask.shape == mask.shape
     assert torch.allclose(inv_img, lw.backwarp(out, aug.layout, (48, 64)))
@@ -62,12 +65,15 @@ def test_majority_mask_rule(gen):
     labels[0, 0, 2, 2:4] = 4  # block (1, 1): 2 of 4 are 4, 2 of 4 are 0 -> tie broken to 0
     labels[0, 0, 4:6, 4:6] = 2
     labels[0, 0, 4, 4] = 1  # block (2, 2): 3 of 4 are 2
-    aug = SensorAugmentation((4, 4), "uniform", mask_rule="majority", num_classes=5)
+    aug = SensorAugmentation((4, 4), "uniform", mask_rule="majority")
     seq = K.AugmentationSequential(aug, data_keys=["input", "mask"])
     _, m = seq(torch.rand(1, 1, 8, 8), labels)
     assert m[0, 0, 0, 0] == 3 and m[0, 0, 2, 2] == 2 and m[0, 0, 3, 3] == 0
-    with pytest.raises(ValueError, match="num_classes"):
-        SensorAugmentation((4, 4), "rect", mask_rule="majority")
+    assert m[0, 0, 1, 1] == 0  # the tie
+    with pytest.raises(ValueError, match="mask_rule"):
+        SensorAugmentation((4, 4), "rect", mask_rule="mode")
+    with pytest.raises(TypeError, match="unknown simulate option"):  # checked by the layer it wraps
+        SensorAugmentation((4, 4), "rect", tolerance=1e-3)
 
 
 @pytest.mark.parametrize("family", ["rect", "curv"])

@@ -27,7 +27,7 @@ def test_backwarp_matches_point_in_polygon(family, gen):
     mesh = lw.pixel_mesh(layout, size, subdivisions=1 if family != "curv" else 512)
     polys = [shapely.Polygon(p) for p in mesh.polygons()]
     tree = shapely.STRtree(polys)
-    centres = lw.pixel_centers(target).reshape(-1, 2).numpy()
+    centres = lw.coords.pixel_centers(target).reshape(-1, 2).numpy()
     pts = shapely.points(centres)
     boundary = shapely.union_all([p.boundary for p in polys])
     near = shapely.distance(pts, boundary) < 1e-6
@@ -59,14 +59,14 @@ def test_bilinear_backwarp_converges_at_second_order(gen):
     # a smooth field sampled at the deformed pixel centres and back-warped bilinearly
     # approximates the field with error O(h²): it must fall ~4x per doubling of resolution
     layout = lw.CurvLayout(rand_theta(gen, 0.7), dtype=F64)
-    q = lw.pixel_centers((50, 70))
+    q = lw.coords.pixel_centers((50, 70))
     # away from the border padding and from φ_curv's kinks (O(h) there)
     u = layout.inverse(q).detach().norm(dim=-1)  # φ_curv bends at |u| = 1 and at u = 0 (|u| terms)
     inner = (q.abs() < 0.85).all(-1) & ((u - 1).abs() > 0.15) & (u > 0.15)
     expected = torch.sin(2 * q[..., 0]) + q[..., 1] ** 2
     errs = []
     for size in ((20, 30), (40, 60), (80, 120), (160, 240)):
-        c = layout(lw.pixel_centers(size)).detach()
+        c = layout(lw.coords.pixel_centers(size)).detach()
         field = (torch.sin(2 * c[..., 0]) + c[..., 1] ** 2)[None, None]
         out = lw.backwarp(field, layout, (50, 70), mode="bilinear")[0, 0]
         errs.append(float((out - expected)[inner].pow(2).mean().sqrt()))  # RMS: max-norm orders are noisy

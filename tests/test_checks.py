@@ -70,10 +70,10 @@ def test_checks_return_normalised_values():
 @pytest.mark.parametrize(
     "call",
     [
-        lambda: lw.integrate_exact(torch.rand(1, 2, 8, 8), lw.CurvLayout(), (2, 2)),
-        lambda: lw.integrate_separable(torch.rand(8, 8), lw.RectLayout(), (2, 2)),
-        lambda: lw.integrate_montecarlo(torch.rand(1, 2, 8, 8), lw.CurvLayout(), (2, 2)),
-        lambda: lw.integrate_point(torch.rand(8), lw.CurvLayout(), (2, 2)),
+        lambda: lw.integrators.integrate_exact(torch.rand(1, 2, 8, 8), lw.CurvLayout(), (2, 2)),
+        lambda: lw.integrators.integrate_separable(torch.rand(8, 8), lw.RectLayout(), (2, 2)),
+        lambda: lw.integrators.integrate_montecarlo(torch.rand(1, 2, 8, 8), lw.CurvLayout(), (2, 2)),
+        lambda: lw.integrators.integrate_point(torch.rand(8), lw.CurvLayout(), (2, 2)),
     ],
 )
 def test_integrators_check_their_image(call):

@@ -14,7 +14,7 @@ F64 = torch.float64
 def pixel_masses(layout, size, density: torch.Tensor) -> torch.Tensor:
     """The density's integral over every sensor pixel (exact box integral × area)."""
     mesh = lw.pixel_mesh(layout, size)
-    mean = lw.integrate_exact(density[None].double(), layout, size, mesh=mesh)[0]
+    mean = lw.integrators.integrate_exact(density[None].double(), layout, size, mesh=mesh)[0]
     return mean * mesh.areas()
 
 

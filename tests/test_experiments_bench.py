@@ -85,11 +85,13 @@ def test_fd_gradient_matches_exact_autograd(seed):
         fd = fd_theta_gradient(img, layout, theta.detach(), size, w, subdiv=128)
         # the same 128-segment polylines that the finite differences see
         mesh = lw.pixel_mesh(layout, size, subdivisions=1 if family == "rect" else 128, theta=theta)
-        (g,) = torch.autograd.grad((lw.integrate_exact(img[0], layout, size, mesh=mesh) * w[0]).sum(), theta)
+        (g,) = torch.autograd.grad(
+            (lw.integrators.integrate_exact(img[0], layout, size, mesh=mesh) * w[0]).sum(), theta
+        )
         assert float((g - fd).norm() / fd.norm()) < 1e-5, (family, g, fd)
         # the true curved edges (tol 1e-9) differ from 128-segment polylines by O(1/128²)
         (g,) = torch.autograd.grad(
-            (lw.integrate_exact(img[0], layout, size, tol=1e-9, theta=theta) * w[0]).sum(), theta
+            (lw.integrators.integrate_exact(img[0], layout, size, tol=1e-9, theta=theta) * w[0]).sum(), theta
         )
         assert float((g - fd).norm() / fd.norm()) < 1e-3, (family, g, fd)
 

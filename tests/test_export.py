@@ -130,7 +130,7 @@ def test_png_boundaries_and_index(gen, tmp_path):
     assert set(np.unique(index)) == set(range(1, SIZE[0] * SIZE[1] + 1))
     assert 0.02 < (lines > 0).mean() < 0.3
     # the raster pixel at each deformed pixel centre holds that pixel's index
-    q = layout.phi(lw.pixel_centers(SIZE), layout.theta.detach())
+    q = layout.phi(lw.coords.pixel_centers(SIZE), layout.theta.detach())
     xy = ((q.numpy() + 1) / 2 * XY * 0.5).astype(int)
     assert (index[xy[..., 1], xy[..., 0]] == np.arange(1, SIZE[0] * SIZE[1] + 1).reshape(SIZE)).all()
 

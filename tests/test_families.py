@@ -18,7 +18,7 @@ import layoutwarp as lw
 from layoutwarp.augment import SensorAugmentation
 from layoutwarp.export import export_layout
 from layoutwarp.grids import cell_corner_dets
-from layoutwarp.preprocess import area_weights
+from layoutwarp.resampler import area_weights
 
 F64 = torch.float64
 
@@ -37,7 +37,7 @@ def rand_control(gen, grid):
     """A random control grid that cannot fold: every point moves less than a quarter of a cell
     along each axis (the corner cross products then stay positive)."""
     gh, gw = grid
-    ctrl = lw.uniform_corners(grid).clone()
+    ctrl = lw.coords.uniform_corners(grid).clone()
     step = torch.tensor([2 / gw, 2 / gh], dtype=F64)
     ctrl += (torch.rand(gh + 1, gw + 1, 2, generator=gen, dtype=F64) - 0.5) * 0.48 * step
     ctrl[:, 0, 0], ctrl[:, -1, 0], ctrl[0, :, 1], ctrl[-1, :, 1] = -1.0, 1.0, -1.0, 1.0  # back on the border
@@ -103,16 +103,16 @@ def test_spline_box_means_match_an_integral_image(kind, gen):
         src = (rint(gen, 5, 60), rint(gen, 5, 60))
         size = (rint(gen, 1, 12), rint(gen, 1, 12))
         img = torch.rand(2, *src, generator=gen, dtype=F64) * 4 - 1
-        ex = lw.sensor_to_pixels(
-            layout(torch.stack([lw.grid_lines(size[1]), torch.zeros(size[1] + 1, dtype=F64)], -1)), src
+        ex = lw.coords.sensor_to_pixels(
+            layout(torch.stack([lw.coords.grid_lines(size[1]), torch.zeros(size[1] + 1, dtype=F64)], -1)), src
         )[:, 0]
-        ey = lw.sensor_to_pixels(
-            layout(torch.stack([torch.zeros(size[0] + 1, dtype=F64), lw.grid_lines(size[0])], -1)), src
+        ey = lw.coords.sensor_to_pixels(
+            layout(torch.stack([torch.zeros(size[0] + 1, dtype=F64), lw.coords.grid_lines(size[0])], -1)), src
         )[:, 1]
         ref = box_reference(img, ex.numpy(), ey.numpy())
         assert lw.plan_simulation(layout, size).method == "separable"
         sep = lw.simulate(img[None], layout, size)[0].numpy()
-        ex_ = lw.integrate_exact(img, layout, size).numpy()  # the polygon path agrees too
+        ex_ = lw.integrators.integrate_exact(img, layout, size).numpy()  # the polygon path agrees too
         assert np.abs(sep - ref).max() <= 1e-9 and np.abs(ex_ - ref).max() <= 1e-9
 
 
@@ -223,8 +223,8 @@ def test_theta_gradients_match_central_differences(name, size, gen):
     def loss(t):  # the curved fovea: a fixed subdivision, so that the forward is smooth in θ
         mesh = lw.pixel_mesh(layout, size, subdivisions=6, theta=t) if curved else None
         if layout.separable:
-            return (lw.integrate_separable(img, layout, size, theta=t) * wts).sum()
-        return (lw.integrate_exact(img, layout, size, theta=t, mesh=mesh) * wts).sum()
+            return (lw.integrators.integrate_separable(img, layout, size, theta=t) * wts).sum()
+        return (lw.integrators.integrate_exact(img, layout, size, theta=t, mesh=mesh) * wts).sum()
 
     th = layout.theta.detach().clone().requires_grad_(True)
     (g,) = torch.autograd.grad(loss(th), th)
@@ -235,7 +235,9 @@ def test_theta_gradients_match_central_differences(name, size, gen):
         )
     assert float((g - fd).abs().max()) <= 1e-5 * max(float(fd.abs().max()), 1e-3)
     if layout.separable:  # the polygon path's gradient is the same
-        (g2,) = torch.autograd.grad((lw.integrate_exact(img, layout, size, theta=th) * wts).sum(), th)
+        (g2,) = torch.autograd.grad(
+            (lw.integrators.integrate_exact(img, layout, size, theta=th) * wts).sum(), th
+        )
         assert torch.allclose(g2, g, atol=1e-10)
 
 
@@ -251,7 +253,9 @@ def test_learned_centre_gradient_is_as_accurate_as_values(gen):
     layout = rand_fovea(gen, learn_center=True)
     th = layout.theta.detach().clone().requires_grad_(True)
     g = [
-        torch.autograd.grad((lw.integrate_exact(img, layout, size, tol=tol, theta=th) * w).sum(), th)[0]
+        torch.autograd.grad(
+            (lw.integrators.integrate_exact(img, layout, size, tol=tol, theta=th) * w).sum(), th
+        )[0]
         for tol in (1e-6, 1e-9)
     ]
     assert float((g[0] - g[1]).abs().max()) <= 1e-5 * float(g[1].abs().max())
@@ -289,7 +293,7 @@ def test_montecarlo_reynolds_gradient_agrees_with_the_exact_one(name, gen):
 
     def exact_loss(t):
         mesh = None if layout.straight_edges else lw.pixel_mesh(layout, size, subdivisions=64, theta=t)
-        return float((lw.integrate_exact(img, layout, size, theta=t, mesh=mesh) * wts).sum())
+        return float((lw.integrators.integrate_exact(img, layout, size, theta=t, mesh=mesh) * wts).sum())
 
     th0 = layout.theta.detach().clone()
     h = 1e-5
@@ -302,7 +306,7 @@ def test_montecarlo_reynolds_gradient_agrees_with_the_exact_one(name, gen):
     (dtheta,) = torch.autograd.grad(layout.theta.sum(), layout.rho)
     grads = []
     for k in range(16):
-        out = lw.integrate_montecarlo(
+        out = lw.integrators.integrate_montecarlo(
             img,
             layout,
             size,
@@ -334,7 +338,7 @@ def test_montecarlo_converges_to_exact_for_new_families(gen):
 @pytest.mark.parametrize("family", ["rect", "curv"])
 def test_centred_fovea_is_the_paper_layout_bit_for_bit(family, gen):
     theta = rand_theta(gen)
-    fn = {"rect": lw.phi_rect, "curv": lw.phi_curv}[family]
+    fn = {"rect": lw.layouts.phi_rect, "curv": lw.layouts.phi_curv}[family]
     p = torch.rand(1000, 2, generator=gen, dtype=F64) * 2.2 - 1.1
     layout = lw.make_layout(family, theta, center=(0.0, 0.0), dtype=F64)
     assert torch.equal(layout(p), fn(p, layout.theta))
@@ -386,11 +390,11 @@ def test_learned_centre_moves_towards_the_detail():
 # Grids: construction, fold checks and the guarded step
 # ----------------------------------------------------------------------------------------
 def test_grid_constructors_refuse_bad_grids_with_the_cell_named():
-    ctrl = lw.uniform_corners((3, 3)).clone()
+    ctrl = lw.coords.uniform_corners((3, 3)).clone()
     ctrl[1, 1, 0] = 1 / 3 + 0.1  # past its right neighbour: the cells right of it fold
     with pytest.raises(ValueError, match=r"control grid folds: cell \(row 0, col 1\)"):
         lw.GridLayout(ctrl)
-    off = lw.uniform_corners((2, 2)).clone()
+    off = lw.coords.uniform_corners((2, 2)).clone()
     off[0, 1, 1] = -0.9
     with pytest.raises(ValueError, match="top row must have y = -1"):
         lw.GridLayout(off)
@@ -402,7 +406,7 @@ def test_grid_constructors_refuse_bad_grids_with_the_cell_named():
 
 def test_grid_close_to_folding_stays_exact(gen):
     # one cell's corner is within 1e-7 (relative) of a straight angle: still exact, finite gradients
-    ctrl = lw.uniform_corners((2, 2)).clone()
+    ctrl = lw.coords.uniform_corners((2, 2)).clone()
     ctrl[1, 1, 1] = -1 + 1e-7  # the centre point almost on the top border
     layout = lw.GridLayout(ctrl, dtype=F64, learn=True)
     assert 0 < layout.check_foldover().min_det < 1e-6
@@ -410,7 +414,7 @@ def test_grid_close_to_folding_stays_exact(gen):
     size = (4, 4)
     mesh = lw.pixel_mesh(layout, size)
     ref = clip_reference(img, mesh.polygons(), size)
-    out = lw.integrate_exact(img, layout, size)
+    out = lw.integrators.integrate_exact(img, layout, size)
     assert np.abs(out.detach().numpy() - ref).max() <= 1e-9 * max(1.0, np.abs(ref).max())
     (g,) = torch.autograd.grad(out.sum(), layout.rho)
     assert torch.isfinite(g).all()
@@ -443,7 +447,9 @@ def test_projection_keeps_a_hard_pushed_grid_from_folding(gen):
     worst, layout = train(guarded=True)
     layout.project_()  # what the next forward pass would do after the last step
     assert worst >= layout.min_det - 1e-12 and layout.check_foldover().ok
-    assert float((layout.control_points().detach() - lw.uniform_corners((3, 3))).abs().max()) > 0.1  # learned
+    assert (
+        float((layout.control_points().detach() - lw.coords.uniform_corners((3, 3))).abs().max()) > 0.1
+    )  # learned
 
 
 def test_sensor_layer_projects_before_every_forward():
@@ -460,7 +466,7 @@ def test_from_maps_with_corners_and_centres(gen):
     layout = rand_grid(gen, (4, 5))
     src = (37, 41)
     ctrl = layout.control_points().detach()
-    px = lw.sensor_to_pixels(ctrl, src, centered=True)
+    px = lw.coords.sensor_to_pixels(ctrl, src, centered=True)
     back = lw.GridLayout.from_maps(px[..., 0], px[..., 1], src, points="corners", dtype=F64)
     assert (back.control_points() - ctrl).abs().max() <= 1e-12
     back32 = lw.GridLayout.from_maps(
@@ -470,13 +476,15 @@ def test_from_maps_with_corners_and_centres(gen):
     # centre maps (what forward_maps writes): exact for the uniform (affine) layout
     maps = lw.forward_maps(lw.UniformLayout(), (6, 8), src)
     uni = lw.GridLayout.from_maps(maps.map_x, maps.map_y, src, dtype=F64)
-    assert uni.grid == (6, 8) and (uni.control_points() - lw.uniform_corners((6, 8))).abs().max() <= 1e-6
+    assert (
+        uni.grid == (6, 8) and (uni.control_points() - lw.coords.uniform_corners((6, 8))).abs().max() <= 1e-6
+    )
     # and close for a smooth one: averaging neighbouring centres is second order in the pixel
     # size (measured up to 6e-3 at 12x12 with these logits)
     spline = rand_spline(gen, "smooth", knots=(2, 2), scale=0.3)
     maps = lw.forward_maps(spline, (12, 12), src)
     approx = lw.GridLayout.from_maps(maps.map_x, maps.map_y, src, dtype=F64)
-    assert (approx.control_points() - spline(lw.uniform_corners((12, 12)))).abs().max() < 1.5e-2
+    assert (approx.control_points() - spline(lw.coords.uniform_corners((12, 12)))).abs().max() < 1.5e-2
     with pytest.raises(ValueError, match="points must be one of"):
         lw.GridLayout.from_maps(maps.map_x, maps.map_y, src, points="edges")
 
@@ -490,12 +498,12 @@ def test_spline_piece_of_width_1e6(gen):
     size, src = (6, 9), (20, 25)
     img = torch.rand(1, *src, generator=gen, dtype=F64)
     out = lw.simulate(img[None], layout, size)[0]
-    ex = lw.sensor_to_pixels(layout(torch.stack([lw.grid_lines(9), torch.zeros(10, dtype=F64)], -1)), src)[
-        :, 0
-    ]
-    ey = lw.sensor_to_pixels(layout(torch.stack([torch.zeros(7, dtype=F64), lw.grid_lines(6)], -1)), src)[
-        :, 1
-    ]
+    ex = lw.coords.sensor_to_pixels(
+        layout(torch.stack([lw.coords.grid_lines(9), torch.zeros(10, dtype=F64)], -1)), src
+    )[:, 0]
+    ey = lw.coords.sensor_to_pixels(
+        layout(torch.stack([torch.zeros(7, dtype=F64), lw.coords.grid_lines(6)], -1)), src
+    )[:, 1]
     ref = box_reference(img, ex.detach().numpy(), ey.detach().numpy())
     # the thin pixels are ~2.5e-5 source pixels wide (area ~7e-5): the integral-image reference
     # itself cancels to eps · ΣL / area ≈ 1.5e-9 there (seed 3505533219 measured 1.2e-9)
@@ -544,7 +552,7 @@ def test_backwarp_agrees_with_point_in_polygon_and_opencv(name, gen):
     got = lw.backwarp(index, layout, target)[0, 0].numpy()
     mesh = lw.pixel_mesh(layout, size, tol=1e-7)  # edges within ~1e-8 of the curves: far inside `near`
     polys = [shapely.Polygon(p) for p in mesh.polygons()]
-    pts = shapely.points(lw.pixel_centers(target).reshape(-1, 2).numpy())
+    pts = shapely.points(lw.coords.pixel_centers(target).reshape(-1, 2).numpy())
     near = shapely.distance(pts, shapely.union_all([p.boundary for p in polys])) < 1e-6
     hits = shapely.STRtree(polys).query(pts, predicate="within")
     ref = np.full(len(pts), -1)
@@ -558,9 +566,9 @@ def test_backwarp_agrees_with_point_in_polygon_and_opencv(name, gen):
     )
     # the OpenCV-rasterised index map: the point-in-polygon pixel, except for target centres
     # within half a target pixel of a pixel boundary
-    raster = lw.raster_index_map(layout, size, target).numpy().reshape(-1)
+    raster = lw.maps.raster_index_map(layout, size, target).numpy().reshape(-1)
     px = [
-        shapely.Polygon(lw.sensor_to_pixels(torch.from_numpy(p), target, centered=True).numpy())
+        shapely.Polygon(lw.coords.sensor_to_pixels(torch.from_numpy(p), target, centered=True).numpy())
         for p in mesh.polygons()
     ]
     ii, jj = np.divmod(np.arange(len(pts)), target[1])

@@ -44,10 +44,10 @@ def test_exact_matches_polygon_clipping(family, gen):
         img = torch.rand(2, hs, ws, generator=gen, dtype=F64)
         mesh = lw.pixel_mesh(layout, size, tol=1e-4)
         ref = clip_reference(img, mesh.polygons(), size)
-        got = lw.integrate_exact(img, layout, size, mesh=mesh).detach().numpy()
+        got = lw.integrators.integrate_exact(img, layout, size, mesh=mesh).detach().numpy()
         assert np.abs(got - ref).max() < 1e-6 * (1 + np.abs(ref).max()) / 1e3  # 1e-9: exact
         if family == "rect":
-            sep = lw.integrate_separable(img, layout, size).detach().numpy()
+            sep = lw.integrators.integrate_separable(img, layout, size).detach().numpy()
             assert np.abs(sep - ref).max() < 1e-9
 
 
@@ -86,7 +86,7 @@ def test_exact_at_scale_conserves_flux_and_stays_in_range(family, gen):
     layout = lw.make_layout(family, rand_theta(gen, 0.9))
     img = torch.rand(1, 2, 256, 512, generator=gen, dtype=F64)
     with torch.no_grad():
-        out = lw.integrate_exact(img[0], layout, (33, 65), tol=1e-4)
+        out = lw.integrators.integrate_exact(img[0], layout, (33, 65), tol=1e-4)
         areas = lw.pixel_mesh(layout, (33, 65), tol=1e-4).areas().double()
     assert float(out.min()) >= float(img.min()) - 1e-9 and float(out.max()) <= float(img.max()) + 1e-9
     assert torch.allclose((out * areas).sum((-2, -1)) / 4, img[0].mean((-2, -1)), atol=1e-9)
@@ -101,7 +101,7 @@ def test_exact_matches_analytic_integral_of_bilinear_pixel_function(gen):
     r = torch.arange(hs, dtype=F64)[:, None]
     c = torch.arange(ws, dtype=F64)[None]
     img = (a + b * c + d * r + e * c * r)[None]
-    got = lw.integrate_exact(img, lw.UniformLayout(), (h, w))[0]
+    got = lw.integrators.integrate_exact(img, lw.UniformLayout(), (h, w))[0]
     i = torch.arange(h, dtype=F64)[:, None]
     j = torch.arange(w, dtype=F64)[None]
     cm = j * (ws // w) + (ws // w - 1) / 2  # mean column index in pixel (i, j)
@@ -123,9 +123,9 @@ def test_float32_exact_within_1e5_of_float64(family, gen):
 @pytest.mark.parametrize(
     "cls,fn",
     [
-        (lw.RectLayout, lw.integrate_separable),
-        (lw.RectLayout, lw.integrate_exact),
-        (lw.CurvLayout, lw.integrate_exact),
+        (lw.RectLayout, lw.integrators.integrate_separable),
+        (lw.RectLayout, lw.integrators.integrate_exact),
+        (lw.CurvLayout, lw.integrators.integrate_exact),
     ],
 )
 @pytest.mark.parametrize("size", [(4, 7), (6, 3)])
@@ -133,7 +133,7 @@ def test_gradcheck_exact_and_separable(cls, fn, size, gen):
     theta = (torch.rand(2, generator=gen, dtype=F64) - 0.5).requires_grad_(True)
     img = torch.rand(2, 13, 17, generator=gen, dtype=F64).requires_grad_(True)
     layout = cls(dtype=F64)
-    if fn is lw.integrate_exact and cls is lw.CurvLayout:
+    if fn is lw.integrators.integrate_exact and cls is lw.CurvLayout:
         # fixed subdivision: the adaptive count changes with θ, finite differences must not
         def f(t, im):
             return fn(im, layout, size, mesh=lw.pixel_mesh(layout, size, subdivisions=4, theta=t))
@@ -152,16 +152,18 @@ def test_gradient_at_theta_zero_on_cell_boundaries(family, gen):
     img = torch.rand(2, 28, 28, generator=gen, dtype=F64)
     wts = torch.randn(2, 4, 4, generator=gen, dtype=F64)
     layout = lw.make_layout(family, (0.0, 0.0), dtype=F64, learn=True)
-    (g,) = torch.autograd.grad((lw.integrate_exact(img, layout, (4, 4)) * wts).sum(), layout.rho)
+    (g,) = torch.autograd.grad((lw.integrators.integrate_exact(img, layout, (4, 4)) * wts).sum(), layout.rho)
     sep = family == "rect"
     if sep:
-        (g_sep,) = torch.autograd.grad((lw.integrate_separable(img, layout, (4, 4)) * wts).sum(), layout.rho)
+        (g_sep,) = torch.autograd.grad(
+            (lw.integrators.integrate_separable(img, layout, (4, 4)) * wts).sum(), layout.rho
+        )
         assert torch.allclose(g, g_sep, atol=1e-12)
 
     def loss(th):
         lay = lw.make_layout(family, th, dtype=F64)
         mesh = lw.pixel_mesh(lay, (4, 4), subdivisions=1 if sep else 256)
-        return float((lw.integrate_exact(img, lay, (4, 4), mesh=mesh) * wts).sum())
+        return float((lw.integrators.integrate_exact(img, lay, (4, 4), mesh=mesh) * wts).sum())
 
     h = 1e-7
     fd = torch.tensor([(loss(h * e) - loss(-h * e)) / (2 * h) for e in torch.eye(2, dtype=F64)], dtype=F64)
@@ -193,7 +195,7 @@ def test_montecarlo_gradients_agree_with_finite_differences(family, size, grad, 
     def exact_loss(th):
         layout = lw.make_layout(family, th, dtype=F64)
         mesh = lw.pixel_mesh(layout, size, subdivisions=64 if family == "curv" else 1)
-        return float((lw.integrate_exact(ref_img, layout, size, mesh=mesh) * wts).sum())
+        return float((lw.integrators.integrate_exact(ref_img, layout, size, mesh=mesh) * wts).sum())
 
     h = 1e-5
     fd = torch.tensor(
@@ -203,7 +205,7 @@ def test_montecarlo_gradients_agree_with_finite_differences(family, size, grad, 
     grads = []
     for k in range(16):
         layout = lw.make_layout(family, theta, dtype=F64, learn=True)
-        out = lw.integrate_montecarlo(
+        out = lw.integrators.integrate_montecarlo(
             img,
             layout,
             size,
@@ -224,7 +226,7 @@ def test_montecarlo_gradients_agree_with_finite_differences(family, size, grad, 
 
 def test_autograd_estimator_refuses_box_radiance():
     with pytest.raises(ValueError, match="reynolds"):
-        lw.integrate_montecarlo(
+        lw.integrators.integrate_montecarlo(
             torch.rand(1, 8, 8), lw.CurvLayout((0.2, 0.2)), (2, 2), radiance="box", grad="autograd"
         )
 
@@ -249,7 +251,7 @@ def test_montecarlo_and_point_with_callable_radiance(gen):
     extent = float(torch.cat([x1 - x0, y1 - y0]).max())
     assert float((mc[0, 0] - expected).abs().max()) < 2 * 5**0.5 * extent / 32**2
     pt = lw.simulate(radiance, layout, size, "point")
-    centre = layout(lw.pixel_centers(size))
+    centre = layout(lw.coords.pixel_centers(size))
     assert torch.allclose(pt[0, 0], centre[..., 0] ** 2 + centre[..., 1])
     with pytest.raises(ValueError, match="callable radiance"):
         lw.simulate(radiance, layout, size, "exact")

@@ -25,7 +25,7 @@ def both(img, layout, size, theta=None, weights=None, **kw):
     out = []
     for backend in ("numba", "torch"):
         th = (layout.theta.detach() if theta is None else theta).clone().requires_grad_(True)
-        val = lw.integrate_exact(img, layout, size, theta=th, backend=backend, **kw)
+        val = lw.integrators.integrate_exact(img, layout, size, theta=th, backend=backend, **kw)
         w = torch.ones_like(val) if weights is None else weights
         (g,) = torch.autograd.grad((val * w).sum(), th)
         out.append((val.detach(), g))
@@ -54,8 +54,8 @@ def test_values_and_gradients_match_the_reference_in_float64(family, gen):
 def test_float32_matches_the_reference(gen):
     layout = lw.CurvLayout(rand_theta(gen), dtype=F64)
     img = torch.rand(3, 300, 257, generator=gen) + 1000  # a large offset: prefix sums must stay local
-    a = lw.integrate_exact(img, layout, (31, 29), tol=1e-4, backend="numba")
-    b = lw.integrate_exact(img, layout, (31, 29), tol=1e-4, backend="torch")
+    a = lw.integrators.integrate_exact(img, layout, (31, 29), tol=1e-4, backend="numba")
+    b = lw.integrators.integrate_exact(img, layout, (31, 29), tol=1e-4, backend="torch")
     assert float((a - b).abs().max()) <= 1e-6 * float(b.abs().max())
 
 
@@ -109,7 +109,7 @@ def test_gradcheck_on_the_kernel(gen):
 
     def f(t):  # fixed subdivision: the adaptive count changes with θ, finite differences must not
         mesh = lw.pixel_mesh(layout, size, subdivisions=4, theta=t)
-        return lw.integrate_exact(img, layout, size, mesh=mesh, backend="numba")
+        return lw.integrators.integrate_exact(img, layout, size, mesh=mesh, backend="numba")
 
     theta = rand_theta(gen, 0.8).requires_grad_(True)
     assert torch.autograd.gradcheck(f, (theta,), eps=1e-6, atol=1e-5, rtol=1e-4)
@@ -118,11 +118,11 @@ def test_gradcheck_on_the_kernel(gen):
 def test_auto_uses_the_reference_for_image_gradients(gen):
     layout = lw.CurvLayout(rand_theta(gen), dtype=F64)
     img = torch.rand(1, 20, 30, generator=gen, dtype=F64, requires_grad=True)
-    out = lw.integrate_exact(img, layout, (4, 5))
+    out = lw.integrators.integrate_exact(img, layout, (4, 5))
     (g,) = torch.autograd.grad(out.sum(), img)
     assert torch.allclose(g.sum(), torch.tensor(20.0, dtype=F64))  # each pixel's weights sum to 1
     with pytest.raises(ValueError, match="backend='numba' needs"):
-        lw.integrate_exact(img, layout, (4, 5), backend="numba")
+        lw.integrators.integrate_exact(img, layout, (4, 5), backend="numba")
 
 
 def test_concurrent_calls_from_threads(gen):
@@ -130,13 +130,13 @@ def test_concurrent_calls_from_threads(gen):
 
     layout = lw.CurvLayout(rand_theta(gen), learn=True)
     img = torch.rand(3, 120, 150, generator=gen)
-    expected = lw.integrate_exact(img, layout, (12, 15), tol=1e-4).detach()
+    expected = lw.integrators.integrate_exact(img, layout, (12, 15), tol=1e-4).detach()
     results, errors = [], []
 
     def work():
         try:
             for _ in range(5):
-                out = lw.integrate_exact(img, layout, (12, 15), tol=1e-4)
+                out = lw.integrators.integrate_exact(img, layout, (12, 15), tol=1e-4)
                 out.sum().backward()
                 results.append(out.detach())
         except Exception as exc:  # pragma: no cover - reported below
@@ -200,14 +200,14 @@ def cuda_kernels_or_skip(dtype: str = "float64") -> None:
 def on_cuda(img, layout, size, theta, weights, **kw):
     """Values and θ-gradients of Σ weights · values from the CUDA kernels, back on the CPU."""
     th = theta.cuda().requires_grad_(True)
-    val = lw.integrate_exact(img.cuda(), layout.to("cuda"), size, theta=th, backend="numba", **kw)
+    val = lw.integrators.integrate_exact(img.cuda(), layout.to("cuda"), size, theta=th, backend="numba", **kw)
     (g,) = torch.autograd.grad((val * weights.cuda()).sum(), th)
     return val.detach().cpu(), g.cpu()
 
 
 def on_cpu_reference(img, layout, size, theta, weights, **kw):
     th = theta.clone().requires_grad_(True)
-    val = lw.integrate_exact(img, layout.to("cpu"), size, theta=th, backend="torch", **kw)
+    val = lw.integrators.integrate_exact(img, layout.to("cpu"), size, theta=th, backend="torch", **kw)
     (g,) = torch.autograd.grad((val * weights).sum(), th)
     return val.detach(), g
 
@@ -244,8 +244,10 @@ def test_cuda_kernels_match_the_reference_in_float32(gen):
     cuda_kernels_or_skip("float32")
     layout = lw.CurvLayout(rand_theta(gen), dtype=F64)
     img = torch.rand(3, 300, 257, generator=gen) + 1000  # prefix sums must stay local
-    a = lw.integrate_exact(img.cuda(), layout.to("cuda"), (31, 29), tol=1e-4, backend="numba").cpu()
-    b = lw.integrate_exact(img, layout.to("cpu"), (31, 29), tol=1e-4, backend="torch")
+    a = lw.integrators.integrate_exact(
+        img.cuda(), layout.to("cuda"), (31, 29), tol=1e-4, backend="numba"
+    ).cpu()
+    b = lw.integrators.integrate_exact(img, layout.to("cpu"), (31, 29), tol=1e-4, backend="torch")
     assert float((a - b).abs().max()) <= 1e-6 * float(b.abs().max())
 
 
@@ -256,7 +258,7 @@ def test_gradcheck_on_the_cuda_kernels(gen):
 
     def f(t):
         mesh = lw.pixel_mesh(layout, (4, 5), subdivisions=4, theta=t)
-        return lw.integrate_exact(img, layout, (4, 5), mesh=mesh, backend="numba")
+        return lw.integrators.integrate_exact(img, layout, (4, 5), mesh=mesh, backend="numba")
 
     theta = rand_theta(gen, 0.8).cuda().requires_grad_(True)
     assert torch.autograd.gradcheck(f, (theta,), eps=1e-6, atol=1e-5, rtol=1e-4)

@@ -59,7 +59,7 @@ def test_cv2_and_kornia_remap_agree_with_forward_maps(family, gen):
 def test_forward_maps_look_at_the_deformed_centres(family, gen):
     layout = lw.make_layout(family, None if family == "uniform" else rand_theta(gen, 0.9), dtype=F64)
     maps = lw.forward_maps(layout, (7, 11), (50, 70))
-    expected = sensor_to_pixels(layout(lw.pixel_centers((7, 11))), (50, 70)) - 0.5
+    expected = sensor_to_pixels(layout(lw.coords.pixel_centers((7, 11))), (50, 70)) - 0.5
     assert torch.allclose(maps.map_x.double(), expected[..., 0], atol=1e-4)
     assert torch.allclose(maps.map_y.double(), expected[..., 1], atol=1e-4)
 
@@ -76,14 +76,14 @@ def test_inverse_map_composed_with_forward_map_is_identity(family, seed):
     fwd = lw.forward_maps(
         layout, size, src, samples=2, jitter=True, generator=torch.Generator().manual_seed(seed)
     )
-    u = lw.sample_points(size, 2, jitter=True, generator=torch.Generator().manual_seed(seed))
-    q = lw.pixels_to_sensor(torch.stack([fwd.map_x.double(), fwd.map_y.double()], -1) + 0.5, src)
+    u = lw.maps.sample_points(size, 2, jitter=True, generator=torch.Generator().manual_seed(seed))
+    q = lw.coords.pixels_to_sensor(torch.stack([fwd.map_x.double(), fwd.map_y.double()], -1) + 0.5, src)
     back = sensor_to_pixels(layout.inverse(q), size)
     assert float((back - sensor_to_pixels(u, size)).abs().max()) < 1e-4
     # forward ∘ inverse: every target pixel centre -> float32 sensor coordinate -> back
     inv = lw.inverse_maps(layout, size, src)
     assert inv.map_x.shape == src and inv.map_x.dtype == torch.float32
-    p = lw.pixels_to_sensor(torch.stack([inv.map_x.double(), inv.map_y.double()], -1) + 0.5, size)
+    p = lw.coords.pixels_to_sensor(torch.stack([inv.map_x.double(), inv.map_y.double()], -1) + 0.5, size)
     again = sensor_to_pixels(layout(p), src) - 0.5
     grid = torch.stack(
         torch.meshgrid(torch.arange(src[1], dtype=F64), torch.arange(src[0], dtype=F64), indexing="xy"), -1

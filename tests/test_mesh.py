@@ -66,7 +66,7 @@ def test_curved_edges_subdivide_only_where_curved(gen):
     assert int(n.max()) > 1
     # edges entirely outside the unit circle are straight: one segment
     h = w = 24
-    c = lw.uniform_corners((h, w))
+    c = lw.coords.uniform_corners((h, w))
     mids = torch.cat([((c[:, :-1] + c[:, 1:]) / 2).reshape(-1, 2), ((c[:-1] + c[1:]) / 2).reshape(-1, 2)])
     ends_a = torch.cat([c[:, :-1].reshape(-1, 2), c[:-1].reshape(-1, 2)])
     ends_b = torch.cat([c[:, 1:].reshape(-1, 2), c[1:].reshape(-1, 2)])
@@ -82,8 +82,10 @@ def test_subdivision_meets_value_tolerance(tol, gen):
     layout = lw.CurvLayout(rand_theta(gen, 0.9), dtype=F64)
     size = (9, 13)
     img = torch.rand(1, 64, 96, generator=gen, dtype=F64)
-    fine = lw.integrate_exact(img, layout, size, mesh=lw.pixel_mesh(layout, size, subdivisions=4096))
-    got = lw.integrate_exact(img, layout, size, tol=tol)
+    fine = lw.integrators.integrate_exact(
+        img, layout, size, mesh=lw.pixel_mesh(layout, size, subdivisions=4096)
+    )
+    got = lw.integrators.integrate_exact(img, layout, size, tol=tol)
     assert float((got - fine).abs().max()) <= tol * float(img.max() - img.min())
 
 
@@ -116,7 +118,7 @@ class TestTopology:
     def test_edge_ends_follow_the_numbering(self):
         topo = MeshTopology((2, 3))
         a, b = topo.edge_ends()
-        corners = lw.uniform_corners((2, 3))
+        corners = lw.coords.uniform_corners((2, 3))
         assert torch.equal(a[topo.horizontal(1, 2)], corners[1, 2]) and torch.equal(
             b[topo.horizontal(1, 2)], corners[1, 3]
         )
@@ -202,13 +204,13 @@ def test_learnable_user_layout_gets_accurate_theta_gradients(gen):
     th = torch.tensor([theta], dtype=F64, requires_grad=True)
     mesh = lw.pixel_mesh(layout, (5, 7), tol=1e-6, theta=th)
     assert mesh.num_segments > MeshTopology((5, 7)).num_edges  # it did subdivide
-    (g,) = torch.autograd.grad(lw.integrate_exact(img, layout, (5, 7), mesh=mesh).sum(), th)
+    (g,) = torch.autograd.grad(lw.integrators.integrate_exact(img, layout, (5, 7), mesh=mesh).sum(), th)
     h = 1e-6
 
     def value(t: float) -> float:
         fixed = Swirl((t,), dtype=F64)
         mesh = lw.pixel_mesh(fixed, (5, 7), subdivisions=600)  # smooth in θ, for differences
-        return float(lw.integrate_exact(img, fixed, (5, 7), mesh=mesh).sum())
+        return float(lw.integrators.integrate_exact(img, fixed, (5, 7), mesh=mesh).sum())
 
     fd = (value(theta + h) - value(theta - h)) / (2 * h)
     assert abs(float(g) - fd) <= 1e-4 * max(1.0, abs(fd))

@@ -27,13 +27,14 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from ..checks import check_size
 from ..coords import uniform_corners
 from ..files import atomic_write
-from ..integrators import integrate_exact
+from ..integrators import data_tolerance, integrate_exact
 from ..layouts import FAMILIES, Layout, make_layout
 from ..maps import forward_maps, sample_points
 from ..mesh import pixel_mesh
-from ..sensor import data_tolerance, simulate
+from ..sensor import simulate
 from .scene import SineScene, blurred_noise, load_photo
 
 __all__ = [
@@ -44,6 +45,7 @@ __all__ = [
     "format_table",
     "layout_from_spec",
     "main_bench",
+    "preprocess_baseline",
     "run",
     "scaling",
 ]
@@ -445,7 +447,8 @@ t0 = time.perf_counter()
 import torch, layoutwarp as lw
 t1 = time.perf_counter()
 layout = lw.CurvLayout((0.35, -0.25), learn=True)
-lw.integrate_exact(torch.rand(3, 64, 80), layout, (9, 11), tol=1e-3, backend="numba").sum().backward()
+out = lw.integrators.integrate_exact(torch.rand(3, 64, 80), layout, (9, 11), tol=1e-3, backend="numba")
+out.sum().backward()
 t2 = time.perf_counter()
 print(t1 - t0, t2 - t1)
 """
@@ -640,3 +643,17 @@ def main_bench(
 
         print(f"wrote {pareto_figure(result, plot_path)}")
     return result
+
+
+def preprocess_baseline(files: list[Path], size: tuple[int, int], out: str | Path) -> float:
+    """Seconds for the plain OpenCV loop over ``files``: imread, resize INTER_AREA, imwrite."""
+    h, w = check_size(size)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    for k, path in enumerate(files):
+        img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if img is None:
+            continue
+        cv2.imwrite(str(out / f"{k}{path.suffix}"), cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA))
+    return time.perf_counter() - t0

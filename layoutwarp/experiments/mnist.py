@@ -18,8 +18,9 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..files import atomic_write
+from ..integrators import data_tolerance
 from ..layoutfile import save_layout
-from ..sensor import SensorLayer, data_tolerance
+from ..sensor import SensorLayer
 from .data import load_mnist
 from .models import save_run_model
 from .training import ExperimentDefaults, fit, format_theta, layout_name, model_device, theta_text
