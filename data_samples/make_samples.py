@@ -48,7 +48,7 @@ def main(root: Path) -> None:
                 HERE / "camvid" / (split + "annot") / name.name,
             )
     shutil.copy(root / "camvid" / "CLASSES.txt", HERE / "camvid" / "CLASSES.txt")
-    faces = HERE / "faces" / "utkface"
+    faces = HERE / "faces" / "utkface_subset"
     (faces / "images").mkdir(parents=True, exist_ok=True)
     rows = list(csv.DictReader(open(root / "faces" / "utkface_subset" / "labels.csv")))[:64]
     for r in rows:

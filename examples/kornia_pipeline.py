@@ -18,7 +18,7 @@ labels = cv2.imread(str(ROOT / "data_samples" / "camvid" / "trainannot" / name),
 image = torch.from_numpy(rgb).permute(2, 0, 1)[None].float() / 255
 mask = torch.from_numpy(labels)[None, None].float()
 
-sensor = lw.SensorAugmentation((90, 120), "rect", mask_rule="majority", num_classes=12)
+sensor = lw.SensorAugmentation((90, 120), "rect", mask_rule="majority")
 flip, jitter = K.RandomHorizontalFlip(p=0.5), K.ColorJitter(0.1, 0.1, 0.1, 0.0, p=1.0)
 pipeline = K.AugmentationSequential(flip, jitter, sensor, data_keys=["input", "mask"])
 low, low_mask = pipeline(image, mask)  # (1, 3, 90, 120), (1, 1, 90, 120)

@@ -19,9 +19,6 @@ from typing import Any, NoReturn
 
 __all__ = ["build_parser", "main", "parse_theta", "parse_wxh"]
 
-ROOT = Path(__file__).resolve().parents[1]
-DATA_SAMPLES = ROOT / "data_samples"
-SHARED_DATA = ROOT.parent / "shared" / "data"
 #: A lower bound on the memory one sensor pixel needs in any command (its mesh and weights).
 BYTES_PER_SENSOR_PIXEL = 200
 #: Library argument names and the command-line flags that set them, for error lines.
@@ -148,13 +145,27 @@ def _gib(n: float) -> str:
 # ----------------------------------------------------------------------------------------
 # Commands
 # ----------------------------------------------------------------------------------------
+def _out_dir(path: str | Path, flag: str = "--out") -> Path:
+    """An output folder that can be created: refused in one line if it is, or lies under, a file."""
+    path = Path(path)
+    for p in (path, *path.parents):
+        if p.exists():
+            if not p.is_dir():
+                what = "is a file" if p == path else f"lies under {str(p)!r}, which is a file"
+                raise UsageError(f"argument {flag}: must be a folder; {str(path)!r} {what}")
+            break
+    return path
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
+    from .experiments.data import samples_dir
     from .experiments.demo import run_demo
 
-    image = Path(args.image) if args.image else DATA_SAMPLES / "photos" / "kodim20.png"
+    image = Path(args.image) if args.image else samples_dir() / "photos" / "kodim20.png"
     if not image.is_file():
         raise UsageError(f"argument --image: no such file {str(image)!r}")
     _check_memory(args.size)
+    _out_dir(args.out)
     numbers = run_demo(image, args.out, args.size, args.theta, args.tol)
     print(f"wrote {args.out}/layouts.png, demo.json and sensor_*.png")
     for name, d in numbers["layouts"].items():
@@ -212,68 +223,81 @@ def _sensor_options(args: argparse.Namespace, default_tol: float) -> dict:
     return sensor
 
 
-def _cmd_train(args: argparse.Namespace) -> int:
-    from .experiments import camvid, faces, mnist
-    from .experiments.training import format_theta
+def _task_folder(task, args: argparse.Namespace) -> Path:
+    """The task's data folder: ``--data``, the bundled samples with ``--quick``, else the task's
+    folder under the data root of ``LAYOUTWARP_DATA``."""
+    from .experiments.data import DATA_ENV, data_root
 
-    module = {"mnist": mnist, "camvid": camvid, "faces": faces}[args.task]
-    d = module.DEFAULTS
-    data = (
-        Path(args.data) if args.data else (DATA_SAMPLES / d.sample if args.quick else SHARED_DATA / d.shared)
-    )
-    if not data.is_dir():
+    if args.data:
+        folder = Path(args.data)
+        if not folder.is_dir():
+            raise UsageError(f"argument --data: no such folder {str(folder)!r}")
+        return folder
+    root = data_root(quick=args.quick)
+    if root is None:
         raise UsageError(
-            f"no {args.task} data at {str(data)!r}; pass --data DIR or --quick (bundled samples)"
+            f"no {task.name} data: pass --data DIR (the task's folder), set {DATA_ENV} to a data root "
+            f"holding {task.folder}/, or --quick (the bundled samples)"
         )
+    folder = root / task.folder
+    if not folder.is_dir():
+        src = "the bundled samples" if args.quick else f"{DATA_ENV}={root}"
+        raise UsageError(f"no {task.name} data at {str(folder)!r} ({src}); pass --data DIR")
+    return folder
+
+
+def _run_options(task, args: argparse.Namespace, defaults):
+    """The training options of ``train`` and ``study`` from the task's defaults and the flags."""
+    from .experiments.runs import RunOptions
+
+    extra = {k: getattr(args, k) for k in task.extra_dests}
+    return RunOptions.of(
+        defaults,
+        epochs=args.epochs,
+        freeze_epochs=args.freeze_epochs,
+        theta_lr=args.theta_lr,
+        sensor=_sensor_options(args, defaults.tol),
+        device=_device(args.device),
+        amp=args.amp,
+        progress=not args.no_progress,
+        task_options=extra,
+    )
+
+
+def _cmd_train(args: argparse.Namespace) -> int:
+    from .experiments.runs import format_summary, run_experiment
+    from .experiments.tasks import get_task
+    from .experiments.training import init_distributed
+
+    task = get_task(args.task)
+    d = task.quick_defaults() if args.quick else task.defaults
+    folder = _task_folder(task, args)
     families = tuple(dict.fromkeys(args.family)) if args.family else d.families
-    seeds = tuple(range(args.seeds or (1 if args.quick else d.seeds)))
-    epochs = args.epochs or (d.quick_epochs if args.quick else d.epochs)
-    sizes = tuple(getattr(args, "size", None) or (d.sizes[:1] if args.quick else d.sizes))
+    seeds = tuple(range(args.seeds or d.seeds))
+    sizes = tuple(dict.fromkeys(args.size)) if args.size else d.sizes
     for size in sizes:
         _check_memory(size)
-    out = args.out or f"results/{args.task}"
-    from .experiments.training import world
-
-    if world()[0] != 0:  # under torchrun rank 0 alone reports and writes; the others train alike
-        out = tempfile.mkdtemp(prefix="layoutwarp-rank-")
+    out = _out_dir(args.out or f"results/{task.name}")
+    if init_distributed()[0] != 0:  # under torchrun rank 0 alone reports and writes; the others train alike
+        out = Path(tempfile.mkdtemp(prefix="layoutwarp-rank-"))
         sys.stdout = open(os.devnull, "w")  # for the rest of this process
+    options = _run_options(task, args, d)
     sizes_txt = ", ".join(f"{w}x{h}" for h, w in sizes)
     print(
-        f"{args.task}: data {data}, families {', '.join(families)}, sensors {sizes_txt}, "
-        f"seeds {list(seeds)}, {epochs} epochs"
+        f"{task.name}: data {folder}, families {', '.join(families)}, sensors {sizes_txt}, "
+        f"seeds {list(seeds)}, {options.epochs} epochs"
     )
-    sensor = _sensor_options(args, d.tol)
-    progress = not args.no_progress
-    run = {"device": _device(args.device), "amp": args.amp}
-    if args.task == "mnist":
-        result = mnist.run_mnist_experiment(
-            data, out, families, seeds, epochs, progress=progress, sensor=sensor, **run
+    if args.quick:
+        print(
+            f"  --quick: a smoke test on the few bundled {task.name} samples; its scores say that "
+            "the pipeline runs, not what a layout is worth (train on the full data for that)"
         )
-        print(f"{'layout':8s} {'test accuracy':>18s}  θ (mean)")
-        for name, s in result["summary"].items():
-            th = format_theta(s["theta_mean"], 2)
-            print(f"{name:8s} {s['accuracy_mean']:8.2f} ± {s['accuracy_std']:4.2f} %   {th}  n={s['n']}")
-        print(f"wrote {out}/results.json, layout.json, mnist_layouts.png, mnist_theta.png")
-        return 0
-    common = {"families": families, "sizes": sizes, "seeds": seeds, "epochs": epochs}
-    common |= {"progress": progress, "sensor": sensor, **run}
-    if args.task == "camvid":
-        freeze = (
-            args.freeze_epochs if args.freeze_epochs is not None else (0 if args.quick else d.freeze_epochs)
-        )
-        result = camvid.run_camvid_experiment(
-            data, out, freeze_epochs=freeze, class_weights=args.class_weights, **common
-        )
-        metrics: tuple[str, ...] = ("miou", "pixel_accuracy")
-    else:
-        result = faces.run_faces_experiment(data, out, **common)
-        metrics = ("gender", "age_group", "race", "mean")
-    print(f"{'layout':16s} " + " ".join(f"{m:>16s}" for m in metrics) + "  θ (mean)")
-    for name, s in result["summary"].items():
-        cells = " ".join(f"{s[m]['mean']:8.2f} ± {s[m]['std']:5.2f}" for m in metrics)
-        th = format_theta(s["theta_mean"], 2)
-        print(f"{name:16s} {cells}  {th}  n={s['n']}")
-    print(f"wrote {out}/results.json, layout_*.json and {args.task}_layouts.png")
+    result = run_experiment(task, folder, out, families=families, sizes=sizes, seeds=seeds, options=options)
+    print(format_summary(task, result["summary"]))
+    print(
+        f"wrote {out}/results.json (scores in percent), layout.json, layout_*.json, model_*.pt, "
+        f"{task.name}_layouts.png, {task.name}_theta.png"
+    )
     return 0
 
 
@@ -308,19 +332,15 @@ def _add_run_args(p: argparse.ArgumentParser) -> None:
 def _cmd_study(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
-    from .experiments import camvid, faces, mnist
-    from .experiments.study import PLANS, run_study, ship_study, study_runs, study_scene, study_table
+    from .experiments.data import samples_dir
+    from .experiments.study import run_study, ship_study, study_options, study_runs, study_table
+    from .experiments.tasks import get_task
+    from .experiments.training import init_distributed
 
-    d = {"mnist": mnist, "camvid": camvid, "faces": faces}[args.task].DEFAULTS
-    data = (
-        Path(args.data) if args.data else (DATA_SAMPLES / d.sample if args.quick else SHARED_DATA / d.shared)
-    )
-    if not data.is_dir():
-        raise UsageError(
-            f"no {args.task} data at {str(data)!r}; pass --data DIR or --quick (bundled samples)"
-        )
-    out = args.out or f"results/study-{args.task}"
-    plan = PLANS[args.task]
+    task = get_task(args.task)
+    folder = _task_folder(task, args)
+    out = _out_dir(args.out or f"results/study-{task.name}")
+    plan = task.study
     if args.quick:  # the smallest study that exercises every step
         plan = replace(
             plan, uniform_sizes=plan.uniform_sizes[:2], learned_sizes=plan.learned_sizes[:1], seeds=1
@@ -329,17 +349,16 @@ def _cmd_study(args: argparse.Namespace) -> int:
     elif args.family:
         plan = replace(plan, families=tuple(dict.fromkeys(args.family)))
     if args.ship:
-        if not (Path(out) / "runs").is_dir():
+        if not (out / "runs").is_dir():
             raise UsageError(
-                f"no study in {out!r} to ship; run `layoutwarp study {args.task} --out DIR` first"
+                f"no study in {str(out)!r} to ship; run `layoutwarp study {task.name} --out DIR` first"
             )
-        scene = study_scene(args.task, data)
-        samples = DATA_SAMPLES / d.sample
+        samples = samples_dir() / task.folder
         summary = ship_study(
-            args.task,
+            task,
             out,
-            args.ship,
-            scene=scene,
+            _out_dir(args.ship, "--ship"),
+            scene=task.scene(task.load(folder)),
             weights=args.weights,
             samples=samples if samples.is_dir() else None,
             planned=len(study_runs(plan, args.seeds or plan.seeds)),
@@ -349,20 +368,21 @@ def _cmd_study(args: argparse.Namespace) -> int:
         return 0
     for size in plan.uniform_sizes + plan.learned_sizes:
         _check_memory(size)
-    epochs = args.epochs or (1 if args.quick else None)
-    summary = run_study(
-        args.task,
-        data,
-        out,
-        plan=plan,
-        seeds=args.seeds,
-        epochs=epochs,
-        progress=not args.no_progress,
+    init_distributed()
+    options = study_options(
+        task,
+        plan,
+        epochs=args.epochs or (1 if args.quick else None),
+        freeze_epochs=args.freeze_epochs,
+        theta_lr=args.theta_lr,
         device=_device(args.device),
         amp=args.amp,
+        progress=not args.no_progress,
+        task_options={k: getattr(args, k) for k in task.extra_dests},
     )
+    summary = run_study(task, folder, out, plan=plan, seeds=args.seeds, options=options)
     print(study_table(summary), end="")
-    print(f"wrote {out}/study.json, study.md and study_{args.task}.png")
+    print(f"wrote {out}/study.json, study.md and study_{task.name}.png (scores in percent)")
     return 0
 
 
@@ -380,8 +400,13 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     except (FileNotFoundError, ValueError) as exc:
         raise UsageError(f"argument --data: {exc}") from None
     layout = {k: v for k, v in info["layout"].items() if k in ("family", "theta", "center", "knots", "grid")}
-    out = {"task": args.task, "model": str(args.model), "data": str(args.data), "split": args.split}
-    out |= {"layout": layout, "size_hw": info["size_hw"], **scores}
+    from .experiments.tasks import get_task
+
+    split = args.split or get_task(args.task).report_split
+    if args.task == "faces":
+        split = "all"  # a faces folder is scored whole
+    out = {"task": args.task, "model": str(args.model), "data": str(args.data), "split": split}
+    out |= {"layout": layout, "size_hw": info["size_hw"], "units": "percent", **scores}
     print(json.dumps(out, indent=2))
     return 0
 
@@ -514,38 +539,57 @@ def _add_layout_args(p: argparse.ArgumentParser, families: Sequence[str]) -> Non
     p.add_argument("--size", type=parse_wxh, help="sensor WIDTHxHEIGHT (default: the layout file's)")
 
 
-def _add_train_parser(sub, module_name: str, families: Sequence[str]) -> None:
-    import importlib
+def _sizes_text(sizes) -> str:
+    return " and ".join(f"{w}x{h}" for h, w in sizes)
 
-    d = importlib.import_module(f".experiments.{module_name}", __package__).DEFAULTS
+
+def _add_training_args(p: argparse.ArgumentParser, task, quick_help: str) -> None:
+    """The options every training command of every task takes, and the task's own."""
+    d, q = task.defaults, task.quick_defaults()
+    p.add_argument("--quick", action="store_true", help=quick_help)
+    p.add_argument(
+        "--data",
+        metavar="DIR",
+        help=f"the task's data folder (default: $LAYOUTWARP_DATA/{task.folder}; "
+        "the bundled samples with --quick)",
+    )
+    p.add_argument("--seeds", type=positive_int, help=f"number of seeds (default: {d.seeds}; 1 with --quick)")
+    p.add_argument(
+        "--epochs", type=positive_int, help=f"epochs (default: {d.epochs}; {q.epochs} with --quick)"
+    )
+    p.add_argument(
+        "--freeze-epochs",
+        type=non_negative_int,
+        help=f"epochs with θ frozen at the start (default: {d.freeze_epochs}; 0 with --quick)",
+    )
+    p.add_argument("--theta-lr", type=positive_float, help=f"θ's own learning rate (default: {d.theta_lr:g})")
+    task.add_arguments(p)
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    _add_run_args(p)
+
+
+def _add_train_parser(sub, task, families: Sequence[str]) -> None:
+    d = task.defaults
     t = sub.add_parser(
-        d.task,
-        help=f"the {d.task} experiment",
-        description=f"Train {d.task} layouts jointly with a network; compare them with the uniform baseline.",
+        task.name,
+        help=task.description,
+        description=f"{task.description}: train layouts jointly with the network and compare them "
+        "with the uniform baseline.",
         formatter_class=_Formatter,
     )
-    t.add_argument(
-        "--quick", action="store_true", help=f"bundled data_samples/{d.sample}, 1 seed, the first size"
-    )
+    _add_training_args(t, task, "smoke test on the bundled samples: 1 seed, the first size, few epochs")
     t.add_argument(
         "--family",
         action="append",
         choices=families,
         help=f"a family to train, repeatable (default: {', '.join(d.families)})",
     )
-    t.add_argument("--data", help=f"dataset folder (default: the shared data folder's {d.shared})")
-    t.add_argument("--seeds", type=positive_int, help=f"number of seeds (default: {d.seeds}; 1 with --quick)")
     t.add_argument(
-        "--epochs", type=positive_int, help=f"epochs (default: {d.epochs}; {d.quick_epochs} with --quick)"
+        "--size",
+        type=parse_wxh,
+        action="append",
+        help=f"sensor WIDTHxHEIGHT, repeatable (default: {_sizes_text(d.sizes)}; the first with --quick)",
     )
-    if d.task != "mnist":
-        sizes = " and ".join(f"{w}x{h}" for h, w in d.sizes)
-        t.add_argument(
-            "--size",
-            type=parse_wxh,
-            action="append",
-            help=f"sensor WIDTHxHEIGHT, repeatable (default: {sizes}; the first with --quick)",
-        )
     t.add_argument(
         "--method", default="exact", choices=["exact", "montecarlo", "point"], help="sensor integrator"
     )
@@ -563,27 +607,47 @@ def _add_train_parser(sub, module_name: str, families: Sequence[str]) -> None:
         choices=["bilinear", "box"],
         help="radiance of the sampling integrators",
     )
-    if d.task == "camvid":
-        t.add_argument(
-            "--freeze-epochs",
-            type=non_negative_int,
-            help=f"epochs with θ frozen (default: {d.freeze_epochs}; 0 with --quick)",
-        )
-        t.add_argument(
-            "--class-weights",
-            choices=["none", "median"],
-            default="median",
-            help="loss class weights: none or median-frequency balancing",
-        )
-    t.add_argument("--no-progress", action="store_true", help="no progress bars")
-    _add_run_args(t)
-    t.add_argument("--out", help=f"output folder (default: results/{d.task})")
-    t.set_defaults(func=_cmd_train, task=d.task)
+    t.add_argument("--out", help=f"output folder (default: results/{task.name})")
+    t.set_defaults(func=_cmd_train, task=task.name)
+
+
+def _add_study_parser(sub, task, families: Sequence[str]) -> None:
+    plan = task.study
+    st = sub.add_parser(
+        task.name,
+        help=task.description,
+        description=f"The {task.name} pixel-budget study: uniform layouts at "
+        f"{_sizes_text(plan.uniform_sizes)}, every family at {_sizes_text(plan.learned_sizes)}; resumable.",
+        formatter_class=_Formatter,
+    )
+    _add_training_args(st, task, "bundled samples, 1 seed, 1 epoch, 2 uniform sizes and 1 learned size")
+    st.add_argument(
+        "--family",
+        action="append",
+        choices=[*families, "density"],
+        help=f"families besides uniform, repeatable (default: {', '.join(plan.families)})",
+    )
+    st.add_argument("--out", help=f"output folder (default: results/study-{task.name}); rerun to resume")
+    st.add_argument(
+        "--ship",
+        metavar="DIR",
+        help="train nothing: summarise the runs in --out so far and copy the results, learned layouts, "
+        "the best models and a figure of the layouts to DIR",
+    )
+    st.add_argument(
+        "--weights",
+        choices=["float32", "float16", "int8"],
+        default="float16",
+        help="with --ship: the precision of the shipped models' weights (int8: conv and linear "
+        "weights at 255 levels per output channel)",
+    )
+    st.set_defaults(func=_cmd_study, task=task.name)
 
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``layoutwarp`` argument parser."""
     from . import __version__
+    from .experiments.tasks import TASKS
     from .layouts import FAMILIES
 
     families = list(FAMILIES)
@@ -600,9 +664,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     d = command("demo", "Simulate the layout families on a photo and write figures and numbers.")
     d.add_argument("--image", help="an image file (default: the bundled kodim20 photo)")
-    d.add_argument("--size", type=parse_wxh, default=(24, 32), help="sensor WIDTHxHEIGHT (default: 32x24)")
-    d.add_argument("--theta", type=parse_theta, default=(0.5, 0.5), help="θ as TX,TY (default: 0.5,0.5)")
-    d.add_argument("--tol", type=positive_float, default=1e-5, help="relative pixel-value tolerance")
+    d.add_argument("--size", type=parse_wxh, default="32x24", help="sensor WIDTHxHEIGHT")
+    d.add_argument("--theta", type=parse_theta, default="0.5,0.5", help="θ as TX,TY")
+    d.add_argument(
+        "--tol",
+        type=positive_float,
+        help="bound on each pixel's error relative to the value range (default: what 8-bit data needs)",
+    )
     d.add_argument("--out", default="results/demo", help="output folder")
     d.set_defaults(func=_cmd_demo)
 
@@ -626,44 +694,14 @@ def build_parser() -> argparse.ArgumentParser:
     b.set_defaults(func=_cmd_bench)
 
     st = command(
-        "study",
-        "The pixel-budget study: uniform layouts at several sizes, every family at some; resumable.",
+        "study", "The pixel-budget study: uniform layouts at several sizes, every family at some; resumable."
     )
-    st.add_argument(
-        "task", choices=["mnist", "camvid", "faces"], metavar="TASK", help="mnist, camvid or faces"
-    )
-    st.add_argument("--quick", action="store_true", help="bundled samples, 1 seed, 1 epoch, 2+1 sizes")
-    st.add_argument("--data", help="dataset folder (default: the shared data folder's)")
-    st.add_argument(
-        "--family",
-        action="append",
-        choices=[*families, "density"],
-        help="families besides uniform, repeatable",
-    )
-    st.add_argument("--seeds", type=positive_int, help="seeds per configuration (default: 3; 1 with --quick)")
-    st.add_argument("--epochs", type=positive_int, help="epochs (default: the experiment's; 1 with --quick)")
-    st.add_argument("--no-progress", action="store_true", help="no progress bars")
-    st.add_argument("--out", help="output folder (default: results/study-TASK); rerun to resume")
-    st.add_argument(
-        "--ship",
-        metavar="DIR",
-        help="train nothing: summarise the runs in --out so far and copy the results, learned layouts, "
-        "the best models and a figure of the layouts to DIR",
-    )
-    st.add_argument(
-        "--weights",
-        choices=["float32", "float16", "int8"],
-        default="float16",
-        help="with --ship: the precision of the shipped models' weights (int8: conv and linear "
-        "weights at 255 levels per output channel)",
-    )
-    _add_run_args(st)
-    st.set_defaults(func=_cmd_study)
+    st_tasks = st.add_subparsers(dest="task", required=True, metavar="TASK", parser_class=_Parser)
+    for task in TASKS.values():
+        _add_study_parser(st_tasks, task, families)
 
     ev = command("evaluate", "Score a saved model (a train run's model_*.pt) on a data folder; print JSON.")
-    ev.add_argument(
-        "task", choices=["mnist", "camvid", "faces"], metavar="TASK", help="mnist, camvid or faces"
-    )
+    ev.add_argument("task", choices=list(TASKS), metavar="TASK", help=", ".join(TASKS))
     ev.add_argument("--model", required=True, metavar="FILE", help="a model file written by train")
     ev.add_argument(
         "--data",
@@ -748,15 +786,15 @@ def build_parser() -> argparse.ArgumentParser:
 
     t = command("train", "Train a layout jointly with a network: the paper's experiments.")
     tasks = t.add_subparsers(dest="task", required=True, metavar="TASK", parser_class=_Parser)
-    for name in ("mnist", "camvid", "faces"):
-        _add_train_parser(tasks, name, families)
+    for task in TASKS.values():
+        _add_train_parser(tasks, task, families)
     return p
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; returns the exit status."""
     args = build_parser().parse_args(argv)
-    prog = f"layoutwarp {args.command}" + (f" {args.task}" if args.command == "train" else "")
+    prog = f"layoutwarp {args.command}" + (f" {args.task}" if args.command in ("train", "study") else "")
     try:
         return int(args.func(args) or 0)
     except (UsageError, ValueError, FileNotFoundError) as exc:

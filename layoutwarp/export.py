@@ -30,7 +30,7 @@ from .checks import ArgumentError, check_choice, check_number, check_size
 from .coords import sensor_to_pixels, uniform_corners
 from .files import atomic_write
 from .layouts import Layout
-from .mesh import MeshTopology, polygon_area, smooth_pieces
+from .mesh import MeshTopology, distance_subdivisions, pixel_mesh, polygon_area
 
 __all__ = ["FORMATS", "ExportReport", "export_layout", "pixel_polygons_um", "report_json"]
 
@@ -80,54 +80,19 @@ def _edge_polylines(
     tol_um: float,
     manhattan: bool,
     min_steps: np.ndarray | None = None,
-    max_subdiv: int = 4096,
 ) -> tuple[list[np.ndarray], float]:
-    """Every edge as a polyline in µm (image orientation) within ``tol_um``; and the max deviation.
-
-    Each edge is first cut where φ is not smooth along it (a vertex on every kink), then
-    each smooth piece is split into ``2^k`` equal parameter steps until the curve's
-    distance from every chord, measured at the step's middle, is within ``tol_um``.
-    """
+    """Every edge as a polyline in µm (image orientation) within ``tol_um``; and the max deviation
+    (:func:`~layoutwarp.mesh.distance_subdivisions`, then the mesh with those counts)."""
+    counts, dev = distance_subdivisions(
+        layout, size, tol_um, scale=sensor_um, manhattan=manhattan, min_counts=min_steps
+    )
     theta = layout.theta.detach().double().cpu()
-    topo = MeshTopology(size)
-    a, b = topo.edge_ends()
-    ne = a.shape[0]
-    owner, t0, t1 = smooth_pieces(layout, a, b)
-    pa = a[owner] + t0[:, None] * (b - a)[owner]  # smooth pieces in uniform coordinates
-    pd = (t1 - t0)[:, None] * (b - a)[owner]
-
-    def to_um(u: torch.Tensor) -> np.ndarray:
-        return sensor_to_pixels(layout.phi(u, theta), sensor_um).numpy()
-
-    n = np.ones(len(owner), dtype=np.int64) if min_steps is None else min_steps[owner.numpy()].copy()
-    dev = np.zeros(len(owner))
-    check = (not layout.straight_edges) or manhattan
-    while check:  # double the steps of every piece that is not yet within tolerance
-        bad = np.zeros(len(owner), dtype=bool)
-        for k in np.unique(n):
-            idx = np.flatnonzero(n == k)
-            t = torch.linspace(0, 1, 2 * k + 1, dtype=torch.float64)
-            p = to_um(pa[idx, None] + t[None, :, None] * pd[idx, None])  # vertices and midpoints
-            dev[idx] = np.linalg.norm(p[:, 1::2] - (p[:, 0:-1:2] + p[:, 2::2]) / 2, axis=-1).max(1)
-            if manhattan:  # a Z step deviates from its chord by at most min(|dx|, |dy|) / 2
-                dev[idx] += np.abs(np.diff(p[:, ::2], axis=1)).min(-1).max(1) / 2
-            bad[idx] = (dev[idx] > tol_um) & (k < max_subdiv)
-        if not bad.any():
-            break
-        n[bad] *= 2
-    # vertices: each piece's steps without its end point, then each edge's final end point
-    counts = torch.from_numpy(n)
-    piece = torch.arange(len(owner)).repeat_interleave(counts)
-    first = torch.cumsum(counts, 0) - counts
-    step = (torch.arange(int(counts.sum())) - first.repeat_interleave(counts)).double() / counts[piece]
-    pts = to_um(pa[piece] + step[:, None] * pd[piece])
-    ends = to_um(b)
-    per_edge = np.bincount(owner.numpy()[piece.numpy()], minlength=ne)
-    chunks = np.split(pts, np.cumsum(per_edge)[:-1])
-    out = [np.concatenate([c, ends[e : e + 1]]) for e, c in enumerate(chunks)]
+    mesh = pixel_mesh(layout, size, subdivisions=counts, dtype=torch.float64, theta=theta)
+    out = mesh.edge_polylines(sensor_to_pixels(mesh.vertices, sensor_um))
     if manhattan:
-        out = [_staircase(p, e < topo.num_horizontal) for e, p in enumerate(out)]
-    return out, float(dev.max(initial=0.0))
+        nh = mesh.topology.num_horizontal
+        out = [_staircase(p, e < nh) for e, p in enumerate(out)]
+    return out, dev
 
 
 def _staircase(p: np.ndarray, horizontal: bool) -> np.ndarray:

@@ -78,7 +78,9 @@ def same_spec(a: dict[str, Any], b: dict[str, Any], atol: float = 1e-12) -> bool
         if numbers:
             w = b[k]
             if not (
-                isinstance(w, list) and len(w) == len(v) and all(abs(x - y) <= atol for x, y in zip(v, w, strict=True))
+                isinstance(w, list)
+                and len(w) == len(v)
+                and all(abs(x - y) <= atol for x, y in zip(v, w, strict=True))
             ):
                 return False
         elif v != b[k]:

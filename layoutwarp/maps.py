@@ -178,7 +178,9 @@ def raster_index_map(
         layout: the pixel layout.
         size: sensor size ``(h, w)``.
         target_size: target size ``(H, W)``.
-        tol: polyline tolerance of curved edges (relative, as :func:`~layoutwarp.pixel_mesh`).
+        tol: polyline tolerance of curved edges: the area between a polyline and its curve,
+            relative to the pixel's area (unitless, as :func:`~layoutwarp.pixel_mesh`); the
+            default ``1e-4`` keeps the polygons far closer to the curves than a target pixel.
         oversample: odd refinement of the drawing grid (memory: ``oversample²`` int32 per target
             pixel).
 

@@ -34,6 +34,7 @@ __all__ = [
     "MeshTopology",
     "PixelMesh",
     "clear_mesh_cache",
+    "distance_subdivisions",
     "pixel_mesh",
     "polygon_area",
     "segment_area",
@@ -265,6 +266,16 @@ class PixelMesh:
         idx = torch.cat([self.seg_start[lo:hi], self.seg_end[hi - 1 : hi]])
         return self.vertices[idx]
 
+    def edge_polylines(self, vertices: Tensor | None = None) -> list[np.ndarray]:
+        """Every edge's ordered polyline as a float64 ``(n + 1, 2)`` array, in edge order.
+
+        ``vertices`` replaces the mesh's own (same topology, other units, e.g. micrometres).
+        """
+        v = (self.vertices if vertices is None else vertices).detach().double().cpu().numpy()
+        start, end = self.seg_start.cpu().numpy(), self.seg_end.cpu().numpy()
+        off = self.edge_offsets.cpu().numpy()
+        return [v[np.append(start[off[e] : off[e + 1]], end[off[e + 1] - 1])] for e in range(len(off) - 1)]
+
     def polygons(self) -> list[np.ndarray]:
         """Every pixel's closed polygon as a float64 ``(n, 2)`` array, row-major order.
 
@@ -390,6 +401,68 @@ def _chord_and_sagitta(
     return length, sag
 
 
+def distance_subdivisions(
+    layout: Layout,
+    size: tuple[int, int],
+    tol: float,
+    *,
+    scale: tuple[float, float] = (2.0, 2.0),
+    manhattan: bool = False,
+    min_counts: Tensor | np.ndarray | None = None,
+    max_subdiv: int = 4096,
+) -> tuple[Tensor, float]:
+    """Segments per smooth piece so that every polyline stays within a distance of its curve.
+
+    The geometric counterpart of the value tolerance of :func:`pixel_mesh` (used for fabrication
+    masks, where the edge's position is what matters): each smooth piece of every edge
+    (:func:`smooth_pieces`, a vertex on every kink) is split into ``2^k`` equal parameter steps
+    until the curve's distance from every chord, measured at the step's middle, is at most
+    ``tol``. Distances are in the units of ``scale``, the sensor's extent ``(H, W)``
+    (micrometres for a mask; the default ``(2, 2)`` measures in sensor coordinates). With
+    ``manhattan``, a segment's axis-aligned Z step adds ``min(|ΔX|, |ΔY|) / 2`` to its deviation.
+    Straight-edged layouts need no steps beyond one per piece unless ``manhattan``.
+
+    Args:
+        layout: the pixel layout (its θ, without gradient).
+        size: sensor size ``(H, W)``.
+        tol: the largest deviation, in the units of ``scale``.
+        scale: the sensor's extent ``(H, W)`` in the unit of ``tol``.
+        manhattan: count the deviation of axis-aligned steps.
+        min_counts: ``(E,)`` fewest segments per piece of each edge (default 1).
+        max_subdiv: cap on segments per piece.
+
+    Returns:
+        ``(counts, deviation)``: ``(pieces,)`` int64 counts for ``pixel_mesh(...,
+        subdivisions=counts)`` and the largest deviation measured.
+    """
+    theta = layout.theta.detach().double().cpu()
+    a, b = MeshTopology(check_size(size)).edge_ends()
+    owner, t0, t1 = smooth_pieces(layout, a, b, theta=theta)
+    pa = a[owner] + t0[:, None] * (b - a)[owner]  # smooth pieces in uniform coordinates
+    pd = (t1 - t0)[:, None] * (b - a)[owner]
+    first = (
+        np.ones(len(owner), dtype=np.int64) if min_counts is None else np.asarray(min_counts)[owner.numpy()]
+    )
+    n = first.astype(np.int64).copy()
+    dev = np.zeros(len(owner))
+    while (not layout.straight_edges) or manhattan:  # double the steps of every piece not yet within
+        bad = np.zeros(len(owner), dtype=bool)
+        for k in np.unique(n):
+            idx = np.flatnonzero(n == k)
+            t = torch.linspace(0, 1, 2 * k + 1, dtype=torch.float64)
+            with torch.no_grad():
+                q = layout.phi(pa[idx, None] + t[None, :, None] * pd[idx, None], theta)
+            p = sensor_to_pixels(q, scale).numpy()  # vertices and midpoints
+            dev[idx] = np.linalg.norm(p[:, 1::2] - (p[:, 0:-1:2] + p[:, 2::2]) / 2, axis=-1).max(1)
+            if manhattan:  # a Z step deviates from its chord by at most min(|dx|, |dy|) / 2
+                dev[idx] += np.abs(np.diff(p[:, ::2], axis=1)).min(-1).max(1) / 2
+            bad[idx] = (dev[idx] > tol) & (k < max_subdiv)
+        if not bad.any():
+            break
+        n[bad] *= 2
+    return torch.from_numpy(n), float(dev.max(initial=0.0))
+
+
 #: Segments per chunk when the mesh's vertices are mapped (bounds φ's temporaries and its input).
 PHI_CHUNK = 1 << 16
 
@@ -429,16 +502,22 @@ def pixel_mesh(
         layout: the pixel layout (its θ is used with autograd, so the mesh vertices are
             differentiable in θ).
         size: sensor size ``(H, W)``.
-        tol: polyline tolerance as a bound on the relative pixel-value error (see
-            :func:`_edge_parameters`), and on the θ-gradient's when θ requires grad;
-            ignored for straight-edged layouts, which always use one segment per straight
-            piece (between the cuts of :meth:`Layout.edge_breakpoints`).
+        tol: what the polylines of curved edges may cost an integral over the pixels: the
+            bound on every pixel's box-radiance mean, relative to the image's value range (a
+            unitless fraction: the area between polyline and curve, over the pixel's area, is at
+            most ``tol``), and on its θ-gradient when θ requires grad (see
+            :func:`_edge_parameters`). The default ``1e-5`` is a geometric reference; the
+            integrators pass what the data needs (:func:`~layoutwarp.data_tolerance`). ``None``:
+            one segment per edge. Ignored for straight-edged layouts, which always use one
+            segment per straight piece (between the cuts of :meth:`Layout.edge_breakpoints`).
         max_subdiv: cap on segments per smooth piece of an edge. Where the cap binds (very
             fine ``tol`` with long, strongly curved edges: few large pixels, θ near ±1) the
             error can exceed ``tol``; raise it for such references.
-        subdivisions: force a segment count per smooth piece of each edge (an int, or an
-            ``(E,)`` tensor) instead of the adaptive choice, with a vertex on every kink; used for
-            reference computations (smooth in θ, for finite differences).
+        subdivisions: force the segment counts instead of the adaptive choice, with a vertex on
+            every kink: an int for every smooth piece, an ``(E,)`` tensor per edge (for each of
+            its pieces), or a ``(pieces,)`` tensor per smooth piece in the order of
+            :func:`smooth_pieces` (e.g. :func:`distance_subdivisions`). Used for references
+            (smooth in θ, for finite differences) and fabrication masks.
         dtype: vertex dtype (default: θ's dtype).
         theta: use this θ instead of the layout's own (see :meth:`Layout.resolve_theta`).
 
@@ -483,11 +562,17 @@ def _build_mesh(
     ne = topo.num_edges
     ends = topo.edge_ends(device=device)
     if subdivisions is not None:  # equal parameter steps on every smooth piece
-        per_edge = torch.as_tensor(subdivisions, dtype=torch.long, device=device).expand(ne)
-        if bool((per_edge < 1).any()):
-            raise ValueError(f"subdivisions must be >= 1, got {subdivisions!r}")
         edge, lo, hi = smooth_pieces(layout, *ends, theta=theta)
-        m = per_edge[edge]
+        m = torch.as_tensor(subdivisions, dtype=torch.long, device=device)
+        if m.ndim == 0 or m.numel() == ne:
+            m = m.expand(ne)[edge]
+        elif m.numel() != edge.numel():
+            raise ValueError(
+                f"subdivisions must be an int, one count per edge ({ne}) or per smooth piece "
+                f"({edge.numel()}), got {m.numel()} values"
+            )
+        if bool((m < 1).any()):
+            raise ValueError(f"subdivisions must be >= 1, got {subdivisions!r}")
     elif layout.straight_edges:  # one segment per straight piece
         edge, lo, hi = smooth_pieces(layout, *ends, theta=theta)
         m = torch.ones_like(edge)

@@ -67,7 +67,19 @@ CASES = {
     ),
     "mnist without data": (
         ["train", "mnist", "--data", "{tmp}/nothing"],
-        ["no mnist data", "nothing", "--data DIR or --quick"],
+        ["argument --data", "no such folder", "nothing"],
+    ),
+    "output folder under a file": (
+        ["train", "faces", "--quick", "--out", "{tmp}/range.json/out"],
+        ["argument --out", "must be a folder", "range.json', which is a file"],
+    ),
+    "study output folder under a file": (
+        ["study", "mnist", "--quick", "--out", "{tmp}/range.json/out"],
+        ["argument --out", "must be a folder"],
+    ),
+    "demo output folder is a file": (
+        ["demo", "--out", "{tmp}/range.json"],
+        ["argument --out", "must be a folder", "is a file"],
     ),
     "epochs 0": (["train", "mnist", "--quick", "--epochs", "0"], ["--epochs", "'0'", "integer >= 1"]),
     "epochs negative": (
@@ -193,53 +205,77 @@ def test_bad_input_ends_in_one_line_naming_flag_value_and_range(case, files, cap
     assert not any(files.glob("x.*")) and not (files / "out").exists()  # nothing written
 
 
+@pytest.mark.parametrize("command", ["train", "study"])
+def test_without_data_the_error_says_where_data_comes_from(command, monkeypatch, capsys):
+    monkeypatch.delenv("LAYOUTWARP_DATA", raising=False)
+    assert main([command, "camvid", "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1
+    for needle in ("no camvid data", "--data DIR", "LAYOUTWARP_DATA", "camvid/", "--quick"):
+        assert needle in err, (needle, err)
+    monkeypatch.setenv("LAYOUTWARP_DATA", "/nonexistent/root")
+    assert main([command, "camvid", "--no-progress"]) == 2
+    assert "no camvid data at '/nonexistent/root/camvid'" in capsys.readouterr().err
+
+
 def test_version(capsys):
     with pytest.raises(SystemExit) as exit_info:
         main(["--version"])
     assert exit_info.value.code == 0 and capsys.readouterr().out.strip() == f"layoutwarp {lw.__version__}"
 
 
-def _subparsers(parser):
+def _subparsers(parser, prefix=""):
+    """``("train mnist", parser)`` for every (nested) command."""
     for action in parser._actions:
         if hasattr(action, "choices") and isinstance(action.choices, dict):
             for name, sub in action.choices.items():
-                yield name, sub
-                yield from _subparsers(sub)
+                yield prefix + name, sub
+                yield from _subparsers(sub, prefix + name + " ")
 
 
 def test_every_command_has_a_description_and_shows_defaults_the_same_way():
     parser = build_parser()
     assert "`" not in parser.description and "\n" not in parser.description
     subs = dict(_subparsers(parser))
-    assert {"demo", "bench", "preprocess", "export", "train", "mnist", "camvid", "faces"} <= set(subs)
+    tasks = {f"{c} {t}" for c in ("train", "study") for t in ("mnist", "camvid", "faces")}
+    assert {"demo", "bench", "preprocess", "export", "evaluate", "train", "study"} | tasks <= set(subs)
     for name, sub in subs.items():
         assert sub.description and "\n" not in sub.description.strip(), name
         help_text = sub.format_help()
         assert "(default: None)" not in help_text and "(default: False)" not in help_text
+        formatter = sub.formatter_class("x")
         for action in sub._actions:
-            if (
-                action.help
-                and action.default not in (None, False)
-                and not action.option_strings == ["-h", "--help"]
-            ):
-                assert (
-                    "%(default)" in sub.formatter_class("x")._get_help_string(action)
-                    or "default" in action.help
-                ), (name, action.dest)
-    assert "--family" in subs["mnist"].format_help() and "--layout" not in subs["mnist"].format_help()
+            if not action.help or action.option_strings == ["-h", "--help"]:
+                continue
+            shown = formatter._expand_help(action)
+            if action.default not in (None, False):  # a default is shown once, as argparse holds it
+                assert shown.count("default") == 1 and "(default: " in shown, (name, action.dest, shown)
+                assert "(" not in str(action.default) or "WIDTH" not in shown, (name, action.dest, shown)
+    assert (
+        "--family" in subs["train mnist"].format_help()
+        and "--layout" not in subs["train mnist"].format_help()
+    )
     for name in ("export", "preprocess"):
         assert "--layout FILE" in subs[name].format_help() and "--family" in subs[name].format_help()
 
 
-def test_each_experiment_shows_its_own_defaults():
-    from layoutwarp.experiments import camvid, faces, mnist
+def test_each_task_takes_the_same_options_and_shows_its_own_defaults():
+    from layoutwarp.experiments.tasks import TASKS
 
     subs = dict(_subparsers(build_parser()))
-    for module in (mnist, camvid, faces):
-        d = module.DEFAULTS
-        text = " ".join(subs[d.task].format_help().split())
-        assert f"epochs (default: {d.epochs}; {d.quick_epochs} with --quick)" in text
+    common = None
+    for task in TASKS.values():
+        d, q = task.defaults, task.quick_defaults()
+        text = " ".join(subs[f"train {task.name}"].format_help().split())
+        assert f"epochs (default: {d.epochs}; {q.epochs} with --quick)" in text
         assert f"seeds (default: {d.seeds}; 1 with --quick)" in text
+        sizes = " and ".join(f"{w}x{h}" for h, w in d.sizes)
+        assert f"(default: {sizes}; the first with --quick)" in text
+        flags = {o for a in subs[f"train {task.name}"]._actions for o in a.option_strings}
+        flags -= {o for dest in task.extra_dests for o in ("--" + dest.replace("_", "-"),)}
+        assert common is None or flags == common, task.name  # the same options, less the task's own
+        common = flags
+    assert {"--size", "--freeze-epochs", "--theta-lr", "--data", "--quick"} <= common
 
 
 def test_demo_writes_figures_and_numbers(tmp_path):

@@ -11,9 +11,20 @@ from conftest import SAMPLES
 
 import layoutwarp as lw
 from layoutwarp.cli import main
-from layoutwarp.experiments.camvid import SegNet, median_frequency_weights, segmentation_scores, train_camvid
+from layoutwarp.experiments.camvid import SegNet, median_frequency_weights, segmentation_scores
 from layoutwarp.experiments.data import AGE_GROUPS, age_group, load_camvid, load_faces
-from layoutwarp.experiments.faces import FaceNet
+from layoutwarp.experiments.faces import FaceNet, split_faces
+from layoutwarp.experiments.runs import RunOptions, train_run
+from layoutwarp.experiments.tasks import TASKS
+
+CAMVID = TASKS["camvid"]
+
+
+def camvid_run(family, options, seed=0):
+    """One CamVid run on two bundled training frames, scored on one validation frame."""
+    data = CAMVID.load(SAMPLES / "camvid", limit=2)
+    data.report = tuple(a[:1] for a in data.report)
+    return train_run(CAMVID, data, family, (9, 12), seed, options)
 
 
 def test_segmentation_scores_against_per_class_counts(gen):
@@ -45,7 +56,7 @@ def test_age_groups_cover_all_ages():
 def test_loaders_read_the_bundled_samples():
     imgs, labels = load_camvid(SAMPLES / "camvid", "val")
     assert imgs.shape[1:] == (360, 480, 3) and labels.shape == imgs.shape[:3] and labels.max() <= 11
-    faces = load_faces(SAMPLES / "faces" / "utkface", limit=10)
+    faces = load_faces(SAMPLES / "faces" / "utkface_subset", limit=10)
     assert faces["images"].shape == (10, 200, 200, 3)
     assert set(faces) == {"images", "gender", "age_group", "race"} and faces["race"].max() <= 4
 
@@ -65,12 +76,14 @@ def test_networks_shapes_and_theta_gradient():
 
 
 def test_theta_stays_frozen_during_freeze_epochs():
-    train = load_camvid(SAMPLES / "camvid", "train", limit=2)
-    val = load_camvid(SAMPLES / "camvid", "val", limit=1)
-    opts = {"epochs": 1, "batch_size": 2, "progress": False, "sensor": {"tol": 1e-3}}
-    frozen, _ = train_camvid(train, val, "rect", (9, 12), freeze_epochs=1, **opts)
-    learned, _ = train_camvid(train, val, "rect", (9, 12), freeze_epochs=0, **opts)
-    assert frozen.theta == [0.0, 0.0] and any(abs(v) > 1e-4 for v in learned.theta)
+    opts = {"epochs": 2, "batch_size": 2, "progress": False}
+    frozen, _ = camvid_run("rect", RunOptions.of(CAMVID.defaults, freeze_epochs=1, **opts))
+    learned, _ = camvid_run("rect", RunOptions.of(CAMVID.defaults, freeze_epochs=0, **opts))
+    assert frozen.theta_history[1] == [0.0, 0.0] and frozen.theta_history[2] != [0.0, 0.0]
+    assert any(abs(v) > 1e-4 for v in learned.theta_history[1])
+    # frozen epochs are capped at epochs - 1: θ always trains
+    capped, _ = camvid_run("rect", RunOptions.of(CAMVID.defaults, freeze_epochs=5, **opts))
+    assert capped.theta_history[1] == [0.0, 0.0] and capped.theta != [0.0, 0.0]
     assert 0 <= frozen.scores["miou"] <= 100
 
 
@@ -98,30 +111,39 @@ def test_median_frequency_weights_against_a_direct_count(gen):
 
 
 def test_class_weighted_camvid_training_differs_from_plain():
-    train = load_camvid(SAMPLES / "camvid", "train", limit=2)
-    val = load_camvid(SAMPLES / "camvid", "val", limit=1)
-    opts = {"epochs": 1, "batch_size": 2, "progress": False, "sensor": {"tol": 1e-3}, "seed": 3}
-    models = [
-        train_camvid(train, val, "uniform", (9, 12), class_weights=cw, **opts)[1]
-        for cw in ("none", "median", "median")
-    ]
-    p0, p1, p2 = (torch.cat([p.flatten() for p in m.parameters()]) for m in models)
+    def run(cw):
+        opts = RunOptions.of(
+            CAMVID.defaults, epochs=1, batch_size=2, progress=False, task_options={"class_weights": cw}
+        )
+        return camvid_run("uniform", opts, seed=3)[1]
+
+    p0, p1, p2 = (
+        torch.cat([p.flatten() for p in run(cw).parameters()]) for cw in ("none", "median", "median")
+    )
     assert torch.equal(p1, p2) and not torch.allclose(p0, p1)  # deterministic; the weights act
-    with np.testing.assert_raises(ValueError):
-        train_camvid(train, val, "uniform", (9, 12), class_weights="inverse", **opts)
+
+
+def test_faces_split_is_fixed_disjoint_and_a_fifth(gen):
+    n = int(torch.randint(10, 200, (), generator=gen))
+    faces = {"images": np.arange(n)[:, None], "gender": np.arange(n) % 2}
+    train, test = split_faces(faces)
+    ids = np.concatenate([train["images"][:, 0], test["images"][:, 0]])
+    assert sorted(ids.tolist()) == list(range(n)) and len(test["images"]) == max(1, round(0.2 * n))
+    assert np.array_equal(split_faces(faces)[1]["images"], test["images"])  # the same every time
+    assert np.array_equal(test["gender"], test["images"][:, 0] % 2)  # every array split alike
 
 
 @pytest.mark.slow
 def test_quick_commands_write_results(tmp_path):
     assert main(["train", "camvid", "--quick", "--no-progress", "--out", str(tmp_path / "c")]) == 0
     res = json.loads((tmp_path / "c" / "results.json").read_text())
-    assert set(res["summary"]) == {"uniform 48x36", "curv 48x36", "rect 48x36"}
+    assert [s["family"] for s in res["summary"]] == ["uniform", "curv", "rect"]
     assert (tmp_path / "c" / "camvid_layouts.png").stat().st_size > 10_000
     assert (tmp_path / "c" / "layout_curv_48x36.json").exists()
     assert main(["train", "faces", "--quick", "--no-progress", "--out", str(tmp_path / "f")]) == 0
     res = json.loads((tmp_path / "f" / "results.json").read_text())
-    assert set(res["summary"]) == {"uniform 8x8", "rect 8x8"}
-    assert {"gender", "age_group", "race", "mean"} <= set(res["summary"]["rect 8x8"])
+    assert [(s["family"], s["size_hw"]) for s in res["summary"]] == [("uniform", [8, 8]), ("rect", [8, 8])]
+    assert set(res["summary"][1]["scores"]) == {"gender", "age_group", "race", "mean"}
     assert (tmp_path / "f" / "faces_layouts.png").exists()
 
 
@@ -132,14 +154,10 @@ def test_quick_runs_train_the_new_families(task, tmp_path):
     families = ["spline", "grid", "fovea"] if task == "mnist" else ["spline"]
     assert main([*argv, *(a for f in families for a in ("--family", f))]) == 0
     res = json.loads((tmp_path / "results.json").read_text())
-    assert {key.split()[0] for key in res["summary"]} == set(families)
-    for s in res["summary"].values():
+    assert [s["family"] for s in res["summary"]] == families
+    for s in res["summary"]:
         assert any(abs(v) > 1e-4 for v in s["theta_mean"])  # the layout learned
+    size = {"mnist": "4x4", "camvid": "48x36", "faces": "8x8"}[task]
     for family in families:
-        name = (
-            f"layout_{family}.json"
-            if task == "mnist"
-            else f"layout_{family}_{'48x36' if task == 'camvid' else '8x8'}.json"
-        )
-        layout, _ = lw.load_layout(tmp_path / name)
+        layout, _ = lw.load_layout(tmp_path / f"layout_{family}_{size}.json")
         assert layout.family == family and layout.check_foldover().ok

@@ -13,7 +13,8 @@ from conftest import SAMPLES, SHARED
 import layoutwarp as lw
 from layoutwarp.cli import main
 from layoutwarp.experiments.data import load_mnist, read_idx
-from layoutwarp.experiments.mnist import train_mnist
+from layoutwarp.experiments.runs import RunOptions, train_run
+from layoutwarp.experiments.tasks import TASKS
 from layoutwarp.layoutfile import load_layout
 
 
@@ -44,15 +45,25 @@ def test_train_mnist_quick_writes_results_layout_and_figures(tmp_path):
     code = main(["train", "mnist", "--quick", "--epochs", "1", "--no-progress", "--out", str(tmp_path)])
     assert code == 0
     res = json.loads((tmp_path / "results.json").read_text())
-    assert set(res["summary"]) == {"uniform", "curv", "rect"}
-    for name, s in res["summary"].items():
-        assert 30 < s["accuracy_mean"] <= 100  # far above chance (10%) after one epoch
-        if name == "uniform":
+    assert res["format"] == "layoutwarp.results/1" and res["units"] == "percent"
+    assert [(r["family"], r["size_hw"]) for r in res["summary"]] == [
+        ("uniform", [4, 4]),
+        ("curv", [4, 4]),
+        ("rect", [4, 4]),
+    ]
+    for s in res["summary"]:
+        assert 30 < s["scores"]["accuracy"]["mean"] <= 100  # far above chance (10%) after one epoch
+        if s["family"] == "uniform":
             assert s["theta_mean"] == []  # the uniform layout has no parameters
         else:
             assert any(abs(v) > 1e-3 for v in s["theta_mean"])  # θ learned
-    layout, info = load_layout(tmp_path / "layout.json")
-    assert layout.family == "curv" and info["size_hw"] == [4, 4]
+    for run in res["runs"]:  # θ and the pixel-size range after every epoch, from θ = 0
+        assert len(run["theta_history"]) == len(run["area_ratio_history"]) == 2
+        assert run["area_ratio_history"][0] == pytest.approx(1.0)
+    assert res["run"]["layoutwarp"] == lw.__version__ and res["run"]["seeds"] == [0]
+    layout, info = load_layout(tmp_path / "layout.json")  # the better of the learned layouts
+    best = max(res["summary"][1:], key=lambda s: s["scores"]["accuracy"]["mean"])
+    assert layout.family == best["family"] and info["size_hw"] == [4, 4]
     for fig in ("mnist_layouts.png", "mnist_theta.png"):
         assert (tmp_path / fig).stat().st_size > 5000
 
@@ -89,11 +100,12 @@ def test_fit_visits_every_sample_once_per_epoch_and_freezes_theta(n, batch, size
 
 def test_training_runs_on_the_device_with_mixed_precision(device):
     # the training path on the device fixture (CPU here; CUDA where present), with --amp
-    data = load_mnist(SAMPLES / "mnist")
-    small = {k: v[:256] for k, v in data.items()}
-    res, model = train_mnist(small, "curv", epochs=1, progress=False, device=device, amp=True, batch_size=64)
+    task = TASKS["mnist"]
+    data = task.load(SAMPLES / "mnist", limit=256)
+    options = RunOptions.of(task.defaults, epochs=1, progress=False, device=str(device), amp=True)
+    res, model = train_run(task, data, "curv", (4, 4), 0, options)
     assert next(model.parameters()).device.type == device.type
-    assert 0 <= res.test_accuracy <= 100 and len(res.theta) == 2
+    assert 0 <= res.scores["accuracy"] <= 100 and len(res.theta) == 2
     assert any(abs(v) > 0 for v in res.theta)  # θ moved: gradients reached it through autocast
 
 
@@ -148,7 +160,7 @@ def test_torchrun_with_two_gloo_processes_matches_one_process(tmp_path):
     one = json.loads((tmp_path / "one" / "results.json").read_text())["runs"][0]
     two = json.loads((tmp_path / "two" / "results.json").read_text())["runs"][0]
     assert max(abs(a - b) for a, b in zip(one["theta"], two["theta"], strict=True)) <= 1e-2
-    assert abs(one["test_accuracy"] - two["test_accuracy"]) <= 2.0
+    assert abs(one["scores"]["accuracy"] - two["scores"]["accuracy"]) <= 2.0
     assert any(abs(v) > 1e-3 for v in two["theta"])  # it learned
     assert res.stdout.count("wrote ") == 1  # rank 0 alone reports
     assert sorted(p.name for p in (tmp_path / "two").iterdir()) == sorted(

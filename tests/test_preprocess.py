@@ -13,8 +13,8 @@ import torch
 from conftest import SAMPLES, rand_theta
 
 import layoutwarp as lw
-from layoutwarp.cli import main
 from layoutwarp.backwarp import sensor_index_maps
+from layoutwarp.cli import main
 from layoutwarp.preprocess import preprocess_folder
 from layoutwarp.resampler import AreaResampler, area_weights
 

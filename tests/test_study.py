@@ -10,10 +10,13 @@ import torch
 from conftest import ROOT, SAMPLES
 
 from layoutwarp.cli import main
-from layoutwarp.experiments.mnist import DEFAULTS, MnistNet
+from layoutwarp.experiments.mnist import MnistNet
 from layoutwarp.experiments.models import FORMAT, load_model, save_model
-from layoutwarp.experiments.study import PLANS, equivalent_pixels, study_table, summarise_study
+from layoutwarp.experiments.study import equivalent_pixels, study_table, summarise_study
+from layoutwarp.experiments.tasks import TASKS
 from layoutwarp.layoutfile import load_layout
+
+MNIST = TASKS["mnist"]
 
 
 def test_equivalent_pixels_interpolates_in_log_pixels():
@@ -29,7 +32,6 @@ def test_equivalent_pixels_interpolates_in_log_pixels():
 
 
 def test_summary_gives_saving_factors_with_intervals():
-    plan = PLANS["mnist"]
     recs = [
         {"family": "uniform", "size_hw": [s, s], "seed": k, "scores": {"accuracy": 40 + 10 * s + k}}
         for s in (2, 4, 8)
@@ -38,7 +40,7 @@ def test_summary_gives_saving_factors_with_intervals():
     recs += [
         {"family": "curv", "size_hw": [4, 4], "seed": k, "scores": {"accuracy": 70.5 + 2 * k}} for k in (0, 1)
     ]
-    summary = summarise_study("mnist", plan, recs)
+    summary = summarise_study(MNIST, recs)
     row = next(r for r in summary["rows"] if r["family"] == "curv")
     # uniform: 60.5 at 4 px, 80.5 at 16 px; curv 71.5 ± 1.41 at 16 px → log-interpolated
     t = (71.5 - 60.5) / 20
@@ -90,7 +92,7 @@ def test_quick_study_resumes_and_its_models_evaluate(tmp_path, capsys):
     assert scores["accuracy"] == pytest.approx(record["scores"]["accuracy"], abs=1e-9)
     assert scores["n"] == 1000 and scores["layout"]["family"] == "grid"
     # every run integrates at the plan's tolerance, not the experiment's (changed) default
-    assert load_model(model)[1]["sensor"]["tol"] == PLANS["mnist"].tol != DEFAULTS.tol
+    assert load_model(model)[1]["sensor"]["tol"] == MNIST.study.tol != MNIST.defaults.tol
     assert main(["evaluate", "camvid", "--model", str(model), "--data", str(SAMPLES / "camvid")]) == 2
     assert "a 'mnist' model, not a 'camvid' model" in capsys.readouterr().err
     # shipping: results, every learned layout, the best model per family and learned size
@@ -139,7 +141,8 @@ def test_train_saves_camvid_models_that_evaluate_to_the_reported_scores(tmp_path
     assert main(["evaluate", "camvid", "--model", str(model), "--data", str(SAMPLES / "camvid")]) == 0
     scores = json.loads(capsys.readouterr().out)
     assert scores["miou"] == pytest.approx(res["runs"][0]["scores"]["miou"], abs=1e-9)
-    assert len(scores["iou"]) == 11 and scores["split"] is None and scores["n"] == 3
+    assert len(scores["iou"]) == 11 and scores["split"] == "val" and scores["n"] == 3
+    assert scores["units"] == "percent" and res["units"] == "percent"
 
 
 def test_camvid_summary_has_per_class_iou_changes_and_counts_planned_runs():
@@ -159,12 +162,12 @@ def test_camvid_summary_has_per_class_iou_changes_and_counts_planned_runs():
             "scores": {"miou": 40.0, "iou": iou["uniform"][0]},
         }
     ]
-    summary = summarise_study("camvid", PLANS["camvid"], recs) | {"planned": 51}
+    summary = summarise_study(TASKS["camvid"], recs) | {"planned": 51}
     curv = next(r for r in summary["rows"] if r["family"] == "curv")
     uni = next(r for r in summary["rows"] if r["family"] == "uniform" and r["pixels"] == 36 * 48)
     assert curv["iou"][6] == pytest.approx((iou["curv"][1][6] + iou["curv"][2][6]) / 2)
     assert uni["iou"][0] == pytest.approx(sum(v[0] for v in iou["uniform"]) / 3)
-    assert curv["scores"] == {"miou": 51.0}
+    assert curv["scores"] == {"miou": 51.0}  # every scalar score, averaged
     table = study_table(summary)
     assert "7 of 51 planned runs finished so far." in table
     sky = curv["iou"][0] - uni["iou"][0]
@@ -186,18 +189,18 @@ def test_shipped_models_evaluate_on_the_bundled_samples(path, capsys):
     """``evaluate`` reproduces the scores recorded when the model was shipped, on the bundled
     slice (most bundled faces were training faces, so its scores are not the test's)."""
     task = path.parents[1].name
-    data = SAMPLES / {"mnist": "mnist", "camvid": "camvid", "faces": "faces/utkface"}[task]
+    data = SAMPLES / {"mnist": "mnist", "camvid": "camvid", "faces": "faces/utkface_subset"}[task]
     assert main(["evaluate", task, "--model", str(path), "--data", str(data), "--device", "cpu"]) == 0
     scores = json.loads(capsys.readouterr().out)
     recorded = json.loads((path.parents[1] / "samples_scores.json").read_text())[path.name]
-    metric = PLANS[task].metric
+    metric = TASKS[task].metric
     assert scores[metric] == pytest.approx(recorded[metric], abs=1e-9)
     assert scores[metric] > ABOVE[task]
 
 
 def test_model_weights_precisions_round_trip(tmp_path, gen):
     torch.manual_seed(int(torch.randint(0, 2**31, (), generator=gen)))
-    net = MnistNet("curv", (4, 4), **DEFAULTS.sensor())
+    net = MnistNet("curv", (4, 4), **MNIST.defaults.sensor())
     with torch.no_grad():
         net.sensor.layout.rho.copy_(torch.rand(2, generator=gen) - 0.5)
     x = torch.rand(32, 1, 28, 28, generator=gen)
@@ -207,7 +210,12 @@ def test_model_weights_precisions_round_trip(tmp_path, gen):
     sizes, formats = {}, {}
     for weights, rel in (("float32", 0.0), ("float16", 2e-3), ("int8", 3e-2)):
         path = save_model(
-            tmp_path / f"{weights}.pt", "mnist", net, sensor=DEFAULTS.sensor(), training={}, weights=weights
+            tmp_path / f"{weights}.pt",
+            "mnist",
+            net,
+            sensor=MNIST.defaults.sensor(),
+            training={},
+            weights=weights,
         )
         back = load_model(path, "mnist")[0]
         assert torch.equal(back.sensor.theta, net.sensor.theta)  # θ is never rounded

@@ -8,9 +8,9 @@ the paper; the uniform layout is the baseline.
 
 from __future__ import annotations
 
-import json
-import time
+import argparse
 from pathlib import Path
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -18,66 +18,40 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..backwarp import backwarp, backwarp_cross_entropy
-from ..layoutfile import save_layout
+from ..layouts import Layout
 from ..sensor import SensorLayer
-from .data import CAMVID_CLASSES, VOID, load_camvid
-from .training import (
-    ExperimentDefaults,
-    TaskRun,
-    fit,
-    layout_name,
-    model_device,
-    optimizer,
-    run_grid,
-    save_runs,
-    theta_text,
-)
+from .data import CAMVID_CLASSES, VOID, images_to_tensor, load_camvid
+from .nets import conv_block, normalise_rgb
+from .tasks import StudyPlan, Task, TaskData, TaskDefaults, register_task
+from .training import BatchLoss, model_device
 
 __all__ = [
-    "DEFAULTS",
+    "PALETTE",
+    "CamVidTask",
     "SegNet",
-    "evaluate_camvid",
     "median_frequency_weights",
     "predict_camvid",
-    "run_camvid_experiment",
     "segmentation_scores",
-    "train_camvid",
 ]
 
-DEFAULTS = ExperimentDefaults(
-    task="camvid",
-    shared="camvid",
-    sample="camvid",
-    families=("uniform", "curv", "rect"),
-    sizes=((36, 48), (72, 96)),
-    seeds=2,
-    epochs=12,
-    quick_epochs=1,
-    tol=1e-3,
-    freeze_epochs=3,
+#: The colour of every class (and of void, last) in figures, RGB.
+PALETTE = np.array(
+    [
+        [128, 128, 128],
+        [128, 0, 0],
+        [192, 192, 128],
+        [128, 64, 128],
+        [60, 40, 222],
+        [128, 128, 0],
+        [192, 128, 128],
+        [64, 64, 128],
+        [64, 0, 128],
+        [64, 64, 0],
+        [0, 128, 192],
+        [0, 0, 0],
+    ],
+    np.uint8,
 )
-RGB_MEAN = torch.tensor([0.45, 0.45, 0.45]).view(1, 3, 1, 1)
-RGB_STD = torch.tensor([0.28, 0.28, 0.28]).view(1, 3, 1, 1)
-
-
-def normalise_rgb(s: torch.Tensor) -> torch.Tensor:
-    """Sensor values ``(B, 3, h, w)`` centred and scaled for the networks (on ``s``'s device)."""
-    return (s - RGB_MEAN.to(s)) / RGB_STD.to(s)
-
-
-def to_tensor(imgs: np.ndarray) -> torch.Tensor:
-    return torch.from_numpy(imgs).permute(0, 3, 1, 2).contiguous()  # uint8 (N, 3, H, W)
-
-
-def conv_block(cin: int, cout: int) -> nn.Sequential:
-    return nn.Sequential(
-        nn.Conv2d(cin, cout, 3, padding=1, bias=False),
-        nn.BatchNorm2d(cout),
-        nn.ReLU(inplace=True),
-        nn.Conv2d(cout, cout, 3, padding=1, bias=False),
-        nn.BatchNorm2d(cout),
-        nn.ReLU(inplace=True),
-    )
 
 
 class SegNet(nn.Module):
@@ -171,74 +145,11 @@ def _confusion(pred: torch.Tensor, labels: torch.Tensor, k: int, ignore: int) ->
     return torch.bincount(idx, minlength=k * k).reshape(k, k).numpy()
 
 
-def train_camvid(
-    train: tuple[np.ndarray, np.ndarray],
-    val: tuple[np.ndarray, np.ndarray],
-    layout: str,
-    size: tuple[int, int],
-    *,
-    seed: int = 0,
-    epochs: int = DEFAULTS.epochs,
-    freeze_epochs: int = DEFAULTS.freeze_epochs,
-    batch_size: int = 8,
-    lr: float = 2e-3,
-    theta_lr: float = 0.01,
-    progress: bool = True,
-    sensor: dict | None = None,
-    class_weights: str = "median",
-    device: str | torch.device = "cpu",
-    amp: bool = False,
-) -> tuple[TaskRun, SegNet]:
-    """Train sensor + SegNet on CamVid ``train`` and score it on ``val`` (back-warped to full size).
-
-    ``class_weights``: ``"none"`` (plain cross-entropy) or ``"median"``
-    (:func:`median_frequency_weights` of the training labels).
-    """
-    if class_weights not in ("none", "median"):
-        raise ValueError(f"class_weights must be 'none' or 'median', got {class_weights!r}")
-    torch.manual_seed(seed)
-    gen = torch.Generator().manual_seed(seed)
-    model = SegNet(layout, size, learn=layout != "uniform", **(sensor or DEFAULTS.sensor())).to(device)
-    opt = optimizer(model, lr, theta_lr)
-    x, y = to_tensor(train[0]), torch.from_numpy(train[1]).long()
-    weight = None
-    if class_weights == "median":
-        weight = torch.from_numpy(median_frequency_weights(train[1], len(CAMVID_CLASSES))).to(device)
-
-    def batch_loss(idx: torch.Tensor, net: nn.Module) -> torch.Tensor:
-        xb, yb = x[idx].to(device).float().div_(255), y[idx].to(device)
-        if bool(torch.rand((), generator=gen) < 0.5):  # horizontal flip
-            xb, yb = xb.flip(-1), yb.flip(-1)
-        return backwarp_cross_entropy(net(xb), yb, model.sensor.layout, ignore_index=VOID, weight=weight)
-
-    t0 = time.perf_counter()
-    history = fit(
-        model,
-        torch.arange(len(x)),
-        batch_loss,
-        opt,
-        gen,
-        epochs=epochs,
-        batch_size=batch_size,
-        freeze_epochs=freeze_epochs,
-        sched=torch.optim.lr_scheduler.CosineAnnealingLR(opt, max(epochs, 1)),
-        desc=f"camvid {layout_name(layout)} {size[1]}x{size[0]} seed {seed}",
-        progress=progress,
-        amp=amp,
-    )
-    scores = evaluate_camvid(model, val)
-    run = TaskRun(
-        "camvid", layout_name(layout), list(size), seed, scores, model.sensor.theta.detach().tolist(), history
-    )
-    run.seconds = time.perf_counter() - t0
-    return run, model
-
-
 @torch.no_grad()
 def predict_camvid(model: SegNet, images: np.ndarray, batch_size: int = 8) -> torch.Tensor:
     """Back-warped full-resolution class predictions ``(N, H, W)`` int64."""
     model.eval()
-    x = to_tensor(images)
+    x = images_to_tensor(images)
     out = []
     for k in range(0, len(x), batch_size):
         logits = model(x[k : k + batch_size].to(model_device(model)).float().div(255))
@@ -246,122 +157,89 @@ def predict_camvid(model: SegNet, images: np.ndarray, batch_size: int = 8) -> to
     return torch.cat(out)
 
 
-def evaluate_camvid(model: SegNet, val: tuple[np.ndarray, np.ndarray]) -> dict:
-    """mIoU and pixel accuracy on ``val`` at full resolution, void ignored."""
-    pred = predict_camvid(model, val[0])
-    return segmentation_scores(_confusion(pred, torch.from_numpy(val[1]).long(), len(CAMVID_CLASSES), VOID))
+@register_task
+class CamVidTask(Task):
+    """CamVid (train: ``train/``; report: ``val/``), mIoU, pixel accuracy and per-class IoU."""
 
-
-def run_camvid_experiment(
-    data_dir: str | Path,
-    out: str | Path,
-    families: tuple[str, ...] = DEFAULTS.families,
-    sizes: tuple[tuple[int, int], ...] = DEFAULTS.sizes,
-    seeds: tuple[int, ...] = tuple(range(DEFAULTS.seeds)),
-    epochs: int = DEFAULTS.epochs,
-    freeze_epochs: int = DEFAULTS.freeze_epochs,
-    limit: int | None = None,
-    progress: bool = True,
-    sensor: dict | None = None,
-    class_weights: str = "median",
-    device: str | torch.device = "cpu",
-    amp: bool = False,
-) -> dict:
-    """Every family × sensor size × seed on CamVid; writes results.json, layouts and figures."""
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    sensor = sensor or DEFAULTS.sensor()
-    train, val = load_camvid(data_dir, "train", limit), load_camvid(data_dir, "val", limit)
-    configs = [(f, tuple(size), seed) for size in sizes for f in families for seed in seeds]
-    models = run_grid(
-        "camvid",
-        out,
-        configs,
-        lambda layout, size, seed: train_camvid(
-            train,
-            val,
-            layout,
-            size,
-            seed=seed,
-            epochs=epochs,
-            freeze_epochs=min(freeze_epochs, max(epochs - 1, 0)),
-            progress=progress,
-            sensor=sensor,
-            class_weights=class_weights,
-            device=device,
-            amp=amp,
-        ),
-        sensor=sensor,
-        training={"epochs": epochs, "class_weights": class_weights},
-        describe=lambda run: (
-            f"mIoU {run.scores['miou']:5.2f}%  pixel acc {run.scores['pixel_accuracy']:5.2f}%"
-        ),
-        save=lambda runs: save_runs(
-            out,
-            "camvid",
-            data_dir,
-            len(train[0]),
-            len(val[0]),
-            epochs,
-            runs,
-            ("miou", "pixel_accuracy"),
-            sensor,
-            class_weights=class_weights,
-        ),
+    name = "camvid"
+    folder = "camvid"
+    description = "CamVid street-scene segmentation, back-warped to full resolution"
+    metrics = ("miou", "pixel_accuracy")
+    metric_label = "val mIoU (%)"
+    report_split = "val"
+    defaults = TaskDefaults(
+        families=("uniform", "curv", "rect"),
+        sizes=((36, 48), (72, 96)),
+        seeds=2,
+        epochs=12,
+        batch_size=8,
+        lr=2e-3,
+        theta_lr=0.01,
+        tol=1e-3,
+        freeze_epochs=3,
+        cosine=True,
     )
-    for (layout, size), model in models.items():
-        save_layout(
-            model.sensor.layout,
-            out / f"layout_{layout}_{size[1]}x{size[0]}.json",
-            size=size,
-            experiment="camvid",
+    quick: ClassVar[dict[str, Any]] = {"epochs": 1}
+    study = StudyPlan(
+        ((18, 24), (27, 36), (36, 48), (54, 72), (72, 96), (90, 120)),
+        ((36, 48), (72, 96)),
+    )
+
+    def load(self, folder: Path, limit: int | None = None) -> TaskData:
+        train, val = load_camvid(folder, "train", limit), load_camvid(folder, "val", limit)
+        return TaskData(train, val, Path(folder), {"train": len(train[0]), "report": len(val[0])})
+
+    def load_split(self, folder: Path, split: str | None) -> Any:
+        return load_camvid(folder, split or "val")
+
+    def density_images(self, data: TaskData) -> torch.Tensor:
+        return torch.from_numpy(data.train[1]).float()  # label boundaries
+
+    def scene(self, data: TaskData) -> np.ndarray:
+        return data.report[0][0] / 255.0
+
+    def network(
+        self, layout: str | Layout, size: tuple[int, int], learn: bool = True, **sensor: Any
+    ) -> nn.Module:
+        return SegNet(layout, size, learn=learn, **sensor)
+
+    def add_arguments(self, parser: argparse.ArgumentParser) -> None:
+        parser.add_argument(
+            "--class-weights",
+            choices=["none", "median"],
+            default="median",
+            help="loss class weights: none or median-frequency balancing",
         )
-    _camvid_figures(val, models, out)
-    return json.loads((out / "results.json").read_text())
 
+    def batches(
+        self, model: nn.Module, train: Any, gen: torch.Generator, options: dict[str, Any]
+    ) -> tuple[torch.Tensor, BatchLoss]:
+        device = model_device(model)
+        x, y = images_to_tensor(train[0]), torch.from_numpy(train[1]).long()
+        weight = None
+        if options.get("class_weights", "median") == "median":
+            weight = torch.from_numpy(median_frequency_weights(train[1], len(CAMVID_CLASSES))).to(device)
 
-def _camvid_figures(val, models: dict, out: Path) -> None:
-    """Fig. 5 analogue (layouts over a street scene) and back-warped example predictions."""
-    from .plots import draw_layout, figure, save_figure
+        def batch_loss(idx: torch.Tensor, net: nn.Module) -> torch.Tensor:
+            xb, yb = x[idx].to(device).float().div_(255), y[idx].to(device)
+            if bool(torch.rand((), generator=gen) < 0.5):  # horizontal flip
+                xb, yb = xb.flip(-1), yb.flip(-1)
+            return backwarp_cross_entropy(net(xb), yb, model.sensor.layout, ignore_index=VOID, weight=weight)
 
-    models = {key: model.cpu() for key, model in models.items()}  # figures are drawn on the CPU
+        return torch.arange(len(x)), batch_loss
 
-    img, lab = val[0][0], val[1][0]
-    palette = np.array(
-        [
-            [128, 128, 128],
-            [128, 0, 0],
-            [192, 192, 128],
-            [128, 64, 128],
-            [60, 40, 222],
-            [128, 128, 0],
-            [192, 128, 128],
-            [64, 64, 128],
-            [64, 0, 128],
-            [64, 64, 0],
-            [0, 128, 192],
-            [0, 0, 0],
-        ],
-        np.uint8,
-    )
-    keys = list(models)
-    fig, axes = figure(3, len(keys), figsize=(3.6 * len(keys), 8.2), squeeze=False)
-    for k, (layout, size) in enumerate(keys):
-        model = models[(layout, size)]
-        draw_layout(axes[0, k], model.sensor.layout, size, image=img / 255.0, max_lines=32, lw=0.5)
-        axes[0, k].set_title(f"{layout} {size[1]}x{size[0]} {theta_text(model)}", fontsize=8)
-        with torch.no_grad():
-            s = (
-                model.sensor(torch.from_numpy(img).permute(2, 0, 1)[None].float() / 255)[0]
-                .permute(1, 2, 0)
-                .numpy()
-            )
-        axes[1, k].imshow(np.clip(s, 0, 1), interpolation="nearest")
-        axes[1, k].set_title("sensor image", fontsize=8)
+    def prediction_image(self, model: nn.Module, data: TaskData) -> np.ndarray | None:
+        img, lab = data.report[0][0], data.report[1][0]
         pred = predict_camvid(model, img[None])[0].numpy()
-        axes[2, k].imshow(palette[np.where(lab == VOID, VOID, pred)])
-        axes[2, k].set_title("back-warped prediction", fontsize=8)
-        for ax in axes[1:, k]:
-            ax.set_xticks([])
-            ax.set_yticks([])
-    save_figure(fig, out / "camvid_layouts.png", dpi=100)
+        return PALETTE[np.where(lab == VOID, VOID, pred)]
+
+    def legend(self) -> dict[str, tuple[int, int, int]]:
+        names = [*CAMVID_CLASSES, "void"]
+        return {n: tuple(int(v) for v in c) for n, c in zip(names, PALETTE, strict=True)}
+
+    def score(self, model: nn.Module, part: Any) -> dict[str, Any]:
+        """mIoU and pixel accuracy on ``part`` at full resolution, void ignored."""
+        pred = predict_camvid(model, part[0])
+        return segmentation_scores(
+            _confusion(pred, torch.from_numpy(part[1]).long(), len(CAMVID_CLASSES), VOID)
+        )

@@ -1,34 +1,83 @@
-"""Dataset readers of the experiments: MNIST (IDX files), CamVid and UTKFace.
+"""Where the experiments' data lives, and its readers: MNIST (IDX files), CamVid and UTKFace.
 
-Sources and licences: ``data_samples/README.md`` (the bundled slices) and the shared data
-folder's README (the full sets). Nothing is downloaded.
+A *data root* is a folder with one subfolder per task, laid out as each task expects::
+
+    ROOT/mnist/                    train-images-idx3-ubyte[.gz], train-labels-idx1-ubyte[.gz],
+                                   t10k-images-idx3-ubyte[.gz], t10k-labels-idx1-ubyte[.gz]
+    ROOT/camvid/                   train/, trainannot/, val/, valannot/ (PNG images and
+                                   same-named 8-bit class-index maps, 11 = void)
+    ROOT/faces/utkface_subset/     labels.csv (file, age, gender, race) and the images it lists
+
+The bundled samples (:func:`samples_dir`, a few MB that ship with the package) are such a
+root (``--quick``); the full data sets are another, named by the environment variable
+``LAYOUTWARP_DATA`` (:func:`data_root`), or a task's own folder is given with ``--data DIR``.
+Sources and licences: the samples' README. Nothing is downloaded.
 """
 
 from __future__ import annotations
 
 import csv
 import gzip
+import os
 from pathlib import Path
 
 import cv2
 import numpy as np
+import torch
 
 __all__ = [
     "AGE_GROUPS",
     "CAMVID_CLASSES",
+    "DATA_ENV",
     "VOID",
     "age_group",
+    "data_root",
+    "images_to_tensor",
     "load_camvid",
     "load_faces",
     "load_mnist",
     "load_mnist_split",
     "read_idx",
     "read_rgb",
+    "samples_dir",
 ]
+
+#: The environment variable naming the data root of the full data sets.
+DATA_ENV = "LAYOUTWARP_DATA"
 
 CAMVID_CLASSES = "Sky Building Pole Road Pavement Tree SignSymbol Fence Car Pedestrian Bicyclist".split()
 VOID = 11
 AGE_GROUPS = ((0, 14), (15, 29), (30, 44), (45, 59), (60, 200))
+
+
+def samples_dir() -> Path:
+    """The bundled samples: ``layoutwarp/data_samples`` in an installed package, the checkout's
+    ``data_samples/`` when running from a source tree.
+
+    Raises:
+        FileNotFoundError: neither is there (a broken installation).
+    """
+    package = Path(__file__).resolve().parents[1]
+    for cand in (package / "data_samples", package.parent / "data_samples"):
+        if (cand / "mnist").is_dir():
+            return cand
+    raise FileNotFoundError(f"the bundled data samples are missing (looked in {package} and beside it)")
+
+
+def data_root(root: str | Path | None = None, quick: bool = False) -> Path | None:
+    """The data root: ``root`` when given, the bundled samples with ``quick``, else the folder
+    the environment variable :data:`DATA_ENV` names, else ``None`` (no full data here)."""
+    if root is not None:
+        return Path(root)
+    if quick:
+        return samples_dir()
+    env = os.environ.get(DATA_ENV)
+    return Path(env) if env else None
+
+
+def images_to_tensor(images: np.ndarray) -> torch.Tensor:
+    """uint8 images ``(N, H, W, 3)`` as a contiguous uint8 tensor ``(N, 3, H, W)``."""
+    return torch.from_numpy(images).permute(0, 3, 1, 2).contiguous()
 
 
 def read_idx(path: str | Path) -> np.ndarray:

@@ -21,7 +21,11 @@ __all__ = ["run_demo"]
 
 
 def run_demo(
-    image: str | Path, out: str | Path, size: tuple[int, int], theta: tuple[float, float], tol: float
+    image: str | Path,
+    out: str | Path,
+    size: tuple[int, int],
+    theta: tuple[float, float],
+    tol: float | None = None,
 ) -> dict:
     """Simulate the uniform, rect and curv layouts, an off-centre fovea and the spline and grid
     layouts that follow the photo's own edge density on ``image``; write figures and ``demo.json``.
@@ -53,7 +57,7 @@ def run_demo(
         sim, plan = simulate(img, layout, size, "exact", tol=tol, return_plan=True)
         elapsed = time.perf_counter() - t0
         arr = sim[0].permute(1, 2, 0).numpy()
-        areas = pixel_mesh(layout, size, tol=tol).areas()
+        areas = pixel_mesh(layout, size, tol=plan.details.get("tol")).areas()
         panels.append((name, layout, arr))
         numbers["layouts"][name] = {
             "family": layout.family,

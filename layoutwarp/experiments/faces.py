@@ -2,50 +2,31 @@
 
 Gender (2 classes), age group (:data:`~layoutwarp.experiments.data.AGE_GROUPS`) and race (5)
 from an 8x8 or 16x16 sensor, one head each; accuracies per attribute and their mean. The
-uniform layout is the baseline.
+faces are split once (a fixed permutation, a fifth for testing); the uniform layout is the
+baseline.
 """
 
 from __future__ import annotations
 
-import json
-import time
 from pathlib import Path
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ..layoutfile import save_layout
+from ..layouts import Layout
 from ..sensor import SensorLayer
-from .camvid import conv_block, normalise_rgb, to_tensor
-from .data import AGE_GROUPS, load_faces
-from .training import (
-    ExperimentDefaults,
-    TaskRun,
-    fit,
-    layout_name,
-    model_device,
-    optimizer,
-    run_grid,
-    save_runs,
-    theta_text,
-)
+from .data import AGE_GROUPS, images_to_tensor, load_faces
+from .nets import conv_block, normalise_rgb
+from .tasks import StudyPlan, Task, TaskData, TaskDefaults, register_task
+from .training import BatchLoss, model_device
 
-__all__ = ["DEFAULTS", "FaceNet", "evaluate_faces", "run_faces_experiment", "train_faces"]
+__all__ = ["TEST_FRACTION", "FaceNet", "FacesTask", "split_faces"]
 
-DEFAULTS = ExperimentDefaults(
-    task="faces",
-    shared="faces/utkface_subset",
-    sample="faces/utkface",
-    families=("uniform", "rect"),
-    sizes=((8, 8), (16, 16)),
-    seeds=3,
-    epochs=30,
-    quick_epochs=2,
-    tol=1e-3,
-)
+#: The share of the faces held out for testing.
+TEST_FRACTION = 0.2
 
 
 class FaceNet(nn.Module):
@@ -53,7 +34,7 @@ class FaceNet(nn.Module):
 
     HEADS: ClassVar[dict[str, int]] = {"gender": 2, "age_group": len(AGE_GROUPS), "race": 5}
 
-    def __init__(self, layout: str, size: tuple[int, int], learn: bool = True, **sensor):
+    def __init__(self, layout: str | Layout, size: tuple[int, int], learn: bool = True, **sensor: Any):
         super().__init__()
         self.sensor = SensorLayer(size, layout, learn=learn, **sensor)
         self.body = nn.Sequential(conv_block(3, 32), nn.MaxPool2d(2, ceil_mode=True), conv_block(32, 64))
@@ -67,153 +48,91 @@ class FaceNet(nn.Module):
         return {k: head(z) for k, head in self.heads.items()}
 
 
-def train_faces(
-    data: dict[str, np.ndarray],
-    train_idx: np.ndarray,
-    test_idx: np.ndarray,
-    layout: str,
-    size: tuple[int, int],
-    *,
-    seed: int = 0,
-    epochs: int = DEFAULTS.epochs,
-    freeze_epochs: int = DEFAULTS.freeze_epochs,
-    batch_size: int = 64,
-    lr: float = 2e-3,
-    theta_lr: float = 0.01,
-    progress: bool = True,
-    sensor: dict | None = None,
-    device: str | torch.device = "cpu",
-    amp: bool = False,
-) -> tuple[TaskRun, FaceNet]:
-    """Train sensor + FaceNet on the ``train_idx`` faces; accuracies on ``test_idx``."""
-    torch.manual_seed(seed)
-    gen = torch.Generator().manual_seed(seed)
-    model = FaceNet(layout, size, learn=layout != "uniform", **(sensor or DEFAULTS.sensor())).to(device)
-    opt = optimizer(model, lr, theta_lr)
-    x = to_tensor(data["images"])
-    targets = {k: torch.from_numpy(data[k]).long().to(device) for k in FaceNet.HEADS}
-
-    def batch_loss(idx: torch.Tensor, net: nn.Module) -> torch.Tensor:
-        xb = x[idx].to(device).float().div_(255)
-        if bool(torch.rand((), generator=gen) < 0.5):  # horizontal flip
-            xb = xb.flip(-1)
-        out = net(xb)
-        return sum(F.cross_entropy(out[key], targets[key][idx.to(device)]) for key in out)
-
-    t0 = time.perf_counter()
-    history = fit(
-        model,
-        torch.from_numpy(train_idx),
-        batch_loss,
-        opt,
-        gen,
-        epochs=epochs,
-        batch_size=batch_size,
-        freeze_epochs=freeze_epochs,
-        sched=torch.optim.lr_scheduler.CosineAnnealingLR(opt, max(epochs, 1)),
-        desc=f"faces {layout_name(layout)} {size[1]}x{size[0]} seed {seed}",
-        progress=progress,
-        amp=amp,
-    )
-    test = torch.from_numpy(test_idx)
-    scores = evaluate_faces(model, x[test], {k: v[test.to(device)] for k, v in targets.items()})
-    run = TaskRun(
-        "faces", layout_name(layout), list(size), seed, scores, model.sensor.theta.detach().tolist(), history
-    )
-    run.seconds = time.perf_counter() - t0
-    return run, model
-
-
-@torch.no_grad()
-def evaluate_faces(
-    model: FaceNet, x: torch.Tensor, targets: dict[str, torch.Tensor], batch_size: int = 256
-) -> dict:
-    """Accuracy (percent) per attribute and their mean."""
-    model.eval()
-    device = model_device(model)
-    correct = dict.fromkeys(targets, 0)
-    for k in range(0, len(x), batch_size):
-        out = model(x[k : k + batch_size].to(device).float().div(255))
-        for key in targets:
-            correct[key] += int((out[key].argmax(1) == targets[key][k : k + batch_size].to(device)).sum())
-    acc = {key: 100.0 * c / len(x) for key, c in correct.items()}
-    return {**acc, "mean": float(np.mean(list(acc.values())))}
-
-
-def run_faces_experiment(
-    data_dir: str | Path,
-    out: str | Path,
-    families: tuple[str, ...] = DEFAULTS.families,
-    sizes: tuple[tuple[int, int], ...] = DEFAULTS.sizes,
-    seeds: tuple[int, ...] = tuple(range(DEFAULTS.seeds)),
-    epochs: int = DEFAULTS.epochs,
-    limit: int | None = None,
-    test_fraction: float = 0.2,
-    progress: bool = True,
-    sensor: dict | None = None,
-    device: str | torch.device = "cpu",
-    amp: bool = False,
-) -> dict:
-    """Every family × sensor size × seed on UTKFace attributes; writes results.json and figures."""
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    sensor = sensor or DEFAULTS.sensor()
-    data = load_faces(data_dir, limit)
-    n = len(data["images"])
-    order = np.random.default_rng(1234).permutation(n)  # one fixed split for every run
-    n_test = max(1, round(n * test_fraction))
+def split_faces(faces: dict[str, np.ndarray]) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """The one fixed train/test split of a faces set (a permutation seeded 1234; the test part is
+    :data:`TEST_FRACTION` of the faces, at least one), each part in its original order."""
+    n = len(faces["images"])
+    order = np.random.default_rng(1234).permutation(n)
+    n_test = max(1, round(n * TEST_FRACTION))
     test_idx, train_idx = np.sort(order[:n_test]), np.sort(order[n_test:])
-    metrics = (*FaceNet.HEADS, "mean")
-    configs = [(f, tuple(size), seed) for size in sizes for f in families for seed in seeds]
-    models = run_grid(
-        "faces",
-        out,
-        configs,
-        lambda layout, size, seed: train_faces(
-            data,
-            train_idx,
-            test_idx,
-            layout,
-            size,
-            seed=seed,
-            epochs=epochs,
-            progress=progress,
-            sensor=sensor,
-            device=device,
-            amp=amp,
-        ),
-        sensor=sensor,
-        training={"epochs": epochs},
-        describe=lambda run: "  ".join(f"{k} {run.scores[k]:5.1f}" for k in metrics),
-        save=lambda runs: save_runs(
-            out, "faces", data_dir, len(train_idx), len(test_idx), epochs, runs, metrics, sensor
-        ),
+    return {k: v[train_idx] for k, v in faces.items()}, {k: v[test_idx] for k, v in faces.items()}
+
+
+@register_task
+class FacesTask(Task):
+    """UTKFace attributes (train and test: the fixed split of :func:`split_faces`)."""
+
+    name = "faces"
+    folder = "faces/utkface_subset"
+    description = "UTKFace gender, age group and race from a small sensor"
+    metrics = ("mean", *FaceNet.HEADS)
+    metric_label = "mean test accuracy (%)"
+    report_split = "test"
+    defaults = TaskDefaults(
+        families=("uniform", "rect"),
+        sizes=((8, 8), (16, 16)),
+        seeds=3,
+        epochs=30,
+        batch_size=64,
+        lr=2e-3,
+        theta_lr=0.01,
+        tol=1e-3,
+        cosine=True,
     )
-    for (layout, size), model in models.items():
-        save_layout(
-            model.sensor.layout,
-            out / f"layout_{layout}_{size[1]}x{size[0]}.json",
-            size=size,
-            experiment="faces",
+    quick: ClassVar[dict[str, Any]] = {"epochs": 2}
+    study = StudyPlan(((4, 4), (6, 6), (8, 8), (12, 12), (16, 16)), ((6, 6), (8, 8)))
+
+    def load(self, folder: Path, limit: int | None = None) -> TaskData:
+        train, test = split_faces(load_faces(folder, limit))
+        return TaskData(
+            train, test, Path(folder), {"train": len(train["images"]), "report": len(test["images"])}
         )
-    _faces_figure(data["images"][test_idx[:1]], models, out)
-    return json.loads((out / "results.json").read_text())
 
+    def load_split(self, folder: Path, split: str | None) -> Any:
+        if split is not None:
+            raise ValueError(
+                f"--split: a faces folder has no splits (every face in labels.csv is scored), got {split!r}"
+            )
+        return load_faces(folder)
 
-def _faces_figure(images: np.ndarray, models: dict, out: Path) -> None:
-    from .plots import draw_layout, figure, save_figure
+    def density_images(self, data: TaskData) -> torch.Tensor:
+        return torch.from_numpy(data.train["images"][:1000]).float().permute(0, 3, 1, 2)
 
-    models = {key: model.cpu() for key, model in models.items()}  # figures are drawn on the CPU
+    def scene(self, data: TaskData) -> np.ndarray:
+        return data.train["images"][:500].mean(0) / 255.0  # the mean face
 
-    keys = list(models)
-    fig, axes = figure(2, len(keys), figsize=(3 * len(keys), 6), squeeze=False)
-    for k, (layout, size) in enumerate(keys):
-        model = models[(layout, size)]
-        draw_layout(axes[0, k], model.sensor.layout, size, image=images[0] / 255.0, lw=0.8)
-        axes[0, k].set_title(f"{layout} {size[1]}x{size[0]} {theta_text(model)}", fontsize=8)
-        with torch.no_grad():
-            s = model.sensor(torch.from_numpy(images[0]).permute(2, 0, 1)[None].float() / 255)[0]
-        axes[1, k].imshow(np.clip(s.permute(1, 2, 0).numpy(), 0, 1), interpolation="nearest")
-        axes[1, k].set_xticks([])
-        axes[1, k].set_yticks([])
-    save_figure(fig, out / "faces_layouts.png", dpi=100)
+    def network(
+        self, layout: str | Layout, size: tuple[int, int], learn: bool = True, **sensor: Any
+    ) -> nn.Module:
+        return FaceNet(layout, size, learn=learn, **sensor)
+
+    def batches(
+        self, model: nn.Module, train: Any, gen: torch.Generator, options: dict[str, Any]
+    ) -> tuple[torch.Tensor, BatchLoss]:
+        device = model_device(model)
+        x = images_to_tensor(train["images"])
+        targets = {k: torch.from_numpy(train[k]).long().to(device) for k in FaceNet.HEADS}
+
+        def batch_loss(idx: torch.Tensor, net: nn.Module) -> torch.Tensor:
+            xb = x[idx].to(device).float().div_(255)
+            if bool(torch.rand((), generator=gen) < 0.5):  # horizontal flip
+                xb = xb.flip(-1)
+            out = net(xb)
+            return sum(F.cross_entropy(out[key], targets[key][idx.to(device)]) for key in out)
+
+        return torch.arange(len(x)), batch_loss
+
+    @torch.no_grad()
+    def score(self, model: nn.Module, part: Any, batch_size: int = 256) -> dict[str, Any]:
+        """Accuracy (percent) per attribute and their mean."""
+        model.eval()
+        device = model_device(model)
+        x = images_to_tensor(part["images"])
+        correct = dict.fromkeys(FaceNet.HEADS, 0)
+        for k in range(0, len(x), batch_size):
+            out = model(x[k : k + batch_size].to(device).float().div(255))
+            for key in correct:
+                truth = torch.from_numpy(part[key][k : k + batch_size]).long().to(device)
+                correct[key] += int((out[key].argmax(1) == truth).sum())
+        acc = {key: 100.0 * c / max(len(x), 1) for key, c in correct.items()}
+        return {"mean": float(np.mean(list(acc.values()))), **acc}

@@ -17,7 +17,15 @@ from ..coords import sensor_to_pixels
 from ..layouts import FAMILIES, Layout
 from ..mesh import pixel_mesh
 
-__all__ = ["draw_layout", "family_color", "figure", "layout_figure", "pareto_figure", "save_figure"]
+__all__ = [
+    "draw_layout",
+    "family_color",
+    "figure",
+    "layout_figure",
+    "pareto_figure",
+    "save_figure",
+    "training_figures",
+]
 
 
 def figure(nrows: int = 1, ncols: int = 1, *, figsize: tuple[float, float] | None = None, **kwargs: Any):
@@ -108,6 +116,90 @@ def layout_figure(
         axes[1, k].set_xticks([])
         axes[1, k].set_yticks([])
     return save_figure(fig, path)
+
+
+def training_figures(task, data, models: dict, records: Sequence, out: str | Path) -> list[Path]:
+    """The figures of a ``train`` run: ``<task>_layouts.png`` and ``<task>_theta.png``.
+
+    ``<task>_layouts.png``: every (family, size)'s first learned layout over the task's scene,
+    its sensor image and, where the task has one (CamVid), its back-warped prediction with a
+    legend. ``<task>_theta.png``: over the epochs, the ratio of the largest to the smallest
+    pixel area of every run (meaningful for every family) and, for families with at most four
+    parameters, θ itself.
+
+    Args:
+        task: the :class:`~layoutwarp.experiments.tasks.Task`.
+        data: its :class:`~layoutwarp.experiments.tasks.TaskData`.
+        models: ``{(family, size): model}`` on the CPU.
+        records: the runs' :class:`~layoutwarp.experiments.runs.RunRecord`.
+        out: the output folder.
+    """
+    out = Path(out)
+    scene = task.scene(data)
+    keys = list(models)
+    extra = [task.prediction_image(models[k], data) for k in keys]
+    rows = 3 if any(e is not None for e in extra) else 2
+    fig, axes = figure(rows, len(keys), figsize=(3.4 * len(keys), 3.1 * rows + 0.4), squeeze=False)
+    img = torch.from_numpy(np.ascontiguousarray(scene)).float()
+    img = img[None, None] if img.ndim == 2 else img.permute(2, 0, 1)[None]
+    for k, (family, size) in enumerate(keys):
+        model = models[family, size]
+        draw_layout(axes[0, k], model.sensor.layout, size, image=scene, color=family_color(family), lw=0.8)
+        axes[0, k].set_title(f"{family} {size[1]}x{size[0]}", fontsize=9)
+        with torch.no_grad():
+            s = model.sensor(img)[0].permute(1, 2, 0).numpy()
+        axes[1, k].imshow(
+            np.clip(s[..., 0] if s.shape[-1] == 1 else s, 0, 1),
+            cmap="gray" if s.shape[-1] == 1 else None,
+            vmin=0,
+            vmax=1,
+            interpolation="nearest",
+        )
+        axes[1, k].set_title("sensor image", fontsize=9)
+        if rows == 3 and extra[k] is not None:
+            axes[2, k].imshow(extra[k], interpolation="nearest")
+            axes[2, k].set_title("back-warped prediction", fontsize=9)
+        for ax in axes[1:, k]:
+            ax.set_xticks([])
+            ax.set_yticks([])
+    legend = task.legend()
+    if legend:
+        from matplotlib.patches import Patch
+
+        handles = [Patch(color=np.asarray(c) / 255, label=name) for name, c in legend.items()]
+        fig.legend(handles=handles, loc="lower center", ncol=min(len(handles), 6), fontsize=7, frameon=False)
+    fig.suptitle(
+        f"{task.name}: the first seed's layouts over a {task.report_split} image, and what they record"
+    )
+    paths = [save_figure(fig, out / f"{task.name}_layouts.png", dpi=100)]
+    if legend:  # keep room for the legend below the panels
+        fig.subplots_adjust(bottom=0.12)
+        fig.savefig(paths[0], dpi=100)
+    learned = [r for r in records if len(r.theta_history) > 1 and len(r.theta) > 0]
+    fig, axes = figure(1, 2, figsize=(11, 3.8), squeeze=False)
+    seen: set[str] = set()
+    for r in learned:
+        label = f"{r.family} {r.size_hw[1]}x{r.size_hw[0]}"
+        first = label not in seen
+        seen.add(label)
+        color = family_color(r.family) if r.family != "density" else "tab:gray"
+        axes[0, 0].plot(r.area_ratio_history, color=color, label=label if first else None)
+        if len(r.theta) <= 4:
+            hist = np.asarray(r.theta_history)
+            for j, ls in zip(range(hist.shape[1]), ("-", "--", ":", "-."), strict=False):
+                name = ("θx", "θy", "cx", "cy")[j]
+                axes[0, 1].plot(hist[:, j], ls, color=color, label=f"{label} {name}" if first else None)
+    axes[0, 0].set_yscale("log")
+    axes[0, 0].set_ylabel("largest / smallest pixel area")
+    axes[0, 0].set_title("pixel-size range during training (each seed)", fontsize=10)
+    axes[0, 1].set_ylabel("θ")
+    axes[0, 1].set_title("θ during training (families with ≤ 4 parameters)", fontsize=10)
+    for ax in axes[0]:
+        ax.set_xlabel("epoch")
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=7)
+    paths.append(save_figure(fig, out / f"{task.name}_theta.png", dpi=100))
+    return paths
 
 
 _METHOD_MARKERS = {"separable": "s", "exact": "D", "montecarlo": "o", "point": "^"}

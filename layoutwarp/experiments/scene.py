@@ -13,13 +13,9 @@ from torch import Tensor
 
 from ..layouts import Layout
 from ..mesh import MeshTopology, smooth_pieces
+from .data import samples_dir
 
-__all__ = ["PHOTO_CANDIDATES", "SineScene", "blurred_noise", "load_photo"]
-
-PHOTO_CANDIDATES = (
-    Path(__file__).resolve().parents[2] / "data_samples" / "photos" / "kodim20.png",
-    Path(__file__).resolve().parents[3] / "shared" / "data" / "photos" / "kodak24" / "kodim20.png",
-)
+__all__ = ["SineScene", "blurred_noise", "load_photo"]
 
 
 def blurred_noise(h: int, w: int, c: int = 3, sigma: float = 2.0, seed: int = 0) -> Tensor:
@@ -34,10 +30,9 @@ def blurred_noise(h: int, w: int, c: int = 3, sigma: float = 2.0, seed: int = 0)
 def load_photo(h: int, w: int, path: str | Path | None = None) -> Tensor | None:
     """A real photo (Kodak ``kodim20``) resized to ``(h, w)`` with INTER_CUBIC, ``(1, 3, h, w)`` in [0, 1].
 
-    Returns ``None`` when no photo is found (``path``, then ``data_samples/``, then the
-    shared data folder).
+    ``path`` defaults to the bundled samples' copy; returns ``None`` when that cannot be read.
     """
-    for p in [Path(path)] if path else PHOTO_CANDIDATES:
+    for p in [Path(path)] if path else [samples_dir() / "photos" / "kodim20.png"]:
         bgr = cv2.imread(str(p), cv2.IMREAD_COLOR)
         if bgr is not None:
             rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB).astype(np.float32) / 255

@@ -7,34 +7,35 @@ count* is the pixel count at which the (log-linearly interpolated) uniform curve
 learned metric, and the *pixel saving factor* is that count over the learned sensor's pixels.
 The interval maps the learned metric's mean ± one seed standard deviation the same way.
 
-``density`` is the unlearned baseline :func:`~layoutwarp.layout_from_density` on the training
-set's statistics (mean edge strength of the images; of the label maps for CamVid).
+``density`` is the unlearned baseline :meth:`~.tasks.Task.density_layout` on the training
+set's statistics (mean edge strength of the images; of the label maps for CamVid). What a task's
+study trains is its :class:`~.tasks.StudyPlan` (``task.study``); every run is one
+:func:`~.runs.train_run`.
 
-Every run writes its record (``runs/<family>_<W>x<H>_seed<s>.json``) and model file
-(``models/…pt``) when it finishes, atomically; a restarted study skips finished runs, so it can
-be stopped at any time. Nothing is chosen on the report split: fixed epochs, no early stopping.
+Every run writes its record (``runs/<family>_<W>x<H>_seed<s>.json``, a
+:class:`~.runs.RunRecord`) and model file (``models/…pt``) when it finishes, atomically; a
+restarted study skips finished runs, so it can be stopped at any time. Nothing is chosen on the
+report split: fixed epochs, no early stopping.
 """
 
 from __future__ import annotations
 
 import json
 import math
-import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import asdict, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
-import torch
 
-from ..density import edge_density, layout_from_density
-from ..files import atomic_write
+from ..files import atomic_write, run_info
 from ..layouts import Layout
-from .models import run_name, save_model
+from .models import save_model
+from .runs import RunOptions, run_name, train_run
+from .tasks import StudyPlan, Task
 
 __all__ = [
-    "PLANS",
-    "StudyPlan",
     "equivalent_pixels",
     "run_study",
     "ship_study",
@@ -44,50 +45,6 @@ __all__ = [
 ]
 
 
-@dataclass(frozen=True)
-class StudyPlan:
-    """What a task's study trains.
-
-    Attributes:
-        metric: the score read from each run (higher is better) and its label.
-        uniform_sizes: sensor sizes ``(H, W)`` of the uniform curve.
-        learned_sizes: sizes at which every other family is trained.
-        families: the other families (``"density"``: the unlearned baseline).
-        seeds: seeds per configuration.
-        tol: the exact integrator's tolerance of every run (``None``: the experiment's default).
-    """
-
-    metric: str
-    label: str
-    uniform_sizes: tuple[tuple[int, int], ...]
-    learned_sizes: tuple[tuple[int, int], ...]
-    families: tuple[str, ...] = ("rect", "curv", "fovea", "spline", "grid", "density")
-    seeds: int = 3
-    tol: float | None = None
-
-
-#: The uniform curve reaches past the largest learned size, so that a learned layout that beats
-#: uniform there gets an equivalent pixel count and not just a bound.
-PLANS = {
-    "mnist": StudyPlan(
-        "accuracy",
-        "test accuracy (%)",
-        ((2, 2), (3, 3), (4, 4), (5, 5), (6, 6), (7, 7)),
-        ((3, 3), (4, 4)),
-        tol=1e-5,  # the experiment's default when the study was run; kept so its runs compare
-    ),
-    "camvid": StudyPlan(
-        "miou",
-        "val mIoU (%)",
-        ((18, 24), (27, 36), (36, 48), (54, 72), (72, 96), (90, 120)),
-        ((36, 48), (72, 96)),
-    ),
-    "faces": StudyPlan(
-        "mean", "mean test accuracy (%)", ((4, 4), (6, 6), (8, 8), (12, 12), (16, 16)), ((6, 6), (8, 8))
-    ),
-}
-
-
 def study_runs(plan: StudyPlan, seeds: int) -> list[tuple[str, tuple[int, int], int]]:
     """Every ``(family, size, seed)`` of a plan, uniform curve first."""
     runs = [("uniform", s, k) for s in plan.uniform_sizes for k in range(seeds)]
@@ -95,142 +52,80 @@ def study_runs(plan: StudyPlan, seeds: int) -> list[tuple[str, tuple[int, int], 
     return runs
 
 
-class _Task:
-    """Loads a task's data once and trains one configuration of it."""
-
-    def __init__(
-        self,
-        task: str,
-        data_dir: Path,
-        epochs: int | None,
-        tol: float | None,
-        progress: bool,
-        device: str,
-        amp: bool,
-    ) -> None:
-        self.task, self.progress, self.device, self.amp = task, progress, device, amp
-        if task == "mnist":
-            from .data import load_mnist
-            from .mnist import DEFAULTS
-
-            self.data = load_mnist(data_dir)
-            stats = torch.from_numpy(self.data["train_images"][:4000]).float()
-        elif task == "camvid":
-            from .camvid import DEFAULTS
-            from .data import load_camvid
-
-            self.train_set, self.val_set = load_camvid(data_dir, "train"), load_camvid(data_dir, "val")
-            stats = torch.from_numpy(self.train_set[1]).float()  # label boundaries
-        else:
-            from .data import load_faces
-            from .faces import DEFAULTS
-
-            self.data = load_faces(data_dir)
-            n = len(self.data["images"])
-            order = np.random.default_rng(1234).permutation(n)  # the experiment's fixed split
-            n_test = max(1, round(n * 0.2))
-            self.test_idx, self.train_idx = np.sort(order[:n_test]), np.sort(order[n_test:])
-            stats = torch.from_numpy(self.data["images"][self.train_idx[:1000]]).float().permute(0, 3, 1, 2)
-        self.defaults = DEFAULTS
-        self.epochs = epochs or DEFAULTS.epochs
-        self.sensor = DEFAULTS.sensor() | ({"tol": tol} if tol is not None else {})
-        self.density = edge_density(stats)
-
-    def layout(self, family: str, size: tuple[int, int]) -> str | Layout:
-        if family == "density":
-            return layout_from_density(self.density, size, "grid", dtype=torch.float32)
-        return family
-
-    def train(self, family: str, size: tuple[int, int], seed: int) -> tuple[dict, torch.nn.Module, list]:
-        layout = self.layout(family, size)
-        kw = {"seed": seed, "epochs": self.epochs, "progress": self.progress, "sensor": self.sensor}
-        kw |= {"device": self.device, "amp": self.amp}
-        if self.task == "mnist":
-            from .mnist import train_mnist
-
-            res, model = train_mnist(self.data, layout, size=size, **kw)
-            return {"accuracy": res.test_accuracy}, model, res.theta
-        if self.task == "camvid":
-            from .camvid import train_camvid
-
-            freeze = min(self.defaults.freeze_epochs, max(self.epochs - 1, 0))
-            run, model = train_camvid(self.train_set, self.val_set, layout, size, freeze_epochs=freeze, **kw)
-            return run.scores, model, run.theta
-        from .faces import train_faces
-
-        run, model = train_faces(self.data, self.train_idx, self.test_idx, layout, size, **kw)
-        return run.scores, model, run.theta
+def study_options(task: Task, plan: StudyPlan, **changes: Any) -> RunOptions:
+    """The options every run of a study trains with: the task's defaults at the plan's tolerance,
+    with ``changes`` (epochs, device, ...; ``None`` keeps the default)."""
+    options = RunOptions.of(task.defaults, **changes)
+    if plan.tol is not None:
+        options = replace(options, sensor=options.sensor | {"tol": plan.tol})
+    return options
 
 
 def run_study(
-    task: str,
-    data_dir: str | Path,
+    task: Task,
+    folder: str | Path,
     out: str | Path,
     *,
     plan: StudyPlan | None = None,
     seeds: int | None = None,
-    epochs: int | None = None,
-    progress: bool = True,
-    device: str = "cpu",
-    amp: bool = False,
+    options: RunOptions | None = None,
     say: Callable[[str], None] = print,
 ) -> dict:
     """Run (or resume) a task's study; write ``study.json``, ``study.md`` and ``study_<task>.png``.
 
+    Args:
+        task: the task.
+        folder: its data folder.
+        out: the study folder (rerun with the same folder to resume).
+        plan: what to train (default: ``task.study``).
+        seeds: seeds per configuration (default: the plan's).
+        options: how every run trains (default: :func:`study_options`).
+        say: where progress lines go.
+
     Returns:
         the summary written to ``study.json``.
     """
-    plan = plan or PLANS[task]
+    plan = plan or task.study
+    options = options or study_options(task, plan)
     out = Path(out)
-    seeds = seeds or plan.seeds
-    todo = study_runs(plan, seeds)
+    todo = study_runs(plan, seeds or plan.seeds)
     done = sum((out / "runs" / f"{run_name(*r)}.json").exists() for r in todo)
-    say(f"{task} study: {len(todo)} runs, {done} already done, in {out}")
-    runner = None
+    say(f"{task.name} study: {len(todo)} runs, {done} already done, in {out}")
+    data = None
     for k, (family, size, seed) in enumerate(todo):
         name = run_name(family, size, seed)
-        record = out / "runs" / f"{name}.json"
-        if record.exists():
+        path = out / "runs" / f"{name}.json"
+        if path.exists():
             continue
-        runner = runner or _Task(task, Path(data_dir), epochs, plan.tol, progress, device, amp)
-        t0 = time.perf_counter()
-        scores, model, theta = runner.train(family, size, seed)
-        seconds = time.perf_counter() - t0
-        save_model(
-            out / "models" / f"{name}.pt",
-            task,
-            model,
-            sensor=runner.sensor,
-            training={"seed": seed, "epochs": runner.epochs, "family": family, "scores": scores},
-        )
-        rec = {"family": family, "size_hw": list(size), "seed": seed, "scores": scores}
-        rec |= {
-            "theta": list(theta),
-            "epochs": runner.epochs,
-            "seconds": seconds,
-            "device": device,
-            "amp": amp,
+        data = data or task.load(Path(folder))
+        record, model = train_run(task, data, family, size, seed, options)
+        training = options.record() | {"family": family, "seed": seed, "scores": record.scores}
+        save_model(out / "models" / f"{name}.pt", task.name, model, sensor=options.sensor, training=training)
+        rec = asdict(record) | {
+            "sensor": options.sensor,
+            "training": options.record(),
+            "run": run_info(options.device),
         }
-        atomic_write(record, json.dumps(rec, indent=2))
-        say(f"  [{k + 1}/{len(todo)}] {name}: {plan.metric} {scores[plan.metric]:.2f}  [{seconds:.0f} s]")
+        atomic_write(path, json.dumps(rec, indent=2))
+        score = record.scores[task.metric]
+        say(f"  [{k + 1}/{len(todo)}] {name}: {task.metric} {score:.2f}%  [{record.seconds:.0f} s]")
         write_summary(task, out, plan, planned=len(todo))  # a stopped study still has its figures
     return write_summary(task, out, plan, planned=len(todo))
 
 
 def write_summary(
-    task: str, out: str | Path, plan: StudyPlan | None = None, planned: int | None = None
+    task: Task, out: str | Path, plan: StudyPlan | None = None, planned: int | None = None
 ) -> dict:
     """Summarise the runs a study folder holds so far into ``study.json``, ``study.md`` and
     ``study_<task>.png``; returns the summary."""
-    plan = plan or PLANS[task]
     out = Path(out)
     records = [json.loads(p.read_text()) for p in sorted((out / "runs").glob("*.json"))]
     if not records:
         raise FileNotFoundError(f"no finished runs in {out / 'runs'}")
-    summary = summarise_study(task, plan, records) | {"planned": planned}
+    summary = summarise_study(task, records) | {"planned": planned}
     atomic_write(out / "study.json", json.dumps(summary, indent=2))
     atomic_write(out / "study.md", study_table(summary))
-    study_figure(summary, out / f"study_{task}.png")
+    study_figure(summary, out / f"study_{task.name}.png")
     return summary
 
 
@@ -256,7 +151,7 @@ def equivalent_pixels(curve: Sequence[tuple[float, float]], metric: float) -> tu
     return float(math.exp(px[k - 1] + t * (px[k] - px[k - 1]))), "="
 
 
-def summarise_study(task: str, plan: StudyPlan, records: list[dict]) -> dict:
+def summarise_study(task: Task, records: list[dict]) -> dict:
     """Mean ± std per family and size, the uniform curve, and every learned result's equivalent
     uniform pixel count and saving factor (with the interval from the seed spread)."""
     groups: dict[tuple[str, tuple[int, int]], list[dict]] = {}
@@ -266,7 +161,7 @@ def summarise_study(task: str, plan: StudyPlan, records: list[dict]) -> dict:
     for (family, size), scores in sorted(
         groups.items(), key=lambda kv: (kv[0][1][0] * kv[0][1][1], kv[0][0])
     ):
-        v = np.array([float(s[plan.metric]) for s in scores])
+        v = np.array([float(s[task.metric]) for s in scores])
         row = {
             "family": family,
             "size_hw": list(size),
@@ -293,7 +188,14 @@ def summarise_study(task: str, plan: StudyPlan, records: list[dict]) -> dict:
         hi, _ = equivalent_pixels(curve, r["mean"] + r["std"])
         r |= {"equivalent_pixels": eq, "bound": rel, "saving": eq / r["pixels"]}
         r |= {"saving_interval": [lo / r["pixels"], hi / r["pixels"]]}
-    return {"task": task, "metric": plan.metric, "label": plan.label, "rows": rows, "runs": len(records)}
+    return {
+        "task": task.name,
+        "metric": task.metric,
+        "label": task.metric_label,
+        "units": "percent",
+        "rows": rows,
+        "runs": len(records),
+    }
 
 
 def study_table(summary: dict) -> str:
@@ -384,24 +286,8 @@ def study_figure(summary: dict, path: str | Path) -> Path:
     return save_figure(fig, path)
 
 
-def study_scene(task: str, data_dir: str | Path) -> np.ndarray:
-    """The image learned layouts are drawn over: the mean test digit (MNIST), the mean
-    training face (faces), the first validation frame (CamVid); HW or HWC in ``[0, 1]``."""
-    if task == "mnist":
-        from .data import load_mnist_split
-
-        return load_mnist_split(data_dir, "test")[0][:2000].mean(0) / 255
-    if task == "camvid":
-        from .data import load_camvid
-
-        return load_camvid(data_dir, "val", limit=1)[0][0] / 255
-    from .data import load_faces
-
-    return load_faces(data_dir, limit=500)["images"].mean(0) / 255
-
-
 def ship_study(
-    task: str,
+    task: Task,
     out: str | Path,
     dest: str | Path,
     scene: np.ndarray | None = None,
@@ -416,7 +302,8 @@ def ship_study(
     layout file of every run with a non-uniform layout; with ``models``,
     ``models/<run>.pt`` (in ``weights`` precision, see :func:`~.models.save_model`) of each
     family's best seed at each learned size;
-    with a ``scene``, ``layouts_<task>.png``: those best layouts drawn over it; with
+    with a ``scene`` (e.g. :meth:`~.tasks.Task.scene`), ``layouts_<task>.png``: those best
+    layouts drawn over it; with
     ``samples`` (a small data folder, e.g. the bundled ``data_samples/``),
     ``samples_scores.json``: each shipped model's scores there, read back from its shipped
     file (so anyone can check that ``evaluate`` reproduces them). ``planned``: the number of
@@ -433,40 +320,41 @@ def ship_study(
     if planned is None and previous.exists():
         planned = json.loads(previous.read_text()).get("planned")
     summary = write_summary(task, out, planned=planned)
-    for name in ("study.json", "study.md", f"study_{task}.png"):
+    for name in ("study.json", "study.md", f"study_{task.name}.png"):
         atomic_write(dest / name, (out / name).read_bytes())
     records = [json.loads(p.read_text()) for p in sorted((out / "runs").glob("*.json"))]
-    learned = set(PLANS[task].learned_sizes)
+    learned = {tuple(s) for s in task.study.learned_sizes}
     best: dict[tuple[str, tuple[int, int]], dict] = {}
     for r in records:
         name, size = run_name(r["family"], r["size_hw"], r["seed"]), tuple(r["size_hw"])
         if r["family"] == "uniform" and size not in learned:
             continue  # no layout to ship and never a shipped model: not worth loading
-        net, info = load_model(out / "models" / f"{name}.pt", task)
+        net, info = load_model(out / "models" / f"{name}.pt", task.name)
         if r["family"] != "uniform":
-            extra = {"task": task, "run": name, "scores": r["scores"]}
+            extra = {"task": task.name, "run": name, "scores": r["scores"]}
             save_layout(net.sensor.layout, dest / "layouts" / f"{name}.json", size, **extra)
         key = (r["family"], size)
-        if size in learned and (key not in best or r["scores"][PLANS[task].metric] > best[key]["score"]):
-            best[key] = {"score": r["scores"][PLANS[task].metric], "name": name, "net": net, "info": info}
+        score = r["scores"][task.metric]
+        if size in learned and (key not in best or score > best[key]["score"]):
+            best[key] = {"score": score, "name": name, "net": net, "info": info}
     sample_scores = {}
     for b in best.values() if models else ():
         path = save_model(
             dest / "models" / f"{b['name']}.pt",
-            task,
+            task.name,
             b["net"],
             sensor=b["info"]["sensor"],
             training=b["info"]["training"],
             weights=weights,
         )
         if samples is not None:
-            shipped, _ = load_model(path, task)
-            sample_scores[path.name] = evaluate_model(task, shipped, samples)
+            shipped, _ = load_model(path, task.name)
+            sample_scores[path.name] = evaluate_model(task.name, shipped, samples)
     if sample_scores:
         atomic_write(dest / "samples_scores.json", json.dumps(sample_scores, indent=2, sort_keys=True))
     layouts = {k: b["net"].sensor.layout for k, b in best.items() if k[0] != "uniform"}
     if scene is not None and layouts:
-        layouts_figure(scene, layouts, dest / f"layouts_{task}.png")
+        layouts_figure(scene, layouts, dest / f"layouts_{task.name}.png")
     return summary
 
 

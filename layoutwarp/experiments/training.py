@@ -1,83 +1,49 @@
-"""What every experiment shares: its defaults, the training loop, run records and summaries."""
+"""The training loop every task shares, its optimiser, devices and processes."""
 
 from __future__ import annotations
 
-import json
 import os
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field
-from pathlib import Path
 
-import numpy as np
 import torch
 from torch import nn
 from tqdm import tqdm
 
-from ..files import atomic_write
-from .models import save_run_model
-
 __all__ = [
-    "ExperimentDefaults",
-    "TaskRun",
+    "BatchLoss",
     "autocast",
     "default_device",
     "fit",
     "format_theta",
-    "layout_name",
+    "init_distributed",
     "model_device",
     "optimizer",
-    "run_grid",
-    "save_runs",
-    "summarise",
-    "theta_text",
     "world",
 ]
 
+#: A task's loss on a batch: ``(indices, net) -> loss``, ``net`` the module to call.
+BatchLoss = Callable[[torch.Tensor, nn.Module], torch.Tensor]
 
-@dataclass(frozen=True)
-class ExperimentDefaults:
-    """The one set of defaults of an experiment: its run function and the command line read it.
 
-    Attributes:
-        task: the experiment's name (``layoutwarp train TASK``).
-        shared: its folder under the shared data folder (the full data set).
-        sample: its folder under ``data_samples/`` (used by ``--quick``).
-        families: the layout families it compares (``"uniform"`` is the fixed baseline).
-        sizes: sensor sizes ``(H, W)``.
-        seeds: number of seeds.
-        epochs: training epochs.
-        quick_epochs: epochs with ``--quick`` (which also uses 1 seed and the first size).
-        tol: the exact integrator's curved-edge tolerance.
-        freeze_epochs: epochs with θ frozen at the start (0 with ``--quick``).
-    """
+def init_distributed() -> tuple[int, int]:
+    """Join the process group ``torchrun`` set up for this process (``WORLD_SIZE`` > 1), once:
+    gloo for CPU tensors and NCCL for CUDA tensors where CUDA is available (so ``--device cpu``
+    works on a GPU machine). Returns :func:`world`; alone, it does nothing."""
+    import torch.distributed as dist
 
-    task: str
-    shared: str
-    sample: str
-    families: tuple[str, ...]
-    sizes: tuple[tuple[int, int], ...]
-    seeds: int
-    epochs: int
-    quick_epochs: int
-    tol: float
-    freeze_epochs: int = 0
-
-    def sensor(self) -> dict:
-        """The sensor options of the experiment unless the caller gives its own."""
-        return {"method": "exact", "tol": self.tol}
+    if int(os.environ.get("WORLD_SIZE", "1")) > 1 and dist.is_available() and not dist.is_initialized():
+        dist.init_process_group("cpu:gloo,cuda:nccl" if torch.cuda.is_available() else "gloo")
+    return world()
 
 
 def world() -> tuple[int, int]:
-    """``(rank, world size)`` of this process: ``(0, 1)`` alone; under ``torchrun`` (``WORLD_SIZE``
-    > 1) the process group is initialised once from its environment: gloo for CPU tensors, and
-    NCCL for CUDA tensors where CUDA is available (so ``--device cpu`` works on a GPU machine)."""
+    """``(rank, world size)`` of this process: the process group's once
+    :func:`init_distributed` joined it, else ``(0, 1)``. Starts nothing."""
     import torch.distributed as dist
 
-    if int(os.environ.get("WORLD_SIZE", "1")) <= 1 or not dist.is_available():
-        return 0, 1
-    if not dist.is_initialized():
-        dist.init_process_group("cpu:gloo,cuda:nccl" if torch.cuda.is_available() else "gloo")
-    return dist.get_rank(), dist.get_world_size()
+    if dist.is_available() and dist.is_initialized():
+        return dist.get_rank(), dist.get_world_size()
+    return 0, 1
 
 
 def _check_same_theta(theta: torch.Tensor) -> None:
@@ -94,7 +60,7 @@ def _check_same_theta(theta: torch.Tensor) -> None:
 def fit(
     model: nn.Module,
     indices: torch.Tensor,
-    batch_loss: Callable[[torch.Tensor, nn.Module], torch.Tensor],
+    batch_loss: BatchLoss,
     opt: torch.optim.Optimizer,
     gen: torch.Generator,
     *,
@@ -116,7 +82,7 @@ def fit(
     (``disable=None``), so logs stay readable. ``amp`` runs the network under autocast
     (:func:`autocast`; the sensor itself always integrates in float32).
 
-    Under ``torchrun`` (:func:`world`) every rank draws the same permutation and takes its
+    Under ``torchrun`` (:func:`init_distributed`) every rank draws the same permutation and takes its
     share ``batch[rank::world_size]`` of each global batch; DistributedDataParallel averages
     the gradients (θ included, as an ordinary parameter), so a step equals the single-process
     step on the global batch. After every epoch the ranks' θ are compared (they must agree
@@ -175,92 +141,13 @@ def fit(
     return history
 
 
-@dataclass
-class TaskRun:
-    """One training run of a task."""
-
-    task: str
-    layout: str
-    size_hw: list[int]
-    seed: int
-    scores: dict
-    theta: list[float]
-    theta_history: list[list[float]] = field(default_factory=list)
-    seconds: float = 0.0
-
-
 def optimizer(model: nn.Module, lr: float, theta_lr: float) -> torch.optim.Optimizer:
-    """Adam with the sensor's trainable parameters in a group of their own (``theta_lr``)."""
+    """Adam with the sensor's trainable parameters in a group of their own (``theta_lr``; Adam
+    is elementwise, so ``theta_lr = lr`` is plain Adam over every parameter)."""
     sensor = [p for p in model.sensor.parameters() if p.requires_grad]
     rest = [p for n, p in model.named_parameters() if not n.startswith("sensor.")]
     groups = [{"params": rest, "lr": lr}] + ([{"params": sensor, "lr": theta_lr}] if sensor else [])
     return torch.optim.Adam(groups)
-
-
-def summarise(runs: list[TaskRun], metrics: tuple[str, ...]) -> dict:
-    summary: dict = {}
-    for run in runs:
-        key = f"{run.layout} {run.size_hw[1]}x{run.size_hw[0]}"
-        summary.setdefault(key, {"layout": run.layout, "size_hw": run.size_hw, "runs": []})["runs"].append(
-            run
-        )
-    for s in summary.values():
-        rs = s.pop("runs")
-        for m in metrics:
-            v = np.array([r.scores[m] for r in rs])
-            s[m] = {"mean": float(v.mean()), "std": float(v.std(ddof=1)) if len(v) > 1 else 0.0}
-        s["theta_mean"] = np.mean([r.theta for r in rs], 0).tolist()
-        s["n"] = len(rs)
-    return summary
-
-
-def save_runs(
-    out: Path, task: str, data_dir, n_train: int, n_test: int, epochs: int, runs, metrics, sensor, **options
-) -> None:
-    result = {
-        "task": task,
-        "data": str(data_dir),
-        "train_size": n_train,
-        "test_size": n_test,
-        "epochs": epochs,
-        **options,
-        "sensor": sensor or {"method": "exact"},
-        "summary": summarise(runs, metrics),
-        "runs": [asdict(r) for r in runs],
-    }
-    atomic_write(out / "results.json", json.dumps(result, indent=2))
-
-
-def run_grid(
-    task: str,
-    out: Path,
-    configs: Sequence[tuple[str, tuple[int, int], int]],
-    train: Callable[[str, tuple[int, int], int], tuple[TaskRun, nn.Module]],
-    *,
-    sensor: dict,
-    training: dict,
-    describe: Callable[[TaskRun], str],
-    save: Callable[[list[TaskRun]], None],
-) -> dict[tuple[str, tuple[int, int]], nn.Module]:
-    """Train every ``(family, size, seed)`` of ``configs`` with ``train``; after each run save its
-    model in ``out`` (the ``training`` record plus its scores), print one line (``describe``)
-    and call ``save`` with the runs so far. Returns the first seed's model of every family and
-    size (for figures)."""
-    runs: list[TaskRun] = []
-    models: dict[tuple[str, tuple[int, int]], nn.Module] = {}
-    for family, size, seed in configs:
-        run, model = train(family, size, seed)
-        runs.append(run)
-        models.setdefault((family, tuple(size)), model)
-        info = {"sensor": sensor, "training": {**training, "scores": run.scores}}
-        save_run_model(out, task, family, size, seed, model, **info)
-        print(
-            f"  {task} {family:8s} {size[1]}x{size[0]} seed {seed}: {describe(run)}  "
-            f"θ = {format_theta(run.theta)}  [{run.seconds:.0f} s]",
-            flush=True,
-        )
-        save(runs)
-    return models
 
 
 def format_theta(values: Sequence[float], digits: int = 3) -> str:
@@ -288,13 +175,3 @@ def autocast(model: nn.Module, enabled: bool) -> torch.autocast:
     device = model_device(model).type
     dtype = torch.float16 if device == "cuda" else torch.bfloat16
     return torch.autocast(device_type=device, dtype=dtype, enabled=enabled)
-
-
-def layout_name(layout: str | nn.Module) -> str:
-    """A layout's name in run records and progress bars: the family name it was given, or the
-    family of a layout instance."""
-    return layout if isinstance(layout, str) else str(getattr(layout, "family", type(layout).__name__))
-
-
-def theta_text(model: nn.Module) -> str:
-    return "θ=" + format_theta(model.sensor.theta.detach().tolist(), 2)

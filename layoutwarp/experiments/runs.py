@@ -1,0 +1,324 @@
+"""Training runs: one run of a task, its record, and the experiment loop over many.
+
+Every task trains through :func:`train_run` (the study and the landscape too), records a run
+as a :class:`RunRecord` and writes one results format (:data:`RESULTS_FORMAT`), so a number
+printed by ``train``, ``study`` or ``landscape`` means the same thing everywhere.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from ..coords import uniform_corners
+from ..files import atomic_write, run_info
+from ..layoutfile import save_layout
+from ..layouts import Layout
+from ..mesh import polygon_area
+from .models import save_model
+from .tasks import Task, TaskData, TaskDefaults
+from .training import fit, format_theta, optimizer
+
+__all__ = [
+    "RESULTS_FORMAT",
+    "RunOptions",
+    "RunRecord",
+    "format_summary",
+    "run_experiment",
+    "run_name",
+    "summarise",
+    "train_run",
+]
+
+RESULTS_FORMAT = "layoutwarp.results/1"
+
+
+@dataclass(frozen=True)
+class RunOptions:
+    """How a run trains: the task's defaults, with what the command line changed.
+
+    Attributes:
+        epochs, batch_size, lr, theta_lr, freeze_epochs, cosine: as :class:`TaskDefaults`
+            (frozen epochs are capped at ``epochs − 1``, so θ always trains).
+        sensor: :class:`~layoutwarp.SensorLayer` options (``method``, ``tol``, ...).
+        device: where the network and sensor run.
+        amp: mixed precision for the network (the sensor stays float32).
+        progress: draw progress bars (on terminals).
+        task_options: the task's own options (see :meth:`Task.add_arguments`).
+    """
+
+    epochs: int
+    batch_size: int
+    lr: float
+    theta_lr: float
+    freeze_epochs: int
+    cosine: bool
+    sensor: dict[str, Any]
+    device: str = "cpu"
+    amp: bool = False
+    progress: bool = True
+    task_options: dict[str, Any] = field(default_factory=dict)
+
+    @classmethod
+    def of(cls, defaults: TaskDefaults, **changes: Any) -> RunOptions:
+        """The options of ``defaults`` with ``changes`` (``None`` values keep the default)."""
+        base = {
+            "epochs": defaults.epochs,
+            "batch_size": defaults.batch_size,
+            "lr": defaults.lr,
+            "theta_lr": defaults.theta_lr,
+            "freeze_epochs": defaults.freeze_epochs,
+            "cosine": defaults.cosine,
+            "sensor": defaults.sensor(),
+        }
+        return cls(**(base | {k: v for k, v in changes.items() if v is not None}))
+
+    def record(self) -> dict[str, Any]:
+        """The options as results files and model files record them."""
+        return {k: v for k, v in asdict(self).items() if k not in ("progress", "sensor")}
+
+
+@dataclass
+class RunRecord:
+    """One training run: what trained, its scores (percent) and θ after every epoch.
+
+    ``family`` is the layout family (``"density"`` for the unlearned baseline); ``theta_history``
+    starts with θ before training; ``area_ratio_history`` is the ratio of the largest to the
+    smallest pixel area at the same points (what a grid or spline layout's θ means).
+    """
+
+    task: str
+    family: str
+    size_hw: list[int]
+    seed: int
+    scores: dict[str, Any]
+    theta: list[float]
+    theta_history: list[list[float]] = field(default_factory=list)
+    area_ratio_history: list[float] = field(default_factory=list)
+    epochs: int = 0
+    seconds: float = 0.0
+
+    @property
+    def name(self) -> str:
+        return run_name(self.family, self.size_hw, self.seed)
+
+
+def run_name(family: str, size: Sequence[int], seed: int) -> str:
+    """The name of one training run in file names: ``<family>_<W>x<H>_seed<s>``."""
+    return f"{family}_{size[1]}x{size[0]}_seed{seed}"
+
+
+def _area_ratio(layout: Layout, size: tuple[int, int], theta: Sequence[float]) -> float:
+    """Largest over smallest pixel area of ``layout`` at ``theta`` (pixel corners only)."""
+    with torch.no_grad():
+        th = torch.tensor(theta, dtype=torch.float64)
+        c = layout.phi(uniform_corners(size), th)
+        quads = torch.stack([c[:-1, :-1], c[:-1, 1:], c[1:, 1:], c[1:, :-1]], -2)
+        area = polygon_area(quads).abs()
+    return float(area.max() / area.min())
+
+
+def train_run(
+    task: Task,
+    data: TaskData,
+    family: str,
+    size: tuple[int, int],
+    seed: int,
+    options: RunOptions,
+    *,
+    layout: Layout | None = None,
+) -> tuple[RunRecord, nn.Module]:
+    """Train one configuration of ``task`` and score it on the report split.
+
+    Args:
+        task: the task.
+        data: its data (:meth:`Task.load`).
+        family: a registered layout family (learned from θ = 0; ``"uniform"`` fixed), or
+            ``"density"`` (the task's unlearned :meth:`Task.density_layout`).
+        size: sensor size ``(H, W)``.
+        seed: seeds the network's initialisation, the batch order and the augmentation.
+        options: how to train.
+        layout: train with this layout instead (used as it is: fixed or learnable), recorded
+            under ``family``.
+
+    Returns:
+        the run's record and the trained network.
+    """
+    torch.manual_seed(seed)
+    gen = torch.Generator().manual_seed(seed)
+    if layout is None:
+        layout = task.density_layout(data, size) if family == "density" else None
+    learn = layout is None and family != "uniform"
+    model = task.network(layout if layout is not None else family, size, learn=learn, **options.sensor)
+    model = model.to(options.device)
+    opt = optimizer(model, options.lr, options.theta_lr)
+    indices, batch_loss = task.batches(model, data.train, gen, options.task_options)
+    t0 = time.perf_counter()
+    sched = (
+        torch.optim.lr_scheduler.CosineAnnealingLR(opt, max(options.epochs, 1)) if options.cosine else None
+    )
+    history = fit(
+        model,
+        indices,
+        batch_loss,
+        opt,
+        gen,
+        epochs=options.epochs,
+        batch_size=options.batch_size,
+        freeze_epochs=min(options.freeze_epochs, max(options.epochs - 1, 0)),
+        sched=sched,
+        desc=f"{task.name} {family} {size[1]}x{size[0]} seed {seed}",
+        progress=options.progress,
+        amp=options.amp,
+    )
+    scores = task.score(model, data.report)
+    fixed = model.sensor.layout
+    record = RunRecord(
+        task.name,
+        family,
+        list(size),
+        seed,
+        scores,
+        fixed.theta.detach().tolist(),
+        history,
+        [_area_ratio(fixed, size, th) for th in history],
+        options.epochs,
+        time.perf_counter() - t0,
+    )
+    return record, model
+
+
+def summarise(task: Task, records: Sequence[RunRecord | dict]) -> list[dict[str, Any]]:
+    """Mean ± standard deviation (over seeds) of every metric, per family and sensor size, in
+    the order the configurations first appear."""
+    groups: dict[tuple[str, tuple[int, ...]], list[dict]] = {}
+    for r in records:
+        r = asdict(r) if isinstance(r, RunRecord) else r
+        groups.setdefault((r["family"], tuple(r["size_hw"])), []).append(r)
+    rows = []
+    for (family, size), rs in groups.items():
+        scores = {}
+        for m in task.metrics:
+            v = np.array([float(r["scores"][m]) for r in rs])
+            scores[m] = {"mean": float(v.mean()), "std": float(v.std(ddof=1)) if len(v) > 1 else 0.0}
+        theta = np.mean([r["theta"] for r in rs], 0).tolist() if rs[0]["theta"] else []
+        rows.append(
+            {"family": family, "size_hw": list(size), "n": len(rs), "scores": scores, "theta_mean": theta}
+        )
+    return rows
+
+
+def format_summary(task: Task, rows: Sequence[dict]) -> str:
+    """The summary rows as a plain-text table (scores in percent)."""
+    head = f"{'family':9s} {'sensor':7s} " + " ".join(f"{m + ' (%)':>17s}" for m in task.metrics)
+    lines = [head + "  θ (mean)"]
+    for r in rows:
+        h, w = r["size_hw"]
+        cells = " ".join(
+            f"{r['scores'][m]['mean']:8.2f} ± {r['scores'][m]['std']:5.2f} " for m in task.metrics
+        )
+        lines.append(
+            f"{r['family']:9s} {f'{w}x{h}':7s} {cells} {format_theta(r['theta_mean'], 2)}  n={r['n']}"
+        )
+    return "\n".join(lines)
+
+
+def run_experiment(
+    task: Task,
+    folder: str | Path,
+    out: str | Path,
+    *,
+    families: Sequence[str],
+    sizes: Sequence[tuple[int, int]],
+    seeds: Sequence[int],
+    options: RunOptions,
+    limit: int | None = None,
+    say: Callable[[str], None] = print,
+) -> dict[str, Any]:
+    """Train every family × sensor size × seed of ``task``; write ``results.json`` (after every
+    run, so a stopped experiment keeps what finished), a model file per run, the learned layout
+    files and figures to ``out``.
+
+    Returns:
+        the results written to ``results.json``.
+    """
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    data = task.load(Path(folder), limit)
+    records: list[RunRecord] = []
+    models: dict[tuple[str, tuple[int, int]], nn.Module] = {}
+    result: dict[str, Any] = {}
+    for size in sizes:
+        size = tuple(size)
+        for family in families:
+            for seed in seeds:
+                record, model = train_run(task, data, family, size, seed, options)
+                records.append(record)
+                models.setdefault((family, size), model)
+                training = options.record() | {"family": family, "seed": seed, "scores": record.scores}
+                save_model(
+                    out / f"model_{record.name}.pt",
+                    task.name,
+                    model,
+                    sensor=options.sensor,
+                    training=training,
+                )
+                scores = "  ".join(f"{m} {record.scores[m]:6.2f}%" for m in task.metrics)
+                say(
+                    f"  {task.name} {family:8s} {size[1]}x{size[0]} seed {seed}: {scores}  "
+                    f"θ = {format_theta(record.theta)}  [{record.seconds:.0f} s]"
+                )
+                result = _results(task, data, options, records, seeds)
+                atomic_write(out / "results.json", json.dumps(result, indent=2))
+    _layout_files(task, out, models, result["summary"])
+    from .plots import training_figures
+
+    cpu = {key: model.cpu() for key, model in models.items()}  # figures are drawn on the CPU
+    training_figures(task, data, cpu, records, out)
+    return result
+
+
+def _results(
+    task: Task, data: TaskData, options: RunOptions, records: list[RunRecord], seeds: Sequence[int]
+) -> dict[str, Any]:
+    return {
+        "format": RESULTS_FORMAT,
+        "task": task.name,
+        "data": str(data.source),
+        "train_size": data.sizes.get("train"),
+        "report_split": task.report_split,
+        "report_size": data.sizes.get("report"),
+        "units": "percent",
+        "metrics": list(task.metrics),
+        "sensor": options.sensor,
+        "training": options.record(),
+        "summary": summarise(task, records),
+        "runs": [asdict(r) for r in records],
+        "run": run_info(options.device, list(seeds)),
+    }
+
+
+def _layout_files(
+    task: Task, out: Path, models: dict[tuple[str, tuple[int, int]], nn.Module], summary: list[dict]
+) -> None:
+    """``layout_<family>_<W>x<H>.json`` of each configuration's first seed, and ``layout.json``:
+    the learned layout with the best headline metric (at the first size)."""
+    for (family, size), model in models.items():
+        save_layout(
+            model.sensor.layout, out / f"layout_{family}_{size[1]}x{size[0]}.json", size, task=task.name
+        )
+    learned = [r for r in summary if r["family"] not in ("uniform", "density")]
+    if learned:
+        best = max(learned, key=lambda r: r["scores"][task.metric]["mean"])
+        size = tuple(best["size_hw"])
+        score = best["scores"][task.metric]["mean"]
+        extra = {"task": task.name, task.metric: score}
+        save_layout(models[best["family"], size].sensor.layout, out / "layout.json", size, **extra)
