@@ -9,7 +9,14 @@ import torch
 from conftest import rand_theta
 
 import layoutwarp as lw
-from layoutwarp.experiments.bench import fd_theta_gradient, format_scaling, format_table, run, scaling
+from layoutwarp.experiments.bench import (
+    BenchConfig,
+    fd_theta_gradient,
+    format_scaling,
+    format_table,
+    run,
+    scaling,
+)
 from layoutwarp.experiments.plots import pareto_figure
 from layoutwarp.experiments.scene import SineScene
 
@@ -97,7 +104,9 @@ def test_fd_gradient_matches_exact_autograd(seed):
 
 
 def test_run_small_reports_every_method_and_plots(tmp_path):
-    res = run(src=(48, 96), size=(7, 13), tols=(1e-3,), mc_samples=(1, 4), repeats=1, memory=False)
+    res = run(
+        BenchConfig(src=(48, 96), size=(7, 13), tols=(1e-3,), mc_samples=(1, 4), repeats=1, memory=False)
+    )
     rows = res["rows"]
     assert {r["image"] for r in rows} == set(res["images"]) and "synthetic" in res["images"]
     methods = {(r["layout"], r["method"]) for r in rows}
@@ -126,9 +135,10 @@ def test_scaling_fits_slopes():
 
 
 def test_run_measures_only_the_rows_asked_for():
-    res = run(
-        src=(32, 64), size=(5, 9), tols=(1e-3,), mc_samples=(1,), repeats=1, memory=False, only=["fovea"]
+    config = BenchConfig.quick(
+        src=(32, 64), size=(5, 9), tols=(1e-3,), mc_samples=(1,), repeats=1, only=("fovea",)
     )
+    res = run(config)
     assert {r["layout"] for r in res["rows"]} == {"fovea"}
     assert set(res["anchors_ms"]) >= {"inter_area", "grid_sample_mc16"}
     # on the photo (the synthetic scene's θ-gradient is ~100x smaller, so float32 input rounding

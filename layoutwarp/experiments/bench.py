@@ -20,6 +20,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -29,21 +30,22 @@ from torch import Tensor
 
 from ..checks import check_size
 from ..coords import uniform_corners
-from ..files import atomic_write
+from ..files import atomic_write, run_info
 from ..integrators import data_tolerance, integrate_exact
-from ..layouts import FAMILIES, Layout, make_layout
+from ..layoutfile import layout_from_spec
+from ..layouts import Layout, make_layout
 from ..maps import forward_maps, sample_points
 from ..mesh import pixel_mesh
 from ..sensor import simulate
 from .scene import SineScene, blurred_noise, load_photo
 
 __all__ = [
+    "BenchConfig",
     "Row",
     "bench_layouts",
     "fd_theta_gradient",
     "format_scaling",
     "format_table",
-    "layout_from_spec",
     "main_bench",
     "preprocess_baseline",
     "run",
@@ -179,13 +181,6 @@ def _grid_sample_mc(img: Tensor, layout: Layout, size, s: int, gen) -> Tensor:
     return out.reshape(n, c, h, s, w, s).mean((3, 5))
 
 
-def layout_from_spec(spec: dict, dtype: torch.dtype | None = None) -> Layout:
-    """A layout from ``{"family": name, **config}`` (a registered family's
-    :meth:`~layoutwarp.Layout.to_config` dict), e.g. ``{"family": "curv", "theta": [0.3, 0.2]}``."""
-    config = {k: v for k, v in spec.items() if k != "family"}
-    return FAMILIES[spec["family"]].from_config(config, dtype=dtype)
-
-
 def _exact64(img64: Tensor, layout: Layout, size, subdivisions: int, theta: Tensor) -> Tensor:
     """Float64 exact forward with θ; curved edges on a fixed-subdivision mesh (smooth in θ, for
     finite differences), straight-edged layouts on their exact mesh."""
@@ -271,174 +266,217 @@ def bench_layouts(theta: tuple[float, float]) -> dict[str, dict]:
     }
 
 
-def run(
-    src: tuple[int, int] = (1024, 2048),
-    size: tuple[int, int] = (129, 257),
-    theta: tuple[float, float] = (0.35, 0.25),
-    tols: tuple[float, ...] = (1e-2, 1e-3, 1e-4),
-    mc_samples: tuple[int, ...] = (1, 2, 4, 8, 16),
-    repeats: int = 5,
-    memory: bool = True,
-    photo: str | Path | None = None,
-    progress: Callable[[str], None] | None = None,
-    device: str = "cpu",
-    only: Sequence[str] | None = None,
-) -> dict:
-    """Measure every integrator against the anchors on a photo and a synthetic scene.
+@dataclass(frozen=True)
+class BenchConfig:
+    """What :func:`run` measures.
 
-    Args:
+    Attributes:
         src: source image size ``(H, W)``.
         size: sensor size ``(h, w)``.
         theta: θ of the rect and curv layouts.
-        tols: tolerances of the exact curvilinear integrator.
+        tols: tolerances of the exact curvilinear integrator (besides the data default).
         mc_samples: Monte Carlo samples per axis (``s²`` per pixel).
         repeats: timed repeats after one warm-up (median reported).
         memory: measure peak memory in spawned children (photo image only).
         photo: photo file (default: the bundled ``kodim20``; skipped if none is found).
-        progress: called with a short message before each configuration.
         device: where the integrators and the ``grid_sample`` anchor run (images and layouts
             are moved there; times wait for the GPU); the OpenCV anchors and every reference
             stay on the CPU. Peak memory is host RSS in children on ``"cpu"``, the growth of
             allocated GPU memory on ``"cuda"`` (then also ``extra["train_peak_mb"]``, forward +
             backward of the learnable layout).
         only: measure only these rows of :func:`bench_layouts` (the anchors always).
+    """
+
+    src: tuple[int, int] = (1024, 2048)
+    size: tuple[int, int] = (129, 257)
+    theta: tuple[float, float] = (0.35, 0.25)
+    tols: tuple[float, ...] = (1e-2, 1e-3, 1e-4)
+    mc_samples: tuple[int, ...] = (1, 2, 4, 8, 16)
+    repeats: int = 5
+    memory: bool = True
+    photo: str | Path | None = None
+    device: str = "cpu"
+    only: tuple[str, ...] | None = None
+
+    @classmethod
+    def quick(cls, **changes: Any) -> BenchConfig:
+        """Small sizes and few repeats (``layoutwarp bench --quick``)."""
+        return cls(**({"src": (256, 512), "size": (33, 65), "repeats": 3, "memory": False} | changes))
+
+
+def run(config: BenchConfig | None = None, progress: Callable[[str], None] | None = None) -> dict:
+    """Measure every integrator against the anchors on a photo and a synthetic scene.
+
+    Args:
+        config: what to measure (default: :class:`BenchConfig`'s full run).
+        progress: called with a short message before each configuration.
 
     Returns:
         a JSON-able dict: sizes, anchors (ms), and one :class:`Row` per configuration.
     """
+    cfg = config or BenchConfig()
     say = progress or (lambda msg: None)
-    h, w = size
     scene = SineScene.random(3)
-    images = {"synthetic": scene.image(*src).float()}
-    pic = load_photo(*src, photo)
+    images = {"synthetic": scene.image(*cfg.src).float()}
+    pic = load_photo(*cfg.src, cfg.photo)
     if pic is not None:
         images = {"photo": pic, **images}
     first = next(iter(images.values()))
-    npimg = np.ascontiguousarray(first[0].permute(1, 2, 0).numpy())
-    rows: list[Row] = []
-    input_mb = first.numel() * 4 / 2**20
-
-    def mem(layout_name, method, opts):
-        spec = {"layout": setups[layout_name], "method": method, "opts": opts, "src": src}
-        spec |= {"size": size, "threads": torch.get_num_threads()}
-        return peak_memory_mb(spec) if memory else None
-
-    setups = bench_layouts(theta)
-    layouts = {name: layout_from_spec(spec) for name, spec in setups.items()}
-    on_device = {name: layout_from_spec(spec).to(device) for name, spec in setups.items()}
-    on_cuda = torch.device(device).type == "cuda"
-    memory = memory and torch.device(device).type == "cpu"
+    setups = bench_layouts(cfg.theta)
     say("anchors")
-    t_area = _time(lambda: cv2.resize(npimg, (w, h), interpolation=cv2.INTER_AREA), repeats)
-    gen = torch.Generator(device).manual_seed(0)  # samples drawn on the device, as a GPU user would
-    first_dev = first.to(device)
-    t_gs = _time(lambda: _grid_sample_mc(first_dev, on_device["curv"], size, 4, gen), repeats)
-    anchors = {"inter_area": t_area, "grid_sample_mc16": t_gs}
+    anchors = _anchors(cfg, first, layout_from_spec(setups["curv"]).to(cfg.device))
+    rows: list[Row] = []
     for image_name, img in images.items():
-        img64 = img.double()
-        npi = np.ascontiguousarray(img[0].permute(1, 2, 0).numpy())
-        for name, layout in layouts.items():
-            if only and name not in only:
-                continue
-            say(f"{image_name} {name}: float64 references")
-            with torch.no_grad():
-                ref = simulate(img64, layout, size, tol=1e-7)
-            truth = scene.pixel_means(layout, size)[None] if image_name == "synthetic" else None
-            gw = 1 + torch.rand(ref.shape, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
-            g_ref = (
-                fd_theta_gradient(
-                    img64, layout_from_spec(setups[name], torch.float64), layout.theta.detach(), size, gw
-                )
-                if layout.theta.numel()
-                else None
-            )
-
-            def errors(out: Tensor, truth=truth, ref=ref) -> dict:
-                err = (out.double() - ref).abs()
-                d = {"rmse": float(err.pow(2).mean().sqrt()), "max_err": float(err.max())}
-                if truth is not None:
-                    d["scene_rmse"] = float((out.double() - truth).pow(2).mean().sqrt())
-                return d
-
-            # point-sampling anchor: cv2.remap INTER_LINEAR on maps made once
-            maps = forward_maps(layout, size, src).numpy()
-            t_remap = _time(lambda maps=maps, npi=npi: _remap(npi, maps), repeats)
-            out = torch.from_numpy(_remap(npi, maps)).permute(2, 0, 1)[None]
-            anchors[f"remap_linear_{name}"] = t_remap
-            peak = mem(name, "remap", {}) if image_name == "photo" else None
-            rows.append(
-                Row(
-                    image_name,
-                    name,
-                    "anchor: cv2.remap LINEAR",
-                    "1 spp",
-                    t_remap,
-                    peak_mb=peak,
-                    **errors(out),
-                )
-            )
-            if name == "uniform":
-                out = torch.from_numpy(cv2.resize(npi, (w, h), interpolation=cv2.INTER_AREA)).permute(
-                    2, 0, 1
-                )[None]
-                peak = mem(name, "inter_area", {}) if image_name == "photo" else None
-                rows.append(
-                    Row(image_name, name, "anchor: cv2.resize AREA", "-", t_area, peak_mb=peak, **errors(out))
-                )
-            if name == "curv":
-                out = _grid_sample_mc(img, layout, size, 4, torch.Generator().manual_seed(0))
-                rows.append(Row(image_name, name, "anchor: grid_sample MC", "16 spp", t_gs, **errors(out)))
-                if on_cuda and image_name == "photo":
-                    gs = lambda: _grid_sample_mc(first_dev, on_device["curv"], size, 4, gen)  # noqa: E731
-                    rows[-1].peak_mb = _cuda_peak_mb(gs)
-
-            dev_layout, dev_img = on_device[name], img.to(device)  # the timed copies
-            for method, opts, setting in _settings(dev_layout, name, tols, mc_samples):
-                say(f"{image_name} {name}: {method} {setting}")
-
-                def fwd(method=method, opts=opts, layout=dev_layout, img=dev_img):
-                    with torch.no_grad():
-                        return simulate(img, layout, size, method, **opts)
-
-                t_f = _time(fwd, repeats)
-                row = Row(image_name, name, method, setting, t_f, **errors(fwd().cpu()))
-                if method == "exact" and dev_layout.separable:
-                    row.method = "separable"
-                if g_ref is not None:
-                    dev_layout.rho.requires_grad_(True)
-
-                    def fwd_grad(method=method, opts=opts, layout=dev_layout, img=dev_img):
-                        return simulate(img, layout, size, method, **opts)
-
-                    t_fg = _time(fwd_grad, repeats)
-                    row.backward_ms = _time_backward(fwd_grad, dev_layout, repeats)
-                    row.extra["forward_with_grad_ms"] = t_fg  # learnable: the mesh is rebuilt every call
-                    (simulate(dev_img, dev_layout, size, method, **opts).double().cpu() * gw).sum().backward()
-                    g = _theta_grad(dev_layout).cpu()
-                    dev_layout.rho.grad = None
-                    row.grad_rel_err = float((g - g_ref).norm() / g_ref.norm())
-                    row.extra["grad"] = g.tolist()
-                    row.extra["grad_ref"] = g_ref.tolist()
-                if image_name == "photo":
-                    row.peak_mb = _cuda_peak_mb(fwd) if on_cuda else mem(name, method, opts)
-                    if on_cuda and g_ref is not None:
-                        dev_layout.rho.requires_grad_(True)
-                        row.extra["train_peak_mb"] = _cuda_peak_mb(lambda f=fwd_grad: f().sum().backward())
-                        dev_layout.rho.grad = None
-                rows.append(row)
+        for name, spec in setups.items():
+            if not cfg.only or name in cfg.only:
+                rows += _layout_rows(cfg, image_name, img, name, spec, scene, anchors, say)
     return {
-        "src_hw": list(src),
-        "sensor_hw": list(size),
-        "theta": list(theta),
+        "src_hw": list(cfg.src),
+        "sensor_hw": list(cfg.size),
+        "theta": list(cfg.theta),
         "default_tol": data_tolerance(torch.float32)[0],
         "threads": torch.get_num_threads(),
-        "device": str(device),
-        "input_mb": input_mb,
+        "device": str(cfg.device),
+        "input_mb": first.numel() * 4 / 2**20,
         "images": list(images),
         "scene": asdict(scene),
         "anchors_ms": anchors,
         "rows": [asdict(r) for r in rows],
+        "run": run_info(cfg.device),
     }
+
+
+def _anchors(cfg: BenchConfig, img: Tensor, curv: Layout) -> dict[str, float]:
+    """``cv2.resize(INTER_AREA)`` and a bare ``grid_sample`` MC-16 of the curv layout, in ms."""
+    h, w = cfg.size
+    npimg = np.ascontiguousarray(img[0].permute(1, 2, 0).numpy())
+    t_area = _time(lambda: cv2.resize(npimg, (w, h), interpolation=cv2.INTER_AREA), cfg.repeats)
+    gen = torch.Generator(cfg.device).manual_seed(0)  # samples drawn on the device, as a GPU user would
+    dev_img = img.to(cfg.device)
+    t_gs = _time(lambda: _grid_sample_mc(dev_img, curv, cfg.size, 4, gen), cfg.repeats)
+    return {"inter_area": t_area, "grid_sample_mc16": t_gs}
+
+
+def _layout_rows(
+    cfg: BenchConfig,
+    image_name: str,
+    img: Tensor,
+    name: str,
+    spec: dict,
+    scene: SineScene,
+    anchors: dict[str, float],
+    say: Callable[[str], None],
+) -> list[Row]:
+    """Every row of one layout on one image: its anchors, then each method and setting."""
+    size, repeats = cfg.size, cfg.repeats
+    on_cuda = torch.device(cfg.device).type == "cuda"
+    photo = image_name == "photo"
+    layout = layout_from_spec(spec)
+    say(f"{image_name} {name}: float64 references")
+    img64 = img.double()
+    with torch.no_grad():
+        ref = simulate(img64, layout, size, tol=1e-7)
+    truth = scene.pixel_means(layout, size)[None] if image_name == "synthetic" else None
+    gw = 1 + torch.rand(ref.shape, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    g_ref = None
+    if layout.theta.numel():
+        g_ref = fd_theta_gradient(
+            img64, layout_from_spec(spec, dtype=torch.float64), layout.theta.detach(), size, gw
+        )
+
+    def errors(out: Tensor) -> dict:
+        err = (out.double() - ref).abs()
+        d = {"rmse": float(err.pow(2).mean().sqrt()), "max_err": float(err.max())}
+        if truth is not None:
+            d["scene_rmse"] = float((out.double() - truth).pow(2).mean().sqrt())
+        return d
+
+    def mem(method: str, opts: dict) -> float | None:
+        if not (photo and cfg.memory and not on_cuda):
+            return None
+        spec_ = {"layout": spec, "method": method, "opts": opts, "src": cfg.src, "size": size}
+        return peak_memory_mb(spec_ | {"threads": torch.get_num_threads()})
+
+    rows = []
+    npi = np.ascontiguousarray(img[0].permute(1, 2, 0).numpy())
+    maps = forward_maps(layout, size, cfg.src).numpy()  # point-sampling anchor: maps made once
+    t_remap = _time(lambda: _remap(npi, maps), repeats)
+    anchors[f"remap_linear_{name}"] = t_remap
+    out = torch.from_numpy(_remap(npi, maps)).permute(2, 0, 1)[None]
+    rows.append(
+        Row(
+            image_name,
+            name,
+            "anchor: cv2.remap LINEAR",
+            "1 spp",
+            t_remap,
+            peak_mb=mem("remap", {}),
+            **errors(out),
+        )
+    )
+    if name == "uniform":
+        out = torch.from_numpy(cv2.resize(npi, size[::-1], interpolation=cv2.INTER_AREA)).permute(2, 0, 1)[
+            None
+        ]
+        t = anchors["inter_area"]
+        rows.append(
+            Row(
+                image_name,
+                name,
+                "anchor: cv2.resize AREA",
+                "-",
+                t,
+                peak_mb=mem("inter_area", {}),
+                **errors(out),
+            )
+        )
+    if name == "curv":
+        out = _grid_sample_mc(img, layout, size, 4, torch.Generator().manual_seed(0))
+        rows.append(
+            Row(
+                image_name,
+                name,
+                "anchor: grid_sample MC",
+                "16 spp",
+                anchors["grid_sample_mc16"],
+                **errors(out),
+            )
+        )
+        if on_cuda and photo:
+            dev_img, dev_curv = img.to(cfg.device), layout_from_spec(spec).to(cfg.device)
+            gen = torch.Generator(cfg.device).manual_seed(0)
+            rows[-1].peak_mb = _cuda_peak_mb(lambda: _grid_sample_mc(dev_img, dev_curv, size, 4, gen))
+    dev_layout, dev_img = layout_from_spec(spec).to(cfg.device), img.to(cfg.device)  # the timed copies
+    for method, opts, setting in _settings(dev_layout, name, cfg.tols, cfg.mc_samples):
+        say(f"{image_name} {name}: {method} {setting}")
+
+        def fwd(method=method, opts=opts):
+            with torch.no_grad():
+                return simulate(dev_img, dev_layout, size, method, **opts)
+
+        row = Row(image_name, name, method, setting, _time(fwd, repeats), **errors(fwd().cpu()))
+        if method == "exact" and dev_layout.separable:
+            row.method = "separable"
+        if g_ref is not None:
+            dev_layout.rho.requires_grad_(True)
+
+            def fwd_grad(method=method, opts=opts):
+                return simulate(dev_img, dev_layout, size, method, **opts)
+
+            row.extra["forward_with_grad_ms"] = _time(fwd_grad, repeats)  # learnable: mesh rebuilt every call
+            row.backward_ms = _time_backward(fwd_grad, dev_layout, repeats)
+            (fwd_grad().double().cpu() * gw).sum().backward()
+            g = _theta_grad(dev_layout).cpu()
+            dev_layout.rho.grad = None
+            row.grad_rel_err = float((g - g_ref).norm() / g_ref.norm())
+            row.extra["grad"], row.extra["grad_ref"] = g.tolist(), g_ref.tolist()
+        if photo:
+            row.peak_mb = _cuda_peak_mb(fwd) if on_cuda else mem(method, opts)
+            if on_cuda and g_ref is not None:
+                row.extra["train_peak_mb"] = _cuda_peak_mb(lambda f=fwd_grad: f().sum().backward())
+                dev_layout.rho.grad = None
+        rows.append(row)
+    return rows
 
 
 _COMPILE_PROBE = """
@@ -607,22 +645,14 @@ def main_bench(
 ) -> dict:
     """Run the benchmark (``quick``: small sizes, few repeats), print tables, write JSON and plot."""
     say = lambda msg: print(f"  .. {msg}", flush=True)  # noqa: E731
+    rows = tuple(only) if only else None
     if quick:
-        result = run(
-            src=(256, 512),
-            size=(33, 65),
-            repeats=3,
-            memory=False,
-            mc_samples=(1, 4, 16),
-            photo=photo,
-            progress=say,
-            device=device,
-            only=only,
-        )
+        config = BenchConfig.quick(mc_samples=(1, 4, 16), photo=photo, device=device, only=rows)
+        result = run(config, progress=say)
         if with_scaling:
             result["scaling"] = scaling(((128, 256), (256, 512)), ((17, 33), (33, 65)), repeats=2)
     else:
-        result = run(memory=memory, photo=photo, progress=say, device=device, only=only)
+        result = run(BenchConfig(memory=memory, photo=photo, device=device, only=rows), progress=say)
         if with_scaling:
             result["scaling"] = scaling()
     say("compile time of the kernels")
