@@ -21,10 +21,14 @@ if SHARED.is_dir():  # the full data sets, where this checkout has them (tests t
     os.environ.setdefault("LAYOUTWARP_DATA", str(SHARED))
 
 
-@pytest.fixture
+@pytest.fixture(autouse=True)
 def seed(request) -> int:
+    """Every test's random seed: fresh each run, or ``LAYOUTWARP_SEED``; torch's and NumPy's
+    global generators start from it, so unseeded draws replay too."""
     s = int(os.environ.get("LAYOUTWARP_SEED", int.from_bytes(os.urandom(4), "little")))
     request.node.user_properties.append(("seed", s))
+    torch.manual_seed(s)
+    np.random.seed(s)  # noqa: NPY002  (the legacy global generator, for unseeded draws)
     return s
 
 
@@ -39,7 +43,10 @@ def pytest_runtest_makereport(item, call):
     rep = outcome.get_result()
     if rep.failed:
         for k, v in item.user_properties:
-            if k == "seed":
+            if k == "seed":  # in the failure's own message (and so in the summary line), and below it
+                crash = getattr(rep.longrepr, "reprcrash", None)
+                if crash is not None:
+                    crash.message = f"[LAYOUTWARP_SEED={v}] {crash.message}"
                 rep.sections.append(("random seed", f"LAYOUTWARP_SEED={v}"))
 
 

@@ -103,3 +103,41 @@ def test_boxes_exact_for_rect_and_refused_for_curv(gen):
     curv = K.AugmentationSequential(SensorAugmentation((12, 16), "curv"), data_keys=["input", "bbox_xyxy"])
     with pytest.raises(NotImplementedError, match="keypoints"):
         curv(img, boxes)
+
+
+def test_a_learnable_grid_in_a_kornia_pipeline_is_guarded_against_folding(gen):
+    # the loss rewards pixel (0, 0) for reaching into the bright corner, which folds an unguarded
+    # grid within 25 Adam steps (tests/test_families.py); through the augmentation the step is
+    # guarded as in a SensorLayer, before every forward pass
+    from layoutwarp.grids import cell_corner_dets
+
+    yy, xx = torch.meshgrid(torch.linspace(0, 1, 40), torch.linspace(0, 1, 40), indexing="ij")
+    img = ((xx + yy)[None, None] ** 2).expand(2, 1, 40, 40).contiguous()
+    layout = lw.GridLayout(grid=(3, 3), learn=True)
+    aug = SensorAugmentation((3, 3), layout, "montecarlo", samples=4, grad="autograd")
+    seq = K.AugmentationSequential(K.RandomHorizontalFlip(p=0.0), aug, data_keys=["input"])
+    opt = torch.optim.Adam(seq.parameters(), lr=0.3)
+    worst = float("inf")
+    for _ in range(25):
+        out = seq(img)  # the guard runs first, then the sensor
+        worst = min(worst, float(cell_corner_dets(layout.control_points().detach().double()).min()))
+        opt.zero_grad()
+        (-out[:, :, 0, 0].sum()).backward()
+        opt.step()
+    layout.project_()
+    assert worst >= layout.min_det - 1e-6 and layout.check_foldover().ok
+    assert (
+        float((layout.control_points().detach() - lw.coords.uniform_corners((3, 3)).float()).abs().max())
+        > 0.1
+    )
+    # and without the guard (the sensor alone, as before v0.3), the same training folds
+    free = lw.GridLayout(grid=(3, 3), learn=True)
+    opt = torch.optim.Adam(free.parameters(), lr=0.3)
+    worst_free = float("inf")
+    for _ in range(25):
+        worst_free = min(worst_free, float(cell_corner_dets(free.control_points().detach().double()).min()))
+        out = lw.simulate(img, free, (3, 3), "montecarlo", samples=4, grad="autograd")
+        opt.zero_grad()
+        (-out[:, :, 0, 0].sum()).backward()
+        opt.step()
+    assert worst_free <= 0

@@ -166,9 +166,17 @@ def test_finite_values_and_gradients_at_special_points(cls):
             g_p, g_rho = torch.autograd.grad(q.sum(), (p, layout.rho))
             assert torch.isfinite(g_p).all() and torch.isfinite(g_rho).all()
         assert torch.isfinite(layout.jacobian(special)).all()
-        # the border and (curv) the unit circle are fixed
-        fixed = special[1:] if cls is lw.CurvLayout else special[[1, 2, 5, 6, 7]]
-        assert torch.allclose(layout(fixed)[..., :], fixed, atol=1e-15) or cls is lw.RectLayout
+        # both fix the centre and every border coordinate; curv also the unit circle and beyond
+        q = layout(special).detach()
+        border = special.abs() == 1
+        assert torch.equal(q[0], special[0])
+        assert torch.allclose(q[border], special[border], rtol=0, atol=1e-15)
+        if cls is lw.CurvLayout:  # a point a rounding inside the circle moves by ~ 2θ/(1 − θ) ulp
+            t = max(abs(v) for v in theta)
+            assert torch.allclose(q[1:], special[1:], rtol=0, atol=4e-16 * (1 + 2 * t / (1 - t)))
+        else:  # rect moves the inner coordinate of a border point (here 0.3) unless θ = 0
+            moved = (q[6:, :] - special[6:, :]).abs().max()
+            assert (moved > 1e-3) == (abs(theta[0]) + abs(theta[1]) > 0)
 
 
 def test_rect_fixes_border_and_curv_fixes_circle(gen):

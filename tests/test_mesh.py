@@ -170,9 +170,12 @@ def test_meshes_of_fixed_layouts_are_cached_and_learnable_ones_never(gen):
     learn = lw.CurvLayout(rand_theta(gen), dtype=F64, learn=True)
     first = lw.pixel_mesh(learn, (5, 6), tol=1e-4)
     assert first.vertices.requires_grad and lw.pixel_mesh(learn, (5, 6), tol=1e-4) is not first
-    assert lw.pixel_mesh(Cubic(rand_theta(gen, 0.5), dtype=F64), (5, 6)) is not lw.pixel_mesh(
-        Cubic(rand_theta(gen, 0.5), dtype=F64), (5, 6)
-    )  # unregistered families are never cached
+    theta = rand_theta(gen, 0.5)  # unregistered families are never cached, even at equal θ
+    assert lw.pixel_mesh(Cubic(theta, dtype=F64), (5, 6)) is not lw.pixel_mesh(
+        Cubic(theta, dtype=F64), (5, 6)
+    )
+    registered = lw.CurvLayout(theta, dtype=F64)  # while a registered family at that θ is
+    assert lw.pixel_mesh(registered, (5, 6)) is lw.pixel_mesh(lw.CurvLayout(theta, dtype=F64), (5, 6))
 
 
 class Cubic(lw.Layout):

@@ -144,10 +144,10 @@ def test_preprocess_resumes_and_checks_layout(tmp_path):
         preprocess_folder(src, dst, fixed("rect", (0.3, 0.25)), size, progress=False)
 
 
-def test_parallel_workers_give_identical_files_and_share_weights(tmp_path, monkeypatch):
+def test_parallel_workers_give_identical_files_and_share_weights(tmp_path, monkeypatch, seed):
     src = tmp_path / "src"
     imgs = _images(src)
-    rng = np.random.default_rng()
+    rng = np.random.default_rng(seed)
     (src / "same").mkdir()
     for k in range(12):  # many files of one size: the pool must build their weights once
         assert cv2.imwrite(str(src / f"same/{k}.png"), rng.integers(0, 256, (30, 38, 3), dtype=np.uint8))
