@@ -47,7 +47,7 @@ if TYPE_CHECKING:
     from .preprocess import preprocess_folder
     from .resampler import AreaResampler
 
-__version__ = "0.3.0.dev0"
+from .version import __version__
 
 #: Front-door names whose modules load on first use (Kornia, OpenCV file I/O, CAD writers).
 _LAZY = {

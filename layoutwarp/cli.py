@@ -646,9 +646,9 @@ def _add_study_parser(sub, task, families: Sequence[str]) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``layoutwarp`` argument parser."""
-    from . import __version__
     from .experiments.tasks import TASKS
     from .layouts import FAMILIES
+    from .version import __version__
 
     families = list(FAMILIES)
     p = _Parser(

@@ -11,6 +11,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from .version import __version__
+
 __all__ = ["atomic_write", "run_info"]
 
 
@@ -74,8 +76,6 @@ def run_info(device: Any = None, seeds: Any = None) -> dict[str, Any]:
     """
     import numpy as np
     import torch
-
-    from . import __version__
 
     try:
         from importlib.metadata import version

@@ -23,6 +23,7 @@ import torch
 
 from .files import atomic_write
 from .layouts import FAMILIES, Layout
+from .version import __version__
 
 __all__ = ["FORMAT", "READS", "layout_from_spec", "layout_spec", "load_layout", "same_spec", "save_layout"]
 
@@ -94,8 +95,6 @@ def save_layout(layout: Layout, path: str | Path, size: tuple[int, int] | None =
     The file is written atomically (a temporary file renamed into place). Extra keyword
     values (JSON-serialisable) are stored under ``"extra"``.
     """
-    from . import __version__
-
     data: dict[str, Any] = {"format": FORMAT, **layout_spec(layout)}
     data |= {"size_hw": list(size) if size is not None else None, "version": __version__, "extra": extra}
     return atomic_write(path, json.dumps(data, indent=2))
