@@ -38,6 +38,7 @@ from .layouts import (
 )
 from .maps import Maps, forward_maps, inverse_maps
 from .mesh import PixelMesh, pixel_mesh
+from .physics import SensorPhysics
 from .sensor import SensorLayer, SimulationPlan, plan_simulation, simulate
 from .splines import SplineLayout
 
@@ -87,6 +88,7 @@ __all__ = [
     "RectLayout",
     "SensorAugmentation",
     "SensorLayer",
+    "SensorPhysics",
     "SimulationPlan",
     "SplineLayout",
     "UniformLayout",

@@ -21,6 +21,8 @@ from .integrators import (
 )
 from .layoutfile import load_layout, save_layout
 from .layouts import Layout, make_layout
+from .mesh import PixelMesh, pixel_mesh
+from .physics import OUTPUTS, SensorPhysics, apply_psf, measure
 
 __all__ = ["METHODS", "SensorLayer", "SimulationPlan", "plan_simulation", "simulate"]
 
@@ -157,9 +159,12 @@ def simulate(
     seed: int | None = None,
     generator: torch.Generator | None = None,
     allow_nonfinite: bool = False,
+    physics: SensorPhysics | None = None,
+    output: str = "radiance",
     return_plan: bool = False,
 ) -> Tensor | tuple[Tensor, SimulationPlan]:
-    """Simulate a sensor with pixel layout ``layout``: the mean radiance over every pixel.
+    """Simulate a sensor with pixel layout ``layout``: the mean radiance over every pixel, or,
+    with ``physics``, what a real sensor records of it (optics, photons, noise, full well, ADC).
 
     Args:
         image: ``(B, C, H, W)`` (or ``(C, H, W)``) radiance image, float or uint8 (uint8 is
@@ -181,8 +186,15 @@ def simulate(
         samples: ``s`` for Monte Carlo (``s²`` samples per pixel).
         grad: Monte Carlo θ-gradient estimator, ``"reynolds"`` or ``"autograd"``.
         seed, generator: randomness of the Monte Carlo jitter (``seed`` makes a generator on
-            the image's device, so one seed gives other samples on another device).
+            the image's device, so one seed gives other samples on another device); a
+            ``generator`` also draws the physics' noise (else ``physics.seed`` does).
         allow_nonfinite: let NaN/Inf through instead of raising ``ValueError``.
+        physics: a :class:`~layoutwarp.SensorPhysics` (see :mod:`layoutwarp.physics`): the PSF
+            blurs the image, the pixel means become photons in proportion to each pixel's area,
+            then noisy electrons, clipped at the full well and quantised. ``None``: the
+            noise-free mean, bit for bit as without physics.
+        output: with ``physics``: ``"radiance"`` (default: the ISP's estimate in the image's
+            units, whose expectation is the noise-free mean), ``"electrons"`` or ``"dn"``.
         return_plan: also return the :class:`SimulationPlan` that ran.
 
     Returns:
@@ -206,12 +218,18 @@ def simulate(
         dtype=dtype,
     )
     tol = plan.details.get("tol", tol)
+    if physics is not None:
+        if not isinstance(physics, SensorPhysics):
+            raise TypeError(f"physics must be a SensorPhysics, got {type(physics).__name__}")
+        check_choice(output, OUTPUTS, "output")
+        if is_callable and physics.psf is not None:
+            raise ValueError("physics.psf blurs a source image; a callable radiance must include its optics")
     if generator is None and seed is not None:
         # on the image's device: drawing there is what keeps Monte Carlo fast on a GPU (a seed
         # gives the same samples on every call on one device, not across devices)
         at = image.device if isinstance(image, Tensor) else None
         generator = torch.Generator(at).manual_seed(int(seed))
-    run = _Integration(plan, layout, size, tol, samples, grad, generator)
+    run = _Integration(plan, layout, size, tol, samples, grad, generator, physics, output)
     if is_callable:
         out = run(image)[None]
         return (out, plan) if return_plan else out
@@ -242,23 +260,38 @@ class _Integration:
     samples: int
     grad: str
     generator: torch.Generator | None
+    physics: SensorPhysics | None = None
+    output: str = "radiance"
 
     def __call__(self, work: Tensor | Radiance) -> Tensor:
         """Integrate ``work`` (``(N, H, W)`` or a callable radiance) with autocast off: the sensor
         integrates in float32 (float64 for float64 input) inside any mixed-precision context, as
-        its tolerances assume."""
+        its tolerances assume. With physics: the PSF first, the measurement after."""
         device = work.device.type if isinstance(work, Tensor) else self.layout.rho.device.type
         if device in ("cpu", "cuda", "mps", "xpu"):
             with torch.autocast(device_type=device, enabled=False):
-                return self._dispatch(work)
-        return self._dispatch(work)
+                return self._measured(work)
+        return self._measured(work)
 
-    def _dispatch(self, work: Tensor | Radiance) -> Tensor:
+    def _measured(self, work: Tensor | Radiance) -> Tensor:
+        if self.physics is None:
+            return self._dispatch(work)
+        if isinstance(work, Tensor):
+            work = apply_psf(work, self.physics)
+        mesh = None
+        if self.plan.method != "separable":  # the polygons the pixels' areas come from
+            tol = self.tol if self.tol is not None else data_tolerance(torch.float32)[0]
+            mesh = pixel_mesh(self.layout, self.size, tol=tol, dtype=torch.float64)
+        mean = self._dispatch(work, mesh)
+        areas = (mesh or pixel_mesh(self.layout, self.size, dtype=torch.float64)).areas()
+        return measure(mean, areas, self.physics, output=self.output, generator=self.generator)
+
+    def _dispatch(self, work: Tensor | Radiance, mesh: PixelMesh | None = None) -> Tensor:
         plan, layout, size = self.plan, self.layout, self.size
         if plan.method == "separable":
             return integrate_separable(work, layout, size)
         if plan.method == "exact":
-            return integrate_exact(work, layout, size, tol=self.tol)
+            return integrate_exact(work, layout, size, tol=self.tol, mesh=mesh)
         radiance = "bilinear" if plan.radiance == "callable" else plan.radiance  # ignored for callables
         if plan.method == "montecarlo":
             return integrate_montecarlo(
@@ -287,6 +320,11 @@ class SensorLayer(nn.Module):
         learn: train θ (for a family name).
         theta: initial θ (for a family name).
         bound: bound on ``|θ|`` (for a family name).
+        physics: a :class:`~layoutwarp.SensorPhysics` (or its dict, as files store it): the
+            layer records what a real sensor would (see :func:`simulate`). With ``physics.seed``
+            the layer's noise is a seeded sequence (new noise every call, the same sequence in
+            every run); without, fresh noise.
+        output: with ``physics``: ``"radiance"``, ``"electrons"`` or ``"dn"``.
         **options: further :func:`simulate` options (``tol``, ``samples``, ``radiance``, ...).
 
     Example:
@@ -304,10 +342,15 @@ class SensorLayer(nn.Module):
         learn: bool = True,
         theta=None,
         bound: float = 1.0,
+        physics: SensorPhysics | dict | None = None,
+        output: str = "radiance",
         **options: Any,
     ) -> None:
         super().__init__()
         self.size = check_size(size)
+        self.physics = SensorPhysics.from_dict(physics) if isinstance(physics, dict) else physics
+        self.output = check_choice(output, OUTPUTS, "output")
+        self._noise: torch.Generator | None = None
         self.layout = (
             layout if isinstance(layout, Layout) else make_layout(layout, theta, bound=bound, learn=learn)
         )
@@ -332,7 +375,16 @@ class SensorLayer(nn.Module):
         """
         if self.layout.learnable:
             self.layout.project_()
-        return simulate(image, self.layout, self.size, self.method, **self.options)
+        if self.physics is None:
+            return simulate(image, self.layout, self.size, self.method, **self.options)
+        options = dict(self.options)
+        if self.physics.seed is not None and "generator" not in options and "seed" not in options:
+            if self._noise is None or self._noise.device != image.device:  # a seeded sequence
+                self._noise = torch.Generator(image.device).manual_seed(self.physics.seed)
+            options["generator"] = self._noise
+        return simulate(
+            image, self.layout, self.size, self.method, physics=self.physics, output=self.output, **options
+        )
 
     def describe(self, dtype: torch.dtype = torch.float32) -> SimulationPlan:
         """The plan the layer runs with its current settings for images of ``dtype``."""
@@ -347,7 +399,10 @@ class SensorLayer(nn.Module):
         )
 
     def save_layout(self, path: str | Path, **extra: Any) -> Path:
-        """Write the layer's layout, sensor size and method to a JSON file (see :func:`save_layout`)."""
+        """Write the layer's layout, sensor size, method and physics (when set) to a JSON file
+        (see :func:`save_layout`)."""
+        if self.physics is not None:
+            extra = {"physics": self.physics.to_dict(), **extra}
         return save_layout(self.layout, path, self.size, method=self.method, **extra)
 
     @classmethod
@@ -357,15 +412,20 @@ class SensorLayer(nn.Module):
         """A layer with the layout saved at ``path`` (θ frozen unless ``learn``).
 
         ``size`` defaults to the sensor size stored in the file; ``method`` to the stored
-        method, else ``"exact"``; other keyword arguments go to :class:`SensorLayer`.
+        method, else ``"exact"``; ``physics`` to the stored physics, if any; other keyword
+        arguments go to :class:`SensorLayer`.
         """
         layout, info = load_layout(path, learn=learn)
         size = size if size is not None else info["size_hw"]
         if size is None:
             raise ValueError(f"{path} stores no sensor size; pass size=(h, w)")
-        kwargs.setdefault("method", (info.get("extra") or {}).get("method", "exact"))
+        extra = info.get("extra") or {}
+        kwargs.setdefault("method", extra.get("method", "exact"))
+        if extra.get("physics") is not None:
+            kwargs.setdefault("physics", extra["physics"])
         return cls(tuple(size), layout, **kwargs)
 
     def extra_repr(self) -> str:
         h, w = self.size
-        return f"size=({h}, {w}), method={self.method!r}"
+        light = "" if self.physics is None else f", physics={self.physics.photons_per_um2:g} photons/µm²"
+        return f"size=({h}, {w}), method={self.method!r}{light}"

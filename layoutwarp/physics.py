@@ -1,0 +1,399 @@
+"""Photons, noise, pixel apertures and optics: the measurement equation beyond its mean.
+
+The integrators give each pixel's mean radiance ``L̄_k`` (the paper's noise-free sensor). A
+real pixel records light in proportion to its area, with noise; :class:`SensorPhysics` holds
+the camera in physical units, and :func:`~layoutwarp.simulate` (``physics=``) runs, in this
+order, in the notation of the EMVA 1288 standard (release 4.0):
+
+1. optics: the lens's point spread function blurs the *source* image (:func:`apply_psf`; its
+   width in µm becomes source pixels through the image's extent on the sensor, ``sensor_um``);
+2. the integrators (unchanged): ``L̄_k``, the mean over the pixel ``A_k``;
+3. photons: ``μ_p,k = photons_per_um2 · L̄_k · a_k · fill_factor`` with ``a_k`` the pixel's
+   area in µm² (from the pixel mesh, differentiable in θ);
+4. electrons: ``μ_e,k = η μ_p,k (1 + prnu · z_k) + μ_d,k`` with ``η`` the quantum efficiency,
+   ``z_k`` a fixed standard-normal pattern (PRNU) and the dark signal
+   ``μ_d,k = dark_e_per_um2 · a_k + dsnu · z'_k`` (DSNU, a second fixed pattern);
+5. shot noise (Poisson: variance = mean in electrons) and read noise (Gaussian, ``σ_d``
+   = ``read_noise_e``);
+6. full-well clipping at ``full_well_per_um2 · a_k``;
+7. the ADC: ``y = round(K e + black_level_dn)`` clipped to ``[0, 2^adc_bits − 1]`` (``K``:
+   system gain in DN per electron; quantisation variance ``1/12`` DN²);
+8. the ISP, back to radiance units: ``(y − black_level_dn)/K − dark_e_per_um2 · a_k``, divided by
+   ``photons_per_um2 · η · a_k · fill_factor`` (the paper's ``1/vol(A_k)``).
+
+Below saturation and without the fixed patterns, the output's expectation is the noise-free
+mean ``L̄_k`` (up to the ADC's rounding, which noise dithers); its temporal variance is
+``σ_y² = K² σ_d² + σ_q² + K (μ_y − μ_y.dark)`` in DN, so a pixel's SNR grows as ``√a_k`` in the
+shot-noise regime and as ``a_k`` where read noise dominates.
+
+Noise and gradients: ``noise="auto"`` samples exact Poisson shot noise when no gradient is
+needed, and the reparameterised Gaussian ``μ + √μ ε`` (and a straight-through rounding in the
+ADC) when the image or θ requires grad, so that training gets unbiased gradients through the
+noise; ``"poisson"``/``"gaussian"`` force one, ``"none"`` keeps the expectation. The fixed
+patterns come from ``pattern_seed`` alone (one sensor, the same in every frame); temporal noise
+from ``seed`` (the same seed and input give the same noise; every image of a batch, and every
+channel, gets its own).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass, fields
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from .checks import ArgumentError, check_choice, check_number
+
+__all__ = [
+    "NOISE",
+    "OUTPUTS",
+    "PSFS",
+    "SensorPhysics",
+    "airy_profile",
+    "apply_psf",
+    "measure",
+    "psf_kernels",
+]
+
+#: Point spread functions of the optics.
+PSFS = ("gaussian", "airy")
+#: What :func:`measure` returns: radiance units (the ISP's output), electrons or digital numbers.
+OUTPUTS = ("radiance", "electrons", "dn")
+#: Shot-noise models (see the module docstring).
+NOISE = ("auto", "poisson", "gaussian", "none")
+#: The standard deviation of the Gaussian that best fits the Airy core, in units of ``λ N``.
+GAUSS_AIRY_SIGMA = 0.42
+#: The first zero of the Airy pattern's ``2 J1(x)/x``.
+AIRY_FIRST_ZERO = 3.8317059702075125
+
+
+@dataclass(frozen=True)
+class SensorPhysics:
+    """A camera in physical units: light, sensor, electronics and optics (see the module docstring).
+
+    Attributes:
+        sensor_um: the sensor's extent ``(H_um, W_um)`` in µm (as in :func:`~layoutwarp.export_layout`).
+        photons_per_um2: mean photons per µm² per exposure where the image's value is 1.0 (the
+            exposure: light level times exposure time).
+        quantum_efficiency: ``η``, electrons per photon, in ``(0, 1]``.
+        fill_factor: the share of each pixel's area that collects light, in ``(0, 1]``.
+        full_well_per_um2: electrons a pixel holds per µm² of its area (``None``: no saturation).
+        read_noise_e: temporal dark noise ``σ_d`` in electrons (rms).
+        dark_e_per_um2: mean dark electrons per µm² of pixel area per exposure.
+        adc_bits: the ADC's resolution (``None``: no quantisation, no clipping at the ADC).
+        gain_dn_per_e: the system gain ``K`` in DN per electron (``None``: 1, or with
+            ``adc_bits`` and a full well, the gain at which the largest pixel's full well fills
+            the ADC's range above the black level).
+        black_level_dn: the offset added before the ADC (and removed by the ISP), in DN.
+        prnu: photo-response non-uniformity, the relative rms of a fixed per-pixel gain pattern.
+        dsnu: dark-signal non-uniformity, the rms of a fixed per-pixel dark offset, in electrons.
+        pattern_seed: seeds the fixed PRNU/DSNU patterns (one physical sensor).
+        psf: ``None``, ``"gaussian"`` (separable; width ``psf_sigma_um``) or ``"airy"``
+            (diffraction at ``f_number`` and ``wavelength_um``).
+        f_number, wavelength_um: the optics' ``N`` and ``λ`` (µm).
+        psf_sigma_um: the Gaussian's standard deviation in µm (``None``: ``0.42 λ N``, the
+            Gaussian that best fits the Airy core).
+        psf_energy: the share of the Airy pattern's energy its truncated kernel keeps (the
+            rest, in the far rings, is the approximation's error; the kernel is renormalised).
+        seed: seeds the temporal noise (``None``: fresh noise every call).
+        noise: ``"auto"``, ``"poisson"``, ``"gaussian"`` or ``"none"``.
+    """
+
+    sensor_um: tuple[float, float]
+    photons_per_um2: float
+    quantum_efficiency: float = 1.0
+    fill_factor: float = 1.0
+    full_well_per_um2: float | None = None
+    read_noise_e: float = 0.0
+    dark_e_per_um2: float = 0.0
+    adc_bits: int | None = None
+    gain_dn_per_e: float | None = None
+    black_level_dn: float = 0.0
+    prnu: float = 0.0
+    dsnu: float = 0.0
+    pattern_seed: int = 0
+    psf: str | None = None
+    f_number: float = 5.6
+    wavelength_um: float = 0.55
+    psf_sigma_um: float | None = None
+    psf_energy: float = 0.95
+    seed: int | None = None
+    noise: str = "auto"
+
+    def __post_init__(self) -> None:
+        try:
+            hu, wu = self.sensor_um
+        except (TypeError, ValueError):
+            raise ArgumentError(
+                "sensor_um", f"sensor_um must be (H_um, W_um), two sizes in µm, got {self.sensor_um!r}"
+            ) from None
+        extent = (
+            check_number(hu, "sensor_um[0] (height)", 0, lo_open=True),
+            check_number(wu, "sensor_um[1] (width)", 0, lo_open=True),
+        )
+        object.__setattr__(self, "sensor_um", extent)
+        check_number(self.photons_per_um2, "photons_per_um2", 0, lo_open=True)
+        check_number(self.quantum_efficiency, "quantum_efficiency", 0, 1, lo_open=True)
+        check_number(self.fill_factor, "fill_factor", 0, 1, lo_open=True)
+        if self.full_well_per_um2 is not None:
+            check_number(self.full_well_per_um2, "full_well_per_um2", 0, lo_open=True)
+        for name in ("read_noise_e", "dark_e_per_um2", "black_level_dn", "prnu", "dsnu"):
+            check_number(getattr(self, name), name, 0)
+        if self.adc_bits is not None and (
+            isinstance(self.adc_bits, bool)
+            or not isinstance(self.adc_bits, int)
+            or not 1 <= self.adc_bits <= 32
+        ):
+            raise ArgumentError(
+                "adc_bits", f"adc_bits must be an integer in [1, 32] or None, got {self.adc_bits!r}"
+            )
+        if self.gain_dn_per_e is not None:
+            check_number(self.gain_dn_per_e, "gain_dn_per_e", 0, lo_open=True)
+        if self.psf is not None:
+            check_choice(self.psf, PSFS, "psf")
+        check_number(self.f_number, "f_number", 0, lo_open=True)
+        check_number(self.wavelength_um, "wavelength_um", 0, lo_open=True)
+        if self.psf_sigma_um is not None:
+            check_number(self.psf_sigma_um, "psf_sigma_um", 0, lo_open=True)
+        check_number(self.psf_energy, "psf_energy", 0.5, 1, hi_open=True)
+        check_choice(self.noise, NOISE, "noise")
+        for name in ("seed", "pattern_seed"):
+            v = getattr(self, name)
+            if not (v is None and name == "seed") and (
+                isinstance(v, bool) or not isinstance(v, int) or v < 0
+            ):
+                raise ArgumentError(name, f"{name} must be a non-negative integer, got {v!r}")
+
+    # -- files ---------------------------------------------------------------------
+    def to_dict(self) -> dict[str, Any]:
+        """The physics as a JSON-able dict (``sensor_um`` as a list)."""
+        d = asdict(self)
+        d["sensor_um"] = list(self.sensor_um)
+        return d
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> SensorPhysics:
+        """Rebuild from :meth:`to_dict` (unknown keys are refused, naming them)."""
+        if not isinstance(data, dict):
+            raise ValueError(f"sensor physics must be a JSON object, got {type(data).__name__}")
+        names = {f.name for f in fields(cls)}
+        unknown = sorted(set(data) - names)
+        if unknown:
+            raise ValueError(f"unknown sensor physics field(s) {unknown}; known: {sorted(names)}")
+        values = dict(data)
+        if isinstance(values.get("sensor_um"), list):
+            values["sensor_um"] = tuple(values["sensor_um"])
+        try:
+            return cls(**values)
+        except TypeError as exc:
+            raise ValueError(f"sensor physics: {exc}") from None
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), indent=2)
+
+    # -- derived -------------------------------------------------------------------
+    def gain(self, largest_area_um2: float) -> float:
+        """The system gain ``K`` (DN per electron) for a sensor whose largest pixel is that big."""
+        if self.gain_dn_per_e is not None:
+            return self.gain_dn_per_e
+        if self.adc_bits is not None and self.full_well_per_um2 is not None:
+            return (2**self.adc_bits - 1 - self.black_level_dn) / (self.full_well_per_um2 * largest_area_um2)
+        return 1.0
+
+    def psf_sigma(self) -> float:
+        """The Gaussian PSF's standard deviation in µm."""
+        return self.psf_sigma_um or GAUSS_AIRY_SIGMA * self.wavelength_um * self.f_number
+
+    def airy_zero_um(self) -> float:
+        """The radius of the Airy pattern's first dark ring, ``1.22 λ N``, in µm."""
+        return AIRY_FIRST_ZERO / math.pi * self.wavelength_um * self.f_number
+
+
+# ----------------------------------------------------------------------------------------
+# Optics
+# ----------------------------------------------------------------------------------------
+def airy_profile(r_um: Tensor, f_number: float, wavelength_um: float) -> Tensor:
+    """The Airy pattern's intensity ``(2 J1(x)/x)²``, ``x = π r / (λ N)``, at radii ``r_um`` (1 at 0)."""
+    x = math.pi * r_um / (wavelength_um * f_number)
+    safe = torch.where(x > 0, x, torch.ones_like(x))
+    return torch.where(x > 0, (2 * torch.special.bessel_j1(safe) / safe) ** 2, torch.ones_like(x))
+
+
+def _gauss_taps(sigma_px: float) -> np.ndarray:
+    """A Gaussian integrated over each pixel (``erf`` differences), normalised, radius ``4σ``."""
+    radius = max(1, math.ceil(4 * sigma_px))
+    edges = (np.arange(-radius, radius + 2) - 0.5) / (sigma_px * math.sqrt(2))
+    cdf = np.array([math.erf(v) for v in edges])
+    taps = np.diff(cdf) / 2
+    return taps / taps.sum()
+
+
+def psf_kernels(physics: SensorPhysics, src_size: tuple[int, int]) -> dict[str, Any]:
+    """The PSF as source-pixel kernels: ``{"ky", "kx"}`` (separable Gaussian) or ``{"k2d"}`` (Airy),
+    float64 numpy arrays that sum to 1, and ``"error"``: the Airy kernel's truncated energy (0 for
+    the Gaussian, whose ``4σ`` tails hold less than 1e-4).
+
+    The source pixel pitch is ``sensor_um / src_size`` per axis. The Airy pattern is averaged over
+    each source pixel (8 × 8 samples) out to the radius that holds ``psf_energy`` of its energy
+    (encircled energy ``1 − J0(x)² − J1(x)²``).
+    """
+    hs, ws = src_size
+    py, px = physics.sensor_um[0] / hs, physics.sensor_um[1] / ws
+    if physics.psf == "gaussian":
+        s = physics.psf_sigma()
+        return {"ky": _gauss_taps(s / py), "kx": _gauss_taps(s / px), "error": 0.0}
+    lam_n = physics.wavelength_um * physics.f_number
+    x = torch.linspace(1e-6, 400, 400_001, dtype=torch.float64)
+    enc = 1 - torch.special.bessel_j0(x) ** 2 - torch.special.bessel_j1(x) ** 2
+    x_max = float(x[int(torch.nonzero(enc >= physics.psf_energy)[0])])
+    r_um = x_max * lam_n / math.pi
+    ry, rx = max(1, math.ceil(r_um / py)), max(1, math.ceil(r_um / px))
+    sub = 8
+    oy = (torch.arange(-ry * sub, (ry + 1) * sub, dtype=torch.float64) + 0.5) / sub - 0.5
+    ox = (torch.arange(-rx * sub, (rx + 1) * sub, dtype=torch.float64) + 0.5) / sub - 0.5
+    yy, xx = torch.meshgrid(oy * py, ox * px, indexing="ij")
+    r = torch.sqrt(xx**2 + yy**2)
+    fine = torch.where(
+        r <= r_um, airy_profile(r, physics.f_number, physics.wavelength_um), torch.zeros_like(r)
+    )
+    k2d = fine.reshape(2 * ry + 1, sub, 2 * rx + 1, sub).mean((1, 3)).numpy()
+    return {"k2d": k2d / k2d.sum(), "error": 1 - physics.psf_energy}
+
+
+def apply_psf(image: Tensor, physics: SensorPhysics) -> Tensor:
+    """Blur source images ``(N, H, W)`` with the physics' PSF (none: returned as they are).
+
+    Borders are reflected (OpenCV's ``BORDER_REFLECT``, torch's ``"reflect"`` on a pixel-edge
+    grid), so the blur neither adds nor loses light at the image's edge; each kernel sums to 1.
+    On the CPU without a gradient OpenCV filters (``sepFilter2D`` / ``filter2D``); otherwise torch
+    convolutions, differentiable in the image.
+    """
+    if physics.psf is None:
+        return image
+    k = psf_kernels(physics, tuple(image.shape[-2:]))
+    n, h, w = image.shape
+    if image.device.type == "cpu" and not image.requires_grad and n > 0:
+        import cv2
+
+        arr = image.detach().permute(1, 2, 0).contiguous().numpy()
+        out = np.empty_like(arr)
+        for c0 in range(0, n, 4):  # OpenCV filters at most 4 channels at a time
+            part = np.ascontiguousarray(arr[..., c0 : c0 + 4])
+            if "k2d" in k:
+                res = cv2.filter2D(part, -1, k["k2d"].astype(part.dtype), borderType=cv2.BORDER_REFLECT)
+            else:
+                kx, ky = (k[a].astype(part.dtype) for a in ("kx", "ky"))
+                res = cv2.sepFilter2D(part, -1, kx, ky, borderType=cv2.BORDER_REFLECT)
+            out[..., c0 : c0 + 4] = res.reshape(h, w, -1)
+        return torch.from_numpy(out).permute(2, 0, 1).contiguous()
+    x = image[:, None]
+    if "k2d" in k:
+        kern = torch.from_numpy(k["k2d"]).to(image)
+        ry, rx = (s // 2 for s in kern.shape)
+        x = (
+            F.pad(x, (rx, rx, ry, ry), mode="reflect")
+            if min(h, w) > max(ry, rx)
+            else F.pad(x, (rx, rx, ry, ry), mode="replicate")
+        )
+        return F.conv2d(x, kern[None, None])[:, 0]
+    ky, kx = (torch.from_numpy(k[a]).to(image) for a in ("ky", "kx"))
+    ry, rx = len(ky) // 2, len(kx) // 2
+    mode = "reflect" if min(h, w) > max(ry, rx) else "replicate"
+    x = F.conv2d(F.pad(x, (0, 0, ry, ry), mode=mode), ky.view(1, 1, -1, 1))
+    x = F.conv2d(F.pad(x, (rx, rx, 0, 0), mode=mode), kx.view(1, 1, 1, -1))
+    return x[:, 0]
+
+
+# ----------------------------------------------------------------------------------------
+# Photons to numbers
+# ----------------------------------------------------------------------------------------
+def _patterns(
+    physics: SensorPhysics, size: tuple[int, int], dtype: torch.dtype, device
+) -> tuple[Tensor, Tensor]:
+    """The fixed PRNU and DSNU patterns ``(h, w)`` (standard normal, from ``pattern_seed``)."""
+    gen = torch.Generator().manual_seed(physics.pattern_seed)
+    z = torch.randn(2, *size, generator=gen, dtype=torch.float64)
+    return z[0].to(device=device, dtype=dtype), z[1].to(device=device, dtype=dtype)
+
+
+def measure(
+    mean: Tensor,
+    areas: Tensor,
+    physics: SensorPhysics,
+    *,
+    output: str = "radiance",
+    generator: torch.Generator | None = None,
+) -> Tensor:
+    """Steps 3–8 of the module docstring: pixel means ``(N, h, w)`` to a recorded sensor image.
+
+    Args:
+        mean: the integrators' mean radiance per pixel (image units; 1.0 is ``photons_per_um2``).
+        areas: pixel areas ``(h, w)`` in sensor units (the square ``[-1, 1]²``: they sum to 4),
+            e.g. :meth:`~layoutwarp.PixelMesh.areas`; differentiable in θ.
+        physics: the camera.
+        output: ``"radiance"`` (the ISP's estimate of ``mean``), ``"electrons"`` (after the full
+            well, before the ADC) or ``"dn"`` (the ADC's digital numbers).
+        generator: the noise's random generator (default: one seeded with ``physics.seed``, or
+            torch's global one when that is ``None``).
+
+    Returns:
+        ``(N, h, w)`` in ``mean``'s dtype.
+
+    Raises:
+        ValueError: a full well below the read noise in the smallest pixel.
+    """
+    check_choice(output, OUTPUTS, "output")
+    a_um2 = areas.to(mean) * (physics.sensor_um[0] * physics.sensor_um[1] / 4)
+    if generator is None and physics.seed is not None:
+        generator = torch.Generator(mean.device).manual_seed(physics.seed)
+    full = None
+    if physics.full_well_per_um2 is not None:
+        full = physics.full_well_per_um2 * a_um2
+        smallest = float(full.detach().min())
+        if smallest <= physics.read_noise_e:
+            raise ArgumentError(
+                "full_well_per_um2",
+                f"full_well_per_um2 = {physics.full_well_per_um2:g} gives the smallest pixel a full well of "
+                f"{smallest:.3g} e⁻, not above the read noise {physics.read_noise_e:g} e⁻",
+            )
+    eta = physics.quantum_efficiency
+    photons = physics.photons_per_um2 * physics.fill_factor * mean * a_um2
+    prnu, dsnu = _patterns(physics, tuple(mean.shape[-2:]), mean.dtype, mean.device)
+    signal = eta * photons * (1 + physics.prnu * prnu) if physics.prnu else eta * photons
+    dark = (
+        physics.dark_e_per_um2 * a_um2 + physics.dsnu * dsnu
+        if physics.dsnu
+        else physics.dark_e_per_um2 * a_um2
+    )
+    electrons = signal + dark
+    mode = physics.noise
+    if mode == "auto":
+        mode = "gaussian" if torch.is_grad_enabled() and electrons.requires_grad else "poisson"
+    rate = electrons.clamp_min(0)
+    if mode == "poisson":
+        electrons = torch.poisson(rate.detach(), generator=generator) + (electrons - electrons.detach())
+    elif mode == "gaussian":
+        eps = torch.randn(rate.shape, generator=generator, dtype=rate.dtype, device=rate.device)
+        electrons = electrons + torch.sqrt(rate.clamp_min(1e-12)) * eps * (rate > 0)
+    if physics.read_noise_e and mode != "none":
+        eps = torch.randn(rate.shape, generator=generator, dtype=rate.dtype, device=rate.device)
+        electrons = electrons + physics.read_noise_e * eps
+    if full is not None:
+        electrons = torch.minimum(electrons, full)
+    if output == "electrons":
+        return electrons
+    k = physics.gain(float(a_um2.detach().max()))
+    dn = k * electrons + physics.black_level_dn
+    if physics.adc_bits is not None:
+        top = 2**physics.adc_bits - 1
+        rounded = dn.detach().round().clamp(0, top)
+        dn = dn + (rounded - dn.detach())  # straight through: the value rounded, the gradient kept
+    if output == "dn":
+        return dn
+    recovered = (dn - physics.black_level_dn) / k - physics.dark_e_per_um2 * a_um2
+    return recovered / (eta * physics.photons_per_um2 * physics.fill_factor * a_um2)

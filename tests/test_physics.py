@@ -1,0 +1,335 @@
+"""Sensor physics: photons, noise, full well, ADC, fixed patterns and optics, against references
+(EMVA 1288 photon transfer, moments, finite differences, analytic PSF facts)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from conftest import rand_theta
+
+import layoutwarp as lw
+from layoutwarp.checks import ArgumentError
+from layoutwarp.physics import SensorPhysics, airy_profile, apply_psf, psf_kernels
+
+F64 = torch.float64
+
+
+def physics(**kw) -> SensorPhysics:
+    return SensorPhysics(**({"sensor_um": (64.0, 64.0), "photons_per_um2": 100.0} | kw))
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "needle"),
+    [
+        ("photons_per_um2", -1.0, "photons_per_um2 must be a finite number > 0, got -1.0"),
+        ("photons_per_um2", float("nan"), "photons_per_um2 must be a finite number > 0, got nan"),
+        ("fill_factor", 1.5, "fill_factor must be a finite number in (0, 1], got 1.5"),
+        ("fill_factor", 0.0, "fill_factor must be a finite number in (0, 1], got 0.0"),
+        ("quantum_efficiency", 0.0, "quantum_efficiency must be a finite number in (0, 1]"),
+        ("read_noise_e", -0.1, "read_noise_e must be a finite number >= 0"),
+        ("prnu", float("inf"), "prnu must be a finite number >= 0, got inf"),
+        ("psf", "bessel", "psf must be one of 'gaussian', 'airy'; got 'bessel'"),
+        ("adc_bits", 0, "adc_bits must be an integer in [1, 32] or None, got 0"),
+        ("sensor_um", (10.0, -2.0), "sensor_um[1] (width) must be a finite number > 0, got -2.0"),
+        ("noise", "shot", "noise must be one of 'auto', 'poisson', 'gaussian', 'none'; got 'shot'"),
+    ],
+)
+def test_bad_values_are_refused_naming_field_value_and_range(field, value, needle):
+    with pytest.raises(ArgumentError) as info:
+        physics(**{field: value})
+    assert needle in str(info.value) and "\n" not in str(info.value) and info.value.argument == field
+
+
+def test_a_full_well_below_the_read_noise_is_refused():
+    ph = physics(full_well_per_um2=1.0, read_noise_e=20.0)  # the smallest pixel holds ~4 e⁻
+    with pytest.raises(
+        ValueError, match=r"full_well_per_um2 = 1 gives the smallest pixel a full well of .* e⁻, not"
+    ):
+        lw.simulate(torch.rand(1, 1, 32, 32), lw.RectLayout((0.5, 0.5)), (8, 8), physics=ph)
+
+
+def test_physics_round_trips_through_json_and_layout_files(tmp_path):
+    ph = physics(psf="airy", f_number=4.0, adc_bits=10, full_well_per_um2=900.0, prnu=0.01, seed=7)
+    assert SensorPhysics.from_dict(ph.to_dict()) == ph
+    with pytest.raises(ValueError, match=r"unknown sensor physics field\(s\) \['exposure'\]"):
+        SensorPhysics.from_dict(ph.to_dict() | {"exposure": 1})
+    layer = lw.SensorLayer((4, 4), "curv", physics=ph)
+    layer.save_layout(tmp_path / "l.json")
+    back = lw.SensorLayer.from_layout_file(tmp_path / "l.json")
+    assert back.physics == ph
+
+
+@pytest.mark.parametrize("method", ["exact", "separable", "montecarlo", "point"])
+def test_without_physics_every_path_is_unchanged(method, gen):
+    img = torch.rand(2, 3, 40, 48, generator=gen)
+    layout = (
+        lw.RectLayout(rand_theta(gen, 0.8)) if method == "separable" else lw.CurvLayout(rand_theta(gen, 0.8))
+    )
+    opts = {"seed": 3} if method == "montecarlo" else {}
+    a = lw.simulate(img, layout, (5, 7), method, **opts)
+    b = lw.simulate(img, layout, (5, 7), method, physics=None, **opts)
+    assert torch.equal(a, b)
+
+
+@pytest.mark.parametrize("family", ["rect", "curv"])
+def test_noise_free_radiance_is_the_mean_and_electrons_scale_with_area(family, gen):
+    img = torch.rand(1, 2, 48, 40, generator=gen, dtype=F64)
+    layout = lw.make_layout(family, rand_theta(gen, 0.7), dtype=F64)
+    ph = physics(
+        quantum_efficiency=0.6, fill_factor=0.8, dark_e_per_um2=2.0, noise="none", sensor_um=(30.0, 50.0)
+    )
+    mean = lw.simulate(img, layout, (6, 5), tol=1e-8)
+    out = lw.simulate(img, layout, (6, 5), tol=1e-8, physics=ph)
+    assert float((out - mean).abs().max()) < 1e-12
+    e = lw.simulate(img, layout, (6, 5), tol=1e-8, physics=ph, output="electrons")
+    area_um2 = lw.pixel_mesh(layout, (6, 5), tol=1e-8).areas() * (30 * 50 / 4)
+    expected = 0.6 * 0.8 * 100 * mean * area_um2 + 2.0 * area_um2
+    assert float(((e - expected) / expected).abs().max()) < 1e-12
+
+
+def test_shot_and_read_noise_moments(gen):
+    # electrons: Poisson (variance = mean) plus Gaussian read noise, per pixel over many frames
+    frames, size = 4000, (4, 4)
+    layout = lw.RectLayout((0.6, 0.4), dtype=F64)  # pixel areas spanning more than 4x
+    level = 0.2 + 0.6 * torch.rand((), generator=gen, dtype=F64)
+    ph = physics(photons_per_um2=20.0, read_noise_e=2.0, quantum_efficiency=0.5, seed=int(level * 1e6))
+    img = torch.full((frames, 1, 16, 16), float(level), dtype=F64)
+    e = lw.simulate(img, layout, size, physics=ph, output="electrons")[:, 0]
+    mu = lw.simulate(
+        img[:1], layout, size, physics=SensorPhysics(**(ph.to_dict() | {"noise": "none"})), output="electrons"
+    )[0, 0]
+    assert float(mu.max() / mu.min()) > 4
+    mean, var = e.mean(0), e.var(0)
+    se_mean = torch.sqrt((mu + 4) / frames)
+    assert bool(((mean - mu).abs() < 4.5 * se_mean).all())
+    expected_var = mu + 4
+    assert bool(((var / expected_var - 1).abs() < 4.5 * math.sqrt(2 / (frames - 1)) + 0.01).all())
+    # Poisson is integer-valued before read noise: without it electrons are whole numbers
+    whole = lw.simulate(
+        img[:8],
+        layout,
+        size,
+        physics=SensorPhysics(**(ph.to_dict() | {"read_noise_e": 0.0})),
+        output="electrons",
+    )
+    assert torch.equal(whole, whole.round())
+
+
+def test_quantiser_levels_and_full_well_clipping():
+    layout = lw.RectLayout((0.5, 0.5), dtype=F64)
+    ph = physics(
+        photons_per_um2=1e4,
+        full_well_per_um2=500.0,
+        adc_bits=10,
+        read_noise_e=3.0,
+        black_level_dn=16.0,
+        seed=1,
+    )
+    img = torch.linspace(0, 1, 8, dtype=F64).view(8, 1, 1, 1).expand(8, 1, 32, 32)
+    dn = lw.simulate(img, layout, (4, 4), physics=ph, output="dn")
+    assert torch.equal(dn, dn.round()) and float(dn.min()) >= 0 and float(dn.max()) <= 1023
+    areas = lw.pixel_mesh(layout, (4, 4)).areas() * (64 * 64 / 4)
+    k = ph.gain(float(areas.max()))
+    assert k == pytest.approx((1023 - 16) / (500 * float(areas.max())))
+    e = lw.simulate(img, layout, (4, 4), physics=ph, output="electrons")
+    full = 500 * areas
+    assert bool((e <= full + 1e-9).all()) and torch.allclose(e[-1, 0], full)  # the brightest frame saturates
+    assert float(dn[-1].max()) == pytest.approx(round(k * float(full.max()) + 16), abs=0)
+    assert float(dn[0].min()) >= 0  # read noise around the black level stays in range
+
+
+def test_fixed_patterns_have_their_statistics_and_stay_fixed():
+    size = (48, 48)
+    layout = lw.UniformLayout()
+    ph = physics(
+        photons_per_um2=50.0, prnu=0.02, dsnu=3.0, noise="none", sensor_um=(96.0, 96.0), pattern_seed=5
+    )
+    one = torch.ones(1, 1, 96, 96, dtype=F64)
+    e = lw.simulate(one, layout, size, physics=ph, output="electrons")[0, 0]
+    dark = lw.simulate(0 * one, layout, size, physics=ph, output="electrons")[0, 0]
+    signal = e - dark
+    rel = signal / signal.mean() - 1
+    assert float(rel.std()) == pytest.approx(0.02, rel=0.1)  # 2304 pixels: std within about 3 %
+    assert float(dark.std()) == pytest.approx(3.0, rel=0.1)
+    assert torch.equal(dark, lw.simulate(0 * one, layout, size, physics=ph, output="electrons")[0, 0])
+    other = lw.simulate(
+        0 * one,
+        layout,
+        size,
+        physics=SensorPhysics(**(ph.to_dict() | {"pattern_seed": 6})),
+        output="electrons",
+    )
+    assert not torch.equal(dark, other[0, 0])
+
+
+def test_seeds_give_the_same_noise_and_every_image_its_own(gen):
+    img = torch.rand(1, 3, 32, 32, generator=gen).expand(4, 3, 32, 32)
+    ph = physics(read_noise_e=1.0, seed=11)
+    layout = lw.CurvLayout(rand_theta(gen, 0.5))
+    a = lw.simulate(img, layout, (6, 6), physics=ph)
+    assert torch.equal(a, lw.simulate(img, layout, (6, 6), physics=ph))
+    assert not torch.equal(a[0], a[1]) and not torch.equal(a[0, 0], a[0, 1])  # images and channels differ
+    fresh = SensorPhysics(**(ph.to_dict() | {"seed": None}))
+    assert not torch.equal(
+        lw.simulate(img, layout, (6, 6), physics=fresh), lw.simulate(img, layout, (6, 6), physics=fresh)
+    )
+    layer = lw.SensorLayer((6, 6), layout, physics=ph)
+    first, second = layer(img), layer(img)  # a seeded sequence: new noise every call, replayable
+    assert not torch.equal(first, second)
+    again = lw.SensorLayer((6, 6), layout, physics=ph)
+    assert torch.equal(again(img), first) and torch.equal(again(img), second)
+
+
+def test_gaussian_noise_in_training_and_poisson_elsewhere(gen):
+    layout = lw.RectLayout(rand_theta(gen, 0.5), learn=True, dtype=F64)
+    ph = physics(photons_per_um2=3.0, seed=2)
+    img = torch.full((1, 1, 16, 16), 0.5, dtype=F64)
+    with torch.no_grad():
+        e = lw.simulate(img, layout, (4, 4), physics=ph, output="electrons")
+    assert torch.equal(e, e.round())  # Poisson: whole electrons
+    e = lw.simulate(img, layout, (4, 4), physics=ph, output="electrons")
+    assert e.requires_grad and not torch.equal(e, e.round())  # reparameterised Gaussian
+
+
+def test_theta_gradient_of_the_expectation_matches_central_differences(gen):
+    # expected electrons depend on each pixel's area; their θ-gradient against differences (float64)
+    img = torch.rand(1, 1, 30, 36, generator=gen, dtype=F64)
+    ph = physics(noise="none", dark_e_per_um2=1.5, quantum_efficiency=0.7)
+    w = torch.rand(1, 1, 5, 6, generator=gen, dtype=F64)
+    theta = rand_theta(gen, 0.7)
+    for family in ("rect", "curv"):
+        layout = lw.make_layout(family, theta, learn=True, dtype=F64)
+        mesh_opts = {} if family == "rect" else {"subdivisions": 2048}  # smooth in θ, areas to ~1e-7
+
+        def loss(t: torch.Tensor, family=family, mesh_opts=mesh_opts) -> torch.Tensor:
+            fixed = lw.make_layout(family, t, dtype=F64)
+            mesh = lw.pixel_mesh(fixed, (5, 6), **mesh_opts)
+            mean = lw.integrators.integrate_exact(img[0], fixed, (5, 6), mesh=mesh)
+            from layoutwarp.physics import measure
+
+            return (measure(mean, mesh.areas(), ph, output="electrons") * w[0]).sum()
+
+        out = lw.simulate(img, layout, (5, 6), physics=ph, output="electrons", tol=1e-9)
+        (g,) = torch.autograd.grad((out * w).sum(), layout.rho)
+        g_theta = g / (1 - layout.theta.detach() ** 2)
+        h = 1e-6
+        fd = torch.stack(
+            [(loss(theta + h * e) - loss(theta - h * e)) / (2 * h) for e in torch.eye(2, dtype=F64)]
+        )
+        assert float((g_theta - fd).norm() / fd.norm()) < 1e-5, (family, g_theta, fd)
+
+
+def test_reparameterised_gradient_is_unbiased(gen):
+    # E[Σ w out²] = Σ w (m² + (μ_e + σ_d²) / s²) with s = η p a f: its θ-gradient is what the
+    # mean over many noisy gradients must approach (within four standard errors)
+    img = torch.rand(1, 1, 24, 24, generator=gen, dtype=F64) * 0.5 + 0.25
+    ph = physics(photons_per_um2=2.0, read_noise_e=1.5, quantum_efficiency=0.8, noise="gaussian")
+    w = torch.rand(1, 1, 4, 4, generator=gen, dtype=F64)
+    layout = lw.RectLayout(rand_theta(gen, 0.6), learn=True, dtype=F64)
+    mean = lw.simulate(img, layout, (4, 4))
+    a_um2 = lw.pixel_mesh(layout, (4, 4)).areas() * (64 * 64 / 4)
+    s = 0.8 * 2.0 * a_um2
+    expected = (w * (mean**2 + (s * mean + 1.5**2) / s**2)).sum()
+    (g_exp,) = torch.autograd.grad(expected, layout.rho)
+    gens = torch.Generator().manual_seed(int(torch.randint(0, 2**31, (), generator=gen)))
+    grads = []
+    for _ in range(600):
+        out = lw.simulate(img, layout, (4, 4), physics=ph, generator=gens)
+        grads.append(torch.autograd.grad((w * out**2).sum(), layout.rho)[0])
+    grads = torch.stack(grads)
+    se = grads.std(0) / math.sqrt(len(grads))
+    assert bool(((grads.mean(0) - g_exp).abs() < 4 * se).all()), (grads.mean(0), g_exp, se)
+    assert float(se.max()) < 0.2 * float(g_exp.abs().max())  # the test has power
+
+
+def test_psf_kernels_conserve_energy_and_the_airy_zero_is_at_1_22_lambda_n(gen):
+    ph = physics(psf="airy", f_number=5.6, wavelength_um=0.55)
+    r0 = 1.22 * 0.55 * 5.6
+    assert ph.airy_zero_um() == pytest.approx(r0, rel=1e-3)
+    r = torch.linspace(0.9 * r0, 1.1 * r0, 2001, dtype=F64)
+    prof = airy_profile(r, 5.6, 0.55)
+    assert float(r[prof.argmin()]) == pytest.approx(r0, rel=1e-3) and float(prof.min()) < 1e-7
+    for kind in ("gaussian", "airy"):
+        k = psf_kernels(physics(psf=kind, sensor_um=(100.0, 120.0)), (80, 60))
+        for arr in (v for key, v in k.items() if key != "error"):
+            assert arr.sum() == pytest.approx(1.0, abs=1e-12)
+    k = psf_kernels(physics(psf="gaussian", psf_sigma_um=3.0, sensor_um=(40.0, 40.0)), (40, 40))
+    x = np.arange(len(k["kx"])) - len(k["kx"]) // 2
+    assert float((k["kx"] * x**2).sum()) == pytest.approx(9 + 1 / 12, rel=1e-3)  # σ² plus a pixel's box
+    assert psf_kernels(physics(psf="airy", psf_energy=0.9), (64, 64))["error"] == pytest.approx(0.1)
+    # a blob away from the border keeps its energy; OpenCV (CPU, no grad) and torch agree
+    img = torch.zeros(2, 64, 64, dtype=torch.float32)
+    img[:, 20:40, 25:35] = torch.rand(2, 20, 10, generator=gen)
+    for kind in ("gaussian", "airy"):
+        ph = physics(psf=kind, f_number=8.0)
+        out = apply_psf(img, ph)
+        assert torch.allclose(out.sum((1, 2)), img.sum((1, 2)), rtol=1e-5)
+        via_torch = apply_psf(img.clone().requires_grad_(True), ph).detach()
+        assert torch.allclose(out, via_torch, atol=1e-6)
+
+
+def test_photon_transfer_recovers_gain_read_noise_and_saturation_per_pixel_class(gen):
+    """EMVA 1288's photon transfer on a non-uniform sensor: flat fields at 24 exposures and dark
+    frames; per class of pixel area, the variance-vs-mean slope is the system gain K, the dark
+    variance gives the read noise, and the plateau the full well; the SNR follows √area where
+    shot noise dominates and the EMVA formula everywhere."""
+    size, frames = (12, 12), 2000
+    layout = lw.RectLayout((0.55, 0.55), dtype=F64)
+    k_true, read, fw, dark_e, eta = 0.35, 6.0, 800.0, 0.5, 0.6
+    base = dict(
+        sensor_um=(48.0, 48.0),
+        quantum_efficiency=eta,
+        full_well_per_um2=fw,
+        read_noise_e=read,
+        dark_e_per_um2=dark_e,
+        adc_bits=16,
+        gain_dn_per_e=k_true,
+        black_level_dn=64.0,
+        seed=int(torch.randint(0, 2**31, (), generator=gen)),
+    )
+    area = lw.pixel_mesh(layout, size).areas() * (48 * 48 / 4)
+    assert float(area.max() / area.min()) > 4
+    classes = torch.bucketize(
+        area, torch.quantile(area.flatten(), torch.tensor([0.25, 0.5, 0.75], dtype=F64))
+    )
+
+    def frames_dn(level: float, n: int = frames) -> torch.Tensor:
+        ph = SensorPhysics(photons_per_um2=max(level, 1e-9), **base)
+        flat = torch.full((n, 1, 24, 24), float(level > 0), dtype=F64)
+        return lw.simulate(flat, layout, size, physics=ph, output="dn")[:, 0]
+
+    dark = frames_dn(0.0, 4000)  # the dark variance to 1 %: many frames
+    mu_dark, var_dark = dark.mean(0), dark.var(0)
+    levels = np.geomspace(20, 400, 24)  # photons/µm²: the largest pixels stay below saturation
+    means, variances = [], []
+    for lv in levels:
+        y = frames_dn(float(lv))
+        means.append(y.mean(0) - mu_dark)
+        variances.append(y.var(0) - var_dark)
+    means, variances = torch.stack(means), torch.stack(variances)
+    for c in range(4):
+        sel = classes == c
+        x, v = means[:, sel].flatten(), variances[:, sel].flatten()
+        k_fit = float((x * v).sum() / (x * x).sum())  # through the origin, as the method's model
+        assert k_fit == pytest.approx(k_true, rel=0.02), c
+        sigma_d = math.sqrt(max(float(var_dark[sel].mean()) - 1 / 12, 0.0)) / k_fit
+        # the dark noise σ_d (read noise and the dark signal's shot noise, as EMVA 1288 defines it)
+        assert sigma_d == pytest.approx(math.sqrt(read**2 + dark_e * float(area[sel].mean())), rel=0.02), c
+    saturated = frames_dn(1e6)  # every pixel at its full well
+    e_sat = (saturated.mean(0) - 64.0) / k_true
+    for c in range(4):
+        sel = classes == c
+        assert float(e_sat[sel].mean()) == pytest.approx(fw * float(area[sel].mean()), rel=0.02)
+    # SNR: √area in the shot-noise regime, and the EMVA formula
+    lv = 300.0
+    y = frames_dn(lv, 4000)  # each pixel's SNR to about 1 %
+    snr = (y.mean(0) - mu_dark) / y.std(0)
+    slope = np.polyfit(np.log(area.flatten().numpy()), np.log(snr.flatten().numpy()), 1)[0]
+    mu_e = eta * lv * area
+    sigma_d2 = read**2 + dark_e * area
+    expected = mu_e / torch.sqrt(sigma_d2 + (1 / 12) / k_true**2 + mu_e)
+    assert slope == pytest.approx(0.5, abs=0.02)
+    assert float(((snr / expected) - 1).abs().mean()) < 0.03
