@@ -114,6 +114,7 @@ def _number(lo: float, *, integer: bool = False, open_lo: bool = False) -> Calla
 positive_int = _number(1, integer=True)
 non_negative_int = _number(0, integer=True)
 positive_float = _number(0, open_lo=True)
+non_negative_float = _number(0)
 
 
 def _available_bytes() -> int:
@@ -256,12 +257,18 @@ def _run_options(task, args: argparse.Namespace, defaults):
         epochs=args.epochs,
         freeze_epochs=args.freeze_epochs,
         theta_lr=args.theta_lr,
-        sensor=_sensor_options(args, defaults.tol),
+        sensor=_sensor_options(args, defaults.tol) | _physics_option(task, args),
         device=_device(args.device),
         amp=args.amp,
         progress=not args.no_progress,
         task_options=extra,
     )
+
+
+def _physics_option(task, args: argparse.Namespace) -> dict:
+    """The ``physics`` sensor option of a training command (the task's images at 1 µm a pixel)."""
+    physics = _physics_from_args(args, tuple(float(v) for v in task.image_size))
+    return {} if physics is None else {"physics": physics.to_dict()}
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
@@ -380,6 +387,7 @@ def _cmd_study(args: argparse.Namespace) -> int:
         progress=not args.no_progress,
         task_options={k: getattr(args, k) for k in task.extra_dests},
     )
+    options = replace(options, sensor=options.sensor | _physics_option(task, args))
     summary = run_study(task, folder, out, plan=plan, seeds=args.seeds, options=options)
     print(study_table(summary), end="")
     print(f"wrote {out}/study.json, study.md and study_{task.name}.png (scores in percent)")
@@ -482,6 +490,7 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
         engine=args.engine,
         address=args.address,
         device=_device(args.device),
+        physics=_physics_from_args(args),
     )
     print(
         f"{res.processed} written, {res.skipped} already done, {len(res.failed)} failed "
@@ -522,6 +531,7 @@ def _cmd_export(args: argparse.Namespace) -> int:
         px_per_um=args.px_per_um,
         line_width=args.line_width,
         min_feature_um=args.min_feature_um,
+        physics=_physics_from_args(args, args.sensor_um),
     )
     print(report.summary())
     if args.report:
@@ -532,11 +542,81 @@ def _cmd_export(args: argparse.Namespace) -> int:
 # ----------------------------------------------------------------------------------------
 # Parser
 # ----------------------------------------------------------------------------------------
+def _add_physics_args(p: argparse.ArgumentParser, extent: str | None = None) -> None:
+    """``--physics FILE`` and the common fields as flags (a flag overrides the file's value)."""
+    g = p.add_argument_group(
+        "sensor physics", "record as a real sensor would: photons, noise, full well, ADC, optics"
+    )
+    g.add_argument("--physics", metavar="FILE", help="a SensorPhysics JSON file (SensorPhysics.to_json)")
+    g.add_argument(
+        "--photons-per-um2",
+        type=positive_float,
+        help="the light: mean photons per µm² where the image is at full scale",
+    )
+    if extent is None:
+        g.add_argument("--sensor-um", type=parse_um, help="the sensor's extent WIDTHxHEIGHT in µm")
+    g.add_argument("--read-noise-e", type=non_negative_float, help="read noise in electrons (rms)")
+    g.add_argument("--full-well-per-um2", type=positive_float, help="electrons a pixel holds per µm²")
+    g.add_argument("--adc-bits", type=positive_int, help="ADC resolution in bits")
+    g.add_argument("--psf", choices=["gaussian", "airy"], help="the optics' point spread function")
+    g.add_argument("--f-number", type=positive_float, help="the optics' f-number (with --psf)")
+    g.add_argument("--noise-seed", type=non_negative_int, help="seed of the temporal noise")
+
+
+#: Physics flags and the SensorPhysics fields they set.
+PHYSICS_FLAGS = {
+    "photons_per_um2": "photons_per_um2",
+    "sensor_um": "sensor_um",
+    "read_noise_e": "read_noise_e",
+    "full_well_per_um2": "full_well_per_um2",
+    "adc_bits": "adc_bits",
+    "psf": "psf",
+    "f_number": "f_number",
+    "noise_seed": "seed",
+}
+
+
+def _physics_from_args(args: argparse.Namespace, extent: tuple[float, float] | None = None):
+    """The :class:`~layoutwarp.SensorPhysics` of ``--physics FILE`` and the physics flags, or
+    ``None`` when none is given. ``extent``: the sensor extent when no flag or file sets one."""
+    from .physics import SensorPhysics
+
+    values: dict[str, Any] = {}
+    if args.physics:
+        try:
+            values = json.loads(Path(args.physics).read_text())
+            SensorPhysics.from_dict(values)
+        except (OSError, json.JSONDecodeError, ValueError) as exc:
+            raise UsageError(f"argument --physics: {args.physics}: {exc}") from None
+    flags = {
+        field: getattr(args, dest)
+        for dest, field in PHYSICS_FLAGS.items()
+        if getattr(args, dest, None) is not None
+    }
+    if not values and not set(flags) - {"sensor_um"}:  # an extent alone (export's own) asks for no physics
+        return None
+    values |= flags
+    if "sensor_um" not in values and extent is not None:
+        values["sensor_um"] = extent
+    for field, flag in (("photons_per_um2", "--photons-per-um2"), ("sensor_um", "--sensor-um")):
+        if field not in values:
+            raise UsageError(f"argument {flag}: needed for sensor physics (or give it in --physics FILE)")
+    try:
+        return SensorPhysics.from_dict(values)
+    except ValueError as exc:
+        raise UsageError(f"sensor physics: {exc}") from None
+
+
 def _add_layout_args(p: argparse.ArgumentParser, families: Sequence[str]) -> None:
     p.add_argument("--layout", metavar="FILE", help="layout file (written by save_layout or train)")
     p.add_argument("--family", choices=families, help="or a layout family (with --theta)")
     p.add_argument("--theta", type=parse_theta, help="θ as TX,TY with --family, each |θ| < 1")
     p.add_argument("--size", type=parse_wxh, help="sensor WIDTHxHEIGHT (default: the layout file's)")
+
+
+def _extent_text(task) -> str:
+    h, w = task.image_size
+    return f"{w}x{h} µm"
 
 
 def _sizes_text(sizes) -> str:
@@ -566,6 +646,7 @@ def _add_training_args(p: argparse.ArgumentParser, task, quick_help: str) -> Non
     task.add_arguments(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     _add_run_args(p)
+    _add_physics_args(p, extent=f"the task's images at 1 µm a source pixel ({_extent_text(task)})")
 
 
 def _add_train_parser(sub, task, families: Sequence[str]) -> None:
@@ -754,6 +835,7 @@ def build_parser() -> argparse.ArgumentParser:
     pp.add_argument(
         "--benchmark", action="store_true", help="also time a plain OpenCV loop on the same files"
     )
+    _add_physics_args(pp)
     pp.set_defaults(func=_cmd_preprocess)
 
     ex = command("export", "Write a layout's pixel boundaries as a fabrication mask (GDSII, DXF, SVG, PNG).")
@@ -782,6 +864,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     ex.add_argument("--min-feature-um", type=positive_float, help="warn below this pitch (µm)")
     ex.add_argument("--report", metavar="FILE", help="also write the report as JSON to this file")
+    _add_physics_args(ex, extent="--sensor-um")
     ex.set_defaults(func=_cmd_export)
 
     t = command("train", "Train a layout jointly with a network: the paper's experiments.")

@@ -19,7 +19,7 @@ polygons tile the sensor without gaps or overlaps, also after snapping.
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -31,6 +31,7 @@ from .coords import sensor_to_pixels, uniform_corners
 from .files import atomic_write
 from .layouts import Layout
 from .mesh import MeshTopology, distance_subdivisions, pixel_mesh, polygon_area
+from .physics import SensorPhysics, pixel_snr
 
 __all__ = ["FORMATS", "ExportReport", "export_layout", "pixel_polygons_um", "report_json"]
 
@@ -58,6 +59,7 @@ class ExportReport:
     manhattan: bool
     files: list[str] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
+    physics: dict | None = None  # with export_layout(physics=): the camera and per-pixel numbers
 
     def summary(self) -> str:
         lines = [
@@ -70,6 +72,12 @@ class ExportReport:
             + (", Manhattan" if self.manhattan else "")
             + ")",
         ]
+        if self.physics is not None:
+            p = self.physics
+            lines.append(
+                f"  at {p['photons_per_um2']:g} photons/µm²: full well {p['min_full_well_e']:.4g} .. "
+                f"{p['max_full_well_e']:.4g} e⁻, SNR {p['min_snr']:.3g} .. {p['max_snr']:.3g}"
+            )
         return "\n".join(lines + [f"  warning: {w}" for w in self.warnings])
 
 
@@ -323,6 +331,7 @@ def export_layout(
     px_per_um: float | None = None,
     line_width: int = 1,
     min_feature_um: float | None = None,
+    physics: SensorPhysics | None = None,
 ) -> ExportReport:
     """Write the pixel boundaries of ``layout`` as a fabrication mask.
 
@@ -343,6 +352,10 @@ def export_layout(
             :func:`pixel_polygons_um`).
         px_per_um: raster resolution (default: 4096 raster pixels on the longer side).
         min_feature_um: warn when the smallest pitch is below this.
+        physics: add each pixel's full well and its SNR for a flat field at the physics' exposure
+            (``photons_per_um2``, :func:`~layoutwarp.physics.pixel_snr`; the pixel areas are the
+            exported polygons') to the report (``physics``: the camera, ``full_well_e`` and
+            ``snr`` per pixel, row-major). Its ``sensor_um`` is replaced by this sensor's.
 
     Returns:
         an :class:`ExportReport` (also printed by ``layoutwarp export``).
@@ -379,6 +392,17 @@ def export_layout(
         manhattan=manhattan,
         files=[str(path)],
     )
+    if physics is not None:
+        physics = replace(physics, sensor_um=(hu, wu))
+        numbers = pixel_snr(torch.from_numpy(areas), physics)
+        report.physics = physics.to_dict() | {
+            "full_well_e": numbers["full_well_e"].tolist(),
+            "snr": numbers["snr"].tolist(),
+            "min_full_well_e": float(numbers["full_well_e"].min()),
+            "max_full_well_e": float(numbers["full_well_e"].max()),
+            "min_snr": float(numbers["snr"].min()),
+            "max_snr": float(numbers["snr"].max()),
+        }
     if min_feature_um is not None and report.min_pitch_um < min_feature_um:
         k = int(pitch.argmin())
         report.warnings.append(

@@ -57,6 +57,7 @@ __all__ = [
     "airy_profile",
     "apply_psf",
     "measure",
+    "pixel_snr",
     "psf_kernels",
 ]
 
@@ -397,3 +398,28 @@ def measure(
         return dn
     recovered = (dn - physics.black_level_dn) / k - physics.dark_e_per_um2 * a_um2
     return recovered / (eta * physics.photons_per_um2 * physics.fill_factor * a_um2)
+
+
+def pixel_snr(areas_um2: Tensor, physics: SensorPhysics, level: float = 1.0) -> dict[str, Tensor]:
+    """Each pixel's full well and its SNR for a flat field at ``level`` (image units, 1.0 is
+    ``photons_per_um2``), from the EMVA 1288 formula
+    ``SNR = μ_e / √(σ_d² + σ_q²/K² + μ_e)`` with ``σ_d² = read_noise_e² + μ_d`` (the dark signal's
+    shot noise) and the signal capped at the full well; no fixed patterns.
+
+    Returns:
+        ``{"full_well_e", "signal_e", "snr"}``, each shaped like ``areas_um2`` (full well ``inf``
+        without one).
+    """
+    a = areas_um2.to(torch.float64)
+    full = (
+        physics.full_well_per_um2 * a
+        if physics.full_well_per_um2 is not None
+        else torch.full_like(a, math.inf)
+    )
+    dark = physics.dark_e_per_um2 * a
+    signal = torch.minimum(
+        physics.quantum_efficiency * physics.photons_per_um2 * physics.fill_factor * level * a, full - dark
+    )
+    quant = 1 / 12 / physics.gain(float(a.max())) ** 2 if physics.adc_bits is not None else 0.0
+    snr = signal / torch.sqrt(physics.read_noise_e**2 + dark + quant + signal)
+    return {"full_well_e": full, "signal_e": signal, "snr": snr}

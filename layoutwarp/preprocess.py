@@ -25,6 +25,7 @@ Destination layout::
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import sys
@@ -41,10 +42,13 @@ import torch
 
 from .backwarp import sensor_index_maps
 from .checks import ArgumentError, check_choice, check_int, check_size
-from .files import atomic_write
+from .files import atomic_write, run_info
+from .integrators import data_tolerance
 from .labels import LABEL_RULES as SENSOR_RULES
 from .layoutfile import layout_from_spec, layout_spec, load_layout, same_spec, save_layout
 from .layouts import Layout
+from .mesh import pixel_mesh
+from .physics import SensorPhysics, apply_psf, measure
 from .resampler import AreaResampler
 
 __all__ = [
@@ -52,6 +56,7 @@ __all__ = [
     "LABEL_RULES",
     "PreprocessResult",
     "check_destination",
+    "file_seed",
     "list_images",
     "preprocess_folder",
     "read_image",
@@ -114,12 +119,41 @@ class _Job:
     """
 
     def __init__(
-        self, layout: Layout, size: tuple[int, int], tol: float | None, label_rule: str, device: str = "cpu"
+        self,
+        layout: Layout,
+        size: tuple[int, int],
+        tol: float | None,
+        label_rule: str,
+        device: str = "cpu",
+        physics: SensorPhysics | None = None,
     ):
         self.layout, self.size, self.tol, self.label_rule = layout, size, tol, label_rule
-        self.device = device
+        self.device, self.physics = device, physics
         self._cache: dict[tuple, AreaResampler] = {}
         self._lock = threading.Lock()
+        self._areas: torch.Tensor | None = None
+
+    def record(self, img: np.ndarray, res: AreaResampler, rel: str) -> np.ndarray:
+        """The sensor image of ``img`` (HW or HWC): the pixel means, or with physics what the sensor
+        records (the PSF on the source, then photons and noise; values in the image's units, noise
+        seeded from the file's relative path so a rerun writes the same bytes)."""
+        if self.physics is None:
+            return res(img)
+        scale = float(np.iinfo(img.dtype).max) if np.issubdtype(img.dtype, np.integer) else 1.0
+        src = torch.from_numpy(np.ascontiguousarray(img, np.float32) / scale)
+        src = src[None] if src.ndim == 2 else src.permute(2, 0, 1)
+        blurred = apply_psf(src.contiguous(), self.physics).permute(1, 2, 0).numpy()
+        mean = torch.from_numpy(res(blurred)).to(torch.float64)
+        mean = mean[None] if mean.ndim == 2 else mean.permute(2, 0, 1)
+        with self._lock:
+            if self._areas is None:
+                tol = self.tol if self.tol is not None else data_tolerance(img.dtype)[0]
+                self._areas = pixel_mesh(self.layout, self.size, tol=tol, dtype=torch.float64).areas()
+        gen = torch.Generator().manual_seed(file_seed(self.physics.seed, rel))
+        with torch.no_grad():
+            out = measure(mean, self._areas, self.physics, generator=gen)
+        out = out.permute(1, 2, 0).numpy() * scale
+        return out[..., 0] if img.ndim == 2 else out
 
     def resampler(self, src_size: tuple[int, int], dtype: np.dtype) -> AreaResampler:
         """The shared resampler of a source size (and, with ``tol=None``, of a dtype's tolerance)."""
@@ -137,7 +171,7 @@ class _Job:
         try:
             img = read_image(Path(task["src"]))
             res = self.resampler(img.shape[:2], img.dtype)
-            out = _to_dtype(res(img), img.dtype)
+            out = _to_dtype(self.record(img, res, rel), img.dtype)
             dst = Path(task["dst"])
             atomic_write(dst, _encode(dst, out))
             entry = {"file": rel, "src_bytes": task["src_bytes"], "src_mtime_ns": task["src_mtime_ns"]}
@@ -181,7 +215,8 @@ def _remote_process(spec: str, task: dict) -> dict:
         if job is None:
             d = json.loads(spec)
             layout = layout_from_spec(d["layout"], dtype=torch.float64)
-            job = _Job(layout, tuple(d["size"]), d["tol"], d["label_rule"], d["device"])
+            physics = SensorPhysics.from_dict(d["physics"]) if d.get("physics") else None
+            job = _Job(layout, tuple(d["size"]), d["tol"], d["label_rule"], d["device"], physics)
             _WORKER_JOBS[spec] = job
     return job.process(task)
 
@@ -202,6 +237,13 @@ def _npz_bytes(**arrays: np.ndarray) -> bytes:
     buf = io.BytesIO()
     np.savez_compressed(buf, **arrays)
     return buf.getvalue()
+
+
+def file_seed(seed: int | None, rel: str | Path) -> int:
+    """The noise seed of one file: its relative path (as POSIX text) hashed with ``seed`` (0 when
+    ``None``), the same on every machine, run and engine."""
+    digest = hashlib.blake2b(f"{seed or 0}:{Path(rel).as_posix()}".encode(), digest_size=8).digest()
+    return int.from_bytes(digest, "little") >> 1
 
 
 def list_images(src: str | Path, exclude: str | Path | None = None) -> list[Path]:
@@ -261,6 +303,7 @@ def preprocess_folder(
     engine: str = "local",
     address: str | None = None,
     device: str | torch.device = "cpu",
+    physics: SensorPhysics | None = None,
 ) -> PreprocessResult:
     """Write the sensor image of every image under ``src`` to the same relative path in ``dst``.
 
@@ -291,6 +334,10 @@ def preprocess_folder(
         device: where the sparse products run (``"cpu"``, ``"cuda"``; on a Dask cluster, the
             device of each worker). The CPU's outputs are the reference; see
             :class:`~layoutwarp.AreaResampler` for CUDA's.
+        physics: record the images as a real sensor would (:mod:`layoutwarp.physics`: the image's
+            full range is ``photons_per_um2``; outputs in the image's units, the ISP's estimate);
+            each file's noise is seeded from ``physics.seed`` (0 when ``None``) and its relative
+            path (:func:`file_seed`), so a rerun, or another engine, writes the same bytes.
 
     Returns:
         a :class:`PreprocessResult`; failures (unreadable files) are listed, not raised.
@@ -319,8 +366,20 @@ def preprocess_folder(
             raise ArgumentError(
                 "dst", f"{dst} holds a dataset made with another layout ({prev}); use an empty folder"
             )
+        before = (old.get("extra") or {}).get("physics")
+        if before != (physics.to_dict() if physics else None):
+            raise ArgumentError(
+                "dst", f"{dst} holds a dataset recorded with other sensor physics; use an empty folder"
+            )
+    extra = {"physics": physics.to_dict()} if physics else {}
     save_layout(
-        layout, layout_file, size, tol=tol, label_rule=label_rule if labels else None, source=str(src)
+        layout,
+        layout_file,
+        size,
+        tol=tol,
+        label_rule=label_rule if labels else None,
+        source=str(src),
+        **extra,
     )
     config |= {"tol": tol, "label_rule": label_rule}
 
@@ -376,9 +435,10 @@ def preprocess_folder(
             bar.update(1)
 
         fixed = layout_from_spec(config, dtype=torch.float64)
-        job = _Job(fixed, size, tol, label_rule, str(device))
+        job = _Job(fixed, size, tol, label_rule, str(device), physics)
         if engine == "dask" and tasks:
             spec = {"layout": config, "size": list(size), "tol": tol, "label_rule": label_rule}
+            spec |= {"physics": physics.to_dict() if physics else None}
             spec = json.dumps(spec | {"device": str(device)})
             _run_on_dask(spec, tasks, record, workers, address)
         elif workers == 1 or len(tasks) <= 1:
@@ -402,6 +462,8 @@ def preprocess_folder(
         "workers": workers,
         "engine": engine if address is None else f"{engine} at {address}",
         "device": str(device),
+        "physics": physics.to_dict() if physics else None,
+        "run": run_info(device),
     }
     result.manifest = dst / "manifest.json"
     atomic_write(result.manifest, json.dumps(manifest, indent=2).encode())

@@ -333,3 +333,65 @@ def test_photon_transfer_recovers_gain_read_noise_and_saturation_per_pixel_class
     expected = mu_e / torch.sqrt(sigma_d2 + (1 / 12) / k_true**2 + mu_e)
     assert slope == pytest.approx(0.5, abs=0.02)
     assert float(((snr / expected) - 1).abs().mean()) < 0.03
+
+
+def test_preprocessing_records_with_physics_and_reruns_to_the_same_bytes(tmp_path):
+    from conftest import SAMPLES
+
+    from layoutwarp.preprocess import file_seed
+
+    ph = physics(sensor_um=(360.0, 480.0), photons_per_um2=3.0, read_noise_e=2.0, psf="gaussian", seed=4)
+    layout, src = lw.CurvLayout((0.4, 0.2)), SAMPLES / "camvid" / "val"
+    one = lw.preprocess_folder(src, tmp_path / "a", layout, (36, 48), physics=ph, progress=False)
+    two = lw.preprocess_folder(src, tmp_path / "b", layout, (36, 48), physics=ph, workers=2, progress=False)
+    assert one.processed == two.processed == 3 and not one.failed
+    files = sorted(p.name for p in (tmp_path / "a").glob("*.png"))
+    assert all((tmp_path / "a" / f).read_bytes() == (tmp_path / "b" / f).read_bytes() for f in files)
+    clean = lw.preprocess_folder(src, tmp_path / "c", layout, (36, 48), progress=False)
+    import cv2
+
+    a, c = (cv2.imread(str(tmp_path / d / files[0])).astype(float) for d in ("a", "c"))
+    assert 2 < np.abs(a - c).mean() < 60  # noisy at 3 photons/µm², around the clean image
+    assert file_seed(4, files[0]) != file_seed(4, files[1]) and file_seed(4, "x/y.png") == file_seed(
+        4, "x/y.png"
+    )
+    manifest = (tmp_path / "a" / "manifest.json").read_text()
+    assert '"photons_per_um2": 3.0' in manifest and clean.processed == 3
+    with pytest.raises(ValueError, match="other sensor physics"):
+        lw.preprocess_folder(src, tmp_path / "a", layout, (36, 48), progress=False)
+
+
+def test_export_report_gives_each_pixels_full_well_and_snr(tmp_path):
+    ph = physics(photons_per_um2=40.0, full_well_per_um2=600.0, read_noise_e=4.0, dark_e_per_um2=1.0)
+    layout = lw.RectLayout((0.5, 0.3))
+    report = lw.export_layout(layout, (6, 8), tmp_path / "m.svg", (60.0, 80.0), physics=ph)
+    areas = lw.pixel_mesh(layout, (6, 8)).areas().flatten().numpy() * (60 * 80 / 4)
+    full = np.array(report.physics["full_well_e"])
+    assert np.allclose(full, 600 * areas, rtol=1e-6)
+    mu = 40 * areas
+    assert np.allclose(report.physics["snr"], mu / np.sqrt(16 + areas + mu), rtol=1e-6)
+    assert "SNR" in report.summary() and report.physics["sensor_um"] == [60.0, 80.0]
+
+
+def test_the_physics_flags_reach_training_model_files_and_kornia(tmp_path, capsys):
+    from layoutwarp.cli import main
+    from layoutwarp.experiments.models import load_model
+
+    argv = ["train", "mnist", "--quick", "--epochs", "1", "--family", "rect", "--no-progress"]
+    assert main([*argv, "--photons-per-um2", "3", "--read-noise-e", "2", "--out", str(tmp_path)]) == 0
+    model, info = load_model(tmp_path / "model_rect_4x4_seed0.pt")
+    assert info["sensor"]["physics"]["photons_per_um2"] == 3.0 and model.sensor.physics.sensor_um == (
+        28.0,
+        28.0,
+    )
+    assert main([*argv, "--read-noise-e", "2", "--out", str(tmp_path / "x")]) == 2
+    assert "argument --photons-per-um2: needed for sensor physics" in capsys.readouterr().err
+    import kornia.augmentation as K
+
+    aug = lw.SensorAugmentation((6, 6), "curv", physics=physics(photons_per_um2=5.0, seed=1))
+    x = torch.rand(2, 1, 24, 24)
+    out = K.AugmentationSequential(aug, data_keys=["input"])(x)
+    clean = lw.simulate(x, aug.layout, (6, 6))
+    assert (
+        out.shape == (2, 1, 6, 6) and 0.01 < float((out - clean).abs().mean()) < 1
+    )  # noisy, around the mean

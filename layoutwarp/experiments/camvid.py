@@ -166,6 +166,7 @@ class CamVidTask(Task):
     description = "CamVid street-scene segmentation, back-warped to full resolution"
     metrics = ("miou", "pixel_accuracy")
     metric_label = "val mIoU (%)"
+    image_size = (360, 480)
     report_split = "val"
     defaults = TaskDefaults(
         families=("uniform", "curv", "rect"),

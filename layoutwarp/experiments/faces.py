@@ -67,6 +67,7 @@ class FacesTask(Task):
     description = "UTKFace gender, age group and race from a small sensor"
     metrics = ("mean", *FaceNet.HEADS)
     metric_label = "mean test accuracy (%)"
+    image_size = (200, 200)
     report_split = "test"
     defaults = TaskDefaults(
         families=("uniform", "rect"),

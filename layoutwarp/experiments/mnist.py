@@ -62,6 +62,7 @@ class MnistTask(Task):
     description = "MNIST digits from a tiny sensor (the paper's 4x4 experiment)"
     metrics = ("accuracy",)
     metric_label = "test accuracy (%)"
+    image_size = (28, 28)
     report_split = "test"
     defaults = TaskDefaults(
         families=("uniform", "curv", "rect"),

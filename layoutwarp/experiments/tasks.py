@@ -107,6 +107,8 @@ class Task:
         metrics: the scores of a run, in percent; the first is the headline (higher is better).
         metric_label: the headline metric as figures and tables name it.
         report_split: the split scores are reported on (``"test"``, ``"val"``).
+        image_size: the task's images' size ``(H, W)``; with sensor physics, the sensor's extent
+            in µm unless given (1 µm a source pixel).
         defaults: :class:`TaskDefaults`.
         quick: what ``--quick`` changes in the defaults (it always uses the bundled samples,
             one seed, the first size and no frozen epochs).
@@ -119,6 +121,7 @@ class Task:
     metrics: ClassVar[tuple[str, ...]]
     metric_label: ClassVar[str]
     report_split: ClassVar[str]
+    image_size: ClassVar[tuple[int, int]]
     defaults: ClassVar[TaskDefaults]
     quick: ClassVar[dict[str, Any]] = {}
     study: ClassVar[StudyPlan]
