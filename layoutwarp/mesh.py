@@ -255,10 +255,17 @@ class PixelMesh:
         """Polygon area of every pixel, ``(H, W)`` (in sensor units they sum to 4).
 
         ``vertices`` replaces the mesh's own (same topology, other units), e.g.
-        :meth:`pixel_vertices`.
+        :meth:`pixel_vertices`. The mesh's own areas are computed once where its vertices need
+        no gradient (a fixed layout's cached mesh serves every call).
         """
+        fixed = vertices is None and not self.vertices.requires_grad
+        if fixed and "_areas" in self.__dict__:
+            return self.__dict__["_areas"]
         v = self.vertices if vertices is None else vertices
-        return self.combine_edges(self.sum_over_edges(segment_area(v[self.seg_start], v[self.seg_end])))
+        out = self.combine_edges(self.sum_over_edges(segment_area(v[self.seg_start], v[self.seg_end])))
+        if fixed:
+            self.__dict__["_areas"] = out
+        return out
 
     def edge_vertices(self, e: int) -> Tensor:
         """Ordered polyline vertices ``(n + 1, 2)`` of edge ``e``."""

@@ -37,6 +37,7 @@ channel, gets its own).
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 from dataclasses import asdict, dataclass, fields
@@ -47,6 +48,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from . import kernels
 from .checks import ArgumentError, check_choice, check_number
 
 __all__ = [
@@ -67,6 +69,8 @@ PSFS = ("gaussian", "airy")
 OUTPUTS = ("radiance", "electrons", "dn")
 #: Shot-noise models (see the module docstring).
 NOISE = ("auto", "poisson", "gaussian", "none")
+#: The noise models' codes in the compiled kernel.
+NOISE_CODES = {"none": 0, "poisson": 1, "gaussian": 2}
 #: The standard deviation of the Gaussian that best fits the Airy core, in units of ``λ N``.
 GAUSS_AIRY_SIGMA = 0.42
 #: The first zero of the Airy pattern's ``2 J1(x)/x``.
@@ -281,17 +285,17 @@ def apply_psf(image: Tensor, physics: SensorPhysics) -> Tensor:
     if image.device.type == "cpu" and not image.requires_grad and n > 0:
         import cv2
 
-        arr = image.detach().permute(1, 2, 0).contiguous().numpy()
+        arr = image.detach().contiguous().numpy()
         out = np.empty_like(arr)
-        for c0 in range(0, n, 4):  # OpenCV filters at most 4 channels at a time
-            part = np.ascontiguousarray(arr[..., c0 : c0 + 4])
+        for c in range(n):  # plane by plane: no channels-last copy
             if "k2d" in k:
-                res = cv2.filter2D(part, -1, k["k2d"].astype(part.dtype), borderType=cv2.BORDER_REFLECT)
+                cv2.filter2D(
+                    arr[c], -1, k["k2d"].astype(arr.dtype), dst=out[c], borderType=cv2.BORDER_REFLECT
+                )
             else:
-                kx, ky = (k[a].astype(part.dtype) for a in ("kx", "ky"))
-                res = cv2.sepFilter2D(part, -1, kx, ky, borderType=cv2.BORDER_REFLECT)
-            out[..., c0 : c0 + 4] = res.reshape(h, w, -1)
-        return torch.from_numpy(out).permute(2, 0, 1).contiguous()
+                kx, ky = (k[a].astype(arr.dtype) for a in ("kx", "ky"))
+                cv2.sepFilter2D(arr[c], -1, kx, ky, dst=out[c], borderType=cv2.BORDER_REFLECT)
+        return torch.from_numpy(out)
     x = image[:, None]
     if "k2d" in k:
         kern = torch.from_numpy(k["k2d"]).to(image)
@@ -363,6 +367,12 @@ def measure(
                 f"{smallest:.3g} e⁻, not above the read noise {physics.read_noise_e:g} e⁻",
             )
     eta = physics.quantum_efficiency
+    mode = physics.noise
+    needs_grad = torch.is_grad_enabled() and (mean.requires_grad or a_um2.requires_grad)
+    if mode == "auto":
+        mode = "gaussian" if needs_grad else "poisson"
+    if not needs_grad and mean.device.type == "cpu" and kernels.available():
+        return _measure_compiled(mean, a_um2, physics, mode, output, generator)
     photons = physics.photons_per_um2 * physics.fill_factor * mean * a_um2
     prnu, dsnu = _patterns(physics, tuple(mean.shape[-2:]), mean.dtype, mean.device)
     signal = eta * photons * (1 + physics.prnu * prnu) if physics.prnu else eta * photons
@@ -372,9 +382,6 @@ def measure(
         else physics.dark_e_per_um2 * a_um2
     )
     electrons = signal + dark
-    mode = physics.noise
-    if mode == "auto":
-        mode = "gaussian" if torch.is_grad_enabled() and electrons.requires_grad else "poisson"
     rate = electrons.clamp_min(0)
     if mode == "poisson":
         electrons = torch.poisson(rate.detach(), generator=generator) + (electrons - electrons.detach())
@@ -423,3 +430,39 @@ def pixel_snr(areas_um2: Tensor, physics: SensorPhysics, level: float = 1.0) -> 
     quant = 1 / 12 / physics.gain(float(a.max())) ** 2 if physics.adc_bits is not None else 0.0
     snr = signal / torch.sqrt(physics.read_noise_e**2 + dark + quant + signal)
     return {"full_well_e": full, "signal_e": signal, "snr": snr}
+
+
+def _measure_compiled(
+    mean: Tensor,
+    a_um2: Tensor,
+    physics: SensorPhysics,
+    mode: str,
+    output: str,
+    generator: torch.Generator | None,
+) -> Tensor:
+    """:func:`measure` without gradient on the CPU: the fused kernel
+    :func:`~layoutwarp.kernels.sensor_measure`, its noise from a seed drawn from ``generator``."""
+    prnu, dsnu = _patterns(physics, tuple(mean.shape[-2:]), torch.float64, "cpu")
+    inf = math.inf
+    a = a_um2.detach().to(torch.float64).flatten()
+    params = np.array(
+        [
+            physics.photons_per_um2 * physics.fill_factor,
+            physics.quantum_efficiency,
+            physics.prnu,
+            physics.dsnu,
+            physics.dark_e_per_um2,
+            physics.read_noise_e,
+            physics.full_well_per_um2 if physics.full_well_per_um2 is not None else inf,
+            physics.gain(float(a.max())),
+            physics.black_level_dn,
+            2**physics.adc_bits - 1 if physics.adc_bits is not None else inf,
+        ]
+    )
+    seed = int(torch.randint(0, 2**62, (), generator=generator)) if mode != "none" else 0
+    flat = np.ascontiguousarray(mean.detach().reshape(-1, a.numel()).to(torch.float64).numpy())
+    out = np.empty_like(flat)
+    arrays = (a.numpy(), prnu.flatten().numpy(), dsnu.flatten().numpy())
+    with kernels.LOCK:
+        kernels.sensor_measure(flat, *arrays, params, seed, NOISE_CODES[mode], OUTPUTS.index(output), out)
+    return torch.from_numpy(out).reshape(mean.shape).to(mean.dtype)
