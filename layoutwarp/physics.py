@@ -321,9 +321,14 @@ def _patterns(
     physics: SensorPhysics, size: tuple[int, int], dtype: torch.dtype, device
 ) -> tuple[Tensor, Tensor]:
     """The fixed PRNU and DSNU patterns ``(h, w)`` (standard normal, from ``pattern_seed``)."""
-    gen = torch.Generator().manual_seed(physics.pattern_seed)
-    z = torch.randn(2, *size, generator=gen, dtype=torch.float64)
+    z = _standard_patterns(physics.pattern_seed, size)
     return z[0].to(device=device, dtype=dtype), z[1].to(device=device, dtype=dtype)
+
+
+@functools.lru_cache(maxsize=8)
+def _standard_patterns(seed: int, size: tuple[int, int]) -> Tensor:
+    """``(2, h, w)`` float64 standard normals from ``seed``, drawn once per sensor (do not modify)."""
+    return torch.randn(2, *size, generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
 
 
 def measure(
