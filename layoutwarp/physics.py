@@ -255,7 +255,9 @@ def psf_kernels(physics: SensorPhysics, src_size: tuple[int, int]) -> dict[str, 
     lam_n = physics.wavelength_um * physics.f_number
     x = torch.linspace(1e-6, 400, 400_001, dtype=torch.float64)
     enc = 1 - torch.special.bessel_j0(x) ** 2 - torch.special.bessel_j1(x) ** 2
-    x_max = float(x[int(torch.nonzero(enc >= physics.psf_energy)[0])])
+    reached = torch.nonzero(enc >= physics.psf_energy)
+    # beyond the grid, the rings' energy falls as 1 − E(x) ≈ 2 / (π x)
+    x_max = float(x[int(reached[0])]) if len(reached) else 2 / (math.pi * (1 - physics.psf_energy))
     r_um = x_max * lam_n / math.pi
     ry, rx = max(1, math.ceil(r_um / py)), max(1, math.ceil(r_um / px))
     sub = 8

@@ -122,6 +122,10 @@ def test_run_small_reports_every_method_and_plots(tmp_path):
     assert mc[1] < mc[0]
     text = format_table(res)
     assert "separable" in text and "/AREA" in text
+    phys = {r["method"]: r for r in rows if r["method"] in ("exact + physics", "psf gaussian", "psf airy")}
+    assert set(phys) == {"exact + physics", "psf gaussian", "psf airy"}
+    assert phys["exact + physics"]["extra"]["plain_ms"] > 0 and phys["exact + physics"]["rmse"] > 0  # noisy
+    assert 0 < phys["psf airy"]["rmse"] < 0.05 and phys["psf airy"]["extra"]["truncated_energy"] == 0.05
     png = pareto_figure(res, tmp_path / "p.png")
     assert png.stat().st_size > 20_000
 

@@ -78,6 +78,13 @@ def _sync() -> None:
 
 
 def _time(fn: Callable[[], object], repeats: int) -> float:
+    """Median ms of ``repeats`` calls after a warm-up (``repeats = 0``: one call, no warm-up)."""
+    if repeats == 0:
+        _sync()
+        t0 = time.perf_counter()
+        fn()
+        _sync()
+        return (time.perf_counter() - t0) * 1e3
     fn()
     times = []
     for _ in range(repeats):
@@ -330,6 +337,9 @@ def run(config: BenchConfig | None = None, progress: Callable[[str], None] | Non
         for name, spec in setups.items():
             if not cfg.only or name in cfg.only:
                 rows += _layout_rows(cfg, image_name, img, name, spec, scene, anchors, say)
+    if not cfg.only or "curv" in cfg.only:
+        say(f"{next(iter(images))}: sensor physics")
+        rows += physics_rows(cfg, next(iter(images)), first, anchors)
     return {
         "src_hw": list(cfg.src),
         "sensor_hw": list(cfg.size),
@@ -475,6 +485,77 @@ def _layout_rows(
             if on_cuda and g_ref is not None:
                 row.extra["train_peak_mb"] = _cuda_peak_mb(lambda f=fwd_grad: f().sum().backward())
                 dev_layout.rho.grad = None
+        rows.append(row)
+    return rows
+
+
+#: The camera of the physics rows: 12-bit, shot and read noise, a full well; the source image spans
+#: the sensor with square 2.73 µm source pixels at 2048x1024.
+BENCH_PHYSICS = {
+    "photons_per_um2": 200.0,
+    "quantum_efficiency": 0.6,
+    "read_noise_e": 3.0,
+    "dark_e_per_um2": 0.1,
+    "full_well_per_um2": 2000.0,
+    "adc_bits": 12,
+    "seed": 0,
+}
+
+
+def physics_rows(cfg: BenchConfig, image_name: str, img: Tensor, anchors: dict[str, float]) -> list[Row]:
+    """What sensor physics costs (fixed curv layout, the data tolerance, no gradient): the forward
+    with noise, full well and ADC against the same forward without (``extra["over_plain"]``,
+    paired in one loop), and the PSFs on the source image against INTER_AREA; the Airy row's
+    error is the RMSE of its truncated kernel against one holding 99.9 % of the energy, relative
+    to the image's range (``extra["truncated_energy"]``: what the kernel leaves out)."""
+    from ..physics import SensorPhysics, apply_psf
+
+    h, w = cfg.src
+    extent = (2.734375 * h, 2.734375 * w)  # µm: 2.73 µm source pixels at 2048x1024
+    layout = layout_from_spec(bench_layouts(cfg.theta)["curv"]).to(cfg.device)
+    dev_img = img.to(cfg.device)
+    ph = SensorPhysics(sensor_um=extent, **BENCH_PHYSICS)
+
+    def plain():
+        with torch.no_grad():
+            return simulate(dev_img, layout, cfg.size)
+
+    def measured():
+        with torch.no_grad():
+            return simulate(dev_img, layout, cfg.size, physics=ph)
+
+    plain(), measured()
+    t_plain, t_phys = [], []
+    for _ in range(cfg.repeats * 2 + 1):  # interleaved pairs: the same machine state for both
+        t_plain.append(_time(plain, 0))
+        t_phys.append(_time(measured, 0))
+    tp, tq = float(np.median(t_plain)), float(np.median(t_phys))
+    noise = float((measured().cpu().double() - plain().cpu().double()).pow(2).mean().sqrt())
+    rows = [
+        Row(
+            image_name,
+            "curv",
+            "exact + physics",
+            "noise,FW,ADC",
+            tq,
+            rmse=noise,
+            extra={"over_plain": tq / tp - 1, "plain_ms": tp, "physics": ph.to_dict()},
+        )
+    ]
+    flat = dev_img.reshape(-1, h, w)
+    for kind in ("gaussian", "airy"):
+        psf = SensorPhysics(sensor_um=extent, photons_per_um2=1.0, psf=kind)
+        t = _time(lambda psf=psf: apply_psf(flat, psf), cfg.repeats)
+        row = Row(
+            image_name, "-", f"psf {kind}", "f/5.6", t, extra={"over_inter_area": t / anchors["inter_area"]}
+        )
+        if kind == "airy":
+            ref = apply_psf(
+                flat, SensorPhysics(sensor_um=extent, photons_per_um2=1.0, psf=kind, psf_energy=0.999)
+            )
+            err = (apply_psf(flat, psf).double() - ref.double()).cpu()
+            row.rmse, row.max_err = float(err.pow(2).mean().sqrt()), float(err.abs().max())
+            row.extra["truncated_energy"] = 1 - psf.psf_energy
         rows.append(row)
     return rows
 
@@ -658,6 +739,12 @@ def main_bench(
     say("compile time of the kernels")
     result["compile"] = compile_times()
     print(format_table(result))
+    for r in result["rows"]:
+        if r["method"] == "exact + physics":
+            print(
+                f"sensor physics (noise, full well, 12-bit ADC): {r['forward_ms']:.2f} ms against "
+                f"{r['extra']['plain_ms']:.2f} ms without, {100 * r['extra']['over_plain']:+.1f} %"
+            )
     c = result["compile"]
     print(
         f"first exact forward+backward in a new process: {c['first_process']['first_call_s']:.2f} s with an "
