@@ -613,48 +613,53 @@ def _mix(z: np.uint64) -> np.uint64:
 
 
 @_inline
-def _uniform(state: np.ndarray) -> float:
-    """The next double in ``(0, 1)`` of a per-element SplitMix64 stream (``state``: one uint64)."""
-    state[0] += _GOLDEN
-    return ((_mix(state[0]) >> np.uint64(11)) + 0.5) * (1.0 / 9007199254740992.0)
+def _uniform(state: np.uint64) -> tuple[float, np.uint64]:
+    """The next double in ``(0, 1)`` of a SplitMix64 stream, and the advanced state."""
+    state = state + _GOLDEN
+    return ((_mix(state) >> np.uint64(11)) + 0.5) * (1.0 / 9007199254740992.0), state
 
 
 @_inline
-def _normal(state: np.ndarray) -> float:
-    """A standard normal draw (Box–Muller, one of its pair)."""
-    return math.sqrt(-2.0 * math.log(_uniform(state))) * math.cos(2.0 * math.pi * _uniform(state))
+def _normal(state: np.uint64) -> tuple[float, np.uint64]:
+    """A standard normal draw (Box–Muller, one of its pair), and the advanced state."""
+    u, state = _uniform(state)
+    v, state = _uniform(state)
+    return math.sqrt(-2.0 * math.log(u)) * math.cos(2.0 * math.pi * v), state
 
 
 @_inline
-def _poisson(lam: float, state: np.ndarray) -> float:
-    """An exact Poisson draw: multiplication of uniforms below 10, Hörmann's transformed rejection
-    (PTRS, as NumPy samples) above."""
+def _poisson(lam: float, state: np.uint64) -> tuple[float, np.uint64]:
+    """An exact Poisson draw, and the advanced state: multiplication of uniforms below 10,
+    Hörmann's transformed rejection (PTRS, as NumPy samples) above."""
     if lam <= 0.0:
-        return 0.0
+        return 0.0, state
     if lam < 10.0:
-        limit, prod, k = math.exp(-lam), _uniform(state), 0.0
+        limit, k = math.exp(-lam), 0.0
+        prod, state = _uniform(state)
         while prod > limit:
-            prod *= _uniform(state)
+            u, state = _uniform(state)
+            prod *= u
             k += 1.0
-        return k
+        return k, state
     slam, loglam = math.sqrt(lam), math.log(lam)
     b = 0.931 + 2.53 * slam
     a = -0.059 + 0.02483 * b
     invalpha = 1.1239 + 1.1328 / (b - 3.4)
     vr = 0.9277 - 3.6224 / (b - 2.0)
     while True:
-        u = _uniform(state) - 0.5
-        v = _uniform(state)
+        u, state = _uniform(state)
+        v, state = _uniform(state)
+        u -= 0.5
         us = 0.5 - abs(u)
         k = math.floor((2.0 * a / us + b) * u + lam + 0.43)
         if us >= 0.07 and v <= vr:
-            return k
+            return k, state
         if k < 0.0 or (us < 0.013 and v > us):
             continue
         if math.log(v) + math.log(invalpha) - math.log(a / (us * us) + b) <= -lam + k * loglam - math.lgamma(
             k + 1.0
         ):
-            return k
+            return k, state
 
 
 @_jit
@@ -682,17 +687,18 @@ def sensor_measure(
     state0 = _mix(np.uint64(seed) * _GOLDEN + np.uint64(0x632BE59BD9B4E019))
     for i in prange(n * p):
         r, c = i // p, i % p
-        state = np.empty(1, np.uint64)
-        state[0] = _mix(state0 ^ (np.uint64(i) * _GOLDEN))
+        state = _mix(state0 ^ (np.uint64(i) * _GOLDEN))
         a = area_um2[c]
         dark = dark_um2 * a + g_dsnu * dsnu[c]
         e = eta * light * mean[r, c] * a * (1.0 + g_prnu * prnu[c]) + dark
         if noise == 1:
-            e = _poisson(max(e, 0.0), state)
+            e, state = _poisson(max(e, 0.0), state)
         elif noise == 2:
-            e = e + math.sqrt(max(e, 0.0)) * _normal(state)
+            z, state = _normal(state)
+            e = e + math.sqrt(max(e, 0.0)) * z
         if read > 0.0 and noise != 0:
-            e += read * _normal(state)
+            z, state = _normal(state)
+            e += read * z
         e = min(e, fw_um2 * a)
         if output == 1:
             out[r, c] = e
