@@ -428,3 +428,18 @@ def test_the_physics_flags_reach_training_model_files_and_kornia(tmp_path, capsy
     clean = lw.simulate(x, aug.layout, (6, 6))
     noise = float((out - clean).detach().abs().mean())
     assert out.shape == (2, 1, 6, 6) and 0.01 < noise < 1  # noisy, around the mean
+
+
+def test_the_quantiser_passes_gradients_straight_through(gen):
+    # with the ADC on, training sees the rounded values but the gradient of the unrounded ones
+    img = torch.rand(1, 1, 20, 20, generator=gen, dtype=F64)
+    w = torch.rand(1, 1, 4, 4, generator=gen, dtype=F64)
+    grads = []
+    for bits in (None, 6):
+        layout = lw.RectLayout((0.3, -0.2), learn=True, dtype=F64)
+        ph = physics(noise="none", adc_bits=bits, full_well_per_um2=1e6, gain_dn_per_e=1e-3)
+        out = lw.simulate(img, layout, (4, 4), physics=ph, output="dn")
+        if bits:
+            assert torch.equal(out.detach(), out.detach().round())
+        grads.append(torch.autograd.grad((out * w).sum(), layout.rho)[0])
+    assert torch.allclose(grads[0], grads[1], rtol=1e-12) and bool(grads[0].abs().sum() > 0)
