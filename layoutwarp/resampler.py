@@ -10,19 +10,24 @@ simulation use it.
 
 from __future__ import annotations
 
+import json
 import warnings
+from collections import OrderedDict
+from typing import TYPE_CHECKING
 
 import numpy as np
-import scipy.sparse as sp
 import torch
 
 from .checks import check_size
 from .integrators import data_tolerance, green_pieces
 from .labels import labels_to_sensor
-from .layouts import Layout
+from .layouts import FAMILIES, Layout
 from .mesh import pixel_mesh
 
-__all__ = ["AreaResampler", "area_weights"]
+if TYPE_CHECKING:
+    import scipy.sparse
+
+__all__ = ["CACHE_SIZE", "AreaResampler", "area_weights", "clear_resampler_cache", "resampler_for"]
 
 
 def area_weights(
@@ -32,7 +37,7 @@ def area_weights(
     *,
     tol: float | None = None,
     dtype: torch.dtype | np.dtype | type = np.float32,
-) -> sp.csr_matrix:
+) -> scipy.sparse.csr_matrix:
     """Exact area weights of every sensor pixel over the source cells, as a sparse matrix.
 
     ``W[k, r · W_src + c]`` is the fraction of pixel ``k``'s area (row-major sensor index)
@@ -92,7 +97,9 @@ def area_weights(
     pixel, r = np.divmod(key[rep], hs)
     cells = r * ws + c[rep] + offs
     vals = cum[rep] / area[pixel]
-    return sp.csr_matrix((vals, (pixel, cells)), shape=(h * w, hs * ws))
+    import scipy.sparse  # loaded on first use: `import layoutwarp` does not load scipy
+
+    return scipy.sparse.csr_matrix((vals, (pixel, cells)), shape=(h * w, hs * ws))
 
 
 class AreaResampler:
@@ -146,6 +153,13 @@ class AreaResampler:
             out = (self._csr @ torch.from_numpy(flat).to(self.device)).cpu().numpy()
         return out.reshape(*self.size, *image.shape[2:])
 
+    def apply(self, images: torch.Tensor) -> torch.Tensor:
+        """The weights applied to ``(N, H, W)`` float32 images on this resampler's device:
+        ``(N, h, w)``, differentiable in the images."""
+        n = images.shape[0]
+        flat = images.reshape(n, -1).T
+        return (self._csr @ flat).T.reshape(n, *self.size)
+
     def labels(self, label: np.ndarray, rule: str = "nearest") -> np.ndarray:
         """Move an integer label map ``(H, W)`` to the sensor grid by ``rule`` (``"nearest"`` or
         ``"majority"``, see :func:`~layoutwarp.labels.labels_to_sensor`; majority uses these
@@ -160,3 +174,37 @@ class AreaResampler:
         with torch.no_grad():
             out = self._csr @ flat.to(self.device)
         return out.T.reshape(x.shape[0], *self.size).cpu()
+
+
+#: Resamplers of fixed layouts that :func:`~layoutwarp.simulate` keeps (see :func:`resampler_for`).
+CACHE_SIZE = 4
+_CACHE: OrderedDict[tuple, AreaResampler] = OrderedDict()
+
+
+def resampler_for(
+    layout: Layout, size: tuple[int, int], src_size: tuple[int, int], tol: float, device: torch.device | str
+) -> AreaResampler | None:
+    """The :class:`AreaResampler` of a fixed layout of a registered family, built on first use
+    and kept (the last :data:`CACHE_SIZE`, least recently used out first); ``None`` for a layout
+    whose state its description does not hold (an unregistered family).
+
+    This is how :func:`~layoutwarp.simulate` runs the exact integrator for a fixed layout
+    (θ needs no gradient) on float32 images: one sparse product per call after the first.
+    """
+    if FAMILIES.get(layout.family) is not type(layout):
+        return None
+    spec = json.dumps({"family": layout.family, **layout.to_config()}, sort_keys=True)
+    key = (spec, tuple(size), tuple(src_size), float(tol), str(torch.device(device)))
+    if key in _CACHE:
+        _CACHE.move_to_end(key)
+        return _CACHE[key]
+    res = AreaResampler(layout, size, src_size, tol=tol, device=device)
+    _CACHE[key] = res
+    while len(_CACHE) > CACHE_SIZE:
+        _CACHE.popitem(last=False)
+    return res
+
+
+def clear_resampler_cache() -> None:
+    """Forget the resamplers :func:`resampler_for` keeps."""
+    _CACHE.clear()

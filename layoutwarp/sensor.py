@@ -23,6 +23,7 @@ from .layoutfile import load_layout, save_layout
 from .layouts import Layout, make_layout
 from .mesh import PixelMesh, pixel_mesh
 from .physics import OUTPUTS, SensorPhysics, apply_psf, measure
+from .resampler import resampler_for
 
 __all__ = ["METHODS", "SensorLayer", "SimulationPlan", "plan_simulation", "simulate"]
 
@@ -291,6 +292,12 @@ class _Integration:
         if plan.method == "separable":
             return integrate_separable(work, layout, size)
         if plan.method == "exact":
+            fixed = not (torch.is_grad_enabled() and layout.rho.requires_grad)
+            if fixed and isinstance(work, Tensor) and work.dtype == torch.float32:
+                tol = self.tol if self.tol is not None else data_tolerance(torch.float32)[0]
+                weights = resampler_for(layout, size, tuple(work.shape[-2:]), tol, work.device)
+                if weights is not None:  # one sparse product: the exact integral of a fixed layout
+                    return weights.apply(work)
             return integrate_exact(work, layout, size, tol=self.tol, mesh=mesh)
         radiance = "bilinear" if plan.radiance == "callable" else plan.radiance  # ignored for callables
         if plan.method == "montecarlo":

@@ -123,6 +123,8 @@ def test_run_small_reports_every_method_and_plots(tmp_path):
     assert mc[1] < mc[0]
     text = format_table(res)
     assert "separable" in text and "/AREA" in text
+    reuse = next(r for r in rows if r["method"] == "exact, cached weights")
+    assert reuse["extra"]["first_call_ms"] > 0 and reuse["max_err"] < 1e-5
     phys = {r["method"]: r for r in rows if r["method"] in ("exact + physics", "psf gaussian", "psf airy")}
     assert set(phys) == {"exact + physics", "psf gaussian", "psf airy"}
     assert phys["exact + physics"]["extra"]["plain_ms"] > 0 and phys["exact + physics"]["rmse"] > 0  # noisy

@@ -310,7 +310,7 @@ def test_photon_transfer_recovers_gain_read_noise_and_saturation_per_pixel_class
     frames; per class of pixel area, the variance-vs-mean slope is the system gain K, the dark
     variance gives the read noise, and the plateau the full well; the SNR follows √area where
     shot noise dominates and the EMVA formula everywhere."""
-    size, frames = (12, 12), 2000
+    size, frames = (12, 12), 6000
     layout = lw.RectLayout((0.55, 0.55), dtype=F64)
     k_true, read, fw, dark_e, eta = 0.35, 6.0, 800.0, 0.5, 0.6
     base = dict(
