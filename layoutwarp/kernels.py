@@ -44,6 +44,7 @@ __all__ = [
     "WHOLE_TABLE_BYTES",
     "available",
     "band_rows",
+    "csr_apply",
     "cuda_available",
     "cuda_launch",
     "exact_backward",
@@ -710,3 +711,20 @@ def sensor_measure(
             out[r, c] = dn
         else:
             out[r, c] = ((dn - black) / gain - dark_um2 * a) / (eta * light * a)
+
+
+@_jit
+def csr_apply(
+    indptr: np.ndarray, indices: np.ndarray, data: np.ndarray, x: np.ndarray, out: np.ndarray
+) -> None:
+    """``out[n] = W @ x[n]`` for a CSR matrix ``W`` (``(R, M)``) and planes ``x`` ``(N, M)``: each
+    row of ``W`` is read once for every plane (the fixed-layout area weights of
+    :class:`~layoutwarp.AreaResampler`), rows dealt to the threads."""
+    n = x.shape[0]
+    for r in prange(indptr.shape[0] - 1):
+        lo, hi = indptr[r], indptr[r + 1]
+        for k in range(n):
+            acc = data.dtype.type(0)  # in the weights' precision (float32: 64 cells a pixel or so)
+            for j in range(lo, hi):
+                acc += data[j] * x[k, indices[j]]
+            out[k, r] = acc

@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
+from . import kernels
 from .checks import check_size
 from .integrators import data_tolerance, green_pieces
 from .labels import labels_to_sensor
@@ -155,10 +156,19 @@ class AreaResampler:
 
     def apply(self, images: torch.Tensor) -> torch.Tensor:
         """The weights applied to ``(N, H, W)`` float32 images on this resampler's device:
-        ``(N, h, w)``, differentiable in the images."""
+        ``(N, h, w)``, differentiable in the images (the compiled row-parallel product on the
+        CPU without gradient; torch's sparse product, plane by plane, otherwise)."""
         n = images.shape[0]
-        flat = images.reshape(n, -1).T
-        return (self._csr @ flat).T.reshape(n, *self.size)
+        flat = images.reshape(n, -1)
+        if flat.device.type == "cpu" and not flat.requires_grad and kernels.available():
+            w = self.weights
+            out = np.empty((n, w.shape[0]), dtype=np.float32)
+            x = np.ascontiguousarray(flat.detach().numpy())
+            with kernels.LOCK:
+                kernels.csr_apply(w.indptr, w.indices, w.data, x, out)
+            return torch.from_numpy(out).view(n, *self.size)
+        cols = [self._csr @ flat[k].unsqueeze(1) for k in range(n)]  # contiguous planes: no transpose
+        return torch.cat(cols, 1).T.reshape(n, *self.size)
 
     def labels(self, label: np.ndarray, rule: str = "nearest") -> np.ndarray:
         """Move an integer label map ``(H, W)`` to the sensor grid by ``rule`` (``"nearest"`` or
