@@ -123,6 +123,11 @@ def test_run_small_reports_every_method_and_plots(tmp_path):
     assert mc[1] < mc[0]
     text = format_table(res)
     assert "separable" in text and "/AREA" in text
+    steps = [r for r in rows if r["method"].startswith("train step")]
+    assert {(r["layout"], r["extra"]["batch"]) for r in steps} == {
+        (n, b) for n in ("curv ±", "fovea") for b in (1, 4)
+    }
+    assert all(r["extra"]["ops"] > 10 and r["forward_ms"] > 0 for r in steps)
     reuse = next(r for r in rows if r["method"] == "exact, cached weights")
     assert reuse["extra"]["first_call_ms"] > 0 and reuse["max_err"] < 1e-5
     phys = {r["method"]: r for r in rows if r["method"] in ("exact + physics", "psf gaussian", "psf airy")}

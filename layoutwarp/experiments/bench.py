@@ -342,6 +342,8 @@ def run(config: BenchConfig | None = None, progress: Callable[[str], None] | Non
         rows += physics_rows(cfg, next(iter(images)), first, anchors)
         say(f"{next(iter(images))}: a fixed layout's cached area weights")
         rows.append(reuse_row(cfg, next(iter(images)), first))
+        say(f"{next(iter(images))}: training steps of learnable layouts")
+        rows += training_rows(cfg, next(iter(images)), first)
     return {
         "src_hw": list(cfg.src),
         "sensor_hw": list(cfg.size),
@@ -522,6 +524,55 @@ def reuse_row(cfg: BenchConfig, image_name: str, img: Tensor) -> Row:
         max_err=float(err.max()),
         extra={"first_call_ms": first},
     )
+
+
+def count_ops(fn: Callable[[], object]) -> int:
+    """The number of torch operator calls (``aten::`` events at the top level of the profiler's
+    tree) ``fn`` makes: how many kernel launches it would cost on a GPU."""
+    from torch.profiler import ProfilerActivity, profile
+
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        fn()
+    return sum(1 for e in prof.events() if e.name.startswith("aten::") and e.cpu_parent is None)
+
+
+def training_rows(cfg: BenchConfig, image_name: str, img: Tensor) -> list[Row]:
+    """What learning a layout costs a step: forward and backward of ``out.sum()`` for learnable
+    curv and fovea layouts with mixed-sign θ at the default tolerance, batch 1 and 4 (the image
+    repeated), against our 16-sample Monte Carlo step (the paper's method; the reference code's
+    proxy) of the same layout; ``extra``: the torch operator calls of one step (profiler) and
+    the time of the learnable layout's mesh build alone."""
+    tx, ty = cfg.theta
+    specs = {
+        "curv ±": {"family": "curv", "theta": [tx, -ty]},
+        "fovea": {"family": "fovea", "theta": [tx, -ty], "center": [0.3, -0.2], "learn_center": True},
+    }
+    rows = []
+    for name, spec in specs.items():
+        layout = layout_from_spec(spec, learn=True).to(cfg.device)
+        mesh_ms = _time(
+            lambda layout=layout: pixel_mesh(layout, cfg.size, tol=data_tolerance(torch.float32)[0]),
+            cfg.repeats,
+        )
+        for batch in (1, 4):
+            x = img.to(cfg.device).expand(batch, -1, -1, -1).contiguous()
+            for method, opts, setting in (
+                ("exact", {}, "default"),
+                ("montecarlo", {"samples": 4, "seed": 0}, "16 spp"),
+            ):
+
+                def step(layout=layout, x=x, method=method, opts=opts):
+                    simulate(x, layout, cfg.size, method, **opts).sum().backward()
+                    layout.rho.grad = None
+
+                t = _time(step, cfg.repeats)
+                extra = {"batch": batch, "ops": count_ops(step)}
+                if method == "exact":
+                    extra["mesh_ms"] = mesh_ms
+                rows.append(
+                    Row(image_name, name, f"train step, {method}", f"{setting} b{batch}", t, extra=extra)
+                )
+    return rows
 
 
 #: The camera of the physics rows: 12-bit, shot and read noise, a full well; the source image spans
@@ -774,6 +825,13 @@ def main_bench(
     say("compile time of the kernels")
     result["compile"] = compile_times()
     print(format_table(result))
+    steps = [r for r in result["rows"] if r["method"].startswith("train step")]
+    for r in steps:
+        print(
+            f"{r['layout']:8s} {r['method']:24s} {r['setting']:12s} {r['forward_ms']:8.1f} ms  "
+            f"{r['extra']['ops']:5d} torch ops"
+            + (f"  (mesh build {r['extra']['mesh_ms']:.1f} ms)" if "mesh_ms" in r["extra"] else "")
+        )
     for r in result["rows"]:
         if r["method"] == "exact, cached weights":
             print(
