@@ -24,7 +24,7 @@ from torch import Tensor
 
 from .checks import check_choice, check_size
 from .coords import cell_index, pixels_to_sensor, uniform_corners
-from .layouts import FoldoverReport, Layout, register_family
+from .layouts import FoldoverReport, Layout, register_family, tensor_dtype
 
 __all__ = ["GridLayout", "cell_corner_dets", "inverse_bilinear"]
 
@@ -145,7 +145,7 @@ class GridLayout(Layout):
         mask[[0, -1], :, 1] = False  # top and bottom rows keep y
         self.num_params = int(mask.sum())
         _raise_if_folded(ctrl)
-        super().__init__(ctrl[mask], bound=bound, learn=learn, dtype=dtype)
+        super().__init__(ctrl[mask], bound=bound, learn=learn, dtype=dtype or tensor_dtype(control))
         self.register_buffer("free", mask, persistent=False)
         self.register_buffer("last_valid", self.rho.detach().clone(), persistent=False)
 

@@ -49,6 +49,7 @@ __all__ = [
     "phi_rect_inverse",
     "phi_rect_jacobian",
     "register_family",
+    "tensor_dtype",
 ]
 
 
@@ -81,6 +82,16 @@ def _safe_norm(p: Tensor) -> Tensor:
 def _promote(p: Tensor, theta: Tensor) -> tuple[Tensor, Tensor]:
     dtype = torch.promote_types(p.dtype, theta.dtype)
     return p.to(dtype), theta.to(device=p.device, dtype=dtype)
+
+
+def tensor_dtype(*values: Any) -> torch.dtype:
+    """The dtype a layout built from ``values`` gets unless ``dtype=`` says otherwise: that of the
+    first floating-point tensor among them (as torch and Kornia keep an argument's dtype), else
+    torch's default dtype."""
+    for v in values:
+        if isinstance(v, Tensor) and v.is_floating_point():
+            return v.dtype
+    return torch.get_default_dtype()
 
 
 def config_numbers(
@@ -311,7 +322,8 @@ class Layout(nn.Module):
             without parameters accepts ``None``, ``()`` or zeros.
         bound: the open bound on ``|θ|`` (the paper uses 1).
         learn: make ``ρ`` a trainable parameter (default ``False``: a buffer, fixed layout).
-        dtype: dtype of ``ρ``; use ``torch.float64`` for exact round trips.
+        dtype: dtype of ``ρ`` (default: a tensor ``theta``'s own floating dtype, else torch's
+            default); use ``torch.float64`` for exact round trips.
     """
 
     family: ClassVar[str] = "custom"
@@ -330,7 +342,7 @@ class Layout(nn.Module):
     ) -> None:
         super().__init__()
         self.bound = check_number(bound, "bound", 0, lo_open=True)
-        dtype = dtype or torch.get_default_dtype()
+        dtype = dtype or tensor_dtype(theta)
         rho = self._to_rho(self._validate_theta(theta, dtype))
         if learn and self.num_params:
             self.rho = nn.Parameter(rho)
@@ -627,6 +639,7 @@ class CenteredLayout(Layout):
         c = torch.as_tensor(center, dtype=torch.float64).detach().flatten().cpu()
         if c.numel() != 2 or not bool(torch.isfinite(c).all()) or bool((c.abs() >= 1).any()):
             raise ValueError(f"center must be (c_x, c_y) with |c| < 1 each, got {center!r}")
+        dtype = dtype or tensor_dtype(theta, center)
         self.learn_center = bool(learn_center)
         self.num_params = 4 if learn_center else 2
         self._centred = not learn_center and bool((c == 0).all())
@@ -636,7 +649,7 @@ class CenteredLayout(Layout):
                 raise ValueError(f"theta must have 2 values (θ_x, θ_y), got {t.numel()}: {theta!r}")
             theta = torch.cat([t.flatten().cpu(), c])
         super().__init__(theta, bound=bound, learn=learn, dtype=dtype)
-        self.register_buffer("fixed_center", c.to(dtype or torch.get_default_dtype()))
+        self.register_buffer("fixed_center", c.to(dtype))
 
     def _bounds(self) -> Tensor:
         b = torch.full((self.num_params or 0,), self.bound, dtype=torch.float64)

@@ -22,7 +22,7 @@ from torch import Tensor
 
 from .checks import check_choice, check_int
 from .coords import cell_index
-from .layouts import Layout, config_numbers, register_family
+from .layouts import Layout, config_numbers, register_family, tensor_dtype
 
 __all__ = ["KINDS", "SplineLayout", "knot_outputs", "spline_1d", "spline_1d_derivative", "spline_1d_inverse"]
 
@@ -193,7 +193,7 @@ class SplineLayout(Layout):
             knots=(logits[0].numel(), logits[1].numel()),
             kind=kind,
             learn=learn,
-            dtype=dtype,
+            dtype=dtype or tensor_dtype(x_knots, y_knots),
         )
 
     def knot_outputs(self, theta: Tensor | None = None) -> tuple[Tensor, Tensor]:
