@@ -10,6 +10,8 @@ from conftest import rand_theta
 import layoutwarp as lw
 from layoutwarp.augment import SensorAugmentation
 
+F64 = torch.float64
+
 
 def data(gen, b=2, h=48, w=64, k=5):
     img = torch.rand(b, 3, h, w, generator=gen)
@@ -92,7 +94,7 @@ def test_keypoints_follow_the_layout_and_come_back(family, gen):
     assert torch.allclose(back, kp, atol=1e-3)
 
 
-def test_boxes_exact_for_rect_and_refused_for_curv(gen):
+def test_boxes_exact_for_rect_and_tight_for_curv(gen):
     img, _ = data(gen)
     boxes = torch.tensor([[[10.0, 5.0, 30.0, 25.0]], [[2.0, 3.0, 60.0, 40.0]]])
     aug = SensorAugmentation((12, 16), "rect", theta=(0.5, 0.2))
@@ -100,9 +102,32 @@ def test_boxes_exact_for_rect_and_refused_for_curv(gen):
     out, b = seq(img, boxes)
     assert b.shape == boxes.shape and bool((b[..., 2] > b[..., 0]).all())
     assert torch.allclose(seq.inverse(out, b, data_keys=["input", "bbox_xyxy"])[1], boxes, atol=1e-3)
-    curv = K.AugmentationSequential(SensorAugmentation((12, 16), "curv"), data_keys=["input", "bbox_xyxy"])
-    with pytest.raises(NotImplementedError, match="keypoints"):
-        curv(img, boxes)
+    # curvilinear: the tight box of the outline mapped through φ⁻¹, against 4097 points a side
+    theta = tuple(rand_theta(gen, 0.8).tolist())
+    aug = SensorAugmentation((12, 16), "curv", theta=theta)
+    seq = K.AugmentationSequential(aug, data_keys=["input", "bbox_xyxy"])
+    out, b = seq(img, boxes)
+    t = torch.linspace(0, 1, 4097, dtype=F64)
+    for k in range(2):
+        x0, y0, x1, y1 = boxes[k, 0].double().tolist()
+        side = lambda a, b_: a + t * (b_ - a)  # noqa: E731
+        outline = torch.cat(
+            [
+                torch.stack([side(x0, x1), torch.full_like(t, y0)], -1),
+                torch.stack([torch.full_like(t, x1), side(y0, y1)], -1),
+                torch.stack([side(x0, x1), torch.full_like(t, y1)], -1),
+                torch.stack([torch.full_like(t, x0), side(y0, y1)], -1),
+            ]
+        )
+        q = (outline + 0.5) / torch.tensor([64.0, 48.0], dtype=F64) * 2 - 1
+        p = aug.layout.phi_inverse(q, aug.layout.theta.detach().double())
+        px = (p + 1) / 2 * torch.tensor([16.0, 12.0], dtype=F64) - 0.5
+        ref = torch.cat([px.amin(0), px.amax(0)])
+        assert float((b[k, 0].double() - ref).abs().max()) < 0.01, (b[k, 0], ref)
+    back = seq.inverse(out, b, data_keys=["input", "bbox_xyxy"])[1]  # the box back contains the box
+    assert bool(
+        (back[..., :2] <= boxes[..., :2] + 1e-3).all() and (back[..., 2:] >= boxes[..., 2:] - 1e-3).all()
+    )
 
 
 def test_a_learnable_grid_in_a_kornia_pipeline_is_guarded_against_folding(gen):
