@@ -52,7 +52,7 @@ class ExportReport:
     max_pitch_um: float
     min_area_um2: float
     max_area_um2: float
-    vertices: int
+    vertices: int  # after snapping (a GDSII file always snaps, to its 1 nm grid): can be fewer than unsnapped
     tol_um: float
     max_deviation_um: float
     grid_um: float | None
@@ -64,7 +64,12 @@ class ExportReport:
     def summary(self) -> str:
         lines = [
             f"{self.format} mask {self.path}: {self.pixels} pixels on {self.sensor_um[1]:g} x "
-            f"{self.sensor_um[0]:g} µm (width x height), {self.vertices} vertices",
+            f"{self.sensor_um[0]:g} µm (width x height), {self.vertices} vertices"
+            + (
+                " (after snapping to the grid: vertices it makes repeated or collinear are dropped)"
+                if self.grid_um
+                else ""
+            ),
             f"  pitch {self.min_pitch_um:.4g} .. {self.max_pitch_um:.4g} µm, "
             f"area {self.min_area_um2:.4g} .. {self.max_area_um2:.4g} µm²",
             f"  edges within {self.max_deviation_um:.3g} µm of the layout (tolerance {self.tol_um:g} µm"
@@ -278,7 +283,7 @@ def _write_svg(path: Path, polys, wu: float, hu: float, size) -> None:
     stroke = min(wu / size[1], hu / size[0]) / 50
     parts = [
         '<?xml version="1.0" encoding="UTF-8"?>',
-        f'<svg xmlns="http://www.w3.org/2000/svg" width="{wu:g}um" height="{hu:g}um" '
+        f'<svg xmlns="http://www.w3.org/2000/svg" width="{wu / 1000:g}mm" height="{hu / 1000:g}mm" '
         f'viewBox="0 0 {wu!r} {hu!r}">',
         f'<g fill="none" stroke="black" stroke-width="{stroke:.6g}">',
     ]
@@ -343,8 +348,9 @@ def export_layout(
         sensor_um: sensor extent ``(H_um, W_um)``, in the order of ``size``.
         format: ``"gds"`` (gdstk; unit 1 µm, precision 1 nm; one polygon per pixel on
             ``layer``/``datatype`` in cell ``cell``), ``"dxf"`` (ezdxf; R2010, units µm, one
-            closed LWPOLYLINE per pixel on layer ``PIXELS_<layer>``), ``"svg"`` (viewBox in
-            µm, one ``<polygon id="p<i>_<j>">`` per pixel) or ``"png"`` (boundary lines of
+            closed LWPOLYLINE per pixel on layer ``PIXELS_<layer>``), ``"svg"`` (user units of
+            the viewBox are µm; the root's width and height give the physical size in mm, a CSS
+            unit, so a viewer shows the sensor at 1:1; one ``<polygon id="p<i>_<j>">`` per pixel) or ``"png"`` (boundary lines of
             ``line_width`` raster pixels at ``px_per_um``, plus ``<stem>_index.png``: uint16
             pixel index + 1 per raster pixel, 0 on no pixel; ``.npy`` int32 above 65534 pixels).
         tol_um: curved-edge tolerance; grid_um: manufacturing grid (GDSII: default the 1 nm

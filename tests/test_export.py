@@ -45,7 +45,8 @@ def read_back(path, fmt):
         assert all(e.closed and e.dxf.layer == "PIXELS_3" for e in ents)
         return [np.array([(x, H_UM - y) for x, y in e.get_points("xy")]) for e in ents]
     root = ET.parse(path).getroot()
-    assert root.get("width") == "1200um" and root.get("viewBox") == "0 0 1200.0 900.0"
+    assert root.get("width") == "1.2mm" and root.get("height") == "0.9mm"  # SVG/CSS units: 1:1
+    assert root.get("viewBox") == "0 0 1200.0 900.0"  # user units: µm
     polys = root.iter("{http://www.w3.org/2000/svg}polygon")
     return [np.array([[float(v) for v in pt.split(",")] for pt in p.get("points").split()]) for p in polys]
 
