@@ -350,9 +350,10 @@ def export_layout(
             ``layer``/``datatype`` in cell ``cell``), ``"dxf"`` (ezdxf; R2010, units µm, one
             closed LWPOLYLINE per pixel on layer ``PIXELS_<layer>``), ``"svg"`` (user units of
             the viewBox are µm; the root's width and height give the physical size in mm, a CSS
-            unit, so a viewer shows the sensor at 1:1; one ``<polygon id="p<i>_<j>">`` per pixel) or ``"png"`` (boundary lines of
-            ``line_width`` raster pixels at ``px_per_um``, plus ``<stem>_index.png``: uint16
-            pixel index + 1 per raster pixel, 0 on no pixel; ``.npy`` int32 above 65534 pixels).
+            unit, so a viewer shows the sensor at 1:1; one ``<polygon id="p<i>_<j>">`` per pixel)
+            or ``"png"`` (boundary lines of ``line_width`` raster pixels at ``px_per_um``, plus
+            ``<stem>_index.png``: uint16 pixel index + 1 per raster pixel, 0 on no pixel;
+            ``.npy`` int32 above 65534 pixels).
         tol_um: curved-edge tolerance; grid_um: manufacturing grid (GDSII: default the 1 nm
             database unit, which the file stores anyway); manhattan: axis-aligned steps (see
             :func:`pixel_polygons_um`).
