@@ -29,6 +29,7 @@ from .layoutfile import load_layout, save_layout
 from .layouts import (
     FAMILIES,
     CurvLayout,
+    EllipticLayout,
     FoveaLayout,
     Layout,
     RectLayout,
@@ -80,6 +81,7 @@ __all__ = [
     "FAMILIES",
     "AreaResampler",
     "CurvLayout",
+    "EllipticLayout",
     "FoveaLayout",
     "GridLayout",
     "Layout",

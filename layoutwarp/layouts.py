@@ -31,12 +31,14 @@ __all__ = [
     "FAMILIES",
     "CenteredLayout",
     "CurvLayout",
+    "EllipticLayout",
     "FoldoverReport",
     "FoveaLayout",
     "Layout",
     "RectLayout",
     "UniformLayout",
     "config_numbers",
+    "disk_to_square",
     "make_layout",
     "newton_inverse",
     "phi_curv",
@@ -49,6 +51,7 @@ __all__ = [
     "phi_rect_inverse",
     "phi_rect_jacobian",
     "register_family",
+    "square_to_disk",
     "tensor_dtype",
 ]
 
@@ -882,6 +885,72 @@ class FoveaLayout(CurvLayout):
         self, theta: Sequence[float] | Tensor | None = None, *, learn_center: bool = True, **kwargs: Any
     ) -> None:
         super().__init__(theta, learn_center=learn_center, **kwargs)
+
+
+# ----------------------------------------------------------------------------------------
+# The reference code's third family: curvilinear in a disk that fills the square
+# ----------------------------------------------------------------------------------------
+def _sqrt0(x: Tensor) -> Tensor:
+    """``√max(x, 0)`` with a zero (not infinite) gradient where the argument is 0."""
+    pos = x > 0
+    return torch.where(pos, torch.sqrt(torch.where(pos, x, torch.ones_like(x))), torch.zeros_like(x))
+
+
+def square_to_disk(p: Tensor) -> Tensor:
+    """The elliptical grid mapping of the square onto the unit disk: ``u = x √(1 − y²/2)``,
+    ``v = y √(1 − x²/2)`` (points ``(..., 2)``; the square's border goes to the unit circle)."""
+    x, y = p[..., 0], p[..., 1]
+    return torch.stack([x * _sqrt0(1 - y * y / 2), y * _sqrt0(1 - x * x / 2)], -1)
+
+
+def disk_to_square(q: Tensor) -> Tensor:
+    """The inverse of :func:`square_to_disk`: ``x = ½√(2 + u² − v² + 2√2 u) − ½√(2 + u² − v² − 2√2 u)``
+    and likewise ``y`` with ``u`` and ``v`` exchanged."""
+    u, v = q[..., 0], q[..., 1]
+    r2 = 2 * math.sqrt(2)
+    a, b = 2 + u * u - v * v, 2 - u * u + v * v
+    x = (_sqrt0(a + r2 * u) - _sqrt0(a - r2 * u)) / 2
+    y = (_sqrt0(b + r2 * v) - _sqrt0(b - r2 * v)) / 2
+    return torch.stack([x, y], -1)
+
+
+@register_family
+class EllipticLayout(Layout):
+    """The curvilinear map in a disk that fills the square: ``φ = E⁻¹ ∘ φ_curv ∘ E`` with ``E`` the
+    elliptical square-to-disk mapping (:func:`square_to_disk`).
+
+    The paper's φ_curv deforms only inside the unit circle, so the sensor's corners keep uniform
+    pixels (§5: "restricted to a circular region"); the paper's public code has this third family,
+    which first maps the whole square onto the disk, applies φ_curv there and maps back, so the
+    deformation reaches the corners. ``E`` is a bijection of the open square onto the open disk
+    sending the border onto the unit circle, which φ_curv fixes pointwise, so φ is again a
+    bijection of S that fixes its border; it is smooth inside the square (φ_curv's kink lies on
+    the circle, which is the square's border here), so pixel edges are curved but have no kinks.
+    The inverse is closed form: ``E⁻¹ ∘ φ_curv⁻¹ ∘ E``. ``θ > 0`` puts more pixels at the centre;
+    θ = 0 is the uniform layout. Jacobian and ∂φ/∂θ come from autograd through the closed forms.
+
+    Example:
+        >>> layout = EllipticLayout((0.5, 0.3), dtype=torch.float64)
+        >>> p = torch.tensor([[0.9, -0.95], [0.2, 0.1]], dtype=torch.float64)
+        >>> torch.allclose(layout.inverse(layout(p)), p, atol=1e-12)
+        True
+    """
+
+    family = "elliptic"
+
+    def phi(self, p: Tensor, theta: Tensor) -> Tensor:
+        p, theta = _promote(p, theta)
+        inside = (p.abs() < 1).all(-1, keepdim=True)
+        q = torch.where(inside, p, torch.zeros_like(p))
+        out = disk_to_square(phi_curv(square_to_disk(q), theta))
+        return torch.where(inside, out, p)
+
+    def phi_inverse(self, q: Tensor, theta: Tensor) -> Tensor:
+        q, theta = _promote(q, theta)
+        inside = (q.abs() < 1).all(-1, keepdim=True)
+        r = torch.where(inside, q, torch.zeros_like(q))
+        out = disk_to_square(phi_curv_inverse(square_to_disk(r), theta))
+        return torch.where(inside, out, q)
 
 
 # ----------------------------------------------------------------------------------------

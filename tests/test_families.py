@@ -54,8 +54,13 @@ def rand_fovea(gen, family="curv", **kw):
     return lw.make_layout(family, rand_theta(gen, 0.8), center=center, dtype=F64, **kw)
 
 
+def rand_elliptic(gen, **kw):
+    return lw.EllipticLayout(rand_theta(gen, 0.8), dtype=F64, **kw)
+
+
 def make(name, gen, **kw):
     return {
+        "elliptic": lambda: rand_elliptic(gen, **kw),
         "spline": lambda: rand_spline(gen, "linear", **kw),
         "spline-smooth": lambda: rand_spline(gen, "smooth", **kw),
         "grid": lambda: rand_grid(gen, **kw),
@@ -64,7 +69,7 @@ def make(name, gen, **kw):
     }[name]()
 
 
-NEW = ["spline", "spline-smooth", "grid", "fovea-curv", "fovea-rect"]
+NEW = ["spline", "spline-smooth", "grid", "fovea-curv", "fovea-rect", "elliptic"]
 
 
 def box_reference(img: torch.Tensor, ex: np.ndarray, ey: np.ndarray) -> np.ndarray:
@@ -209,7 +214,7 @@ def test_learned_centre_dtheta_in_closed_form_matches_autograd(family, gen):
 # ----------------------------------------------------------------------------------------
 # θ-gradients against central differences of the float64 exact forward
 # ----------------------------------------------------------------------------------------
-@pytest.mark.parametrize("name", ["spline", "spline-smooth", "grid", "fovea-curv", "fovea-rect"])
+@pytest.mark.parametrize("name", ["spline", "spline-smooth", "grid", "fovea-curv", "fovea-rect", "elliptic"])
 @pytest.mark.parametrize("size", [(5, 5), (3, 7)])
 def test_theta_gradients_match_central_differences(name, size, gen):
     extra = {"learn_center": True} if name.startswith("fovea") else {}
@@ -218,7 +223,7 @@ def test_theta_gradients_match_central_differences(name, size, gen):
     layout = make(name, gen, **extra)
     img = torch.rand(2, 23, 19, generator=gen, dtype=F64)
     wts = torch.randn(2, *size, generator=gen, dtype=F64)
-    curved = name == "fovea-curv"
+    curved = name in ("fovea-curv", "elliptic")
 
     def loss(t):  # the curved fovea: a fixed subdivision, so that the forward is smooth in θ
         mesh = lw.pixel_mesh(layout, size, subdivisions=6, theta=t) if curved else None
@@ -276,7 +281,7 @@ def test_montecarlo_and_point_gradients_reach_every_parameter(gen):
             assert torch.isfinite(g).all() and bool((g != 0).any())
 
 
-@pytest.mark.parametrize("name", ["spline-smooth", "grid", "fovea-curv"])
+@pytest.mark.parametrize("name", ["spline-smooth", "grid", "fovea-curv", "elliptic"])
 def test_montecarlo_reynolds_gradient_agrees_with_the_exact_one(name, gen):
     # the Reynolds estimator (needs ∂φ/∂θ and the Jacobian of each family) against central
     # differences of the exact integral of the same box radiance, as for the paper's families
@@ -674,3 +679,45 @@ def test_constructors_keep_a_tensor_arguments_dtype(gen):
     assert lw.CurvLayout(theta.float(), center=torch.zeros(2, dtype=F64)).rho.dtype == torch.float32
     knots = torch.tensor([-1.0, -0.2, 1.0], dtype=F64)
     assert lw.SplineLayout.from_knots(knots, knots).rho.dtype == F64
+
+
+# ----------------------------------------------------------------------------------------
+# The elliptic family (the reference code's third)
+# ----------------------------------------------------------------------------------------
+def test_elliptic_deforms_up_to_the_corners_and_fixes_the_border(gen):
+    theta = rand_theta(gen, 0.9)
+    layout = lw.EllipticLayout(theta, dtype=F64)
+    t = torch.rand(200, generator=gen, dtype=F64) * 2 - 1
+    border = torch.cat([torch.stack([t, torch.ones_like(t)], -1), torch.stack([-torch.ones_like(t), t], -1)])
+    assert torch.allclose(layout(border), border, rtol=0, atol=1e-15)
+    near_corner = torch.tensor([[0.9, 0.9], [-0.95, 0.92]], dtype=F64)  # outside the unit circle
+    assert float((layout(near_corner) - near_corner).abs().max()) > 1e-3  # curv leaves these alone
+    assert torch.equal(lw.CurvLayout(theta, dtype=F64)(near_corner), near_corner)
+    # the square-to-disk map and its inverse
+    from layoutwarp.layouts import disk_to_square, square_to_disk
+
+    p = torch.rand(500, 2, generator=gen, dtype=F64) * 2 - 1
+    d = square_to_disk(p)
+    assert bool((d.norm(dim=-1) < 1).all()) and torch.allclose(disk_to_square(d), p, atol=1e-12)
+
+
+def test_elliptic_inverse_jacobian_and_dtheta_against_independent_references(gen):
+    theta = rand_theta(gen, 0.9)
+    layout = lw.EllipticLayout(theta, dtype=F64)
+    p = torch.rand(300, 2, generator=gen, dtype=F64) * 1.98 - 0.99
+    q = layout(p)
+    assert torch.allclose(layout.inverse(q), p, atol=1e-11)  # closed form
+    assert torch.allclose(lw.layouts.newton_inverse(layout.phi, q, layout.theta), p, atol=1e-10)
+    h = 1e-6  # Jacobian and ∂φ/∂θ against central differences of the closed form
+    for k, e in enumerate(torch.eye(2, dtype=F64)):
+        fd_p = (layout.phi(p + h * e, theta) - layout.phi(p - h * e, theta)) / (2 * h)
+        assert torch.allclose(layout.jacobian(p)[..., :, k], fd_p, atol=1e-7)
+        fd_t = (layout.phi(p, theta + h * e) - layout.phi(p, theta - h * e)) / (2 * h)
+        assert torch.allclose(layout.dtheta(p)[..., :, k], fd_t, atol=1e-7)
+
+
+@pytest.mark.parametrize("tx", [-0.99, -0.9, -0.5, 0.0, 0.5, 0.9, 0.99])
+def test_elliptic_does_not_fold_over_its_theta_range(tx):
+    for ty in (-0.99, -0.9, -0.5, 0.0, 0.5, 0.9, 0.99):
+        report = lw.EllipticLayout((tx, ty), dtype=F64).check_foldover(101)
+        assert report.ok and report.min_det > 0, (tx, ty, report)
