@@ -259,7 +259,7 @@ def test_uniform_layout_is_identity(gen):
 
 class TestRegistry:
     def test_smoke(self):
-        assert set(lw.FAMILIES) == {"uniform", "rect", "curv", "fovea", "spline", "grid"}
+        assert set(lw.FAMILIES) == {"uniform", "rect", "curv", "fovea", "spline", "grid", "elliptic"}
         assert all(lw.FAMILIES[name].family == name for name in lw.FAMILIES)
 
     @pytest.mark.parametrize("theta", [None, (), (0.0, 0.0), [0, 0], torch.zeros(2)])
