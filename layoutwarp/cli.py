@@ -394,6 +394,57 @@ def _cmd_study(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_landscape(args: argparse.Namespace) -> int:
+    from dataclasses import replace
+
+    from .experiments.landscape import run_landscape
+    from .experiments.study import study_options
+    from .experiments.tasks import get_task
+    from .experiments.training import init_distributed
+
+    task = get_task(args.task)
+    folder = _task_folder(task, args)
+    size = args.size or task.study.learned_sizes[0]
+    _check_memory(size)
+    out = _out_dir(args.out or f"results/landscape-{task.name}-{args.family}")
+    lo, hi = args.range
+    if args.study and not (Path(args.study) / "runs").is_dir():
+        raise UsageError(f"argument --study: no study runs in {args.study!r}")
+    init_distributed()
+    options = study_options(
+        task,
+        task.study,
+        epochs=args.epochs or (1 if args.quick else None),
+        freeze_epochs=args.freeze_epochs,
+        theta_lr=args.theta_lr,
+        device=_device(args.device),
+        amp=args.amp,
+        progress=not args.no_progress,
+        task_options={k: getattr(args, k) for k in task.extra_dests},
+    )
+    options = replace(options, sensor=options.sensor | _physics_option(task, args))
+    n = args.grid or (3 if args.quick else 7)
+    summary = run_landscape(
+        task, folder, out, family=args.family, size=size, n=n, lo=lo, hi=hi, options=options, study=args.study
+    )
+    from .experiments.landscape import landscape_table
+
+    print(landscape_table(summary), end="")
+    print(f"wrote {out}/landscape.json, landscape.md and landscape_{task.name}_{args.family}.png (percent)")
+    return 0
+
+
+def parse_range(text: str) -> tuple[float, float]:
+    """``"-0.8,0.8"`` to ``(-0.8, 0.8)``: finite, ``|θ| < 1``, low below high."""
+    try:
+        lo, hi = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be LO,HI, e.g. -0.8,0.8, got {text!r}") from None
+    if not (all(math.isfinite(v) and abs(v) < 1 for v in (lo, hi)) and lo < hi):
+        raise argparse.ArgumentTypeError(f"must have -1 < LO < HI < 1, got {text!r}")
+    return lo, hi
+
+
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     from .experiments.models import evaluate_model, load_model
 
@@ -781,6 +832,34 @@ def build_parser() -> argparse.ArgumentParser:
     for task in TASKS.values():
         _add_study_parser(st_tasks, task, families)
 
+    la = command(
+        "landscape",
+        "Train the task's network with θ frozen at every point of a grid: does learning find the best θ?",
+    )
+    la_tasks = la.add_subparsers(dest="task", required=True, metavar="TASK", parser_class=_Parser)
+    two = [name for name, cls in FAMILIES.items() if cls.num_params == 2 and cls().num_params == 2]
+    for task in TASKS.values():
+        lt = la_tasks.add_parser(
+            task.name,
+            help=task.description,
+            description=f"A θ-landscape of {task.name}: θ frozen on an N x N grid (one seed a point, "
+            "three at uniform and at the best point), the study's training; resumable.",
+            formatter_class=_Formatter,
+        )
+        _add_training_args(lt, task, "bundled samples, 1 epoch, a 3x3 grid")
+        lt.add_argument("--family", choices=two, required=True, help="a two-parameter family")
+        lt.add_argument("--grid", type=positive_int, help="N: the grid is N x N (default: 7; 3 with --quick)")
+        lt.add_argument("--range", type=parse_range, default="-0.8,0.8", help="θ range LO,HI on both axes")
+        sizes = _sizes_text(task.study.learned_sizes[:1])
+        lt.add_argument("--size", type=parse_wxh, help=f"sensor WIDTHxHEIGHT (default: {sizes})")
+        lt.add_argument(
+            "--study", metavar="DIR", help="a study folder whose learned θ are rerun frozen and marked"
+        )
+        lt.add_argument(
+            "--out", help=f"output folder (default: results/landscape-{task.name}-FAMILY); rerun to resume"
+        )
+        lt.set_defaults(func=_cmd_landscape, task=task.name)
+
     ev = command("evaluate", "Score a saved model (a train run's model_*.pt) on a data folder; print JSON.")
     ev.add_argument("task", choices=list(TASKS), metavar="TASK", help=", ".join(TASKS))
     ev.add_argument("--model", required=True, metavar="FILE", help="a model file written by train")
@@ -877,7 +956,9 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; returns the exit status."""
     args = build_parser().parse_args(argv)
-    prog = f"layoutwarp {args.command}" + (f" {args.task}" if args.command in ("train", "study") else "")
+    prog = f"layoutwarp {args.command}" + (
+        f" {args.task}" if args.command in ("train", "study", "landscape") else ""
+    )
     try:
         return int(args.func(args) or 0)
     except (UsageError, ValueError, FileNotFoundError) as exc:
