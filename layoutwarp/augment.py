@@ -23,6 +23,7 @@ nearest neighbour (:func:`~layoutwarp.backwarp`).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import torch
@@ -52,10 +53,12 @@ class SensorAugmentation(GeometricAugmentationBase2D):
             :class:`~layoutwarp.Layout`.
         method: integrator (see :func:`~layoutwarp.simulate`).
         mask_rule: ``"nearest"`` or ``"majority"`` (see the module docstring).
-        learn, theta, **options: as :class:`~layoutwarp.SensorLayer` (unknown options are
+        learn: train θ (for a family name), as :class:`~layoutwarp.SensorLayer`.
+        theta: initial θ (for a family name).
+        **options: as :class:`~layoutwarp.SensorLayer` (unknown options are
             refused here, not at the first batch).
 
-    Example:
+    Examples:
         >>> import kornia.augmentation as K
         >>> aug = K.AugmentationSequential(K.RandomHorizontalFlip(), SensorAugmentation((16, 16), "rect"),
         ...                                data_keys=["input", "mask"])
@@ -72,7 +75,7 @@ class SensorAugmentation(GeometricAugmentationBase2D):
         *,
         mask_rule: str = "nearest",
         learn: bool = True,
-        theta=None,
+        theta: Sequence[float] | Tensor | None = None,
         **options: Any,
     ) -> None:
         super().__init__(p=1.0, same_on_batch=True, keepdim=False)

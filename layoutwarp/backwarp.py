@@ -76,7 +76,7 @@ def backwarp(
     Returns:
         ``(B, C, H, W)`` (or ``(B, H, W)``) with ``pred``'s dtype, on ``pred``'s device.
 
-    Example:
+    Examples:
         >>> from layoutwarp import RectLayout
         >>> # θ_x = 0.5: the middle one of three sensor pixels is small, the outer ones wide
         >>> backwarp(torch.arange(3.0).view(1, 1, 1, 3), RectLayout((0.5, 0.0)), (1, 8))[0, 0]

@@ -34,7 +34,7 @@ class ArgumentError(ValueError):
     what is allowed; :attr:`argument` holds the argument's name for callers that map it to
     their own (the command line to its flag).
 
-    Example:
+    Examples:
         >>> try:
         ...     check_number(-1, "tol", 0, lo_open=True)
         ... except ArgumentError as exc:
@@ -55,7 +55,7 @@ def _argument(name: str) -> str:
 def check_size(size: Any, name: str = "size") -> tuple[int, int]:
     """Validate an ``(H, W)`` size and return it as a tuple of two positive ints.
 
-    Example:
+    Examples:
         >>> check_size((129, 257))
         (129, 257)
     """
@@ -105,7 +105,7 @@ def check_number(
 ) -> float:
     """A finite real number in the interval from ``lo`` to ``hi`` (open ends if asked).
 
-    Example:
+    Examples:
         >>> check_number(1e-3, "tol", 0, lo_open=True)
         0.001
     """
@@ -166,7 +166,7 @@ def check_shape(x: Any, shape: Sequence[str], name: str) -> Tensor:
     any number of leading dimensions; alternatives are separate patterns joined by ``|`` in
     one string, e.g. ``"B C H W|C H W"``.
 
-    Example:
+    Examples:
         >>> check_shape(torch.zeros(2, 5, 2), ["*", "2"], "points").shape
         torch.Size([2, 5, 2])
     """

@@ -34,7 +34,7 @@ def grid_lines(
 ) -> Tensor:
     """The ``n + 1`` uniform cell boundaries ``(2k − n)/n`` of ``[-1, 1]`` (exactly ±1 at the ends).
 
-    Example:
+    Examples:
         >>> grid_lines(4)
         tensor([-1.0000, -0.5000,  0.0000,  0.5000,  1.0000], dtype=torch.float64)
     """
@@ -48,7 +48,7 @@ def cell_index(x: Tensor, n: int) -> tuple[Tensor, Tensor]:
     Points are clamped to ``[-1, 1]``; ``+1`` belongs to the last cell (position 1). The
     position ``∈ [0, 1]`` is differentiable in ``x``; the index is not.
 
-    Example:
+    Examples:
         >>> cell_index(torch.tensor([-1.0, 0.25, 1.0]), 4)
         (tensor([0, 2, 3]), tensor([0.0000, 0.5000, 1.0000]))
     """
@@ -87,7 +87,7 @@ def sensor_to_pixels(p: Tensor, size: tuple[float, float], *, centered: bool = F
     ``X = (x + 1) · W / 2`` (pixel ``c`` covers ``[c, c + 1)``), minus ``0.5`` with
     ``centered=True`` (pixel centres at integers, OpenCV ``remap`` / Kornia keypoints).
 
-    Example:
+    Examples:
         >>> sensor_to_pixels(torch.tensor([[-1.0, 1.0]]), (4, 8))
         tensor([[0., 4.]])
     """

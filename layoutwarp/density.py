@@ -76,9 +76,10 @@ def layout_from_density(
         grid: ``(g_h, g_w)`` control cells for ``kind="grid"`` (default ``(min(H, 32), min(W, 32))``).
         floor: share of the uniform density mixed in, in ``(0, 1]`` (1 gives the uniform layout;
             smaller lets pixels grow more where the map is empty).
-        learn, dtype: passed to the layout (it can start a learned layout).
+        learn: passed to the layout (it can start a learned layout).
+        dtype: passed to the layout.
 
-    Example:
+    Examples:
         >>> d = torch.ones(8, 8)
         >>> d[:, :4] = 3.0  # three times the detail on the left half
         >>> layout = layout_from_density(d, (4, 4), floor=1e-9)

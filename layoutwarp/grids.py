@@ -99,12 +99,13 @@ class GridLayout(Layout):
         min_det: the smallest corner determinant (in units of the uniform cell) a learning step
             may produce; a grid given below it is kept but not made worse.
         bound: unused (accepted for :func:`make_layout`).
-        learn, dtype: as :class:`~layoutwarp.Layout`.
+        learn: as :class:`~layoutwarp.Layout`.
+        dtype: as :class:`~layoutwarp.Layout` (default: a tensor ``control``'s own floating dtype).
 
     Raises:
         ValueError: a malformed grid, or a folded one (naming the first bad cell).
 
-    Example:
+    Examples:
         >>> ctrl = uniform_corners((2, 2)).clone()
         >>> ctrl[1, 1] = torch.tensor([0.3, -0.2], dtype=torch.float64)
         >>> layout = GridLayout(ctrl, dtype=torch.float64)
@@ -176,7 +177,8 @@ class GridLayout(Layout):
         """A grid layout from OpenCV ``remap`` maps (source pixel centres at integers).
 
         Args:
-            map_x, map_y: ``(m, n)`` maps into a source image of ``src_size = (H, W)``.
+            map_x: ``(m, n)`` x map into a source image of ``src_size = (H, W)``.
+            map_y: the y map, of the same shape.
             points: ``"corners"``: the maps hold the ``(g_h + 1) × (g_w + 1)`` pixel corners,
                 used as control points (border points must lie on the source border
                 ``−0.5`` / ``W − 0.5`` within 1e-3 px); ``"centers"``: they hold the ``g_h × g_w``

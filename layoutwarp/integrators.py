@@ -73,7 +73,7 @@ def data_tolerance(dtype: torch.dtype | np.dtype | type) -> tuple[float, str]:
     ``2⁻¹²`` (a quarter of a 10-bit step, for the 8–10-bit data most float images hold; pass
     ``tol`` for finer).
 
-    Example:
+    Examples:
         >>> data_tolerance(torch.uint8)[0] == 0.25 / 255
         True
     """
@@ -97,7 +97,7 @@ def _ranges(lo: Tensor, count: Tensor) -> tuple[Tensor, Tensor]:
     """Expand runs: for ``count[i]`` consecutive integers from ``lo[i]``, the pair
     ``(parent index i, integer)`` of every element, in order.
 
-    Example:
+    Examples:
         >>> _ranges(torch.tensor([5, 0]), torch.tensor([2, 3]))
         (tensor([0, 0, 1, 1, 1]), tensor([5, 6, 0, 1, 2]))
     """

@@ -48,7 +48,7 @@ def source_pixels(layout: Layout, size: tuple[int, int], src_size: tuple[int, in
     Returns:
         two ``(h, w)`` int64 tensors on the CPU, clamped to the source.
 
-    Example:
+    Examples:
         >>> from layoutwarp import UniformLayout
         >>> source_pixels(UniformLayout(), (1, 2), (2, 4))[1]
         tensor([[1, 3]])

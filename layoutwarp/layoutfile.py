@@ -40,7 +40,7 @@ def layout_spec(layout: Layout) -> dict[str, Any]:
     The one form in which a layout travels: in layout files, model files, preprocessing
     manifests, benchmark rows and to the workers of a cluster.
 
-    Example:
+    Examples:
         >>> from layoutwarp import RectLayout
         >>> layout_spec(RectLayout((0.5, 0.25), dtype=torch.float64))["family"]
         'rect'

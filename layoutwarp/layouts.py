@@ -492,7 +492,8 @@ class Layout(nn.Module):
         as accurate as values.
 
         Args:
-            a, b: ``(E, 2)`` segment ends in uniform sensor coordinates.
+            a: ``(E, 2)`` segment starts in uniform sensor coordinates.
+            b: ``(E, 2)`` segment ends.
             theta: the θ the mesh is built for (default: the layout's own, without gradient).
 
         Returns:
@@ -624,7 +625,9 @@ class CenteredLayout(Layout):
         center: the centre ``(c_x, c_y)`` in sensor coordinates.
         learn_center: make the centre part of θ, which becomes ``(θ_x, θ_y, c_x, c_y)`` (each
             centre entry bounded by 1), so that it is learned with θ (``learn=True``).
-        bound, learn, dtype: as :class:`Layout`.
+        bound: as :class:`Layout`.
+        learn: as :class:`Layout`.
+        dtype: as :class:`Layout`.
     """
 
     num_params: int | None = 2
@@ -778,7 +781,7 @@ class RectLayout(CenteredLayout):
     """The rectangular layout φ_rect of the paper (separable; pixels are rectangles), about a
     movable centre (see :class:`CenteredLayout`: ``center``, ``learn_center``).
 
-    Example:
+    Examples:
         >>> layout = RectLayout(theta=(0.3, -0.2))
         >>> q = layout(torch.tensor([[0.5, 0.5]]))
         >>> torch.allclose(layout.inverse(q), torch.tensor([[0.5, 0.5]]), atol=1e-6)
@@ -874,7 +877,7 @@ class FoveaLayout(CurvLayout):
     """φ_curv about a learnable centre: :class:`CurvLayout` with ``learn_center=True``, so θ is
     ``(θ_x, θ_y, c_x, c_y)`` and a learned layout moves its fovea to where the task needs it.
 
-    Example:
+    Examples:
         >>> FoveaLayout((0.5, 0.2), center=(0.3, -0.1)).theta
         tensor([ 0.5000,  0.2000,  0.3000, -0.1000])
     """
@@ -929,7 +932,7 @@ class EllipticLayout(Layout):
     The inverse is closed form: ``E⁻¹ ∘ φ_curv⁻¹ ∘ E``. ``θ > 0`` puts more pixels at the centre;
     θ = 0 is the uniform layout. Jacobian and ∂φ/∂θ come from autograd through the closed forms.
 
-    Example:
+    Examples:
         >>> layout = EllipticLayout((0.5, 0.3), dtype=torch.float64)
         >>> p = torch.tensor([[0.9, -0.95], [0.2, 0.1]], dtype=torch.float64)
         >>> torch.allclose(layout.inverse(layout(p)), p, atol=1e-12)
@@ -1030,7 +1033,7 @@ def make_layout(family: str | Layout, theta: Sequence[float] | Tensor | None = N
         theta: initial θ (``None``: zeros; the uniform layout takes ``None``, ``()`` or zeros).
         **kwargs: ``bound``, ``learn`` (default ``False``), ``dtype``.
 
-    Example:
+    Examples:
         >>> make_layout("rect", (0.3, -0.2)).theta
         tensor([ 0.3000, -0.2000])
         >>> make_layout("uniform", ()).family

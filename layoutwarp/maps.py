@@ -127,7 +127,7 @@ def forward_maps(
         :class:`Maps` of shape ``(h·s, w·s)``. Average each ``s × s`` block of the remapped
         image for a (uniform-weight) pixel estimate.
 
-    Example:
+    Examples:
         >>> from layoutwarp import UniformLayout
         >>> forward_maps(UniformLayout(), (1, 2), (4, 8)).map_x
         tensor([[1.5000, 5.5000]])

@@ -58,7 +58,7 @@ class MeshTopology:
     horizontal edges ``(i, j)`` (top, ``+``) and ``(i + 1, j)`` (bottom, ``−``) and vertical
     edges ``(i, j + 1)`` (right, ``+``) and ``(i, j)`` (left, ``−``).
 
-    Example:
+    Examples:
         >>> top = MeshTopology((2, 3))
         >>> top.num_edges, top.pixel_edges()[1, 2].tolist()  # top, right, bottom, left
         (17, [5, 16, 8, 15])
@@ -162,7 +162,7 @@ def segment_area(a: _A, b: _A) -> _A:
 def polygon_area(poly: _A) -> _A:
     """Signed area of polygons ``(..., n, 2)`` (first vertex not repeated), by the shoelace sum.
 
-    Example:
+    Examples:
         >>> polygon_area(np.array([[0.0, 0.0], [2.0, 0.0], [2.0, 1.0], [0.0, 1.0]]))
         np.float64(2.0)
     """
@@ -533,7 +533,7 @@ def pixel_mesh(
         of registered families are cached (the last :data:`CACHE_SIZE`), so simulating many
         images with one fixed layout builds its mesh once; do not modify a returned mesh.
 
-    Example:
+    Examples:
         >>> from layoutwarp import CurvLayout
         >>> mesh = pixel_mesh(CurvLayout((0.5, 0.2)), (3, 4), tol=1e-4, dtype=torch.float64)
         >>> round(float(mesh.areas().sum()), 12)

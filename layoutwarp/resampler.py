@@ -110,7 +110,8 @@ class AreaResampler:
         layout: the pixel layout (its current θ is frozen in the weights).
         size: sensor size ``(h, w)``.
         src_size: source image size ``(H, W)``.
-        tol, dtype: the accuracy, as :func:`area_weights` (default: what ``dtype`` images need).
+        tol: the accuracy, as :func:`area_weights` (default: what ``dtype`` images need).
+        dtype: the dtype of the images the weights are for.
         device: where the sparse products run.
 
     Call with an ``(H, W)`` or ``(H, W, C)`` numpy image of any real dtype; returns a float32

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -70,7 +71,7 @@ def plan_simulation(
     ``dtype`` is the input image's dtype; with ``tol=None`` it sets the tolerance
     (:func:`data_tolerance`).
 
-    Example:
+    Examples:
         >>> from layoutwarp import CurvLayout
         >>> plan_simulation(CurvLayout((0.3, 0.1)), (8, 8), tol=1e-4).error_bound
         0.0001
@@ -186,7 +187,8 @@ def simulate(
             uint8, 2⁻¹² for float32). The plan states the bound and why.
         samples: ``s`` for Monte Carlo (``s²`` samples per pixel).
         grad: Monte Carlo θ-gradient estimator, ``"reynolds"`` or ``"autograd"``.
-        seed, generator: randomness of the Monte Carlo jitter (``seed`` makes a generator on
+        seed: the Monte Carlo jitter's seed (it makes a generator on the image's device).
+        generator: randomness of the Monte Carlo jitter (``seed`` makes a generator on
             the image's device, so one seed gives other samples on another device); a
             ``generator`` also draws the physics' noise (else ``physics.seed`` does).
         allow_nonfinite: let NaN/Inf through instead of raising ``ValueError``.
@@ -334,7 +336,7 @@ class SensorLayer(nn.Module):
         output: with ``physics``: ``"radiance"``, ``"electrons"`` or ``"dn"``.
         **options: further :func:`simulate` options (``tol``, ``samples``, ``radiance``, ...).
 
-    Example:
+    Examples:
         >>> layer = SensorLayer((4, 4), "curv")
         >>> layer(torch.rand(8, 1, 28, 28)).shape
         torch.Size([8, 1, 4, 4])
@@ -347,7 +349,7 @@ class SensorLayer(nn.Module):
         method: str = "exact",
         *,
         learn: bool = True,
-        theta=None,
+        theta: Sequence[float] | Tensor | None = None,
         bound: float = 1.0,
         physics: SensorPhysics | dict | None = None,
         output: str = "radiance",

@@ -33,7 +33,7 @@ KINDS = ("linear", "smooth")
 def knot_outputs(logits: Tensor) -> Tensor:
     """Knot outputs ``(k + 1,)`` from ``−1`` to ``1`` (both exact) for ``k`` logits.
 
-    Example:
+    Examples:
         >>> knot_outputs(torch.zeros(4))
         tensor([-1.0000, -0.5000,  0.0000,  0.5000,  1.0000])
     """
@@ -131,9 +131,10 @@ class SplineLayout(Layout):
         knots: ``(k_x, k_y)`` pieces per axis, each ``>= 1``.
         kind: ``"linear"`` (piecewise-constant pixel density) or ``"smooth"`` (C¹).
         bound: unused (the logits are unbounded); accepted for :func:`make_layout`.
-        learn, dtype: as :class:`~layoutwarp.Layout`.
+        learn: as :class:`~layoutwarp.Layout`.
+        dtype: as :class:`~layoutwarp.Layout`.
 
-    Example:
+    Examples:
         >>> layout = SplineLayout.from_knots([-1, -0.2, 1], [-1, 0.5, 1])
         >>> layout(torch.tensor([[0.0, 0.0]], dtype=torch.float64))
         tensor([[-0.2000,  0.5000]], dtype=torch.float64)
