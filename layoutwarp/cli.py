@@ -195,6 +195,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         photo=args.image,
         device=_device(args.device) if args.device else "cpu",
         only=_bench_rows(args.layouts),
+        text_path=args.text,
     )
     return 0
 
@@ -809,6 +810,7 @@ def build_parser() -> argparse.ArgumentParser:
     b = command("bench", "Time and error of every integrator against anchors measured in the same run.")
     b.add_argument("--quick", action="store_true", help="small sizes, few repeats")
     b.add_argument("--json", metavar="FILE", help="also write the results to this JSON file")
+    b.add_argument("--text", metavar="FILE", help="also write the printed tables to this file (Markdown)")
     b.add_argument("--plot", metavar="FILE", help="also draw the speed-vs-error plot to this PNG")
     b.add_argument("--image", help="photo to measure on (default: the bundled kodim20)")
     b.add_argument("--threads", type=positive_int, help="torch threads (default: torch's choice)")

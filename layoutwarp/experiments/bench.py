@@ -48,6 +48,7 @@ __all__ = [
     "format_table",
     "main_bench",
     "preprocess_baseline",
+    "report_text",
     "run",
     "scaling",
 ]
@@ -809,8 +810,10 @@ def main_bench(
     photo: str | None = None,
     device: str = "cpu",
     only: Sequence[str] | None = None,
+    text_path: str | None = None,
 ) -> dict:
-    """Run the benchmark (``quick``: small sizes, few repeats), print tables, write JSON and plot."""
+    """Run the benchmark (``quick``: small sizes, few repeats), print tables (and write them to
+    ``text_path`` as a fenced Markdown block, which the docs include), write JSON and plot."""
     say = lambda msg: print(f"  .. {msg}", flush=True)  # noqa: E731
     rows = tuple(only) if only else None
     if quick:
@@ -824,33 +827,10 @@ def main_bench(
             result["scaling"] = scaling()
     say("compile time of the kernels")
     result["compile"] = compile_times()
-    print(format_table(result))
-    steps = [r for r in result["rows"] if r["method"].startswith("train step")]
-    for r in steps:
-        print(
-            f"{r['layout']:8s} {r['method']:24s} {r['setting']:12s} {r['forward_ms']:8.1f} ms  "
-            f"{r['extra']['ops']:5d} torch ops"
-            + (f"  (mesh build {r['extra']['mesh_ms']:.1f} ms)" if "mesh_ms" in r["extra"] else "")
-        )
-    for r in result["rows"]:
-        if r["method"] == "exact, cached weights":
-            print(
-                f"a fixed layout's repeated exact forward: {r['forward_ms']:.2f} ms "
-                f"({r['forward_ms'] / result['anchors_ms']['inter_area']:.2f}x INTER_AREA); its first call, "
-                f"which builds the area weights: {r['extra']['first_call_ms']:.1f} ms"
-            )
-        if r["method"] == "exact + physics":
-            print(
-                f"sensor physics (noise, full well, 12-bit ADC): {r['forward_ms']:.2f} ms against "
-                f"{r['extra']['plain_ms']:.2f} ms without, {100 * r['extra']['over_plain']:+.1f} %"
-            )
-    c = result["compile"]
-    print(
-        f"first exact forward+backward in a new process: {c['first_process']['first_call_s']:.2f} s with an "
-        f"empty kernel cache (compiling), {c['second_process']['first_call_s']:.2f} s with the cache filled"
-    )
-    if "scaling" in result:
-        print(format_scaling(result["scaling"]))
+    text = report_text(result)
+    print(text)
+    if text_path:
+        atomic_write(text_path, "```text\n" + text + "\n```\n")  # a fenced block the docs include
     if json_path:
         Path(json_path).parent.mkdir(parents=True, exist_ok=True)
         atomic_write(json_path, json.dumps(result, indent=2))
@@ -859,6 +839,41 @@ def main_bench(
 
         print(f"wrote {pareto_figure(result, plot_path)}")
     return result
+
+
+def report_text(result: dict) -> str:
+    """Everything the benchmark prints: the table, the training steps, the cached weights, the
+    physics, the compile time and the scaling grid."""
+    lines = [format_table(result)]
+    for r in result["rows"]:
+        if r["method"].startswith("train step"):
+            lines.append(
+                f"{r['layout']:8s} {r['method']:24s} {r['setting']:12s} {r['forward_ms']:8.1f} ms  "
+                f"{r['extra']['ops']:5d} torch ops"
+                + (f"  (mesh build {r['extra']['mesh_ms']:.1f} ms)" if "mesh_ms" in r["extra"] else "")
+            )
+    for r in result["rows"]:
+        if r["method"] == "exact, cached weights":
+            lines.append(
+                f"a fixed layout's repeated exact forward: {r['forward_ms']:.2f} ms "
+                f"({r['forward_ms'] / result['anchors_ms']['inter_area']:.2f}x INTER_AREA); its first call, "
+                f"which builds the area weights: {r['extra']['first_call_ms']:.1f} ms"
+            )
+        if r["method"] == "exact + physics":
+            lines.append(
+                f"sensor physics (noise, full well, 12-bit ADC): {r['forward_ms']:.2f} ms against "
+                f"{r['extra']['plain_ms']:.2f} ms without, {100 * r['extra']['over_plain']:+.1f} %"
+            )
+    c = result.get("compile")
+    if c:
+        lines.append(
+            f"first exact forward+backward in a new process: {c['first_process']['first_call_s']:.2f} s "
+            f"with an empty kernel cache (compiling), {c['second_process']['first_call_s']:.2f} s with the "
+            "cache filled"
+        )
+    if "scaling" in result:
+        lines.append(format_scaling(result["scaling"]))
+    return "\n".join(lines)
 
 
 def preprocess_baseline(files: list[Path], size: tuple[int, int], out: str | Path) -> float:
