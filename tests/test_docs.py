@@ -33,3 +33,13 @@ def test_the_docs_build_strictly(tmp_path):
         assert name in api, name
     assert (tmp_path / "examples" / "study" / "mnist" / "study_mnist.png").exists()  # the README's figures
     assert not (tmp_path / "hooks.py").exists()
+
+
+@pytest.mark.parametrize("page", ["README.md", "docs/index.md"])
+def test_the_front_pages_python_examples_run(page):
+    import re
+
+    blocks = re.findall(r"```python\n(.*?)```", (ROOT / page).read_text(), re.S)
+    assert blocks
+    for code in blocks:
+        exec(compile(code, page, "exec"), {})
