@@ -43,3 +43,11 @@ def test_the_front_pages_python_examples_run(page):
     assert blocks
     for code in blocks:
         exec(compile(code, page, "exec"), {})
+
+
+def test_the_api_page_lists_every_public_name():
+    import layoutwarp as lw
+
+    api = (ROOT / "docs" / "api.md").read_text()
+    missing = [n for n in lw.__all__ if n != "__version__" and f"- {n}\n" not in api and f".{n}\n" not in api]
+    assert not missing, missing
