@@ -341,7 +341,7 @@ def _cmd_study(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
     from .experiments.data import samples_dir
-    from .experiments.study import run_study, ship_study, study_options, study_runs, study_table
+    from .experiments.study import run_study, ship_study, study_runs, study_table
     from .experiments.tasks import get_task
     from .experiments.training import init_distributed
 
@@ -377,6 +377,20 @@ def _cmd_study(args: argparse.Namespace) -> int:
     for size in plan.uniform_sizes + plan.learned_sizes:
         _check_memory(size)
     init_distributed()
+    options = _study_run_options(task, plan, args)
+    summary = run_study(task, folder, out, plan=plan, seeds=args.seeds, options=options)
+    print(study_table(summary), end="")
+    print(f"wrote {out}/study.json, study.md and study_{task.name}.png (scores in percent)")
+    return 0
+
+
+def _study_run_options(task, plan, args: argparse.Namespace):
+    """How every run of a study or landscape trains: the plan's tolerance, the task's defaults,
+    the flags (``--quick``: one epoch) and the physics flags."""
+    from dataclasses import replace
+
+    from .experiments.study import study_options
+
     options = study_options(
         task,
         plan,
@@ -388,18 +402,11 @@ def _cmd_study(args: argparse.Namespace) -> int:
         progress=not args.no_progress,
         task_options={k: getattr(args, k) for k in task.extra_dests},
     )
-    options = replace(options, sensor=options.sensor | _physics_option(task, args))
-    summary = run_study(task, folder, out, plan=plan, seeds=args.seeds, options=options)
-    print(study_table(summary), end="")
-    print(f"wrote {out}/study.json, study.md and study_{task.name}.png (scores in percent)")
-    return 0
+    return replace(options, sensor=options.sensor | _physics_option(task, args))
 
 
 def _cmd_landscape(args: argparse.Namespace) -> int:
-    from dataclasses import replace
-
     from .experiments.landscape import run_landscape
-    from .experiments.study import study_options
     from .experiments.tasks import get_task
     from .experiments.training import init_distributed
 
@@ -412,18 +419,7 @@ def _cmd_landscape(args: argparse.Namespace) -> int:
     if args.study and not (Path(args.study) / "runs").is_dir():
         raise UsageError(f"argument --study: no study runs in {args.study!r}")
     init_distributed()
-    options = study_options(
-        task,
-        task.study,
-        epochs=args.epochs or (1 if args.quick else None),
-        freeze_epochs=args.freeze_epochs,
-        theta_lr=args.theta_lr,
-        device=_device(args.device),
-        amp=args.amp,
-        progress=not args.no_progress,
-        task_options={k: getattr(args, k) for k in task.extra_dests},
-    )
-    options = replace(options, sensor=options.sensor | _physics_option(task, args))
+    options = _study_run_options(task, task.study, args)
     n = args.grid or (3 if args.quick else 7)
     summary = run_landscape(
         task, folder, out, family=args.family, size=size, n=n, lo=lo, hi=hi, options=options, study=args.study
