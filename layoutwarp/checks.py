@@ -19,6 +19,7 @@ __all__ = [
     "ArgumentError",
     "check_choice",
     "check_device",
+    "check_extent",
     "check_int",
     "check_number",
     "check_points",
@@ -71,6 +72,24 @@ def check_size(size: Any, name: str = "size") -> tuple[int, int]:
             _argument(name), f"{name} must be a pair (H, W) of positive integers, got {size!r}"
         )
     return h, w
+
+
+def check_extent(sensor_um: Any, name: str = "sensor_um") -> tuple[float, float]:
+    """A physical extent ``(H_um, W_um)``: two finite sizes > 0 in µm, as floats.
+
+    Examples:
+        >>> check_extent((4200, 5600))
+        (4200.0, 5600.0)
+    """
+    try:
+        hu, wu = sensor_um
+    except (TypeError, ValueError):
+        raise ArgumentError(
+            name, f"{name} must be (H_um, W_um), two positive sizes in µm, got {sensor_um!r}"
+        ) from None
+    return check_number(hu, f"{name}[0] (height)", 0, lo_open=True), check_number(
+        wu, f"{name}[1] (width)", 0, lo_open=True
+    )
 
 
 def check_choice(value: Any, choices: Iterable[Any], name: str) -> Any:

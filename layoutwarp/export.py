@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 import torch
 
-from .checks import ArgumentError, check_choice, check_number, check_size
+from .checks import ArgumentError, check_choice, check_extent, check_number, check_size
 from .coords import sensor_to_pixels, uniform_corners
 from .files import atomic_write
 from .layouts import Layout
@@ -188,7 +188,7 @@ def pixel_polygons_um(
         corners).
     """
     h, w = check_size(size)
-    sensor_um = _check_extent(sensor_um)
+    sensor_um = check_extent(sensor_um)
     tol_um = check_number(tol_um, "tol_um", 0, lo_open=True)
     if grid_um is not None:
         grid_um = check_number(grid_um, "grid_um", 0, lo_open=True)
@@ -225,18 +225,6 @@ def pixel_polygons_um(
         "self_touching": len(crossed) // 4,
     }
     return polys, info
-
-
-def _check_extent(sensor_um: tuple[float, float]) -> tuple[float, float]:
-    try:
-        hu, wu = sensor_um
-    except (TypeError, ValueError):
-        raise ArgumentError(
-            "sensor_um", f"sensor_um must be (H_um, W_um), two positive sizes in µm, got {sensor_um!r}"
-        ) from None
-    return check_number(hu, "sensor_um[0] (height)", 0, lo_open=True), check_number(
-        wu, "sensor_um[1] (width)", 0, lo_open=True
-    )
 
 
 def _smallest_chord_um(layout: Layout, size: tuple[int, int], sensor_um: tuple[float, float]) -> float:
@@ -375,7 +363,7 @@ def export_layout(
             "format", f"format {fmt!r} does not match the file name {path.name!r}; name it *.{fmt}"
         )
     size = check_size(size)
-    hu, wu = _check_extent(sensor_um)
+    hu, wu = check_extent(sensor_um)
     if fmt == "gds" and grid_um is None:
         grid_um = GDS_DBU_UM  # GDSII stores integers: snap here so the report matches the file
     polys, info = pixel_polygons_um(

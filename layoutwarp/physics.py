@@ -49,7 +49,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from . import kernels
-from .checks import ArgumentError, check_choice, check_number
+from .checks import ArgumentError, check_choice, check_extent, check_number
 
 __all__ = [
     "NOISE",
@@ -131,16 +131,7 @@ class SensorPhysics:
     noise: str = "auto"
 
     def __post_init__(self) -> None:
-        try:
-            hu, wu = self.sensor_um
-        except (TypeError, ValueError):
-            raise ArgumentError(
-                "sensor_um", f"sensor_um must be (H_um, W_um), two sizes in µm, got {self.sensor_um!r}"
-            ) from None
-        extent = (
-            check_number(hu, "sensor_um[0] (height)", 0, lo_open=True),
-            check_number(wu, "sensor_um[1] (width)", 0, lo_open=True),
-        )
+        extent = check_extent(self.sensor_um)
         object.__setattr__(self, "sensor_um", extent)
         check_number(self.photons_per_um2, "photons_per_um2", 0, lo_open=True)
         check_number(self.quantum_efficiency, "quantum_efficiency", 0, 1, lo_open=True)
