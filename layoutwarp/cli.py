@@ -416,8 +416,8 @@ def _cmd_landscape(args: argparse.Namespace) -> int:
     _check_memory(size)
     out = _out_dir(args.out or f"results/landscape-{task.name}-{args.family}")
     lo, hi = args.range
-    if args.study and not (Path(args.study) / "runs").is_dir():
-        raise UsageError(f"argument --study: no study runs in {args.study!r}")
+    if args.study and not any((Path(args.study) / d).is_dir() for d in ("runs", "layouts")):
+        raise UsageError(f"argument --study: no study runs (or shipped layouts) in {args.study!r}")
     init_distributed()
     options = _study_run_options(task, task.study, args)
     n = args.grid or (3 if args.quick else 7)

@@ -51,3 +51,13 @@ def test_quick_landscape_reruns_the_learned_theta_frozen_and_resumes(tmp_path, c
     with pytest.raises(SystemExit) as info:  # four parameters: not a landscape over (θx, θy)
         main(["landscape", "mnist", "--quick", "--family", "fovea", "--out", str(tmp_path / "x")])
     assert info.value.code == 2 and "invalid choice: 'fovea'" in capsys.readouterr().err
+
+
+def test_a_shipped_study_gives_its_learned_theta():
+    from conftest import ROOT
+
+    from layoutwarp.experiments.landscape import study_records
+
+    recs = study_records(ROOT / "examples" / "study" / "mnist", "curv", (4, 4))
+    assert sorted(recs) == [0, 1, 2]  # the shipped layout files of the three seeds
+    assert all(len(r["theta"]) == 2 and 0 < r["scores"]["accuracy"] <= 100 for r in recs.values())

@@ -43,13 +43,29 @@ def point_name(
     return f"{family}_{size[1]}x{size[0]}_tx{tx}_ty{ty}" + (f"_{tag}" if tag else "") + f"_seed{seed}"
 
 
+def study_records(study: Path, family: str, size: tuple[int, int]) -> dict[int, dict]:
+    """The jointly learned runs of ``family`` at ``size`` in a study folder, by seed: their
+    ``theta`` and ``scores``, from its run records or, in a shipped study (``--ship``), from the
+    layout files it keeps of every run."""
+    name = f"{family}_{size[1]}x{size[0]}_seed*.json"
+    out = {}
+    for p in sorted((study / "runs").glob(name)):
+        rec = json.loads(p.read_text())
+        out[int(rec["seed"])] = {"theta": rec["theta"], "scores": rec["scores"]}
+    if not out:
+        for p in sorted((study / "layouts").glob(name)):
+            data = json.loads(p.read_text())
+            seed = int(p.stem.rsplit("seed", 1)[1])
+            out[seed] = {"theta": data["theta"], "scores": (data.get("extra") or {}).get("scores", {})}
+    return out
+
+
 def learned_thetas(study: Path, family: str, size: tuple[int, int]) -> list[tuple[int, tuple[float, float]]]:
     """``(seed, θ)`` of a study's runs of ``family`` at ``size`` (jointly learned θ)."""
-    out = []
-    for p in sorted((study / "runs").glob(f"{family}_{size[1]}x{size[0]}_seed*.json")):
-        rec = json.loads(p.read_text())
-        out.append((int(rec["seed"]), (float(rec["theta"][0]), float(rec["theta"][1]))))
-    return out
+    return [
+        (seed, (float(r["theta"][0]), float(r["theta"][1])))
+        for seed, r in study_records(study, family, size).items()
+    ]
 
 
 def run_landscape(
@@ -157,10 +173,7 @@ def summarise_landscape(
     uniform, best = stats(scores((0.0, 0.0))), stats(scores(best_theta))
     learned = []
     if study:
-        joint = {}
-        for p in sorted((Path(study) / "runs").glob(f"{family}_{size[1]}x{size[0]}_seed*.json")):
-            rec = json.loads(p.read_text())
-            joint[int(rec["seed"])] = rec
+        joint = study_records(Path(study), family, size)
         for r in recs:
             if r.get("tag") == "learned" and int(r["seed"]) in joint:
                 j = joint[int(r["seed"])]
