@@ -847,7 +847,12 @@ def build_parser() -> argparse.ArgumentParser:
         _add_training_args(lt, task, "bundled samples, 1 epoch, a 3x3 grid")
         lt.add_argument("--family", choices=two, required=True, help="a two-parameter family")
         lt.add_argument("--grid", type=positive_int, help="N: the grid is N x N (default: 7; 3 with --quick)")
-        lt.add_argument("--range", type=parse_range, default="-0.8,0.8", help="θ range LO,HI on both axes")
+        lt.add_argument(
+            "--range",
+            type=parse_range,
+            default="-0.8,0.8",
+            help="θ range LO,HI on both axes (write --range=LO,HI)",
+        )
         sizes = _sizes_text(task.study.learned_sizes[:1])
         lt.add_argument("--size", type=parse_wxh, help=f"sensor WIDTHxHEIGHT (default: {sizes})")
         lt.add_argument(
