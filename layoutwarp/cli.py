@@ -15,7 +15,11 @@ import sys
 import tempfile
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any, NoReturn
+from typing import TYPE_CHECKING, Any, NoReturn
+
+if TYPE_CHECKING:  # the experiments load on demand
+    from .experiments.runs import RunOptions
+    from .experiments.tasks import StudyPlan, Task, TaskDefaults
 
 __all__ = ["build_parser", "main", "parse_theta", "parse_wxh"]
 
@@ -225,7 +229,7 @@ def _sensor_options(args: argparse.Namespace, default_tol: float) -> dict:
     return sensor
 
 
-def _task_folder(task, args: argparse.Namespace) -> Path:
+def _task_folder(task: Task, args: argparse.Namespace) -> Path:
     """The task's data folder: ``--data``, the bundled samples with ``--quick``, else the task's
     folder under the data root of ``LAYOUTWARP_DATA``."""
     from .experiments.data import DATA_ENV, data_root
@@ -248,7 +252,7 @@ def _task_folder(task, args: argparse.Namespace) -> Path:
     return folder
 
 
-def _run_options(task, args: argparse.Namespace, defaults):
+def _run_options(task: Task, args: argparse.Namespace, defaults: TaskDefaults) -> RunOptions:
     """The training options of ``train`` and ``study`` from the task's defaults and the flags."""
     from .experiments.runs import RunOptions
 
@@ -266,7 +270,7 @@ def _run_options(task, args: argparse.Namespace, defaults):
     )
 
 
-def _physics_option(task, args: argparse.Namespace) -> dict:
+def _physics_option(task: Task, args: argparse.Namespace) -> dict:
     """The ``physics`` sensor option of a training command (the task's images at 1 µm a pixel)."""
     physics = _physics_from_args(args, tuple(float(v) for v in task.image_size))
     return {} if physics is None else {"physics": physics.to_dict()}
@@ -384,7 +388,7 @@ def _cmd_study(args: argparse.Namespace) -> int:
     return 0
 
 
-def _study_run_options(task, plan, args: argparse.Namespace):
+def _study_run_options(task: Task, plan: StudyPlan, args: argparse.Namespace) -> RunOptions:
     """How every run of a study or landscape trains: the plan's tolerance, the task's defaults,
     the flags (``--quick``: one epoch) and the physics flags."""
     from dataclasses import replace
@@ -662,7 +666,7 @@ def _add_layout_args(p: argparse.ArgumentParser, families: Sequence[str]) -> Non
     p.add_argument("--size", type=parse_wxh, help="sensor WIDTHxHEIGHT (default: the layout file's)")
 
 
-def _extent_text(task) -> str:
+def _extent_text(task: Task) -> str:
     h, w = task.image_size
     return f"{w}x{h} µm"
 
@@ -671,7 +675,7 @@ def _sizes_text(sizes) -> str:
     return " and ".join(f"{w}x{h}" for h, w in sizes)
 
 
-def _add_training_args(p: argparse.ArgumentParser, task, quick_help: str) -> None:
+def _add_training_args(p: argparse.ArgumentParser, task: Task, quick_help: str) -> None:
     """The options every training command of every task takes, and the task's own."""
     d, q = task.defaults, task.quick_defaults()
     p.add_argument("--quick", action="store_true", help=quick_help)
@@ -697,7 +701,7 @@ def _add_training_args(p: argparse.ArgumentParser, task, quick_help: str) -> Non
     _add_physics_args(p, extent=f"the task's images at 1 µm a source pixel ({_extent_text(task)})")
 
 
-def _add_train_parser(sub, task, families: Sequence[str]) -> None:
+def _add_train_parser(sub: argparse._SubParsersAction, task: Task, families: Sequence[str]) -> None:
     d = task.defaults
     t = sub.add_parser(
         task.name,
@@ -740,7 +744,7 @@ def _add_train_parser(sub, task, families: Sequence[str]) -> None:
     t.set_defaults(func=_cmd_train, task=task.name)
 
 
-def _add_study_parser(sub, task, families: Sequence[str]) -> None:
+def _add_study_parser(sub: argparse._SubParsersAction, task: Task, families: Sequence[str]) -> None:
     plan = task.study
     st = sub.add_parser(
         task.name,
