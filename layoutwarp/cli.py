@@ -252,22 +252,24 @@ def _task_folder(task: Task, args: argparse.Namespace) -> Path:
     return folder
 
 
+def _training_flags(task: Task, args: argparse.Namespace) -> dict[str, Any]:
+    """The run options every training command (train, study, landscape) reads from its flags."""
+    return {
+        "freeze_epochs": args.freeze_epochs,
+        "theta_lr": args.theta_lr,
+        "device": _device(args.device),
+        "amp": args.amp,
+        "progress": not args.no_progress,
+        "task_options": {k: getattr(args, k) for k in task.extra_dests},
+    }
+
+
 def _run_options(task: Task, args: argparse.Namespace, defaults: TaskDefaults) -> RunOptions:
-    """The training options of ``train`` and ``study`` from the task's defaults and the flags."""
+    """The training options of ``train`` from the task's defaults and the flags."""
     from .experiments.runs import RunOptions
 
-    extra = {k: getattr(args, k) for k in task.extra_dests}
-    return RunOptions.of(
-        defaults,
-        epochs=args.epochs,
-        freeze_epochs=args.freeze_epochs,
-        theta_lr=args.theta_lr,
-        sensor=_sensor_options(args, defaults.tol) | _physics_option(task, args),
-        device=_device(args.device),
-        amp=args.amp,
-        progress=not args.no_progress,
-        task_options=extra,
-    )
+    sensor = _sensor_options(args, defaults.tol) | _physics_option(task, args)
+    return RunOptions.of(defaults, epochs=args.epochs, sensor=sensor, **_training_flags(task, args))
 
 
 def _physics_option(task: Task, args: argparse.Namespace) -> dict:
@@ -395,17 +397,8 @@ def _study_run_options(task: Task, plan: StudyPlan, args: argparse.Namespace) ->
 
     from .experiments.study import study_options
 
-    options = study_options(
-        task,
-        plan,
-        epochs=args.epochs or (1 if args.quick else None),
-        freeze_epochs=args.freeze_epochs,
-        theta_lr=args.theta_lr,
-        device=_device(args.device),
-        amp=args.amp,
-        progress=not args.no_progress,
-        task_options={k: getattr(args, k) for k in task.extra_dests},
-    )
+    epochs = args.epochs or (1 if args.quick else None)
+    options = study_options(task, plan, epochs=epochs, **_training_flags(task, args))
     return replace(options, sensor=options.sensor | _physics_option(task, args))
 
 

@@ -25,7 +25,16 @@ from .files import atomic_write
 from .layouts import FAMILIES, Layout
 from .version import __version__
 
-__all__ = ["FORMAT", "READS", "layout_from_spec", "layout_spec", "load_layout", "same_spec", "save_layout"]
+__all__ = [
+    "FORMAT",
+    "READS",
+    "layout_from_spec",
+    "layout_key",
+    "layout_spec",
+    "load_layout",
+    "same_spec",
+    "save_layout",
+]
 
 FORMAT = "layoutwarp.layout/2"
 #: Every format this version reads.
@@ -46,6 +55,15 @@ def layout_spec(layout: Layout) -> dict[str, Any]:
         'rect'
     """
     return {"family": layout.family, **layout.to_config()}
+
+
+def layout_key(layout: Layout) -> str | None:
+    """The layout's identity as text (its :func:`layout_spec`, keys sorted), for caches keyed by
+    layout; ``None`` for a layout that is not of a registered family, whose description may not
+    hold all its state (such a layout is never cached)."""
+    if FAMILIES.get(layout.family) is not type(layout):
+        return None
+    return json.dumps(layout_spec(layout), sort_keys=True)
 
 
 def layout_from_spec(

@@ -942,18 +942,19 @@ class EllipticLayout(Layout):
     family = "elliptic"
 
     def phi(self, p: Tensor, theta: Tensor) -> Tensor:
-        p, theta = _promote(p, theta)
-        inside = (p.abs() < 1).all(-1, keepdim=True)
-        q = torch.where(inside, p, torch.zeros_like(p))
-        out = disk_to_square(phi_curv(square_to_disk(q), theta))
-        return torch.where(inside, out, p)
+        return _through_disk(phi_curv, p, theta)
 
     def phi_inverse(self, q: Tensor, theta: Tensor) -> Tensor:
-        q, theta = _promote(q, theta)
-        inside = (q.abs() < 1).all(-1, keepdim=True)
-        r = torch.where(inside, q, torch.zeros_like(q))
-        out = disk_to_square(phi_curv_inverse(square_to_disk(r), theta))
-        return torch.where(inside, out, q)
+        return _through_disk(phi_curv_inverse, q, theta)
+
+
+def _through_disk(fn: Callable[[Tensor, Tensor], Tensor], p: Tensor, theta: Tensor) -> Tensor:
+    """``E⁻¹ ∘ fn ∘ E`` inside the open square (:func:`square_to_disk`), the identity on and outside
+    its border."""
+    p, theta = _promote(p, theta)
+    inside = (p.abs() < 1).all(-1, keepdim=True)
+    out = disk_to_square(fn(square_to_disk(torch.where(inside, p, torch.zeros_like(p))), theta))
+    return torch.where(inside, out, p)
 
 
 # ----------------------------------------------------------------------------------------

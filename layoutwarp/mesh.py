@@ -15,7 +15,6 @@ boundary integral is computed once per edge and pixel ``(i, j)`` collects
 from __future__ import annotations
 
 import functools
-import json
 import math
 from collections import OrderedDict
 from dataclasses import dataclass
@@ -27,7 +26,8 @@ from torch import Tensor
 
 from .checks import check_number, check_size
 from .coords import sensor_to_pixels, uniform_corners
-from .layouts import FAMILIES, Layout
+from .layoutfile import layout_key
+from .layouts import Layout
 
 __all__ = [
     "CACHE_SIZE",
@@ -481,11 +481,11 @@ CACHE_SIZE = 4
 def _cache_key(layout: Layout, size, tol, max_subdiv, dtype, theta: Tensor) -> tuple | None:
     """A key that identifies the mesh, or ``None`` where caching is unsafe: θ needs a gradient,
     or the layout is not a registered family (whose ``to_config`` holds all its state)."""
-    if theta.requires_grad or FAMILIES.get(layout.family) is not type(layout):
+    identity = None if theta.requires_grad else layout_key(layout)
+    if identity is None:
         return None
-    config = json.dumps(layout.to_config(), sort_keys=True)
     values = tuple(theta.detach().double().cpu().tolist())
-    return (type(layout), config, values, size, tol, max_subdiv, dtype, theta.device)
+    return (identity, values, size, tol, max_subdiv, dtype, theta.device)
 
 
 def clear_mesh_cache() -> None:

@@ -373,12 +373,8 @@ def measure(
         return _measure_compiled(mean, a_um2, physics, mode, output, generator)
     photons = physics.photons_per_um2 * physics.fill_factor * mean * a_um2
     prnu, dsnu = _patterns(physics, tuple(mean.shape[-2:]), mean.dtype, mean.device)
-    signal = eta * photons * (1 + physics.prnu * prnu) if physics.prnu else eta * photons
-    dark = (
-        physics.dark_e_per_um2 * a_um2 + physics.dsnu * dsnu
-        if physics.dsnu
-        else physics.dark_e_per_um2 * a_um2
-    )
+    signal = eta * photons * (1 + physics.prnu * prnu)  # prnu = dsnu = 0: exactly the plain terms
+    dark = physics.dark_e_per_um2 * a_um2 + physics.dsnu * dsnu
     electrons = signal + dark
     rate = electrons.clamp_min(0)
     if mode == "poisson":

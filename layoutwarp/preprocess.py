@@ -43,7 +43,6 @@ import torch
 from .backwarp import sensor_index_maps
 from .checks import ArgumentError, check_choice, check_int, check_size
 from .files import atomic_write, run_info
-from .integrators import data_tolerance
 from .labels import LABEL_RULES as SENSOR_RULES
 from .layoutfile import layout_from_spec, layout_spec, load_layout, same_spec, save_layout
 from .layouts import Layout
@@ -131,7 +130,6 @@ class _Job:
         self.device, self.physics = device, physics
         self._cache: dict[tuple, AreaResampler] = {}
         self._lock = threading.Lock()
-        self._areas: torch.Tensor | None = None
 
     def record(self, img: np.ndarray, res: AreaResampler, rel: str) -> np.ndarray:
         """The sensor image of ``img`` (HW or HWC): the pixel means, or with physics what the sensor
@@ -145,13 +143,12 @@ class _Job:
         blurred = apply_psf(src.contiguous(), self.physics).permute(1, 2, 0).numpy()
         mean = torch.from_numpy(res(blurred)).to(torch.float64)
         mean = mean[None] if mean.ndim == 2 else mean.permute(2, 0, 1)
-        with self._lock:
-            if self._areas is None:
-                tol = self.tol if self.tol is not None else data_tolerance(img.dtype)[0]
-                self._areas = pixel_mesh(self.layout, self.size, tol=tol, dtype=torch.float64).areas()
+        tol = res.tol  # the resampler's polygons: their areas (cached with the fixed layout's mesh)
+        with self._lock:  # the mesh cache is shared by the worker threads
+            areas = pixel_mesh(self.layout, self.size, tol=tol, dtype=torch.float64).areas()
         gen = torch.Generator().manual_seed(file_seed(self.physics.seed, rel))
         with torch.no_grad():
-            out = measure(mean, self._areas, self.physics, generator=gen)
+            out = measure(mean, areas, self.physics, generator=gen)
         out = out.permute(1, 2, 0).numpy() * scale
         return out[..., 0] if img.ndim == 2 else out
 

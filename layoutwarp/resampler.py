@@ -10,7 +10,6 @@ simulation use it.
 
 from __future__ import annotations
 
-import json
 import warnings
 from collections import OrderedDict
 from typing import TYPE_CHECKING
@@ -22,7 +21,8 @@ from . import kernels
 from .checks import check_size
 from .integrators import data_tolerance, green_pieces
 from .labels import labels_to_sensor
-from .layouts import FAMILIES, Layout
+from .layoutfile import layout_key
+from .layouts import Layout
 from .mesh import pixel_mesh
 
 if TYPE_CHECKING:
@@ -202,10 +202,10 @@ def resampler_for(
     This is how :func:`~layoutwarp.simulate` runs the exact integrator for a fixed layout
     (θ needs no gradient) on float32 images: one sparse product per call after the first.
     """
-    if FAMILIES.get(layout.family) is not type(layout):
+    identity = layout_key(layout)
+    if identity is None:
         return None
-    spec = json.dumps({"family": layout.family, **layout.to_config()}, sort_keys=True)
-    key = (spec, tuple(size), tuple(src_size), float(tol), str(torch.device(device)))
+    key = (identity, tuple(size), tuple(src_size), float(tol), str(torch.device(device)))
     if key in _CACHE:
         _CACHE.move_to_end(key)
         return _CACHE[key]

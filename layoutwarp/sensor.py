@@ -220,7 +220,9 @@ def simulate(
         callable_radiance=is_callable,
         dtype=dtype,
     )
-    tol = plan.details.get("tol", tol)
+    # the tolerance every geometry of this call uses: the plan's for curved edges, else the data's
+    # (meshes of straight edges ignore it; area weights and physics' pixel areas are keyed by it)
+    tol = plan.details.get("tol", data_tolerance(dtype)[0] if tol is None else tol)
     if physics is not None:
         if not isinstance(physics, SensorPhysics):
             raise TypeError(f"physics must be a SensorPhysics, got {type(physics).__name__}")
@@ -259,7 +261,7 @@ class _Integration:
     plan: SimulationPlan
     layout: Layout
     size: tuple[int, int]
-    tol: float | None
+    tol: float
     samples: int
     grad: str
     generator: torch.Generator | None
@@ -283,8 +285,7 @@ class _Integration:
             work = apply_psf(work, self.physics)
         mesh = None
         if self.plan.method != "separable":  # the polygons the pixels' areas come from
-            tol = self.tol if self.tol is not None else data_tolerance(torch.float32)[0]
-            mesh = pixel_mesh(self.layout, self.size, tol=tol, dtype=torch.float64)
+            mesh = pixel_mesh(self.layout, self.size, tol=self.tol, dtype=torch.float64)
         mean = self._dispatch(work, mesh)
         areas = (mesh or pixel_mesh(self.layout, self.size, dtype=torch.float64)).areas()
         return measure(mean, areas, self.physics, output=self.output, generator=self.generator)
@@ -296,8 +297,7 @@ class _Integration:
         if plan.method == "exact":
             fixed = not (torch.is_grad_enabled() and layout.rho.requires_grad)
             if fixed and isinstance(work, Tensor) and work.dtype == torch.float32:
-                tol = self.tol if self.tol is not None else data_tolerance(torch.float32)[0]
-                weights = resampler_for(layout, size, tuple(work.shape[-2:]), tol, work.device)
+                weights = resampler_for(layout, size, tuple(work.shape[-2:]), self.tol, work.device)
                 if weights is not None:  # one sparse product: the exact integral of a fixed layout
                     return weights.apply(work)
             return integrate_exact(work, layout, size, tol=self.tol, mesh=mesh)
