@@ -33,6 +33,7 @@ from .coords import grid_lines, pixel_centers, sensor_to_pixels
 from .layouts import Layout
 from .maps import sample_points
 from .mesh import MeshTopology, PixelMesh, pixel_mesh
+from .meshkernels import MeshSpec, build_mesh, mesh_spec, theta_gradient
 
 __all__ = [
     "BACKENDS",
@@ -320,18 +321,8 @@ class _ExactKernel(torch.autograd.Function):
             out, ctx.tables = _cuda_forward(verts, image.detach().contiguous(), mesh)
             return out
         arrays = _kernel_arrays(verts, mesh)
-        img = image.detach().contiguous().numpy()
-        nt = kernels.threads()
-        tables = None
-        with kernels.LOCK:
-            if img.nbytes <= kernels.WHOLE_TABLE_BYTES:  # small: one table, kept for the backward
-                tables = kernels.prefix_tables(img, kernels.BLOCK)
-                out = kernels.exact_forward(*arrays, *tables, kernels.BLOCK, nt)
-            else:  # large: in bands of rows, no whole table held
-                band = kernels.band_rows(img, nt)
-                seg_edge = np.ascontiguousarray(mesh.seg_edge.cpu().numpy())
-                out = kernels.exact_forward_banded(*arrays, seg_edge, img, kernels.BLOCK, band, nt)
-        ctx.image, ctx.tables = img, tables
+        ctx.image = image.detach().contiguous().numpy()
+        out, ctx.tables = _cpu_forward(*arrays, mesh.seg_edge.cpu().numpy(), ctx.image)
         return torch.from_numpy(out)
 
     @staticmethod
@@ -342,14 +333,103 @@ class _ExactKernel(torch.autograd.Function):
             return _cuda_backward(verts, ctx.tables, mesh, grad), None, None
         g_edge = np.ascontiguousarray(grad.detach().double().cpu().numpy())
         v, seg_start, seg_end, _ = _kernel_arrays(verts, mesh)
-        seg_edge = np.ascontiguousarray(mesh.seg_edge.cpu().numpy())
-        with kernels.LOCK:
-            incl = (ctx.tables or kernels.prefix_tables(ctx.image, kernels.BLOCK))[0]
-            wa, wb = kernels.exact_backward(
-                v, seg_start, seg_end, seg_edge, incl, kernels.BLOCK, g_edge, kernels.threads()
-            )
+        seg_edge = mesh.seg_edge.cpu().numpy()
+        wa, wb = _cpu_weights(v, seg_start, seg_end, seg_edge, ctx.image, ctx.tables, g_edge)
         wa_t, wb_t = torch.from_numpy(wa), torch.from_numpy(wb)
         return _vertex_gradient(verts.detach(), mesh.seg_start, mesh.seg_end, wa_t, wb_t), None, None
+
+
+def _cpu_forward(
+    verts: np.ndarray,
+    seg_start: np.ndarray,
+    seg_end: np.ndarray,
+    edge_offsets: np.ndarray,
+    seg_edge: np.ndarray,
+    image: np.ndarray,
+) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray] | None]:
+    """The compiled forward on the CPU: ``(N + 1, E)`` edge integrals (and areas), and the prefix
+    tables where the image is small enough to keep them for the backward (else ``None``: it is
+    integrated in bands of rows)."""
+    nt = kernels.threads()
+    with kernels.LOCK:
+        if image.nbytes <= kernels.WHOLE_TABLE_BYTES:
+            tables = kernels.prefix_tables(image, kernels.BLOCK)
+            out = kernels.exact_forward(verts, seg_start, seg_end, edge_offsets, *tables, kernels.BLOCK, nt)
+            return out, tables
+        band = kernels.band_rows(image, nt)
+        seg_edge = np.ascontiguousarray(seg_edge)
+        out = kernels.exact_forward_banded(
+            verts, seg_start, seg_end, edge_offsets, seg_edge, image, kernels.BLOCK, band, nt
+        )
+        return out, None
+
+
+def _cpu_weights(
+    verts: np.ndarray,
+    seg_start: np.ndarray,
+    seg_end: np.ndarray,
+    seg_edge: np.ndarray,
+    image: np.ndarray,
+    tables: tuple[np.ndarray, np.ndarray] | None,
+    grad: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The compiled backward on the CPU: the Reynolds weights ``(wa, wb)`` of every segment
+    (:func:`~layoutwarp.kernels.exact_backward`) for the edge gradient ``grad`` ``(N + 1, E)``."""
+    with kernels.LOCK:
+        incl = (tables or kernels.prefix_tables(image, kernels.BLOCK))[0]
+        seg_edge = np.ascontiguousarray(seg_edge)
+        nt = kernels.threads()
+        return kernels.exact_backward(verts, seg_start, seg_end, seg_edge, incl, kernels.BLOCK, grad, nt)
+
+
+class _CompiledExact(torch.autograd.Function):
+    """θ → the exact pixel means ``(N, h, w)`` (float64) of a layout with a compiled mesh
+    (:mod:`layoutwarp.meshkernels`): mesh, integrals and Reynolds weights in compiled kernels, and
+    θ's gradient as one contraction with the vertices' θ-derivatives, so a training step runs a
+    handful of torch operations instead of the thousands of the mesh's autograd graph. No image
+    gradient."""
+
+    @staticmethod
+    def forward(ctx, theta: Tensor, image: Tensor, spec: MeshSpec, size: tuple[int, int], tol: float):
+        hs, ws = image.shape[-2:]
+        cm = build_mesh(spec, size, theta.detach().double().cpu().numpy(), tol)
+        pv = (cm.vertices + 1) * np.array([ws / 2, hs / 2])
+        np.clip(pv, 0, np.array([ws, hs]), out=pv)
+        topo = MeshTopology(size)
+        ctx.cm, ctx.pv, ctx.src_size, ctx.topo = cm, pv, (hs, ws), topo
+        if image.is_cuda:
+            mesh = cm.pixel_mesh(image.device)
+            pv_t = torch.from_numpy(pv).to(image.device)
+            out, ctx.tables = _cuda_forward(pv_t, image.detach().contiguous(), mesh)
+            pix = topo.combine(out)
+            means = pix[:-1] / pix[-1]
+            ctx.mesh, ctx.pv_t = mesh, pv_t
+            ctx.save_for_backward(means, pix[-1])
+            return means
+        ctx.image = image.detach().contiguous().numpy()
+        out, ctx.tables = _cpu_forward(pv, cm.seg_start, cm.seg_end, cm.edge_offsets, cm.seg_edge, ctx.image)
+        pix = topo.combine(out)
+        ctx.means, ctx.areas = pix[:-1] / pix[-1], pix[-1]
+        return torch.from_numpy(ctx.means)
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):
+        cm, topo = ctx.cm, ctx.topo
+        if grad.is_cuda:
+            means, areas = ctx.saved_tensors
+            g = grad.double()
+            g_pix = torch.cat([g / areas, -(g * means).sum(0, keepdim=True) / areas])
+            g_v = _cuda_backward(ctx.pv_t, ctx.tables, ctx.mesh, topo.combine_adjoint(g_pix))
+            hs, ws = ctx.src_size
+            g_v = g_v * torch.tensor([ws / 2, hs / 2], dtype=g_v.dtype, device=g_v.device)
+            dverts = torch.from_numpy(cm.dverts).to(g_v.device)
+            return torch.einsum("vi,vip->p", g_v, dverts).to(grad.dtype), None, None, None, None
+        g = grad.detach().double().cpu().numpy()
+        g_pix = np.concatenate([g / ctx.areas, -(g * ctx.means).sum(0, keepdims=True) / ctx.areas])
+        g_edge = np.ascontiguousarray(topo.combine_adjoint(g_pix))
+        wa, wb = _cpu_weights(ctx.pv, cm.seg_start, cm.seg_end, cm.seg_edge, ctx.image, ctx.tables, g_edge)
+        g_theta = theta_gradient(cm, ctx.pv, wa, wb, ctx.src_size)
+        return torch.from_numpy(g_theta).to(grad.dtype), None, None, None, None
 
 
 def _kernel_arrays(verts: Tensor, mesh: PixelMesh) -> list[np.ndarray]:
@@ -441,11 +521,15 @@ def integrate_exact(
             "backend='numba' needs numba installed, a CPU image or a CUDA image where numba's CUDA "
             "target runs, and no image gradient; use backend='torch'"
         )
+    work = image.to(floating_dtype(image.dtype))
     if mesh is None:
         tol = data_tolerance(image.dtype)[0] if tol is None else tol
+        th = layout.resolve_theta(theta)
+        spec = mesh_spec(layout) if backend != "torch" and kernel_ok else None
+        if spec is not None and th.requires_grad and torch.is_grad_enabled():  # a learnable layout
+            return _CompiledExact.apply(th, work, spec, check_size(size), tol)
         mesh = pixel_mesh(layout, check_size(size), tol=tol, dtype=torch.float64, theta=theta)
     verts = mesh.pixel_vertices((hs, ws))
-    work = image.to(floating_dtype(image.dtype))
     if backend != "torch" and kernel_ok:
         pix = mesh.combine_edges(_ExactKernel.apply(verts, work, mesh))
         return pix[:-1] / pix[-1]

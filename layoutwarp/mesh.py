@@ -120,13 +120,30 @@ class MeshTopology:
             out[edges[..., k].ravel(), col] = pix.ravel()
         return out
 
-    def combine(self, edge_values: Tensor) -> Tensor:
-        """Pixel boundary integrals ``(..., H, W)`` from oriented edge integrals ``(..., E)``."""
+    def combine(self, edge_values: _A) -> _A:
+        """Pixel boundary integrals ``(..., H, W)`` from oriented edge integrals ``(..., E)``
+        (a tensor or an array)."""
         h, w = self.size
-        nh = self.num_horizontal
-        eh = edge_values[..., :nh].unflatten(-1, (h + 1, w))
-        ev = edge_values[..., nh:].unflatten(-1, (h, w + 1))
+        nh, lead = self.num_horizontal, tuple(edge_values.shape[:-1])
+        eh = edge_values[..., :nh].reshape(*lead, h + 1, w)
+        ev = edge_values[..., nh:].reshape(*lead, h, w + 1)
         return (eh[..., :-1, :] - eh[..., 1:, :]) + (ev[..., :, 1:] - ev[..., :, :-1])
+
+    def combine_adjoint(self, pixel_values: _A) -> _A:
+        """The transpose of :meth:`combine`: the gradient ``(..., E)`` of the edge integrals from
+        that of the pixels' ``(..., H, W)`` (a tensor or an array)."""
+        h, w = self.size
+        lead = tuple(pixel_values.shape[:-2])
+        if isinstance(pixel_values, np.ndarray):
+            eh, ev = np.zeros((*lead, h + 1, w)), np.zeros((*lead, h, w + 1))
+        else:
+            eh, ev = pixel_values.new_zeros(*lead, h + 1, w), pixel_values.new_zeros(*lead, h, w + 1)
+        eh[..., :-1, :] += pixel_values
+        eh[..., 1:, :] -= pixel_values
+        ev[..., :, 1:] += pixel_values
+        ev[..., :, :-1] -= pixel_values
+        parts = (eh.reshape(*lead, -1), ev.reshape(*lead, -1))
+        return np.concatenate(parts, -1) if isinstance(pixel_values, np.ndarray) else torch.cat(parts, -1)
 
 
 @functools.lru_cache(maxsize=64)
@@ -400,8 +417,12 @@ def _chord_and_sagitta(
     sag = (unit[:, 0] * d2[..., 1] - unit[:, 1] * d2[..., 0]).abs().amax(0) / 8
     if with_grad and th.numel():
         # the θ-gradient moves each edge by ∂φ/∂θ, which bends it even where φ does not
-        # (e.g. at θ = 0): bound the curvature of that field the same way
-        v = layout.phi_dtheta(pts, th)  # (K+1, pieces, 2, P)
+        # (e.g. at θ = 0): bound the curvature of that field the same way. ∂φ/∂θ may jump at
+        # a piece's ends (a kink that moves with θ), so its end samples sit just inside.
+        inner = pts.clone()
+        inner[0] = pts[0] + INNER * (pts[-1] - pts[0])
+        inner[-1] = pts[-1] + INNER * (pts[0] - pts[-1])
+        v = layout.phi_dtheta(inner, th)  # (K+1, pieces, 2, P)
         d2 = (v[2:] - 2 * v[1:-1] + v[:-2]) * k_s**2  # (K-1, pieces, 2, P)
         normal = (unit[:, 0, None] * d2[..., 1, :] - unit[:, 1, None] * d2[..., 0, :]).abs()
         sag = torch.maximum(sag, normal.amax(0).amax(-1) / 8)
@@ -469,6 +490,9 @@ def distance_subdivisions(
         n[bad] *= 2
     return torch.from_numpy(n), float(dev.max(initial=0.0))
 
+
+#: How far inside its piece (a fraction of it) the count stage samples ∂φ/∂θ at the piece's ends.
+INNER = 1e-6
 
 #: Segments per chunk when the mesh's vertices are mapped (bounds φ's temporaries and its input).
 PHI_CHUNK = 1 << 16

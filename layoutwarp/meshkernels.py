@@ -1,0 +1,529 @@
+"""Compiled pixel meshes of the built-in curved families, with every vertex's θ-derivative.
+
+:func:`~layoutwarp.pixel_mesh` builds a learnable layout's mesh in some thousand torch
+operations (cut every edge at φ's kinks, bound each piece's sagitta, count its segments, place
+the vertices, then autograd back through all of it): on a CPU it costs more than the integral,
+on a GPU each operation is a kernel launch. For the curvilinear families (``curv`` and
+``fovea``, about any centre, and ``elliptic``) this module does the same in one compiled pass:
+φ, its Jacobian and ``∂φ/∂θ`` in closed form as scalar numba functions, the kinks of every edge
+(with their θ-derivatives where they move with a learned centre), the count stage and the vertex
+placement, each step in the order and arithmetic of :func:`~layoutwarp.mesh.pixel_mesh`, so the
+two agree to rounding (the same segment counts, vertices within a few ulp). Instead of an
+autograd graph it returns ``∂v/∂θ`` of every vertex ``v``: for a vertex at parameter
+``t = lo + (hi − lo) k/m`` of a smooth piece of the uniform edge ``a + t (b − a)``,
+``dv/dθ = ∂φ/∂θ + J (b − a) (∂lo/∂θ (1 − k/m) + ∂hi/∂θ k/m)``, the second term where the piece's
+ends (kinks) move with θ. The exact integrator's compiled Reynolds weights then give θ's
+gradient as one contraction (see :func:`theta_gradient`).
+
+:func:`mesh_spec` says whether a layout has a compiled form (exactly these classes: a
+subclass may change φ, so it keeps the torch path).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+try:  # as in layoutwarp.kernels: without numba, mesh_spec says there is no compiled form
+    from numba import njit, prange
+except ImportError:  # pragma: no cover - depends on the environment
+    njit = prange = None
+
+from .kernels import CHUNK, available, threads
+from .layouts import CurvLayout, EllipticLayout, FoveaLayout, Layout
+
+__all__ = ["CURV", "ELLIPTIC", "CompiledMesh", "MeshSpec", "build_mesh", "mesh_spec", "theta_gradient"]
+
+#: Family codes of the compiled maps.
+CURV, ELLIPTIC = 0, 1
+
+
+@dataclass(frozen=True)
+class MeshSpec:
+    """What the compiled mesh needs to know of a layout besides θ.
+
+    Attributes:
+        kind: :data:`CURV` (φ_curv about ``center``) or :data:`ELLIPTIC`.
+        center: the fixed centre ``(c_x, c_y)``; a learned one is θ's last two entries.
+        centred: φ is the centred map itself (fixed centre at the origin): no affine step.
+        nparams: θ's length ``P`` (2, or 4 with a learned centre).
+    """
+
+    kind: int
+    center: tuple[float, float]
+    centred: bool
+    nparams: int
+
+
+def mesh_spec(layout: Layout) -> MeshSpec | None:
+    """The compiled form of ``layout``, or ``None`` where it has none (or numba is missing)."""
+    if not available():
+        return None
+    if type(layout) in (CurvLayout, FoveaLayout):
+        c = tuple(float(v) for v in layout.fixed_center.detach().double().cpu())
+        return MeshSpec(CURV, (c[0], c[1]), layout._centred, int(layout.num_params or 0))
+    if type(layout) is EllipticLayout:
+        return MeshSpec(ELLIPTIC, (0.0, 0.0), True, 2)
+    return None
+
+
+@dataclass
+class CompiledMesh:
+    """A pixel mesh as :func:`build_mesh` returns it: the arrays of a
+    :class:`~layoutwarp.PixelMesh` (float64 / int64, CPU) plus ``dverts`` ``(V, 2, P)``, each
+    vertex's derivative in θ, and ``counts``, the segments of every smooth piece (what
+    ``pixel_mesh(..., subdivisions=counts)`` takes to rebuild the same mesh)."""
+
+    size: tuple[int, int]
+    vertices: np.ndarray
+    dverts: np.ndarray
+    seg_start: np.ndarray
+    seg_end: np.ndarray
+    seg_edge: np.ndarray
+    edge_offsets: np.ndarray
+    counts: np.ndarray
+
+    def pixel_mesh(self, device: torch.device | str = "cpu"):
+        """The :class:`~layoutwarp.PixelMesh` of these arrays (vertices without gradient)."""
+        from .mesh import PixelMesh
+
+        def t(a: np.ndarray) -> torch.Tensor:
+            return torch.from_numpy(a).to(device)
+
+        arrays = (self.vertices, self.seg_start, self.seg_end, self.seg_edge, self.edge_offsets)
+        return PixelMesh(self.size, *(t(a) for a in arrays))
+
+
+def _inline(fn):
+    return njit(inline="always", cache=True)(fn) if njit is not None else fn
+
+
+def _jit(fn):
+    return njit(parallel=True, cache=True, nogil=True)(fn) if njit is not None else fn
+
+
+# ----------------------------------------------------------------------------------------
+# The maps, one point at a time (arithmetic as in layoutwarp.layouts)
+# ----------------------------------------------------------------------------------------
+@_inline
+def _denom(a: float, t: float) -> float:
+    """``1 + t − 2ta`` as :func:`layoutwarp.layouts._denom` sums it (two non-negative terms)."""
+    if t >= 0:
+        return (1 - t) + 2 * t * (1 - a)
+    return (1 + t) + 2 * (-t) * a
+
+
+@_inline
+def _curv0(x: float, y: float, tx: float, ty: float) -> tuple:
+    """φ_curv about the origin at ``(x, y)``: ``(φ_x, φ_y, ∂φ_x/∂θ_x, ∂φ_y/∂θ_y, J_00, J_01,
+    J_10, J_11)`` with ``J`` the spatial Jacobian (the identity on and outside the unit circle)."""
+    r2 = x * x + y * y
+    r = math.sqrt(r2) if r2 > 0 else 0.0
+    if r >= 1:
+        return x, y, 0.0, 0.0, 1.0, 0.0, 0.0, 1.0
+    dx, dy = _denom(r, tx), _denom(r, ty)
+    sx, sy = (1 - tx) / dx, (1 - ty) / dy
+    gx, gy = 2 * tx * (1 - tx) / dx**2, 2 * ty * (1 - ty) / dy**2
+    ux = x / r if r > 0 else 0.0
+    uy = y / r if r > 0 else 0.0
+    return (
+        x * (1 - tx) / dx,
+        y * (1 - ty) / dy,
+        2 * x * (r - 1) / dx**2,
+        2 * y * (r - 1) / dy**2,
+        sx + x * gx * ux,
+        x * gx * uy,
+        y * gy * ux,
+        sy + y * gy * uy,
+    )
+
+
+@_inline
+def _sqrt0(x: float) -> float:
+    return math.sqrt(x) if x > 0 else 0.0
+
+
+@_inline
+def _inv(x: float) -> float:
+    return 1 / x if x > 0 else 0.0
+
+
+@_inline
+def _phi(
+    kind: int, centred: bool, x: float, y: float, th: np.ndarray, c: np.ndarray, q: np.ndarray, dq: np.ndarray
+) -> None:
+    """φ at ``(x, y)`` into ``q`` (2,) and ``∂φ/∂θ`` into ``dq[:, :P]``; for CURV off the centre
+    also the spatial Jacobian into ``dq[:, P:P + 2]`` (``dq`` is (2, P + 2))."""
+    p = th.shape[0]
+    for i in range(2):
+        for j in range(dq.shape[1]):
+            dq[i, j] = 0.0
+    if kind == 1:  # elliptic: E⁻¹ ∘ φ_curv ∘ E inside the open square
+        if abs(x) < 1 and abs(y) < 1:
+            u, v = x * _sqrt0(1 - y * y / 2), y * _sqrt0(1 - x * x / 2)
+            a, b, da, db, _, _, _, _ = _curv0(u, v, th[0], th[1])
+            r2 = 2 * math.sqrt(2)
+            sa, sb = 2 + a * a - b * b, 2 - a * a + b * b
+            p1, m1 = _sqrt0(sa + r2 * a), _sqrt0(sa - r2 * a)
+            p2, m2 = _sqrt0(sb + r2 * b), _sqrt0(sb - r2 * b)
+            q[0], q[1] = (p1 - m1) / 2, (p2 - m2) / 2
+            # the Jacobian of E⁻¹ at (a, b) times ∂φ_curv/∂θ (diagonal)
+            ip1, im1, ip2, im2 = _inv(p1), _inv(m1), _inv(p2), _inv(m2)
+            dq[0, 0] = ((2 * a + r2) * ip1 - (2 * a - r2) * im1) / 4 * da
+            dq[0, 1] = (-2 * b * ip1 + 2 * b * im1) / 4 * db
+            dq[1, 0] = (-2 * a * ip2 + 2 * a * im2) / 4 * da
+            dq[1, 1] = ((2 * b + r2) * ip2 - (2 * b - r2) * im2) / 4 * db
+        else:
+            q[0], q[1] = x, y
+        return
+    if centred:
+        q[0], q[1], dq[0, 0], dq[1, 1], _, _, _, _ = _curv0(x, y, th[0], th[1])
+        return
+    cx, cy = (th[2], th[3]) if p == 4 else (c[0], c[1])
+    gx = 1.0 if x >= cx else -1.0  # the side of the centre: s = 1 − σ c
+    gy = 1.0 if y >= cy else -1.0
+    sx, sy = 1 - gx * cx, 1 - gy * cy
+    ux, uy = (x - cx) / sx, (y - cy) / sy
+    fx, fy, dx, dy, j00, j01, j10, j11 = _curv0(ux, uy, th[0], th[1])
+    out = ux * ux + uy * uy >= 1
+    fix_x, fix_y = out or abs(x) >= 1, out or abs(y) >= 1
+    q[0] = x if fix_x else cx + sx * fx
+    q[1] = y if fix_y else cy + sy * fy
+    dq[0, p], dq[0, p + 1], dq[1, p], dq[1, p + 1] = j00, j01 * sx / sy, j10 * sy / sx, j11
+    if p == 2:
+        dq[0, 0], dq[1, 1] = sx * dx, sy * dy
+        return
+    if not fix_x:  # ∂φ_i/∂c_j = δ_ij (1 − σ_i φ0_i) + s_i J0_ij (σ_j u_j − 1) / s_j
+        dq[0, 0] = sx * dx
+        dq[0, 2] = (1 - gx * fx) + j00 * (gx * ux - 1)
+        dq[0, 3] = sx * j01 * (gy * uy - 1) / sy
+    if not fix_y:
+        dq[1, 1] = sy * dy
+        dq[1, 2] = sy * j10 * (gx * ux - 1) / sx
+        dq[1, 3] = (1 - gy * fy) + j11 * (gy * uy - 1)
+
+
+# ----------------------------------------------------------------------------------------
+# Kinks of every uniform edge, with their θ-derivatives (as smooth_pieces and
+# CurvLayout.edge_breakpoints)
+# ----------------------------------------------------------------------------------------
+@_inline
+def _circle(ax: float, ay: float, dx: float, dy: float, sx: float, sy: float, lo: float, hi: float) -> tuple:
+    """``(k, t0, t1)``: the ``k`` (0–2) parameters in ``(lo, hi)`` where ``(a + t d) / s`` crosses
+    the unit circle (``a`` relative to the centre)."""
+    dsx, dsy, asx, asy = dx / sx, dy / sy, ax / sx, ay / sy
+    qa = dsx * dsx + dsy * dsy
+    qb = 2 * (asx * dsx + asy * dsy)
+    qc = (asx * asx + asy * asy) - 1
+    disc = qb * qb - 4 * qa * qc
+    if not (disc > 0 and qa > 0):
+        return 0, 0.0, 0.0
+    sq = math.sqrt(disc)
+    r0, r1 = (-qb - sq) / (2 * qa), (-qb + sq) / (2 * qa)
+    ok0, ok1 = lo < r0 < hi, lo < r1 < hi
+    if ok0 and ok1:
+        return 2, r0, r1
+    if ok0:
+        return 1, r0, 0.0
+    if ok1:
+        return 1, r1, 0.0
+    return 0, 0.0, 0.0
+
+
+@_inline
+def _add_kink(t: float, draw: np.ndarray, n: int, cuts: np.ndarray, dcuts: np.ndarray, k: int) -> int:
+    """Insert kink ``t`` (derivative row ``draw[n]``) into the sorted ``cuts[:k]`` if it lies inside
+    ``(1e-6, 1 − 1e-6)``; returns the new count."""
+    if not (t > 1e-6 and t < 1 - 1e-6):
+        return k
+    j = k
+    while j > 0 and cuts[j - 1] > t:
+        cuts[j] = cuts[j - 1]
+        dcuts[j, :] = dcuts[j - 1, :]
+        j -= 1
+    cuts[j] = t
+    dcuts[j, :] = draw[n, :]
+    return k + 1
+
+
+@_inline
+def _edge_pieces(
+    kind: int, centred: bool, e: int, ends: np.ndarray, th: np.ndarray, c: np.ndarray,
+    scratch: np.ndarray, cuts: np.ndarray, dcuts: np.ndarray, lo: np.ndarray, dlo: np.ndarray,
+) -> int:  # fmt: skip
+    """The smooth pieces of edge ``e``: the ``n + 1`` bounds (0, the kinks of φ along the edge, 1)
+    into ``lo`` and their θ-derivatives into ``dlo``; returns ``n`` (pieces of 1e-12 or less
+    dropped). ``scratch`` (8, P), ``cuts`` (8,), ``dcuts`` (8, P) are work space."""
+    p = th.shape[0]
+    ax, ay, dx, dy = ends[e, 0], ends[e, 1], ends[e, 2] - ends[e, 0], ends[e, 3] - ends[e, 1]
+    k = 0
+    scratch[:, :] = 0.0
+    if kind == 0 and centred:
+        m, t0, t1 = _circle(ax, ay, dx, dy, 1.0, 1.0, -1.0, 2.0)
+        if m > 0:
+            k = _add_kink(t0, scratch, 0, cuts, dcuts, k)
+        if m > 1:
+            k = _add_kink(t1, scratch, 0, cuts, dcuts, k)
+    elif kind == 0:
+        cx, cy = (th[2], th[3]) if p == 4 else (c[0], c[1])
+        b1, b2 = 1.0, 1.0  # the cuts at x = c_x, y = c_y (an axis-aligned edge has one at most)
+        for j in range(2):
+            dj, aj, cj = (dx, ax, cx) if j == 0 else (dy, ay, cy)
+            if dj != 0:
+                t = (cj - aj) / dj
+                if 0 < t < 1:
+                    if p == 4:
+                        scratch[1 + j, 2 + j] = 1 / dj
+                    k = _add_kink(t, scratch, 1 + j, cuts, dcuts, k)
+                    b1, b2 = (t, b1) if t < b1 else (b1, t)
+        for piece in range(3):  # the circle's crossings on each part between the cuts
+            plo = 0.0 if piece == 0 else (b1 if piece == 1 else b2)
+            phi_ = b1 if piece == 0 else (b2 if piece == 1 else 1.0)
+            mid = (plo + phi_) / 2
+            gx = 1.0 if ax + mid * dx >= cx else -1.0
+            gy = 1.0 if ay + mid * dy >= cy else -1.0
+            sx, sy = 1 - gx * cx, 1 - gy * cy
+            m, t0, t1 = _circle(ax - cx, ay - cy, dx, dy, sx, sy, plo, phi_)
+            for i in range(m):
+                t = t0 if i == 0 else t1
+                if p == 4:  # implicit derivative of |(a + t d − c) / s|² = 1
+                    wx, wy = (ax + t * dx - cx) / sx, (ay + t * dy - cy) / sy
+                    ft = 2 * (wx * dx / sx + wy * dy / sy)
+                    scratch[3, :] = 0.0
+                    scratch[3, 2] = -2 * wx * (gx * wx - 1) / sx / ft
+                    scratch[3, 3] = -2 * wy * (gy * wy - 1) / sy / ft
+                k = _add_kink(t, scratch, 3, cuts, dcuts, k)
+    lo[0] = 0.0
+    dlo[0, :] = 0.0
+    n = 0
+    for i in range(k + 1):
+        t = cuts[i] if i < k else 1.0
+        if t - lo[n] > 1e-12:
+            n += 1
+            lo[n] = t
+            for r in range(p):
+                dlo[n, r] = dcuts[i, r] if i < k else 0.0
+    return n
+
+
+# ----------------------------------------------------------------------------------------
+# The mesh: pieces, counts, vertices (threads take chunks of edges in turn, with their own
+# work space)
+# ----------------------------------------------------------------------------------------
+@_jit
+def _count_pieces(
+    kind: int, centred: bool, ends: np.ndarray, th: np.ndarray, c: np.ndarray, threads: int
+) -> np.ndarray:
+    ne, p = ends.shape[0], th.shape[0]
+    out = np.empty(ne, dtype=np.int64)
+    n_chunks = (ne + CHUNK - 1) // CHUNK
+    for thread in prange(threads):
+        scratch, cuts, dcuts = np.empty((8, p)), np.empty(8), np.empty((8, p))
+        lo, dlo = np.empty(10), np.empty((10, p))
+        for chunk in range(thread, n_chunks, threads):
+            for e in range(chunk * CHUNK, min((chunk + 1) * CHUNK, ne)):
+                out[e] = _edge_pieces(kind, centred, e, ends, th, c, scratch, cuts, dcuts, lo, dlo)
+    return out
+
+
+@_jit
+def _pieces_and_counts(
+    kind: int, centred: bool, ends: np.ndarray, th: np.ndarray, c: np.ndarray, piece_offsets: np.ndarray,
+    amin: np.ndarray, tol: float, max_subdiv: int, with_grad: bool, inner: float, threads: int,
+    bounds: np.ndarray, dbounds: np.ndarray, counts: np.ndarray,
+) -> None:  # fmt: skip
+    """Every smooth piece's parameter range (``bounds`` (pieces, 2), ``dbounds`` (pieces, 2, P))
+    and its segment count, bounding the sagitta as :func:`layoutwarp.mesh._segment_counts` does."""
+    ne, p = ends.shape[0], th.shape[0]
+    n_chunks = (ne + CHUNK - 1) // CHUNK
+    for thread in prange(threads):
+        scratch, cuts, dcuts = np.empty((8, p)), np.empty(8), np.empty((8, p))
+        lo, dlo = np.empty(10), np.empty((10, p))
+        length, sag = np.empty(10), np.empty(10)
+        q, dq, qi, pt = np.empty((5, 2)), np.empty((5, 2, p + 2)), np.empty(2), np.empty((5, 2))
+        for chunk in range(thread, n_chunks, threads):
+            for e in range(chunk * CHUNK, min((chunk + 1) * CHUNK, ne)):
+                n = _edge_pieces(kind, centred, e, ends, th, c, scratch, cuts, dcuts, lo, dlo)
+                base = piece_offsets[e]
+                ax, ay = ends[e, 0], ends[e, 1]
+                dx, dy = ends[e, 2] - ax, ends[e, 3] - ay
+                edge_len = 0.0
+                for i in range(n):
+                    a, b = lo[i], lo[i + 1]
+                    bounds[base + i, 0], bounds[base + i, 1] = a, b
+                    dbounds[base + i, 0, :] = dlo[i, :]
+                    dbounds[base + i, 1, :] = dlo[i + 1, :]
+                    for s in range(5):
+                        t = a + (b - a) * (s / 4)
+                        pt[s, 0], pt[s, 1] = ax + t * dx, ay + t * dy
+                        _phi(kind, centred, pt[s, 0], pt[s, 1], th, c, q[s], dq[s])
+                    if with_grad:  # ∂φ/∂θ just inside the piece's ends (it may jump at a kink)
+                        for s, o in ((0, 4), (4, 0)):
+                            x = pt[s, 0] + inner * (pt[o, 0] - pt[s, 0])
+                            y = pt[s, 1] + inner * (pt[o, 1] - pt[s, 1])
+                            _phi(kind, centred, x, y, th, c, qi, dq[s])
+                    chx, chy = q[4, 0] - q[0, 0], q[4, 1] - q[0, 1]
+                    ln = math.sqrt(chx * chx + chy * chy)
+                    ux, uy = chx / max(ln, 1e-300), chy / max(ln, 1e-300)
+                    sg = 0.0
+                    for s in range(1, 4):
+                        d2x = (q[s + 1, 0] - 2 * q[s, 0] + q[s - 1, 0]) * 16
+                        d2y = (q[s + 1, 1] - 2 * q[s, 1] + q[s - 1, 1]) * 16
+                        sg = max(sg, abs(ux * d2y - uy * d2x))
+                        if with_grad:  # the θ-velocity field bends the edge too
+                            for r in range(p):
+                                vx = (dq[s + 1, 0, r] - 2 * dq[s, 0, r] + dq[s - 1, 0, r]) * 16
+                                vy = (dq[s + 1, 1, r] - 2 * dq[s, 1, r] + dq[s - 1, 1, r]) * 16
+                                sg = max(sg, abs(ux * vy - uy * vx))
+                    length[i], sag[i] = ln, sg / 8
+                    edge_len += ln
+                budget = 3 * tol * amin[e] / (8 * max(edge_len, 1e-300))
+                for i in range(n):
+                    m = min(max(math.ceil(math.sqrt(2 * sag[i] / budget)), 1.0), float(max_subdiv))
+                    counts[base + i] = 1 if sag[i] <= 1e-15 * length[i] else int(m)
+
+
+@_jit
+def _corners(kind: int, centred: bool, corners: np.ndarray, th: np.ndarray, c: np.ndarray) -> tuple:
+    """Deformed corners ``(V0, 2)`` and their θ-derivatives ``(V0, 2, P)``."""
+    nc, p = corners.shape[0], th.shape[0]
+    q = np.empty((nc, 2))
+    dq = np.empty((nc, 2, p + 2))
+    for v in prange(nc):
+        _phi(kind, centred, corners[v, 0], corners[v, 1], th, c, q[v], dq[v])
+    return q, np.ascontiguousarray(dq[:, :, :p])
+
+
+@_jit
+def _place_vertices(
+    kind: int, centred: bool, ends: np.ndarray, ea: np.ndarray, eb: np.ndarray, th: np.ndarray,
+    c: np.ndarray, piece_offsets: np.ndarray, bounds: np.ndarray, dbounds: np.ndarray,
+    counts: np.ndarray, edge_offsets: np.ndarray, ncorner: int, threads: int,
+    verts: np.ndarray, dverts: np.ndarray, seg_start: np.ndarray, seg_end: np.ndarray, seg_edge: np.ndarray,
+) -> None:  # fmt: skip
+    """Segments and interior vertices of every edge, numbered as :func:`~layoutwarp.pixel_mesh`
+    numbers them: segment ``s`` of edge ``e`` starts at the new vertex ``V0 + s − e − 1`` unless
+    it is the edge's first."""
+    ne, p = ends.shape[0], th.shape[0]
+    n_chunks = (ne + CHUNK - 1) // CHUNK
+    for thread in prange(threads):
+        dq = np.empty((2, p + 2))
+        for chunk in range(thread, n_chunks, threads):
+            for e in range(chunk * CHUNK, min((chunk + 1) * CHUNK, ne)):
+                s = first = edge_offsets[e]
+                last = edge_offsets[e + 1] - 1
+                ax, ay = ends[e, 0], ends[e, 1]
+                dx, dy = ends[e, 2] - ax, ends[e, 3] - ay
+                for pc in range(piece_offsets[e], piece_offsets[e + 1]):
+                    m = counts[pc]
+                    lo, hi = bounds[pc, 0], bounds[pc, 1]
+                    for k in range(m):
+                        seg_edge[s] = e
+                        seg_start[s] = ea[e] if s == first else ncorner + s - e - 1
+                        seg_end[s] = eb[e] if s == last else ncorner + s - e
+                        if s != first:
+                            f = k / m
+                            t = lo + (hi - lo) * f
+                            v = ncorner + s - e - 1
+                            _phi(kind, centred, ax + t * dx, ay + t * dy, th, c, verts[v], dq)
+                            dverts[v, :, :] = dq[:, :p]
+                            if p == 4:  # the piece's ends move with a learned centre
+                                for r in range(p):
+                                    dt = dbounds[pc, 0, r] * (1 - f) + dbounds[pc, 1, r] * f
+                                    if dt != 0:
+                                        dverts[v, 0, r] += (dq[0, p] * dx + dq[0, p + 1] * dy) * dt
+                                        dverts[v, 1, r] += (dq[1, p] * dx + dq[1, p + 1] * dy) * dt
+                        s += 1
+
+
+def build_mesh(
+    spec: MeshSpec,
+    size: tuple[int, int],
+    theta: np.ndarray,
+    tol: float,
+    *,
+    max_subdiv: int = 4096,
+    with_grad: bool = True,
+) -> CompiledMesh:
+    """The mesh :func:`~layoutwarp.pixel_mesh` builds for the layout of ``spec`` at ``theta``
+    (``(P,)`` float64) with tolerance ``tol``, compiled, with every vertex's θ-derivative.
+
+    ``with_grad`` bounds the polylines' error in ``∂φ/∂θ`` too (as ``pixel_mesh`` does when θ
+    requires grad), so that θ-gradients are as accurate as values.
+    """
+    from .mesh import INNER, MeshTopology, polygon_area
+
+    h, w = size
+    topo = MeshTopology((h, w))
+    ua, ub = topo.edge_ends()
+    ends = np.ascontiguousarray(torch.cat([ua, ub], 1).numpy())
+    ea, eb = (t.numpy() for t in topo.edge_corners())
+    th = np.ascontiguousarray(theta, dtype=np.float64)
+    c = np.array(spec.center, dtype=np.float64)
+    args = (spec.kind, spec.centred)
+    nt = threads()
+    cq, cdq = _corners(*args, topo.corners().numpy(), th, c)
+    cd = cq.reshape(h + 1, w + 1, 2)
+    area = np.abs(polygon_area(np.stack([cd[:-1, :-1], cd[:-1, 1:], cd[1:, 1:], cd[1:, :-1]], -2)))
+    inf_row, inf_col = np.full((1, w), np.inf), np.full((h, 1), np.inf)
+    area_h = np.minimum(np.concatenate([inf_row, area]), np.concatenate([area, inf_row]))
+    area_v = np.minimum(np.concatenate([inf_col, area], 1), np.concatenate([area, inf_col], 1))
+    amin = np.concatenate([area_h.ravel(), area_v.ravel()])
+    npieces = _count_pieces(*args, ends, th, c, nt)
+    ne = len(npieces)
+    piece_offsets = np.zeros(ne + 1, dtype=np.int64)
+    np.cumsum(npieces, out=piece_offsets[1:])
+    total = int(piece_offsets[-1])
+    bounds, dbounds = np.empty((total, 2)), np.empty((total, 2, len(th)))
+    counts = np.empty(total, dtype=np.int64)
+    limits = (float(tol), int(max_subdiv), with_grad, INNER, nt)
+    _pieces_and_counts(*args, ends, th, c, piece_offsets, amin, *limits, bounds, dbounds, counts)
+    edge_offsets = np.zeros(ne + 1, dtype=np.int64)
+    np.cumsum(np.add.reduceat(counts, piece_offsets[:-1]), out=edge_offsets[1:])
+    nseg = int(edge_offsets[-1])
+    ncorner = (h + 1) * (w + 1)
+    verts, dverts = np.empty((ncorner + nseg - ne, 2)), np.empty((ncorner + nseg - ne, 2, len(th)))
+    verts[:ncorner], dverts[:ncorner] = cq, cdq
+    seg_start, seg_end, seg_edge = (np.empty(nseg, dtype=np.int64) for _ in range(3))
+    _place_vertices(
+        *args, ends, ea, eb, th, c, piece_offsets, bounds, dbounds, counts, edge_offsets, ncorner, nt,
+        verts, dverts, seg_start, seg_end, seg_edge,
+    )  # fmt: skip
+    return CompiledMesh((h, w), verts, dverts, seg_start, seg_end, seg_edge, edge_offsets, counts)
+
+
+@_jit
+def _theta_gradient(
+    verts: np.ndarray, dverts: np.ndarray, seg_start: np.ndarray, seg_end: np.ndarray,
+    wa: np.ndarray, wb: np.ndarray, scale_x: float, scale_y: float, threads: int,
+) -> np.ndarray:  # fmt: skip
+    s_count = seg_start.shape[0]
+    p = dverts.shape[2]
+    acc = np.zeros((threads, p))
+    n_chunks = (s_count + CHUNK - 1) // CHUNK
+    for thread in prange(threads):
+        for chunk in range(thread, n_chunks, threads):
+            for s in range(chunk * CHUNK, min((chunk + 1) * CHUNK, s_count)):
+                a, b = seg_start[s], seg_end[s]
+                nx = (verts[b, 1] - verts[a, 1]) * scale_x  # the normal in pixel units, times dX/dx
+                ny = (verts[a, 0] - verts[b, 0]) * scale_y
+                for r in range(p):
+                    acc[thread, r] += wa[s] * (nx * dverts[a, 0, r] + ny * dverts[a, 1, r])
+                    acc[thread, r] += wb[s] * (nx * dverts[b, 0, r] + ny * dverts[b, 1, r])
+    return acc.sum(0)
+
+
+def theta_gradient(
+    mesh: CompiledMesh, pixel_verts: np.ndarray, wa: np.ndarray, wb: np.ndarray, src_size: tuple[int, int]
+) -> np.ndarray:
+    """θ's gradient ``(P,)`` from the exact integrator's Reynolds weights ``wa``, ``wb`` (per
+    segment, see :func:`~layoutwarp.kernels.exact_backward`) on the mesh's vertices in pixel
+    units of an ``(H, W)`` source: ``Σ_s (wa_s ∂a_s/∂θ + wb_s ∂b_s/∂θ) · n_s`` with ``n_s`` the
+    segment's normal ``(ΔY, −ΔX)`` and ``∂X/∂x = W/2``, ``∂Y/∂y = H/2``."""
+    hs, ws = src_size
+    return _theta_gradient(
+        pixel_verts, mesh.dverts, mesh.seg_start, mesh.seg_end, wa, wb, ws / 2, hs / 2, threads()
+    )
