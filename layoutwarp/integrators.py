@@ -33,7 +33,7 @@ from .coords import grid_lines, pixel_centers, sensor_to_pixels
 from .layouts import Layout
 from .maps import sample_points
 from .mesh import MeshTopology, PixelMesh, pixel_mesh
-from .meshkernels import MeshSpec, build_mesh, mesh_spec, theta_gradient
+from .meshkernels import MeshSpec, build_mesh, mesh_spec, pixel_vertices, theta_gradient
 
 __all__ = [
     "BACKENDS",
@@ -346,13 +346,14 @@ def _cpu_forward(
     edge_offsets: np.ndarray,
     seg_edge: np.ndarray,
     image: np.ndarray,
+    keep_tables: bool = False,
 ) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray] | None]:
     """The compiled forward on the CPU: ``(N + 1, E)`` edge integrals (and areas), and the prefix
-    tables where the image is small enough to keep them for the backward (else ``None``: it is
-    integrated in bands of rows)."""
+    tables where the image is small enough to keep them for the backward or ``keep_tables`` asks
+    for them (else ``None``: it is integrated in bands of rows, holding no whole table)."""
     nt = kernels.threads()
     with kernels.LOCK:
-        if image.nbytes <= kernels.WHOLE_TABLE_BYTES:
+        if keep_tables or image.nbytes <= kernels.WHOLE_TABLE_BYTES:
             tables = kernels.prefix_tables(image, kernels.BLOCK)
             out = kernels.exact_forward(verts, seg_start, seg_end, edge_offsets, *tables, kernels.BLOCK, nt)
             return out, tables
@@ -393,8 +394,7 @@ class _CompiledExact(torch.autograd.Function):
     def forward(ctx, theta: Tensor, image: Tensor, spec: MeshSpec, size: tuple[int, int], tol: float):
         hs, ws = image.shape[-2:]
         cm = build_mesh(spec, size, theta.detach().double().cpu().numpy(), tol)
-        pv = (cm.vertices + 1) * np.array([ws / 2, hs / 2])
-        np.clip(pv, 0, np.array([ws, hs]), out=pv)
+        pv = pixel_vertices(cm, (hs, ws))
         topo = MeshTopology(size)
         ctx.cm, ctx.pv, ctx.src_size, ctx.topo = cm, pv, (hs, ws), topo
         if image.is_cuda:
@@ -407,7 +407,8 @@ class _CompiledExact(torch.autograd.Function):
             ctx.save_for_backward(means, pix[-1])
             return means
         ctx.image = image.detach().contiguous().numpy()
-        out, ctx.tables = _cpu_forward(pv, cm.seg_start, cm.seg_end, cm.edge_offsets, cm.seg_edge, ctx.image)
+        arrays = (pv, cm.seg_start, cm.seg_end, cm.edge_offsets, cm.seg_edge, ctx.image)
+        out, ctx.tables = _cpu_forward(*arrays, keep_tables=True)  # the backward needs them
         pix = topo.combine(out)
         ctx.means, ctx.areas = pix[:-1] / pix[-1], pix[-1]
         return torch.from_numpy(ctx.means)

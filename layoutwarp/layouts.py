@@ -851,8 +851,14 @@ class CurvLayout(CenteredLayout):
 
     def edge_breakpoints(self, a: Tensor, b: Tensor, theta: Tensor | None = None) -> Tensor:
         """Where the segment crosses the (adapted) unit circle, the kink of φ_curv, and, off the
-        centre, the lines ``x = c_x`` and ``y = c_y`` (differentiable in a learned centre)."""
+        centre, the lines ``x = c_x`` and ``y = c_y`` (differentiable in a learned centre). None
+        on the sensor's sides, where φ is the identity (the circle touches them: a double root
+        whose rounding would add or drop pieces there as θ moves)."""
         d = b - a
+        border = ((a.abs() >= 1) & (d == 0)).any(-1, keepdim=True)
+        return torch.where(border, float("nan"), self._kinks(a, d, theta))
+
+    def _kinks(self, a: Tensor, d: Tensor, theta: Tensor | None) -> Tensor:
         _, c = self._split(self.theta.detach() if theta is None else theta)
         if c is None:
             lo, hi = torch.zeros_like(d[:, 0]), torch.ones_like(d[:, 0])

@@ -35,7 +35,16 @@ except ImportError:  # pragma: no cover - depends on the environment
 from .kernels import CHUNK, available, threads
 from .layouts import CurvLayout, EllipticLayout, FoveaLayout, Layout
 
-__all__ = ["CURV", "ELLIPTIC", "CompiledMesh", "MeshSpec", "build_mesh", "mesh_spec", "theta_gradient"]
+__all__ = [
+    "CURV",
+    "ELLIPTIC",
+    "CompiledMesh",
+    "MeshSpec",
+    "build_mesh",
+    "mesh_spec",
+    "pixel_vertices",
+    "theta_gradient",
+]
 
 #: Family codes of the compiled maps.
 CURV, ELLIPTIC = 0, 1
@@ -261,7 +270,9 @@ def _edge_pieces(
     ax, ay, dx, dy = ends[e, 0], ends[e, 1], ends[e, 2] - ends[e, 0], ends[e, 3] - ends[e, 1]
     k = 0
     scratch[:, :] = 0.0
-    if kind == 0 and centred:
+    if (abs(ax) >= 1 and dx == 0) or (abs(ay) >= 1 and dy == 0):
+        pass  # a sensor side: φ is the identity along it, no kinks
+    elif kind == 0 and centred:
         m, t0, t1 = _circle(ax, ay, dx, dy, 1.0, 1.0, -1.0, 2.0)
         if m > 0:
             k = _add_kink(t0, scratch, 0, cuts, dcuts, k)
@@ -493,6 +504,22 @@ def build_mesh(
         verts, dverts, seg_start, seg_end, seg_edge,
     )  # fmt: skip
     return CompiledMesh((h, w), verts, dverts, seg_start, seg_end, seg_edge, edge_offsets, counts)
+
+
+@_jit
+def _to_pixels(verts: np.ndarray, ws: float, hs: float) -> np.ndarray:
+    out = np.empty_like(verts)
+    for v in prange(verts.shape[0]):
+        out[v, 0] = min(max((verts[v, 0] + 1) * (ws / 2), 0.0), ws)
+        out[v, 1] = min(max((verts[v, 1] + 1) * (hs / 2), 0.0), hs)
+    return out
+
+
+def pixel_vertices(mesh: CompiledMesh, src_size: tuple[int, int]) -> np.ndarray:
+    """The mesh's vertices in pixel units of an ``(H, W)`` source, clamped to it, as
+    :meth:`~layoutwarp.PixelMesh.pixel_vertices` gives them."""
+    hs, ws = src_size
+    return _to_pixels(mesh.vertices, float(ws), float(hs))
 
 
 @_jit

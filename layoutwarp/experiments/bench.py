@@ -36,6 +36,7 @@ from ..layoutfile import layout_from_spec
 from ..layouts import Layout, make_layout
 from ..maps import forward_maps, sample_points
 from ..mesh import pixel_mesh
+from ..meshkernels import build_mesh, mesh_spec
 from ..sensor import simulate
 from .scene import SineScene, blurred_noise, load_photo
 
@@ -537,6 +538,16 @@ def count_ops(fn: Callable[[], object]) -> int:
     return sum(1 for e in prof.events() if e.name.startswith("aten::") and e.cpu_parent is None)
 
 
+def _learnable_mesh(layout: Layout, size: tuple[int, int]) -> object:
+    """The mesh a training step of ``layout`` builds: compiled where the family has a compiled
+    form (:mod:`layoutwarp.meshkernels`), else :func:`pixel_mesh` with θ's autograd graph."""
+    tol = data_tolerance(torch.float32)[0]
+    spec = mesh_spec(layout)
+    if spec is None:
+        return pixel_mesh(layout, size, tol=tol)
+    return build_mesh(spec, size, layout.theta.detach().double().cpu().numpy(), tol)
+
+
 def training_rows(cfg: BenchConfig, image_name: str, img: Tensor) -> list[Row]:
     """What learning a layout costs a step: forward and backward of ``out.sum()`` for learnable
     curv and fovea layouts with mixed-sign θ at the default tolerance, batch 1 and 4 (the image
@@ -551,10 +562,7 @@ def training_rows(cfg: BenchConfig, image_name: str, img: Tensor) -> list[Row]:
     rows = []
     for name, spec in specs.items():
         layout = layout_from_spec(spec, learn=True).to(cfg.device)
-        mesh_ms = _time(
-            lambda layout=layout: pixel_mesh(layout, cfg.size, tol=data_tolerance(torch.float32)[0]),
-            cfg.repeats,
-        )
+        mesh_ms = _time(lambda layout=layout: _learnable_mesh(layout, cfg.size), cfg.repeats)
         for batch in (1, 4):
             x = img.to(cfg.device).expand(batch, -1, -1, -1).contiguous()
             for method, opts, setting in (

@@ -1,0 +1,180 @@
+"""The compiled learnable path (layoutwarp.meshkernels + integrators._CompiledExact) against the
+torch reference: the same mesh, values and θ-gradients to rounding, on random and hard layouts."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+import torch.autograd.forward_ad as fwad
+
+import layoutwarp as lw
+from layoutwarp import meshkernels as mk
+from layoutwarp.experiments.bench import count_ops
+from layoutwarp.integrators import integrate_exact
+from layoutwarp.mesh import MeshTopology, pixel_mesh, smooth_pieces
+
+pytestmark = pytest.mark.skipif(not lw.kernels.available(), reason="needs numba")
+
+
+def _random_layout(family: str, rng: np.random.Generator, hard: bool = False) -> lw.Layout:
+    th = rng.uniform(0.9, 0.99, 2) if hard else rng.uniform(0.1, 0.8, 2)
+    th = th * rng.choice([-1.0, 1.0], 2)
+    if family == "curv-off":
+        c = rng.uniform(-0.9 if hard else -0.5, 0.9 if hard else 0.5, 2)
+        return lw.CurvLayout(th.tolist(), center=c.tolist(), learn=True, dtype=torch.float64)
+    if family == "fovea":
+        c = rng.uniform(-0.9 if hard else -0.5, 0.9 if hard else 0.5, 2)
+        return lw.FoveaLayout(th.tolist(), center=c.tolist(), learn=True, dtype=torch.float64)
+    return lw.make_layout(family, th.tolist(), learn=True, dtype=torch.float64)
+
+
+FAMILIES = ["curv", "curv-off", "fovea", "elliptic"]
+SIZES = [(1, 1), (1, 6), (5, 7), (8, 6), (13, 17)]
+
+
+def test_only_the_built_in_classes_are_compiled():
+    class MyCurv(lw.CurvLayout):  # a user's subclass may change φ: it keeps the torch path
+        pass
+
+    assert mk.mesh_spec(MyCurv((0.2, 0.1))) is None
+    assert mk.mesh_spec(lw.RectLayout((0.2, 0.1))) is None
+    assert mk.mesh_spec(lw.CurvLayout((0.2, 0.1))).nparams == 2
+    assert mk.mesh_spec(lw.FoveaLayout((0.2, 0.1), center=(0.1, 0.2))).nparams == 4
+
+
+@pytest.mark.parametrize("hard", [False, True])
+@pytest.mark.parametrize("family", FAMILIES)
+def test_compiled_mesh_is_the_torch_mesh(family: str, hard: bool):
+    rng = np.random.default_rng(int(torch.randint(0, 2**31, ())))
+    for size in SIZES:
+        layout = _random_layout(family, rng, hard)
+        tol = float(10 ** rng.uniform(-4, -2))
+        cm = mk.build_mesh(mk.mesh_spec(layout), size, layout.theta.detach().numpy(), tol)
+        ref = pixel_mesh(layout, size, tol=tol, dtype=torch.float64)  # θ requires grad: with_grad counts
+        assert np.array_equal(cm.edge_offsets, ref.edge_offsets.numpy()), (size, tol)
+        assert np.array_equal(cm.seg_start, ref.seg_start.numpy())
+        assert np.array_equal(cm.seg_end, ref.seg_end.numpy())
+        assert np.array_equal(cm.seg_edge, ref.seg_edge.numpy())
+        np.testing.assert_allclose(cm.vertices, ref.vertices.detach().numpy(), rtol=0, atol=1e-13)
+
+
+@pytest.mark.parametrize("family", FAMILIES)
+def test_vertex_derivatives_match_forward_mode_autograd(family: str):
+    rng = np.random.default_rng(int(torch.randint(0, 2**31, ())))
+    layout = _random_layout(family, rng)
+    size = (7, 9)
+    theta = layout.theta.detach()
+    cm = mk.build_mesh(mk.mesh_spec(layout), size, theta.numpy(), 1e-3)
+    counts = torch.from_numpy(cm.counts)
+    cols = []
+    for k in range(theta.numel()):
+        with fwad.dual_level():
+            dual = fwad.make_dual(theta, torch.eye(theta.numel(), dtype=theta.dtype)[k])
+            mesh = pixel_mesh(layout, size, subdivisions=counts, dtype=torch.float64, theta=dual)
+            cols.append(fwad.unpack_dual(mesh.vertices).tangent)
+    ref = torch.stack(cols, -1).numpy()
+    # a kink that touches the sensor's side (a learned centre's quarter-ellipse) is a double root:
+    # both sides agree only to ~1e-8 there
+    np.testing.assert_allclose(cm.dverts, ref, rtol=0, atol=1e-7 * max(1.0, np.abs(ref).max()))
+
+
+@pytest.mark.parametrize("dtype,rel", [(torch.float64, 1e-12), (torch.float32, 1e-6)])
+@pytest.mark.parametrize("hard", [False, True])
+@pytest.mark.parametrize("family", FAMILIES)
+def test_compiled_values_and_theta_gradients_match_the_torch_reference(family, hard, dtype, rel):
+    rng = np.random.default_rng(int(torch.randint(0, 2**31, ())))
+    layout = _random_layout(family, rng, hard)
+    size = tuple(int(v) for v in rng.integers(3, 14, 2))
+    image = torch.rand(2, int(rng.integers(20, 60)), int(rng.integers(20, 60)), dtype=dtype)
+    tol = 1e-3
+    theta = layout.theta.detach().clone().requires_grad_(True)
+    out = integrate_exact(image, layout, size, tol=tol, theta=theta)  # the compiled path
+    weights = torch.randn(out.shape, dtype=torch.float64)
+    (grad,) = torch.autograd.grad((out * weights).sum(), theta)
+    cm = mk.build_mesh(mk.mesh_spec(layout), size, theta.detach().numpy(), tol)
+    theta_ref = theta.detach().clone().requires_grad_(True)
+    mesh = pixel_mesh(
+        layout, size, subdivisions=torch.from_numpy(cm.counts), dtype=torch.float64, theta=theta_ref
+    )
+    ref = integrate_exact(image, layout, size, mesh=mesh, backend="torch")
+    (grad_ref,) = torch.autograd.grad((ref * weights).sum(), theta_ref)
+    assert torch.allclose(out, ref, rtol=0, atol=rel)
+    scale = float(grad_ref.abs().max())
+    # near |θ| = 1 the per-vertex terms reach ~1/(1 − |θ|)² and cancel in the sum: two summation
+    # orders then differ by a few 1e-12 in float64
+    grad_rel = rel * (10 if hard and dtype == torch.float64 else 1)
+    assert float((grad - grad_ref).abs().max()) <= grad_rel * max(scale, 1.0), (grad, grad_ref)
+
+
+@pytest.mark.parametrize("family", FAMILIES)
+def test_compiled_theta_gradient_matches_central_differences(family: str):
+    rng = np.random.default_rng(int(torch.randint(0, 2**31, ())))
+    size, h = (6, 8), 1e-6
+    image = torch.rand(1, 37, 45, dtype=torch.float64)
+    ends = MeshTopology(size).edge_ends()
+
+    def pieces(layout: lw.Layout, th: torch.Tensor) -> int:
+        return len(smooth_pieces(layout, *ends, theta=th)[0])
+
+    for _ in range(10):  # a layout whose kinks stay inside their edges within θ ± h
+        layout = _random_layout(family, rng)
+        theta = layout.theta.detach().clone()
+        steps = torch.eye(theta.numel(), dtype=theta.dtype) * h
+        if all(pieces(layout, theta + s * e) == pieces(layout, theta) for e in steps for s in (-1, 1)):
+            break
+    theta.requires_grad_(True)
+    out = integrate_exact(image, layout, size, tol=1e-3, theta=theta)
+    weights = torch.randn(out.shape, dtype=torch.float64)
+    (grad,) = torch.autograd.grad((out * weights).sum(), theta)
+    counts = torch.from_numpy(mk.build_mesh(mk.mesh_spec(layout), size, theta.detach().numpy(), 1e-3).counts)
+
+    def f(th: torch.Tensor) -> float:  # the same segment counts: smooth in θ
+        with torch.no_grad():
+            mesh = pixel_mesh(layout, size, subdivisions=counts, dtype=torch.float64, theta=th)
+            return float((integrate_exact(image, layout, size, mesh=mesh) * weights).sum())
+
+    for k, e in enumerate(steps):
+        fd = (f(theta.detach() + e) - f(theta.detach() - e)) / (2 * h)
+        assert abs(fd - float(grad[k])) <= 1e-5 * max(1.0, abs(fd)), (k, fd, float(grad[k]))
+
+
+def test_a_training_step_runs_few_torch_operations():
+    layout = lw.CurvLayout((0.35, -0.25), learn=True)
+    image = torch.rand(1, 3, 96, 128)
+
+    def step() -> None:
+        lw.simulate(image, layout, (17, 23)).sum().backward()
+        layout.rho.grad = None
+
+    assert count_ops(step) <= 50
+    # and the step's gradient is the torch reference's
+    layout.rho.grad = None
+    lw.simulate(image, layout, (17, 23)).sum().backward()
+    compiled = layout.rho.grad.clone()
+    layout.rho.grad = None
+    ref = integrate_exact(
+        image[0].double(), layout, (17, 23), tol=lw.data_tolerance(torch.float32)[0], backend="torch"
+    )
+    ref.sum().backward()
+    assert torch.allclose(compiled, layout.rho.grad, rtol=1e-5, atol=1e-7)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@pytest.mark.parametrize("family", FAMILIES)
+def test_compiled_path_on_cuda_matches_cpu(family: str):
+    if not lw.kernels.cuda_available("float32"):
+        pytest.skip("numba's CUDA target does not run here")
+    rng = np.random.default_rng(int(torch.randint(0, 2**31, ())))
+    layout = _random_layout(family, rng)
+    image = torch.rand(3, 50, 70)
+    outs, grads = [], []
+    for device in ("cpu", "cuda"):
+        lay = layout.to(device)
+        theta = lay.theta.detach().clone().requires_grad_(True)
+        out = integrate_exact(image.to(device), lay, (9, 11), tol=1e-3, theta=theta)
+        out.sum().backward()
+        outs.append(out.cpu())
+        grads.append(theta.grad.cpu())
+    assert torch.allclose(outs[0], outs[1], rtol=0, atol=1e-6)
+    assert torch.allclose(grads[0], grads[1], rtol=1e-6, atol=1e-8)
