@@ -21,6 +21,7 @@ subclass may change φ, so it keeps the torch path).
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -397,15 +398,55 @@ def _pieces_and_counts(
                     counts[base + i] = 1 if sag[i] <= 1e-15 * length[i] else int(m)
 
 
+@functools.lru_cache(maxsize=16)
+def _topology(size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Uniform edge ends ``(E, 4)``, their corner indices and the uniform corners ``(V0, 2)`` of
+    :class:`~layoutwarp.mesh.MeshTopology` as arrays (cached per size; do not modify)."""
+    from .mesh import MeshTopology
+
+    topo = MeshTopology(size)
+    ua, ub = topo.edge_ends()
+    ea, eb = topo.edge_corners()
+    return (
+        np.ascontiguousarray(torch.cat([ua, ub], 1).numpy()),
+        ea.numpy(),
+        eb.numpy(),
+        topo.corners().numpy(),
+    )
+
+
 @_jit
-def _corners(kind: int, centred: bool, corners: np.ndarray, th: np.ndarray, c: np.ndarray) -> tuple:
-    """Deformed corners ``(V0, 2)`` and their θ-derivatives ``(V0, 2, P)``."""
+def _corners(
+    kind: int, centred: bool, h: int, w: int, corners: np.ndarray, th: np.ndarray, c: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Deformed corners ``(V0, 2)``, their θ-derivatives ``(V0, 2, P)`` and every edge's smaller
+    adjacent pixel area ``(E,)`` from the corner quads (the count stage's area estimate)."""
     nc, p = corners.shape[0], th.shape[0]
     q = np.empty((nc, 2))
     dq = np.empty((nc, 2, p + 2))
     for v in prange(nc):
         _phi(kind, centred, corners[v, 0], corners[v, 1], th, c, q[v], dq[v])
-    return q, np.ascontiguousarray(dq[:, :, :p])
+    area = np.empty((h, w))
+    for i in prange(h):
+        for j in range(w):
+            a, b = i * (w + 1) + j, i * (w + 1) + j + 1
+            d, e = (i + 1) * (w + 1) + j + 1, (i + 1) * (w + 1) + j
+            s = (q[b, 1] - q[a, 1]) * (q[a, 0] + q[b, 0]) / 2
+            s += (q[d, 1] - q[b, 1]) * (q[b, 0] + q[d, 0]) / 2
+            s += (q[e, 1] - q[d, 1]) * (q[d, 0] + q[e, 0]) / 2
+            s += (q[a, 1] - q[e, 1]) * (q[e, 0] + q[a, 0]) / 2
+            area[i, j] = abs(s)
+    nh = (h + 1) * w
+    amin = np.empty(nh + h * (w + 1))
+    for i in prange(h + 1):  # horizontal edges: the pixels above and below
+        for j in range(w):
+            up = area[i - 1, j] if i > 0 else np.inf
+            amin[i * w + j] = min(up, area[i, j] if i < h else np.inf)
+    for i in prange(h):  # vertical edges: the pixels left and right
+        for j in range(w + 1):
+            left = area[i, j - 1] if j > 0 else np.inf
+            amin[nh + i * (w + 1) + j] = min(left, area[i, j] if j < w else np.inf)
+    return q, np.ascontiguousarray(dq[:, :, :p]), amin
 
 
 @_jit
@@ -465,24 +506,15 @@ def build_mesh(
     ``with_grad`` bounds the polylines' error in ``∂φ/∂θ`` too (as ``pixel_mesh`` does when θ
     requires grad), so that θ-gradients are as accurate as values.
     """
-    from .mesh import INNER, MeshTopology, polygon_area
+    from .mesh import INNER
 
     h, w = size
-    topo = MeshTopology((h, w))
-    ua, ub = topo.edge_ends()
-    ends = np.ascontiguousarray(torch.cat([ua, ub], 1).numpy())
-    ea, eb = (t.numpy() for t in topo.edge_corners())
+    ends, ea, eb, corners = _topology(size)
     th = np.ascontiguousarray(theta, dtype=np.float64)
     c = np.array(spec.center, dtype=np.float64)
     args = (spec.kind, spec.centred)
     nt = threads()
-    cq, cdq = _corners(*args, topo.corners().numpy(), th, c)
-    cd = cq.reshape(h + 1, w + 1, 2)
-    area = np.abs(polygon_area(np.stack([cd[:-1, :-1], cd[:-1, 1:], cd[1:, 1:], cd[1:, :-1]], -2)))
-    inf_row, inf_col = np.full((1, w), np.inf), np.full((h, 1), np.inf)
-    area_h = np.minimum(np.concatenate([inf_row, area]), np.concatenate([area, inf_row]))
-    area_v = np.minimum(np.concatenate([inf_col, area], 1), np.concatenate([area, inf_col], 1))
-    amin = np.concatenate([area_h.ravel(), area_v.ravel()])
+    cq, cdq, amin = _corners(*args, h, w, corners, th, c)
     npieces = _count_pieces(*args, ends, th, c, nt)
     ne = len(npieces)
     piece_offsets = np.zeros(ne + 1, dtype=np.int64)
