@@ -79,6 +79,16 @@ def _sync() -> None:
         torch.cuda.synchronize()
 
 
+def _time_paired(fns: Sequence[Callable[[], object]], repeats: int) -> list[float]:
+    """Median ms of each of ``fns`` over ``max(repeats, 1)`` rounds that call them in turn after
+    one warm-up call each, so that every one meets the same machine state (a background load,
+    the CPU's clock)."""
+    for fn in fns:
+        fn()
+    times = [[_time(fn, 0) for fn in fns] for _ in range(max(repeats, 1))]
+    return [float(np.median(col)) for col in zip(*times, strict=True)]
+
+
 def _time(fn: Callable[[], object], repeats: int) -> float:
     """Median ms of ``repeats`` calls after a warm-up (``repeats = 0``: one call, no warm-up)."""
     if repeats == 0:
@@ -552,35 +562,50 @@ def training_rows(cfg: BenchConfig, image_name: str, img: Tensor) -> list[Row]:
     """What learning a layout costs a step: forward and backward of ``out.sum()`` for learnable
     curv and fovea layouts with mixed-sign θ at the default tolerance, batch 1 and 4 (the image
     repeated), against our 16-sample Monte Carlo step (the paper's method; the reference code's
-    proxy) of the same layout; ``extra``: the torch operator calls of one step (profiler) and
-    the time of the learnable layout's mesh build alone."""
+    proxy) of the same layout, timed in alternation; ``extra``: the torch operator calls of one
+    step (profiler), and for the exact step the learnable layout's mesh build alone, the ratio to
+    the Monte Carlo step (``over_mc16``) and to the compiled exact forward of the same layout
+    fixed (``over_fixed_forward``, its mesh built once)."""
     tx, ty = cfg.theta
     specs = {
         "curv ±": {"family": "curv", "theta": [tx, -ty]},
         "fovea": {"family": "fovea", "theta": [tx, -ty], "center": [0.3, -0.2], "learn_center": True},
     }
+    tol = data_tolerance(torch.float32)[0]
     rows = []
     for name, spec in specs.items():
         layout = layout_from_spec(spec, learn=True).to(cfg.device)
+        fixed = layout_from_spec(spec).to(cfg.device)
         mesh_ms = _time(lambda layout=layout: _learnable_mesh(layout, cfg.size), cfg.repeats)
         for batch in (1, 4):
             x = img.to(cfg.device).expand(batch, -1, -1, -1).contiguous()
-            for method, opts, setting in (
-                ("exact", {}, "default"),
-                ("montecarlo", {"samples": 4, "seed": 0}, "16 spp"),
-            ):
+            planes = x.reshape(-1, *x.shape[-2:])
+            mesh = pixel_mesh(fixed, cfg.size, tol=tol, dtype=torch.float64)
 
-                def step(layout=layout, x=x, method=method, opts=opts):
-                    simulate(x, layout, cfg.size, method, **opts).sum().backward()
-                    layout.rho.grad = None
+            def forward(fixed=fixed, planes=planes, mesh=mesh) -> None:
+                with torch.no_grad():
+                    integrate_exact(planes, fixed, cfg.size, mesh=mesh)
 
-                t = _time(step, cfg.repeats)
-                extra = {"batch": batch, "ops": count_ops(step)}
-                if method == "exact":
-                    extra["mesh_ms"] = mesh_ms
-                rows.append(
-                    Row(image_name, name, f"train step, {method}", f"{setting} b{batch}", t, extra=extra)
-                )
+            def step(layout=layout, x=x, method="exact", opts=None) -> None:
+                simulate(x, layout, cfg.size, method, **(opts or {})).sum().backward()
+                layout.rho.grad = None
+
+            def mc16(step=step) -> None:
+                step(method="montecarlo", opts={"samples": 4, "seed": 0})
+
+            t_ex, t_mc, t_fwd = _time_paired([step, mc16, forward], cfg.repeats)
+            extra = {
+                "batch": batch,
+                "ops": count_ops(step),
+                "mesh_ms": mesh_ms,
+                "over_mc16": t_ex / t_mc,
+                "over_fixed_forward": t_ex / t_fwd,
+            }
+            rows.append(Row(image_name, name, "train step, exact", f"default b{batch}", t_ex, extra=extra))
+            extra = {"batch": batch, "ops": count_ops(mc16)}
+            rows.append(
+                Row(image_name, name, "train step, montecarlo", f"16 spp b{batch}", t_mc, extra=extra)
+            )
     return rows
 
 
@@ -619,12 +644,7 @@ def physics_rows(cfg: BenchConfig, image_name: str, img: Tensor, anchors: dict[s
         with torch.no_grad():
             return simulate(dev_img, layout, cfg.size, physics=ph)
 
-    plain(), measured()
-    t_plain, t_phys = [], []
-    for _ in range(cfg.repeats * 2 + 1):  # interleaved pairs: the same machine state for both
-        t_plain.append(_time(plain, 0))
-        t_phys.append(_time(measured, 0))
-    tp, tq = float(np.median(t_plain)), float(np.median(t_phys))
+    tp, tq = _time_paired([plain, measured], cfg.repeats * 2 + 1)
     noise = float((measured().cpu().double() - plain().cpu().double()).pow(2).mean().sqrt())
     rows = [
         Row(
@@ -858,7 +878,12 @@ def report_text(result: dict) -> str:
             lines.append(
                 f"{r['layout']:8s} {r['method']:24s} {r['setting']:12s} {r['forward_ms']:8.1f} ms  "
                 f"{r['extra']['ops']:5d} torch ops"
-                + (f"  (mesh build {r['extra']['mesh_ms']:.1f} ms)" if "mesh_ms" in r["extra"] else "")
+                + (
+                    f"  (mesh build {r['extra']['mesh_ms']:.1f} ms; {r['extra']['over_mc16']:.2f}x the "
+                    f"MC-16 step, {r['extra']['over_fixed_forward']:.1f}x the fixed forward)"
+                    if "mesh_ms" in r["extra"]
+                    else ""
+                )
             )
     for r in result["rows"]:
         if r["method"] == "exact, cached weights":
