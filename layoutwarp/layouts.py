@@ -668,6 +668,11 @@ class CenteredLayout(Layout):
         """The centre ``(c_x, c_y)`` the deformation is about."""
         return self.theta[2:] if self.learn_center else self.fixed_center
 
+    @property
+    def centred(self) -> bool:
+        """Whether φ is the centred map itself: a fixed centre at the origin (no affine step)."""
+        return self._centred
+
     def _split(self, theta: Tensor) -> tuple[Tensor, Tensor | None]:
         """``(θ_x, θ_y)`` and the centre (``None`` for the centred fast path)."""
         if theta.numel() == 4:

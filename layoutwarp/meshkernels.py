@@ -35,6 +35,7 @@ except ImportError:  # pragma: no cover - depends on the environment
 
 from .kernels import CHUNK, available, threads
 from .layouts import CurvLayout, EllipticLayout, FoveaLayout, Layout
+from .mesh import INNER, MeshTopology, PixelMesh
 
 __all__ = [
     "CURV",
@@ -74,7 +75,7 @@ def mesh_spec(layout: Layout) -> MeshSpec | None:
         return None
     if type(layout) in (CurvLayout, FoveaLayout):
         c = tuple(float(v) for v in layout.fixed_center.detach().double().cpu())
-        return MeshSpec(CURV, (c[0], c[1]), layout._centred, int(layout.num_params or 0))
+        return MeshSpec(CURV, (c[0], c[1]), layout.centred, int(layout.num_params or 0))
     if type(layout) is EllipticLayout:
         return MeshSpec(ELLIPTIC, (0.0, 0.0), True, 2)
     return None
@@ -96,9 +97,8 @@ class CompiledMesh:
     edge_offsets: np.ndarray
     counts: np.ndarray
 
-    def pixel_mesh(self, device: torch.device | str = "cpu"):
+    def pixel_mesh(self, device: torch.device | str = "cpu") -> PixelMesh:
         """The :class:`~layoutwarp.PixelMesh` of these arrays (vertices without gradient)."""
-        from .mesh import PixelMesh
 
         def t(a: np.ndarray) -> torch.Tensor:
             return torch.from_numpy(a).to(device)
@@ -403,8 +403,6 @@ def _pieces_and_counts(
 def _topology(size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Uniform edge ends ``(E, 4)``, their corner indices and the uniform corners ``(V0, 2)`` of
     :class:`~layoutwarp.mesh.MeshTopology` as arrays (cached per size; do not modify)."""
-    from .mesh import MeshTopology
-
     topo = MeshTopology(size)
     ua, ub = topo.edge_ends()
     ea, eb = topo.edge_corners()
@@ -507,8 +505,6 @@ def build_mesh(
     ``with_grad`` bounds the polylines' error in ``∂φ/∂θ`` too (as ``pixel_mesh`` does when θ
     requires grad), so that θ-gradients are as accurate as values.
     """
-    from .mesh import INNER
-
     h, w = size
     ends, ea, eb, corners = _topology(size)
     th = np.ascontiguousarray(theta, dtype=np.float64)
