@@ -33,9 +33,10 @@ import warnings
 import numpy as np
 
 try:  # numba is a dependency, but the torch reference keeps working without it
-    from numba import get_num_threads, njit, prange
+    from numba import config as numba_config
+    from numba import get_num_threads, njit, prange, set_num_threads
 except ImportError:  # pragma: no cover - depends on the environment
-    njit = prange = get_num_threads = None
+    njit = prange = get_num_threads = set_num_threads = numba_config = None
 
 __all__ = [
     "BLOCK",
@@ -71,8 +72,22 @@ def available() -> bool:
 
 
 def threads() -> int:
-    """The number of threads the kernels share their work out to (numba's setting)."""
-    return get_num_threads() if get_num_threads is not None else 1
+    """The number of threads the kernels share their work out to, and set for the calling thread's
+    launches: numba's, at most torch's current count, so that ``torch.set_num_threads`` and
+    ``OMP_NUM_THREADS`` bound both (jobs meant for one core each no longer fight over the cores:
+    two such jobs with numba on two threads each ran a small training step 60x slower)."""
+    if get_num_threads is None:
+        return 1
+    import torch
+
+    wanted = torch.get_num_threads()
+    current = get_num_threads()  # the first call starts numba's OpenMP layer, which resets torch's count
+    if torch.get_num_threads() != wanted:
+        torch.set_num_threads(wanted)
+    n = max(1, min(wanted, numba_config.NUMBA_NUM_THREADS))
+    if n != current:
+        set_num_threads(n)
+    return n
 
 
 def _jit(fn):

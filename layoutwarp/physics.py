@@ -458,5 +458,6 @@ def _measure_compiled(
     out = np.empty_like(flat)
     arrays = (a.numpy(), prnu.flatten().numpy(), dsnu.flatten().numpy())
     with kernels.LOCK:
+        kernels.threads()  # numba's threads for this launch, bounded by torch's
         kernels.sensor_measure(flat, *arrays, params, seed, NOISE_CODES[mode], OUTPUTS.index(output), out)
     return torch.from_numpy(out).reshape(mean.shape).to(mean.dtype)

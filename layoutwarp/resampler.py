@@ -166,6 +166,7 @@ class AreaResampler:
             out = np.empty((n, w.shape[0]), dtype=np.float32)
             x = np.ascontiguousarray(flat.detach().numpy())
             with kernels.LOCK:
+                kernels.threads()  # numba's threads for this launch, bounded by torch's
                 kernels.csr_apply(w.indptr, w.indices, w.data, x, out)
             return torch.from_numpy(out).view(n, *self.size)
         cols = [self._csr @ flat[k].unsqueeze(1) for k in range(n)]  # contiguous planes: no transpose

@@ -278,3 +278,18 @@ def test_a_failing_cuda_target_warns_once_and_leaves_the_torch_path(monkeypatch)
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # answered from the first check: no second warning
         assert not kernels.cuda_available("float32")
+
+
+@pytest.mark.skipif(not kernels.available(), reason="needs numba")
+def test_kernel_threads_follow_torchs_count():
+    import numba
+
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)  # e.g. OMP_NUM_THREADS=1 for jobs that share the cores
+        assert kernels.threads() == 1
+        assert numba.get_num_threads() == 1  # the launches of this thread run on one
+        assert torch.get_num_threads() == 1  # and starting numba's OpenMP layer did not reset torch's
+    finally:
+        torch.set_num_threads(before)
+        kernels.threads()
