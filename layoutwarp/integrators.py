@@ -393,8 +393,9 @@ class _CompiledExact(torch.autograd.Function):
     @staticmethod
     def forward(ctx, theta: Tensor, image: Tensor, spec: MeshSpec, size: tuple[int, int], tol: float):
         hs, ws = image.shape[-2:]
-        cm = build_mesh(spec, size, theta.detach().double().cpu().numpy(), tol)
-        pv = pixel_vertices(cm, (hs, ws))
+        with kernels.LOCK:  # parallel launches, as every kernel's (see kernels.LOCK)
+            cm = build_mesh(spec, size, theta.detach().double().cpu().numpy(), tol)
+            pv = pixel_vertices(cm, (hs, ws))
         topo = MeshTopology(size)
         ctx.cm, ctx.pv, ctx.src_size, ctx.topo = cm, pv, (hs, ws), topo
         if image.is_cuda:
@@ -429,7 +430,8 @@ class _CompiledExact(torch.autograd.Function):
         g_pix = np.concatenate([g / ctx.areas, -(g * ctx.means).sum(0, keepdims=True) / ctx.areas])
         g_edge = np.ascontiguousarray(topo.combine_adjoint(g_pix))
         wa, wb = _cpu_weights(ctx.pv, cm.seg_start, cm.seg_end, cm.seg_edge, ctx.image, ctx.tables, g_edge)
-        g_theta = theta_gradient(cm, ctx.pv, wa, wb, ctx.src_size)
+        with kernels.LOCK:
+            g_theta = theta_gradient(cm, ctx.pv, wa, wb, ctx.src_size)
         return torch.from_numpy(g_theta).to(grad.dtype), None, None, None, None
 
 
