@@ -143,12 +143,14 @@ def test_hard_source_of_one_pixel(method):
 def test_hard_very_wide_image_float32_prefix_sums(family):
     # 1 x 8192 at 1000 ± 0.5: a plain float32 prefix sum reaches 8e6 (ulp 0.5) and would be
     # off by ~5e-2 after differencing; the block-local prefix must stay within a few ulp of
-    # the values themselves (float32 cannot store 1000.x better than 6.1e-5)
+    # the values themselves (float32 cannot store 1000.x better than 6.1e-5). Both calls
+    # share one mesh, so its tolerance does not enter the comparison (tol 1e-4 would mean 3.4M
+    # vertices for these pixels, 1023 pixel widths tall, and 3 GB)
     g = torch.Generator().manual_seed(5)
     img = (1000 + torch.rand(1, 1, 1, 8192, generator=g, dtype=F64)).float()
-    layout = lw.make_layout(family, (0.8, 0.0))
-    ref = lw.simulate(img.double(), layout, (1, 1023), tol=1e-6)
-    got = lw.simulate(img, layout, (1, 1023), tol=1e-6)
+    layout = lw.make_layout(family, (0.8, 0.0), learn=True)  # learnable: the prefix-sum path
+    ref = lw.simulate(img.double(), layout, (1, 1023), tol=1e-2).detach()
+    got = lw.simulate(img, layout, (1, 1023), tol=1e-2).detach()
     ulp = float(torch.finfo(torch.float32).eps) * 1001
     assert float((got.double() - ref).abs().max()) <= 4 * ulp
 
