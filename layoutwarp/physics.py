@@ -32,7 +32,11 @@ ADC) when the image or θ requires grad, so that training gets unbiased gradient
 noise; ``"poisson"``/``"gaussian"`` force one, ``"none"`` keeps the expectation. The fixed
 patterns come from ``pattern_seed`` alone (one sensor, the same in every frame); temporal noise
 from ``seed`` (the same seed and input give the same noise; every image of a batch, and every
-channel, gets its own).
+channel, gets its own). Where no gradient is needed on the CPU, steps 3–8 are one compiled pass
+(:func:`~layoutwarp.kernels.sensor_measure`): exact Poisson draws by Ahrens and Dieter's
+algorithm PD (multiplication of uniforms below a mean of 10), normals by the ziggurat, each
+pixel's noise from counter-based streams of its own, so the thread count does not change it;
+elsewhere torch's ``poisson`` and ``randn``.
 """
 
 from __future__ import annotations
@@ -369,8 +373,9 @@ def measure(
     needs_grad = torch.is_grad_enabled() and (mean.requires_grad or a_um2.requires_grad)
     if mode == "auto":
         mode = "gaussian" if needs_grad else "poisson"
-    if not needs_grad and mean.device.type == "cpu" and kernels.available():
-        return _measure_compiled(mean, a_um2, physics, mode, output, generator)
+    if not needs_grad and mean.device.type == "cpu" and kernels.available():  # areas kept in float64
+        a64 = areas.detach().to(torch.float64) * (physics.sensor_um[0] * physics.sensor_um[1] / 4)
+        return _measure_compiled(mean, a64, physics, mode, output, generator)
     photons = physics.photons_per_um2 * physics.fill_factor * mean * a_um2
     prnu, dsnu = _patterns(physics, tuple(mean.shape[-2:]), mean.dtype, mean.device)
     signal = eta * photons * (1 + physics.prnu * prnu)  # prnu = dsnu = 0: exactly the plain terms
@@ -454,7 +459,8 @@ def _measure_compiled(
         ]
     )
     seed = int(torch.randint(0, 2**62, (), generator=generator)) if mode != "none" else 0
-    flat = np.ascontiguousarray(mean.detach().reshape(-1, a.numel()).to(torch.float64).numpy())
+    work = torch.float32 if mean.dtype == torch.float32 else torch.float64  # the kernel's two builds
+    flat = mean.detach().reshape(-1, a.numel()).to(work).contiguous().numpy()
     out = np.empty_like(flat)
     arrays = (a.numpy(), prnu.flatten().numpy(), dsnu.flatten().numpy())
     with kernels.LOCK:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import warnings
 
+import numpy as np
 import pytest
 import torch
 from conftest import rand_theta
@@ -293,3 +294,18 @@ def test_kernel_threads_follow_torchs_count():
     finally:
         torch.set_num_threads(before)
         kernels.threads()
+
+
+@pytest.mark.parametrize("planes", [1, 2, 3, 4, 5, 7, 8])
+def test_the_csr_product_matches_scipy_for_any_plane_count(planes, gen):
+    # the rows are read once per four planes: every remainder (1-3 planes) and several blocks,
+    # against scipy's product in float64
+    scipy_sparse = pytest.importorskip("scipy.sparse")
+    rng = np.random.default_rng(int(torch.randint(0, 2**31, (), generator=gen)))
+    w = scipy_sparse.random(37, 500, density=0.05, format="csr", random_state=rng, dtype=np.float32)
+    w.indices = w.indices.astype(np.int32)
+    x = rng.random((planes, 500), dtype=np.float32)
+    out = np.full((planes, 37), np.nan, dtype=np.float32)
+    kernels.csr_apply(w.indptr, w.indices, w.data, x, out)
+    ref = (w.astype(np.float64) @ x.astype(np.float64).T).T
+    assert np.abs(out - ref).max() < 1e-6 * max(1.0, np.abs(ref).max())

@@ -152,6 +152,53 @@ def test_the_fused_kernel_matches_the_torch_path_and_ignores_the_thread_count(ge
     assert torch.equal(one, measure(mean, areas, noisy)) and not torch.equal(one, measure(mean, areas, exact))
 
 
+def _kernel_electrons(mean: np.ndarray, noise: int, read: float, seed: int) -> np.ndarray:
+    """The fused kernel's electrons for means ``mean`` (one plane; 1 e⁻ per unit, no patterns,
+    no dark signal, full well or ADC): each element its own draw."""
+    from layoutwarp import kernels
+
+    params = np.array([1.0, 1.0, 0.0, 0.0, 0.0, read, math.inf, 1.0, 0.0, math.inf])
+    ones, zeros = np.ones(mean.size), np.zeros(mean.size)
+    out = np.empty((1, mean.size))
+    kernels.sensor_measure(mean[None], ones, zeros, zeros, params, seed, noise, 1, out)
+    return out[0]
+
+
+@pytest.mark.parametrize("lam", [0.7, 3.0, 9.99, 10.0, 12.3, 37.5, 1000.0, 3.0e4])
+def test_the_kernels_poisson_draws_follow_the_poisson_law(lam, gen):
+    # 3M draws against the exact pmf (χ², tails pooled): below 10 the multiplication method,
+    # above Ahrens-Dieter PD, whose rarer steps (Q, E, H) carry about 1 % of the mass at 10-40
+    stats = pytest.importorskip("scipy.stats")
+    n = 3_000_000
+    k = _kernel_electrons(np.full(n, lam), 1, 0.0, int(torch.randint(0, 2**62, (), generator=gen)))
+    assert np.array_equal(k, np.round(k)) and k.min() >= 0
+    values, counts = np.unique(k, return_counts=True)
+    expected = stats.poisson.pmf(values, lam) * n
+    keep = expected > 25
+    observed = np.r_[counts[keep], n - counts[keep].sum()]
+    expected = np.r_[expected[keep], n - expected[keep].sum()]
+    chi2 = float(((observed - expected) ** 2 / expected).sum())
+    assert stats.chi2.sf(chi2, observed.size - 1) > 1e-4, (chi2, observed.size)
+    assert abs(k.mean() - lam) < 5 * math.sqrt(lam / n)
+
+
+def test_the_kernels_normal_draws_follow_the_normal_law(gen):
+    # the ziggurat through the shot stream (Gaussian mode at mean 1: e = 1 + z) and the read
+    # stream (Poisson mode at mean 0: e = σ z): KS against Φ, and the tail beyond the ziggurat's
+    # R = 3.4426 (its slow path) at its exact mass
+    stats = pytest.importorskip("scipy.stats")
+    n = 3_000_000
+    seed = int(torch.randint(0, 2**62, (), generator=gen))
+    shot = _kernel_electrons(np.ones(n), 2, 0.0, seed) - 1.0
+    read = _kernel_electrons(np.zeros(n), 1, 2.0, seed) / 2.0
+    for z in (shot, read):
+        assert stats.kstest(z, "norm").pvalue > 1e-4
+        tail, p = float((np.abs(z) > 3.442619855899).mean()), 2 * stats.norm.sf(3.442619855899)
+        assert abs(tail - p) < 5 * math.sqrt(p / n), (tail, p)
+        assert abs(float(z.mean())) < 5 / math.sqrt(n) and abs(float(z.var()) - 1) < 5 * math.sqrt(2 / n)
+    assert abs(float(np.corrcoef(shot, read)[0, 1])) < 5 / math.sqrt(n)  # two independent streams
+
+
 def test_quantiser_levels_and_full_well_clipping():
     layout = lw.RectLayout((0.5, 0.5), dtype=F64)
     ph = physics(
