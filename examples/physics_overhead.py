@@ -1,0 +1,57 @@
+"""What sensor physics adds to a fixed layout's forward, and that forward against INTER_AREA.
+
+Times three calls in interleaved rounds (each round calls every one once, so all three meet the
+same machine state): ``cv2.resize(INTER_AREA)``, ``simulate`` of a fixed curv layout (its cached
+area weights) and the same with the bench's camera (shot and read noise, full well, 12-bit ADC),
+on a random 2048x1024 RGB image to a 257x129 sensor, and prints the medians and the two ratios.
+Run: ``python examples/physics_overhead.py [--rounds 60] [--threads 2]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import cv2
+import numpy as np
+import torch
+
+import layoutwarp as lw
+from layoutwarp.experiments.bench import BENCH_PHYSICS
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--rounds", type=int, default=60, help="interleaved rounds (default 60)")
+    parser.add_argument("--threads", type=int, default=2, help="torch and OpenCV threads (default 2)")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    cv2.setNumThreads(args.threads)
+    img = torch.rand(1, 3, 1024, 2048, generator=torch.Generator().manual_seed(0))
+    hwc = np.ascontiguousarray(img[0].permute(1, 2, 0).numpy())
+    camera = lw.SensorPhysics(sensor_um=(2800.0, 5600.0), **BENCH_PHYSICS)
+    layout = lw.make_layout("curv", (0.35, 0.25))
+    calls = {
+        "INTER_AREA": lambda: cv2.resize(hwc, (257, 129), interpolation=cv2.INTER_AREA),
+        "simulate": lambda: lw.simulate(img, layout, (129, 257)),
+        "simulate + physics": lambda: lw.simulate(img, layout, (129, 257), physics=camera),
+    }
+    times: dict[str, list[float]] = {name: [] for name in calls}
+    with torch.no_grad():
+        for call in calls.values():  # warm-up: compiles, builds and caches the area weights
+            call()
+        for _ in range(args.rounds):
+            for name, call in calls.items():
+                t0 = time.perf_counter()
+                call()
+                times[name].append(1e3 * (time.perf_counter() - t0))
+    ms = {name: statistics.median(t) for name, t in times.items()}
+    for name, value in ms.items():
+        print(f"{name:20s} {value:7.2f} ms")
+    print(f"simulate / INTER_AREA: {ms['simulate'] / ms['INTER_AREA']:.2f}x")
+    print(f"physics overhead: {100 * (ms['simulate + physics'] / ms['simulate'] - 1):+.1f} %")
+
+
+if __name__ == "__main__":
+    main()
