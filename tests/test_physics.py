@@ -416,6 +416,76 @@ def test_photon_transfer_recovers_gain_read_noise_and_saturation_per_pixel_class
     assert float(((snr / expected) - 1).abs().mean()) < 0.03
 
 
+def test_the_emva1288_package_characterises_the_simulated_camera(gen, monkeypatch):
+    """The standard's reference implementation (``emva1288``, a test extra) run on the simulated
+    frames of each class of pixel area, as its loader would feed it (pairs of frames per
+    exposure, a dark pair, the spatial sums): its system gain, quantum efficiency, dark noise and
+    saturation capacity equal the configured camera's (the last as the standard defines it)."""
+    pytest.importorskip("emva1288")
+    from emva1288.process import Data1288, Results1288
+    from emva1288.process.routines import get_int_imgs
+
+    # its fits call np.asfarray, which NumPy 2 removed: the same function under its old name
+    monkeypatch.setattr(np, "asfarray", lambda a, dtype=float: np.asarray(a, dtype=dtype), raising=False)
+    size, frames = (16, 12), 1000
+    layout = lw.RectLayout((0.7, 0.0), dtype=F64)  # rows alike, column widths spanning > 4x
+    k_true, read, fw, dark_e, eta = 0.35, 5.0, 800.0, 0.5, 0.6
+    base = dict(
+        sensor_um=(48.0, 48.0),
+        quantum_efficiency=eta,
+        full_well_per_um2=fw,
+        read_noise_e=read,
+        dark_e_per_um2=dark_e,
+        adc_bits=16,
+        gain_dn_per_e=k_true,
+        black_level_dn=64.0,
+    )
+    seeds = iter(torch.randint(0, 2**31, (64,), generator=gen).tolist())  # new noise every exposure
+    area = (lw.pixel_mesh(layout, size).areas() * (48 * 48 / 4))[0]  # µm² per column
+    classes = [(0, 11), (3, 8), (5, 6)]  # a column and its mirror image: equal areas
+    assert float(area[0] / area[5]) > 4  # θ > 0: small pixels in the centre
+
+    def pairs(level: float) -> list[np.ndarray]:
+        ph = SensorPhysics(photons_per_um2=max(level, 1e-9), seed=next(seeds), **base)
+        flat = torch.full((2 * frames, 1, 32, 24), float(level > 0))
+        dn = lw.simulate(flat, layout, size, physics=ph, output="dn")[:, 0].numpy()
+        return [
+            np.stack([dn[f * frames : (f + 1) * frames, :, list(cols)] for f in (0, 1)]) for cols in classes
+        ]
+
+    sat = fw / eta  # photons/µm² at which every pixel reaches its full well
+    levels = np.r_[np.geomspace(0.02, 0.7, 14), np.linspace(0.72, 1.1, 20)] * sat
+    dark = pairs(0.0)
+    bright = [pairs(float(lv)) for lv in levels]
+    for c, cols in enumerate(classes):
+        a = float(area[cols[0]])
+        shape = dark[c][0].reshape(-1, 2).shape
+        temporal: dict[float, dict] = {}
+        for lv, imgs in [(0.0, dark), *zip(levels, bright, strict=True)]:
+            d = get_int_imgs([img.reshape(shape) for img in imgs[c]])
+            temporal[float(lv) * a] = {
+                "sum": np.sum(d["sum"]),
+                "pvar": np.sum(d["pvar"]),
+                "dmean": d["dmean"],
+            }
+        spatial = {
+            0.0: get_int_imgs(list(dark[c][0][:8])),
+            float(levels[8]) * a: get_int_imgs(list(bright[8][c][0][:8])),
+        }
+        data = Data1288(
+            {"width": shape[1], "height": shape[0], "temporal": {1.0: temporal}, "spatial": {1.0: spatial}},
+            loglevel=40,
+        )
+        res = Results1288(data.data, pixel_area=a, loglevel=40)
+        assert res.K == pytest.approx(k_true, rel=0.02), c
+        assert res.QE == pytest.approx(100 * eta, rel=0.02), c
+        assert res.sigma_d == pytest.approx(math.sqrt(read**2 + dark_e * a), rel=0.02), c
+        # EMVA's saturation capacity is the exposure of largest temporal variance: a few σ of
+        # noise below the full well (clipping eats the upper tail first), on the exposure grid
+        full, step = fw * a, (levels[-1] - levels[-2]) * eta * a
+        assert full - 4 * math.sqrt(full + read**2) - step <= res.u_e_sat <= full, (c, res.u_e_sat, full)
+
+
 def test_preprocessing_records_with_physics_and_reruns_to_the_same_bytes(tmp_path):
     from conftest import SAMPLES
 
