@@ -21,6 +21,21 @@ def physics(**kw) -> SensorPhysics:
     return SensorPhysics(**({"sensor_um": (64.0, 64.0), "photons_per_um2": 100.0} | kw))
 
 
+#: The camera of the photon-transfer tests (48 x 48 µm, 16-bit ADC): its gain K (DN/e⁻), read
+#: noise (e⁻), full well and dark signal (per µm²) and quantum efficiency, and its fields.
+K_TRUE, READ, FW, DARK_E, ETA = 0.35, 6.0, 800.0, 0.5, 0.6
+CAMERA = {
+    "sensor_um": (48.0, 48.0),
+    "quantum_efficiency": ETA,
+    "full_well_per_um2": FW,
+    "read_noise_e": READ,
+    "dark_e_per_um2": DARK_E,
+    "adc_bits": 16,
+    "gain_dn_per_e": K_TRUE,
+    "black_level_dn": 64.0,
+}
+
+
 @pytest.mark.parametrize(
     ("field", "value", "needle"),
     [
@@ -359,18 +374,8 @@ def test_photon_transfer_recovers_gain_read_noise_and_saturation_per_pixel_class
     shot noise dominates and the EMVA formula everywhere."""
     size, frames = (12, 12), 6000
     layout = lw.RectLayout((0.55, 0.55), dtype=F64)
-    k_true, read, fw, dark_e, eta = 0.35, 6.0, 800.0, 0.5, 0.6
-    base = dict(
-        sensor_um=(48.0, 48.0),
-        quantum_efficiency=eta,
-        full_well_per_um2=fw,
-        read_noise_e=read,
-        dark_e_per_um2=dark_e,
-        adc_bits=16,
-        gain_dn_per_e=k_true,
-        black_level_dn=64.0,
-        seed=int(torch.randint(0, 2**31, (), generator=gen)),
-    )
+    k_true, read, fw, dark_e, eta = K_TRUE, READ, FW, DARK_E, ETA
+    base = CAMERA | {"seed": int(torch.randint(0, 2**31, (), generator=gen))}
     area = lw.pixel_mesh(layout, size).areas() * (48 * 48 / 4)
     assert float(area.max() / area.min()) > 4
     classes = torch.bucketize(
@@ -429,17 +434,8 @@ def test_the_emva1288_package_characterises_the_simulated_camera(gen, monkeypatc
     monkeypatch.setattr(np, "asfarray", lambda a, dtype=float: np.asarray(a, dtype=dtype), raising=False)
     size, frames = (16, 12), 1000
     layout = lw.RectLayout((0.7, 0.0), dtype=F64)  # rows alike, column widths spanning > 4x
-    k_true, read, fw, dark_e, eta = 0.35, 5.0, 800.0, 0.5, 0.6
-    base = dict(
-        sensor_um=(48.0, 48.0),
-        quantum_efficiency=eta,
-        full_well_per_um2=fw,
-        read_noise_e=read,
-        dark_e_per_um2=dark_e,
-        adc_bits=16,
-        gain_dn_per_e=k_true,
-        black_level_dn=64.0,
-    )
+    k_true, read, fw, dark_e, eta = K_TRUE, READ, FW, DARK_E, ETA
+    base = CAMERA
     seeds = iter(torch.randint(0, 2**31, (64,), generator=gen).tolist())  # new noise every exposure
     area = (lw.pixel_mesh(layout, size).areas() * (48 * 48 / 4))[0]  # µm² per column
     classes = [(0, 11), (3, 8), (5, 6)]  # a column and its mirror image: equal areas
