@@ -428,9 +428,13 @@ def _segment_weights(
                 t0, t1 = max(min(u0, u1), t_lo), min(max(u0, u1), t_hi)
             col2 = col - 1 if (vertical and x0 == col and col > 0) else col  # on a column boundary
             gl = 0.0
-            for k in range(n):
-                lv = 0.5 * (_cell(incl, row, col, k, block) + _cell(incl, row2, col2, k, block))
-                gl += grad[k, e] * lv
+            if row2 == row and col2 == col:  # inside the cell (nearly always): one look-up
+                for k in range(n):
+                    gl += grad[k, e] * _cell(incl, row, col, k, block)
+            else:
+                for k in range(n):
+                    lv = 0.5 * (_cell(incl, row, col, k, block) + _cell(incl, row2, col2, k, block))
+                    gl += grad[k, e] * lv
             m1 = (t1 * t1 - t0 * t0) / 2
             wa[s] += gl * ((t1 - t0) - m1)
             wb[s] += gl * m1
