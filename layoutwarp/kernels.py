@@ -729,6 +729,8 @@ def _poisson(mu: float, state: np.uint64) -> tuple[float, np.uint64]:
     the exact ``p_k`` of :func:`_log_poisson`."""
     if mu <= 0.0:
         return 0.0, state
+    if not mu < math.inf:  # NaN or inf (allow_nonfinite): passed through, no count to draw
+        return mu, state
     if mu < 10.0:
         limit, k = math.exp(-mu), 0.0
         prod, state = _uniform(state)

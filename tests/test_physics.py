@@ -556,3 +556,18 @@ def test_the_quantiser_passes_gradients_straight_through(gen):
             assert torch.equal(out.detach(), out.detach().round())
         grads.append(torch.autograd.grad((out * w).sum(), layout.rho)[0])
     assert torch.allclose(grads[0], grads[1], rtol=1e-12) and bool(grads[0].abs().sum() > 0)
+
+
+def test_nonfinite_input_passes_through_the_measurement_with_allow_nonfinite(gen):
+    # NaN/Inf in the image (allow_nonfinite=True) reach only the pixels they touch, as NaN/Inf
+    # electrons: the samplers pass them through instead of looping on them
+    img = torch.rand(2, 3, 40, 60, generator=gen)
+    img[0, 1, 10:20, 10:20] = float("nan")
+    img[1, 0, :5, :5] = float("inf")
+    ph = physics(photons_per_um2=200.0, read_noise_e=2.0, seed=1)
+    layout = lw.CurvLayout(rand_theta(gen, 0.5))
+    touched = torch.isnan(lw.simulate(img, layout, (8, 12), allow_nonfinite=True))
+    touched |= torch.isinf(lw.simulate(img, layout, (8, 12), allow_nonfinite=True))
+    for output in ("radiance", "electrons"):
+        out = lw.simulate(img, layout, (8, 12), physics=ph, allow_nonfinite=True, output=output)
+        assert torch.equal(~torch.isfinite(out), touched) and 0 < int(touched.sum()) < touched.numel()
