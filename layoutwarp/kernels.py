@@ -722,6 +722,19 @@ def _modified_normal(mu: float, s: float, k: float) -> tuple[float, float]:
 
 
 @_inline
+def _pd_step_i(mu: float, k: float) -> bool:
+    """PD's immediate acceptance of the normal's ``k = ⌊mu + √mu z⌋`` (step I)."""
+    return k >= math.floor(mu - 1.1484)
+
+
+@_inline
+def _pd_step_s(mu: float, k: float, u: float) -> bool:
+    """PD's squeeze (step S) with the uniform ``u``: ``6 mu² u ≥ (mu − k)³``."""
+    dm = mu - k
+    return 6.0 * mu * mu * u >= dm * dm * dm
+
+
+@_inline
 def _poisson(mu: float, state: np.uint64) -> tuple[float, np.uint64]:
     """An exact Poisson draw, and the advanced state: multiplication of uniforms below 10, above
     Ahrens and Dieter's algorithm PD (1982; a normal draw accepted outright or by a squeeze
@@ -744,11 +757,10 @@ def _poisson(mu: float, state: np.uint64) -> tuple[float, np.uint64]:
     g = mu + s * z
     if g >= 0.0:
         k = math.floor(g)
-        if k >= math.floor(mu - 1.1484):  # step I
+        if _pd_step_i(mu, k):
             return k, state
         u, state = _uniform(state)
-        dm = mu - k
-        if 6.0 * mu * mu * u >= dm * dm * dm:  # step S
+        if _pd_step_s(mu, k, u):
             return k, state
         fx, fy = _modified_normal(mu, s, k)
         if fy * (1.0 - u) <= math.exp(_log_poisson(mu, k) - fx):  # step Q
@@ -779,9 +791,8 @@ def _first_tries(mu: float, shot: np.uint64, read: np.uint64) -> tuple[float, fl
     z1 = u1 * _ZIG_X[i1]
     g = mu + math.sqrt(max(mu, 0.0)) * z1
     k = math.floor(g)
-    u2 = ((_mix(shot + _GOLDEN + _GOLDEN) >> np.uint64(11)) + 0.5) * _U53
-    dm = mu - k
-    ok_k = (mu >= 10.0) & (g >= 0.0) & ((k >= math.floor(mu - 1.1484)) | (6.0 * mu * mu * u2 >= dm * dm * dm))
+    u2, _ = _uniform(shot + _GOLDEN)  # the draw after the normal's
+    ok_k = (mu >= 10.0) & (g >= 0.0) & (_pd_step_i(mu, k) | _pd_step_s(mu, k, u2))
     u3, i3 = _strip(_mix(read + _GOLDEN))
     return k, z1, u3 * _ZIG_X[i3], abs(u1) < _ZIG_R[i1], ok_k, abs(u3) < _ZIG_R[i3]
 

@@ -355,7 +355,8 @@ def measure(
         ValueError: a full well below the read noise in the smallest pixel.
     """
     check_choice(output, OUTPUTS, "output")
-    a_um2 = areas.to(mean) * (physics.sensor_um[0] * physics.sensor_um[1] / 4)
+    um2 = physics.sensor_um[0] * physics.sensor_um[1] / 4  # µm² per unit of sensor area
+    a_um2 = areas.to(mean) * um2
     if generator is None and physics.seed is not None:
         generator = torch.Generator(mean.device).manual_seed(physics.seed)
     full = None
@@ -373,8 +374,8 @@ def measure(
     needs_grad = torch.is_grad_enabled() and (mean.requires_grad or a_um2.requires_grad)
     if mode == "auto":
         mode = "gaussian" if needs_grad else "poisson"
-    if not needs_grad and mean.device.type == "cpu" and kernels.available():  # areas kept in float64
-        a64 = areas.detach().to(torch.float64) * (physics.sensor_um[0] * physics.sensor_um[1] / 4)
+    if not needs_grad and mean.device.type == "cpu" and kernels.available():
+        a64 = areas.detach().to(torch.float64) * um2  # areas kept in float64 for the kernel
         return _measure_compiled(mean, a64, physics, mode, output, generator)
     photons = physics.photons_per_um2 * physics.fill_factor * mean * a_um2
     prnu, dsnu = _patterns(physics, tuple(mean.shape[-2:]), mean.dtype, mean.device)

@@ -374,9 +374,7 @@ def run(config: BenchConfig | None = None, progress: Callable[[str], None] | Non
 
 def _anchors(cfg: BenchConfig, img: Tensor, curv: Layout) -> dict[str, float]:
     """``cv2.resize(INTER_AREA)`` and a bare ``grid_sample`` MC-16 of the curv layout, in ms."""
-    h, w = cfg.size
-    npimg = np.ascontiguousarray(img[0].permute(1, 2, 0).numpy())
-    t_area = _time(lambda: cv2.resize(npimg, (w, h), interpolation=cv2.INTER_AREA), cfg.repeats)
+    t_area = _time(_forward_fn(img, curv, cfg.size, "inter_area", {}), cfg.repeats)
     gen = torch.Generator(cfg.device).manual_seed(0)  # samples drawn on the device, as a GPU user would
     dev_img = img.to(cfg.device)
     t_gs = _time(lambda: _grid_sample_mc(dev_img, curv, cfg.size, 4, gen), cfg.repeats)
@@ -521,13 +519,10 @@ def reuse_row(cfg: BenchConfig, image_name: str, img: Tensor) -> Row:
         with torch.no_grad():
             return simulate(dev_img, layout, cfg.size)
 
-    npimg = np.ascontiguousarray(img[0].permute(1, 2, 0).numpy())
-    h, w = cfg.size
     clear_resampler_cache()
     first = _time(fwd, 0)
-    area, repeat = _time_paired(
-        [lambda: cv2.resize(npimg, (w, h), interpolation=cv2.INTER_AREA), fwd], cfg.repeats * 2 + 1
-    )
+    inter_area = _forward_fn(img, layout, cfg.size, "inter_area", {})
+    area, repeat = _time_paired([inter_area, fwd], cfg.repeats * 2 + 1)
     with torch.no_grad():
         ref = integrate_exact(img.flatten(0, 1), layout.cpu(), cfg.size, tol=data_tolerance(torch.float32)[0])
     err = (fwd().cpu().double().flatten(0, 1) - ref).abs()
