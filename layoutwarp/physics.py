@@ -44,6 +44,7 @@ from __future__ import annotations
 import functools
 import json
 import math
+from collections import OrderedDict
 from dataclasses import asdict, dataclass, fields
 from typing import Any
 
@@ -197,6 +198,10 @@ class SensorPhysics:
         return json.dumps(self.to_dict(), indent=2)
 
     # -- derived -------------------------------------------------------------------
+    def um2_per_unit(self) -> float:
+        """µm² per unit of sensor area (the square ``[-1, 1]²`` is ``sensor_um``)."""
+        return self.sensor_um[0] * self.sensor_um[1] / 4
+
     def gain(self, largest_area_um2: float) -> float:
         """The system gain ``K`` (DN per electron) for a sensor whose largest pixel is that big."""
         if self.gain_dn_per_e is not None:
@@ -355,28 +360,17 @@ def measure(
         ValueError: a full well below the read noise in the smallest pixel.
     """
     check_choice(output, OUTPUTS, "output")
-    um2 = physics.sensor_um[0] * physics.sensor_um[1] / 4  # µm² per unit of sensor area
-    a_um2 = areas.to(mean) * um2
     if generator is None and physics.seed is not None:
         generator = torch.Generator(mean.device).manual_seed(physics.seed)
-    full = None
-    if physics.full_well_per_um2 is not None:
-        full = physics.full_well_per_um2 * a_um2
-        smallest = float(full.detach().min())
-        if smallest <= physics.read_noise_e:
-            raise ArgumentError(
-                "full_well_per_um2",
-                f"full_well_per_um2 = {physics.full_well_per_um2:g} gives the smallest pixel a full well of "
-                f"{smallest:.3g} e⁻, not above the read noise {physics.read_noise_e:g} e⁻",
-            )
-    eta = physics.quantum_efficiency
     mode = physics.noise
-    needs_grad = torch.is_grad_enabled() and (mean.requires_grad or a_um2.requires_grad)
+    needs_grad = torch.is_grad_enabled() and (mean.requires_grad or areas.requires_grad)
     if mode == "auto":
         mode = "gaussian" if needs_grad else "poisson"
     if not needs_grad and mean.device.type == "cpu" and kernels.available():
-        a64 = areas.detach().to(torch.float64) * um2  # areas kept in float64 for the kernel
-        return _measure_compiled(mean, a64, physics, mode, output, generator)
+        return _measure_compiled(mean, _compiled_sensor(physics, areas), mode, output, generator)
+    a_um2 = areas.to(mean) * physics.um2_per_unit()
+    full = _full_well(physics, a_um2)
+    eta = physics.quantum_efficiency
     photons = physics.photons_per_um2 * physics.fill_factor * mean * a_um2
     prnu, dsnu = _patterns(physics, tuple(mean.shape[-2:]), mean.dtype, mean.device)
     signal = eta * photons * (1 + physics.prnu * prnu)  # prnu = dsnu = 0: exactly the plain terms
@@ -432,19 +426,46 @@ def pixel_snr(areas_um2: Tensor, physics: SensorPhysics, level: float = 1.0) -> 
     return {"full_well_e": full, "signal_e": signal, "snr": snr}
 
 
-def _measure_compiled(
-    mean: Tensor,
-    a_um2: Tensor,
-    physics: SensorPhysics,
-    mode: str,
-    output: str,
-    generator: torch.Generator | None,
-) -> Tensor:
-    """:func:`measure` without gradient on the CPU: the fused kernel
-    :func:`~layoutwarp.kernels.sensor_measure`, its noise from a seed drawn from ``generator``."""
-    prnu, dsnu = _patterns(physics, tuple(mean.shape[-2:]), torch.float64, "cpu")
-    inf = math.inf
-    a = a_um2.detach().to(torch.float64).flatten()
+def _full_well(physics: SensorPhysics, a_um2: Tensor) -> Tensor | None:
+    """Each pixel's full well in electrons (``None``: no saturation).
+
+    Raises:
+        ArgumentError: a full well not above the read noise in the smallest pixel.
+    """
+    if physics.full_well_per_um2 is None:
+        return None
+    full = physics.full_well_per_um2 * a_um2
+    smallest = float(full.detach().min())
+    if smallest <= physics.read_noise_e:
+        raise ArgumentError(
+            "full_well_per_um2",
+            f"full_well_per_um2 = {physics.full_well_per_um2:g} gives the smallest pixel a full well of "
+            f"{smallest:.3g} e⁻, not above the read noise {physics.read_noise_e:g} e⁻",
+        )
+    return full
+
+
+#: The compiled measurement's per-sensor inputs, most recently used last (see :func:`_compiled_sensor`).
+_SENSORS: OrderedDict[tuple, tuple[Tensor, tuple[np.ndarray, ...]]] = OrderedDict()
+SENSOR_CACHE_SIZE = 8
+
+
+def _compiled_sensor(physics: SensorPhysics, areas: Tensor) -> tuple[np.ndarray, ...]:
+    """The kernel's inputs that depend on the camera and the pixel areas alone: areas in µm²,
+    the PRNU and DSNU patterns (float64, flat) and the parameter vector. Kept for the last
+    :data:`SENSOR_CACHE_SIZE` (camera, areas) pairs, an areas tensor recognised by identity and
+    version (a fixed layout's cached mesh gives the same tensor every call), so a repeated call
+    costs no torch operation."""
+    key = (physics, id(areas), areas._version)
+    hit = _SENSORS.get(key)
+    if hit is not None and hit[0] is areas:
+        _SENSORS.move_to_end(key)
+        return hit[1]
+    a = areas.detach().to("cpu", torch.float64).flatten() * physics.um2_per_unit()
+    _full_well(physics, a)
+    prnu, dsnu = _patterns(physics, tuple(areas.shape[-2:]), torch.float64, "cpu")
+    none = np.zeros(0)  # a pattern of gain 0 is not read: one cold array less per call
+    prnu, dsnu = (z.flatten().numpy() if g else none for z, g in ((prnu, physics.prnu), (dsnu, physics.dsnu)))
     params = np.array(
         [
             physics.photons_per_um2 * physics.fill_factor,
@@ -453,18 +474,34 @@ def _measure_compiled(
             physics.dsnu,
             physics.dark_e_per_um2,
             physics.read_noise_e,
-            physics.full_well_per_um2 if physics.full_well_per_um2 is not None else inf,
+            physics.full_well_per_um2 if physics.full_well_per_um2 is not None else math.inf,
             physics.gain(float(a.max())),
             physics.black_level_dn,
-            2**physics.adc_bits - 1 if physics.adc_bits is not None else inf,
+            2**physics.adc_bits - 1 if physics.adc_bits is not None else math.inf,
         ]
     )
+    arrays = (a.numpy(), prnu, dsnu, params)
+    _SENSORS[key] = (areas, arrays)  # holding the tensor keeps its id its own
+    while len(_SENSORS) > SENSOR_CACHE_SIZE:
+        _SENSORS.popitem(last=False)
+    return arrays
+
+
+def _measure_compiled(
+    mean: Tensor,
+    sensor: tuple[np.ndarray, ...],
+    mode: str,
+    output: str,
+    generator: torch.Generator | None,
+) -> Tensor:
+    """:func:`measure` without gradient on the CPU: the fused kernel
+    :func:`~layoutwarp.kernels.sensor_measure` on :func:`_compiled_sensor`'s inputs, its noise
+    from a seed drawn from ``generator``."""
     seed = int(torch.randint(0, 2**62, (), generator=generator)) if mode != "none" else 0
     work = torch.float32 if mean.dtype == torch.float32 else torch.float64  # the kernel's two builds
-    flat = mean.detach().reshape(-1, a.numel()).to(work).contiguous().numpy()
+    flat = mean.detach().reshape(-1, sensor[0].size).to(work).contiguous().numpy()
     out = np.empty_like(flat)
-    arrays = (a.numpy(), prnu.flatten().numpy(), dsnu.flatten().numpy())
     with kernels.LOCK:
         kernels.threads()  # numba's threads for this launch, bounded by torch's
-        kernels.sensor_measure(flat, *arrays, params, seed, NOISE_CODES[mode], OUTPUTS.index(output), out)
+        kernels.sensor_measure(flat, *sensor, seed, NOISE_CODES[mode], OUTPUTS.index(output), out)
     return torch.from_numpy(out).reshape(mean.shape).to(mean.dtype)

@@ -119,6 +119,11 @@ class AreaResampler:
     The sparse product runs on ``device`` (the weights are built on the CPU once, then moved):
     CPU or CUDA; a CUDA product sums in another order, so its float32 values can differ from
     the CPU's in the last bits (a rounded integer output by one level, rarely).
+
+    Attributes:
+        weights: the ``(h · w, H · W)`` float32 ``scipy.sparse.csr_matrix`` of :func:`area_weights`.
+        areas: the pixels' areas ``(h, w)``, float64, in sensor units (the square ``[-1, 1]²``),
+            on ``device`` (what sensor physics needs besides the means).
     """
 
     def __init__(
@@ -135,6 +140,8 @@ class AreaResampler:
         self.layout = layout
         self.tol = data_tolerance(dtype)[0] if tol is None else tol
         self.weights = area_weights(layout, self.size, self.src_size, tol=self.tol).astype(np.float32)
+        with torch.no_grad():  # the same (cached) mesh as the weights': its pixels' areas
+            self.areas = pixel_mesh(layout, self.size, tol=self.tol, dtype=torch.float64).areas().to(device)
         w = self.weights
         with warnings.catch_warnings():  # "sparse CSR support is in beta"
             warnings.simplefilter("ignore", UserWarning)

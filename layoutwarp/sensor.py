@@ -24,7 +24,7 @@ from .layoutfile import load_layout, save_layout
 from .layouts import Layout, make_layout
 from .mesh import PixelMesh, pixel_mesh
 from .physics import OUTPUTS, SensorPhysics, apply_psf, measure
-from .resampler import resampler_for
+from .resampler import AreaResampler, resampler_for
 
 __all__ = ["METHODS", "SensorLayer", "SimulationPlan", "plan_simulation", "simulate"]
 
@@ -283,23 +283,36 @@ class _Integration:
             return self._dispatch(work)
         if isinstance(work, Tensor):
             work = apply_psf(work, self.physics)
-        mesh = None
-        if self.plan.method != "separable":  # the polygons the pixels' areas come from
-            mesh = pixel_mesh(self.layout, self.size, tol=self.tol, dtype=torch.float64)
-        mean = self._dispatch(work, mesh)
-        areas = (mesh or pixel_mesh(self.layout, self.size, dtype=torch.float64)).areas()
+        weights = self._weights(work)
+        if weights is not None:  # a fixed layout: its cached weights know their pixels' areas
+            mean, areas = weights.apply(work), weights.areas
+        else:
+            mesh = None
+            if self.plan.method != "separable":  # the polygons the pixels' areas come from
+                mesh = pixel_mesh(self.layout, self.size, tol=self.tol, dtype=torch.float64)
+            mean = self._dispatch(work, mesh)
+            areas = (mesh or pixel_mesh(self.layout, self.size, dtype=torch.float64)).areas()
         return measure(mean, areas, self.physics, output=self.output, generator=self.generator)
+
+    def _weights(self, work: Tensor | Radiance) -> AreaResampler | None:
+        """The cached sparse area weights that integrate ``work`` exactly, where they apply: the
+        exact method, a fixed layout (θ needs no gradient) of a registered family, float32
+        images."""
+        fixed = not (torch.is_grad_enabled() and self.layout.rho.requires_grad)
+        if self.plan.method != "exact" or not fixed:
+            return None
+        if not (isinstance(work, Tensor) and work.dtype == torch.float32):
+            return None
+        return resampler_for(self.layout, self.size, tuple(work.shape[-2:]), self.tol, work.device)
 
     def _dispatch(self, work: Tensor | Radiance, mesh: PixelMesh | None = None) -> Tensor:
         plan, layout, size = self.plan, self.layout, self.size
         if plan.method == "separable":
             return integrate_separable(work, layout, size)
         if plan.method == "exact":
-            fixed = not (torch.is_grad_enabled() and layout.rho.requires_grad)
-            if fixed and isinstance(work, Tensor) and work.dtype == torch.float32:
-                weights = resampler_for(layout, size, tuple(work.shape[-2:]), self.tol, work.device)
-                if weights is not None:  # one sparse product: the exact integral of a fixed layout
-                    return weights.apply(work)
+            weights = self._weights(work)
+            if weights is not None:  # one sparse product: the exact integral of a fixed layout
+                return weights.apply(work)
             return integrate_exact(work, layout, size, tol=self.tol, mesh=mesh)
         radiance = "bilinear" if plan.radiance == "callable" else plan.radiance  # ignored for callables
         if plan.method == "montecarlo":

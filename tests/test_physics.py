@@ -179,6 +179,24 @@ def _kernel_electrons(mean: np.ndarray, noise: int, read: float, seed: int) -> n
     return out[0]
 
 
+def test_the_compiled_measurement_sees_areas_changed_in_place(gen):
+    # its per-sensor inputs are cached by the areas tensor: a change in place must not go stale
+    from layoutwarp.physics import measure
+
+    mean = torch.rand(2, 4, 6, generator=gen, dtype=F64)
+    areas = (0.5 + torch.rand(4, 6, generator=gen, dtype=F64)) * (4 / 24)
+    cam = physics(noise="none", dark_e_per_um2=0.2)
+    first = measure(mean, areas, cam, output="electrons")
+    assert torch.equal(first, measure(mean, areas, cam, output="electrons"))
+    areas.mul_(3.0)
+    assert torch.allclose(measure(mean, areas, cam, output="electrons"), 3 * first, rtol=1e-14, atol=0)
+    brighter = physics(noise="none", dark_e_per_um2=0.2, photons_per_um2=200.0)
+    dark = 0.2 * areas * cam.um2_per_unit()  # the tripled areas
+    assert torch.allclose(
+        measure(mean, areas, brighter, output="electrons") - dark, 2 * (3 * first - dark), rtol=1e-13
+    )
+
+
 @pytest.mark.parametrize("lam", [0.7, 3.0, 9.99, 10.0, 12.3, 37.5, 1000.0, 3.0e4])
 def test_the_kernels_poisson_draws_follow_the_poisson_law(lam, gen):
     # 3M draws against the exact pmf (χ², tails pooled): below 10 the multiplication method,
@@ -199,8 +217,8 @@ def test_the_kernels_poisson_draws_follow_the_poisson_law(lam, gen):
 
 def test_the_kernels_normal_draws_follow_the_normal_law(gen):
     # the ziggurat through the shot stream (Gaussian mode at mean 1: e = 1 + z) and the read
-    # stream (Poisson mode at mean 0: e = σ z): KS against Φ, and the tail beyond the ziggurat's
-    # R = 3.4426 (its slow path) at its exact mass
+    # stream (Poisson mode at mean 0: e = σ z): KS against Φ, and the tail beyond the 512-layer
+    # ziggurat's R = 3.8520 (its slow path) and beyond the first layer's edge at their exact masses
     stats = pytest.importorskip("scipy.stats")
     n = 3_000_000
     seed = int(torch.randint(0, 2**62, (), generator=gen))
@@ -208,10 +226,39 @@ def test_the_kernels_normal_draws_follow_the_normal_law(gen):
     read = _kernel_electrons(np.zeros(n), 1, 2.0, seed) / 2.0
     for z in (shot, read):
         assert stats.kstest(z, "norm").pvalue > 1e-4
-        tail, p = float((np.abs(z) > 3.442619855899).mean()), 2 * stats.norm.sf(3.442619855899)
-        assert abs(tail - p) < 5 * math.sqrt(p / n), (tail, p)
+        for edge in (3.852046150368391, 3.0, 0.1):  # the tail, a wedge's span, the top layers
+            tail, p = float((np.abs(z) > edge).mean()), 2 * stats.norm.sf(edge)
+            assert abs(tail - p) < 5 * math.sqrt(p * (1 - p) / n), (edge, tail, p)
         assert abs(float(z.mean())) < 5 / math.sqrt(n) and abs(float(z.var()) - 1) < 5 * math.sqrt(2 / n)
     assert abs(float(np.corrcoef(shot, read)[0, 1])) < 5 / math.sqrt(n)  # two independent streams
+
+
+@pytest.mark.parametrize("noise", [1, 2])
+def test_the_kernels_first_tries_give_the_full_samplers_draws_bit_for_bit(noise, gen):
+    # the vectorised first tries (and the partial reruns where one stream's try fails) must
+    # return exactly what the full samplers draw from each element's two streams
+    numba = pytest.importorskip("numba")
+    from layoutwarp import kernels
+
+    @numba.njit
+    def reference(mu, seed, read, noise):
+        state0 = kernels._mix(np.uint64(seed) * kernels._GOLDEN + np.uint64(0x632BE59BD9B4E019))
+        out = np.empty(mu.size)
+        for i in range(mu.size):
+            key = state0 ^ (np.uint64(i) * kernels._GOLDEN)
+            if noise == 1:
+                e, _ = kernels._poisson(mu[i], kernels._mix(key))
+            else:
+                z, _ = kernels._normal(kernels._mix(key))
+                e = mu[i] + math.sqrt(mu[i]) * z
+            z, _ = kernels._normal(kernels._mix(key ^ kernels._READ_KEY))
+            out[i] = e + read * z
+        return out
+
+    n = 200_000  # a few thousand failed first tries of each kind
+    mu = np.exp(torch.empty(n, dtype=F64).uniform_(math.log(0.5), math.log(1e5), generator=gen).numpy())
+    seed = int(torch.randint(0, 2**62, (), generator=gen))
+    assert np.array_equal(_kernel_electrons(mu, noise, 2.5, seed), reference(mu, seed, 2.5, noise))
 
 
 def test_quantiser_levels_and_full_well_clipping():
