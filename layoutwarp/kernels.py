@@ -834,7 +834,7 @@ def sensor_measure(
     offset and its one reciprocal, shared by the planes). Per plane, a branch-free loop takes
     every draw's first try (:func:`_first_tries`; without noise, a loop with none: both
     vectorise); a second loop reruns a full sampler from the start of its stream where a first
-    try was rejected (about 1.5 % of the normals, a few tenths of a percent of the Poisson draws
+    try was rejected (about 0.8 % of the normals, a few tenths of a percent of the Poisson draws
     at large means, all of them below a mean of 10 electrons).
     """
     light, eta, g_prnu, g_dsnu, dark_um2 = params[0], params[1], params[2], params[3], params[4]
