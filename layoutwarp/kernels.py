@@ -51,6 +51,8 @@ __all__ = [
     "exact_backward",
     "exact_forward",
     "exact_forward_banded",
+    "exact_forward_moments",
+    "moment_weights",
     "prefix_tables",
     "sensor_measure",
     "threads",
@@ -169,6 +171,41 @@ def _cell(incl: np.ndarray, row: int, col: int, k: int, block: int) -> float:
 
 
 @_inline
+def _row_piece(
+    row: int, x0: float, y0: float, dxv: float, inv_dy: float, ylo: float, yhi: float, flat: bool, w: int
+) -> tuple[float, float, float, float, int, int, float]:
+    """The piece in source row ``row`` of the segment from ``(x0, y0)`` by ``(dxv, 1/inv_dy)``,
+    ``Y`` from ``ylo`` to ``yhi`` (a flat segment: all of it): its parameter range
+    ``t_lo .. t_hi``, its ``X`` range, the columns ``c0 .. c1`` it crosses (one for a vertical
+    segment) and ``1/dxv`` where it crosses more than one."""
+    if flat:
+        t_lo, t_hi = 0.0, 1.0
+    else:
+        ta = min(max((max(ylo, row) - y0) * inv_dy, 0.0), 1.0)
+        tb = min(max((min(yhi, row + 1.0) - y0) * inv_dy, 0.0), 1.0)
+        t_lo, t_hi = min(ta, tb), max(ta, tb)
+    xa, xb = x0 + t_lo * dxv, x0 + t_hi * dxv
+    xlo, xhi = min(xa, xb), max(xa, xb)
+    c0 = min(max(math.floor(xlo), 0), w - 1)
+    c1 = max(min(max(math.ceil(xhi) - 1, 0), w - 1), c0)
+    if dxv == 0.0:
+        c1 = c0
+    return t_lo, t_hi, xlo, xhi, c0, c1, (1.0 / dxv if c1 != c0 else 1.0)
+
+
+@_inline
+def _cell_piece(
+    col: int, x0: float, inv_dx: float, t_lo: float, t_hi: float, xlo: float, xhi: float, one_column: bool
+) -> tuple[float, float]:
+    """The parameter range inside column ``col`` of a row piece (:func:`_row_piece`)."""
+    if one_column:  # keep the row piece's range (X → t is ill-conditioned)
+        return t_lo, t_hi
+    u0 = min(max((max(xlo, col) - x0) * inv_dx, 0.0), 1.0)
+    u1 = min(max((min(xhi, col + 1.0) - x0) * inv_dx, 0.0), 1.0)
+    return max(min(u0, u1), t_lo), min(max(u0, u1), t_hi)
+
+
+@_inline
 def _segment_rows(
     x0: float,
     y0: float,
@@ -183,41 +220,40 @@ def _segment_rows(
     w: int,
     out: np.ndarray,
     at: int,
+    moments: bool,
+    ma: np.ndarray,
+    mb: np.ndarray,
 ) -> None:
     """Add segment ``(x0, y0) → (x1, y1)``'s ``∫ P dY`` over source rows ``rlo .. rhi`` to
-    ``out[at, :]``; the tables hold rows from ``ra`` on (see :func:`exact_forward`)."""
+    ``out[at, :]``; the tables hold rows from ``ra`` on (see :func:`exact_forward`). With
+    ``moments``, also its Reynolds moments to ``ma[at, :]``, ``mb[at, :]`` from the same pieces
+    and look-ups (:func:`_segment_moments` gives them for a flat segment)."""
     n = incl.shape[2]
     dxv, dyv = x1 - x0, y1 - y0
     inv_dy = 1.0 / dyv
     ylo, yhi = min(y0, y1), max(y0, y1)
     for row in range(rlo, rhi + 1):
-        ta = min(max((max(ylo, row) - y0) * inv_dy, 0.0), 1.0)
-        tb = min(max((min(yhi, row + 1.0) - y0) * inv_dy, 0.0), 1.0)
-        t_lo, t_hi = min(ta, tb), max(ta, tb)
-        xa, xb = x0 + t_lo * dxv, x0 + t_hi * dxv
-        xlo, xhi = min(xa, xb), max(xa, xb)
-        c0 = min(max(math.floor(xlo), 0), w - 1)
-        c1 = max(min(max(math.ceil(xhi) - 1, 0), w - 1), c0)
-        if dxv == 0.0:
-            c1 = c0
-        one_column = c1 == c0
-        inv_dx = 1.0 / dxv if not one_column else 1.0
+        t_lo, t_hi, xlo, xhi, c0, c1, inv_dx = _row_piece(row, x0, y0, dxv, inv_dy, ylo, yhi, False, w)
         rr = row - ra
         for col in range(c0, c1 + 1):
-            if one_column:  # keep the row piece's range (X → t is ill-conditioned)
-                t0, t1 = t_lo, t_hi
-            else:
-                u0 = min(max((max(xlo, col) - x0) * inv_dx, 0.0), 1.0)
-                u1 = min(max((min(xhi, col + 1.0) - x0) * inv_dx, 0.0), 1.0)
-                t0, t1 = max(min(u0, u1), t_lo), min(max(u0, u1), t_hi)
+            t0, t1 = _cell_piece(col, x0, inv_dx, t_lo, t_hi, xlo, xhi, c1 == c0)
             dy = (t1 - t0) * dyv
             frac = min(max(x0 + (t0 + t1) / 2 * dxv - col, 0.0), 1.0)
             blk = col // block
             at_start = col % block == 0
+            m1 = (t1 * t1 - t0 * t0) / 2
+            m0 = (t1 - t0) - m1
+            on_line = dxv == 0.0 and x0 == col and col > 0  # on a column line: the two cells' mean
             for k in range(n):
                 cur = np.float64(incl[rr, col, k])
                 prev = 0.0 if at_start else np.float64(incl[rr, col - 1, k])
                 out[at, k] += dy * (offsets[rr, blk, k] + prev + frac * (cur - prev))
+                if moments:
+                    lv = cur - prev  # the cell's value, as _cell gives it
+                    if on_line:
+                        lv = 0.5 * (lv + _cell(incl, rr, col - 1, k, block))
+                    ma[at, k] += lv * m0
+                    mb[at, k] += lv * m1
 
 
 @_inline
@@ -240,7 +276,32 @@ def _segment_forward(
         return  # ΔY = 0 adds nothing
     per_seg[s, n] = (y1 - y0) * (x0 + x1) / 2
     r0, r1 = _row_span(y0, y1, h)
-    _segment_rows(x0, y0, x1, y1, r0, r1, 0, incl, offsets, block, w, per_seg, s)
+    _segment_rows(x0, y0, x1, y1, r0, r1, 0, incl, offsets, block, w, per_seg, s, False, per_seg, per_seg)
+
+
+@_inline
+def _segment_forward_moments(
+    s: int,
+    verts: np.ndarray,
+    seg_start: np.ndarray,
+    seg_end: np.ndarray,
+    incl: np.ndarray,
+    offsets: np.ndarray,
+    block: int,
+    per_seg: np.ndarray,
+    ma: np.ndarray,
+    mb: np.ndarray,
+) -> None:
+    """:func:`_segment_forward` and segment ``s``'s Reynolds moments into ``ma[s]``, ``mb[s]``."""
+    h, w, n = incl.shape
+    x0, y0 = verts[seg_start[s], 0], verts[seg_start[s], 1]
+    x1, y1 = verts[seg_end[s], 0], verts[seg_end[s], 1]
+    if y1 == y0:  # no ∫ P dY, but moments along the row line
+        _segment_moments(s, verts, seg_start, seg_end, incl, block, ma, mb)
+        return
+    per_seg[s, n] = (y1 - y0) * (x0 + x1) / 2
+    r0, r1 = _row_span(y0, y1, h)
+    _segment_rows(x0, y0, x1, y1, r0, r1, 0, incl, offsets, block, w, per_seg, s, True, ma, mb)
 
 
 @_inline
@@ -291,6 +352,50 @@ def exact_forward(
             for s in range(chunk * CHUNK, min((chunk + 1) * CHUNK, s_count)):
                 _segment_forward(s, verts, seg_start, seg_end, incl, offsets, block, per_seg)
     return _edge_sums(per_seg, edge_offsets)
+
+
+@_jit
+def exact_forward_moments(
+    verts: np.ndarray,
+    seg_start: np.ndarray,
+    seg_end: np.ndarray,
+    edge_offsets: np.ndarray,
+    incl: np.ndarray,
+    offsets: np.ndarray,
+    block: int,
+    threads: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`exact_forward`, and in the same walk, while each segment's cells are in cache, its
+    Reynolds moments ``ma``, ``mb`` ``(S, N)`` (:func:`_segment_moments`): a training step's
+    backward is then one contraction with the gradient (:func:`moment_weights`) instead of a
+    second walk over the table."""
+    s_count, n = seg_start.shape[0], incl.shape[2]
+    per_seg = np.zeros((s_count, n + 1), dtype=np.float64)
+    ma, mb = np.zeros((s_count, n), dtype=np.float64), np.zeros((s_count, n), dtype=np.float64)
+    n_chunks = (s_count + CHUNK - 1) // CHUNK
+    for thread in prange(threads):
+        for chunk in range(thread, n_chunks, threads):
+            for s in range(chunk * CHUNK, min((chunk + 1) * CHUNK, s_count)):
+                _segment_forward_moments(s, verts, seg_start, seg_end, incl, offsets, block, per_seg, ma, mb)
+    return _edge_sums(per_seg, edge_offsets), ma, mb
+
+
+@_jit
+def moment_weights(
+    ma: np.ndarray, mb: np.ndarray, seg_edge: np.ndarray, grad: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`exact_backward`'s Reynolds weights from :func:`exact_forward_moments`' moments:
+    ``wa[s] = grad[N, e]/2 + Σ_n grad[n, e]·ma[s, n]`` (and ``wb`` from ``mb``), ``e = seg_edge[s]``."""
+    s_count, n = ma.shape
+    wa, wb = np.empty(s_count), np.empty(s_count)
+    for s in prange(s_count):
+        e = seg_edge[s]
+        a = b = grad[n, e] / 2
+        for k in range(n):
+            a += grad[k, e] * ma[s, k]
+            b += grad[k, e] * mb[s, k]
+        wa[s], wb[s] = a, b
+    return wa, wb
 
 
 @_jit
@@ -350,7 +455,10 @@ def exact_forward_banded(
                 r0, r1 = _row_span(y0, y1, h)
                 rlo, rhi = max(r0, ra), min(r1, rb - 1)
                 e = seg_edge[s]
-                _segment_rows(x0, y0, x1, y1, rlo, rhi, ra, incl, offsets, block, w, sums[thread], e)
+                out_t = sums[thread]
+                _segment_rows(
+                    x0, y0, x1, y1, rlo, rhi, ra, incl, offsets, block, w, out_t, e, False, out_t, out_t
+                )
     out = np.zeros((n + 1, e_count), dtype=np.float64)
     for e in prange(e_count):
         for k in range(n):
@@ -396,36 +504,15 @@ def _segment_weights(
     x1, y1 = verts[seg_end[s], 0], verts[seg_end[s], 1]
     dxv, dyv = x1 - x0, y1 - y0
     wa[s] = wb[s] = grad[n, e] / 2  # the area row: ∫ (1 − t) dt = ∫ t dt = 1/2
-    flat = dyv == 0.0
-    vertical = dxv == 0.0
+    flat, vertical = dyv == 0.0, dxv == 0.0
     inv_dy = 1.0 / dyv if not flat else 1.0
     ylo, yhi = min(y0, y1), max(y0, y1)
     r0, r1 = _row_span(y0, y1, h)
-    if flat:
-        r1 = r0
-    for row in range(r0, r1 + 1):
-        if flat:
-            t_lo, t_hi = 0.0, 1.0
-        else:
-            ta = min(max((max(ylo, row) - y0) * inv_dy, 0.0), 1.0)
-            tb = min(max((min(yhi, row + 1.0) - y0) * inv_dy, 0.0), 1.0)
-            t_lo, t_hi = min(ta, tb), max(ta, tb)
+    for row in range(r0, (r0 if flat else r1) + 1):
+        t_lo, t_hi, xlo, xhi, c0, c1, inv_dx = _row_piece(row, x0, y0, dxv, inv_dy, ylo, yhi, flat, w)
         row2 = row - 1 if (flat and y0 == row and row > 0) else row  # on a row boundary
-        xa, xb = x0 + t_lo * dxv, x0 + t_hi * dxv
-        xlo, xhi = min(xa, xb), max(xa, xb)
-        c0 = min(max(math.floor(xlo), 0), w - 1)
-        c1 = max(min(max(math.ceil(xhi) - 1, 0), w - 1), c0)
-        if vertical:
-            c1 = c0
-        one_column = c1 == c0
-        inv_dx = 1.0 / dxv if not one_column else 1.0
         for col in range(c0, c1 + 1):
-            if one_column:
-                t0, t1 = t_lo, t_hi
-            else:
-                u0 = min(max((max(xlo, col) - x0) * inv_dx, 0.0), 1.0)
-                u1 = min(max((min(xhi, col + 1.0) - x0) * inv_dx, 0.0), 1.0)
-                t0, t1 = max(min(u0, u1), t_lo), min(max(u0, u1), t_hi)
+            t0, t1 = _cell_piece(col, x0, inv_dx, t_lo, t_hi, xlo, xhi, c1 == c0)
             col2 = col - 1 if (vertical and x0 == col and col > 0) else col  # on a column boundary
             gl = 0.0
             if row2 == row and col2 == col:  # inside the cell (nearly always): one look-up
@@ -438,6 +525,45 @@ def _segment_weights(
             m1 = (t1 * t1 - t0 * t0) / 2
             wa[s] += gl * ((t1 - t0) - m1)
             wb[s] += gl * m1
+
+
+@_inline
+def _segment_moments(
+    s: int,
+    verts: np.ndarray,
+    seg_start: np.ndarray,
+    seg_end: np.ndarray,
+    incl: np.ndarray,
+    block: int,
+    ma: np.ndarray,
+    mb: np.ndarray,
+) -> None:
+    """Segment ``s``'s Reynolds moments per channel, ``ma[s, k] = ∫ (1 − t) L_k dt`` and
+    ``mb[s, k] = ∫ t L_k dt`` over its pieces, the walk of :func:`_segment_weights` before any
+    gradient is known (its weights are then ``grad[N, e]/2 + Σ_k grad[k, e]·m[s, k]``)."""
+    h, w, n = incl.shape
+    x0, y0 = verts[seg_start[s], 0], verts[seg_start[s], 1]
+    x1, y1 = verts[seg_end[s], 0], verts[seg_end[s], 1]
+    dxv, dyv = x1 - x0, y1 - y0
+    flat, vertical = dyv == 0.0, dxv == 0.0
+    inv_dy = 1.0 / dyv if not flat else 1.0
+    ylo, yhi = min(y0, y1), max(y0, y1)
+    r0, r1 = _row_span(y0, y1, h)
+    for row in range(r0, (r0 if flat else r1) + 1):
+        t_lo, t_hi, xlo, xhi, c0, c1, inv_dx = _row_piece(row, x0, y0, dxv, inv_dy, ylo, yhi, flat, w)
+        row2 = row - 1 if (flat and y0 == row and row > 0) else row
+        for col in range(c0, c1 + 1):
+            t0, t1 = _cell_piece(col, x0, inv_dx, t_lo, t_hi, xlo, xhi, c1 == c0)
+            col2 = col - 1 if (vertical and x0 == col and col > 0) else col
+            m1 = (t1 * t1 - t0 * t0) / 2
+            m0 = (t1 - t0) - m1
+            inside = row2 == row and col2 == col
+            for k in range(n):
+                lv = _cell(incl, row, col, k, block)
+                if not inside:
+                    lv = 0.5 * (lv + _cell(incl, row2, col2, k, block))
+                ma[s, k] += lv * m0
+                mb[s, k] += lv * m1
 
 
 @_jit

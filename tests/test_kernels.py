@@ -309,3 +309,41 @@ def test_the_csr_product_matches_scipy_for_any_plane_count(planes, gen):
     kernels.csr_apply(w.indptr, w.indices, w.data, x, out)
     ref = (w.astype(np.float64) @ x.astype(np.float64).T).T
     assert np.abs(out - ref).max() < 1e-6 * max(1.0, np.abs(ref).max())
+
+
+@pytest.mark.parametrize(
+    ("family", "theta", "size", "src"),
+    [
+        ("rect", (0.0, 0.0), (4, 4), (28, 28)),  # every edge on a cell line, flat and vertical
+        ("rect", None, None, None),
+        ("curv", None, None, None),
+        ("curv", (0.7, 0.2), (60, 70), (20, 30)),  # pixels smaller than source cells
+    ],
+)
+def test_the_forwards_moments_give_the_backwards_weights(family, theta, size, src, gen):
+    """A training step's forward also gathers each segment's Reynolds moments, and its backward
+    contracts them with the gradient: the weights of the backward's own walk over the table,
+    on segments inside cells, along row lines (flat) and along column lines (vertical)."""
+    theta = rand_theta(gen, 0.95) if theta is None else theta
+    size = size or (rint(gen, 2, 20), rint(gen, 2, 20))
+    src = src or (rint(gen, 5, 90), rint(gen, 5, 90))
+    img = (torch.rand(rint(gen, 1, 4), *src, generator=gen, dtype=F64) * 10 - 3).numpy()
+    mesh = lw.pixel_mesh(lw.make_layout(family, theta, dtype=F64), size, tol=1e-6, dtype=F64)
+    tensors = (mesh.pixel_vertices(src).double(), mesh.seg_start, mesh.seg_end, mesh.edge_offsets)
+    verts, seg_start, seg_end, edge_offsets = [np.ascontiguousarray(t.numpy()) for t in tensors]
+    seg_edge = np.ascontiguousarray(mesh.seg_edge.numpy())
+    tables = kernels.prefix_tables(img, kernels.BLOCK)
+    nt = kernels.threads()
+    grad = torch.randn(img.shape[0] + 1, edge_offsets.size - 1, generator=gen, dtype=F64).numpy()
+    plain = kernels.exact_forward(verts, seg_start, seg_end, edge_offsets, *tables, kernels.BLOCK, nt)
+    out, ma, mb = kernels.exact_forward_moments(
+        verts, seg_start, seg_end, edge_offsets, *tables, kernels.BLOCK, nt
+    )
+    assert np.array_equal(out, plain)
+    wa, wb = kernels.exact_backward(verts, seg_start, seg_end, seg_edge, tables[0], kernels.BLOCK, grad, nt)
+    ma_w, mb_w = kernels.moment_weights(ma, mb, seg_edge, grad)
+    scale = max(np.abs(wa).max(), np.abs(wb).max())
+    assert np.abs(ma_w - wa).max() <= 1e-13 * scale and np.abs(mb_w - wb).max() <= 1e-13 * scale
+    if family == "rect" and size == (4, 4):  # the case is what it says: flat and on-line segments
+        d = verts[seg_end] - verts[seg_start]
+        assert (d[:, 1] == 0).any() and ((d[:, 0] == 0) & (verts[seg_start, 0] % 1 == 0)).any()
