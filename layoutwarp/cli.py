@@ -966,6 +966,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
 
 
+def run() -> None:
+    """The ``layoutwarp`` command (and ``python -m layoutwarp``): :func:`main` in a process of
+    its own, whose allocator keeps freed memory for the next training step
+    (:func:`~layoutwarp.kernels.retain_freed_memory`)."""
+    from .kernels import retain_freed_memory
+
+    retain_freed_memory()
+    sys.exit(main())
+
+
 def _name_the_flag(exc: Exception) -> str:
     """A library error about an argument (:class:`~layoutwarp.checks.ArgumentError`) prefixed
     with the flag that sets it; any other error's message as it is."""
@@ -976,4 +986,4 @@ def _name_the_flag(exc: Exception) -> str:
 
 
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    run()

@@ -347,3 +347,40 @@ def test_the_forwards_moments_give_the_backwards_weights(family, theta, size, sr
     if family == "rect" and size == (4, 4):  # the case is what it says: flat and on-line segments
         d = verts[seg_end] - verts[seg_start]
         assert (d[:, 1] == 0).any() and ((d[:, 0] == 0) & (verts[seg_start, 0] % 1 == 0)).any()
+
+
+@pytest.mark.skipif(__import__("platform").libc_ver()[0] != "glibc", reason="glibc's mallopt")
+def test_retained_memory_spares_the_page_faults_of_repeated_allocations():
+    """In a process of its own: a training step's pattern (allocate and free arrays of some MB,
+    again and again) faults in fresh pages every time by default, and hardly at all once the
+    allocator keeps freed memory."""
+    import subprocess
+    import sys
+
+    code = """
+import resource, sys
+import numpy as np
+from layoutwarp import kernels
+if sys.argv[1] == "1":
+    assert kernels.retain_freed_memory()
+def faults():
+    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+def step():  # four arrays of 16 MiB written, then all freed
+    arrays = [np.ones(2 << 20) for _ in range(4)]
+    del arrays
+for _ in range(3):
+    step()
+before = faults()
+for _ in range(10):
+    step()
+print(faults() - before)
+"""
+    counts = [
+        int(
+            subprocess.run(
+                [sys.executable, "-c", code, flag], capture_output=True, text=True, check=True
+            ).stdout
+        )
+        for flag in ("0", "1")
+    ]
+    assert counts[0] > 10_000 and counts[1] < 200, counts  # by default the freed top is trimmed
