@@ -970,6 +970,7 @@ def sensor_measure(
     noise: int,
     output: int,
     out: np.ndarray,
+    threads: int,
 ) -> None:
     """:func:`layoutwarp.physics.measure` in one pass: means ``(N, P)`` to ``out`` ``(N, P)``.
 
@@ -980,7 +981,8 @@ def sensor_measure(
     draws its shot noise and its read noise from two counter-based streams of its own
     (SplitMix64 keyed by ``seed`` and ``i``), so the result does not depend on the thread count.
 
-    Work items are runs of :data:`MEASURE_CHUNK` pixels through all ``N`` planes. A run first
+    Work items are runs of :data:`MEASURE_CHUNK` pixels through all ``N`` planes, taken in turn
+    by ``threads`` threads (see :func:`threads`), each with its own work space. A run first
     derives its pixels' constants (electrons per unit mean, dark electrons, full well, the ISP's
     offset and its one reciprocal, shared by the planes). Per plane, a branch-free loop takes
     every draw's first try (:func:`_first_tries`; without noise, a loop with none: both
@@ -992,54 +994,56 @@ def sensor_measure(
     read, full_um2, gain, black = params[5], params[6], params[7], params[8]
     n, p = mean.shape
     state0 = _mix(np.uint64(seed) * _GOLDEN + np.uint64(0x632BE59BD9B4E019))
-    for job in prange((p + MEASURE_CHUNK - 1) // MEASURE_CHUNK):
-        lo = job * MEASURE_CHUNK
-        m = min(p, lo + MEASURE_CHUNK) - lo
-        scale, dark, full = np.empty(m), np.empty(m), np.empty(m)
-        zero, inv = np.empty(m), np.empty(m)
-        shot, z_read = np.empty(m), np.empty(m)  # first tries: electrons after shot noise, read's normal
-        redo = np.zeros(m, dtype=np.int8)  # 1: the shot draw's first try failed, 2: the read's
-        for j in range(m):  # the run's pixels' constants
-            a = area_um2[lo + j]
-            scale[j] = eta * light * a * ((1.0 + g_prnu * prnu[lo + j]) if g_prnu != 0.0 else 1.0)
-            dark[j] = dark_um2 * a + (g_dsnu * dsnu[lo + j] if g_dsnu != 0.0 else 0.0)
-            full[j] = full_um2 * a
-            zero[j] = black + gain * dark_um2 * a  # the ISP subtracts the mean dark signal ...
-            inv[j] = 1.0 / (gain * eta * light * a)  # ... and divides by the nominal response
-        for r in range(n):
-            row = mean[r, lo : lo + m]
-            first = np.uint64(r * p + lo)
-            if noise == 0:
+    runs = (p + MEASURE_CHUNK - 1) // MEASURE_CHUNK
+    for thread in prange(threads):  # each thread its work space, and runs in turn
+        c = MEASURE_CHUNK
+        scale, dark, full, zero, inv = np.empty(c), np.empty(c), np.empty(c), np.empty(c), np.empty(c)
+        shot, z_read = np.empty(c), np.empty(c)  # first tries: electrons after shot noise, read's normal
+        redo = np.zeros(c, dtype=np.int8)  # 1: the shot draw's first try failed, 2: the read's
+        for job in range(thread, runs, threads):
+            lo = job * MEASURE_CHUNK
+            m = min(p, lo + MEASURE_CHUNK) - lo
+            for j in range(m):  # the run's pixels' constants
+                a = area_um2[lo + j]
+                scale[j] = eta * light * a * ((1.0 + g_prnu * prnu[lo + j]) if g_prnu != 0.0 else 1.0)
+                dark[j] = dark_um2 * a + (g_dsnu * dsnu[lo + j] if g_dsnu != 0.0 else 0.0)
+                full[j] = full_um2 * a
+                zero[j] = black + gain * dark_um2 * a  # the ISP subtracts the mean dark signal ...
+                inv[j] = 1.0 / (gain * eta * light * a)  # ... and divides by the nominal response
+            for r in range(n):
+                row = mean[r, lo : lo + m]
+                first = np.uint64(r * p + lo)
+                if noise == 0:
+                    for j in range(m):
+                        e = row[j] * scale[j] + dark[j]
+                        out[r, lo + j] = _recorded(e, full[j], zero[j], inv[j], params, output)
+                    continue
                 for j in range(m):
                     e = row[j] * scale[j] + dark[j]
-                    out[r, lo + j] = _recorded(e, full[j], zero[j], inv[j], params, output)
-                continue
-            for j in range(m):
-                e = row[j] * scale[j] + dark[j]
-                key = state0 ^ ((first + np.uint64(j)) * _GOLDEN)
-                mu = max(e, 0.0)
-                k, g, z2, ok_z1, ok_k, ok_z2 = _first_tries(mu, _mix(key), _mix(key ^ _READ_KEY))
-                poisson = noise == 1
-                shot[j] = k if poisson else g + (e - mu)  # Gaussian: e + √max(e, 0)·z, bit for bit
-                z_read[j] = z2
-                redo[j] = (not (ok_z1 and (ok_k or not poisson))) + 2 * (not ok_z2 and read != 0.0)
-                out[r, lo + j] = _recorded(shot[j] + read * z2, full[j], zero[j], inv[j], params, output)
-            for j in range(m):
-                if redo[j] == 0:
-                    continue
-                key = state0 ^ ((first + np.uint64(j)) * _GOLDEN)
-                if redo[j] & 1:  # the full sampler, from the start of the shot stream
-                    e = row[j] * scale[j] + dark[j]
-                    if noise == 1:
-                        shot[j], _ = _poisson(max(e, 0.0), _mix(key))
-                    else:
-                        z, _ = _normal(_mix(key))
-                        shot[j] = e + math.sqrt(max(e, 0.0)) * z
-                if redo[j] & 2:
-                    z_read[j], _ = _normal(_mix(key ^ _READ_KEY))
-                out[r, lo + j] = _recorded(
-                    shot[j] + read * z_read[j], full[j], zero[j], inv[j], params, output
-                )
+                    key = state0 ^ ((first + np.uint64(j)) * _GOLDEN)
+                    mu = max(e, 0.0)
+                    k, g, z2, ok_z1, ok_k, ok_z2 = _first_tries(mu, _mix(key), _mix(key ^ _READ_KEY))
+                    poisson = noise == 1
+                    shot[j] = k if poisson else g + (e - mu)  # Gaussian: e + √max(e, 0)·z, bit for bit
+                    z_read[j] = z2
+                    redo[j] = (not (ok_z1 and (ok_k or not poisson))) + 2 * (not ok_z2 and read != 0.0)
+                    out[r, lo + j] = _recorded(shot[j] + read * z2, full[j], zero[j], inv[j], params, output)
+                for j in range(m):
+                    if redo[j] == 0:
+                        continue
+                    key = state0 ^ ((first + np.uint64(j)) * _GOLDEN)
+                    if redo[j] & 1:  # the full sampler, from the start of the shot stream
+                        e = row[j] * scale[j] + dark[j]
+                        if noise == 1:
+                            shot[j], _ = _poisson(max(e, 0.0), _mix(key))
+                        else:
+                            z, _ = _normal(_mix(key))
+                            shot[j] = e + math.sqrt(max(e, 0.0)) * z
+                    if redo[j] & 2:
+                        z_read[j], _ = _normal(_mix(key ^ _READ_KEY))
+                    out[r, lo + j] = _recorded(
+                        shot[j] + read * z_read[j], full[j], zero[j], inv[j], params, output
+                    )
 
 
 @_inline

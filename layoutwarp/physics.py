@@ -502,6 +502,6 @@ def _measure_compiled(
     flat = mean.detach().reshape(-1, sensor[0].size).to(work).contiguous().numpy()
     out = np.empty_like(flat)
     with kernels.LOCK:
-        kernels.threads()  # numba's threads for this launch, bounded by torch's
-        kernels.sensor_measure(flat, *sensor, seed, NOISE_CODES[mode], OUTPUTS.index(output), out)
+        nt = kernels.threads()  # numba's threads for this launch, bounded by torch's
+        kernels.sensor_measure(flat, *sensor, seed, NOISE_CODES[mode], OUTPUTS.index(output), out, nt)
     return torch.from_numpy(out).reshape(mean.shape).to(mean.dtype)

@@ -158,13 +158,16 @@ def test_the_fused_kernel_matches_the_torch_path_and_ignores_the_thread_count(ge
         traced = measure(mean.clone().requires_grad_(True), areas, exact, output=output).detach()
         assert torch.allclose(fused, traced, rtol=1e-12, atol=1e-9), output
     noisy = physics(seed=9, **kw)
-    threads = numba.get_num_threads()
+    threads = torch.get_num_threads()  # the kernels' thread count follows torch's
     try:
-        numba.set_num_threads(1)
+        torch.set_num_threads(1)
         one = measure(mean, areas, noisy)
+        assert numba.get_num_threads() == 1
     finally:
-        numba.set_num_threads(threads)
-    assert torch.equal(one, measure(mean, areas, noisy)) and not torch.equal(one, measure(mean, areas, exact))
+        torch.set_num_threads(threads)
+    many = measure(mean, areas, noisy)
+    assert numba.get_num_threads() == min(threads, numba.config.NUMBA_NUM_THREADS)
+    assert torch.equal(one, many) and not torch.equal(one, measure(mean, areas, exact))
 
 
 def _kernel_electrons(mean: np.ndarray, noise: int, read: float, seed: int) -> np.ndarray:
@@ -175,7 +178,7 @@ def _kernel_electrons(mean: np.ndarray, noise: int, read: float, seed: int) -> n
     params = np.array([1.0, 1.0, 0.0, 0.0, 0.0, read, math.inf, 1.0, 0.0, math.inf])
     ones, zeros = np.ones(mean.size), np.zeros(mean.size)
     out = np.empty((1, mean.size))
-    kernels.sensor_measure(mean[None], ones, zeros, zeros, params, seed, noise, 1, out)
+    kernels.sensor_measure(mean[None], ones, zeros, zeros, params, seed, noise, 1, out, kernels.threads())
     return out[0]
 
 
