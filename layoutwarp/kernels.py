@@ -313,20 +313,26 @@ def _segment_forward_moments(
     incl: np.ndarray,
     offsets: np.ndarray,
     block: int,
-    per_seg: np.ndarray,
+    acc: np.ndarray,
     ma: np.ndarray,
     mb: np.ndarray,
 ) -> None:
-    """:func:`_segment_forward` and segment ``s``'s Reynolds moments into ``ma[s]``, ``mb[s]``."""
+    """:func:`_segment_forward` into ``acc[0, :]`` (set here) and segment ``s``'s Reynolds
+    moments into ``ma[s]``, ``mb[s]`` (set here too: none need be zeroed before)."""
     h, w, n = incl.shape
+    acc[0, :] = 0.0
+    ma[s, :] = 0.0
+    mb[s, :] = 0.0
     x0, y0 = verts[seg_start[s], 0], verts[seg_start[s], 1]
     x1, y1 = verts[seg_end[s], 0], verts[seg_end[s], 1]
     if y1 == y0:  # no ∫ P dY, but moments along the row line
         _segment_moments(s, verts, seg_start, seg_end, incl, block, ma, mb)
         return
-    per_seg[s, n] = (y1 - y0) * (x0 + x1) / 2
+    acc[0, n] = (y1 - y0) * (x0 + x1) / 2
     r0, r1 = _row_span(y0, y1, h)
-    _segment_rows(x0, y0, x1, y1, r0, r1, 0, incl, offsets, block, w, per_seg, s, True, ma, mb)
+    _segment_rows(
+        x0, y0, x1, y1, r0, r1, 0, incl, offsets, block, w, acc, 0, True, ma[s : s + 1], mb[s : s + 1]
+    )
 
 
 @_inline
@@ -394,15 +400,19 @@ def exact_forward_moments(
     Reynolds moments ``ma``, ``mb`` ``(S, N)`` (:func:`_segment_moments`): a training step's
     backward is then one contraction with the gradient (:func:`moment_weights`) instead of a
     second walk over the table."""
-    s_count, n = seg_start.shape[0], incl.shape[2]
-    per_seg = np.zeros((s_count, n + 1), dtype=np.float64)
-    ma, mb = np.zeros((s_count, n), dtype=np.float64), np.zeros((s_count, n), dtype=np.float64)
-    n_chunks = (s_count + CHUNK - 1) // CHUNK
-    for thread in prange(threads):
+    s_count, n, e_count = seg_start.shape[0], incl.shape[2], edge_offsets.shape[0] - 1
+    out = np.zeros((n + 1, e_count), dtype=np.float64)
+    ma, mb = np.empty((s_count, n), dtype=np.float64), np.empty((s_count, n), dtype=np.float64)
+    n_chunks = (e_count + CHUNK - 1) // CHUNK
+    for thread in prange(threads):  # chunks of edges: each edge's sum in order, as _edge_sum's
+        acc = np.empty((1, n + 1))
         for chunk in range(thread, n_chunks, threads):
-            for s in range(chunk * CHUNK, min((chunk + 1) * CHUNK, s_count)):
-                _segment_forward_moments(s, verts, seg_start, seg_end, incl, offsets, block, per_seg, ma, mb)
-    return _edge_sums(per_seg, edge_offsets), ma, mb
+            for e in range(chunk * CHUNK, min((chunk + 1) * CHUNK, e_count)):
+                for s in range(edge_offsets[e], edge_offsets[e + 1]):
+                    _segment_forward_moments(s, verts, seg_start, seg_end, incl, offsets, block, acc, ma, mb)
+                    for k in range(n + 1):
+                        out[k, e] += acc[0, k]
+    return out, ma, mb
 
 
 @_jit
