@@ -783,21 +783,24 @@ def _cuda_smoke_test(dtype: str) -> bool:
 # The sensor's measurement (physics): one fused pass over the sensor image
 # ----------------------------------------------------------------------------------------
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
-#: Keys the read noise's stream apart from the shot noise's (two streams per element).
-_READ_KEY = np.uint64(0xD1B54A32D192ED03)
+#: Element ``i``'s noise streams are disjoint blocks of one SplitMix64 sequence: its shot stream
+#: from the state ``state0 + i·2³³·G``, its read stream ``2³²·G`` on (2³² draws each, so up to
+#: 2³¹ elements a call never share a state).
+_STREAM_G = np.uint64((0x9E3779B97F4A7C15 << 32) % 2**64)
+_ELEMENT_G = np.uint64((0x9E3779B97F4A7C15 << 33) % 2**64)
 _U53 = 1.0 / 9007199254740992.0
 #: Pixels per work item of :func:`sensor_measure` (a run of pixels through every plane).
 MEASURE_CHUNK = 512
 
 
-def _ziggurat_tables(layers: int = 512) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _ziggurat_tables(layers: int = 1024) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The normal ziggurat's layer edges ``x`` (``layers + 1``; ``x[0]`` the base strip's
     equivalent width, ``x[1]`` the tail's start ``R``, ``x[layers] = 0``), ratios
-    ``x[i+1] / x[i]`` and heights ``exp(−x²/2)``: Marsaglia and Tsang's construction for 512
+    ``x[i+1] / x[i]`` and heights ``exp(−x²/2)``: Marsaglia and Tsang's construction for 1024
     equal-area layers of area ``V`` (``R`` and ``V`` solved in 40-digit arithmetic so the top
     layer closes; the same solve gives their published 128-layer and Doornik's 256-layer
-    values). A first try is accepted 99.2 % of the time."""
-    r, v = 3.852046150368391, 0.002456766351541356
+    values). A first try is accepted 99.6 % of the time."""
+    r, v = 4.038849846109505, 0.001226324646353088
     x = np.zeros(layers + 1)
     x[0], x[1] = v / math.exp(-0.5 * r * r), r
     for i in range(1, layers - 1):
@@ -826,13 +829,13 @@ def _uniform(state: np.uint64) -> tuple[float, np.uint64]:
 @_inline
 def _strip(bits: np.uint64) -> tuple[float, int]:
     """A ziggurat try from 64 bits: a uniform in ``(-1, 1)`` (the top 53 bits) and a layer
-    (the lowest 9, which the uniform does not use)."""
-    return ((bits >> np.uint64(11)) + 0.5) * (2.0 * _U53) - 1.0, np.int64(bits & np.uint64(511))
+    (the lowest 10, which the uniform does not use)."""
+    return ((bits >> np.uint64(11)) + 0.5) * (2.0 * _U53) - 1.0, np.int64(bits & np.uint64(1023))
 
 
 @_inline
 def _normal(state: np.uint64) -> tuple[float, np.uint64]:
-    """A standard normal draw (the ziggurat: one 64-bit draw and a table look-up 99.2 % of the
+    """A standard normal draw (the ziggurat: one 64-bit draw and a table look-up 99.6 % of the
     time; the wedges by rejection under the density, the tail beyond ``R`` by Marsaglia's
     exponential method), and the advanced state."""
     while True:
@@ -945,14 +948,14 @@ def _first_tries(mu: float, shot: np.uint64, read: np.uint64) -> tuple[float, fl
     """What :func:`_poisson` and :func:`_normal` return when their first tries succeed, without a
     branch (so whole runs of pixels vectorise), for a mean ``mu ≥ 0``: the Poisson draw
     (steps N, I, S), the shot stream's normal draw scaled to ``mu + √mu·z``, the read stream's
-    normal, and whether each is valid (the normals', the Poisson's given its normal's); where
-    one is not, the caller runs the full algorithms, which return exactly these values where
-    they are."""
+    normal, and whether each is valid (the normals', the Poisson's given its normal's; never for
+    an infinite mean, whose floor is no count); where one is not, the caller runs the full
+    algorithms, which return exactly these values where they are."""
     u1, i1 = _strip(_mix(shot + _GOLDEN))
     g = mu + math.sqrt(mu) * (u1 * _ZIG_X[i1])
     k = math.floor(g)
     u2, _ = _uniform(shot + _GOLDEN)  # the draw after the normal's
-    ok_k = (mu >= 10.0) & (g >= 0.0) & (_pd_step_i(mu, k) | _pd_step_s(mu, k, u2))
+    ok_k = (mu >= 10.0) & (mu < math.inf) & (g >= 0.0) & (_pd_step_i(mu, k) | _pd_step_s(mu, k, u2))
     u3, i3 = _strip(_mix(read + _GOLDEN))
     return k, g, u3 * _ZIG_X[i3], abs(u1) < _ZIG_R[i1], ok_k, abs(u3) < _ZIG_R[i3]
 
@@ -988,8 +991,9 @@ def sensor_measure(
     per µm² (``inf``: none), gain K, black level, ADC top (``inf``: no ADC); ``prnu``/``dsnu``
     are read only where their gains are not 0 (empty arrays will do). ``noise``: 0 none,
     1 Poisson, 2 Gaussian; ``output``: 0 radiance, 1 electrons, 2 DN. Element ``i`` (row-major)
-    draws its shot noise and its read noise from two counter-based streams of its own
-    (SplitMix64 keyed by ``seed`` and ``i``), so the result does not depend on the thread count.
+    draws its shot noise and its read noise from two streams of its own, disjoint blocks of one
+    SplitMix64 sequence seeded by ``seed`` (:data:`_ELEMENT_G`), so the result does not depend
+    on the thread count.
 
     Work items are runs of :data:`MEASURE_CHUNK` pixels through all ``N`` planes, taken in turn
     by ``threads`` threads (see :func:`threads`), each with its own work space. A run first
@@ -997,7 +1001,7 @@ def sensor_measure(
     offset and its one reciprocal, shared by the planes). Per plane, a branch-free loop takes
     every draw's first try (:func:`_first_tries`; without noise, a loop with none: both
     vectorise); a second loop reruns a full sampler from the start of its stream where a first
-    try was rejected (about 0.8 % of the normals, a few tenths of a percent of the Poisson draws
+    try was rejected (about 0.4 % of the normals, a few tenths of a percent of the Poisson draws
     at large means, all of them below a mean of 10 electrons).
     """
     light, eta, g_prnu, g_dsnu, dark_um2 = params[0], params[1], params[2], params[3], params[4]
@@ -1030,9 +1034,9 @@ def sensor_measure(
                     continue
                 for j in range(m):
                     e = row[j] * scale[j] + dark[j]
-                    key = state0 ^ ((first + np.uint64(j)) * _GOLDEN)
+                    key = state0 + (first + np.uint64(j)) * _ELEMENT_G  # the shot stream's start
                     mu = max(e, 0.0)
-                    k, g, z2, ok_z1, ok_k, ok_z2 = _first_tries(mu, _mix(key), _mix(key ^ _READ_KEY))
+                    k, g, z2, ok_z1, ok_k, ok_z2 = _first_tries(mu, key, key + _STREAM_G)
                     poisson = noise == 1
                     shot[j] = k if poisson else g + (e - mu)  # Gaussian: e + √max(e, 0)·z, bit for bit
                     z_read[j] = z2
@@ -1041,16 +1045,16 @@ def sensor_measure(
                 for j in range(m):
                     if redo[j] == 0:
                         continue
-                    key = state0 ^ ((first + np.uint64(j)) * _GOLDEN)
+                    key = state0 + (first + np.uint64(j)) * _ELEMENT_G
                     if redo[j] & 1:  # the full sampler, from the start of the shot stream
                         e = row[j] * scale[j] + dark[j]
                         if noise == 1:
-                            shot[j], _ = _poisson(max(e, 0.0), _mix(key))
+                            shot[j], _ = _poisson(max(e, 0.0), key)
                         else:
-                            z, _ = _normal(_mix(key))
+                            z, _ = _normal(key)
                             shot[j] = e + math.sqrt(max(e, 0.0)) * z
                     if redo[j] & 2:
-                        z_read[j], _ = _normal(_mix(key ^ _READ_KEY))
+                        z_read[j], _ = _normal(key + _STREAM_G)
                     out[r, lo + j] = _recorded(
                         shot[j] + read * z_read[j], full[j], zero[j], inv[j], params, output
                     )
