@@ -557,19 +557,27 @@ def _theta_gradient(
     wa: np.ndarray, wb: np.ndarray, scale_x: float, scale_y: float, threads: int,
 ) -> np.ndarray:  # fmt: skip
     s_count = seg_start.shape[0]
-    p = dverts.shape[2]
-    acc = np.zeros((threads, p))
+    p = dverts.shape[2]  # 2 or 4 (a learned centre)
+    acc = np.zeros((threads, 4))
     n_chunks = (s_count + CHUNK - 1) // CHUNK
     for thread in prange(threads):
+        g0 = g1 = g2 = g3 = 0.0  # θ's gradient in registers, each entry summed in segment order
         for chunk in range(thread, n_chunks, threads):
             for s in range(chunk * CHUNK, min((chunk + 1) * CHUNK, s_count)):
                 a, b = seg_start[s], seg_end[s]
                 nx = (verts[b, 1] - verts[a, 1]) * scale_x  # the normal in pixel units, times dX/dx
                 ny = (verts[a, 0] - verts[b, 0]) * scale_y
-                for r in range(p):
-                    acc[thread, r] += wa[s] * (nx * dverts[a, 0, r] + ny * dverts[a, 1, r])
-                    acc[thread, r] += wb[s] * (nx * dverts[b, 0, r] + ny * dverts[b, 1, r])
-    return acc.sum(0)
+                g0 += wa[s] * (nx * dverts[a, 0, 0] + ny * dverts[a, 1, 0])
+                g0 += wb[s] * (nx * dverts[b, 0, 0] + ny * dverts[b, 1, 0])
+                g1 += wa[s] * (nx * dverts[a, 0, 1] + ny * dverts[a, 1, 1])
+                g1 += wb[s] * (nx * dverts[b, 0, 1] + ny * dverts[b, 1, 1])
+                if p == 4:
+                    g2 += wa[s] * (nx * dverts[a, 0, 2] + ny * dverts[a, 1, 2])
+                    g2 += wb[s] * (nx * dverts[b, 0, 2] + ny * dverts[b, 1, 2])
+                    g3 += wa[s] * (nx * dverts[a, 0, 3] + ny * dverts[a, 1, 3])
+                    g3 += wb[s] * (nx * dverts[b, 0, 3] + ny * dverts[b, 1, 3])
+        acc[thread, 0], acc[thread, 1], acc[thread, 2], acc[thread, 3] = g0, g1, g2, g3
+    return acc.sum(0)[:p]
 
 
 def theta_gradient(
@@ -580,6 +588,8 @@ def theta_gradient(
     units of an ``(H, W)`` source: ``Σ_s (wa_s ∂a_s/∂θ + wb_s ∂b_s/∂θ) · n_s`` with ``n_s`` the
     segment's normal ``(ΔY, −ΔX)`` and ``∂X/∂x = W/2``, ``∂Y/∂y = H/2``."""
     hs, ws = src_size
+    if mesh.dverts.shape[2] not in (2, 4):  # what the compiled families have (see MeshSpec)
+        raise ValueError(f"θ of a compiled mesh has 2 or 4 entries, got {mesh.dverts.shape[2]}")
     return _theta_gradient(
         pixel_verts, mesh.dverts, mesh.seg_start, mesh.seg_end, wa, wb, ws / 2, hs / 2, threads()
     )
