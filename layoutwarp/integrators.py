@@ -434,9 +434,7 @@ class _CompiledExact(torch.autograd.Function):
         g_pix = np.concatenate([g / ctx.areas, -(g * ctx.means).sum(0, keepdims=True) / ctx.areas])
         g_edge = np.ascontiguousarray(topo.combine_adjoint(g_pix))
         with kernels.LOCK:
-            kernels.threads()
-            wa, wb = kernels.moment_weights(ctx.ma, ctx.mb, cm.seg_edge, g_edge)
-            g_theta = theta_gradient(cm, ctx.pv, wa, wb, ctx.src_size)
+            g_theta = theta_gradient(cm, ctx.pv, (ctx.ma, ctx.mb), g_edge, ctx.src_size)
         return torch.from_numpy(g_theta).to(grad.dtype), None, None, None, None
 
 

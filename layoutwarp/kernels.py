@@ -55,6 +55,7 @@ __all__ = [
     "moment_weights",
     "prefix_tables",
     "retain_freed_memory",
+    "segment_moment_weights",
     "sensor_measure",
     "threads",
 ]
@@ -415,21 +416,32 @@ def exact_forward_moments(
     return out, ma, mb
 
 
+@_inline
+def segment_moment_weights(
+    s: int, ma: np.ndarray, mb: np.ndarray, seg_edge: np.ndarray, grad: np.ndarray
+) -> tuple[float, float]:
+    """Segment ``s``'s Reynolds weights from its moments (:func:`exact_forward_moments`):
+    ``wa = grad[N, e]/2 + Σ_n grad[n, e]·ma[s, n]`` and ``wb`` from ``mb``, ``e = seg_edge[s]``
+    (a scalar function for other kernels, e.g. :func:`~layoutwarp.meshkernels.theta_gradient`)."""
+    e = seg_edge[s]
+    n = ma.shape[1]
+    a = b = grad[n, e] / 2
+    for k in range(n):
+        a += grad[k, e] * ma[s, k]
+        b += grad[k, e] * mb[s, k]
+    return a, b
+
+
 @_jit
 def moment_weights(
     ma: np.ndarray, mb: np.ndarray, seg_edge: np.ndarray, grad: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`exact_backward`'s Reynolds weights from :func:`exact_forward_moments`' moments:
-    ``wa[s] = grad[N, e]/2 + Σ_n grad[n, e]·ma[s, n]`` (and ``wb`` from ``mb``), ``e = seg_edge[s]``."""
-    s_count, n = ma.shape
+    """:func:`exact_backward`'s Reynolds weights ``(wa, wb)`` of every segment from
+    :func:`exact_forward_moments`' moments (:func:`segment_moment_weights`)."""
+    s_count = ma.shape[0]
     wa, wb = np.empty(s_count), np.empty(s_count)
     for s in prange(s_count):
-        e = seg_edge[s]
-        a = b = grad[n, e] / 2
-        for k in range(n):
-            a += grad[k, e] * ma[s, k]
-            b += grad[k, e] * mb[s, k]
-        wa[s], wb[s] = a, b
+        wa[s], wb[s] = segment_moment_weights(s, ma, mb, seg_edge, grad)
     return wa, wb
 
 

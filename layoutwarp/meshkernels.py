@@ -33,7 +33,7 @@ try:  # as in layoutwarp.kernels: without numba, mesh_spec says there is no comp
 except ImportError:  # pragma: no cover - depends on the environment
     njit = prange = None
 
-from .kernels import CHUNK, available, threads
+from .kernels import CHUNK, available, segment_moment_weights, threads
 from .layouts import CurvLayout, EllipticLayout, FoveaLayout, Layout
 from .mesh import INNER, MeshTopology, PixelMesh
 
@@ -553,8 +553,8 @@ def pixel_vertices(mesh: CompiledMesh, src_size: tuple[int, int]) -> np.ndarray:
 
 @_jit
 def _theta_gradient(
-    verts: np.ndarray, dverts: np.ndarray, seg_start: np.ndarray, seg_end: np.ndarray,
-    wa: np.ndarray, wb: np.ndarray, scale_x: float, scale_y: float, threads: int,
+    verts: np.ndarray, dverts: np.ndarray, seg_start: np.ndarray, seg_end: np.ndarray, seg_edge: np.ndarray,
+    ma: np.ndarray, mb: np.ndarray, grad: np.ndarray, scale_x: float, scale_y: float, threads: int,
 ) -> np.ndarray:  # fmt: skip
     s_count = seg_start.shape[0]
     p = dverts.shape[2]  # 2 or 4 (a learned centre)
@@ -564,32 +564,38 @@ def _theta_gradient(
         g0 = g1 = g2 = g3 = 0.0  # θ's gradient in registers, each entry summed in segment order
         for chunk in range(thread, n_chunks, threads):
             for s in range(chunk * CHUNK, min((chunk + 1) * CHUNK, s_count)):
+                wa, wb = segment_moment_weights(s, ma, mb, seg_edge, grad)
                 a, b = seg_start[s], seg_end[s]
                 nx = (verts[b, 1] - verts[a, 1]) * scale_x  # the normal in pixel units, times dX/dx
                 ny = (verts[a, 0] - verts[b, 0]) * scale_y
-                g0 += wa[s] * (nx * dverts[a, 0, 0] + ny * dverts[a, 1, 0])
-                g0 += wb[s] * (nx * dverts[b, 0, 0] + ny * dverts[b, 1, 0])
-                g1 += wa[s] * (nx * dverts[a, 0, 1] + ny * dverts[a, 1, 1])
-                g1 += wb[s] * (nx * dverts[b, 0, 1] + ny * dverts[b, 1, 1])
+                g0 += wa * (nx * dverts[a, 0, 0] + ny * dverts[a, 1, 0])
+                g0 += wb * (nx * dverts[b, 0, 0] + ny * dverts[b, 1, 0])
+                g1 += wa * (nx * dverts[a, 0, 1] + ny * dverts[a, 1, 1])
+                g1 += wb * (nx * dverts[b, 0, 1] + ny * dverts[b, 1, 1])
                 if p == 4:
-                    g2 += wa[s] * (nx * dverts[a, 0, 2] + ny * dverts[a, 1, 2])
-                    g2 += wb[s] * (nx * dverts[b, 0, 2] + ny * dverts[b, 1, 2])
-                    g3 += wa[s] * (nx * dverts[a, 0, 3] + ny * dverts[a, 1, 3])
-                    g3 += wb[s] * (nx * dverts[b, 0, 3] + ny * dverts[b, 1, 3])
+                    g2 += wa * (nx * dverts[a, 0, 2] + ny * dverts[a, 1, 2])
+                    g2 += wb * (nx * dverts[b, 0, 2] + ny * dverts[b, 1, 2])
+                    g3 += wa * (nx * dverts[a, 0, 3] + ny * dverts[a, 1, 3])
+                    g3 += wb * (nx * dverts[b, 0, 3] + ny * dverts[b, 1, 3])
         acc[thread, 0], acc[thread, 1], acc[thread, 2], acc[thread, 3] = g0, g1, g2, g3
     return acc.sum(0)[:p]
 
 
 def theta_gradient(
-    mesh: CompiledMesh, pixel_verts: np.ndarray, wa: np.ndarray, wb: np.ndarray, src_size: tuple[int, int]
+    mesh: CompiledMesh,
+    pixel_verts: np.ndarray,
+    moments: tuple[np.ndarray, np.ndarray],
+    grad: np.ndarray,
+    src_size: tuple[int, int],
 ) -> np.ndarray:
-    """θ's gradient ``(P,)`` from the exact integrator's Reynolds weights ``wa``, ``wb`` (per
-    segment, see :func:`~layoutwarp.kernels.exact_backward`) on the mesh's vertices in pixel
-    units of an ``(H, W)`` source: ``Σ_s (wa_s ∂a_s/∂θ + wb_s ∂b_s/∂θ) · n_s`` with ``n_s`` the
-    segment's normal ``(ΔY, −ΔX)`` and ``∂X/∂x = W/2``, ``∂Y/∂y = H/2``."""
+    """θ's gradient ``(P,)`` from the exact integrator's Reynolds moments ``(ma, mb)``
+    (:func:`~layoutwarp.kernels.exact_forward_moments`) and the gradient ``grad`` ``(N + 1, E)``
+    of its edge integrals, on the mesh's vertices in pixel units of an ``(H, W)`` source:
+    ``Σ_s (wa_s ∂a_s/∂θ + wb_s ∂b_s/∂θ) · n_s`` with the segment's weights ``wa_s``, ``wb_s``
+    (:func:`~layoutwarp.kernels.segment_moment_weights`, computed on the way), its normal
+    ``n_s = (ΔY, −ΔX)`` and ``∂X/∂x = W/2``, ``∂Y/∂y = H/2``."""
     hs, ws = src_size
     if mesh.dverts.shape[2] not in (2, 4):  # what the compiled families have (see MeshSpec)
         raise ValueError(f"θ of a compiled mesh has 2 or 4 entries, got {mesh.dverts.shape[2]}")
-    return _theta_gradient(
-        pixel_verts, mesh.dverts, mesh.seg_start, mesh.seg_end, wa, wb, ws / 2, hs / 2, threads()
-    )
+    arrays = (pixel_verts, mesh.dverts, mesh.seg_start, mesh.seg_end, mesh.seg_edge, *moments, grad)
+    return _theta_gradient(*arrays, ws / 2, hs / 2, threads())
