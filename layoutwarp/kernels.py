@@ -232,6 +232,17 @@ def _cell_piece(
 
 
 @_inline
+def _other_cell(row: int, col: int, x0: float, y0: float, flat: bool, vertical: bool) -> tuple[int, int]:
+    """The cell across the line a piece in cell ``(row, col)`` lies on, or that cell itself: a
+    flat segment on a row line (``y0 == row``) faces the row above, a vertical one on a column
+    line (``x0 == col``) the column to its left (none beyond the image). Where the two differ,
+    the backward's image value is the mean of both cells (the symmetric derivative)."""
+    row2 = row - 1 if (flat and y0 == row and row > 0) else row
+    col2 = col - 1 if (vertical and x0 == col and col > 0) else col
+    return row2, col2
+
+
+@_inline
 def _segment_rows(
     x0: float,
     y0: float,
@@ -269,7 +280,7 @@ def _segment_rows(
             at_start = col % block == 0
             m1 = (t1 * t1 - t0 * t0) / 2
             m0 = (t1 - t0) - m1
-            on_line = dxv == 0.0 and x0 == col and col > 0  # on a column line: the two cells' mean
+            on_line = _other_cell(row, col, x0, y0, False, dxv == 0.0)[1] != col  # the two cells' mean
             for k in range(n):
                 cur = np.float64(incl[rr, col, k])
                 prev = 0.0 if at_start else np.float64(incl[rr, col - 1, k])
@@ -557,10 +568,9 @@ def _segment_weights(
     r0, r1 = _row_span(y0, y1, h)
     for row in range(r0, (r0 if flat else r1) + 1):
         t_lo, t_hi, xlo, xhi, c0, c1, inv_dx = _row_piece(row, x0, y0, dxv, inv_dy, ylo, yhi, flat, w)
-        row2 = row - 1 if (flat and y0 == row and row > 0) else row  # on a row boundary
         for col in range(c0, c1 + 1):
             t0, t1 = _cell_piece(col, x0, inv_dx, t_lo, t_hi, xlo, xhi, c1 == c0)
-            col2 = col - 1 if (vertical and x0 == col and col > 0) else col  # on a column boundary
+            row2, col2 = _other_cell(row, col, x0, y0, flat, vertical)
             gl = 0.0
             if row2 == row and col2 == col:  # inside the cell (nearly always): one look-up
                 for k in range(n):
@@ -598,10 +608,9 @@ def _segment_moments(
     r0, r1 = _row_span(y0, y1, h)
     for row in range(r0, (r0 if flat else r1) + 1):
         t_lo, t_hi, xlo, xhi, c0, c1, inv_dx = _row_piece(row, x0, y0, dxv, inv_dy, ylo, yhi, flat, w)
-        row2 = row - 1 if (flat and y0 == row and row > 0) else row
         for col in range(c0, c1 + 1):
             t0, t1 = _cell_piece(col, x0, inv_dx, t_lo, t_hi, xlo, xhi, c1 == c0)
-            col2 = col - 1 if (vertical and x0 == col and col > 0) else col
+            row2, col2 = _other_cell(row, col, x0, y0, flat, vertical)
             m1 = (t1 * t1 - t0 * t0) / 2
             m0 = (t1 - t0) - m1
             inside = row2 == row and col2 == col
