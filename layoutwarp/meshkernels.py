@@ -134,17 +134,17 @@ def _curv0(x: float, y: float, tx: float, ty: float, kx: tuple, ky: tuple) -> tu
     ``kx``, ``ky``: :func:`_den` of ``tx``, ``ty``."""
     r = math.sqrt(x * x + y * y)
     inside = r < 1
-    ix = 1 / (kx[0] + kx[1] * (1 - r) + kx[2] * r)  # three divisions in all: they set the pace
-    iy = 1 / (ky[0] + ky[1] * (1 - r) + ky[2] * r)
-    sx, sy = (1 - tx) * ix, (1 - ty) * iy
-    gx, gy = 2 * tx * sx * ix, 2 * ty * sy * iy
-    ir = 1 / r if r > 0 else 0.0
-    ux, uy = x * ir, y * ir
+    dx = kx[0] + kx[1] * (1 - r) + kx[2] * r
+    dy = ky[0] + ky[1] * (1 - r) + ky[2] * r
+    sx, sy = (1 - tx) / dx, (1 - ty) / dy
+    gx, gy = 2 * tx * (1 - tx) / dx**2, 2 * ty * (1 - ty) / dy**2
+    ux = x / r if r > 0 else 0.0
+    uy = y / r if r > 0 else 0.0
     return (
-        x * sx if inside else x,
-        y * sy if inside else y,
-        2 * x * (r - 1) * ix * ix if inside else 0.0,
-        2 * y * (r - 1) * iy * iy if inside else 0.0,
+        x * (1 - tx) / dx if inside else x,
+        y * (1 - ty) / dy if inside else y,
+        2 * x * (r - 1) / dx**2 if inside else 0.0,
+        2 * y * (r - 1) / dy**2 if inside else 0.0,
         sx + x * gx * ux if inside else 1.0,
         x * gx * uy if inside else 0.0,
         y * gy * ux if inside else 0.0,
@@ -166,8 +166,7 @@ def _curv(
     gx = 1.0 if x >= cx else -1.0  # the side of the centre: s = 1 − σ c
     gy = 1.0 if y >= cy else -1.0
     sx, sy = 1 - gx * cx, 1 - gy * cy
-    isx, isy = 1 / sx, 1 / sy
-    ux, uy = (x - cx) * isx, (y - cy) * isy
+    ux, uy = (x - cx) / sx, (y - cy) / sy
     fx, fy, dx, dy, j00, j01, j10, j11 = _curv0(ux, uy, tx, ty, kx, ky)
     out = ux * ux + uy * uy >= 1
     fix_x, fix_y = out | (abs(x) >= 1), out | (abs(y) >= 1)
@@ -178,14 +177,14 @@ def _curv(
         0.0 if fix_x else sx * dx,
         0.0,
         0.0 if fix_x else (1 - gx * fx) + j00 * (gx * ux - 1),
-        0.0 if fix_x else sx * j01 * (gy * uy - 1) * isy,
+        0.0 if fix_x else sx * j01 * (gy * uy - 1) / sy,
         0.0,
         0.0 if fix_y else sy * dy,
-        0.0 if fix_y else sy * j10 * (gx * ux - 1) * isx,
+        0.0 if fix_y else sy * j10 * (gx * ux - 1) / sx,
         0.0 if fix_y else (1 - gy * fy) + j11 * (gy * uy - 1),
         j00,
-        j01 * sx * isy,
-        j10 * sy * isx,
+        j01 * sx / sy,
+        j10 * sy / sx,
         j11,
     )
 
