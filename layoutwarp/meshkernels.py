@@ -367,6 +367,8 @@ def _edge_pieces(
         for piece in range(3):  # the circle's crossings on each part between the cuts
             plo = 0.0 if piece == 0 else (b1 if piece == 1 else b2)
             phi_ = b1 if piece == 0 else (b2 if piece == 1 else 1.0)
+            if plo >= phi_:  # an empty part (no cut there): no crossing in it
+                continue
             mid = (plo + phi_) / 2
             gx = 1.0 if ax + mid * dx >= cx else -1.0
             gy = 1.0 if ay + mid * dy >= cy else -1.0
@@ -435,8 +437,13 @@ def _pieces_and_counts(
         for chunk in range(thread, n_chunks, threads):
             e0, e1 = chunk * CHUNK, min((chunk + 1) * CHUNK, ne)
             for e in range(e0, e1):
-                n = _edge_pieces(kind, centred, e, ends, th, c, scratch, cuts, dcuts, lo, dlo)
                 base = piece_offsets[e]
+                n = piece_offsets[e + 1] - base
+                if n == 1:  # no kink: one piece, from 0 to 1, whose ends stay
+                    lo[0], lo[1] = 0.0, 1.0
+                    dlo[0, :], dlo[1, :] = 0.0, 0.0
+                else:
+                    _edge_pieces(kind, centred, e, ends, th, c, scratch, cuts, dcuts, lo, dlo)
                 ax, ay = ends[e, 0], ends[e, 1]
                 dx, dy = ends[e, 2] - ax, ends[e, 3] - ay
                 for i in range(n):
@@ -552,9 +559,13 @@ def _place_vertices(
     for thread in prange(threads):
         qi, dq = np.empty(2), np.empty((2, p + 2))
         pts, out = np.empty((2, span)), np.empty((2 + 2 * p, span))
+        moving = np.empty(
+            (10 * CHUNK, 3), dtype=np.int64
+        )  # (piece, edge, first segment); 9 pieces an edge at most
         for chunk in range(thread, n_chunks, threads):
             e0, e1 = chunk * CHUNK, min((chunk + 1) * CHUNK, ne)
             v0, v1 = ncorner + edge_offsets[e0] - e0, ncorner + edge_offsets[e1] - e1
+            nm = 0
             for e in range(e0, e1):  # the segments, and each new vertex's point on its edge
                 s = first = edge_offsets[e]
                 last = edge_offsets[e + 1] - 1
@@ -563,6 +574,13 @@ def _place_vertices(
                 for pc in range(piece_offsets[e], piece_offsets[e + 1]):
                     m = counts[pc]
                     lo, hi = bounds[pc, 0], bounds[pc, 1]
+                    if p == 4:
+                        moves = False
+                        for r in range(p):
+                            moves = moves or dbounds[pc, 0, r] != 0 or dbounds[pc, 1, r] != 0
+                        if moves:
+                            moving[nm, 0], moving[nm, 1], moving[nm, 2] = pc, e, s
+                            nm += 1
                     for k in range(m):
                         seg_edge[s] = e
                         seg_start[s] = ea[e] if s == first else ncorner + s - e - 1
@@ -575,30 +593,22 @@ def _place_vertices(
             # the chunk's new vertices are consecutive: map them in one loop
             _phi_run(kind, centred, th, c, pts, v1 - v0, out)
             _unpack(out, v1 - v0, verts[v0:], dverts[v0:])
-            if p != 4:
-                continue
-            for e in range(e0, e1):  # a piece's ends move with a learned centre: its vertices too
+            for j in range(nm):  # a piece's ends move with a learned centre: its vertices too
+                pc, e, s = moving[j, 0], moving[j, 1], moving[j, 2]
                 ax, ay = ends[e, 0], ends[e, 1]
                 dx, dy = ends[e, 2] - ax, ends[e, 3] - ay
-                s = edge_offsets[e]
-                for pc in range(piece_offsets[e], piece_offsets[e + 1]):
-                    m = counts[pc]
-                    moves = False
-                    for r in range(p):
-                        moves = moves or dbounds[pc, 0, r] != 0 or dbounds[pc, 1, r] != 0
-                    lo, hi = bounds[pc, 0], bounds[pc, 1]
-                    for k in range(m):
-                        if moves and s != edge_offsets[e]:
-                            f = k / m
-                            t = lo + (hi - lo) * f
-                            v = ncorner + s - e - 1
-                            _phi(kind, centred, ax + t * dx, ay + t * dy, th, c, qi, dq)
-                            for r in range(p):
-                                dt = dbounds[pc, 0, r] * (1 - f) + dbounds[pc, 1, r] * f
-                                if dt != 0:
-                                    dverts[v, 0, r] += (dq[0, p] * dx + dq[0, p + 1] * dy) * dt
-                                    dverts[v, 1, r] += (dq[1, p] * dx + dq[1, p + 1] * dy) * dt
-                        s += 1
+                m, lo, hi = counts[pc], bounds[pc, 0], bounds[pc, 1]
+                for k in range(m):
+                    if s + k != edge_offsets[e]:
+                        f = k / m
+                        t = lo + (hi - lo) * f
+                        v = ncorner + s + k - e - 1
+                        _phi(kind, centred, ax + t * dx, ay + t * dy, th, c, qi, dq)
+                        for r in range(p):
+                            dt = dbounds[pc, 0, r] * (1 - f) + dbounds[pc, 1, r] * f
+                            if dt != 0:
+                                dverts[v, 0, r] += (dq[0, p] * dx + dq[0, p + 1] * dy) * dt
+                                dverts[v, 1, r] += (dq[1, p] * dx + dq[1, p + 1] * dy) * dt
 
 
 def build_mesh(
