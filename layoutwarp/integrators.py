@@ -33,7 +33,7 @@ from .coords import grid_lines, pixel_centers, sensor_to_pixels
 from .layouts import Layout
 from .maps import sample_points
 from .mesh import MeshTopology, PixelMesh, pixel_mesh
-from .meshkernels import MeshSpec, build_mesh, mesh_spec, pixel_vertices, theta_gradient
+from .meshkernels import MeshSpec, build_mesh, edge_gradient, mesh_spec, pixel_vertices, theta_gradient
 
 __all__ = [
     "BACKENDS",
@@ -430,10 +430,8 @@ class _CompiledExact(torch.autograd.Function):
             g_v = g_v * torch.tensor([ws / 2, hs / 2], dtype=g_v.dtype, device=g_v.device)
             dverts = torch.from_numpy(cm.dverts).to(g_v.device)
             return torch.einsum("vi,vip->p", g_v, dverts).to(grad.dtype), None, None, None, None
-        g = grad.detach().double().cpu().numpy()
-        g_pix = np.concatenate([g / ctx.areas, -(g * ctx.means).sum(0, keepdims=True) / ctx.areas])
-        g_edge = np.ascontiguousarray(topo.combine_adjoint(g_pix))
         with kernels.LOCK:
+            g_edge = edge_gradient(grad.detach().double().cpu().numpy(), ctx.means, ctx.areas)
             g_theta = theta_gradient(cm, ctx.pv, (ctx.ma, ctx.mb), g_edge, ctx.src_size)
         return torch.from_numpy(g_theta).to(grad.dtype), None, None, None, None
 

@@ -43,6 +43,7 @@ __all__ = [
     "CompiledMesh",
     "MeshSpec",
     "build_mesh",
+    "edge_gradient",
     "mesh_spec",
     "pixel_vertices",
     "theta_gradient",
@@ -673,6 +674,39 @@ def pixel_vertices(mesh: CompiledMesh, src_size: tuple[int, int]) -> np.ndarray:
     :meth:`~layoutwarp.PixelMesh.pixel_vertices` gives them."""
     hs, ws = src_size
     return _to_pixels(mesh.vertices, float(ws), float(hs))
+
+
+@_jit
+def _edge_gradient(grad: np.ndarray, means: np.ndarray, areas: np.ndarray) -> np.ndarray:
+    n, h, w = grad.shape
+    nh = (h + 1) * w
+    out = np.empty((n + 1, nh + h * (w + 1)))
+    gp = np.empty((n + 1, h, w))
+    for i in prange(h):  # the pixels' boundary integrals' gradient: the quotient rule
+        for j in range(w):
+            acc = 0.0
+            for k in range(n):
+                gp[k, i, j] = grad[k, i, j] / areas[i, j]
+                acc += grad[k, i, j] * means[k, i, j]
+            gp[n, i, j] = -acc / areas[i, j]
+    for k in range(n + 1):  # each edge: + the pixel it bounds above / on the right, − below / left
+        for i in prange(h + 1):
+            for j in range(w):
+                top = gp[k, i, j] if i < h else 0.0
+                out[k, i * w + j] = top - gp[k, i - 1, j] if i > 0 else top
+        for i in prange(h):
+            for j in range(w + 1):
+                right = gp[k, i, j - 1] if j > 0 else 0.0
+                out[k, nh + i * (w + 1) + j] = right - gp[k, i, j] if j < w else right
+    return out
+
+
+def edge_gradient(grad: np.ndarray, means: np.ndarray, areas: np.ndarray) -> np.ndarray:
+    """The gradient ``(N + 1, E)`` of a mesh's edge integrals (``N`` channels and the area, as
+    :class:`~layoutwarp.mesh.MeshTopology` numbers the edges) from the gradient ``grad``
+    ``(N, H, W)`` of the pixel means ``means = Σ_edges / areas``: the quotient rule, then
+    :meth:`~layoutwarp.mesh.MeshTopology.combine_adjoint`, in one compiled pass."""
+    return _edge_gradient(*(np.ascontiguousarray(a, dtype=np.float64) for a in (grad, means, areas)))
 
 
 @_jit

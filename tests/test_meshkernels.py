@@ -107,6 +107,21 @@ def test_compiled_values_and_theta_gradients_match_the_torch_reference(family, h
     assert float((grad - grad_ref).abs().max()) <= grad_rel * max(scale, 1.0), (grad, grad_ref)
 
 
+@pytest.mark.parametrize("size", SIZES)
+def test_edge_gradient_is_the_quotient_rule_then_combine_adjoint(size: tuple[int, int]):
+    rng = np.random.default_rng(int(torch.randint(0, 2**31, ())))
+    n = int(rng.integers(1, 4))
+    grad, means = rng.standard_normal((n, *size)), rng.random((n, *size))
+    areas = rng.uniform(0.1, 2.0, size)
+    pix = np.concatenate([grad / areas, -(grad * means).sum(0, keepdims=True) / areas])
+    ref = MeshTopology(size).combine_adjoint(pix)
+    np.testing.assert_array_equal(mk.edge_gradient(grad, means, areas), ref)
+    # and it is the transpose of combine: <combine(x), pix> = <x, combine_adjoint(pix)>
+    x = rng.standard_normal(ref.shape)
+    lhs = float((MeshTopology(size).combine(x) * pix).sum())
+    assert abs(lhs - float((x * ref).sum())) <= 1e-12 * max(1.0, abs(lhs))
+
+
 @pytest.mark.parametrize("family", FAMILIES)
 def test_compiled_theta_gradient_matches_central_differences(family: str):
     rng = np.random.default_rng(int(torch.randint(0, 2**31, ())))
