@@ -113,6 +113,10 @@ def _inline(fn):  # inlined where called: the mesh builds in half the time of pl
     return njit(inline="always", cache=True)(fn) if njit is not None else fn
 
 
+def _run(fn):  # called once a chunk: compiled once, not inlined into every kernel that calls it
+    return njit(cache=True, nogil=True, error_model="numpy")(fn) if njit is not None else fn
+
+
 def _jit(fn):  # numpy's error model: a division by zero gives inf, so loops of the maps vectorise
     return njit(parallel=True, cache=True, nogil=True, error_model="numpy")(fn) if njit is not None else fn
 
@@ -250,7 +254,7 @@ def _store(out: np.ndarray, i: int, f: tuple, p: int) -> None:
         out[2 + r, i], out[2 + p + r, i] = f[2 + r], f[6 + r]
 
 
-@_inline
+@_run
 def _phi_run(
     kind: int, centred: bool, th: np.ndarray, c: np.ndarray, pts: np.ndarray, n: int, out: np.ndarray
 ) -> None:
