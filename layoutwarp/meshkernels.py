@@ -5,10 +5,12 @@ operations (cut every edge at φ's kinks, bound each piece's sagitta, count its 
 the vertices, then autograd back through all of it): on a CPU it costs more than the integral,
 on a GPU each operation is a kernel launch. For the curvilinear families (``curv`` and
 ``fovea``, about any centre, and ``elliptic``) this module does the same in one compiled pass:
-φ, its Jacobian and ``∂φ/∂θ`` in closed form as scalar numba functions, the kinks of every edge
-(with their θ-derivatives where they move with a learned centre), the count stage and the vertex
-placement, each step in the order and arithmetic of :func:`~layoutwarp.mesh.pixel_mesh`, so the
-two agree to rounding (the same segment counts, vertices within a few ulp). Instead of an
+φ, its Jacobian and ``∂φ/∂θ`` in closed form as numba functions without a branch on the point
+(so a chunk's sample points and new vertices are mapped in one loop that runs in SIMD lanes,
+:func:`_phi_run`), the kinks of every edge (with their θ-derivatives where they move with a
+learned centre), the count stage and the vertex placement, each step in the order and arithmetic
+of :func:`~layoutwarp.mesh.pixel_mesh`, so the two agree to rounding (the same segment counts,
+vertices within a few ulp). Instead of an
 autograd graph it returns ``∂v/∂θ`` of every vertex ``v``: for a vertex at parameter
 ``t = lo + (hi − lo) k/m`` of a smooth piece of the uniform edge ``a + t (b − a)``,
 ``dv/dθ = ∂φ/∂θ + J (b − a) (∂lo/∂θ (1 − k/m) + ∂hi/∂θ k/m)``, the second term where the piece's
