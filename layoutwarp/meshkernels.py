@@ -566,9 +566,8 @@ def _place_vertices(
     for thread in prange(threads):
         qi, dq = np.empty(2), np.empty((2, p + 2))
         pts, out = np.empty((2, span)), np.empty((2 + 2 * p, span))
-        moving = np.empty(
-            (10 * CHUNK, 3), dtype=np.int64
-        )  # (piece, edge, first segment); 9 pieces an edge at most
+        # the chunk's pieces that move with a learned centre: (piece, edge, first segment)
+        moving = np.empty((10 * CHUNK, 3), dtype=np.int64)  # 9 pieces an edge at most
         for chunk in range(thread, n_chunks, threads):
             e0, e1 = chunk * CHUNK, min((chunk + 1) * CHUNK, ne)
             v0, v1 = ncorner + edge_offsets[e0] - e0, ncorner + edge_offsets[e1] - e1
@@ -647,7 +646,8 @@ def build_mesh(
     total = int(piece_offsets[-1])
     bounds, dbounds = np.empty((total, 2)), np.empty((total, 2, len(th)))
     counts = np.empty(total, dtype=np.int64)
-    span = int(np.diff(piece_offsets[np.r_[0:ne:CHUNK, ne]]).max())  # the most pieces a chunk has
+    chunk_ends = np.r_[0:ne:CHUNK, ne]
+    span = int(np.diff(piece_offsets[chunk_ends]).max())  # the most pieces a chunk has
     limits = (float(tol), int(max_subdiv), with_grad, INNER, nt, span)
     _pieces_and_counts(*args, ends, th, c, piece_offsets, amin, *limits, bounds, dbounds, counts)
     edge_offsets = np.zeros(ne + 1, dtype=np.int64)
@@ -657,7 +657,6 @@ def build_mesh(
     verts, dverts = np.empty((ncorner + nseg - ne, 2)), np.empty((ncorner + nseg - ne, 2, len(th)))
     verts[:ncorner], dverts[:ncorner] = cq, cdq
     seg_start, seg_end, seg_edge = (np.empty(nseg, dtype=np.int64) for _ in range(3))
-    chunk_ends = np.r_[0:ne:CHUNK, ne]
     vspan = int(np.diff(edge_offsets[chunk_ends] - chunk_ends).max())  # the most new vertices a chunk has
     _place_vertices(
         *args, ends, ea, eb, th, c, piece_offsets, bounds, dbounds, counts, edge_offsets, ncorner, nt, vspan,
