@@ -909,7 +909,7 @@ def _modified_normal(mu: float, s: float, k: float) -> tuple[float, float]:
 @_inline
 def _pd_step_i(mu: float, k: float) -> bool:
     """PD's immediate acceptance of the normal's ``k = ⌊mu + √mu z⌋`` (step I)."""
-    return k >= math.floor(mu - 1.1484)
+    return k >= np.floor(mu - 1.1484)
 
 
 @_inline
@@ -974,7 +974,7 @@ def _first_tries(mu: float, shot: np.uint64, read: np.uint64) -> tuple[float, fl
     algorithms, which return exactly these values where they are."""
     u1, i1 = _strip(_mix(shot + _GOLDEN))
     g = mu + math.sqrt(mu) * (u1 * _ZIG_X[i1])
-    k = math.floor(g)
+    k = np.floor(g)  # a float: no round trip through an integer
     u2, _ = _uniform(shot + _GOLDEN)  # the draw after the normal's
     ok_k = (mu >= 10.0) & (mu < math.inf) & (g >= 0.0) & (_pd_step_i(mu, k) | _pd_step_s(mu, k, u2))
     u3, i3 = _strip(_mix(read + _GOLDEN))
@@ -1021,30 +1021,38 @@ def sensor_measure(
     derives its pixels' constants (electrons per unit mean, dark electrons, full well, the ISP's
     offset and its one reciprocal, shared by the planes). Per plane, a branch-free loop takes
     every draw's first try (:func:`_first_tries`; without noise, a loop with none: both
-    vectorise); a second loop reruns a full sampler from the start of its stream where a first
-    try was rejected (about 0.4 % of the normals, a few tenths of a percent of the Poisson draws
-    at large means, all of them below a mean of 10 electrons).
+    vectorise) and flags the pixels where one was rejected (about 0.4 % of the normals, a few
+    tenths of a percent of the Poisson draws at large means, all of them below a mean of 10
+    electrons); a rescan, eight flags a word, reruns a full sampler there from the start of its
+    stream.
     """
     light, eta, g_prnu, g_dsnu, dark_um2 = params[0], params[1], params[2], params[3], params[4]
     read, full_um2, gain, black = params[5], params[6], params[7], params[8]
     n, p = mean.shape
     state0 = _mix(np.uint64(seed) * _GOLDEN + np.uint64(0x632BE59BD9B4E019))
     runs = (p + MEASURE_CHUNK - 1) // MEASURE_CHUNK
+    poisson = noise == 1
     for thread in prange(threads):  # each thread its work space, and runs in turn
         c = MEASURE_CHUNK
         scale, dark, full, zero, inv = np.empty(c), np.empty(c), np.empty(c), np.empty(c), np.empty(c)
-        shot, z_read = np.empty(c), np.empty(c)  # first tries: electrons after shot noise, read's normal
-        redo = np.zeros(c, dtype=np.int8)  # 1: the shot draw's first try failed, 2: the read's
+        redo = np.zeros(c, dtype=np.uint8)  # 1: a first try of the pixel was rejected
+        words = redo.view(np.uint64)  # eight flags at a time: the rescan skips runs of none
         for job in range(thread, runs, threads):
             lo = job * MEASURE_CHUNK
             m = min(p, lo + MEASURE_CHUNK) - lo
             for j in range(m):  # the run's pixels' constants
                 a = area_um2[lo + j]
-                scale[j] = eta * light * a * ((1.0 + g_prnu * prnu[lo + j]) if g_prnu != 0.0 else 1.0)
-                dark[j] = dark_um2 * a + (g_dsnu * dsnu[lo + j] if g_dsnu != 0.0 else 0.0)
+                scale[j] = eta * light * a
+                dark[j] = dark_um2 * a
                 full[j] = full_um2 * a
                 zero[j] = black + gain * dark_um2 * a  # the ISP subtracts the mean dark signal ...
                 inv[j] = 1.0 / (gain * eta * light * a)  # ... and divides by the nominal response
+            if g_prnu != 0.0:  # the fixed patterns in loops of their own: the one above vectorises
+                for j in range(m):
+                    scale[j] = scale[j] * (1.0 + g_prnu * prnu[lo + j])
+            if g_dsnu != 0.0:
+                for j in range(m):
+                    dark[j] = dark[j] + g_dsnu * dsnu[lo + j]
             for r in range(n):
                 row = mean[r, lo : lo + m]
                 first = np.uint64(r * p + lo)
@@ -1058,27 +1066,30 @@ def sensor_measure(
                     key = state0 + (first + np.uint64(j)) * _ELEMENT_G  # the shot stream's start
                     mu = max(e, 0.0)
                     k, g, z2, ok_z1, ok_k, ok_z2 = _first_tries(mu, key, key + _STREAM_G)
-                    poisson = noise == 1
-                    shot[j] = k if poisson else g + (e - mu)  # Gaussian: e + √max(e, 0)·z, bit for bit
-                    z_read[j] = z2
-                    redo[j] = (not (ok_z1 and (ok_k or not poisson))) + 2 * (not ok_z2 and read != 0.0)
-                    out[r, lo + j] = _recorded(shot[j] + read * z2, full[j], zero[j], inv[j], params, output)
-                for j in range(m):
-                    if redo[j] == 0:
+                    shot = k if poisson else g + (e - mu)  # Gaussian: e + √max(e, 0)·z, bit for bit
+                    redo[j] = (not (ok_z1 and (ok_k or not poisson))) | (not ok_z2 and read != 0.0)
+                    out[r, lo + j] = _recorded(shot + read * z2, full[j], zero[j], inv[j], params, output)
+                for b in range((m + 7) // 8):
+                    if words[b] == 0:
                         continue
-                    key = state0 + (first + np.uint64(j)) * _ELEMENT_G
-                    if redo[j] & 1:  # the full sampler, from the start of the shot stream
+                    for j in range(8 * b, min(m, 8 * b + 8)):
+                        if redo[j] == 0:
+                            continue
+                        redo[j] = 0  # the first tries again, then the full sampler where one failed
                         e = row[j] * scale[j] + dark[j]
-                        if noise == 1:
-                            shot[j], _ = _poisson(max(e, 0.0), key)
-                        else:
-                            z, _ = _normal(key)
-                            shot[j] = e + math.sqrt(max(e, 0.0)) * z
-                    if redo[j] & 2:
-                        z_read[j], _ = _normal(key + _STREAM_G)
-                    out[r, lo + j] = _recorded(
-                        shot[j] + read * z_read[j], full[j], zero[j], inv[j], params, output
-                    )
+                        key = state0 + (first + np.uint64(j)) * _ELEMENT_G
+                        mu = max(e, 0.0)
+                        k, g, z2, ok_z1, ok_k, ok_z2 = _first_tries(mu, key, key + _STREAM_G)
+                        shot = k if poisson else g + (e - mu)
+                        if not (ok_z1 and (ok_k or not poisson)):  # from the start of the shot stream
+                            if poisson:
+                                shot, _ = _poisson(mu, key)
+                            else:
+                                z, _ = _normal(key)
+                                shot = e + math.sqrt(mu) * z
+                        if not ok_z2 and read != 0.0:
+                            z2, _ = _normal(key + _STREAM_G)
+                        out[r, lo + j] = _recorded(shot + read * z2, full[j], zero[j], inv[j], params, output)
 
 
 @_inline
