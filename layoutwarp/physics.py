@@ -360,14 +360,20 @@ def measure(
         ValueError: a full well below the read noise in the smallest pixel.
     """
     check_choice(output, OUTPUTS, "output")
-    if generator is None and physics.seed is not None:
-        generator = torch.Generator(mean.device).manual_seed(physics.seed)
     mode = physics.noise
     needs_grad = torch.is_grad_enabled() and (mean.requires_grad or areas.requires_grad)
     if mode == "auto":
         mode = "gaussian" if needs_grad else "poisson"
     if not needs_grad and mean.device.type == "cpu" and kernels.available():
-        return _measure_compiled(mean, _compiled_sensor(physics, areas), mode, output, generator)
+        if mode == "none":
+            seed = 0
+        elif generator is None and physics.seed is not None:
+            seed = _kernel_seed(physics.seed)
+        else:
+            seed = int(torch.randint(0, 2**62, (), generator=generator))
+        return _measure_compiled(mean, _compiled_sensor(physics, areas), mode, output, seed)
+    if generator is None and physics.seed is not None:
+        generator = torch.Generator(mean.device).manual_seed(physics.seed)
     a_um2 = areas.to(mean) * physics.um2_per_unit()
     full = _full_well(physics, a_um2)
     eta = physics.quantum_efficiency
@@ -487,17 +493,23 @@ def _compiled_sensor(physics: SensorPhysics, areas: Tensor) -> tuple[np.ndarray,
     return arrays
 
 
+@functools.lru_cache(maxsize=64)
+def _kernel_seed(seed: int) -> int:
+    """The compiled kernel's seed for ``physics.seed``: the first draw of a generator seeded with
+    it (what a fresh ``torch.Generator().manual_seed(seed)`` gives every call), kept."""
+    return int(torch.randint(0, 2**62, (), generator=torch.Generator().manual_seed(seed)))
+
+
 def _measure_compiled(
     mean: Tensor,
     sensor: tuple[np.ndarray, ...],
     mode: str,
     output: str,
-    generator: torch.Generator | None,
+    seed: int,
 ) -> Tensor:
     """:func:`measure` without gradient on the CPU: the fused kernel
     :func:`~layoutwarp.kernels.sensor_measure` on :func:`_compiled_sensor`'s inputs, its noise
-    from a seed drawn from ``generator``."""
-    seed = int(torch.randint(0, 2**62, (), generator=generator)) if mode != "none" else 0
+    streams from ``seed``."""
     work = torch.float32 if mean.dtype == torch.float32 else torch.float64  # the kernel's two builds
     flat = mean.detach().reshape(-1, sensor[0].size).to(work).contiguous().numpy()
     out = np.empty_like(flat)
