@@ -1,20 +1,24 @@
-"""What a learned layout is worth under light: the MNIST pixel-budget study at several light levels.
+"""What a learned layout is worth under light: a pixel-budget study at several light levels.
 
-Every layout gets the same sensor extent (28 x 28 µm: 1 µm a source pixel) and exposure, so the
-total light is the same and only its division between pixels differs. For each light level the
-uniform curve (2x2 to 7x7) and the two best families of the noise-free study (grid and curv, at
-3x3 and 4x4) train for 3 seeds with shot and read noise (1 e⁻); the noise-free level is the
-shipped study (``examples/study/mnist``, the same plan and tolerance). Then the saving factor of
-every learned layout is read through the uniform curve of its own light level.
+Every layout gets the same sensor extent (1 µm a source pixel: MNIST 28 x 28 µm, faces
+200 x 200 µm) and exposure, so the total light is the same and only its division between pixels
+differs. For each light level the task's study (its uniform curve, and the two best families of
+its noise-free study, grid and curv, at the study's learned sizes) trains for 3 seeds with shot
+and read noise (1 e⁻); the noise-free level is the shipped study (``examples/study/TASK``, the
+same plan and tolerance). Then the saving factor of every learned layout is read through the
+uniform curve of its own light level.
 
 Run from the repository root (resumable: a finished run is never repeated)::
 
     LAYOUTWARP_DATA=/path/to/data python examples/light_study.py --out results/light-mnist \\
         --ship examples/study/light-mnist
+    LAYOUTWARP_DATA=/path/to/data python examples/light_study.py --task faces --levels 0.035 \\
+        --out results/light-faces --ship examples/study/light-faces
 
-``--levels`` are photons per µm² at full scale; MNIST's mean image value is 0.1307 and a
+``--levels`` are photons per µm² at full scale. MNIST: its mean image value is 0.1307 and a
 uniform 4x4 pixel covers 49 µm², so 3.12 is about 20 photons per uniform 4x4 pixel at the mean
-value (shot-noise-limited) and 31.2 about 200.
+value (shot-noise-limited) and 31.2 about 200 (the default levels). Faces: mean value 0.514, a
+uniform 6x6 pixel covers 1111 µm², so 0.035 is about 20 photons per uniform 6x6 pixel.
 """
 
 from __future__ import annotations
@@ -22,6 +26,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -33,13 +38,30 @@ from layoutwarp.experiments.plots import family_color, figure, save_figure
 from layoutwarp.files import atomic_write
 
 ROOT = Path(__file__).resolve().parents[1]
-MEAN_VALUE, PIXEL_4X4_UM2 = 0.1307, 49.0
 FAMILIES = ("grid", "curv")
 
 
-def photons_per_pixel(level: float) -> float:
-    """Mean photons per uniform 4x4 pixel at MNIST's mean image value."""
-    return level * MEAN_VALUE * PIXEL_4X4_UM2
+@dataclass(frozen=True)
+class Light:
+    """A task's light scale: its mean image value, the uniform pixel that names a level, that
+    pixel's area at 1 µm a source pixel, the learned sizes to plot and the default levels."""
+
+    mean_value: float
+    pixel: str
+    pixel_um2: float
+    sizes: tuple[tuple[int, int], ...]
+    levels: str
+
+
+TASKS = {
+    "mnist": Light(0.1307, "4x4", 49.0, ((3, 3), (4, 4)), "3.12,31.2"),
+    "faces": Light(0.514, "6x6", (200 / 6) ** 2, ((6, 6), (8, 8)), "0.035"),
+}
+
+
+def photons_per_pixel(level: float, light: Light) -> float:
+    """Mean photons per uniform reference pixel at the task's mean image value."""
+    return level * light.mean_value * light.pixel_um2
 
 
 def area_ratio(run: dict) -> float | None:
@@ -55,12 +77,18 @@ def layout_area_ratio(path: Path) -> float:
     return float(areas.max() / areas.min())
 
 
-def collect(out: Path, levels: list[float]) -> dict:
+def collect(out: Path, levels: list[float], task: str) -> dict:
     """The savings of every level's study (and the shipped noise-free one), and how the learned
     layouts' pixel-size range changes."""
-    studies = {f"{photons_per_pixel(p):.0f}": out / f"p{p:g}" for p in levels}
-    studies["noise-free"] = ROOT / "examples" / "study" / "mnist"
-    result: dict = {"levels": {}, "photons_per_um2": {f"{photons_per_pixel(p):.0f}": p for p in levels}}
+    light = TASKS[task]
+    studies = {f"{photons_per_pixel(p, light):.0f}": out / f"p{p:g}" for p in levels}
+    studies["noise-free"] = ROOT / "examples" / "study" / task
+    result: dict = {
+        "task": task,
+        "pixel": light.pixel,
+        "levels": {},
+        "photons_per_um2": {f"{photons_per_pixel(p, light):.0f}": p for p in levels},
+    }
     for label, folder in studies.items():
         if not (folder / "study.json").exists():
             continue
@@ -97,7 +125,7 @@ def collect(out: Path, levels: list[float]) -> dict:
 
 def table(result: dict) -> str:
     lines = [
-        "| photons per uniform 4x4 pixel | family | sensor | test accuracy (%) | pixel saving "
+        f"| photons per uniform {result['pixel']} pixel | family | sensor | test accuracy (%) | pixel saving "
         "| largest/smallest pixel |",
         "|---|---|---|---|---|---|",
     ]
@@ -114,16 +142,17 @@ def table(result: dict) -> str:
 
 
 def plot(result: dict, path: Path) -> Path:
+    light = TASKS[result["task"]]
     fig, ax = figure(figsize=(6.4, 4.2))
     labels = list(result["levels"])
     xs = {label: k for k, label in enumerate(labels)}
     for fam in FAMILIES:
-        for size, ls in (([3, 3], "--"), ([4, 4], "-")):
+        for size, ls in zip(light.sizes, ("--", "-"), strict=True):
             pts = [
                 (xs[label], r["saving"], *r["saving_interval"])
                 for label, e in result["levels"].items()
                 for r in e["rows"]
-                if r["family"] == fam and r["size_hw"] == size
+                if r["family"] == fam and tuple(r["size_hw"]) == size
             ]
             if not pts:
                 continue
@@ -140,39 +169,44 @@ def plot(result: dict, path: Path) -> Path:
             )
     ax.axhline(1, color="black", lw=0.8)
     ax.set_xticks(range(len(labels)), labels)
-    ax.set_xlabel("mean photons per uniform 4x4 pixel (MNIST's mean value)")
+    name = {"mnist": "MNIST", "faces": "faces"}[result["task"]]
+    ax.set_xlabel(f"mean photons per uniform {light.pixel} pixel ({name}'s mean value)")
     ax.set_ylabel("pixel saving against uniform")
-    ax.set_title("MNIST: what learned layouts save as light falls (3 seeds)")
+    ax.set_title(f"{name}: what learned layouts save as light falls (3 seeds)")
     ax.legend(fontsize=8)
     return save_figure(fig, path)
 
 
 def run(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--levels", default="3.12,31.2", help="photons per µm² at full scale, comma-separated")
-    p.add_argument("--out", default="results/light-mnist", help="study folders (one per level)")
+    p.add_argument("--task", choices=sorted(TASKS), default="mnist", help="the study's task (default mnist)")
+    p.add_argument("--levels", help="photons per µm² at full scale, comma-separated (default: the task's)")
+    p.add_argument("--out", help="study folders, one per level (default: results/light-TASK)")
     p.add_argument("--ship", help="copy the summary, the figure and each level's study to this folder")
     p.add_argument("--summarise-only", action="store_true", help="train nothing: summarise what is there")
     args = p.parse_args(argv)
-    levels = [float(v) for v in args.levels.split(",")]
-    out = Path(args.out)
+    light = TASKS[args.task]
+    levels = [float(v) for v in (args.levels or light.levels).split(",")]
+    out = Path(args.out or f"results/light-{args.task}")
     for level in levels if not args.summarise_only else ():
-        study = ["study", "mnist", "--family", "grid", "--family", "curv", "--no-progress", "--device", "cpu"]
+        study = ["study", args.task, "--family", "grid", "--family", "curv", "--no-progress"]
+        study += ["--device", "cpu"]
         study += ["--photons-per-um2", f"{level:g}", "--read-noise-e", "1", "--out", str(out / f"p{level:g}")]
         if layoutwarp(study) != 0:
             return 1
-    result = collect(out, levels)
+    result = collect(out, levels, args.task)
+    figure_name = f"light_{args.task}.png"
     atomic_write(out / "light.json", json.dumps(result, indent=2))
     atomic_write(out / "light.md", table(result))
-    plot(result, out / "light_mnist.png")
+    plot(result, out / figure_name)
     print(table(result), end="")
     if args.ship:
         dest = Path(args.ship)
-        for name in ("light.json", "light.md", "light_mnist.png"):
+        for name in ("light.json", "light.md", figure_name):
             atomic_write(dest / name, (out / name).read_bytes())
         for level in levels:  # each level's summary and its run records
             folder = out / f"p{level:g}"
-            files = [folder / n for n in ("study.json", "study.md", "study_mnist.png")]
+            files = [folder / n for n in ("study.json", "study.md", f"study_{args.task}.png")]
             for src in [*files, *sorted((folder / "runs").glob("*.json"))]:
                 if src.exists():
                     atomic_write(dest / src.relative_to(out), src.read_bytes())
