@@ -1,9 +1,11 @@
 """What sensor physics adds to a fixed layout's forward, and that forward against INTER_AREA.
 
 Times three calls in interleaved rounds (each round calls every one once, so all three meet the
-same machine state): ``cv2.resize(INTER_AREA)``, ``simulate`` of a fixed curv layout (its cached
-area weights) and the same with the bench's camera (shot and read noise, full well, 12-bit ADC),
-on a random 2048x1024 RGB image to a 257x129 sensor, and prints the medians and the two ratios.
+same machine state; the order rotates round by round, so each follows each other as often, a
+call after OpenCV's spinning threads being slower): ``cv2.resize(INTER_AREA)``, ``simulate`` of a
+fixed curv layout (its cached area weights) and the same with the bench's camera (shot and read
+noise, full well, 12-bit ADC), on a random 2048x1024 RGB image to a 257x129 sensor, and prints
+the medians and the two ratios.
 Run: ``python examples/physics_overhead.py [--rounds 60] [--threads 2]``.
 """
 
@@ -41,10 +43,11 @@ def main() -> None:
     with torch.no_grad():
         for call in calls.values():  # warm-up: compiles, builds and caches the area weights
             call()
-        for _ in range(args.rounds):
-            for name, call in calls.items():
+        names = list(calls)
+        for k in range(args.rounds):  # each round in a rotated order: every call follows each other
+            for name in names[k % 3 :] + names[: k % 3]:
                 t0 = time.perf_counter()
-                call()
+                calls[name]()
                 times[name].append(1e3 * (time.perf_counter() - t0))
     ms = {name: statistics.median(t) for name, t in times.items()}
     for name, value in ms.items():
