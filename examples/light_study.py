@@ -170,7 +170,7 @@ def plot(result: dict, path: Path) -> Path:
     ax.axhline(1, color="black", lw=0.8)
     ax.set_xticks(range(len(labels)), labels)
     name = {"mnist": "MNIST", "faces": "faces"}[result["task"]]
-    ax.set_xlabel(f"mean photons per uniform {light.pixel} pixel ({name}'s mean value)")
+    ax.set_xlabel(f"mean photons per uniform {light.pixel} pixel (at the images' mean value)")
     ax.set_ylabel("pixel saving against uniform")
     ax.set_title(f"{name}: what learned layouts save as light falls (3 seeds)")
     ax.legend(fontsize=8)
