@@ -51,11 +51,9 @@ __all__ = [
     "exact_backward",
     "exact_forward",
     "exact_forward_banded",
-    "exact_forward_moments",
-    "moment_weights",
     "prefix_tables",
     "retain_freed_memory",
-    "segment_moment_weights",
+    "segment_moments",
     "sensor_measure",
     "threads",
 ]
@@ -317,11 +315,11 @@ def _segment_forward(
 
 
 @_inline
-def _segment_forward_moments(
-    s: int,
-    verts: np.ndarray,
-    seg_start: np.ndarray,
-    seg_end: np.ndarray,
+def segment_moments(
+    x0: float,
+    y0: float,
+    x1: float,
+    y1: float,
     incl: np.ndarray,
     offsets: np.ndarray,
     block: int,
@@ -329,22 +327,22 @@ def _segment_forward_moments(
     ma: np.ndarray,
     mb: np.ndarray,
 ) -> None:
-    """:func:`_segment_forward` into ``acc[0, :]`` (set here) and segment ``s``'s Reynolds
-    moments into ``ma[s]``, ``mb[s]`` (set here too: none need be zeroed before)."""
+    """Segment ``(x0, y0) → (x1, y1)``'s ``∫ P dY`` per channel and its ``∫ X dY`` into
+    ``acc[0, :]`` (as :func:`exact_forward` integrates a segment), and its Reynolds moments
+    ``∫ (1 − t) L_n dt`` and ``∫ t L_n dt`` into ``ma[0, :]``, ``mb[0, :]`` (``(1, N)`` each),
+    from the same pieces and look-ups; all three set here, none need be zeroed. A scalar
+    function for other kernels (:func:`~layoutwarp.meshkernels.mesh_integrals`): the segment's
+    weights in :func:`exact_backward` are ``grad[N, e]/2 + Σ_n grad[n, e]·m[n]``."""
     h, w, n = incl.shape
     acc[0, :] = 0.0
-    ma[s, :] = 0.0
-    mb[s, :] = 0.0
-    x0, y0 = verts[seg_start[s], 0], verts[seg_start[s], 1]
-    x1, y1 = verts[seg_end[s], 0], verts[seg_end[s], 1]
+    ma[0, :] = 0.0
+    mb[0, :] = 0.0
     if y1 == y0:  # no ∫ P dY, but moments along the row line
-        _segment_moments(s, verts, seg_start, seg_end, incl, block, ma, mb)
+        _segment_moments(x0, y0, x1, y1, incl, block, ma, mb)
         return
     acc[0, n] = (y1 - y0) * (x0 + x1) / 2
     r0, r1 = _row_span(y0, y1, h)
-    _segment_rows(
-        x0, y0, x1, y1, r0, r1, 0, incl, offsets, block, w, acc, 0, True, ma[s : s + 1], mb[s : s + 1]
-    )
+    _segment_rows(x0, y0, x1, y1, r0, r1, 0, incl, offsets, block, w, acc, 0, True, ma, mb)
 
 
 @_inline
@@ -395,65 +393,6 @@ def exact_forward(
             for s in range(chunk * CHUNK, min((chunk + 1) * CHUNK, s_count)):
                 _segment_forward(s, verts, seg_start, seg_end, incl, offsets, block, per_seg)
     return _edge_sums(per_seg, edge_offsets)
-
-
-@_jit
-def exact_forward_moments(
-    verts: np.ndarray,
-    seg_start: np.ndarray,
-    seg_end: np.ndarray,
-    edge_offsets: np.ndarray,
-    incl: np.ndarray,
-    offsets: np.ndarray,
-    block: int,
-    threads: int,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`exact_forward`, and in the same walk, while each segment's cells are in cache, its
-    Reynolds moments ``ma``, ``mb`` ``(S, N)`` (:func:`_segment_moments`): a training step's
-    backward is then one contraction with the gradient (:func:`moment_weights`) instead of a
-    second walk over the table."""
-    s_count, n, e_count = seg_start.shape[0], incl.shape[2], edge_offsets.shape[0] - 1
-    out = np.zeros((n + 1, e_count), dtype=np.float64)
-    ma, mb = np.empty((s_count, n), dtype=np.float64), np.empty((s_count, n), dtype=np.float64)
-    n_chunks = (e_count + CHUNK - 1) // CHUNK
-    for thread in prange(threads):  # chunks of edges: each edge's sum in order, as _edge_sum's
-        acc = np.empty((1, n + 1))
-        for chunk in range(thread, n_chunks, threads):
-            for e in range(chunk * CHUNK, min((chunk + 1) * CHUNK, e_count)):
-                for s in range(edge_offsets[e], edge_offsets[e + 1]):
-                    _segment_forward_moments(s, verts, seg_start, seg_end, incl, offsets, block, acc, ma, mb)
-                    for k in range(n + 1):
-                        out[k, e] += acc[0, k]
-    return out, ma, mb
-
-
-@_inline
-def segment_moment_weights(
-    s: int, ma: np.ndarray, mb: np.ndarray, seg_edge: np.ndarray, grad: np.ndarray
-) -> tuple[float, float]:
-    """Segment ``s``'s Reynolds weights from its moments (:func:`exact_forward_moments`):
-    ``wa = grad[N, e]/2 + Σ_n grad[n, e]·ma[s, n]`` and ``wb`` from ``mb``, ``e = seg_edge[s]``
-    (a scalar function for other kernels, e.g. :func:`~layoutwarp.meshkernels.theta_gradient`)."""
-    e = seg_edge[s]
-    n = ma.shape[1]
-    a = b = grad[n, e] / 2
-    for k in range(n):
-        a += grad[k, e] * ma[s, k]
-        b += grad[k, e] * mb[s, k]
-    return a, b
-
-
-@_jit
-def moment_weights(
-    ma: np.ndarray, mb: np.ndarray, seg_edge: np.ndarray, grad: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`exact_backward`'s Reynolds weights ``(wa, wb)`` of every segment from
-    :func:`exact_forward_moments`' moments (:func:`segment_moment_weights`)."""
-    s_count = ma.shape[0]
-    wa, wb = np.empty(s_count), np.empty(s_count)
-    for s in prange(s_count):
-        wa[s], wb[s] = segment_moment_weights(s, ma, mb, seg_edge, grad)
-    return wa, wb
 
 
 @_jit
@@ -586,21 +525,19 @@ def _segment_weights(
 
 @_inline
 def _segment_moments(
-    s: int,
-    verts: np.ndarray,
-    seg_start: np.ndarray,
-    seg_end: np.ndarray,
+    x0: float,
+    y0: float,
+    x1: float,
+    y1: float,
     incl: np.ndarray,
     block: int,
     ma: np.ndarray,
     mb: np.ndarray,
 ) -> None:
-    """Segment ``s``'s Reynolds moments per channel, ``ma[s, k] = ∫ (1 − t) L_k dt`` and
-    ``mb[s, k] = ∫ t L_k dt`` over its pieces, the walk of :func:`_segment_weights` before any
-    gradient is known (its weights are then ``grad[N, e]/2 + Σ_k grad[k, e]·m[s, k]``)."""
+    """Add segment ``(x0, y0) → (x1, y1)``'s Reynolds moments per channel, ``∫ (1 − t) L_k dt``
+    and ``∫ t L_k dt`` over its pieces, to ``ma[0, k]`` and ``mb[0, k]``: the walk of
+    :func:`_segment_weights` before any gradient is known."""
     h, w, n = incl.shape
-    x0, y0 = verts[seg_start[s], 0], verts[seg_start[s], 1]
-    x1, y1 = verts[seg_end[s], 0], verts[seg_end[s], 1]
     dxv, dyv = x1 - x0, y1 - y0
     flat, vertical = dyv == 0.0, dxv == 0.0
     inv_dy = 1.0 / dyv if not flat else 1.0
@@ -618,8 +555,8 @@ def _segment_moments(
                 lv = _cell(incl, row, col, k, block)
                 if not inside:
                     lv = 0.5 * (lv + _cell(incl, row2, col2, k, block))
-                ma[s, k] += lv * m0
-                mb[s, k] += lv * m1
+                ma[0, k] += lv * m0
+                mb[0, k] += lv * m1
 
 
 @_jit

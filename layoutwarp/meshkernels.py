@@ -14,8 +14,9 @@ vertices within a few ulp). Instead of an
 autograd graph it returns ``∂v/∂θ`` of every vertex ``v``: for a vertex at parameter
 ``t = lo + (hi − lo) k/m`` of a smooth piece of the uniform edge ``a + t (b − a)``,
 ``dv/dθ = ∂φ/∂θ + J (b − a) (∂lo/∂θ (1 − k/m) + ∂hi/∂θ k/m)``, the second term where the piece's
-ends (kinks) move with θ. The exact integrator's compiled Reynolds weights then give θ's
-gradient as one contraction (see :func:`theta_gradient`).
+ends (kinks) move with θ. For a training step on the CPU, :func:`mesh_integrals` places the
+vertices and integrates over them chunk by chunk, carrying ``∂v/∂θ`` to the θ-Jacobian of every
+edge integral, so θ's gradient is one contraction with the edge gradient.
 
 :func:`mesh_spec` says whether a layout has a compiled form (exactly these classes: a
 subclass may change φ, so it keeps the torch path).
@@ -35,7 +36,7 @@ try:  # as in layoutwarp.kernels: without numba, mesh_spec says there is no comp
 except ImportError:  # pragma: no cover - depends on the environment
     njit = prange = None
 
-from .kernels import CHUNK, available, segment_moment_weights, threads
+from .kernels import BLOCK, CHUNK, available, segment_moments, threads
 from .layouts import CurvLayout, EllipticLayout, FoveaLayout, Layout
 from .mesh import INNER, MeshTopology, PixelMesh
 
@@ -46,9 +47,9 @@ __all__ = [
     "MeshSpec",
     "build_mesh",
     "edge_gradient",
+    "mesh_integrals",
     "mesh_spec",
     "pixel_vertices",
-    "theta_gradient",
 ]
 
 #: Family codes of the compiled maps.
@@ -550,6 +551,61 @@ def _corners(
     return q, dq, amin
 
 
+@_run
+def _place_chunk(
+    kind: int, centred: bool, ends: np.ndarray, th: np.ndarray, c: np.ndarray, piece_offsets: np.ndarray,
+    bounds: np.ndarray, dbounds: np.ndarray, counts: np.ndarray, edge_offsets: np.ndarray, e0: int, e1: int,
+    pts: np.ndarray, out: np.ndarray, moving: np.ndarray, qi: np.ndarray, dq: np.ndarray,
+    verts: np.ndarray, dverts: np.ndarray,
+) -> None:  # fmt: skip
+    """The new vertices of edges ``e0 .. e1 − 1`` into ``verts[i]`` ``(2,)`` and ``dverts[i]``
+    ``(2, P)``, ``i`` counted from the chunk's first new vertex (segment ``s`` of edge ``e`` ends
+    at new vertex ``s − e`` of the mesh unless it is the edge's last): their points first, then
+    one loop of :func:`_phi_run`; ``pts``, ``out``, ``moving``, ``qi``, ``dq``: work space."""
+    p = th.shape[0]
+    base = edge_offsets[e0] - e0
+    nm = 0  # the chunk's pieces that move with a learned centre: (piece, edge, first segment)
+    for e in range(e0, e1):  # each new vertex's point on its edge
+        s = first = edge_offsets[e]
+        ax, ay = ends[e, 0], ends[e, 1]
+        dx, dy = ends[e, 2] - ax, ends[e, 3] - ay
+        for pc in range(piece_offsets[e], piece_offsets[e + 1]):
+            m = counts[pc]
+            lo, hi = bounds[pc, 0], bounds[pc, 1]
+            if p == 4:
+                moves = False
+                for r in range(p):
+                    moves = moves or dbounds[pc, 0, r] != 0 or dbounds[pc, 1, r] != 0
+                if moves:
+                    moving[nm, 0], moving[nm, 1], moving[nm, 2] = pc, e, s
+                    nm += 1
+            for k in range(m):
+                if s != first:
+                    t = lo + (hi - lo) * (k / m)
+                    i = s - e - 1 - base
+                    pts[0, i], pts[1, i] = ax + t * dx, ay + t * dy
+                s += 1
+    n = edge_offsets[e1] - e1 - base
+    _phi_run(kind, centred, th, c, pts, n, out)  # the chunk's new vertices in one loop
+    _unpack(out, n, verts, dverts)
+    for j in range(nm):  # a piece's ends move with a learned centre: its vertices too
+        pc, e, s = moving[j, 0], moving[j, 1], moving[j, 2]
+        ax, ay = ends[e, 0], ends[e, 1]
+        dx, dy = ends[e, 2] - ax, ends[e, 3] - ay
+        m, lo, hi = counts[pc], bounds[pc, 0], bounds[pc, 1]
+        for k in range(m):
+            if s + k != edge_offsets[e]:
+                f = k / m
+                t = lo + (hi - lo) * f
+                v = s + k - e - 1 - base
+                _phi(kind, centred, ax + t * dx, ay + t * dy, th, c, qi, dq)
+                for r in range(p):
+                    dt = dbounds[pc, 0, r] * (1 - f) + dbounds[pc, 1, r] * f
+                    if dt != 0:
+                        dverts[v, 0, r] += (dq[0, p] * dx + dq[0, p + 1] * dy) * dt
+                        dverts[v, 1, r] += (dq[1, p] * dx + dq[1, p + 1] * dy) * dt
+
+
 @_jit
 def _place_vertices(
     kind: int, centred: bool, ends: np.ndarray, ea: np.ndarray, eb: np.ndarray, th: np.ndarray,
@@ -560,61 +616,134 @@ def _place_vertices(
     """Segments and interior vertices of every edge, numbered as :func:`~layoutwarp.pixel_mesh`
     numbers them: segment ``s`` of edge ``e`` starts at the new vertex ``V0 + s − e − 1`` unless
     it is the edge's first. A chunk's new vertices are consecutive (``span``: the most a chunk
-    has): their points first, then one loop of :func:`_phi_run`."""
+    has), placed by :func:`_place_chunk`."""
     ne, p = ends.shape[0], th.shape[0]
     n_chunks = (ne + CHUNK - 1) // CHUNK
+    mesh = (kind, centred, ends, th, c, piece_offsets, bounds, dbounds, counts, edge_offsets)
     for thread in prange(threads):
         qi, dq = np.empty(2), np.empty((2, p + 2))
         pts, out = np.empty((2, span)), np.empty((2 + 2 * p, span))
-        # the chunk's pieces that move with a learned centre: (piece, edge, first segment)
         moving = np.empty((10 * CHUNK, 3), dtype=np.int64)  # 9 pieces an edge at most
         for chunk in range(thread, n_chunks, threads):
             e0, e1 = chunk * CHUNK, min((chunk + 1) * CHUNK, ne)
-            v0, v1 = ncorner + edge_offsets[e0] - e0, ncorner + edge_offsets[e1] - e1
-            nm = 0
-            for e in range(e0, e1):  # the segments, and each new vertex's point on its edge
-                s = first = edge_offsets[e]
-                last = edge_offsets[e + 1] - 1
-                ax, ay = ends[e, 0], ends[e, 1]
-                dx, dy = ends[e, 2] - ax, ends[e, 3] - ay
-                for pc in range(piece_offsets[e], piece_offsets[e + 1]):
-                    m = counts[pc]
-                    lo, hi = bounds[pc, 0], bounds[pc, 1]
-                    if p == 4:
-                        moves = False
-                        for r in range(p):
-                            moves = moves or dbounds[pc, 0, r] != 0 or dbounds[pc, 1, r] != 0
-                        if moves:
-                            moving[nm, 0], moving[nm, 1], moving[nm, 2] = pc, e, s
-                            nm += 1
-                    for k in range(m):
-                        seg_edge[s] = e
-                        seg_start[s] = ea[e] if s == first else ncorner + s - e - 1
-                        seg_end[s] = eb[e] if s == last else ncorner + s - e
-                        if s != first:
-                            t = lo + (hi - lo) * (k / m)
-                            i = ncorner + s - e - 1 - v0
-                            pts[0, i], pts[1, i] = ax + t * dx, ay + t * dy
-                        s += 1
-            # the chunk's new vertices are consecutive: map them in one loop
-            _phi_run(kind, centred, th, c, pts, v1 - v0, out)
-            _unpack(out, v1 - v0, verts[v0:], dverts[v0:])
-            for j in range(nm):  # a piece's ends move with a learned centre: its vertices too
-                pc, e, s = moving[j, 0], moving[j, 1], moving[j, 2]
-                ax, ay = ends[e, 0], ends[e, 1]
-                dx, dy = ends[e, 2] - ax, ends[e, 3] - ay
-                m, lo, hi = counts[pc], bounds[pc, 0], bounds[pc, 1]
-                for k in range(m):
-                    if s + k != edge_offsets[e]:
-                        f = k / m
-                        t = lo + (hi - lo) * f
-                        v = ncorner + s + k - e - 1
-                        _phi(kind, centred, ax + t * dx, ay + t * dy, th, c, qi, dq)
-                        for r in range(p):
-                            dt = dbounds[pc, 0, r] * (1 - f) + dbounds[pc, 1, r] * f
-                            if dt != 0:
-                                dverts[v, 0, r] += (dq[0, p] * dx + dq[0, p + 1] * dy) * dt
-                                dverts[v, 1, r] += (dq[1, p] * dx + dq[1, p + 1] * dy) * dt
+            for e in range(e0, e1):
+                first, last = edge_offsets[e], edge_offsets[e + 1] - 1
+                for s in range(first, last + 1):
+                    seg_edge[s] = e
+                    seg_start[s] = ea[e] if s == first else ncorner + s - e - 1
+                    seg_end[s] = eb[e] if s == last else ncorner + s - e
+            v0 = ncorner + edge_offsets[e0] - e0
+            _place_chunk(*mesh, e0, e1, pts, out, moving, qi, dq, verts[v0:], dverts[v0:])
+
+
+@_jit
+def _integrate(
+    kind: int, centred: bool, ends: np.ndarray, ea: np.ndarray, eb: np.ndarray, th: np.ndarray,
+    c: np.ndarray, piece_offsets: np.ndarray, bounds: np.ndarray, dbounds: np.ndarray,
+    counts: np.ndarray, edge_offsets: np.ndarray, corners: np.ndarray, dcorners: np.ndarray,
+    incl: np.ndarray, offsets: np.ndarray, block: int, ws: float, hs: float, threads: int, span: int,
+) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """:func:`mesh_integrals` a chunk of edges at a time: its new vertices into work space
+    (:func:`_place_chunk`), in pixel units as :func:`_to_pixels` gives them; its segments'
+    integrals (each edge summed in segment order), moments
+    (:func:`~layoutwarp.kernels.segment_moments`) and θ-Jacobian while the segment is at hand.
+    ``corners`` ``(V0, 2)`` in pixel units, ``span``: the most new vertices a chunk has."""
+    ne, p, n = ends.shape[0], th.shape[0], incl.shape[2]
+    out = np.zeros((n + 1, ne))
+    jac = np.zeros((n + 1, ne, p))
+    n_chunks = (ne + CHUNK - 1) // CHUNK
+    sx, sy = ws / 2, hs / 2  # ∂X/∂x, ∂Y/∂y
+    mesh = (kind, centred, ends, th, c, piece_offsets, bounds, dbounds, counts, edge_offsets)
+    for thread in prange(threads):
+        qi, dq = np.empty(2), np.empty((2, p + 2))
+        pts, rows = np.empty((2, span)), np.empty((2 + 2 * p, span))
+        moving = np.empty((10 * CHUNK, 3), dtype=np.int64)
+        verts, dverts = np.empty((span, 2)), np.empty((span, 2, p))
+        acc, ma, mb = np.empty((1, n + 1)), np.empty((1, n)), np.empty((1, n))  # a segment's
+        ej = np.empty((n + 1, p))  # an edge's θ-Jacobian
+        for chunk in range(thread, n_chunks, threads):
+            e0, e1 = chunk * CHUNK, min((chunk + 1) * CHUNK, ne)
+            _place_chunk(*mesh, e0, e1, pts, rows, moving, qi, dq, verts, dverts)
+            base = edge_offsets[e0] - e0
+            for i in range(edge_offsets[e1] - e1 - base):
+                verts[i, 0] = min(max((verts[i, 0] + 1) * (ws / 2), 0.0), ws)
+                verts[i, 1] = min(max((verts[i, 1] + 1) * (hs / 2), 0.0), hs)
+            for e in range(e0, e1):
+                first, last = edge_offsets[e], edge_offsets[e + 1] - 1
+                ej[:, :] = 0.0
+                x1, y1 = corners[ea[e], 0], corners[ea[e], 1]
+                for s in range(first, last + 1):
+                    x0, y0 = x1, y1
+                    i = s - e - base  # the segment's end is new vertex i, unless it is the edge's last
+                    if s == last:
+                        x1, y1 = corners[eb[e], 0], corners[eb[e], 1]
+                    else:
+                        x1, y1 = verts[i, 0], verts[i, 1]
+                    segment_moments(x0, y0, x1, y1, incl, offsets, block, acc, ma, mb)
+                    for k in range(n + 1):
+                        out[k, e] += acc[0, k]
+                    nx, ny = (y1 - y0) * sx, (x0 - x1) * sy  # the normal, times dX/dx and dY/dy
+                    for r in range(p):  # ν·v at both ends, times the moments
+                        if s == first:
+                            da = nx * dcorners[ea[e], 0, r] + ny * dcorners[ea[e], 1, r]
+                        else:
+                            da = nx * dverts[i - 1, 0, r] + ny * dverts[i - 1, 1, r]
+                        if s == last:
+                            db = nx * dcorners[eb[e], 0, r] + ny * dcorners[eb[e], 1, r]
+                        else:
+                            db = nx * dverts[i, 0, r] + ny * dverts[i, 1, r]
+                        for k in range(n):
+                            ej[k, r] += ma[0, k] * da + mb[0, k] * db
+                        ej[n, r] += (da + db) / 2
+                for k in range(n + 1):
+                    for r in range(p):
+                        jac[k, e, r] = ej[k, r]
+    return out, jac
+
+
+@dataclass
+class _Counted:
+    """The count stage's results (see :func:`_count_stage`)."""
+
+    th: np.ndarray
+    c: np.ndarray
+    corners: np.ndarray  # (V0, 2) deformed corners
+    dcorners: np.ndarray  # (V0, 2, P) their θ-derivatives
+    piece_offsets: np.ndarray  # (E + 1,) each edge's smooth pieces
+    bounds: np.ndarray  # (pieces, 2) their parameter ranges
+    dbounds: np.ndarray  # (pieces, 2, P) and their θ-derivatives
+    counts: np.ndarray  # (pieces,) segments a piece
+    edge_offsets: np.ndarray  # (E + 1,) segments an edge
+    span: int  # the most new vertices a chunk of edges has
+
+
+def _count_stage(
+    spec: MeshSpec, size: tuple[int, int], theta: np.ndarray, tol: float, max_subdiv: int, with_grad: bool
+) -> _Counted:
+    """Corners, every edge's smooth pieces and their segment counts: what the vertices' placement
+    needs (:func:`build_mesh`, :func:`mesh_integrals`)."""
+    h, w = size
+    ends = _topology(size)[0]
+    th = np.ascontiguousarray(theta, dtype=np.float64)
+    c = np.array(spec.center, dtype=np.float64)
+    args = (spec.kind, spec.centred)
+    nt = threads()
+    cq, cdq, amin = _corners(*args, h, w, _topology(size)[3], th, c)
+    npieces = _count_pieces(*args, ends, th, c, nt)
+    ne = len(npieces)
+    piece_offsets = np.zeros(ne + 1, dtype=np.int64)
+    np.cumsum(npieces, out=piece_offsets[1:])
+    total = int(piece_offsets[-1])
+    bounds, dbounds = np.empty((total, 2)), np.empty((total, 2, len(th)))
+    counts = np.empty(total, dtype=np.int64)
+    chunk_ends = np.r_[0:ne:CHUNK, ne]
+    span = int(np.diff(piece_offsets[chunk_ends]).max())  # the most pieces a chunk has
+    limits = (float(tol), int(max_subdiv), with_grad, INNER, nt, span)
+    _pieces_and_counts(*args, ends, th, c, piece_offsets, amin, *limits, bounds, dbounds, counts)
+    edge_offsets = np.zeros(ne + 1, dtype=np.int64)
+    np.cumsum(np.add.reduceat(counts, piece_offsets[:-1]), out=edge_offsets[1:])
+    vspan = int(np.diff(edge_offsets[chunk_ends] - chunk_ends).max())  # the most new vertices a chunk has
+    return _Counted(th, c, cq, cdq, piece_offsets, bounds, dbounds, counts, edge_offsets, vspan)
 
 
 def build_mesh(
@@ -633,36 +762,52 @@ def build_mesh(
     requires grad), so that θ-gradients are as accurate as values.
     """
     h, w = size
-    ends, ea, eb, corners = _topology(size)
-    th = np.ascontiguousarray(theta, dtype=np.float64)
-    c = np.array(spec.center, dtype=np.float64)
-    args = (spec.kind, spec.centred)
-    nt = threads()
-    cq, cdq, amin = _corners(*args, h, w, corners, th, c)
-    npieces = _count_pieces(*args, ends, th, c, nt)
-    ne = len(npieces)
-    piece_offsets = np.zeros(ne + 1, dtype=np.int64)
-    np.cumsum(npieces, out=piece_offsets[1:])
-    total = int(piece_offsets[-1])
-    bounds, dbounds = np.empty((total, 2)), np.empty((total, 2, len(th)))
-    counts = np.empty(total, dtype=np.int64)
-    chunk_ends = np.r_[0:ne:CHUNK, ne]
-    span = int(np.diff(piece_offsets[chunk_ends]).max())  # the most pieces a chunk has
-    limits = (float(tol), int(max_subdiv), with_grad, INNER, nt, span)
-    _pieces_and_counts(*args, ends, th, c, piece_offsets, amin, *limits, bounds, dbounds, counts)
-    edge_offsets = np.zeros(ne + 1, dtype=np.int64)
-    np.cumsum(np.add.reduceat(counts, piece_offsets[:-1]), out=edge_offsets[1:])
-    nseg = int(edge_offsets[-1])
-    ncorner = (h + 1) * (w + 1)
-    verts, dverts = np.empty((ncorner + nseg - ne, 2)), np.empty((ncorner + nseg - ne, 2, len(th)))
-    verts[:ncorner], dverts[:ncorner] = cq, cdq
+    ends, ea, eb, _ = _topology(size)
+    k = _count_stage(spec, size, theta, tol, max_subdiv, with_grad)
+    ne, nseg, ncorner = len(ends), int(k.edge_offsets[-1]), (h + 1) * (w + 1)
+    verts, dverts = np.empty((ncorner + nseg - ne, 2)), np.empty((ncorner + nseg - ne, 2, len(k.th)))
+    verts[:ncorner], dverts[:ncorner] = k.corners, k.dcorners
     seg_start, seg_end, seg_edge = (np.empty(nseg, dtype=np.int64) for _ in range(3))
-    vspan = int(np.diff(edge_offsets[chunk_ends] - chunk_ends).max())  # the most new vertices a chunk has
     _place_vertices(
-        *args, ends, ea, eb, th, c, piece_offsets, bounds, dbounds, counts, edge_offsets, ncorner, nt, vspan,
-        verts, dverts, seg_start, seg_end, seg_edge,
+        spec.kind, spec.centred, ends, ea, eb, k.th, k.c, k.piece_offsets, k.bounds, k.dbounds, k.counts,
+        k.edge_offsets, ncorner, threads(), k.span, verts, dverts, seg_start, seg_end, seg_edge,
     )  # fmt: skip
-    return CompiledMesh((h, w), verts, dverts, seg_start, seg_end, seg_edge, edge_offsets, counts)
+    return CompiledMesh((h, w), verts, dverts, seg_start, seg_end, seg_edge, k.edge_offsets, k.counts)
+
+
+def mesh_integrals(
+    spec: MeshSpec,
+    size: tuple[int, int],
+    theta: np.ndarray,
+    tol: float,
+    tables: tuple[np.ndarray, np.ndarray],
+    src_size: tuple[int, int],
+    *,
+    max_subdiv: int = 4096,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The exact integrator's edge integrals ``(N + 1, E)`` of :func:`build_mesh`'s mesh (with
+    ``with_grad``) over an ``(H, W)`` source of prefix tables ``tables``
+    (:func:`~layoutwarp.kernels.prefix_tables`), as :func:`~layoutwarp.kernels.exact_forward`
+    gives them for the mesh's :func:`pixel_vertices`, and their θ-Jacobian ``(N + 1, E, P)``,
+    without the mesh's arrays: each chunk of edges places its vertices in work space of its own
+    and integrates its segments while they are in cache (a training step's mesh is 50–100 MB of
+    vertices, θ-derivatives and indices at 2048x1024 → 257x129, written once and read twice).
+
+    The Jacobian is the Reynolds transport theorem in forward mode: segment ``s`` from ``a`` to
+    ``b`` of edge ``e`` adds ``ma[n]·v_a + mb[n]·v_b`` to row ``n`` and ``(v_a + v_b)/2`` to the
+    area row ``N``, with its normal ``ν = (ΔY, −ΔX)``, ``v = ν · (W/2 ∂x/∂θ, H/2 ∂y/∂θ)`` at each
+    end and its moments ``ma[n] = ∫ (1 − t) L_n dt``, ``mb[n] = ∫ t L_n dt``
+    (:func:`~layoutwarp.kernels.segment_moments`); θ's gradient is then one contraction with
+    the edge gradient (:func:`edge_gradient`).
+    """
+    hs, ws = src_size
+    ends, ea, eb, _ = _topology(size)
+    k = _count_stage(spec, size, theta, tol, max_subdiv, True)
+    corners = _to_pixels(k.corners, float(ws), float(hs))
+    return _integrate(
+        spec.kind, spec.centred, ends, ea, eb, k.th, k.c, k.piece_offsets, k.bounds, k.dbounds, k.counts,
+        k.edge_offsets, corners, k.dcorners, *tables, BLOCK, float(ws), float(hs), threads(), k.span,
+    )  # fmt: skip
 
 
 @_jit
@@ -712,53 +857,3 @@ def edge_gradient(grad: np.ndarray, means: np.ndarray, areas: np.ndarray) -> np.
     ``(N, H, W)`` of the pixel means ``means = Σ_edges / areas``: the quotient rule, then
     :meth:`~layoutwarp.mesh.MeshTopology.combine_adjoint`, in one compiled pass."""
     return _edge_gradient(*(np.ascontiguousarray(a, dtype=np.float64) for a in (grad, means, areas)))
-
-
-@_jit
-def _theta_gradient(
-    verts: np.ndarray, dverts: np.ndarray, seg_start: np.ndarray, seg_end: np.ndarray, seg_edge: np.ndarray,
-    ma: np.ndarray, mb: np.ndarray, grad: np.ndarray, scale_x: float, scale_y: float, threads: int,
-) -> np.ndarray:  # fmt: skip
-    s_count = seg_start.shape[0]
-    p = dverts.shape[2]  # 2 or 4 (a learned centre)
-    acc = np.zeros((threads, 4))
-    n_chunks = (s_count + CHUNK - 1) // CHUNK
-    for thread in prange(threads):
-        g0 = g1 = g2 = g3 = 0.0  # θ's gradient in registers, each entry summed in segment order
-        for chunk in range(thread, n_chunks, threads):
-            for s in range(chunk * CHUNK, min((chunk + 1) * CHUNK, s_count)):
-                wa, wb = segment_moment_weights(s, ma, mb, seg_edge, grad)
-                a, b = seg_start[s], seg_end[s]
-                nx = (verts[b, 1] - verts[a, 1]) * scale_x  # the normal in pixel units, times dX/dx
-                ny = (verts[a, 0] - verts[b, 0]) * scale_y
-                g0 += wa * (nx * dverts[a, 0, 0] + ny * dverts[a, 1, 0])
-                g0 += wb * (nx * dverts[b, 0, 0] + ny * dverts[b, 1, 0])
-                g1 += wa * (nx * dverts[a, 0, 1] + ny * dverts[a, 1, 1])
-                g1 += wb * (nx * dverts[b, 0, 1] + ny * dverts[b, 1, 1])
-                if p == 4:
-                    g2 += wa * (nx * dverts[a, 0, 2] + ny * dverts[a, 1, 2])
-                    g2 += wb * (nx * dverts[b, 0, 2] + ny * dverts[b, 1, 2])
-                    g3 += wa * (nx * dverts[a, 0, 3] + ny * dverts[a, 1, 3])
-                    g3 += wb * (nx * dverts[b, 0, 3] + ny * dverts[b, 1, 3])
-        acc[thread, 0], acc[thread, 1], acc[thread, 2], acc[thread, 3] = g0, g1, g2, g3
-    return acc.sum(0)[:p]
-
-
-def theta_gradient(
-    mesh: CompiledMesh,
-    pixel_verts: np.ndarray,
-    moments: tuple[np.ndarray, np.ndarray],
-    grad: np.ndarray,
-    src_size: tuple[int, int],
-) -> np.ndarray:
-    """θ's gradient ``(P,)`` from the exact integrator's Reynolds moments ``(ma, mb)``
-    (:func:`~layoutwarp.kernels.exact_forward_moments`) and the gradient ``grad`` ``(N + 1, E)``
-    of its edge integrals, on the mesh's vertices in pixel units of an ``(H, W)`` source:
-    ``Σ_s (wa_s ∂a_s/∂θ + wb_s ∂b_s/∂θ) · n_s`` with the segment's weights ``wa_s``, ``wb_s``
-    (:func:`~layoutwarp.kernels.segment_moment_weights`, computed on the way), its normal
-    ``n_s = (ΔY, −ΔX)`` and ``∂X/∂x = W/2``, ``∂Y/∂y = H/2``."""
-    hs, ws = src_size
-    if mesh.dverts.shape[2] not in (2, 4):  # what the compiled families have (see MeshSpec)
-        raise ValueError(f"θ of a compiled mesh has 2 or 4 entries, got {mesh.dverts.shape[2]}")
-    arrays = (pixel_verts, mesh.dverts, mesh.seg_start, mesh.seg_end, mesh.seg_edge, *moments, grad)
-    return _theta_gradient(*arrays, ws / 2, hs / 2, threads())

@@ -321,9 +321,10 @@ def test_the_csr_product_matches_scipy_for_any_plane_count(planes, gen):
     ],
 )
 def test_the_forwards_moments_give_the_backwards_weights(family, theta, size, src, gen):
-    """A training step's forward also gathers each segment's Reynolds moments, and its backward
-    contracts them with the gradient: the weights of the backward's own walk over the table,
-    on segments inside cells, along row lines (flat) and along column lines (vertical)."""
+    """A training step's forward also gathers each segment's Reynolds moments
+    (:func:`kernels.segment_moments`), and its backward contracts them with the gradient: the
+    weights of the backward's own walk over the table, on segments inside cells, along row lines
+    (flat) and along column lines (vertical); the forward's integrals are the plain forward's."""
     theta = rand_theta(gen, 0.95) if theta is None else theta
     size = size or (rint(gen, 2, 20), rint(gen, 2, 20))
     src = src or (rint(gen, 5, 90), rint(gen, 5, 90))
@@ -333,15 +334,20 @@ def test_the_forwards_moments_give_the_backwards_weights(family, theta, size, sr
     verts, seg_start, seg_end, edge_offsets = [np.ascontiguousarray(t.numpy()) for t in tensors]
     seg_edge = np.ascontiguousarray(mesh.seg_edge.numpy())
     tables = kernels.prefix_tables(img, kernels.BLOCK)
-    nt = kernels.threads()
-    grad = torch.randn(img.shape[0] + 1, edge_offsets.size - 1, generator=gen, dtype=F64).numpy()
-    plain = kernels.exact_forward(verts, seg_start, seg_end, edge_offsets, *tables, kernels.BLOCK, nt)
-    out, ma, mb = kernels.exact_forward_moments(
-        verts, seg_start, seg_end, edge_offsets, *tables, kernels.BLOCK, nt
-    )
+    n = img.shape[0]
+    grad = torch.randn(n + 1, edge_offsets.size - 1, generator=gen, dtype=F64).numpy()
+    plain = kernels.exact_forward(verts, seg_start, seg_end, edge_offsets, *tables, kernels.BLOCK, 1)
+    wa, wb = kernels.exact_backward(verts, seg_start, seg_end, seg_edge, tables[0], kernels.BLOCK, grad, 1)
+    acc, ma, mb = np.empty((1, n + 1)), np.empty((1, n)), np.empty((1, n))
+    out, ma_w, mb_w = np.zeros_like(plain), np.empty_like(wa), np.empty_like(wb)
+    for s in range(seg_start.size):  # in each edge's segment order, as the forward sums them
+        (x0, y0), (x1, y1) = verts[seg_start[s]], verts[seg_end[s]]
+        kernels.segment_moments(x0, y0, x1, y1, *tables, kernels.BLOCK, acc, ma, mb)
+        e = seg_edge[s]
+        out[:, e] += acc[0]
+        ma_w[s] = grad[n, e] / 2 + grad[:n, e] @ ma[0]
+        mb_w[s] = grad[n, e] / 2 + grad[:n, e] @ mb[0]
     assert np.array_equal(out, plain)
-    wa, wb = kernels.exact_backward(verts, seg_start, seg_end, seg_edge, tables[0], kernels.BLOCK, grad, nt)
-    ma_w, mb_w = kernels.moment_weights(ma, mb, seg_edge, grad)
     scale = max(np.abs(wa).max(), np.abs(wb).max())
     assert np.abs(ma_w - wa).max() <= 1e-13 * scale and np.abs(mb_w - wb).max() <= 1e-13 * scale
     if family == "rect" and size == (4, 4):  # the case is what it says: flat and on-line segments
