@@ -33,7 +33,15 @@ from .coords import grid_lines, pixel_centers, sensor_to_pixels
 from .layouts import Layout
 from .maps import sample_points
 from .mesh import MeshTopology, PixelMesh, pixel_mesh
-from .meshkernels import MeshSpec, build_mesh, edge_gradient, mesh_integrals, mesh_spec, pixel_vertices
+from .meshkernels import (
+    MeshSpec,
+    build_mesh,
+    edge_gradient,
+    mesh_integrals,
+    mesh_spec,
+    pixel_vertices,
+    theta_gradient,
+)
 
 __all__ = [
     "BACKENDS",
@@ -430,8 +438,7 @@ class _CompiledExact(torch.autograd.Function):
             return torch.einsum("vi,vip->p", g_v, dverts).to(grad.dtype), None, None, None, None
         with kernels.LOCK:
             g_edge = edge_gradient(grad.detach().double().cpu().numpy(), ctx.means, ctx.areas)
-        jac = ctx.jac
-        g_theta = g_edge.reshape(-1) @ jac.reshape(-1, jac.shape[2])
+            g_theta = theta_gradient(g_edge, ctx.jac)
         return torch.from_numpy(g_theta).to(grad.dtype), None, None, None, None
 
 

@@ -50,6 +50,7 @@ __all__ = [
     "mesh_integrals",
     "mesh_spec",
     "pixel_vertices",
+    "theta_gradient",
 ]
 
 #: Family codes of the compiled maps.
@@ -857,3 +858,29 @@ def edge_gradient(grad: np.ndarray, means: np.ndarray, areas: np.ndarray) -> np.
     ``(N, H, W)`` of the pixel means ``means = Σ_edges / areas``: the quotient rule, then
     :meth:`~layoutwarp.mesh.MeshTopology.combine_adjoint`, in one compiled pass."""
     return _edge_gradient(*(np.ascontiguousarray(a, dtype=np.float64) for a in (grad, means, areas)))
+
+
+@_jit
+def _contract(g: np.ndarray, jac: np.ndarray) -> np.ndarray:
+    rows, p = jac.shape
+    n_chunks = (rows + 4095) // 4096
+    part = np.zeros((n_chunks, p))
+    for c in prange(n_chunks):  # fixed chunks, summed in order: the same result on any thread count
+        for r in range(c * 4096, min(rows, (c + 1) * 4096)):
+            for q in range(p):
+                part[c, q] += g[r] * jac[r, q]
+    out = np.zeros(p)
+    for c in range(n_chunks):
+        for q in range(p):
+            out[q] += part[c, q]
+    return out
+
+
+def theta_gradient(g_edge: np.ndarray, jac: np.ndarray) -> np.ndarray:
+    """θ's gradient ``(P,)`` from the edge integrals' gradient ``g_edge`` ``(N + 1, E)``
+    (:func:`edge_gradient`) and their θ-Jacobian ``jac`` ``(N + 1, E, P)``
+    (:func:`mesh_integrals`): ``Σ g_edge[n, e]·jac[n, e, :]``, compiled and with no BLAS call,
+    whose worker threads would keep spinning on the cores into the next step's kernels (a
+    2048x1024 → 257x129 fovea step ran 2.5x slower with numpy's ``@`` here)."""
+    p = jac.shape[-1]
+    return _contract(np.ascontiguousarray(g_edge).reshape(-1), np.ascontiguousarray(jac).reshape(-1, p))

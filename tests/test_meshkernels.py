@@ -139,6 +139,25 @@ def test_mesh_integrals_are_the_built_meshs_forward_and_reynolds_jacobian(family
     assert np.abs(got - ref).max() <= 1e-12 * max(scale, 1.0), (got, ref)
 
 
+def test_theta_gradient_is_the_contraction_on_any_thread_count():
+    import numba
+
+    rng = np.random.default_rng(int(torch.randint(0, 2**31, ())))
+    p, e = int(rng.choice([2, 4])), int(rng.integers(1, 30000))
+    g, jac = rng.standard_normal((3, e)), rng.standard_normal((3, e, p)) * 10.0 ** rng.uniform(-3, 3, p)
+    ref = np.einsum("ne,nep->p", g, jac)
+    got = mk.theta_gradient(g, jac)
+    scale = np.abs(g[..., None] * jac).sum((0, 1))
+    assert got.shape == (p,) and np.all(np.abs(got - ref) <= 1e-13 * scale), (got, ref)
+    before = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        one = mk.theta_gradient(g, jac)
+    finally:
+        numba.set_num_threads(before)
+    assert np.array_equal(one, got)
+
+
 @pytest.mark.parametrize("size", SIZES)
 def test_edge_gradient_is_the_quotient_rule_then_combine_adjoint(size: tuple[int, int]):
     rng = np.random.default_rng(int(torch.randint(0, 2**31, ())))
