@@ -686,7 +686,7 @@ def cuda_launch(name: str, count: int, stream: int, *args) -> None:
     if count == 0:
         return
     arrays = [cuda.as_cuda_array(a) if hasattr(type(a), "__cuda_array_interface__") else a for a in args]
-    on = cuda.external_stream(stream) if stream else cuda.default_stream()
+    on = cuda.external_stream(stream) if stream else 0  # 0: the default stream, as numba takes it
     with warnings.catch_warnings():  # numba warns of low occupancy on small meshes: not the user's concern
         warnings.filterwarnings("ignore", message=".*GPU under-utilization")
         _CUDA_KERNELS[name][(count + CUDA_THREADS - 1) // CUDA_THREADS, CUDA_THREADS, on](*arrays)
