@@ -667,8 +667,8 @@ def _integrate(
             _place_chunk(*mesh, e0, e1, pts, rows, moving, qi, dq, verts, dverts)
             base = edge_offsets[e0] - e0
             for i in range(edge_offsets[e1] - e1 - base):
-                verts[i, 0] = min(max((verts[i, 0] + 1) * (ws / 2), 0.0), ws)
-                verts[i, 1] = min(max((verts[i, 1] + 1) * (hs / 2), 0.0), hs)
+                verts[i, 0] = min(max((verts[i, 0] + 1) * sx, 0.0), ws)
+                verts[i, 1] = min(max((verts[i, 1] + 1) * sy, 0.0), hs)
             for e in range(e0, e1):
                 first, last = edge_offsets[e], edge_offsets[e + 1] - 1
                 ej[:, :] = 0.0
@@ -724,12 +724,12 @@ def _count_stage(
     """Corners, every edge's smooth pieces and their segment counts: what the vertices' placement
     needs (:func:`build_mesh`, :func:`mesh_integrals`)."""
     h, w = size
-    ends = _topology(size)[0]
+    ends, _, _, uniform = _topology(size)
     th = np.ascontiguousarray(theta, dtype=np.float64)
     c = np.array(spec.center, dtype=np.float64)
     args = (spec.kind, spec.centred)
     nt = threads()
-    cq, cdq, amin = _corners(*args, h, w, _topology(size)[3], th, c)
+    cq, cdq, amin = _corners(*args, h, w, uniform, th, c)
     npieces = _count_pieces(*args, ends, th, c, nt)
     ne = len(npieces)
     piece_offsets = np.zeros(ne + 1, dtype=np.int64)
@@ -799,7 +799,7 @@ def mesh_integrals(
     area row ``N``, with its normal ``ν = (ΔY, −ΔX)``, ``v = ν · (W/2 ∂x/∂θ, H/2 ∂y/∂θ)`` at each
     end and its moments ``ma[n] = ∫ (1 − t) L_n dt``, ``mb[n] = ∫ t L_n dt``
     (:func:`~layoutwarp.kernels.segment_moments`); θ's gradient is then one contraction with
-    the edge gradient (:func:`edge_gradient`).
+    the edge gradient (:func:`edge_gradient`, :func:`theta_gradient`).
     """
     hs, ws = src_size
     ends, ea, eb, _ = _topology(size)
