@@ -15,6 +15,7 @@ from layoutwarp.experiments.bench import (
     fd_theta_gradient,
     format_scaling,
     format_table,
+    report_text,
     run,
     scaling,
 )
@@ -128,6 +129,8 @@ def test_run_small_reports_every_method_and_plots(tmp_path):
         (n, b) for n in ("curv ±", "fovea") for b in (1, 4)
     }
     assert all(r["extra"]["ops"] > 10 and r["forward_ms"] > 0 for r in steps)
+    exact_steps = [r for r in steps if r["method"] == "train step, exact"]
+    assert all(r["extra"]["in_a_row_ms"] > 0 for r in exact_steps) and "ms in a row" in report_text(res)
     reuse = next(r for r in rows if r["method"] == "exact, cached weights")
     assert reuse["extra"]["first_call_ms"] > 0 and reuse["max_err"] < 1e-5
     phys = {r["method"]: r for r in rows if r["method"] in ("exact + physics", "psf gaussian", "psf airy")}

@@ -565,7 +565,9 @@ def training_rows(cfg: BenchConfig, image_name: str, img: Tensor) -> list[Row]:
     proxy) of the same layout, timed in alternation; ``extra``: the torch operator calls of one
     step (profiler), and for the exact step the learnable layout's mesh build alone, the ratio to
     the Monte Carlo step (``over_mc16``) and to the compiled exact forward of the same layout
-    fixed (``over_fixed_forward``, its mesh built once)."""
+    fixed (``over_fixed_forward``, its mesh built once), and the step's median when called in a
+    row as a training loop calls it (``in_a_row_ms``: what one step leaves running, such as
+    another library's spinning worker threads, meets the next)."""
     tx, ty = cfg.theta
     specs = {
         "curv ±": {"family": "curv", "theta": [tx, -ty]},
@@ -598,6 +600,7 @@ def training_rows(cfg: BenchConfig, image_name: str, img: Tensor) -> list[Row]:
                 "batch": batch,
                 "ops": count_ops(step),
                 "mesh_ms": mesh_ms,
+                "in_a_row_ms": _time(step, cfg.repeats),
                 "over_mc16": t_ex / t_mc,
                 "over_fixed_forward": t_ex / t_fwd,
             }
@@ -882,7 +885,8 @@ def report_text(result: dict) -> str:
                 f"{r['extra']['ops']:5d} torch ops"
                 + (
                     f"  (mesh build {r['extra']['mesh_ms']:.1f} ms; {r['extra']['over_mc16']:.2f}x the "
-                    f"MC-16 step, {r['extra']['over_fixed_forward']:.1f}x the fixed forward)"
+                    f"MC-16 step, {r['extra']['over_fixed_forward']:.1f}x the fixed forward; "
+                    f"{r['extra'].get('in_a_row_ms', float('nan')):.1f} ms in a row)"
                     if "mesh_ms" in r["extra"]
                     else ""
                 )
