@@ -953,8 +953,10 @@ def sensor_measure(
     SplitMix64 sequence seeded by ``seed`` (:data:`_ELEMENT_G`), so the result does not depend
     on the thread count.
 
-    Work items are runs of :data:`MEASURE_CHUNK` pixels through all ``N`` planes, taken in turn
-    by ``threads`` threads (see :func:`threads`), each with its own work space. A run first
+    Thread ``t`` of ``threads`` (see :func:`threads`) takes the pixels ``[t·P/T, (t + 1)·P/T)``,
+    the share of a ``prange`` over them that the same thread had in the forward just before (its
+    output still in that core's cache), in runs of :data:`MEASURE_CHUNK` pixels through all ``N``
+    planes, with work space of its own. A run first
     derives its pixels' constants (electrons per unit mean, dark electrons, full well, the ISP's
     offset and its one reciprocal, shared by the planes). Per plane, a branch-free loop takes
     every draw's first try (:func:`_first_tries`; without noise, a loop with none: both
@@ -967,16 +969,15 @@ def sensor_measure(
     read, full_um2, gain, black = params[5], params[6], params[7], params[8]
     n, p = mean.shape
     state0 = _mix(np.uint64(seed) * _GOLDEN + np.uint64(0x632BE59BD9B4E019))
-    runs = (p + MEASURE_CHUNK - 1) // MEASURE_CHUNK
     poisson = noise == 1
-    for thread in prange(threads):  # each thread its work space, and runs in turn
+    for thread in prange(threads):  # each thread its work space, and its share of the pixels
         c = MEASURE_CHUNK
         scale, dark, full, zero, inv = np.empty(c), np.empty(c), np.empty(c), np.empty(c), np.empty(c)
         redo = np.zeros(c, dtype=np.uint8)  # 1: a first try of the pixel was rejected
         words = redo.view(np.uint64)  # eight flags at a time: the rescan skips runs of none
-        for job in range(thread, runs, threads):
-            lo = job * MEASURE_CHUNK
-            m = min(p, lo + MEASURE_CHUNK) - lo
+        start, stop = thread * p // threads, (thread + 1) * p // threads
+        for lo in range(start, stop, MEASURE_CHUNK):
+            m = min(stop, lo + MEASURE_CHUNK) - lo
             for j in range(m):  # the run's pixels' constants
                 a = area_um2[lo + j]
                 scale[j] = eta * light * a

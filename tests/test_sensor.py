@@ -98,6 +98,15 @@ def test_nonfinite_input_raises_unless_allowed(bad, family, method, gen):
         assert not torch.isfinite(out[1]).all()  # the bad pixel reaches an exact output
 
 
+@pytest.mark.parametrize("family", ["curv", "rect"])
+def test_huge_finite_input_is_not_called_nonfinite(family, gen):
+    # the output check sums the output first: a sum that overflows, of finite values, is checked
+    # element by element and passes
+    img = torch.full((2, 1, 10, 10), 3e38) * (1 - 0.01 * torch.rand(2, 1, 10, 10, generator=gen))
+    out = lw.simulate(img, lw.make_layout(family, (0.2, 0.1)), (3, 3))
+    assert torch.isfinite(out).all() and not torch.isfinite(out.sum())
+
+
 def test_bad_arguments_raise_clear_errors():
     img = torch.rand(1, 1, 10, 10)
     layout = lw.CurvLayout((0.2, 0.1))
