@@ -143,6 +143,17 @@ def test_run_small_reports_every_method_and_plots(tmp_path):
     assert png.stat().st_size > 20_000
 
 
+def test_paired_timing_rotates_the_order():
+    from layoutwarp.experiments import bench
+
+    calls: list[str] = []
+    fns = [lambda name=name: calls.append(name) for name in "abc"]
+    times = bench._time_paired(fns, 6)
+    assert len(times) == 3 and all(t >= 0 for t in times)
+    rounds = ["".join(calls[3 + 3 * k : 6 + 3 * k]) for k in range(6)]  # after the warm-up calls
+    assert calls[:3] == ["a", "b", "c"] and rounds == ["abc", "bca", "cab"] * 2
+
+
 def test_scaling_fits_slopes():
     res = scaling(((32, 64), (64, 128)), ((5, 9), (9, 17)), repeats=1)
     assert set(res["slopes"]) == set(res["times_ms"])

@@ -82,11 +82,16 @@ def _sync() -> None:
 def _time_paired(fns: Sequence[Callable[[], object]], repeats: int) -> list[float]:
     """Median ms of each of ``fns`` over ``max(repeats, 1)`` rounds that call them in turn after
     one warm-up call each, so that every one meets the same machine state (a background load,
-    the CPU's clock)."""
+    the CPU's clock); the order rotates round by round, so each follows each other as often (what
+    a call leaves behind, caches or another pool's spinning threads, is shared alike)."""
     for fn in fns:
         fn()
-    times = [[_time(fn, 0) for fn in fns] for _ in range(max(repeats, 1))]
-    return [float(np.median(col)) for col in zip(*times, strict=True)]
+    n = len(fns)
+    times: list[list[float]] = [[] for _ in fns]
+    for k in range(max(repeats, 1)):
+        for i in [*range(k % n, n), *range(k % n)]:
+            times[i].append(_time(fns[i], 0))
+    return [float(np.median(col)) for col in times]
 
 
 def _time(fn: Callable[[], object], repeats: int) -> float:
