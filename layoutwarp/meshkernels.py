@@ -673,26 +673,21 @@ def _integrate(
                 first, last = edge_offsets[e], edge_offsets[e + 1] - 1
                 ej[:, :] = 0.0
                 x1, y1 = corners[ea[e], 0], corners[ea[e], 1]
+                vb = dcorners[ea[e]]  # the θ-velocity (2, P) of the segment's end, then of its start
                 for s in range(first, last + 1):
-                    x0, y0 = x1, y1
+                    x0, y0, va = x1, y1, vb
                     i = s - e - base  # the segment's end is new vertex i, unless it is the edge's last
                     if s == last:
-                        x1, y1 = corners[eb[e], 0], corners[eb[e], 1]
+                        x1, y1, vb = corners[eb[e], 0], corners[eb[e], 1], dcorners[eb[e]]
                     else:
-                        x1, y1 = verts[i, 0], verts[i, 1]
+                        x1, y1, vb = verts[i, 0], verts[i, 1], dverts[i]
                     segment_moments(x0, y0, x1, y1, incl, offsets, block, acc, ma, mb)
                     for k in range(n + 1):
                         out[k, e] += acc[0, k]
                     nx, ny = (y1 - y0) * sx, (x0 - x1) * sy  # the normal, times dX/dx and dY/dy
                     for r in range(p):  # ν·v at both ends, times the moments
-                        if s == first:
-                            da = nx * dcorners[ea[e], 0, r] + ny * dcorners[ea[e], 1, r]
-                        else:
-                            da = nx * dverts[i - 1, 0, r] + ny * dverts[i - 1, 1, r]
-                        if s == last:
-                            db = nx * dcorners[eb[e], 0, r] + ny * dcorners[eb[e], 1, r]
-                        else:
-                            db = nx * dverts[i, 0, r] + ny * dverts[i, 1, r]
+                        da = nx * va[0, r] + ny * va[1, r]
+                        db = nx * vb[0, r] + ny * vb[1, r]
                         for k in range(n):
                             ej[k, r] += ma[0, k] * da + mb[0, k] * db
                         ej[n, r] += (da + db) / 2
