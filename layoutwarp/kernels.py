@@ -120,6 +120,10 @@ def _jit(fn):
     return njit(parallel=True, cache=True, nogil=True)(fn) if njit is not None else fn
 
 
+def _jit_vec(fn):  # numpy's error model: a division by zero gives inf, unchecked, so loops with one vectorise
+    return njit(parallel=True, cache=True, nogil=True, error_model="numpy")(fn) if njit is not None else fn
+
+
 def _inline(fn):
     return njit(inline="always", cache=True)(fn) if njit is not None else fn
 
@@ -930,7 +934,7 @@ def _recorded(e: float, full: float, zero: float, inv: float, params: np.ndarray
     return e if output == 1 else (dn if output == 2 else (dn - zero) * inv)
 
 
-@_jit
+@_jit_vec
 def sensor_measure(
     mean: np.ndarray,
     area_um2: np.ndarray,
