@@ -116,11 +116,7 @@ def retain_freed_memory(trim_bytes: int = 1 << 30) -> bool:
         return False
 
 
-def _jit(fn):
-    return njit(parallel=True, cache=True, nogil=True)(fn) if njit is not None else fn
-
-
-def _jit_vec(fn):  # numpy's error model: a division by zero gives inf, unchecked, so loops with one vectorise
+def _jit(fn):  # numpy's error model: a division by zero gives inf, unchecked, so loops with one vectorise
     return njit(parallel=True, cache=True, nogil=True, error_model="numpy")(fn) if njit is not None else fn
 
 
@@ -934,7 +930,7 @@ def _recorded(e: float, full: float, zero: float, inv: float, params: np.ndarray
     return e if output == 1 else (dn if output == 2 else (dn - zero) * inv)
 
 
-@_jit_vec
+@_jit
 def sensor_measure(
     mean: np.ndarray,
     area_um2: np.ndarray,
