@@ -326,41 +326,46 @@ def _circle(ax: float, ay: float, dx: float, dy: float, sx: float, sy: float, lo
 
 
 @_inline
-def _add_kink(t: float, draw: np.ndarray, n: int, cuts: np.ndarray, dcuts: np.ndarray, k: int) -> int:
-    """Insert kink ``t`` (derivative row ``draw[n]``) into the sorted ``cuts[:k]`` if it lies inside
-    ``(1e-6, 1 − 1e-6)``; returns the new count."""
+def _add_kink(
+    t: float, draw: np.ndarray, n: int, cuts: np.ndarray, dcuts: np.ndarray, k: int, grad: bool
+) -> int:
+    """Insert kink ``t`` (derivative row ``draw[n]``, moved along where ``grad``) into the sorted
+    ``cuts[:k]`` if it lies inside ``(1e-6, 1 − 1e-6)``; returns the new count."""
     if not (t > 1e-6 and t < 1 - 1e-6):
         return k
     j = k
     while j > 0 and cuts[j - 1] > t:
         cuts[j] = cuts[j - 1]
-        dcuts[j, :] = dcuts[j - 1, :]
+        if grad:
+            dcuts[j, :] = dcuts[j - 1, :]
         j -= 1
     cuts[j] = t
-    dcuts[j, :] = draw[n, :]
+    if grad:
+        dcuts[j, :] = draw[n, :]
     return k + 1
 
 
 @_inline
 def _edge_pieces(
     kind: int, centred: bool, e: int, ends: np.ndarray, th: np.ndarray, c: np.ndarray,
-    scratch: np.ndarray, cuts: np.ndarray, dcuts: np.ndarray, lo: np.ndarray, dlo: np.ndarray,
+    scratch: np.ndarray, cuts: np.ndarray, dcuts: np.ndarray, lo: np.ndarray, dlo: np.ndarray, grad: bool,
 ) -> int:  # fmt: skip
     """The smooth pieces of edge ``e``: the ``n + 1`` bounds (0, the kinks of φ along the edge, 1)
-    into ``lo`` and their θ-derivatives into ``dlo``; returns ``n`` (pieces of 1e-12 or less
-    dropped). ``scratch`` (8, P), ``cuts`` (8,), ``dcuts`` (8, P) are work space."""
+    into ``lo`` and, where ``grad``, their θ-derivatives into ``dlo``; returns ``n`` (pieces of
+    1e-12 or less dropped). ``scratch`` (8, P), ``cuts`` (8,), ``dcuts`` (8, P) are work space."""
     p = th.shape[0]
     ax, ay, dx, dy = ends[e, 0], ends[e, 1], ends[e, 2] - ends[e, 0], ends[e, 3] - ends[e, 1]
     k = 0
-    scratch[:, :] = 0.0
+    if grad:
+        scratch[:, :] = 0.0
     if (abs(ax) >= 1 and dx == 0) or (abs(ay) >= 1 and dy == 0):
         pass  # a sensor side: φ is the identity along it, no kinks
     elif kind == 0 and centred:
         m, t0, t1 = _circle(ax, ay, dx, dy, 1.0, 1.0, -1.0, 2.0)
         if m > 0:
-            k = _add_kink(t0, scratch, 0, cuts, dcuts, k)
+            k = _add_kink(t0, scratch, 0, cuts, dcuts, k, grad)
         if m > 1:
-            k = _add_kink(t1, scratch, 0, cuts, dcuts, k)
+            k = _add_kink(t1, scratch, 0, cuts, dcuts, k, grad)
     elif kind == 0:
         cx, cy = (th[2], th[3]) if p == 4 else (c[0], c[1])
         b1, b2 = 1.0, 1.0  # the cuts at x = c_x, y = c_y (an axis-aligned edge has one at most)
@@ -369,9 +374,9 @@ def _edge_pieces(
             if dj != 0:
                 t = (cj - aj) / dj
                 if 0 < t < 1:
-                    if p == 4:
+                    if grad and p == 4:
                         scratch[1 + j, 2 + j] = 1 / dj
-                    k = _add_kink(t, scratch, 1 + j, cuts, dcuts, k)
+                    k = _add_kink(t, scratch, 1 + j, cuts, dcuts, k, grad)
                     b1, b2 = (t, b1) if t < b1 else (b1, t)
         for piece in range(3):  # the circle's crossings on each part between the cuts
             plo = 0.0 if piece == 0 else (b1 if piece == 1 else b2)
@@ -385,23 +390,25 @@ def _edge_pieces(
             m, t0, t1 = _circle(ax - cx, ay - cy, dx, dy, sx, sy, plo, phi_)
             for i in range(m):
                 t = t0 if i == 0 else t1
-                if p == 4:  # implicit derivative of |(a + t d − c) / s|² = 1
+                if grad and p == 4:  # implicit derivative of |(a + t d − c) / s|² = 1
                     wx, wy = (ax + t * dx - cx) / sx, (ay + t * dy - cy) / sy
                     ft = 2 * (wx * dx / sx + wy * dy / sy)
                     scratch[3, :] = 0.0
                     scratch[3, 2] = -2 * wx * (gx * wx - 1) / sx / ft
                     scratch[3, 3] = -2 * wy * (gy * wy - 1) / sy / ft
-                k = _add_kink(t, scratch, 3, cuts, dcuts, k)
+                k = _add_kink(t, scratch, 3, cuts, dcuts, k, grad)
     lo[0] = 0.0
-    dlo[0, :] = 0.0
+    if grad:
+        dlo[0, :] = 0.0
     n = 0
     for i in range(k + 1):
         t = cuts[i] if i < k else 1.0
         if t - lo[n] > 1e-12:
             n += 1
             lo[n] = t
-            for r in range(p):
-                dlo[n, r] = dcuts[i, r] if i < k else 0.0
+            if grad:
+                for r in range(p):
+                    dlo[n, r] = dcuts[i, r] if i < k else 0.0
     return n
 
 
@@ -421,20 +428,49 @@ def _count_pieces(
         lo, dlo = np.empty(10), np.empty((10, p))
         for chunk in range(thread, n_chunks, threads):
             for e in range(chunk * CHUNK, min((chunk + 1) * CHUNK, ne)):
-                out[e] = _edge_pieces(kind, centred, e, ends, th, c, scratch, cuts, dcuts, lo, dlo)
+                out[e] = _edge_pieces(kind, centred, e, ends, th, c, scratch, cuts, dcuts, lo, dlo, False)
     return out
+
+
+@_inline
+def _sagittas(
+    out: np.ndarray, n: int, ns: int, grad: bool, p: int, sag: np.ndarray, length: np.ndarray
+) -> None:  # fmt: skip
+    """Chord length and sagitta bound of each of ``n`` pieces whose ``ns`` samples are columns
+    ``q·ns ..`` of :func:`_phi_run`'s rows ``out`` (five along the piece, then, where ``grad``,
+    two just inside its ends for ``∂φ/∂θ``, which may jump at a kink): the largest of the
+    second differences of φ and, where ``grad``, of every ``∂φ/∂θ`` across the chord, over 8."""
+    for q in range(n):
+        k = q * ns
+        chx, chy = out[0, k + 4] - out[0, k], out[1, k + 4] - out[1, k]
+        ln = math.sqrt(chx * chx + chy * chy)
+        ux, uy = chx / max(ln, 1e-300), chy / max(ln, 1e-300)
+        sg = 0.0
+        for s in range(1, 4):
+            d2x = (out[0, k + s + 1] - 2 * out[0, k + s] + out[0, k + s - 1]) * 16
+            d2y = (out[1, k + s + 1] - 2 * out[1, k + s] + out[1, k + s - 1]) * 16
+            sg = max(sg, abs(ux * d2y - uy * d2x))
+            if grad:  # the θ-velocity field bends the edge too (inner ends)
+                i0 = k + 5 if s == 1 else k + s - 1
+                i2 = k + 6 if s == 3 else k + s + 1
+                for r in range(2, 2 + p):
+                    vx = (out[r, i2] - 2 * out[r, k + s] + out[r, i0]) * 16
+                    vy = (out[p + r, i2] - 2 * out[p + r, k + s] + out[p + r, i0]) * 16
+                    sg = max(sg, abs(ux * vy - uy * vx))
+        sag[q], length[q] = sg / 8, ln
 
 
 @_jit
 def _pieces_and_counts(
     kind: int, centred: bool, ends: np.ndarray, th: np.ndarray, c: np.ndarray, piece_offsets: np.ndarray,
     amin: np.ndarray, tol: float, max_subdiv: int, with_grad: bool, inner: float, threads: int,
-    span: int, bounds: np.ndarray, dbounds: np.ndarray, counts: np.ndarray,
+    span: int, bounds: np.ndarray, dbounds: np.ndarray, counts: np.ndarray, edge_counts: np.ndarray,
 ) -> None:  # fmt: skip
     """Every smooth piece's parameter range (``bounds`` (pieces, 2), ``dbounds`` (pieces, 2, P))
-    and its segment count, bounding the sagitta as :func:`layoutwarp.mesh._segment_counts` does.
-    A chunk of edges places its sample points first, maps them in one loop (:func:`_phi_run`),
-    then counts; ``span``: the most pieces a chunk has."""
+    and its segment count, bounding the sagitta as :func:`layoutwarp.mesh._segment_counts` does,
+    and every edge's segments (``edge_counts[e + 1]``; ``edge_counts[0]`` is left alone). A chunk
+    of edges places its sample points first, maps them in one loop (:func:`_phi_run`), then
+    counts; ``span``: the most pieces a chunk has."""
     ne, p = ends.shape[0], th.shape[0]
     n_chunks = (ne + CHUNK - 1) // CHUNK
     ns = 7 if with_grad else 5  # samples a piece: 5 along it, 2 just inside its ends
@@ -452,7 +488,7 @@ def _pieces_and_counts(
                     lo[0], lo[1] = 0.0, 1.0
                     dlo[0, :], dlo[1, :] = 0.0, 0.0
                 else:
-                    _edge_pieces(kind, centred, e, ends, th, c, scratch, cuts, dcuts, lo, dlo)
+                    _edge_pieces(kind, centred, e, ends, th, c, scratch, cuts, dcuts, lo, dlo, True)
                 ax, ay = ends[e, 0], ends[e, 1]
                 dx, dy = ends[e, 2] - ax, ends[e, 3] - ay
                 for i in range(n):
@@ -469,34 +505,27 @@ def _pieces_and_counts(
                             s, o = 4 * j, 4 - 4 * j
                             pts[0, k + 5 + j] = pts[0, k + s] + inner * (pts[0, k + o] - pts[0, k + s])
                             pts[1, k + 5 + j] = pts[1, k + s] + inner * (pts[1, k + o] - pts[1, k + s])
-            _phi_run(kind, centred, th, c, pts, (piece_offsets[e1] - piece_offsets[e0]) * ns, out)
+            npc = piece_offsets[e1] - piece_offsets[e0]
+            _phi_run(kind, centred, th, c, pts, npc * ns, out)
+            if with_grad and p == 4:  # θ's count a constant: the loop over pieces runs in SIMD lanes
+                _sagittas(out, npc, ns, True, 4, sag, length)
+            elif with_grad and p == 2:
+                _sagittas(out, npc, ns, True, 2, sag, length)
+            else:
+                _sagittas(out, npc, ns, with_grad, p, sag, length)
             for e in range(e0, e1):
                 first, last = piece_offsets[e], piece_offsets[e + 1]
                 edge_len = 0.0
                 for pc in range(first, last):
-                    k = (pc - piece_offsets[e0]) * ns
-                    chx, chy = out[0, k + 4] - out[0, k], out[1, k + 4] - out[1, k]
-                    ln = math.sqrt(chx * chx + chy * chy)
-                    ux, uy = chx / max(ln, 1e-300), chy / max(ln, 1e-300)
-                    sg = 0.0
-                    for s in range(1, 4):
-                        d2x = (out[0, k + s + 1] - 2 * out[0, k + s] + out[0, k + s - 1]) * 16
-                        d2y = (out[1, k + s + 1] - 2 * out[1, k + s] + out[1, k + s - 1]) * 16
-                        sg = max(sg, abs(ux * d2y - uy * d2x))
-                        if with_grad:  # the θ-velocity field bends the edge too (inner ends)
-                            i0 = k + 5 if s == 1 else k + s - 1
-                            i2 = k + 6 if s == 3 else k + s + 1
-                            for r in range(2, 2 + p):
-                                vx = (out[r, i2] - 2 * out[r, k + s] + out[r, i0]) * 16
-                                vy = (out[p + r, i2] - 2 * out[p + r, k + s] + out[p + r, i0]) * 16
-                                sg = max(sg, abs(ux * vy - uy * vx))
-                    sag[pc - piece_offsets[e0]], length[pc - piece_offsets[e0]] = sg / 8, ln
-                    edge_len += ln
+                    edge_len += length[pc - piece_offsets[e0]]
                 budget = 3 * tol * amin[e] / (8 * max(edge_len, 1e-300))
+                total = 0
                 for pc in range(first, last):
                     sg, ln = sag[pc - piece_offsets[e0]], length[pc - piece_offsets[e0]]
                     m = min(max(math.ceil(math.sqrt(2 * sg / budget)), 1.0), float(max_subdiv))
                     counts[pc] = 1 if sg <= 1e-15 * ln else int(m)
+                    total += counts[pc]
+                edge_counts[e + 1] = total
 
 
 @functools.lru_cache(maxsize=16)
@@ -731,13 +760,14 @@ def _count_stage(
     np.cumsum(npieces, out=piece_offsets[1:])
     total = int(piece_offsets[-1])
     bounds, dbounds = np.empty((total, 2)), np.empty((total, 2, len(th)))
-    counts = np.empty(total, dtype=np.int64)
+    counts, edge_offsets = np.empty(total, dtype=np.int64), np.empty(ne + 1, dtype=np.int64)
     chunk_ends = np.r_[0:ne:CHUNK, ne]
     span = int(np.diff(piece_offsets[chunk_ends]).max())  # the most pieces a chunk has
     limits = (float(tol), int(max_subdiv), with_grad, INNER, nt, span)
-    _pieces_and_counts(*args, ends, th, c, piece_offsets, amin, *limits, bounds, dbounds, counts)
-    edge_offsets = np.zeros(ne + 1, dtype=np.int64)
-    np.cumsum(np.add.reduceat(counts, piece_offsets[:-1]), out=edge_offsets[1:])
+    out = (bounds, dbounds, counts, edge_offsets)
+    _pieces_and_counts(*args, ends, th, c, piece_offsets, amin, *limits, *out)
+    edge_offsets[0] = 0
+    np.cumsum(edge_offsets, out=edge_offsets)
     vspan = int(np.diff(edge_offsets[chunk_ends] - chunk_ends).max())  # the most new vertices a chunk has
     return _Counted(th, c, cq, cdq, piece_offsets, bounds, dbounds, counts, edge_offsets, vspan)
 
