@@ -679,8 +679,8 @@ def _integrate(
     (:func:`~layoutwarp.kernels.segment_moments`) and θ-Jacobian while the segment is at hand.
     ``corners`` ``(V0, 2)`` in pixel units, ``span``: the most new vertices a chunk has."""
     ne, p, n = ends.shape[0], th.shape[0], incl.shape[2]
-    out = np.zeros((n + 1, ne))
-    jac = np.zeros((n + 1, ne, p))
+    out = np.empty((n + 1, ne))  # every edge's written once, from work space: no zeroing
+    jac = np.empty((n + 1, ne, p))
     n_chunks = (ne + CHUNK - 1) // CHUNK
     sx, sy = ws / 2, hs / 2  # ∂X/∂x, ∂Y/∂y
     mesh = (kind, centred, ends, th, c, piece_offsets, bounds, dbounds, counts, edge_offsets)
@@ -690,7 +690,7 @@ def _integrate(
         moving = np.empty((10 * CHUNK, 3), dtype=np.int64)
         verts, dverts = np.empty((span, 2)), np.empty((span, 2, p))
         acc, ma, mb = np.empty((1, n + 1)), np.empty((1, n)), np.empty((1, n))  # a segment's
-        ej = np.empty((n + 1, p))  # an edge's θ-Jacobian
+        ej, oe = np.empty((n + 1, p)), np.empty(n + 1)  # an edge's θ-Jacobian and integrals
         for chunk in range(thread, n_chunks, threads):
             e0, e1 = chunk * CHUNK, min((chunk + 1) * CHUNK, ne)
             _place_chunk(*mesh, e0, e1, pts, rows, moving, qi, dq, verts, dverts)
@@ -701,6 +701,7 @@ def _integrate(
             for e in range(e0, e1):
                 first, last = edge_offsets[e], edge_offsets[e + 1] - 1
                 ej[:, :] = 0.0
+                oe[:] = 0.0
                 x1, y1 = corners[ea[e], 0], corners[ea[e], 1]
                 vb = dcorners[ea[e]]  # the θ-velocity (2, P) of the segment's end, then of its start
                 for s in range(first, last + 1):
@@ -712,7 +713,7 @@ def _integrate(
                         x1, y1, vb = verts[i, 0], verts[i, 1], dverts[i]
                     segment_moments(x0, y0, x1, y1, incl, offsets, block, acc, ma, mb)
                     for k in range(n + 1):
-                        out[k, e] += acc[0, k]
+                        oe[k] += acc[0, k]
                     nx, ny = (y1 - y0) * sx, (x0 - x1) * sy  # the normal, times dX/dx and dY/dy
                     for r in range(p):  # ν·v at both ends, times the moments
                         da = nx * va[0, r] + ny * va[1, r]
@@ -721,6 +722,7 @@ def _integrate(
                             ej[k, r] += ma[0, k] * da + mb[0, k] * db
                         ej[n, r] += (da + db) / 2
                 for k in range(n + 1):
+                    out[k, e] = oe[k]
                     for r in range(p):
                         jac[k, e, r] = ej[k, r]
     return out, jac
