@@ -666,6 +666,15 @@ def _place_vertices(
             _place_chunk(*mesh, e0, e1, pts, out, moving, qi, dq, verts[v0:], dverts[v0:])
 
 
+@_inline
+def _still(v: np.ndarray) -> bool:
+    """Whether a vertex's θ-velocity ``v`` ``(2, P)`` is zero (φ the identity about it)."""
+    for r in range(v.shape[1]):
+        if v[0, r] != 0 or v[1, r] != 0:
+            return False
+    return True
+
+
 @_jit
 def _integrate(
     kind: int, centred: bool, ends: np.ndarray, ea: np.ndarray, eb: np.ndarray, th: np.ndarray,
@@ -711,6 +720,8 @@ def _integrate(
                         x1, y1, vb = corners[eb[e], 0], corners[eb[e], 1], dcorners[eb[e]]
                     else:
                         x1, y1, vb = verts[i, 0], verts[i, 1], dverts[i]
+                    if y1 == y0 and _still(va) and _still(vb):  # no ∫ P dY, and no θ moves it: adds 0
+                        continue
                     segment_moments(x0, y0, x1, y1, incl, offsets, block, acc, ma, mb)
                     for k in range(n + 1):
                         oe[k] += acc[0, k]
