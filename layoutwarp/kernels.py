@@ -51,6 +51,7 @@ __all__ = [
     "exact_backward",
     "exact_forward",
     "exact_forward_banded",
+    "measured_csr_apply",
     "prefix_tables",
     "retain_freed_memory",
     "segment_moments",
@@ -73,22 +74,31 @@ def available() -> bool:
     return njit is not None
 
 
+#: Per Python thread: torch's thread count at :func:`threads`' last call there, and what it set.
+_THREADS = threading.local()
+
+
 def threads() -> int:
     """The number of threads the kernels share their work out to, and set for the calling thread's
     launches: numba's, at most torch's current count, so that ``torch.set_num_threads`` and
     ``OMP_NUM_THREADS`` bound both (jobs meant for one core each no longer fight over the cores:
-    two such jobs with numba on two threads each ran a small training step 60x slower)."""
+    two such jobs with numba on two threads each ran a small training step 60x slower). Numba's
+    count is set again only when torch's changed since the calling thread's last call (asking
+    numba costs microseconds a launch)."""
     if get_num_threads is None:
         return 1
     import torch
 
     wanted = torch.get_num_threads()
+    if getattr(_THREADS, "wanted", None) == wanted:
+        return _THREADS.n
     current = get_num_threads()  # the first call starts numba's OpenMP layer, which resets torch's count
     if torch.get_num_threads() != wanted:
         torch.set_num_threads(wanted)
     n = max(1, min(wanted, numba_config.NUMBA_NUM_THREADS))
     if n != current:
         set_num_threads(n)
+    _THREADS.wanted, _THREADS.n = wanted, n
     return n
 
 
@@ -118,6 +128,10 @@ def retain_freed_memory(trim_bytes: int = 1 << 30) -> bool:
 
 def _jit(fn):  # numpy's error model: a division by zero gives inf, unchecked, so loops with one vectorise
     return njit(parallel=True, cache=True, nogil=True, error_model="numpy")(fn) if njit is not None else fn
+
+
+def _serial(fn):  # a serial driver of parallel kernels: one call from Python
+    return njit(cache=True, nogil=True, error_model="numpy")(fn) if njit is not None else fn
 
 
 def _inline(fn):
@@ -1075,3 +1089,27 @@ def csr_apply(
             sums = _csr_row(lo, hi, indices, data, x, k, m)
             for q in range(m):
                 out[k + q, r] = sums[q]
+
+
+@_serial
+def measured_csr_apply(
+    indptr: np.ndarray,
+    indices: np.ndarray,
+    data: np.ndarray,
+    x: np.ndarray,
+    mean: np.ndarray,
+    area_um2: np.ndarray,
+    prnu: np.ndarray,
+    dsnu: np.ndarray,
+    params: np.ndarray,
+    seed: int,
+    noise: int,
+    output: int,
+    out: np.ndarray,
+    threads: int,
+) -> None:
+    """:func:`csr_apply` into ``mean``, then :func:`sensor_measure` of ``mean`` into ``out`` (its
+    arguments): a fixed layout's exact forward with sensor physics in one call from Python, no
+    interpreter between the two launches, each thread measuring the rows it has just summed."""
+    csr_apply(indptr, indices, data, x, mean)
+    sensor_measure(mean, area_um2, prnu, dsnu, params, seed, noise, output, out, threads)

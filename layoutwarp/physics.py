@@ -63,6 +63,7 @@ __all__ = [
     "SensorPhysics",
     "airy_profile",
     "apply_psf",
+    "kernel_arguments",
     "measure",
     "pixel_snr",
     "psf_kernels",
@@ -360,18 +361,12 @@ def measure(
         ValueError: a full well below the read noise in the smallest pixel.
     """
     check_choice(output, OUTPUTS, "output")
-    mode = physics.noise
     needs_grad = torch.is_grad_enabled() and (mean.requires_grad or areas.requires_grad)
+    if not needs_grad and mean.device.type == "cpu" and kernels.available():
+        return _measure_compiled(mean, kernel_arguments(physics, areas, output, generator))
+    mode = physics.noise
     if mode == "auto":
         mode = "gaussian" if needs_grad else "poisson"
-    if not needs_grad and mean.device.type == "cpu" and kernels.available():
-        if mode == "none":
-            seed = 0
-        elif generator is None and physics.seed is not None:
-            seed = _kernel_seed(physics.seed)
-        else:
-            seed = int(torch.randint(0, 2**62, (), generator=generator))
-        return _measure_compiled(mean, _compiled_sensor(physics, areas), mode, output, seed)
     if generator is None and physics.seed is not None:
         generator = torch.Generator(mean.device).manual_seed(physics.seed)
     a_um2 = areas.to(mean) * physics.um2_per_unit()
@@ -452,7 +447,7 @@ def _full_well(physics: SensorPhysics, a_um2: Tensor) -> Tensor | None:
 
 
 #: The compiled measurement's per-sensor inputs, most recently used last (see :func:`_compiled_sensor`).
-_SENSORS: OrderedDict[tuple, tuple[Tensor, tuple[np.ndarray, ...]]] = OrderedDict()
+_SENSORS: OrderedDict[tuple, tuple[Tensor, SensorPhysics, int, tuple[np.ndarray, ...]]] = OrderedDict()
 SENSOR_CACHE_SIZE = 8
 
 
@@ -462,11 +457,14 @@ def _compiled_sensor(physics: SensorPhysics, areas: Tensor) -> tuple[np.ndarray,
     :data:`SENSOR_CACHE_SIZE` (camera, areas) pairs, an areas tensor recognised by identity and
     version (a fixed layout's cached mesh gives the same tensor every call), so a repeated call
     costs no torch operation."""
+    last = _SENSORS[next(reversed(_SENSORS))] if _SENSORS else None
+    if last is not None and last[0] is areas and last[1] is physics and last[2] == areas._version:
+        return last[3]  # the same camera and tensor as last time: no hashing
     key = (physics, id(areas), areas._version)
     hit = _SENSORS.get(key)
     if hit is not None and hit[0] is areas:
         _SENSORS.move_to_end(key)
-        return hit[1]
+        return hit[3]
     a = areas.detach().to("cpu", torch.float64).flatten() * physics.um2_per_unit()
     _full_well(physics, a)
     prnu, dsnu = _patterns(physics, tuple(areas.shape[-2:]), torch.float64, "cpu")
@@ -487,7 +485,7 @@ def _compiled_sensor(physics: SensorPhysics, areas: Tensor) -> tuple[np.ndarray,
         ]
     )
     arrays = (a.numpy(), prnu, dsnu, params)
-    _SENSORS[key] = (areas, arrays)  # holding the tensor keeps its id its own
+    _SENSORS[key] = (areas, physics, key[2], arrays)  # holding the tensor keeps its id its own
     while len(_SENSORS) > SENSOR_CACHE_SIZE:
         _SENSORS.popitem(last=False)
     return arrays
@@ -500,20 +498,32 @@ def _kernel_seed(seed: int) -> int:
     return int(torch.randint(0, 2**62, (), generator=torch.Generator().manual_seed(seed)))
 
 
-def _measure_compiled(
-    mean: Tensor,
-    sensor: tuple[np.ndarray, ...],
-    mode: str,
-    output: str,
-    seed: int,
-) -> Tensor:
+def kernel_arguments(
+    physics: SensorPhysics, areas: Tensor, output: str = "radiance", generator: torch.Generator | None = None
+) -> tuple:
+    """The arguments of :func:`~layoutwarp.kernels.sensor_measure` after the means, for
+    :func:`measure` without gradient on the CPU (``noise="auto"``: exact Poisson draws): the
+    pixels' inputs (kept per camera and areas), the noise's seed (from ``generator``, else
+    ``physics.seed``, else torch's global generator), the noise model's and ``output``'s codes."""
+    mode = "poisson" if physics.noise == "auto" else physics.noise
+    if mode == "none":
+        seed = 0
+    elif generator is None and physics.seed is not None:
+        seed = _kernel_seed(physics.seed)
+    else:
+        seed = int(torch.randint(0, 2**62, (), generator=generator))
+    return (*_compiled_sensor(physics, areas), seed, NOISE_CODES[mode], OUTPUTS.index(output))
+
+
+def _measure_compiled(mean: Tensor, args: tuple) -> Tensor:
     """:func:`measure` without gradient on the CPU: the fused kernel
-    :func:`~layoutwarp.kernels.sensor_measure` on :func:`_compiled_sensor`'s inputs, its noise
-    streams from ``seed``."""
-    work = torch.float32 if mean.dtype == torch.float32 else torch.float64  # the kernel's two builds
-    flat = mean.detach().reshape(-1, sensor[0].size).to(work).contiguous().numpy()
-    out = np.empty_like(flat)
+    :func:`~layoutwarp.kernels.sensor_measure` with :func:`kernel_arguments`' ``args``."""
+    x = mean.detach() if mean.requires_grad else mean
+    if x.dtype not in (torch.float32, torch.float64) or not x.is_contiguous():
+        x = x.to(torch.float64).contiguous()  # the kernel's two builds: float32 and float64
+    flat = x.numpy().reshape(-1, args[0].size)  # numpy's views: a torch call each costs more
+    out = np.empty(flat.shape, flat.dtype)
     with kernels.LOCK:
-        nt = kernels.threads()  # numba's threads for this launch, bounded by torch's
-        kernels.sensor_measure(flat, *sensor, seed, NOISE_CODES[mode], OUTPUTS.index(output), out, nt)
-    return torch.from_numpy(out).reshape(mean.shape).to(mean.dtype)
+        kernels.sensor_measure(flat, *args, out, kernels.threads())  # threads bounded by torch's
+    res = torch.from_numpy(out.reshape(mean.shape))
+    return res if res.dtype == mean.dtype else res.to(mean.dtype)

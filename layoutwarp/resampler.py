@@ -24,6 +24,7 @@ from .labels import labels_to_sensor
 from .layoutfile import layout_key
 from .layouts import Layout
 from .mesh import pixel_mesh
+from .physics import SensorPhysics, kernel_arguments, measure
 
 if TYPE_CHECKING:
     import scipy.sparse
@@ -162,22 +163,42 @@ class AreaResampler:
             out = (self._csr @ torch.from_numpy(flat).to(self.device)).cpu().numpy()
         return out.reshape(*self.size, *image.shape[2:])
 
-    def apply(self, images: torch.Tensor) -> torch.Tensor:
+    def apply(
+        self,
+        images: torch.Tensor,
+        physics: SensorPhysics | None = None,
+        *,
+        output: str = "radiance",
+        generator: torch.Generator | None = None,
+    ) -> torch.Tensor:
         """The weights applied to ``(N, H, W)`` float32 images on this resampler's device:
         ``(N, h, w)``, differentiable in the images (the compiled row-parallel product on the
-        CPU without gradient; torch's sparse product, plane by plane, otherwise)."""
+        CPU without gradient; torch's sparse product, plane by plane, otherwise).
+
+        With ``physics``: what that sensor records of the pixel means
+        (:func:`~layoutwarp.physics.measure` with :attr:`areas`, ``output`` and ``generator``);
+        on the CPU without gradient, the product and the measurement are one compiled call
+        (:func:`~layoutwarp.kernels.measured_csr_apply`)."""
         n = images.shape[0]
         flat = images.reshape(n, -1)
         if flat.device.type == "cpu" and not flat.requires_grad and kernels.available():
             w = self.weights
             out = np.empty((n, w.shape[0]), dtype=np.float32)
             x = np.ascontiguousarray(flat.detach().numpy())
+            measured = None if physics is None else kernel_arguments(physics, self.areas, output, generator)
             with kernels.LOCK:
-                kernels.threads()  # numba's threads for this launch, bounded by torch's
-                kernels.csr_apply(w.indptr, w.indices, w.data, x, out)
+                nt = kernels.threads()  # numba's threads for this launch, bounded by torch's
+                if measured is None:
+                    kernels.csr_apply(w.indptr, w.indices, w.data, x, out)
+                else:
+                    mean, out = out, np.empty_like(out)
+                    kernels.measured_csr_apply(w.indptr, w.indices, w.data, x, mean, *measured, out, nt)
             return torch.from_numpy(out).view(n, *self.size)
         cols = [self._csr @ flat[k].unsqueeze(1) for k in range(n)]  # contiguous planes: no transpose
-        return torch.cat(cols, 1).T.reshape(n, *self.size)
+        mean = torch.cat(cols, 1).T.reshape(n, *self.size)
+        if physics is None:
+            return mean
+        return measure(mean, self.areas, physics, output=output, generator=generator)
 
     def labels(self, label: np.ndarray, rule: str = "nearest") -> np.ndarray:
         """Move an integer label map ``(H, W)`` to the sensor grid by ``rule`` (``"nearest"`` or

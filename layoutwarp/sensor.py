@@ -292,13 +292,12 @@ class _Integration:
             work = apply_psf(work, self.physics)
         weights = self._weights(work)
         if weights is not None:  # a fixed layout: its cached weights know their pixels' areas
-            mean, areas = weights.apply(work), weights.areas
-        else:
-            mesh = None
-            if self.plan.method != "separable":  # the polygons the pixels' areas come from
-                mesh = pixel_mesh(self.layout, self.size, tol=self.tol, dtype=torch.float64)
-            mean = self._dispatch(work, mesh)
-            areas = (mesh or pixel_mesh(self.layout, self.size, dtype=torch.float64)).areas()
+            return weights.apply(work, self.physics, output=self.output, generator=self.generator)
+        mesh = None
+        if self.plan.method != "separable":  # the polygons the pixels' areas come from
+            mesh = pixel_mesh(self.layout, self.size, tol=self.tol, dtype=torch.float64)
+        mean = self._dispatch(work, mesh)
+        areas = (mesh or pixel_mesh(self.layout, self.size, dtype=torch.float64)).areas()
         return measure(mean, areas, self.physics, output=self.output, generator=self.generator)
 
     def _weights(self, work: Tensor | Radiance) -> AreaResampler | None:

@@ -170,6 +170,33 @@ def test_the_fused_kernel_matches_the_torch_path_and_ignores_the_thread_count(ge
     assert torch.equal(one, many) and not torch.equal(one, measure(mean, areas, exact))
 
 
+def test_the_resampler_measures_in_one_call_what_measure_records(gen):
+    # AreaResampler.apply(images, physics): on the CPU the product and the measurement in one
+    # compiled call, the same bytes as the two steps; with image gradients, torch's product and
+    # measure (Gaussian shot noise), whose gradient is the one of the two steps too
+    from layoutwarp.physics import measure
+
+    res = lw.AreaResampler(lw.CurvLayout(rand_theta(gen, 0.7)), (9, 11), (40, 52))
+    img = torch.rand(3, 40, 52, generator=gen)
+    kw = {"read_noise_e": 2.0, "adc_bits": 10, "full_well_per_um2": 300.0, "prnu": 0.02, "dsnu": 0.5}
+    seed = int(torch.randint(0, 2**31, (), generator=gen))
+    for cam in (physics(seed=seed, **kw), physics(noise="none", **kw), physics(noise="gaussian", **kw)):
+        for output in ("radiance", "electrons", "dn"):
+            g1, g2 = torch.Generator().manual_seed(seed), torch.Generator().manual_seed(seed)
+            one = res.apply(img, cam, output=output, generator=g1)
+            two = measure(res.apply(img), res.areas, cam, output=output, generator=g2)
+            assert one.dtype == torch.float32 and torch.equal(one, two), (cam.noise, output)
+    assert not torch.equal(res.apply(img, physics(seed=seed, **kw)), res.apply(img))  # it measured
+    cam = physics(seed=seed, **kw)
+    x = img.clone().requires_grad_(True)
+    y = img.clone().requires_grad_(True)
+    a = res.apply(x, cam)
+    b = measure(res.apply(y), res.areas, cam, generator=torch.Generator().manual_seed(seed))
+    (a * img[:, :9, :11]).sum().backward()
+    (b * img[:, :9, :11]).sum().backward()
+    assert torch.equal(a, b) and torch.equal(x.grad, y.grad) and x.grad.abs().sum() > 0
+
+
 def _kernel_electrons(mean: np.ndarray, noise: int, read: float, seed: int) -> np.ndarray:
     """The fused kernel's electrons for means ``mean`` (one plane; 1 e⁻ per unit, no patterns,
     no dark signal, full well or ADC): each element its own draw."""
