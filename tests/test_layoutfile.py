@@ -78,3 +78,32 @@ def test_missing_file_and_bad_size_name_the_file(tmp_path):
     )
     with pytest.raises(ValueError, match=r"s.json: 'size_hw' must be \[H, W\]"):
         load_layout(tmp_path / "s.json")
+
+
+def test_the_layout_key_follows_every_change_of_the_layout(gen):
+    # kept between calls, the key must still change with θ set in place, an optimiser's step, a
+    # replaced buffer and a changed setting, and match the description of the layout as it is
+    from layoutwarp.layoutfile import layout_key, layout_spec
+
+    def fresh(layout: lw.Layout) -> str:
+        return json.dumps(layout_spec(layout), sort_keys=True)
+
+    layout = lw.FoveaLayout(rand_theta(gen, 0.5), center=(0.2, -0.1))
+    first = layout_key(layout)
+    assert first == fresh(layout) and layout_key(layout) is first  # kept
+    layout.set_theta(layout.theta.detach() * 0.5)
+    assert layout_key(layout) == fresh(layout) != first
+    learn = lw.CurvLayout(rand_theta(gen, 0.5), learn=True)
+    before = layout_key(learn)
+    opt = torch.optim.SGD(learn.parameters(), lr=0.1)
+    lw.simulate(torch.rand(1, 1, 16, 16, generator=gen), learn, (3, 3)).sum().backward()
+    opt.step()
+    assert layout_key(learn) == fresh(learn) != before
+    fixed = lw.CurvLayout((0.3, 0.2))
+    before = layout_key(fixed)
+    fixed.register_buffer("rho", fixed.rho.clone() * 0.5)  # a new tensor, its version 0
+    assert layout_key(fixed) == fresh(fixed) != before
+    before = layout_key(fixed)
+    fixed.bound = 0.9
+    assert layout_key(fixed) == fresh(fixed) != before
+    assert layout_key(lw.CurvLayout((0.3, 0.2))) == layout_key(lw.CurvLayout((0.3, 0.2)))  # by value

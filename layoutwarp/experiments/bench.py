@@ -633,7 +633,7 @@ BENCH_PHYSICS = {
 def physics_rows(cfg: BenchConfig, image_name: str, img: Tensor, anchors: dict[str, float]) -> list[Row]:
     """What sensor physics costs (fixed curv layout, the data tolerance, no gradient): the forward
     with noise, full well and ADC against the same forward without (``extra["over_plain"]``,
-    paired in one loop, ``12 × repeats`` pairs), and the PSFs on the source image against
+    paired in one loop, ``40 × repeats`` pairs), and the PSFs on the source image against
     INTER_AREA; the Airy row's error is the RMSE of its truncated kernel against one holding
     99.9 % of the energy, relative to the image's range (``extra["truncated_energy"]``: what the
     kernel leaves out)."""
@@ -653,8 +653,9 @@ def physics_rows(cfg: BenchConfig, image_name: str, img: Tensor, anchors: dict[s
         with torch.no_grad():
             return simulate(dev_img, layout, cfg.size, physics=ph)
 
-    # a difference of a few percent between two times: many pairs (60 at the default repeats)
-    tp, tq = _time_paired([plain, measured], cfg.repeats * 12)
+    # a difference of a few percent between two times, on machines whose speed drifts: many pairs
+    # (200 at the default repeats, about 1.5 s)
+    tp, tq = _time_paired([plain, measured], cfg.repeats * 40)
     noise = float((measured().cpu().double() - plain().cpu().double()).pow(2).mean().sqrt())
     rows = [
         Row(
