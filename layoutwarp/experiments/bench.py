@@ -28,6 +28,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from .. import kernels
 from ..checks import check_size
 from ..coords import uniform_corners
 from ..files import atomic_write, run_info
@@ -642,7 +643,7 @@ def physics_rows(cfg: BenchConfig, image_name: str, img: Tensor, anchors: dict[s
     source image against INTER_AREA; the Airy row's error is the RMSE of its truncated kernel
     against one holding 99.9 % of the energy, relative to the image's range
     (``extra["truncated_energy"]``: what the kernel leaves out)."""
-    from ..physics import SensorPhysics, apply_psf
+    from ..physics import SensorPhysics, apply_psf, kernel_arguments
 
     h, w = cfg.src
     extent = (2.734375 * h, 2.734375 * w)  # µm: 2.73 µm source pixels at 2048x1024
@@ -665,17 +666,17 @@ def physics_rows(cfg: BenchConfig, image_name: str, img: Tensor, anchors: dict[s
     tp, tq = (float(np.median(col)) for col in times)
     over = float(np.median(np.divide(times[1], times[0]))) - 1
     noise = float((measured().cpu().double() - plain().cpu().double()).pow(2).mean().sqrt())
-    rows = [
-        Row(
-            image_name,
-            "curv",
-            "exact + physics",
-            "noise,FW,ADC",
-            tq,
-            rmse=noise,
-            extra={"over_plain": over, "plain_ms": tp, "physics": ph.to_dict()},
-        )
-    ]
+    extra = {"over_plain": over, "plain_ms": tp, "physics": ph.to_dict()}
+    if cfg.device == "cpu" and kernels.available():
+        # the measurement kernel alone on the forward's means, called in a row: the overhead's floor
+        areas = pixel_mesh(
+            layout, cfg.size, tol=data_tolerance(torch.float32)[0], dtype=torch.float64
+        ).areas()
+        args = kernel_arguments(ph, areas)
+        mean = plain().reshape(-1, areas.numel()).numpy()
+        out, nt = np.empty_like(mean), kernels.threads()
+        extra["kernel_ms"] = _time(lambda: kernels.sensor_measure(mean, *args, out, nt), cfg.repeats * 40)
+    rows = [Row(image_name, "curv", "exact + physics", "noise,FW,ADC", tq, rmse=noise, extra=extra)]
     flat = dev_img.reshape(-1, h, w)
     for kind in ("gaussian", "airy"):
         psf = SensorPhysics(sensor_um=extent, photons_per_um2=1.0, psf=kind)
@@ -917,6 +918,11 @@ def report_text(result: dict) -> str:
                 f"sensor physics (noise, full well, 12-bit ADC): {r['forward_ms']:.2f} ms against "
                 f"{r['extra']['plain_ms']:.2f} ms without, {100 * r['extra']['over_plain']:+.1f} % "
                 "(the median of the rounds' ratios)"
+                + (
+                    f"; the measurement kernel alone {r['extra']['kernel_ms']:.2f} ms"
+                    if "kernel_ms" in r["extra"]
+                    else ""
+                )
             )
     c = result.get("compile")
     if c:
