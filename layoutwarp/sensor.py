@@ -144,10 +144,11 @@ def _prepare(image: Tensor) -> tuple[Tensor, torch.dtype, tuple[int, ...]]:
 def _all_finite(x: Tensor) -> bool:
     """Whether every element of ``x`` is finite: NaN and ±inf reach the sum, so a finite sum says
     so at an eighth of the cost of ``isfinite(x).all()``; only a sum that overflows, of finite
-    values, needs the element-wise check. On the CPU numpy sums, on one thread: torch's sum would
-    wake its thread pool, whose spinning workers then slow the compiled kernels that follow."""
-    if x.device.type == "cpu" and x.dtype in (torch.float32, torch.float64):
-        a = x.detach().numpy()
+    values, needs the element-wise check. On the CPU without gradient (a fixed layout's forward)
+    numpy sums, on one thread: torch's sum would wake its thread pool, whose spinning workers then
+    slow the compiled kernels that follow."""
+    if x.device.type == "cpu" and x.dtype in (torch.float32, torch.float64) and not x.requires_grad:
+        a = x.numpy()
         with np.errstate(over="ignore", invalid="ignore"):
             return bool(np.isfinite(a.sum())) or bool(np.isfinite(a).all())
     return bool(torch.isfinite(x.sum())) or bool(torch.isfinite(x).all())
