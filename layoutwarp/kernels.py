@@ -1093,23 +1093,11 @@ def csr_apply(
 
 @_serial
 def measured_csr_apply(
-    indptr: np.ndarray,
-    indices: np.ndarray,
-    data: np.ndarray,
-    x: np.ndarray,
-    mean: np.ndarray,
-    area_um2: np.ndarray,
-    prnu: np.ndarray,
-    dsnu: np.ndarray,
-    params: np.ndarray,
-    seed: int,
-    noise: int,
-    output: int,
-    out: np.ndarray,
-    threads: int,
+    indptr: np.ndarray, indices: np.ndarray, data: np.ndarray, x: np.ndarray, mean: np.ndarray, *measure
 ) -> None:
-    """:func:`csr_apply` into ``mean``, then :func:`sensor_measure` of ``mean`` into ``out`` (its
-    arguments): a fixed layout's exact forward with sensor physics in one call from Python, no
-    interpreter between the two launches, each thread measuring the rows it has just summed."""
+    """:func:`csr_apply` into ``mean``, then :func:`sensor_measure` of ``mean`` with its other
+    arguments ``measure`` (``area_um2, …, out, threads``): a fixed layout's exact forward with
+    sensor physics in one call from Python, no interpreter between the two launches, each thread
+    measuring the rows it has just summed."""
     csr_apply(indptr, indices, data, x, mean)
-    sensor_measure(mean, area_um2, prnu, dsnu, params, seed, noise, output, out, threads)
+    sensor_measure(mean, *measure)
