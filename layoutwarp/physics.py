@@ -505,6 +505,7 @@ def kernel_arguments(
     :func:`measure` without gradient on the CPU (``noise="auto"``: exact Poisson draws): the
     pixels' inputs (kept per camera and areas), the noise's seed (from ``generator``, else
     ``physics.seed``, else torch's global generator), the noise model's and ``output``'s codes."""
+    check_choice(output, OUTPUTS, "output")
     mode = "poisson" if physics.noise == "auto" else physics.noise
     if mode == "none":
         seed = 0

@@ -187,6 +187,8 @@ def test_the_resampler_measures_in_one_call_what_measure_records(gen):
             two = measure(res.apply(img), res.areas, cam, output=output, generator=g2)
             assert one.dtype == torch.float32 and torch.equal(one, two), (cam.noise, output)
     assert not torch.equal(res.apply(img, physics(seed=seed, **kw)), res.apply(img))  # it measured
+    with pytest.raises(ArgumentError, match="output must be one of 'radiance', 'electrons', 'dn'; got"):
+        res.apply(img, physics(**kw), output="volts")
     cam = physics(seed=seed, **kw)
     x = img.clone().requires_grad_(True)
     y = img.clone().requires_grad_(True)
