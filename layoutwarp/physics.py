@@ -360,10 +360,10 @@ def measure(
     Raises:
         ValueError: a full well below the read noise in the smallest pixel.
     """
-    check_choice(output, OUTPUTS, "output")
     needs_grad = torch.is_grad_enabled() and (mean.requires_grad or areas.requires_grad)
     if not needs_grad and mean.device.type == "cpu" and kernels.available():
-        return _measure_compiled(mean, kernel_arguments(physics, areas, output, generator))
+        return _measure_compiled(mean, kernel_arguments(physics, areas, output, generator))  # checks output
+    check_choice(output, OUTPUTS, "output")
     mode = physics.noise
     if mode == "auto":
         mode = "gaussian" if needs_grad else "poisson"
