@@ -944,6 +944,18 @@ def _recorded(e: float, full: float, zero: float, inv: float, params: np.ndarray
     return e if output == 1 else (dn if output == 2 else (dn - zero) * inv)
 
 
+@_inline
+def _pixel_constants(a: float, params: np.ndarray) -> tuple[float, float, float, float, float]:
+    """A pixel of ``a`` µm²'s electrons per unit mean, dark electrons and full well, and the ISP's
+    offset and reciprocal gain (before the fixed patterns): the one formula of the main loop and
+    the rescan of :func:`sensor_measure`."""
+    light, eta, dark_um2 = params[0], params[1], params[4]
+    full_um2, gain, black = params[6], params[7], params[8]
+    zero = black + gain * dark_um2 * a  # the ISP subtracts the mean dark signal ...
+    inv = 1.0 / (gain * eta * light * a)  # ... and divides by the nominal response
+    return eta * light * a, dark_um2 * a, full_um2 * a, zero, inv
+
+
 @_jit
 def sensor_measure(
     mean: np.ndarray,
@@ -970,35 +982,30 @@ def sensor_measure(
     Thread ``t`` of ``threads`` (see :func:`threads`) takes the pixels ``[t·P/T, (t + 1)·P/T)``,
     the share of a ``prange`` over them that the same thread had in the forward just before (its
     output still in that core's cache), in runs of :data:`MEASURE_CHUNK` pixels through all ``N``
-    planes, with work space of its own. A run first
-    derives its pixels' constants (electrons per unit mean, dark electrons, full well, the ISP's
-    offset and its one reciprocal, shared by the planes). Per plane, a branch-free loop takes
+    planes, with work space of its own. A run first derives its pixels' constants
+    (:func:`_pixel_constants`, then the fixed patterns). Per plane, a branch-free loop takes
     every draw's first try (:func:`_first_tries`; without noise, a loop with none: both
-    vectorise) and flags the pixels where one was rejected (about 0.4 % of the normals, a few
+    vectorise) and flags the elements where one was rejected (about 0.4 % of the normals, a few
     tenths of a percent of the Poisson draws at large means, all of them below a mean of 10
-    electrons); a rescan, eight flags a word, reruns a full sampler there from the start of its
-    stream.
+    electrons). After its last run the thread rescans its flags, eight a word, and reruns a full
+    sampler there from the start of its stream: the rare slow path in one tight loop, whose code
+    and branch history stay warm (a rescan after every run made the kernel 5–25 % slower).
     """
-    light, eta, g_prnu, g_dsnu, dark_um2 = params[0], params[1], params[2], params[3], params[4]
-    read, full_um2, gain, black = params[5], params[6], params[7], params[8]
+    g_prnu, g_dsnu, read = params[2], params[3], params[5]
     n, p = mean.shape
     state0 = _mix(np.uint64(seed) * _GOLDEN + np.uint64(0x632BE59BD9B4E019))
     poisson = noise == 1
     for thread in prange(threads):  # each thread its work space, and its share of the pixels
         c = MEASURE_CHUNK
         scale, dark, full, zero, inv = np.empty(c), np.empty(c), np.empty(c), np.empty(c), np.empty(c)
-        redo = np.zeros(c, dtype=np.uint8)  # 1: a first try of the pixel was rejected
-        words = redo.view(np.uint64)  # eight flags at a time: the rescan skips runs of none
         start, stop = thread * p // threads, (thread + 1) * p // threads
+        share = stop - start
+        words = np.zeros((n * share + 7) // 8 if noise != 0 else 0, dtype=np.uint64)
+        redo = words.view(np.uint8)  # element (r, start + j)'s flag at r·share + j: 1 to rerun
         for lo in range(start, stop, MEASURE_CHUNK):
             m = min(stop, lo + MEASURE_CHUNK) - lo
             for j in range(m):  # the run's pixels' constants
-                a = area_um2[lo + j]
-                scale[j] = eta * light * a
-                dark[j] = dark_um2 * a
-                full[j] = full_um2 * a
-                zero[j] = black + gain * dark_um2 * a  # the ISP subtracts the mean dark signal ...
-                inv[j] = 1.0 / (gain * eta * light * a)  # ... and divides by the nominal response
+                scale[j], dark[j], full[j], zero[j], inv[j] = _pixel_constants(area_um2[lo + j], params)
             if g_prnu != 0.0:  # the fixed patterns in loops of their own: the one above vectorises
                 for j in range(m):
                     scale[j] = scale[j] * (1.0 + g_prnu * prnu[lo + j])
@@ -1007,41 +1014,47 @@ def sensor_measure(
                     dark[j] = dark[j] + g_dsnu * dsnu[lo + j]
             for r in range(n):
                 row, orow = mean[r, lo : lo + m], out[r, lo : lo + m]  # 1-d: 1.5x the 2-d stores
-                first = np.uint64(r * p + lo)
                 if noise == 0:
                     for j in range(m):
                         e = row[j] * scale[j] + dark[j]
                         orow[j] = _recorded(e, full[j], zero[j], inv[j], params, output)
                     continue
+                flags = redo[r * share + lo - start : r * share + lo - start + m]
+                first = np.uint64(r * p + lo)
                 for j in range(m):
                     e = row[j] * scale[j] + dark[j]
                     key = state0 + (first + np.uint64(j)) * _ELEMENT_G  # the shot stream's start
                     mu = max(e, 0.0)
                     k, g, z2, ok_z1, ok_k, ok_z2 = _first_tries(mu, key, key + _STREAM_G)
                     shot = k if poisson else g + (e - mu)  # Gaussian: e + √max(e, 0)·z, bit for bit
-                    redo[j] = (not (ok_z1 and (ok_k or not poisson))) | (not ok_z2 and read != 0.0)
+                    flags[j] = (not (ok_z1 and (ok_k or not poisson))) | (not ok_z2 and read != 0.0)
                     orow[j] = _recorded(shot + read * z2, full[j], zero[j], inv[j], params, output)
-                for b in range((m + 7) // 8):
-                    if words[b] == 0:
-                        continue
-                    for j in range(8 * b, min(m, 8 * b + 8)):
-                        if redo[j] == 0:
-                            continue
-                        redo[j] = 0  # the first tries again, then the full sampler where one failed
-                        e = row[j] * scale[j] + dark[j]
-                        key = state0 + (first + np.uint64(j)) * _ELEMENT_G
-                        mu = max(e, 0.0)
-                        k, g, z2, ok_z1, ok_k, ok_z2 = _first_tries(mu, key, key + _STREAM_G)
-                        shot = k if poisson else g + (e - mu)
-                        if not (ok_z1 and (ok_k or not poisson)):  # from the start of the shot stream
-                            if poisson:
-                                shot, _ = _poisson(mu, key)
-                            else:
-                                z, _ = _normal(key)
-                                shot = e + math.sqrt(mu) * z
-                        if not ok_z2 and read != 0.0:
-                            z2, _ = _normal(key + _STREAM_G)
-                        orow[j] = _recorded(shot + read * z2, full[j], zero[j], inv[j], params, output)
+        for b in range(words.size):  # the rescan
+            if words[b] == 0:
+                continue
+            for f in range(8 * b, min(n * share, 8 * b + 8)):
+                if redo[f] == 0:
+                    continue
+                r, i = f // share, start + f % share
+                sc, dk, fw, zr, iv = _pixel_constants(area_um2[i], params)
+                if g_prnu != 0.0:
+                    sc = sc * (1.0 + g_prnu * prnu[i])
+                if g_dsnu != 0.0:
+                    dk = dk + g_dsnu * dsnu[i]
+                e = mean[r, i] * sc + dk
+                key = state0 + np.uint64(r * p + i) * _ELEMENT_G
+                mu = max(e, 0.0)
+                k, g, z2, ok_z1, ok_k, ok_z2 = _first_tries(mu, key, key + _STREAM_G)
+                shot = k if poisson else g + (e - mu)
+                if not (ok_z1 and (ok_k or not poisson)):  # from the start of the shot stream
+                    if poisson:
+                        shot, _ = _poisson(mu, key)
+                    else:
+                        z, _ = _normal(key)
+                        shot = e + math.sqrt(mu) * z
+                if not ok_z2 and read != 0.0:
+                    z2, _ = _normal(key + _STREAM_G)
+                out[r, i] = _recorded(shot + read * z2, fw, zr, iv, params, output)
 
 
 @_inline
