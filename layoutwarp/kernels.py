@@ -48,6 +48,7 @@ __all__ = [
     "csr_apply",
     "cuda_available",
     "cuda_launch",
+    "cuda_ptx",
     "exact_backward",
     "exact_forward",
     "exact_forward_banded",
@@ -681,6 +682,45 @@ _CUDA_SOURCES = {
 CUDA_THREADS = 128
 
 
+def _import_cuda() -> None:
+    global cuda
+    if cuda is None:
+        from numba import cuda as numba_cuda
+
+        cuda = numba_cuda
+
+
+def _cuda_signature(name: str, dtype: str) -> str:
+    """Kernel ``name``'s argument types for images of ``dtype``, C-contiguous arrays, as
+    :func:`cuda_launch` passes them."""
+    img, idx, f64 = f"{dtype}[:, :, ::1]", "int64[::1]", "float64[::1]"
+    f64_2, f64_3 = "float64[:, ::1]", "float64[:, :, ::1]"
+    args = {
+        "prefix_blocks": [img, "int64", img],
+        "prefix_offsets": ["int64", img, f64_3],
+        "forward": [f64_2, idx, idx, img, f64_3, "int64", f64_2],
+        "edge_sums": [f64_2, idx, f64_2],
+        "backward": [f64_2, idx, idx, idx, img, "int64", f64_2, f64, f64],
+    }[name]
+    return f"void({', '.join(args)})"
+
+
+def cuda_ptx(name: str, dtype: str = "float32", cc: tuple[int, int] = (8, 0)) -> str:
+    """The PTX of CUDA kernel ``name`` (see :func:`cuda_launch`) for images of ``dtype``
+    (``"float32"``/``"float64"``) and compute capability ``cc``, compiled without a GPU: a check
+    that the kernels compile for the device, where no device is at hand. Needs NVIDIA's
+    numba-cuda target (``pip install "layoutwarp[cuda]"``; numba 0.68's built-in CUDA target does
+    not type ``min``/``max`` of two floats in a kernel) with the CUDA toolkit's NVVM and NVRTC
+    libraries."""
+    if name not in _CUDA_SOURCES:
+        raise ValueError(f"name must be one of {', '.join(_CUDA_SOURCES)}, got {name!r}")
+    if dtype not in ("float32", "float64"):
+        raise ValueError(f"dtype must be 'float32' or 'float64', got {dtype!r}")
+    _import_cuda()
+    ptx, _ = cuda.compile_ptx(_CUDA_SOURCES[name], _cuda_signature(name, dtype), cc=cc)
+    return ptx
+
+
 def cuda_launch(name: str, count: int, stream: int, *args) -> None:
     """Launch CUDA kernel ``name`` with one thread per item, ``count`` items, on the CUDA
     stream whose handle is ``stream`` (0: the default stream). The kernels, by name:
@@ -690,11 +730,7 @@ def cuda_launch(name: str, count: int, stream: int, *args) -> None:
     each step for step as on the CPU. Array arguments are torch CUDA tensors or numba device
     arrays (anything with ``__cuda_array_interface__``), read and written in place. Kernels
     compile on first use and are cached on disk."""
-    global cuda
-    if cuda is None:
-        from numba import cuda as numba_cuda
-
-        cuda = numba_cuda
+    _import_cuda()
     if name not in _CUDA_KERNELS:
         _CUDA_KERNELS[name] = cuda.jit(cache=True)(_CUDA_SOURCES[name])
     if count == 0:
@@ -718,17 +754,16 @@ def cuda_available(dtype: str = "float32") -> bool:
 
 def _cuda_smoke_test(dtype: str) -> bool:
     try:
-        from numba import cuda as numba_cuda
-
-        if njit is None or not numba_cuda.is_available():
+        _import_cuda()
+        if njit is None or not cuda.is_available():
             return False
-        dev = numba_cuda.to_device
+        dev = cuda.to_device
         image = dev(np.full((1, 2, 2), 0.25, dtype=dtype))
         verts = dev(np.array([[0.5, 0.5], [1.5, 0.5], [1.5, 1.5], [0.5, 1.5]]))
         seg_start, seg_end = dev(np.arange(4)), dev((np.arange(4) + 1) % 4)
         seg_edge, edge_offsets = dev(np.zeros(4, dtype=np.int64)), dev(np.array([0, 4]))
-        incl = numba_cuda.device_array((2, 2, 1), dtype=dtype)
-        offsets = numba_cuda.device_array((2, 1, 1), dtype=np.float64)
+        incl = cuda.device_array((2, 2, 1), dtype=dtype)
+        offsets = cuda.device_array((2, 1, 1), dtype=np.float64)
         per_seg = dev(np.zeros((4, 2)))
         out, wa, wb = dev(np.zeros((2, 1))), dev(np.zeros(4)), dev(np.zeros(4))
         cuda_launch("prefix_blocks", 2, 0, image, BLOCK, incl)
@@ -741,10 +776,13 @@ def _cuda_smoke_test(dtype: str) -> bool:
             raise RuntimeError(f"a one-pixel test integral came out {total[:, 0]}, not [0.25, 1]")
         return True
     except Exception as err:  # any failure of an optional accelerator means: use the fallback
+        hint = ""
+        if getattr(cuda, "implementation", "") == "Built-in":  # numba's own, deprecated target
+            hint = "; NVIDIA's numba-cuda compiles them: pip install 'layoutwarp[cuda]'"
         warnings.warn(
             f"layoutwarp: numba's CUDA kernels do not run here ({type(err).__name__}: "
             f"{' '.join(str(err).split())}); "
-            "the exact integrator uses its torch path on CUDA",
+            f"the exact integrator uses its torch path on CUDA{hint}",
             RuntimeWarning,
             stacklevel=3,
         )
