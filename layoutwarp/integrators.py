@@ -33,15 +33,7 @@ from .coords import grid_lines, pixel_centers, sensor_to_pixels
 from .layouts import Layout
 from .maps import sample_points
 from .mesh import MeshTopology, PixelMesh, pixel_mesh
-from .meshkernels import (
-    MeshSpec,
-    build_mesh,
-    edge_gradient,
-    mesh_integrals,
-    mesh_spec,
-    pixel_vertices,
-    theta_gradient,
-)
+from .meshkernels import MeshSpec, build_mesh_device, edge_gradient, mesh_integrals, mesh_spec, theta_gradient
 
 __all__ = [
     "BACKENDS",
@@ -398,25 +390,23 @@ class _CompiledExact(torch.autograd.Function):
     CPU the mesh is never held: :func:`~layoutwarp.meshkernels.mesh_integrals` places each chunk
     of edges' vertices and integrates them while they are in cache, carrying their θ-derivatives
     to the θ-Jacobian of every edge integral, so the backward is the quotient rule and one
-    contraction. No image gradient."""
+    contraction. On a CUDA device the mesh is built there
+    (:func:`~layoutwarp.meshkernels.build_mesh_device`) and the CUDA kernels integrate it and
+    weigh its vertices for the backward. No image gradient."""
 
     @staticmethod
     def forward(ctx, theta: Tensor, image: Tensor, spec: MeshSpec, size: tuple[int, int], tol: float):
         hs, ws = image.shape[-2:]
-        th = theta.detach().double().cpu().numpy()
         topo = MeshTopology(size)
-        if image.is_cuda:
-            with kernels.LOCK:  # parallel launches, as every kernel's (see kernels.LOCK)
-                cm = build_mesh(spec, size, th, tol)
-                pv = pixel_vertices(cm, (hs, ws))
-            mesh = cm.pixel_mesh(image.device)
-            pv_t = torch.from_numpy(pv).to(image.device)
-            out, ctx.tables = _cuda_forward(pv_t, image.detach().contiguous(), mesh)
+        if image.is_cuda:  # the mesh built where it is used: none of it crosses the bus
+            dm = build_mesh_device(spec, size, theta.detach().to(image.device), tol, (hs, ws))
+            out, ctx.tables = _cuda_forward(dm.pixel_vertices, image.detach().contiguous(), dm.mesh)
             pix = topo.combine(out)
             means = pix[:-1] / pix[-1]
-            ctx.cm, ctx.src_size, ctx.topo, ctx.mesh, ctx.pv_t = cm, (hs, ws), topo, mesh, pv_t
+            ctx.dm, ctx.src_size, ctx.topo = dm, (hs, ws), topo
             ctx.save_for_backward(means, pix[-1])
             return means
+        th = theta.detach().double().cpu().numpy()
         with kernels.LOCK:  # mesh, integrals and their θ-Jacobian, chunk by chunk
             tables = kernels.prefix_tables(image.detach().contiguous().numpy(), kernels.BLOCK)
             out, ctx.jac = mesh_integrals(spec, size, th, tol, tables, (hs, ws))
@@ -427,15 +417,14 @@ class _CompiledExact(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad: Tensor):
         if grad.is_cuda:
-            cm, topo = ctx.cm, ctx.topo
+            dm, topo = ctx.dm, ctx.topo
             means, areas = ctx.saved_tensors
             g = grad.double()
             g_pix = torch.cat([g / areas, -(g * means).sum(0, keepdim=True) / areas])
-            g_v = _cuda_backward(ctx.pv_t, ctx.tables, ctx.mesh, topo.combine_adjoint(g_pix))
+            g_v = _cuda_backward(dm.pixel_vertices, ctx.tables, dm.mesh, topo.combine_adjoint(g_pix))
             hs, ws = ctx.src_size
             g_v = g_v * torch.tensor([ws / 2, hs / 2], dtype=g_v.dtype, device=g_v.device)
-            dverts = torch.from_numpy(cm.dverts).to(g_v.device)
-            return torch.einsum("vi,vip->p", g_v, dverts).to(grad.dtype), None, None, None, None
+            return torch.einsum("vi,vip->p", g_v, dm.dverts).to(grad.dtype), None, None, None, None
         with kernels.LOCK:
             g_edge = edge_gradient(grad.detach().double().cpu().numpy(), ctx.means, ctx.areas)
             g_theta = theta_gradient(g_edge, ctx.jac)

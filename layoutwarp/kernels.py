@@ -29,6 +29,7 @@ from __future__ import annotations
 import math
 import threading
 import warnings
+from collections.abc import Callable
 
 import numpy as np
 
@@ -690,6 +691,17 @@ def _import_cuda() -> None:
         cuda = numba_cuda
 
 
+def _kernel_source(kernel: str | Callable) -> Callable:
+    """The source of CUDA kernel ``kernel`` (a name of this module's, or another module's kernel
+    function), its module's ``cuda`` (a ``None`` placeholder there: importing numba.cuda costs a
+    tenth of a second) bound to numba.cuda."""
+    _import_cuda()
+    fn = _CUDA_SOURCES[kernel] if isinstance(kernel, str) else kernel
+    if fn.__globals__.get("cuda", cuda) is None:
+        fn.__globals__["cuda"] = cuda
+    return fn
+
+
 def _cuda_signature(name: str, dtype: str) -> str:
     """Kernel ``name``'s argument types for images of ``dtype``, C-contiguous arrays, as
     :func:`cuda_launch` passes them."""
@@ -705,25 +717,34 @@ def _cuda_signature(name: str, dtype: str) -> str:
     return f"void({', '.join(args)})"
 
 
-def cuda_ptx(name: str, dtype: str = "float32", cc: tuple[int, int] = (8, 0)) -> str:
-    """The PTX of CUDA kernel ``name`` (see :func:`cuda_launch`) for images of ``dtype``
-    (``"float32"``/``"float64"``) and compute capability ``cc``, compiled without a GPU: a check
-    that the kernels compile for the device, where no device is at hand. Needs NVIDIA's
-    numba-cuda target (``pip install "layoutwarp[cuda]"``; numba 0.68's built-in CUDA target does
-    not type ``min``/``max`` of two floats in a kernel) with the CUDA toolkit's NVVM and NVRTC
-    libraries."""
-    if name not in _CUDA_SOURCES:
-        raise ValueError(f"name must be one of {', '.join(_CUDA_SOURCES)}, got {name!r}")
-    if dtype not in ("float32", "float64"):
-        raise ValueError(f"dtype must be 'float32' or 'float64', got {dtype!r}")
-    _import_cuda()
-    ptx, _ = cuda.compile_ptx(_CUDA_SOURCES[name], _cuda_signature(name, dtype), cc=cc)
+def cuda_ptx(
+    kernel: str | Callable, dtype: str = "float32", cc: tuple[int, int] = (8, 0), signature: str | None = None
+) -> str:
+    """The PTX of CUDA kernel ``kernel`` for compute capability ``cc``, compiled without a GPU: a
+    check that the kernels compile for the device, where no device is at hand. ``kernel``: a name
+    of :func:`cuda_launch`'s (for images of ``dtype``, ``"float32"``/``"float64"``), or another
+    module's kernel function with its argument types ``signature`` (numba's notation, e.g.
+    ``"void(float64[:, ::1], int64)"``). Needs NVIDIA's numba-cuda target (``pip install
+    "layoutwarp[cuda]"``; numba 0.68's built-in CUDA target does not type ``min``/``max`` of two
+    floats in a kernel) with the CUDA toolkit's NVVM and NVRTC libraries."""
+    if isinstance(kernel, str):
+        if kernel not in _CUDA_SOURCES:
+            raise ValueError(f"kernel must be one of {', '.join(_CUDA_SOURCES)}, got {kernel!r}")
+        if dtype not in ("float32", "float64"):
+            raise ValueError(f"dtype must be 'float32' or 'float64', got {dtype!r}")
+        signature = _cuda_signature(kernel, dtype)
+    elif signature is None:
+        raise ValueError("signature: a kernel function needs its argument types, e.g. 'void(float64[::1])'")
+    source = _kernel_source(kernel)
+    ptx, _ = cuda.compile_ptx(source, signature, cc=cc)
     return ptx
 
 
-def cuda_launch(name: str, count: int, stream: int, *args) -> None:
+def cuda_launch(name: str | Callable, count: int, stream: int, *args) -> None:
     """Launch CUDA kernel ``name`` with one thread per item, ``count`` items, on the CUDA
-    stream whose handle is ``stream`` (0: the default stream). The kernels, by name:
+    stream whose handle is ``stream`` (0: the default stream); ``name`` may also be another
+    module's kernel source (a function of a source file, compiled on first use). The kernels, by
+    name:
     ``"prefix_blocks"`` (items: row × block × channel) and ``"prefix_offsets"`` (row ×
     channel) build :func:`prefix_tables`; ``"forward"`` (segment) and ``"edge_sums"`` (pixel
     edge) do :func:`exact_forward`; ``"backward"`` (segment) does :func:`exact_backward`,
@@ -732,7 +753,7 @@ def cuda_launch(name: str, count: int, stream: int, *args) -> None:
     compile on first use and are cached on disk."""
     _import_cuda()
     if name not in _CUDA_KERNELS:
-        _CUDA_KERNELS[name] = cuda.jit(cache=True)(_CUDA_SOURCES[name])
+        _CUDA_KERNELS[name] = cuda.jit(cache=True)(_kernel_source(name))
     if count == 0:
         return
     arrays = [cuda.as_cuda_array(a) if hasattr(type(a), "__cuda_array_interface__") else a for a in args]

@@ -36,16 +36,20 @@ try:  # as in layoutwarp.kernels: without numba, mesh_spec says there is no comp
 except ImportError:  # pragma: no cover - depends on the environment
     njit = prange = None
 
+from . import kernels as kernel_module
 from .kernels import BLOCK, CHUNK, available, segment_moments, threads
 from .layouts import CurvLayout, EllipticLayout, FoveaLayout, Layout
 from .mesh import INNER, MeshTopology, PixelMesh
 
 __all__ = [
+    "CUDA_KERNELS",
     "CURV",
     "ELLIPTIC",
     "CompiledMesh",
+    "DeviceMesh",
     "MeshSpec",
     "build_mesh",
+    "build_mesh_device",
     "edge_gradient",
     "mesh_integrals",
     "mesh_spec",
@@ -337,11 +341,13 @@ def _add_kink(
     while j > 0 and cuts[j - 1] > t:
         cuts[j] = cuts[j - 1]
         if grad:
-            dcuts[j, :] = dcuts[j - 1, :]
+            for r in range(dcuts.shape[1]):  # element by element: no slice copy on a GPU
+                dcuts[j, r] = dcuts[j - 1, r]
         j -= 1
     cuts[j] = t
     if grad:
-        dcuts[j, :] = draw[n, :]
+        for r in range(dcuts.shape[1]):
+            dcuts[j, r] = draw[n, r]
     return k + 1
 
 
@@ -433,6 +439,31 @@ def _count_pieces(
 
 
 @_inline
+def _edge_bounds(
+    kind: int, centred: bool, e: int, ends: np.ndarray, th: np.ndarray, c: np.ndarray,
+    piece_offsets: np.ndarray, scratch: np.ndarray, cuts: np.ndarray, dcuts: np.ndarray,
+    lo: np.ndarray, dlo: np.ndarray, bounds: np.ndarray, dbounds: np.ndarray,
+) -> int:  # fmt: skip
+    """Edge ``e``'s smooth pieces with their θ-derivatives (:func:`_edge_pieces`; one piece from
+    0 to 1 where ``piece_offsets`` says it has no kink) into ``lo``, ``dlo`` and its rows of
+    ``bounds``, ``dbounds``; returns their number. The other arrays: work space."""
+    p = th.shape[0]
+    base = piece_offsets[e]
+    n = piece_offsets[e + 1] - base
+    if n == 1:  # no kink: one piece, from 0 to 1, whose ends stay
+        lo[0], lo[1] = 0.0, 1.0
+        for r in range(p):
+            dlo[0, r], dlo[1, r] = 0.0, 0.0
+    else:
+        _edge_pieces(kind, centred, e, ends, th, c, scratch, cuts, dcuts, lo, dlo, True)
+    for i in range(n):
+        bounds[base + i, 0], bounds[base + i, 1] = lo[i], lo[i + 1]
+        for r in range(p):
+            dbounds[base + i, 0, r], dbounds[base + i, 1, r] = dlo[i, r], dlo[i + 1, r]
+    return n
+
+
+@_inline
 def _sagittas(
     out: np.ndarray, n: int, ns: int, grad: bool, p: int, sag: np.ndarray, length: np.ndarray
 ) -> None:  # fmt: skip
@@ -483,19 +514,26 @@ def _pieces_and_counts(
             e0, e1 = chunk * CHUNK, min((chunk + 1) * CHUNK, ne)
             for e in range(e0, e1):
                 base = piece_offsets[e]
-                n = piece_offsets[e + 1] - base
-                if n == 1:  # no kink: one piece, from 0 to 1, whose ends stay
-                    lo[0], lo[1] = 0.0, 1.0
-                    dlo[0, :], dlo[1, :] = 0.0, 0.0
-                else:
-                    _edge_pieces(kind, centred, e, ends, th, c, scratch, cuts, dcuts, lo, dlo, True)
+                n = _edge_bounds(
+                    kind,
+                    centred,
+                    e,
+                    ends,
+                    th,
+                    c,
+                    piece_offsets,
+                    scratch,
+                    cuts,
+                    dcuts,
+                    lo,
+                    dlo,
+                    bounds,
+                    dbounds,
+                )
                 ax, ay = ends[e, 0], ends[e, 1]
                 dx, dy = ends[e, 2] - ax, ends[e, 3] - ay
                 for i in range(n):
                     a, b = lo[i], lo[i + 1]
-                    bounds[base + i, 0], bounds[base + i, 1] = a, b
-                    dbounds[base + i, 0, :] = dlo[i, :]
-                    dbounds[base + i, 1, :] = dlo[i + 1, :]
                     k = (base + i - piece_offsets[e0]) * ns
                     for s in range(5):
                         t = a + (b - a) * (s / 4)
@@ -543,6 +581,18 @@ def _topology(size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray
     )
 
 
+@_inline
+def _quad_area(q: np.ndarray, i: int, j: int, w: int) -> float:
+    """The area of pixel ``(i, j)``'s corner quad (``q``: the ``(h + 1)(w + 1)`` corners)."""
+    a, b = i * (w + 1) + j, i * (w + 1) + j + 1
+    d, e = (i + 1) * (w + 1) + j + 1, (i + 1) * (w + 1) + j
+    s = (q[b, 1] - q[a, 1]) * (q[a, 0] + q[b, 0]) / 2
+    s += (q[d, 1] - q[b, 1]) * (q[b, 0] + q[d, 0]) / 2
+    s += (q[e, 1] - q[d, 1]) * (q[d, 0] + q[e, 0]) / 2
+    s += (q[a, 1] - q[e, 1]) * (q[e, 0] + q[a, 0]) / 2
+    return abs(s)
+
+
 @_jit
 def _corners(
     kind: int, centred: bool, h: int, w: int, corners: np.ndarray, th: np.ndarray, c: np.ndarray
@@ -561,13 +611,7 @@ def _corners(
     area = np.empty((h, w))
     for i in prange(h):
         for j in range(w):
-            a, b = i * (w + 1) + j, i * (w + 1) + j + 1
-            d, e = (i + 1) * (w + 1) + j + 1, (i + 1) * (w + 1) + j
-            s = (q[b, 1] - q[a, 1]) * (q[a, 0] + q[b, 0]) / 2
-            s += (q[d, 1] - q[b, 1]) * (q[b, 0] + q[d, 0]) / 2
-            s += (q[e, 1] - q[d, 1]) * (q[d, 0] + q[e, 0]) / 2
-            s += (q[a, 1] - q[e, 1]) * (q[e, 0] + q[a, 0]) / 2
-            area[i, j] = abs(s)
+            area[i, j] = _quad_area(q, i, j, w)
     nh = (h + 1) * w
     amin = np.empty(nh + h * (w + 1))
     for i in prange(h + 1):  # horizontal edges: the pixels above and below
@@ -922,3 +966,306 @@ def theta_gradient(g_edge: np.ndarray, jac: np.ndarray) -> np.ndarray:
     2048x1024 → 257x129 fovea step ran 2.5x slower with numpy's ``@`` here)."""
     p = jac.shape[-1]
     return _contract(np.ascontiguousarray(g_edge).reshape(-1), np.ascontiguousarray(jac).reshape(-1, p))
+
+
+# ----------------------------------------------------------------------------------------
+# The mesh on a CUDA device: the same steps, one GPU thread per corner, pixel or uniform edge
+# ----------------------------------------------------------------------------------------
+cuda = None  # numba.cuda, bound by the first launch (kernels.cuda_launch)
+#: The most θ entries a compiled map has (local arrays on the device have a fixed size).
+P_MAX = 4
+_DQ, _ROWS = P_MAX + 2, 2 + 2 * P_MAX  # local arrays' sizes must be constants of the module
+F8 = np.float64
+
+
+@_inline
+def _phi_at(
+    kind: int, centred: bool, x: float, y: float, th: np.ndarray, c: np.ndarray, q: np.ndarray, dq: np.ndarray
+) -> None:
+    """:func:`_phi` at ``(x, y)``, with ``dq`` ``(2, P_MAX + 2)`` work space whose first ``P``
+    columns take ``∂φ/∂θ`` and the next two the Jacobian (the device's local arrays have one
+    size for every ``P``)."""
+    _phi(kind, centred, x, y, th, c, q, dq[:, : th.shape[0] + 2])
+
+
+@_inline
+def _edge_pieces_and_counts(
+    kind: int, centred: bool, e: int, ends: np.ndarray, th: np.ndarray, c: np.ndarray,
+    piece_offsets: np.ndarray, amin: np.ndarray, tol: float, max_subdiv: int, inner: float,
+    scratch: np.ndarray, cuts: np.ndarray, dcuts: np.ndarray, lo: np.ndarray, dlo: np.ndarray,
+    q: np.ndarray, dq: np.ndarray, rows: np.ndarray, one: np.ndarray, one_len: np.ndarray,
+    sag: np.ndarray, length: np.ndarray,
+    bounds: np.ndarray, dbounds: np.ndarray, counts: np.ndarray, edge_counts: np.ndarray,
+) -> None:  # fmt: skip
+    """Edge ``e``'s part of :func:`_pieces_and_counts` (always ``with_grad``): its pieces'
+    bounds and segment counts, and its segments into ``edge_counts[e + 1]``; ``rows``
+    ``(2 + 2 P_MAX, 7)`` (a piece's seven samples), ``one``, ``one_len`` (1,), ``sag``,
+    ``length`` (10,): work space."""
+    p = th.shape[0]
+    base = piece_offsets[e]
+    n = _edge_bounds(
+        kind, centred, e, ends, th, c, piece_offsets, scratch, cuts, dcuts, lo, dlo, bounds, dbounds
+    )
+    ax, ay = ends[e, 0], ends[e, 1]
+    dx, dy = ends[e, 2] - ax, ends[e, 3] - ay
+    for i in range(n):
+        a, b = lo[i], lo[i + 1]
+        for s in range(7):  # five samples along the piece, then two just inside its ends
+            if s < 5:
+                t = a + (b - a) * (s / 4)
+                x, y = ax + t * dx, ay + t * dy
+            else:
+                j = s - 5
+                t0, t1 = a + (b - a) * ((4 * j) / 4), a + (b - a) * ((4 - 4 * j) / 4)
+                x0, y0, x1, y1 = ax + t0 * dx, ay + t0 * dy, ax + t1 * dx, ay + t1 * dy
+                x, y = x0 + inner * (x1 - x0), y0 + inner * (y1 - y0)
+            _phi_at(kind, centred, x, y, th, c, q, dq)
+            rows[0, s], rows[1, s] = q[0], q[1]
+            for r in range(p):
+                rows[2 + r, s], rows[2 + p + r, s] = dq[0, r], dq[1, r]
+        _sagittas(rows, 1, 7, True, p, one, one_len)  # piece by piece: little work space a thread
+        sag[i], length[i] = one[0], one_len[0]
+    edge_len = 0.0
+    for i in range(n):
+        edge_len += length[i]
+    budget = 3 * tol * amin[e] / (8 * max(edge_len, 1e-300))
+    total = 0
+    for i in range(n):
+        m = min(max(math.ceil(math.sqrt(2 * sag[i] / budget)), 1.0), float(max_subdiv))
+        counts[base + i] = 1 if sag[i] <= 1e-15 * length[i] else int(m)
+        total += counts[base + i]
+    edge_counts[e + 1] = total
+
+
+@_inline
+def _edge_vertices(
+    kind: int, centred: bool, e: int, ends: np.ndarray, ea: np.ndarray, eb: np.ndarray, th: np.ndarray,
+    c: np.ndarray, piece_offsets: np.ndarray, bounds: np.ndarray, dbounds: np.ndarray,
+    counts: np.ndarray, edge_offsets: np.ndarray, ncorner: int, q: np.ndarray, dq: np.ndarray,
+    verts: np.ndarray, dverts: np.ndarray, seg_start: np.ndarray, seg_end: np.ndarray, seg_edge: np.ndarray,
+) -> None:  # fmt: skip
+    """Edge ``e``'s part of :func:`_place_vertices`: its segments and new vertices, numbered as
+    there, each vertex's ``∂v/∂θ`` with the term of a piece whose ends move with θ."""
+    p = th.shape[0]
+    first, last = edge_offsets[e], edge_offsets[e + 1] - 1
+    for s in range(first, last + 1):
+        seg_edge[s] = e
+        seg_start[s] = ea[e] if s == first else ncorner + s - e - 1
+        seg_end[s] = eb[e] if s == last else ncorner + s - e
+    ax, ay = ends[e, 0], ends[e, 1]
+    dx, dy = ends[e, 2] - ax, ends[e, 3] - ay
+    s = first
+    for pc in range(piece_offsets[e], piece_offsets[e + 1]):
+        m, lo, hi = counts[pc], bounds[pc, 0], bounds[pc, 1]
+        moves = False
+        if p == 4:
+            for r in range(p):
+                moves = moves or dbounds[pc, 0, r] != 0 or dbounds[pc, 1, r] != 0
+        for k in range(m):
+            if s != first:
+                f = k / m
+                t = lo + (hi - lo) * f
+                v = ncorner + s - e - 1
+                _phi_at(kind, centred, ax + t * dx, ay + t * dy, th, c, q, dq)
+                verts[v, 0], verts[v, 1] = q[0], q[1]
+                for r in range(p):
+                    dverts[v, 0, r], dverts[v, 1, r] = dq[0, r], dq[1, r]
+                if moves:  # the piece's ends move with a learned centre: its vertices too
+                    for r in range(p):
+                        dt = dbounds[pc, 0, r] * (1 - f) + dbounds[pc, 1, r] * f
+                        if dt != 0:
+                            dverts[v, 0, r] += (dq[0, p] * dx + dq[0, p + 1] * dy) * dt
+                            dverts[v, 1, r] += (dq[1, p] * dx + dq[1, p + 1] * dy) * dt
+            s += 1
+
+
+def _cuda_corners(
+    kind: int,
+    centred: bool,
+    corners: np.ndarray,
+    th: np.ndarray,
+    c: np.ndarray,
+    q: np.ndarray,
+    dq: np.ndarray,
+) -> None:
+    """One thread per uniform corner: φ and ``∂φ/∂θ``."""
+    v = cuda.grid(1)
+    if v < corners.shape[0]:
+        qi, work = cuda.local.array(2, F8), cuda.local.array((2, _DQ), F8)
+        _phi_at(kind, centred, corners[v, 0], corners[v, 1], th, c, qi, work)
+        q[v, 0], q[v, 1] = qi[0], qi[1]
+        for r in range(th.shape[0]):
+            dq[v, 0, r], dq[v, 1, r] = work[0, r], work[1, r]
+
+
+def _cuda_amin(q: np.ndarray, h: int, w: int, amin: np.ndarray) -> None:
+    """One thread per edge: the smaller area of the (deformed) pixels beside it."""
+    e = cuda.grid(1)
+    nh = (h + 1) * w
+    if e < nh:  # a horizontal edge: the pixels above and below
+        i, j = e // w, e % w
+        up = _quad_area(q, i - 1, j, w) if i > 0 else np.inf
+        amin[e] = min(up, _quad_area(q, i, j, w) if i < h else np.inf)
+    elif e < nh + h * (w + 1):  # a vertical one: left and right
+        i, j = (e - nh) // (w + 1), (e - nh) % (w + 1)
+        left = _quad_area(q, i, j - 1, w) if j > 0 else np.inf
+        amin[e] = min(left, _quad_area(q, i, j, w) if j < w else np.inf)
+
+
+def _cuda_count_pieces(
+    kind: int, centred: bool, ends: np.ndarray, th: np.ndarray, c: np.ndarray, out: np.ndarray
+) -> None:
+    """One thread per edge: :func:`_edge_pieces`' count."""
+    e = cuda.grid(1)
+    if e < ends.shape[0]:
+        scratch, cuts = cuda.local.array((8, P_MAX), F8), cuda.local.array(8, F8)
+        dcuts = cuda.local.array((8, P_MAX), F8)
+        lo, dlo = cuda.local.array(10, F8), cuda.local.array((10, P_MAX), F8)
+        out[e] = _edge_pieces(kind, centred, e, ends, th, c, scratch, cuts, dcuts, lo, dlo, False)
+
+
+def _cuda_pieces_and_counts(
+    kind: int, centred: bool, ends: np.ndarray, th: np.ndarray, c: np.ndarray,
+    piece_offsets: np.ndarray, amin: np.ndarray, tol: float, max_subdiv: int, inner: float,
+    bounds: np.ndarray, dbounds: np.ndarray, counts: np.ndarray, edge_counts: np.ndarray,
+) -> None:  # fmt: skip
+    """One thread per edge: :func:`_edge_pieces_and_counts`."""
+    e = cuda.grid(1)
+    if e < ends.shape[0]:
+        scratch, cuts = cuda.local.array((8, P_MAX), F8), cuda.local.array(8, F8)
+        dcuts = cuda.local.array((8, P_MAX), F8)
+        lo, dlo = cuda.local.array(10, F8), cuda.local.array((10, P_MAX), F8)
+        q, dq = cuda.local.array(2, F8), cuda.local.array((2, _DQ), F8)
+        rows, one, one_len = (
+            cuda.local.array((_ROWS, 7), F8),
+            cuda.local.array(1, F8),
+            cuda.local.array(1, F8),
+        )
+        sag, length = cuda.local.array(10, F8), cuda.local.array(10, F8)
+        _edge_pieces_and_counts(
+            kind, centred, e, ends, th, c, piece_offsets, amin, tol, max_subdiv, inner,
+            scratch, cuts, dcuts, lo, dlo, q, dq, rows, one, one_len, sag, length, bounds, dbounds, counts,
+            edge_counts,
+        )  # fmt: skip
+
+
+def _cuda_place(
+    kind: int, centred: bool, ends: np.ndarray, ea: np.ndarray, eb: np.ndarray, th: np.ndarray,
+    c: np.ndarray, piece_offsets: np.ndarray, bounds: np.ndarray, dbounds: np.ndarray,
+    counts: np.ndarray, edge_offsets: np.ndarray, ncorner: int, verts: np.ndarray,
+    dverts: np.ndarray, seg_start: np.ndarray, seg_end: np.ndarray, seg_edge: np.ndarray,
+) -> None:  # fmt: skip
+    """One thread per edge: :func:`_edge_vertices`."""
+    e = cuda.grid(1)
+    if e < ends.shape[0]:
+        q, dq = cuda.local.array(2, F8), cuda.local.array((2, _DQ), F8)
+        _edge_vertices(
+            kind, centred, e, ends, ea, eb, th, c, piece_offsets, bounds, dbounds, counts, edge_offsets,
+            ncorner, q, dq, verts, dverts, seg_start, seg_end, seg_edge,
+        )  # fmt: skip
+
+
+def _cuda_to_pixels(verts: np.ndarray, ws: float, hs: float, out: np.ndarray) -> None:
+    """One thread per vertex: :func:`_to_pixels`."""
+    v = cuda.grid(1)
+    if v < verts.shape[0]:
+        out[v, 0] = min(max((verts[v, 0] + 1) * (ws / 2), 0.0), ws)
+        out[v, 1] = min(max((verts[v, 1] + 1) * (hs / 2), 0.0), hs)
+
+
+_A1, _A2, _A3, _I1 = "float64[::1]", "float64[:, ::1]", "float64[:, :, ::1]", "int64[::1]"
+#: The device kernels of :func:`build_mesh_device`, by name, with their argument types (what
+#: :func:`~layoutwarp.kernels.cuda_ptx` compiles them with, without a GPU).
+CUDA_KERNELS = {
+    "corners": (_cuda_corners, f"void(int64, boolean, {_A2}, {_A1}, {_A1}, {_A2}, {_A3})"),
+    "amin": (_cuda_amin, f"void({_A2}, int64, int64, {_A1})"),
+    "count_pieces": (_cuda_count_pieces, f"void(int64, boolean, {_A2}, {_A1}, {_A1}, {_I1})"),
+    "pieces_and_counts": (
+        _cuda_pieces_and_counts,
+        f"void(int64, boolean, {_A2}, {_A1}, {_A1}, {_I1}, {_A1}, float64, int64, float64, {_A2}, {_A3}, "
+        f"{_I1}, {_I1})",
+    ),
+    "place": (
+        _cuda_place,
+        f"void(int64, boolean, {_A2}, {_I1}, {_I1}, {_A1}, {_A1}, {_I1}, {_A2}, {_A3}, {_I1}, {_I1}, int64, "
+        f"{_A2}, {_A3}, {_I1}, {_I1}, {_I1})",
+    ),
+    "to_pixels": (_cuda_to_pixels, f"void({_A2}, float64, float64, {_A2})"),
+}
+
+
+@dataclass
+class DeviceMesh:
+    """A compiled mesh built where its θ lives (:func:`build_mesh_device`), as torch tensors
+    there: the :class:`~layoutwarp.PixelMesh`, its vertices in pixel units of the source
+    (clamped to it), every vertex's θ-derivative ``(V, 2, P)`` and every smooth piece's segment
+    count (as :class:`CompiledMesh` has them)."""
+
+    mesh: PixelMesh
+    pixel_vertices: torch.Tensor
+    dverts: torch.Tensor
+    counts: torch.Tensor
+
+
+@functools.lru_cache(maxsize=16)
+def _device_topology(size: tuple[int, int], device: str) -> tuple[torch.Tensor, ...]:
+    """:func:`_topology` on ``device`` (cached per size and device; do not modify)."""
+    return tuple(torch.from_numpy(np.ascontiguousarray(a)).to(device) for a in _topology(size))
+
+
+def build_mesh_device(
+    spec: MeshSpec,
+    size: tuple[int, int],
+    theta: torch.Tensor,
+    tol: float,
+    src_size: tuple[int, int],
+    *,
+    max_subdiv: int = 4096,
+) -> DeviceMesh:
+    """:func:`build_mesh` (``with_grad``) and :func:`pixel_vertices` on the CUDA device that
+    holds ``theta`` ``(P,)``, in seven kernels (corners, areas, pieces, counts, vertices, pixel
+    units: one thread per corner, edge or vertex, each thread the CPU's steps for its item) and
+    two cumulative sums, so no mesh crosses the bus: at 2048x1024 → 257x129 a fovea mesh is
+    about 50 MB. The host waits twice, for the piece and segment totals it allocates by. A
+    ``theta`` on the CPU runs the same kernels in numba's CUDA simulator
+    (``NUMBA_ENABLE_CUDASIM=1``), which is how they are tested without a GPU."""
+    dev = theta.device
+    stream = torch.cuda.current_stream(dev).cuda_stream if dev.type == "cuda" else 0
+    (h, w), (hs, ws) = size, src_size
+    ends, ea, eb, uniform = _device_topology(size, str(dev))
+    th = theta.detach().to(torch.float64).contiguous()
+    c = torch.tensor(spec.center, dtype=torch.float64, device=dev)
+    p, ne, nc = th.numel(), ends.shape[0], uniform.shape[0]
+    f64, i64 = {"dtype": torch.float64, "device": dev}, {"dtype": torch.int64, "device": dev}
+
+    def launch(name: str, count: int, *args: object) -> None:
+        host = [a.numpy() if isinstance(a, torch.Tensor) and dev.type == "cpu" else a for a in args]
+        kernel_module.cuda_launch(CUDA_KERNELS[name][0], count, stream, *host)
+
+    q, dq = torch.empty(nc, 2, **f64), torch.empty(nc, 2, p, **f64)
+    launch("corners", nc, spec.kind, spec.centred, uniform, th, c, q, dq)
+    amin, npieces = torch.empty(ne, **f64), torch.empty(ne, **i64)
+    launch("amin", ne, q, h, w, amin)
+    launch("count_pieces", ne, spec.kind, spec.centred, ends, th, c, npieces)
+    piece_offsets = torch.zeros(ne + 1, **i64)
+    torch.cumsum(npieces, 0, out=piece_offsets[1:])
+    total = int(piece_offsets[-1])
+    bounds, dbounds = torch.empty(total, 2, **f64), torch.empty(total, 2, p, **f64)
+    counts, edge_counts = torch.empty(total, **i64), torch.zeros(ne + 1, **i64)
+    launch(
+        "pieces_and_counts", ne, spec.kind, spec.centred, ends, th, c, piece_offsets, amin, float(tol),
+        int(max_subdiv), INNER, bounds, dbounds, counts, edge_counts,
+    )  # fmt: skip
+    edge_offsets = torch.cumsum(edge_counts, 0)
+    nseg = int(edge_offsets[-1])
+    verts, dverts = torch.empty(nc + nseg - ne, 2, **f64), torch.empty(nc + nseg - ne, 2, p, **f64)
+    verts[:nc], dverts[:nc] = q, dq
+    seg_start, seg_end, seg_edge = (torch.empty(nseg, **i64) for _ in range(3))
+    launch(
+        "place", ne, spec.kind, spec.centred, ends, ea, eb, th, c, piece_offsets, bounds, dbounds, counts,
+        edge_offsets, nc, verts, dverts, seg_start, seg_end, seg_edge,
+    )  # fmt: skip
+    pv = torch.empty_like(verts)
+    launch("to_pixels", verts.shape[0], verts, float(ws), float(hs), pv)
+    mesh = PixelMesh(size, verts, seg_start, seg_end, seg_edge, edge_offsets)
+    return DeviceMesh(mesh, pv, dverts, counts)

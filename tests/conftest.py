@@ -75,3 +75,20 @@ def clip_reference(img: torch.Tensor, polys: list[np.ndarray], size) -> np.ndarr
                 acc += a * arr[:, r, c]
         out[:, k] = acc / poly.area
     return out.reshape(n, *size)
+
+
+def ptx_or_skip(kernel, dtype: str = "float32", signature: str | None = None) -> str:
+    """:func:`layoutwarp.kernels.cuda_ptx`, or a skip where NVIDIA's numba-cuda target or a
+    library it compiles with (NVVM, NVRTC, the CUDA runtime) is missing; no GPU needed."""
+    from layoutwarp import kernels
+
+    try:
+        from numba import cuda  # numba-cuda's import loads the CUDA runtime
+
+        if getattr(cuda, "implementation", "") != "NVIDIA":
+            pytest.skip("needs NVIDIA's numba-cuda (pip install 'layoutwarp[cuda]')")
+        return kernels.cuda_ptx(kernel, dtype, signature=signature)
+    except Exception as err:
+        if "NotFound" in type(err).__name__ or "Support" in type(err).__name__:  # a library missing
+            pytest.skip(f"no CUDA compiler libraries here ({type(err).__name__})")
+        raise

@@ -8,7 +8,7 @@ import warnings
 import numpy as np
 import pytest
 import torch
-from conftest import rand_theta
+from conftest import ptx_or_skip, rand_theta
 
 import layoutwarp as lw
 from layoutwarp import kernels
@@ -267,21 +267,6 @@ def test_the_cuda_kernels_run_as_the_cpu_kernels_in_numbas_simulator(
 CUDA_KERNEL_NAMES = ("prefix_blocks", "prefix_offsets", "forward", "edge_sums", "backward")
 
 
-def ptx_or_skip(name: str, dtype: str) -> str:
-    """:func:`~layoutwarp.kernels.cuda_ptx`, or a skip where NVIDIA's numba-cuda target or a
-    library it compiles with (NVVM, NVRTC, the CUDA runtime) is missing; no GPU needed."""
-    try:
-        from numba import cuda  # numba-cuda's import loads the CUDA runtime
-
-        if getattr(cuda, "implementation", "") != "NVIDIA":
-            pytest.skip("needs NVIDIA's numba-cuda (pip install 'layoutwarp[cuda]')")
-        return kernels.cuda_ptx(name, dtype)
-    except Exception as err:
-        if "NotFound" in type(err).__name__ or "Support" in type(err).__name__:  # a library missing
-            pytest.skip(f"no CUDA compiler libraries here ({type(err).__name__})")
-        raise
-
-
 @pytest.mark.parametrize("dtype", ["float32", "float64"])
 def test_every_cuda_kernel_compiles_for_the_device_without_one(dtype):
     """The CUDA kernels, with every shared per-segment function they call, compile to PTX for
@@ -292,7 +277,7 @@ def test_every_cuda_kernel_compiles_for_the_device_without_one(dtype):
         assert ".target sm_80" in ptx and ".entry" in ptx, name
         if name == "prefix_blocks":  # the image's dtype reaches the device code
             assert (".f32" in ptx) == (dtype == "float32"), name
-    with pytest.raises(ValueError, match="name must be one of"):
+    with pytest.raises(ValueError, match="kernel must be one of"):
         kernels.cuda_ptx("nonsense", dtype)
 
 

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 import torch.autograd.forward_ad as fwad
+from conftest import ptx_or_skip
 
 import layoutwarp as lw
 from layoutwarp import meshkernels as mk
@@ -223,6 +224,72 @@ def test_a_training_step_runs_few_torch_operations():
     integrate_exact(image[0], layout, (17, 23), tol=tol, backend="torch").sum().backward()
     ref = layout.rho.grad
     assert float((compiled - ref).abs().max()) <= 1e-6 * float(ref.abs().max())
+
+
+def test_the_device_mesh_kernels_compile_for_the_device_without_one():
+    """Every kernel of :func:`~layoutwarp.meshkernels.build_mesh_device` compiles to PTX (no GPU
+    needed: numba-cuda and the CUDA compilers), with every shared function it calls."""
+    for name, (fn, signature) in mk.CUDA_KERNELS.items():
+        ptx = ptx_or_skip(fn, signature=signature)
+        assert ".target sm_80" in ptx and ".entry" in ptx, name
+    with pytest.raises(ValueError, match="signature"):
+        lw.kernels.cuda_ptx(mk.CUDA_KERNELS["amin"][0])
+
+
+#: Runs in a process of its own: numba's CUDA simulator, the device functions as plain Python.
+DEVICE_MESH = """
+import sys
+import numpy as np, torch
+import layoutwarp as lw
+from layoutwarp import meshkernels as mk
+case = dict(np.load(sys.argv[1]))
+spec = mk.MeshSpec(int(case["kind"]), tuple(case["center"]), bool(case["centred"]), int(case["theta"].size))
+dm = mk.build_mesh_device(spec, tuple(case["size"]), torch.from_numpy(case["theta"]), float(case["tol"]),
+                          tuple(case["src"]))
+m = dm.mesh
+np.savez(sys.argv[2], verts=m.vertices.numpy(), pv=dm.pixel_vertices.numpy(), dverts=dm.dverts.numpy(),
+         ss=m.seg_start.numpy(), se=m.seg_end.numpy(), sedge=m.seg_edge.numpy(), eo=m.edge_offsets.numpy(),
+         counts=dm.counts.numpy())
+"""
+
+
+@pytest.mark.slow  # a process of its own, the kernels as plain Python
+@pytest.mark.parametrize(
+    ("family", "hard"),
+    [("curv", False), ("curv-off", True), ("fovea", False), ("fovea", True), ("elliptic", True)],
+)
+def test_the_device_mesh_is_the_compiled_mesh_in_numbas_simulator(family: str, hard: bool, tmp_path):
+    """Without a GPU: :func:`~layoutwarp.meshkernels.build_mesh_device`'s kernels and launches
+    (one thread per corner, edge or vertex; the totals it allocates by) in numba's CUDA
+    simulator against :func:`~layoutwarp.meshkernels.build_mesh` on the CPU: the same segment
+    counts and indices, the same vertices and pixel vertices, θ-derivatives to rounding."""
+    import os
+    import subprocess
+    import sys
+
+    rng = np.random.default_rng(int(torch.randint(0, 2**31, ())))
+    layout = _random_layout(family, rng, hard)
+    size = (int(rng.integers(1, 7)), int(rng.integers(1, 7)))
+    src = (int(rng.integers(5, 60)), int(rng.integers(5, 60)))
+    tol = float(10 ** rng.uniform(-4, -2))
+    spec, theta = mk.mesh_spec(layout), layout.theta.detach().numpy()
+    np.savez(
+        tmp_path / "case.npz", kind=spec.kind, center=np.array(spec.center), centred=spec.centred,
+        theta=theta, size=np.array(size), src=np.array(src), tol=tol,
+    )  # fmt: skip
+    env = {**os.environ, "NUMBA_DISABLE_JIT": "1", "NUMBA_ENABLE_CUDASIM": "1"}
+    args = [sys.executable, "-c", DEVICE_MESH, str(tmp_path / "case.npz"), str(tmp_path / "out.npz")]
+    run = subprocess.run(args, env=env, capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr[-3000:]
+    got = np.load(tmp_path / "out.npz")
+    cm = mk.build_mesh(spec, size, theta, tol)
+    refs = {"counts": cm.counts, "eo": cm.edge_offsets, "ss": cm.seg_start, "se": cm.seg_end}
+    refs |= {"sedge": cm.seg_edge, "verts": cm.vertices, "pv": mk.pixel_vertices(cm, src)}
+    for key, ref in refs.items():
+        assert np.array_equal(got[key], ref), key
+    scale = max(1.0, float(np.abs(cm.dverts).max()))
+    assert got["dverts"].shape == cm.dverts.shape
+    assert float(np.abs(got["dverts"] - cm.dverts).max()) <= 1e-14 * scale
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
