@@ -17,6 +17,8 @@ autograd graph it returns ``∂v/∂θ`` of every vertex ``v``: for a vertex at 
 ends (kinks) move with θ. For a training step on the CPU, :func:`mesh_integrals` places the
 vertices and integrates over them chunk by chunk, carrying ``∂v/∂θ`` to the θ-Jacobian of every
 edge integral, so θ's gradient is one contraction with the edge gradient.
+On a CUDA device :func:`build_mesh_device` builds the same mesh there, one GPU thread per
+corner, edge or vertex running the same scalar functions.
 
 :func:`mesh_spec` says whether a layout has a compiled form (exactly these classes: a
 subclass may change φ, so it keeps the torch path).
@@ -36,8 +38,7 @@ try:  # as in layoutwarp.kernels: without numba, mesh_spec says there is no comp
 except ImportError:  # pragma: no cover - depends on the environment
     njit = prange = None
 
-from . import kernels as kernel_module
-from .kernels import BLOCK, CHUNK, available, segment_moments, threads
+from .kernels import BLOCK, CHUNK, available, cuda_launch, segment_moments, threads
 from .layouts import CurvLayout, EllipticLayout, FoveaLayout, Layout
 from .mesh import INNER, MeshTopology, PixelMesh
 
@@ -1240,7 +1241,7 @@ def build_mesh_device(
 
     def launch(name: str, count: int, *args: object) -> None:
         host = [a.numpy() if isinstance(a, torch.Tensor) and dev.type == "cpu" else a for a in args]
-        kernel_module.cuda_launch(CUDA_KERNELS[name][0], count, stream, *host)
+        cuda_launch(CUDA_KERNELS[name][0], count, stream, *host)
 
     q, dq = torch.empty(nc, 2, **f64), torch.empty(nc, 2, p, **f64)
     launch("corners", nc, spec.kind, spec.centred, uniform, th, c, q, dq)
