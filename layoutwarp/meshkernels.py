@@ -440,6 +440,44 @@ def _count_pieces(
 
 
 @_inline
+def _sample_point(
+    ax: float, ay: float, dx: float, dy: float, a: float, b: float, s: int, inner: float
+) -> tuple[float, float]:
+    """Sample ``s`` of the count stage on the piece ``[a, b]`` of the edge ``a + t d``: for
+    ``s < 5`` the point at ``t = a + (b − a)·s/4``; 5 and 6 just inside its start and end
+    (``inner`` of the way to the other end), where ``∂φ/∂θ`` may jump at a kink."""
+    if s < 5:
+        t = a + (b - a) * (s / 4)
+        return ax + t * dx, ay + t * dy
+    j = s - 5
+    t0, t1 = a + (b - a) * ((4 * j) / 4), a + (b - a) * ((4 - 4 * j) / 4)
+    x0, y0, x1, y1 = ax + t0 * dx, ay + t0 * dy, ax + t1 * dx, ay + t1 * dy
+    return x0 + inner * (x1 - x0), y0 + inner * (y1 - y0)
+
+
+@_inline
+def _segment_counts(
+    sag: np.ndarray, length: np.ndarray, j0: int, n: int, base: int, amin_e: float, tol: float,
+    max_subdiv: int, counts: np.ndarray,
+) -> int:  # fmt: skip
+    """The segment counts of an edge's ``n`` pieces ``base ..`` into ``counts`` (their sagitta
+    bounds and chord lengths at ``sag[j0 + i]``, ``length[j0 + i]``; ``amin_e``: the edge's
+    smaller pixel area), as :func:`layoutwarp.mesh._segment_counts` bounds them; returns their
+    sum."""
+    edge_len = 0.0
+    for i in range(n):
+        edge_len += length[j0 + i]
+    budget = 3 * tol * amin_e / (8 * max(edge_len, 1e-300))
+    total = 0
+    for i in range(n):
+        sg, ln = sag[j0 + i], length[j0 + i]
+        m = min(max(math.ceil(math.sqrt(2 * sg / budget)), 1.0), float(max_subdiv))
+        counts[base + i] = 1 if sg <= 1e-15 * ln else int(m)
+        total += counts[base + i]
+    return total
+
+
+@_inline
 def _edge_bounds(
     kind: int, centred: bool, e: int, ends: np.ndarray, th: np.ndarray, c: np.ndarray,
     piece_offsets: np.ndarray, scratch: np.ndarray, cuts: np.ndarray, dcuts: np.ndarray,
@@ -516,34 +554,16 @@ def _pieces_and_counts(
             for e in range(e0, e1):
                 base = piece_offsets[e]
                 n = _edge_bounds(
-                    kind,
-                    centred,
-                    e,
-                    ends,
-                    th,
-                    c,
-                    piece_offsets,
-                    scratch,
-                    cuts,
-                    dcuts,
-                    lo,
-                    dlo,
-                    bounds,
-                    dbounds,
-                )
+                    kind, centred, e, ends, th, c, piece_offsets, scratch, cuts, dcuts, lo, dlo,
+                    bounds, dbounds,
+                )  # fmt: skip
                 ax, ay = ends[e, 0], ends[e, 1]
                 dx, dy = ends[e, 2] - ax, ends[e, 3] - ay
                 for i in range(n):
                     a, b = lo[i], lo[i + 1]
                     k = (base + i - piece_offsets[e0]) * ns
-                    for s in range(5):
-                        t = a + (b - a) * (s / 4)
-                        pts[0, k + s], pts[1, k + s] = ax + t * dx, ay + t * dy
-                    if with_grad:  # ∂φ/∂θ just inside the piece's ends (it may jump at a kink)
-                        for j in range(2):
-                            s, o = 4 * j, 4 - 4 * j
-                            pts[0, k + 5 + j] = pts[0, k + s] + inner * (pts[0, k + o] - pts[0, k + s])
-                            pts[1, k + 5 + j] = pts[1, k + s] + inner * (pts[1, k + o] - pts[1, k + s])
+                    for s in range(ns):  # five along the piece; with_grad, two just inside its ends
+                        pts[0, k + s], pts[1, k + s] = _sample_point(ax, ay, dx, dy, a, b, s, inner)
             npc = piece_offsets[e1] - piece_offsets[e0]
             _phi_run(kind, centred, th, c, pts, npc * ns, out)
             if with_grad and p == 4:  # θ's count a constant: the loop over pieces runs in SIMD lanes
@@ -554,16 +574,10 @@ def _pieces_and_counts(
                 _sagittas(out, npc, ns, with_grad, p, sag, length)
             for e in range(e0, e1):
                 first, last = piece_offsets[e], piece_offsets[e + 1]
-                edge_len = 0.0
-                for pc in range(first, last):
-                    edge_len += length[pc - piece_offsets[e0]]
-                budget = 3 * tol * amin[e] / (8 * max(edge_len, 1e-300))
-                total = 0
-                for pc in range(first, last):
-                    sg, ln = sag[pc - piece_offsets[e0]], length[pc - piece_offsets[e0]]
-                    m = min(max(math.ceil(math.sqrt(2 * sg / budget)), 1.0), float(max_subdiv))
-                    counts[pc] = 1 if sg <= 1e-15 * ln else int(m)
-                    total += counts[pc]
+                j0 = first - piece_offsets[e0]
+                total = _segment_counts(
+                    sag, length, j0, last - first, first, amin[e], tol, max_subdiv, counts
+                )
                 edge_counts[e + 1] = total
 
 
@@ -594,6 +608,21 @@ def _quad_area(q: np.ndarray, i: int, j: int, w: int) -> float:
     return abs(s)
 
 
+@_inline
+def _amin_across(area: np.ndarray, i: int, j: int) -> float:
+    """The smaller area of the pixels above and below horizontal edge ``(i, j)`` (from the pixel
+    areas ``area`` ``(h, w)``; the sensor's outside counts as infinite)."""
+    up = area[i - 1, j] if i > 0 else np.inf
+    return min(up, area[i, j] if i < area.shape[0] else np.inf)
+
+
+@_inline
+def _amin_beside(area: np.ndarray, i: int, j: int) -> float:
+    """The smaller area of the pixels left and right of vertical edge ``(i, j)``."""
+    left = area[i, j - 1] if j > 0 else np.inf
+    return min(left, area[i, j] if j < area.shape[1] else np.inf)
+
+
 @_jit
 def _corners(
     kind: int, centred: bool, h: int, w: int, corners: np.ndarray, th: np.ndarray, c: np.ndarray
@@ -614,16 +643,59 @@ def _corners(
         for j in range(w):
             area[i, j] = _quad_area(q, i, j, w)
     nh = (h + 1) * w
-    amin = np.empty(nh + h * (w + 1))
-    for i in prange(h + 1):  # horizontal edges: the pixels above and below
+    amin = np.empty(nh + h * (w + 1))  # per edge, as MeshTopology numbers them
+    for i in prange(h + 1):  # horizontal edges
         for j in range(w):
-            up = area[i - 1, j] if i > 0 else np.inf
-            amin[i * w + j] = min(up, area[i, j] if i < h else np.inf)
-    for i in prange(h):  # vertical edges: the pixels left and right
+            amin[i * w + j] = _amin_across(area, i, j)
+    for i in prange(h):  # vertical edges
         for j in range(w + 1):
-            left = area[i, j - 1] if j > 0 else np.inf
-            amin[nh + i * (w + 1) + j] = min(left, area[i, j] if j < w else np.inf)
+            amin[nh + i * (w + 1) + j] = _amin_beside(area, i, j)
     return q, dq, amin
+
+
+@_inline
+def _edge_segments(
+    e: int, ea: np.ndarray, eb: np.ndarray, edge_offsets: np.ndarray, ncorner: int,
+    seg_start: np.ndarray, seg_end: np.ndarray, seg_edge: np.ndarray,
+) -> None:  # fmt: skip
+    """Edge ``e``'s segments: segment ``s`` starts at the new vertex ``V0 + s − e − 1`` unless it
+    is the edge's first (then at its corner ``ea[e]``), and ends at the next unless it is the
+    last (then at ``eb[e]``)."""
+    first, last = edge_offsets[e], edge_offsets[e + 1] - 1
+    for s in range(first, last + 1):
+        seg_edge[s] = e
+        seg_start[s] = ea[e] if s == first else ncorner + s - e - 1
+        seg_end[s] = eb[e] if s == last else ncorner + s - e
+
+
+@_inline
+def _piece_moves(dbounds: np.ndarray, pc: int, p: int) -> bool:
+    """Whether piece ``pc``'s ends move with θ (a learned centre, ``P = 4``, moves the kinks)."""
+    moves = False
+    if p == 4:
+        for r in range(p):
+            moves = moves or dbounds[pc, 0, r] != 0 or dbounds[pc, 1, r] != 0
+    return moves
+
+
+@_inline
+def _add_moving(
+    dverts: np.ndarray, v: int, dq: np.ndarray, p: int, dx: float, dy: float, dbounds: np.ndarray, pc: int,
+    f: float,
+) -> None:  # fmt: skip
+    """Vertex ``v``'s share ``J (b − a) (∂lo/∂θ (1 − f) + ∂hi/∂θ f)`` of its piece's moving ends,
+    added to ``dverts[v]`` (``dq[:, P:P + 2]``: φ's Jacobian there, ``(dx, dy)``: the edge)."""
+    for r in range(p):
+        dt = dbounds[pc, 0, r] * (1 - f) + dbounds[pc, 1, r] * f
+        if dt != 0:
+            dverts[v, 0, r] += (dq[0, p] * dx + dq[0, p + 1] * dy) * dt
+            dverts[v, 1, r] += (dq[1, p] * dx + dq[1, p + 1] * dy) * dt
+
+
+@_inline
+def _pixel_vertex(x: float, y: float, ws: float, hs: float) -> tuple[float, float]:
+    """A vertex in pixel units of a ``ws`` x ``hs`` source, clamped to it."""
+    return min(max((x + 1) * (ws / 2), 0.0), ws), min(max((y + 1) * (hs / 2), 0.0), hs)
 
 
 @_run
@@ -647,13 +719,9 @@ def _place_chunk(
         for pc in range(piece_offsets[e], piece_offsets[e + 1]):
             m = counts[pc]
             lo, hi = bounds[pc, 0], bounds[pc, 1]
-            if p == 4:
-                moves = False
-                for r in range(p):
-                    moves = moves or dbounds[pc, 0, r] != 0 or dbounds[pc, 1, r] != 0
-                if moves:
-                    moving[nm, 0], moving[nm, 1], moving[nm, 2] = pc, e, s
-                    nm += 1
+            if _piece_moves(dbounds, pc, p):
+                moving[nm, 0], moving[nm, 1], moving[nm, 2] = pc, e, s
+                nm += 1
             for k in range(m):
                 if s != first:
                     t = lo + (hi - lo) * (k / m)
@@ -674,11 +742,7 @@ def _place_chunk(
                 t = lo + (hi - lo) * f
                 v = s + k - e - 1 - base
                 _phi(kind, centred, ax + t * dx, ay + t * dy, th, c, qi, dq)
-                for r in range(p):
-                    dt = dbounds[pc, 0, r] * (1 - f) + dbounds[pc, 1, r] * f
-                    if dt != 0:
-                        dverts[v, 0, r] += (dq[0, p] * dx + dq[0, p + 1] * dy) * dt
-                        dverts[v, 1, r] += (dq[1, p] * dx + dq[1, p + 1] * dy) * dt
+                _add_moving(dverts, v, dq, p, dx, dy, dbounds, pc, f)
 
 
 @_jit
@@ -702,11 +766,7 @@ def _place_vertices(
         for chunk in range(thread, n_chunks, threads):
             e0, e1 = chunk * CHUNK, min((chunk + 1) * CHUNK, ne)
             for e in range(e0, e1):
-                first, last = edge_offsets[e], edge_offsets[e + 1] - 1
-                for s in range(first, last + 1):
-                    seg_edge[s] = e
-                    seg_start[s] = ea[e] if s == first else ncorner + s - e - 1
-                    seg_end[s] = eb[e] if s == last else ncorner + s - e
+                _edge_segments(e, ea, eb, edge_offsets, ncorner, seg_start, seg_end, seg_edge)
             v0 = ncorner + edge_offsets[e0] - e0
             _place_chunk(*mesh, e0, e1, pts, out, moving, qi, dq, verts[v0:], dverts[v0:])
 
@@ -750,8 +810,7 @@ def _integrate(
             _place_chunk(*mesh, e0, e1, pts, rows, moving, qi, dq, verts, dverts)
             base = edge_offsets[e0] - e0
             for i in range(edge_offsets[e1] - e1 - base):
-                verts[i, 0] = min(max((verts[i, 0] + 1) * sx, 0.0), ws)
-                verts[i, 1] = min(max((verts[i, 1] + 1) * sy, 0.0), hs)
+                verts[i, 0], verts[i, 1] = _pixel_vertex(verts[i, 0], verts[i, 1], ws, hs)
             for e in range(e0, e1):
                 first, last = edge_offsets[e], edge_offsets[e + 1] - 1
                 ej[:, :] = 0.0
@@ -898,8 +957,7 @@ def mesh_integrals(
 def _to_pixels(verts: np.ndarray, ws: float, hs: float) -> np.ndarray:
     out = np.empty_like(verts)
     for v in prange(verts.shape[0]):
-        out[v, 0] = min(max((verts[v, 0] + 1) * (ws / 2), 0.0), ws)
-        out[v, 1] = min(max((verts[v, 1] + 1) * (hs / 2), 0.0), hs)
+        out[v, 0], out[v, 1] = _pixel_vertex(verts[v, 0], verts[v, 1], ws, hs)
     return out
 
 
@@ -970,7 +1028,7 @@ def theta_gradient(g_edge: np.ndarray, jac: np.ndarray) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------------------
-# The mesh on a CUDA device: the same steps, one GPU thread per corner, pixel or uniform edge
+# The mesh on a CUDA device: the same steps, one GPU thread per corner, pixel, edge or vertex
 # ----------------------------------------------------------------------------------------
 cuda = None  # numba.cuda, bound by the first launch (kernels.cuda_launch)
 #: The most θ entries a compiled map has (local arrays on the device have a fixed size).
@@ -1010,32 +1068,15 @@ def _edge_pieces_and_counts(
     ax, ay = ends[e, 0], ends[e, 1]
     dx, dy = ends[e, 2] - ax, ends[e, 3] - ay
     for i in range(n):
-        a, b = lo[i], lo[i + 1]
-        for s in range(7):  # five samples along the piece, then two just inside its ends
-            if s < 5:
-                t = a + (b - a) * (s / 4)
-                x, y = ax + t * dx, ay + t * dy
-            else:
-                j = s - 5
-                t0, t1 = a + (b - a) * ((4 * j) / 4), a + (b - a) * ((4 - 4 * j) / 4)
-                x0, y0, x1, y1 = ax + t0 * dx, ay + t0 * dy, ax + t1 * dx, ay + t1 * dy
-                x, y = x0 + inner * (x1 - x0), y0 + inner * (y1 - y0)
+        for s in range(7):
+            x, y = _sample_point(ax, ay, dx, dy, lo[i], lo[i + 1], s, inner)
             _phi_at(kind, centred, x, y, th, c, q, dq)
             rows[0, s], rows[1, s] = q[0], q[1]
             for r in range(p):
                 rows[2 + r, s], rows[2 + p + r, s] = dq[0, r], dq[1, r]
         _sagittas(rows, 1, 7, True, p, one, one_len)  # piece by piece: little work space a thread
         sag[i], length[i] = one[0], one_len[0]
-    edge_len = 0.0
-    for i in range(n):
-        edge_len += length[i]
-    budget = 3 * tol * amin[e] / (8 * max(edge_len, 1e-300))
-    total = 0
-    for i in range(n):
-        m = min(max(math.ceil(math.sqrt(2 * sag[i] / budget)), 1.0), float(max_subdiv))
-        counts[base + i] = 1 if sag[i] <= 1e-15 * length[i] else int(m)
-        total += counts[base + i]
-    edge_counts[e + 1] = total
+    edge_counts[e + 1] = _segment_counts(sag, length, 0, n, base, amin[e], tol, max_subdiv, counts)
 
 
 @_inline
@@ -1048,20 +1089,14 @@ def _edge_vertices(
     """Edge ``e``'s part of :func:`_place_vertices`: its segments and new vertices, numbered as
     there, each vertex's ``∂v/∂θ`` with the term of a piece whose ends move with θ."""
     p = th.shape[0]
-    first, last = edge_offsets[e], edge_offsets[e + 1] - 1
-    for s in range(first, last + 1):
-        seg_edge[s] = e
-        seg_start[s] = ea[e] if s == first else ncorner + s - e - 1
-        seg_end[s] = eb[e] if s == last else ncorner + s - e
+    _edge_segments(e, ea, eb, edge_offsets, ncorner, seg_start, seg_end, seg_edge)
+    first = edge_offsets[e]
     ax, ay = ends[e, 0], ends[e, 1]
     dx, dy = ends[e, 2] - ax, ends[e, 3] - ay
     s = first
     for pc in range(piece_offsets[e], piece_offsets[e + 1]):
         m, lo, hi = counts[pc], bounds[pc, 0], bounds[pc, 1]
-        moves = False
-        if p == 4:
-            for r in range(p):
-                moves = moves or dbounds[pc, 0, r] != 0 or dbounds[pc, 1, r] != 0
+        moves = _piece_moves(dbounds, pc, p)
         for k in range(m):
             if s != first:
                 f = k / m
@@ -1072,11 +1107,7 @@ def _edge_vertices(
                 for r in range(p):
                     dverts[v, 0, r], dverts[v, 1, r] = dq[0, r], dq[1, r]
                 if moves:  # the piece's ends move with a learned centre: its vertices too
-                    for r in range(p):
-                        dt = dbounds[pc, 0, r] * (1 - f) + dbounds[pc, 1, r] * f
-                        if dt != 0:
-                            dverts[v, 0, r] += (dq[0, p] * dx + dq[0, p + 1] * dy) * dt
-                            dverts[v, 1, r] += (dq[1, p] * dx + dq[1, p + 1] * dy) * dt
+                    _add_moving(dverts, v, dq, p, dx, dy, dbounds, pc, f)
             s += 1
 
 
@@ -1099,18 +1130,24 @@ def _cuda_corners(
             dq[v, 0, r], dq[v, 1, r] = work[0, r], work[1, r]
 
 
-def _cuda_amin(q: np.ndarray, h: int, w: int, amin: np.ndarray) -> None:
-    """One thread per edge: the smaller area of the (deformed) pixels beside it."""
+def _cuda_areas(q: np.ndarray, area: np.ndarray) -> None:
+    """One thread per pixel: :func:`_quad_area` of its deformed corners."""
+    i = cuda.grid(1)
+    h, w = area.shape
+    if i < h * w:
+        area[i // w, i % w] = _quad_area(q, i // w, i % w, w)
+
+
+def _cuda_amin(area: np.ndarray, amin: np.ndarray) -> None:
+    """One thread per edge (horizontal, then vertical): :func:`_amin_across`,
+    :func:`_amin_beside`."""
     e = cuda.grid(1)
+    h, w = area.shape
     nh = (h + 1) * w
-    if e < nh:  # a horizontal edge: the pixels above and below
-        i, j = e // w, e % w
-        up = _quad_area(q, i - 1, j, w) if i > 0 else np.inf
-        amin[e] = min(up, _quad_area(q, i, j, w) if i < h else np.inf)
-    elif e < nh + h * (w + 1):  # a vertical one: left and right
-        i, j = (e - nh) // (w + 1), (e - nh) % (w + 1)
-        left = _quad_area(q, i, j - 1, w) if j > 0 else np.inf
-        amin[e] = min(left, _quad_area(q, i, j, w) if j < w else np.inf)
+    if e < nh:
+        amin[e] = _amin_across(area, e // w, e % w)
+    elif e < amin.shape[0]:
+        amin[e] = _amin_beside(area, (e - nh) // (w + 1), (e - nh) % (w + 1))
 
 
 def _cuda_count_pieces(
@@ -1167,11 +1204,10 @@ def _cuda_place(
 
 
 def _cuda_to_pixels(verts: np.ndarray, ws: float, hs: float, out: np.ndarray) -> None:
-    """One thread per vertex: :func:`_to_pixels`."""
+    """One thread per vertex: :func:`_pixel_vertex`."""
     v = cuda.grid(1)
     if v < verts.shape[0]:
-        out[v, 0] = min(max((verts[v, 0] + 1) * (ws / 2), 0.0), ws)
-        out[v, 1] = min(max((verts[v, 1] + 1) * (hs / 2), 0.0), hs)
+        out[v, 0], out[v, 1] = _pixel_vertex(verts[v, 0], verts[v, 1], ws, hs)
 
 
 _A1, _A2, _A3, _I1 = "float64[::1]", "float64[:, ::1]", "float64[:, :, ::1]", "int64[::1]"
@@ -1179,7 +1215,8 @@ _A1, _A2, _A3, _I1 = "float64[::1]", "float64[:, ::1]", "float64[:, :, ::1]", "i
 #: :func:`~layoutwarp.kernels.cuda_ptx` compiles them with, without a GPU).
 CUDA_KERNELS = {
     "corners": (_cuda_corners, f"void(int64, boolean, {_A2}, {_A1}, {_A1}, {_A2}, {_A3})"),
-    "amin": (_cuda_amin, f"void({_A2}, int64, int64, {_A1})"),
+    "areas": (_cuda_areas, f"void({_A2}, {_A2})"),
+    "amin": (_cuda_amin, f"void({_A2}, {_A1})"),
     "count_pieces": (_cuda_count_pieces, f"void(int64, boolean, {_A2}, {_A1}, {_A1}, {_I1})"),
     "pieces_and_counts": (
         _cuda_pieces_and_counts,
@@ -1224,8 +1261,9 @@ def build_mesh_device(
     max_subdiv: int = 4096,
 ) -> DeviceMesh:
     """:func:`build_mesh` (``with_grad``) and :func:`pixel_vertices` on the CUDA device that
-    holds ``theta`` ``(P,)``, in seven kernels (corners, areas, pieces, counts, vertices, pixel
-    units: one thread per corner, edge or vertex, each thread the CPU's steps for its item) and
+    holds ``theta`` ``(P,)``, in seven kernels (corners, pixel areas, edges' smaller areas,
+    pieces, counts, vertices, pixel units: one thread per corner, pixel, edge or vertex, each
+    thread the CPU's steps for its item) and
     two cumulative sums, so no mesh crosses the bus: at 2048x1024 → 257x129 a fovea mesh is
     about 50 MB. The host waits twice, for the piece and segment totals it allocates by. A
     ``theta`` on the CPU runs the same kernels in numba's CUDA simulator
@@ -1245,8 +1283,9 @@ def build_mesh_device(
 
     q, dq = torch.empty(nc, 2, **f64), torch.empty(nc, 2, p, **f64)
     launch("corners", nc, spec.kind, spec.centred, uniform, th, c, q, dq)
-    amin, npieces = torch.empty(ne, **f64), torch.empty(ne, **i64)
-    launch("amin", ne, q, h, w, amin)
+    area, amin, npieces = torch.empty(h, w, **f64), torch.empty(ne, **f64), torch.empty(ne, **i64)
+    launch("areas", h * w, q, area)
+    launch("amin", ne, area, amin)
     launch("count_pieces", ne, spec.kind, spec.centred, ends, th, c, npieces)
     piece_offsets = torch.zeros(ne + 1, **i64)
     torch.cumsum(npieces, 0, out=piece_offsets[1:])
