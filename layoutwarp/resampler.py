@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from . import kernels
-from .checks import check_size
+from .checks import all_finite, check_size, raise_nonfinite
 from .integrators import data_tolerance, green_pieces
 from .labels import labels_to_sensor
 from .layoutfile import layout_key
@@ -170,6 +170,7 @@ class AreaResampler:
         *,
         output: str = "radiance",
         generator: torch.Generator | None = None,
+        allow_nonfinite: bool = True,
     ) -> torch.Tensor:
         """The weights applied to ``(N, H, W)`` float32 images on this resampler's device:
         ``(N, h, w)``, differentiable in the images (the compiled row-parallel product on the
@@ -178,7 +179,10 @@ class AreaResampler:
         With ``physics``: what that sensor records of the pixel means
         (:func:`~layoutwarp.physics.measure` with :attr:`areas`, ``output`` and ``generator``);
         on the CPU without gradient, the product and the measurement are one compiled call
-        (:func:`~layoutwarp.kernels.measured_csr_apply`)."""
+        (:func:`~layoutwarp.kernels.measured_csr_apply`).
+
+        ``allow_nonfinite=False`` raises ``ValueError`` where NaN/Inf in the images reach the
+        means (as :func:`~layoutwarp.simulate` does by default); ``True`` passes them through."""
         n = images.shape[0]
         flat = images.reshape(n, -1)
         if flat.device.type == "cpu" and not flat.requires_grad and kernels.available():
@@ -189,13 +193,17 @@ class AreaResampler:
             with kernels.LOCK:
                 nt = kernels.threads()  # numba's threads for this launch, bounded by torch's
                 if measured is None:
-                    kernels.csr_apply(w.indptr, w.indices, w.data, x, out)
+                    bad = kernels.csr_apply(w.indptr, w.indices, w.data, x, out)
                 else:
                     mean, out = out, np.empty_like(out)
-                    kernels.measured_csr_apply(w.indptr, w.indices, w.data, x, mean, *measured, out, nt)
+                    bad = kernels.measured_csr_apply(w.indptr, w.indices, w.data, x, mean, *measured, out, nt)
+            if bad and not allow_nonfinite:
+                raise_nonfinite(images)
             return torch.from_numpy(out).view(n, *self.size)
         cols = [self._csr @ flat[k].unsqueeze(1) for k in range(n)]  # contiguous planes: no transpose
         mean = torch.cat(cols, 1).T.reshape(n, *self.size)
+        if not (allow_nonfinite or all_finite(mean)):
+            raise_nonfinite(images)
         if physics is None:
             return mean
         return measure(mean, self.areas, physics, output=output, generator=generator)

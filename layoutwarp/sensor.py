@@ -3,15 +3,22 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 from torch import Tensor, nn
 
-from .checks import check_choice, check_int, check_number, check_shape, check_size
+from .checks import (
+    all_finite,
+    check_choice,
+    check_int,
+    check_number,
+    check_shape,
+    check_size,
+    raise_nonfinite,
+)
 from .integrators import (
     RADIANCES,
     Radiance,
@@ -141,27 +148,6 @@ def _prepare(image: Tensor) -> tuple[Tensor, torch.dtype, tuple[int, ...]]:
     return work.reshape(-1, *work.shape[-2:]), out_dtype, lead
 
 
-def _all_finite(x: Tensor) -> bool:
-    """Whether every element of ``x`` is finite: NaN and ±inf reach the sum, so a finite sum says
-    so at an eighth of the cost of ``isfinite(x).all()``; only a sum that overflows, of finite
-    values, needs the element-wise check. On the CPU without gradient (a fixed layout's forward)
-    numpy sums, on one thread: torch's sum would wake its thread pool, whose spinning workers then
-    slow the compiled kernels that follow."""
-    if x.device.type == "cpu" and x.dtype in (torch.float32, torch.float64) and not x.requires_grad:
-        a = x.numpy()
-        with np.errstate(over="ignore", invalid="ignore"):
-            return bool(np.isfinite(a.sum())) or bool(np.isfinite(a).all())
-    return bool(torch.isfinite(x.sum())) or bool(torch.isfinite(x).all())
-
-
-def _raise_nonfinite(work: Tensor) -> None:
-    bad = int((~torch.isfinite(work)).sum())
-    if bad:
-        raise ValueError(
-            f"image contains {bad} non-finite value(s) (NaN or Inf); clean it or pass allow_nonfinite=True"
-        )
-
-
 def simulate(
     image: Tensor | Radiance,
     layout: Layout,
@@ -248,7 +234,7 @@ def simulate(
         # gives the same samples on every call on one device, not across devices)
         at = image.device if isinstance(image, Tensor) else None
         generator = torch.Generator(at).manual_seed(int(seed))
-    run = _Integration(plan, layout, size, tol, samples, grad, generator, physics, output)
+    run = _Integration(plan, layout, size, tol, samples, grad, generator, physics, output, allow_nonfinite)
     if is_callable:
         out = run(image)[None]
         return (out, plan) if return_plan else out
@@ -256,15 +242,9 @@ def simulate(
     if work.shape[0] == 0:
         out = work.new_zeros(*lead, *size).to(out_dtype)
     else:
-        exact = plan.method in ("exact", "separable")
-        if not (allow_nonfinite or exact):  # samples may miss a bad pixel: look at the input
-            _raise_nonfinite(work)
-        out = run(work)
-        # Every source pixel reaches some sensor pixel with positive weight, so NaN/Inf in the
-        # input always reaches the (small) output of an exact method: check that instead.
-        if exact and not allow_nonfinite and not _all_finite(out):
-            _raise_nonfinite(work)
-        out = out.to(out_dtype).reshape(*lead, *size)
+        if not (allow_nonfinite or plan.method in ("exact", "separable")):
+            raise_nonfinite(work)  # samples may miss a bad pixel: look at the input
+        out = run(work).to(out_dtype).reshape(*lead, *size)  # exact methods check their means
     return (out, plan) if return_plan else out
 
 
@@ -281,6 +261,7 @@ class _Integration:
     generator: torch.Generator | None
     physics: SensorPhysics | None = None
     output: str = "radiance"
+    allow_nonfinite: bool = True
 
     def __call__(self, work: Tensor | Radiance) -> Tensor:
         """Integrate ``work`` (``(N, H, W)`` or a callable radiance) with autocast off: the sensor
@@ -295,11 +276,25 @@ class _Integration:
     def _measured(self, work: Tensor | Radiance) -> Tensor:
         if self.physics is None:
             return self._dispatch(work)
-        if isinstance(work, Tensor):
-            work = apply_psf(work, self.physics)
+        if not (isinstance(work, Tensor) and self.physics.psf is not None):
+            return self._recorded(work)
+        # the blur spreads a bad value over its neighbours: check the record, count the source's
+        out = replace(self, allow_nonfinite=True)._recorded(apply_psf(work, self.physics))
+        if not (self.allow_nonfinite or all_finite(out)):
+            raise_nonfinite(work)
+        return out
+
+    def _recorded(self, work: Tensor | Radiance) -> Tensor:
+        """What the sensor records of ``work`` (after the optics)."""
         weights = self._weights(work)
         if weights is not None:  # a fixed layout: its cached weights know their pixels' areas
-            return weights.apply(work, self.physics, output=self.output, generator=self.generator)
+            return weights.apply(
+                work,
+                self.physics,
+                output=self.output,
+                generator=self.generator,
+                allow_nonfinite=self.allow_nonfinite,
+            )
         mesh = None
         if self.plan.method != "separable":  # the polygons the pixels' areas come from
             mesh = pixel_mesh(self.layout, self.size, tol=self.tol, dtype=torch.float64)
@@ -319,14 +314,22 @@ class _Integration:
         return resampler_for(self.layout, self.size, tuple(work.shape[-2:]), self.tol, work.device)
 
     def _dispatch(self, work: Tensor | Radiance, mesh: PixelMesh | None = None) -> Tensor:
+        """The pixel means. An exact method's are checked for NaN/Inf (unless ``allow_nonfinite``):
+        every source pixel reaches some sensor pixel with positive weight, so a bad input value
+        always reaches its (small) output; the fixed layout's compiled product counts them as
+        it writes them."""
         plan, layout, size = self.plan, self.layout, self.size
-        if plan.method == "separable":
-            return integrate_separable(work, layout, size)
-        if plan.method == "exact":
-            weights = self._weights(work)
+        if plan.method in ("separable", "exact"):
+            weights = self._weights(work) if plan.method == "exact" else None
             if weights is not None:  # one sparse product: the exact integral of a fixed layout
-                return weights.apply(work)
-            return integrate_exact(work, layout, size, tol=self.tol, mesh=mesh)
+                return weights.apply(work, allow_nonfinite=self.allow_nonfinite)
+            if plan.method == "separable":
+                mean = integrate_separable(work, layout, size)
+            else:
+                mean = integrate_exact(work, layout, size, tol=self.tol, mesh=mesh)
+            if not (self.allow_nonfinite or all_finite(mean)):
+                raise_nonfinite(work)
+            return mean
         radiance = "bilinear" if plan.radiance == "callable" else plan.radiance  # ignored for callables
         if plan.method == "montecarlo":
             return integrate_montecarlo(

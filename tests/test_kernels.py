@@ -396,9 +396,17 @@ def test_the_csr_product_matches_scipy_for_any_plane_count(planes, gen):
     w.indices = w.indices.astype(np.int32)
     x = rng.random((planes, 500), dtype=np.float32)
     out = np.full((planes, 37), np.nan, dtype=np.float32)
-    kernels.csr_apply(w.indptr, w.indices, w.data, x, out)
+    assert kernels.csr_apply(w.indptr, w.indices, w.data, x, out) == 0  # every value written is finite
     ref = (w.astype(np.float64) @ x.astype(np.float64).T).T
     assert np.abs(out - ref).max() < 1e-6 * max(1.0, np.abs(ref).max())
+    # NaN and ±inf in a few source values: the count of non-finite values written, the reference's
+    bad = rng.choice(x.size, size=int(rng.integers(1, 6)), replace=False)
+    x.flat[bad] = rng.choice([np.nan, np.inf, -np.inf], size=bad.size)
+    with np.errstate(invalid="ignore"):
+        ref = (w.astype(np.float64) @ x.astype(np.float64).T).T
+    count = kernels.csr_apply(w.indptr, w.indices, w.data, x, out)
+    assert count == int((~np.isfinite(ref)).sum())
+    assert np.array_equal(np.isfinite(out), np.isfinite(ref))
 
 
 @pytest.mark.parametrize(

@@ -637,6 +637,22 @@ def test_the_quantiser_passes_gradients_straight_through(gen):
     assert torch.allclose(grads[0], grads[1], rtol=1e-12) and bool(grads[0].abs().sum() > 0)
 
 
+@pytest.mark.parametrize("psf", [None, "gaussian"])
+@pytest.mark.parametrize("learn", [False, True])
+def test_nonfinite_input_raises_with_physics_naming_the_sources_count(psf, learn, gen):
+    # a fixed layout's compiled product counts the bad means as it writes them, a learnable
+    # one's are checked after; a PSF spreads the bad value, but the message counts the image's
+    img = torch.rand(1, 2, 40, 60, generator=gen)
+    r, c = (int(v) for v in torch.randint(10, 30, (2,), generator=gen))
+    img[0, 1, r, c] = float("nan")
+    ph = physics(photons_per_um2=200.0, seed=1, psf=psf, f_number=4.0, wavelength_um=0.55)
+    layout = lw.CurvLayout(rand_theta(gen, 0.5), learn=learn)
+    with pytest.raises(ValueError, match=r"image contains 1 non-finite value\(s\)"):
+        lw.simulate(img, layout, (8, 12), physics=ph)
+    out = lw.simulate(img, layout, (8, 12), physics=ph, allow_nonfinite=True)
+    assert torch.isfinite(out[0, 0]).all() and not torch.isfinite(out[0, 1]).all()
+
+
 def test_nonfinite_input_passes_through_the_measurement_with_allow_nonfinite(gen):
     # NaN/Inf in the image (allow_nonfinite=True) reach only the pixels they touch, as NaN/Inf
     # electrons: the samplers pass them through instead of looping on them
