@@ -1,19 +1,22 @@
 """What sensor physics adds to a fixed layout's forward, and that forward against INTER_AREA.
 
-Times three calls in interleaved rounds (each round calls every one once, so all three meet the
-same machine state; the order rotates round by round, so each follows each other as often, a
-call after OpenCV's spinning threads being slower): ``cv2.resize(INTER_AREA)``, ``simulate`` of a
-fixed curv layout (its cached area weights) and the same with the bench's camera (shot and read
-noise, full well, 12-bit ADC), on a random 2048x1024 RGB image to a 257x129 sensor, and prints
-the medians, their ratio for ``simulate`` against INTER_AREA and, for the physics, the median of
-each round's ratio (both calls of a round meet the same machine state, which drifts by 1.5x
-within seconds on small virtual machines), as ``layoutwarp bench`` does.
+Times four calls in interleaved rounds (each round calls every one once, so all meet the same
+machine state; the rounds take the calls' 24 orders in turn, so each follows each other as
+often, a call after OpenCV's spinning threads being slower; a rotation of one order would keep
+each call's predecessor): ``cv2.resize(INTER_AREA)``, ``simulate`` of a
+fixed curv layout (its cached area weights), the same with ``allow_nonfinite=True`` (no check
+for NaN/Inf) and the same with the bench's camera (shot and read noise, full well, 12-bit ADC),
+on a random 2048x1024 RGB image to a 257x129 sensor, and prints the medians, their ratio for
+``simulate`` against INTER_AREA and, for the finiteness check and the physics, the median of
+each round's ratio against ``simulate`` (both calls of a round meet the same machine state,
+which drifts by 1.5x within seconds on small virtual machines), as ``layoutwarp bench`` does.
 Run: ``python examples/physics_overhead.py [--rounds 60] [--threads 2]``.
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import statistics
 import time
 
@@ -39,15 +42,16 @@ def main() -> None:
     calls = {
         "INTER_AREA": lambda: cv2.resize(hwc, (257, 129), interpolation=cv2.INTER_AREA),
         "simulate": lambda: lw.simulate(img, layout, (129, 257)),
+        "no finiteness check": lambda: lw.simulate(img, layout, (129, 257), allow_nonfinite=True),
         "simulate + physics": lambda: lw.simulate(img, layout, (129, 257), physics=camera),
     }
     times: dict[str, list[float]] = {name: [] for name in calls}
     with torch.no_grad():
         for call in calls.values():  # warm-up: compiles, builds and caches the area weights
             call()
-        names = list(calls)
-        for k in range(args.rounds):  # each round in a rotated order: every call follows each other
-            for name in names[k % 3 :] + names[: k % 3]:
+        orders = list(itertools.permutations(calls))
+        for k in range(args.rounds):  # each round in the next of the orders
+            for name in orders[k % len(orders)]:
                 t0 = time.perf_counter()
                 calls[name]()
                 times[name].append(1e3 * (time.perf_counter() - t0))
@@ -55,8 +59,12 @@ def main() -> None:
     for name, value in ms.items():
         print(f"{name:20s} {value:7.2f} ms")
     print(f"simulate / INTER_AREA: {ms['simulate'] / ms['INTER_AREA']:.2f}x")
-    ratios = [q / p for p, q in zip(times["simulate"], times["simulate + physics"], strict=True)]
-    print(f"physics overhead: {100 * (statistics.median(ratios) - 1):+.1f} % (median of the rounds' ratios)")
+
+    def over(slow: str, fast: str) -> float:  # % that `slow` takes over `fast`, the rounds' median
+        return 100 * (statistics.median([q / p for p, q in zip(times[fast], times[slow], strict=True)]) - 1)
+
+    print(f"finiteness check: {over('simulate', 'no finiteness check'):+.1f} % (the same median)")
+    print(f"physics overhead: {over('simulate + physics', 'simulate'):+.1f} % (median of the rounds' ratios)")
 
 
 if __name__ == "__main__":

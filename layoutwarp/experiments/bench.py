@@ -13,6 +13,7 @@ The caller chooses torch's thread count (``layoutwarp bench --threads``); nothin
 
 from __future__ import annotations
 
+import itertools
 import json
 import multiprocessing as mp
 import os
@@ -83,8 +84,9 @@ def _sync() -> None:
 def _time_paired(fns: Sequence[Callable[[], object]], repeats: int) -> list[float]:
     """Median ms of each of ``fns`` over ``max(repeats, 1)`` rounds that call them in turn after
     one warm-up call each, so that every one meets the same machine state (a background load,
-    the CPU's clock); the order rotates round by round, so each follows each other as often (what
-    a call leaves behind, caches or another pool's spinning threads, is shared alike)."""
+    the CPU's clock); round ``k`` takes the ``k``-th of the calls' orders (all of them in turn),
+    so each follows each other as often (what a call leaves behind, caches or another pool's
+    spinning threads, is shared alike; a rotation would keep each call's predecessor)."""
     return [float(np.median(col)) for col in _rounds(fns, repeats)]
 
 
@@ -92,10 +94,10 @@ def _rounds(fns: Sequence[Callable[[], object]], repeats: int) -> list[list[floa
     """:func:`_time_paired`'s times: ``times[i][k]``, the ms of ``fns[i]`` in round ``k``."""
     for fn in fns:
         fn()
-    n = len(fns)
+    orders = list(itertools.permutations(range(len(fns))))
     times: list[list[float]] = [[] for _ in fns]
     for k in range(max(repeats, 1)):
-        for i in [*range(k % n, n), *range(k % n)]:
+        for i in orders[k % len(orders)]:
             times[i].append(_time(fns[i], 0))
     return times
 
