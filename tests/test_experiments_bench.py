@@ -143,15 +143,22 @@ def test_run_small_reports_every_method_and_plots(tmp_path):
     assert png.stat().st_size > 20_000
 
 
-def test_paired_timing_rotates_the_order():
+def test_paired_timing_takes_every_order_so_each_call_follows_each_other_as_often():
+    from collections import Counter
+
     from layoutwarp.experiments import bench
 
     calls: list[str] = []
     fns = [lambda name=name: calls.append(name) for name in "abc"]
-    times = bench._time_paired(fns, 6)
+    times = bench._time_paired(fns, 12)
     assert len(times) == 3 and all(t >= 0 for t in times)
-    rounds = ["".join(calls[3 + 3 * k : 6 + 3 * k]) for k in range(6)]  # after the warm-up calls
-    assert calls[:3] == ["a", "b", "c"] and rounds == ["abc", "bca", "cab"] * 2
+    rounds = ["".join(calls[3 + 3 * k : 6 + 3 * k]) for k in range(12)]  # after the warm-up calls
+    assert calls[:3] == ["a", "b", "c"] and sorted(rounds[:6]) == sorted(rounds[6:])
+    assert sorted(rounds[:6]) == ["abc", "acb", "bac", "bca", "cab", "cba"]
+    # within a round each call follows each other equally often (a rotation of one order would
+    # give each call the same predecessor in every round: ab, bc, ca only)
+    follows = Counter((r[i], r[i + 1]) for r in rounds for i in range(2))
+    assert follows == Counter({tuple(pair): 4 for pair in ("ab", "ac", "ba", "bc", "ca", "cb")})
 
 
 def test_scaling_fits_slopes():
