@@ -188,7 +188,7 @@ class AreaResampler:
         if flat.device.type == "cpu" and not flat.requires_grad and kernels.available():
             w = self.weights
             out = np.empty((n, w.shape[0]), dtype=np.float32)
-            x = np.ascontiguousarray(flat.detach().numpy())
+            x = np.ascontiguousarray(flat.numpy())  # needs no gradient: no detach
             measured = None if physics is None else kernel_arguments(physics, self.areas, output, generator)
             with kernels.LOCK:
                 nt = kernels.threads()  # numba's threads for this launch, bounded by torch's

@@ -142,7 +142,7 @@ def _prepare(image: Tensor) -> tuple[Tensor, torch.dtype, tuple[int, ...]]:
         work = image.to(torch.float32) / 255
     elif image.is_floating_point():
         out_dtype = image.dtype
-        work = image if image.dtype == torch.float64 else image.to(torch.float32)
+        work = image if image.dtype in (torch.float32, torch.float64) else image.to(torch.float32)
     else:
         raise TypeError(f"image dtype must be floating point or uint8, got {image.dtype}")
     return work.reshape(-1, *work.shape[-2:]), out_dtype, lead
@@ -244,7 +244,8 @@ def simulate(
     else:
         if not (allow_nonfinite or plan.method in ("exact", "separable")):
             raise_nonfinite(work)  # samples may miss a bad pixel: look at the input
-        out = run(work).to(out_dtype).reshape(*lead, *size)  # exact methods check their means
+        out = run(work)  # exact methods check their means
+        out = (out if out.dtype == out_dtype else out.to(out_dtype)).reshape(*lead, *size)
     return (out, plan) if return_plan else out
 
 
@@ -268,7 +269,7 @@ class _Integration:
         integrates in float32 (float64 for float64 input) inside any mixed-precision context, as
         its tolerances assume. With physics: the PSF first, the measurement after."""
         device = work.device.type if isinstance(work, Tensor) else self.layout.rho.device.type
-        if device in ("cpu", "cuda", "mps", "xpu"):
+        if device in ("cpu", "cuda", "mps", "xpu") and torch.is_autocast_enabled(device):
             with torch.autocast(device_type=device, enabled=False):
                 return self._measured(work)
         return self._measured(work)
