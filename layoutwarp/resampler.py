@@ -10,6 +10,7 @@ simulation use it.
 
 from __future__ import annotations
 
+import math
 import warnings
 from collections import OrderedDict
 from typing import TYPE_CHECKING
@@ -32,6 +33,11 @@ if TYPE_CHECKING:
 __all__ = ["CACHE_SIZE", "AreaResampler", "area_weights", "clear_resampler_cache", "resampler_for"]
 
 
+#: Boundary pieces (segments cut at source cell lines) that :func:`area_weights` handles at once:
+#: it works through blocks of sensor rows of about this many, so its temporaries stay bounded.
+PIECES_PER_BLOCK = 1 << 14
+
+
 def area_weights(
     layout: Layout,
     size: tuple[int, int],
@@ -39,6 +45,7 @@ def area_weights(
     *,
     tol: float | None = None,
     dtype: torch.dtype | np.dtype | type = np.float32,
+    weights_dtype: np.dtype | type = np.float64,
 ) -> scipy.sparse.csr_matrix:
     """Exact area weights of every sensor pixel over the source cells, as a sparse matrix.
 
@@ -49,8 +56,10 @@ def area_weights(
     Built from the same Green's-theorem pieces as the exact integrator: a boundary piece in
     cell ``(r, c)`` contributes ``ΔY · (Σ_{c' < c} L[r, c'] + f · L[r, c])``, a step in ``c'``;
     the steps of one pixel and row are summed by a sort and a cumulative sum, so only the
-    cells inside the pixel get (non-zero) weights. float64; ``nnz ≈`` source pixels plus
-    the cells on pixel boundaries.
+    cells inside the pixel get (non-zero) weights; ``nnz ≈`` source pixels plus the cells on
+    pixel boundaries. Computed in float64, block by block of sensor rows
+    (:data:`PIECES_PER_BLOCK`), each block's rows written in order: besides the result, what
+    the build holds at once is one block's pieces.
 
     Args:
         layout: the pixel layout.
@@ -60,6 +69,7 @@ def area_weights(
             polyline approximation of curved edges; ``None``: what images of ``dtype`` resolve
             (:func:`~layoutwarp.data_tolerance`).
         dtype: the dtype of the images the weights are for (sets the default ``tol``).
+        weights_dtype: the dtype of the returned weights (float64 or float32).
 
     Returns:
         a ``(h · w, H · W)`` ``scipy.sparse.csr_matrix``.
@@ -69,17 +79,65 @@ def area_weights(
     with torch.no_grad():
         mesh = pixel_mesh(layout, (h, w), tol=tol, dtype=torch.float64)
         verts = mesh.pixel_vertices((hs, ws))
-        pcs = green_pieces(verts[mesh.seg_start], verts[mesh.seg_end], (hs, ws))
         area = mesh.areas(verts).flatten().cpu().numpy()  # source pixel units, same polylines
-        edge = mesh.seg_edge[pcs.seg].cpu().numpy()
-    row, col, dy, frac = (t.cpu().numpy() for t in (pcs.row, pcs.col, pcs.dy, pcs.frac))
-    pix = mesh.topology.edge_pixels()  # (E, 2): the pixel adding each edge, the one subtracting it
+        verts, starts, ends = verts.cpu(), mesh.seg_start.cpu(), mesh.seg_end.cpu()
+        pieces = sum(  # a bound on the pieces, in chunks: no segment-long temporaries
+            float(((verts[e] - verts[s]).abs().ceil().sum(-1) + 2).sum())
+            for s, e in zip(starts.split(1 << 16), ends.split(1 << 16), strict=True)
+        )
+    top, off = mesh.topology, mesh.edge_offsets.cpu().numpy()
+    seg_edge, pix = mesh.seg_edge.cpu(), top.edge_pixels()
+    step = max(1, h // max(1, math.ceil(pieces / PIECES_PER_BLOCK)))
+    # at most a cell per source pixel (inside one pixel) plus two per piece (the pixels on its
+    # sides); np.empty takes address space only, so the bound's unused pages are never touched
+    bound = hs * ws + 2 * int(pieces)
+    index = np.int32 if bound < 2**31 else np.int64
+    indices, data = np.empty(bound, index), np.empty(bound, weights_dtype)
+    counts, n = [np.zeros(1, np.int64)], 0
+    for i0 in range(0, h, step):
+        i1 = min(h, i0 + step)
+        # the block's pixels are bounded by horizontal edges of corner rows i0..i1 and vertical
+        # edges of rows i0..i1-1: two runs of edges, so two runs of segments
+        runs = (top.horizontal(i0, 0), top.horizontal(i1 + 1, 0)), (top.vertical(i0, 0), top.vertical(i1, 0))
+        segs = torch.cat([torch.arange(int(off[e0]), int(off[e1])) for e0, e1 in runs])
+        with torch.no_grad():
+            pcs = green_pieces(verts[starts[segs]], verts[ends[segs]], (hs, ws))
+        edge = seg_edge[segs[pcs.seg]].numpy()
+        pixel, cell, value = _block_weights(
+            pix[edge], *(t.numpy() for t in (pcs.row, pcs.col, pcs.dy, pcs.frac)), (i0 * w, i1 * w), hs, ws
+        )
+        indices[n : n + cell.size] = cell
+        data[n : n + cell.size] = value / area[pixel]
+        n += cell.size
+        counts.append(np.bincount(pixel - i0 * w, minlength=(i1 - i0) * w))
+    indices.resize(n, refcheck=False)  # shrunk in place: the pages past n go back
+    data.resize(n, refcheck=False)
+    indptr = np.cumsum(np.concatenate(counts)).astype(index)
+    import scipy.sparse  # loaded on first use: `import layoutwarp` does not load scipy
+
+    return scipy.sparse.csr_matrix((data, indices, indptr), shape=(h * w, hs * ws))
+
+
+def _block_weights(
+    pix: np.ndarray,
+    row: np.ndarray,
+    col: np.ndarray,
+    dy: np.ndarray,
+    frac: np.ndarray,
+    pixels: tuple[int, int],
+    hs: int,
+    ws: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The weights' entries of the pixels ``[pixels[0], pixels[1])`` from the Green pieces of the
+    edges bounding them (``pix``: each piece's edge's adding and subtracting pixel, ``(P, 2)``):
+    pixel, source cell and unnormalised weight of every non-zero entry, sorted by pixel and cell
+    (the order of a CSR matrix's rows)."""
     keys, cols, deltas = [], [], []
     for k, sign in ((0, 1.0), (1, -1.0)):
-        p = pix[edge, k]
-        m = p >= 0
+        p = pix[:, k]
+        m = (p >= pixels[0]) & (p < pixels[1])  # the pixels of this block; -1 off the sensor
         v = sign * dy[m]
-        key = p[m].astype(np.int64) * hs + row[m]
+        key = p[m] * hs + row[m]
         keys += [key, key]
         cols += [col[m], col[m] + 1]
         deltas += [v * (frac[m] - 1), -v * frac[m]]
@@ -97,11 +155,7 @@ def area_weights(
     rep = np.repeat(np.arange(key.size), run)
     offs = np.arange(rep.size) - np.repeat(np.cumsum(run) - run, run)
     pixel, r = np.divmod(key[rep], hs)
-    cells = r * ws + c[rep] + offs
-    vals = cum[rep] / area[pixel]
-    import scipy.sparse  # loaded on first use: `import layoutwarp` does not load scipy
-
-    return scipy.sparse.csr_matrix((vals, (pixel, cells)), shape=(h * w, hs * ws))
+    return pixel, r * ws + c[rep] + offs, cum[rep]
 
 
 class AreaResampler:
@@ -140,27 +194,36 @@ class AreaResampler:
         self.size, self.src_size = check_size(size), check_size(src_size, "src_size")
         self.layout = layout
         self.tol = data_tolerance(dtype)[0] if tol is None else tol
-        self.weights = area_weights(layout, self.size, self.src_size, tol=self.tol).astype(np.float32)
+        self.weights = area_weights(layout, self.size, self.src_size, tol=self.tol, weights_dtype=np.float32)
+        self.device = torch.device(device)
         with torch.no_grad():  # the same (cached) mesh as the weights': its pixels' areas
             self.areas = pixel_mesh(layout, self.size, tol=self.tol, dtype=torch.float64).areas().to(device)
-        w = self.weights
-        with warnings.catch_warnings():  # "sparse CSR support is in beta"
-            warnings.simplefilter("ignore", UserWarning)
-            self._csr = torch.sparse_csr_tensor(
-                torch.from_numpy(w.indptr.astype(np.int64)),
-                torch.from_numpy(w.indices.astype(np.int64)),
-                torch.from_numpy(w.data),
-                size=w.shape,
-                check_invariants=False,
-            ).to(device)
-        self.device = torch.device(device)
+        self._csr: torch.Tensor | None = None
+
+    @property
+    def sparse(self) -> torch.Tensor:
+        """The weights as a torch sparse CSR tensor on :attr:`device`, built on first use (the CPU's
+        compiled product reads :attr:`weights` itself, so a CPU resampler that needs no image
+        gradient never holds this second copy)."""
+        if self._csr is None:
+            w = self.weights
+            with warnings.catch_warnings():  # "sparse CSR support is in beta"
+                warnings.simplefilter("ignore", UserWarning)
+                self._csr = torch.sparse_csr_tensor(
+                    torch.from_numpy(w.indptr.astype(np.int64)),
+                    torch.from_numpy(w.indices.astype(np.int64)),
+                    torch.from_numpy(w.data),
+                    size=w.shape,
+                    check_invariants=False,
+                ).to(self.device)
+        return self._csr
 
     def __call__(self, image: np.ndarray) -> np.ndarray:
         if image.shape[:2] != self.src_size:
             raise ValueError(f"image has size {image.shape[:2]}, this resampler expects {self.src_size}")
         flat = np.ascontiguousarray(image.reshape(self.src_size[0] * self.src_size[1], -1), np.float32)
         with torch.no_grad():  # torch's CSR product: 2-3x scipy's for a few channels
-            out = (self._csr @ torch.from_numpy(flat).to(self.device)).cpu().numpy()
+            out = (self.sparse @ torch.from_numpy(flat).to(self.device)).cpu().numpy()
         return out.reshape(*self.size, *image.shape[2:])
 
     def apply(
@@ -200,7 +263,7 @@ class AreaResampler:
             if bad and not allow_nonfinite:
                 raise_nonfinite(images)
             return torch.from_numpy(out).view(n, *self.size)
-        cols = [self._csr @ flat[k].unsqueeze(1) for k in range(n)]  # contiguous planes: no transpose
+        cols = [self.sparse @ flat[k].unsqueeze(1) for k in range(n)]  # contiguous planes: no transpose
         mean = torch.cat(cols, 1).T.reshape(n, *self.size)
         if not (allow_nonfinite or all_finite(mean)):
             raise_nonfinite(images)
@@ -220,7 +283,7 @@ class AreaResampler:
         """The weights applied to ``(K, H, W)`` images: ``(K, h, w)``."""
         flat = x.reshape(x.shape[0], -1).T.to(torch.float32).contiguous().cpu()
         with torch.no_grad():
-            out = self._csr @ flat.to(self.device)
+            out = self.sparse @ flat.to(self.device)
         return out.T.reshape(x.shape[0], *self.size).cpu()
 
 

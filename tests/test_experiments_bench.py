@@ -136,6 +136,8 @@ def test_run_small_reports_every_method_and_plots(tmp_path):
     phys = {r["method"]: r for r in rows if r["method"] in ("exact + physics", "psf gaussian", "psf airy")}
     assert set(phys) == {"exact + physics", "psf gaussian", "psf airy"}
     assert phys["exact + physics"]["extra"]["plain_ms"] > 0 and phys["exact + physics"]["rmse"] > 0  # noisy
+    ex = phys["exact + physics"]["extra"]  # the kernel alone, with and without its sampler
+    assert ex["kernel_ms"] > 0 and ex["kernel_noise_free_ms"] > 0 and "without noise" in report_text(res)
     assert 0 < phys["psf airy"]["rmse"] < 0.05 and phys["psf airy"]["extra"][
         "truncated_energy"
     ] == pytest.approx(0.05)

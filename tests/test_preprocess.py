@@ -41,6 +41,29 @@ def test_area_weights_equal_exact_integrator(family, gen):
         assert (w.data > 0).all()
 
 
+@pytest.mark.parametrize("family", ["rect", "curv", "fovea"])
+def test_area_weights_built_in_blocks_of_any_height_are_the_same_matrix(family, gen, monkeypatch):
+    # the build takes blocks of sensor rows, each from the edges bounding its pixels: one row a
+    # block, a few rows, and the whole sensor in one block give one matrix (and the integral)
+    import layoutwarp.resampler as res
+
+    layout = fixed(family, rand_theta(gen, 0.9))
+    src, size = (41, 67), (tuple(int(v) for v in torch.randint(5, 15, (2,), generator=gen)))
+    built = {}
+    for pieces in (1, 300, 1 << 40):
+        monkeypatch.setattr(res, "PIECES_PER_BLOCK", pieces)
+        built[pieces] = area_weights(layout, size, src, tol=1e-6)
+    one = built[1 << 40]
+    for w in (built[1], built[300]):
+        assert np.array_equal(w.indptr, one.indptr) and np.array_equal(w.indices, one.indices)
+        assert np.abs(w.data - one.data).max() < 1e-15
+    img = torch.rand(2, *src, generator=gen, dtype=F64)
+    with torch.no_grad():
+        ref = lw.simulate(img, layout, size, tol=1e-6).numpy()
+    got = (built[1] @ img.reshape(2, -1).T.numpy()).T.reshape(2, *size)
+    assert np.abs(got - ref).max() < 1e-12
+
+
 def test_area_weights_rows_are_cell_overlaps(gen):
     # independent: shapely clipping of one curved pixel (fine polygon) with every source cell
     layout = fixed("curv", rand_theta(gen, 0.8))
