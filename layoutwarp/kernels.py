@@ -1154,7 +1154,7 @@ def csr_apply(
     each row of ``W`` is read once for every four planes (RGB: once; 2.3x faster than once per
     plane at 2048x1024 → 257x129). Returns how many of the values written are not finite (NaN
     or ±inf): the finiteness check of :func:`~layoutwarp.simulate` while they are in registers
-    (a pass over ``out`` afterwards cost 3–4 % of the call)."""
+    (a pass over ``out`` afterwards cost about 3 % of the call)."""
     n = x.shape[0]
     bad = 0
     for r in prange(indptr.shape[0] - 1):

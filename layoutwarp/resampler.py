@@ -194,10 +194,11 @@ class AreaResampler:
         self.size, self.src_size = check_size(size), check_size(src_size, "src_size")
         self.layout = layout
         self.tol = data_tolerance(dtype)[0] if tol is None else tol
-        self.weights = area_weights(layout, self.size, self.src_size, tol=self.tol, weights_dtype=np.float32)
         self.device = torch.device(device)
-        with torch.no_grad():  # the same (cached) mesh as the weights': its pixels' areas
+        with torch.no_grad():  # the pixels' areas, from the (cached) mesh the weights are built on,
+            # before the weights: the two are never held together with the areas' temporaries
             self.areas = pixel_mesh(layout, self.size, tol=self.tol, dtype=torch.float64).areas().to(device)
+        self.weights = area_weights(layout, self.size, self.src_size, tol=self.tol, weights_dtype=np.float32)
         self._csr: torch.Tensor | None = None
 
     @property
