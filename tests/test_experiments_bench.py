@@ -132,7 +132,7 @@ def test_run_small_reports_every_method_and_plots(tmp_path):
     exact_steps = [r for r in steps if r["method"] == "train step, exact"]
     assert all(r["extra"]["in_a_row_ms"] > 0 for r in exact_steps) and "ms in a row" in report_text(res)
     reuse = next(r for r in rows if r["method"] == "exact, cached weights")
-    assert reuse["extra"]["first_call_ms"] > 0 and reuse["max_err"] < 1e-5
+    assert reuse["extra"]["first_call_ms"] > 0 and reuse["max_err"] < 1e-5 and reuse["extra"]["walk_ms"] > 0
     phys = {r["method"]: r for r in rows if r["method"] in ("exact + physics", "psf gaussian", "psf airy")}
     assert set(phys) == {"exact + physics", "psf gaussian", "psf airy"}
     assert phys["exact + physics"]["extra"]["plain_ms"] > 0 and phys["exact + physics"]["rmse"] > 0  # noisy

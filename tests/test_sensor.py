@@ -294,3 +294,21 @@ def test_a_fixed_layout_reuses_its_area_weights_in_a_bounded_cache(gen):
     with torch.no_grad():  # ... unless no gradient is wanted
         lw.simulate(img, learn, (9, 11))
     assert len(set(resampler._CACHE) - set(before)) == 1
+
+
+def test_a_cache_of_size_zero_keeps_no_weights_and_runs_the_compiled_walk(gen, monkeypatch):
+    from layoutwarp import resampler
+    from layoutwarp.integrators import integrate_exact
+
+    resampler.clear_resampler_cache()
+    monkeypatch.setattr(resampler, "CACHE_SIZE", 0)
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("no weights may be built")
+
+    monkeypatch.setattr(resampler, "AreaResampler", refuse)
+    img = torch.rand(1, 3, 50, 70, generator=gen)
+    layout = lw.CurvLayout(rand_theta(gen, 0.8))
+    out = lw.simulate(img, layout, (8, 10))
+    ref = integrate_exact(img.flatten(0, 1).double(), layout, (8, 10), tol=2**-12).view(1, 3, 8, 10)
+    assert float((out.double() - ref).abs().max()) < 1e-5 and not resampler._CACHE

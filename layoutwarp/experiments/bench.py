@@ -521,7 +521,10 @@ def reuse_row(cfg: BenchConfig, image_name: str, img: Tensor) -> Row:
     :func:`~layoutwarp.resampler.resampler_for`), and its first call, which builds them
     (``extra["first_call_ms"]``), at the data tolerance; ``extra["over_inter_area"]``: the
     repeated call over ``cv2.resize(INTER_AREA)`` timed with it in interleaved pairs (the CPU
-    image, as the anchor). The error is against the compiled kernel's float64 result."""
+    image, as the anchor). The error is against the compiled kernel's float64 result;
+    ``extra["walk_ms"]``: the same call with no weights kept (``resampler.CACHE_SIZE = 0``), the
+    compiled walk over the mesh."""
+    from .. import resampler
     from ..integrators import integrate_exact
     from ..resampler import clear_resampler_cache
 
@@ -539,6 +542,11 @@ def reuse_row(cfg: BenchConfig, image_name: str, img: Tensor) -> Row:
     with torch.no_grad():
         ref = integrate_exact(img.flatten(0, 1), layout.cpu(), cfg.size, tol=data_tolerance(torch.float32)[0])
     err = (fwd().cpu().double().flatten(0, 1) - ref).abs()
+    kept, resampler.CACHE_SIZE = resampler.CACHE_SIZE, 0
+    try:
+        walk = _time(fwd, cfg.repeats)
+    finally:
+        resampler.CACHE_SIZE = kept
     return Row(
         image_name,
         "curv",
@@ -547,7 +555,7 @@ def reuse_row(cfg: BenchConfig, image_name: str, img: Tensor) -> Row:
         repeat,
         rmse=float(err.pow(2).mean().sqrt()),
         max_err=float(err.max()),
-        extra={"first_call_ms": first, "over_inter_area": repeat / area},
+        extra={"first_call_ms": first, "over_inter_area": repeat / area, "walk_ms": walk},
     )
 
 
@@ -917,7 +925,8 @@ def report_text(result: dict) -> str:
             lines.append(
                 f"a fixed layout's repeated exact forward: {r['forward_ms']:.2f} ms "
                 f"({r['extra']['over_inter_area']:.2f}x INTER_AREA, in pairs); its first call, "
-                f"which builds the area weights: {r['extra']['first_call_ms']:.1f} ms"
+                f"which builds the area weights: {r['extra']['first_call_ms']:.1f} ms; with no weights "
+                f"kept (resampler.CACHE_SIZE = 0), the compiled walk: {r['extra']['walk_ms']:.2f} ms"
             )
         if r["method"] == "exact + physics":
             lines.append(
