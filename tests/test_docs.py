@@ -35,14 +35,16 @@ def test_the_docs_build_strictly(tmp_path):
     assert not (tmp_path / "hooks.py").exists()
 
 
-@pytest.mark.parametrize("page", ["README.md", "docs/index.md"])
-def test_the_front_pages_python_examples_run(page):
+@pytest.mark.parametrize("page", ["README.md", "docs/index.md", "docs/learn.md"])
+def test_the_front_pages_python_examples_run(page, tmp_path, monkeypatch):
     import re
 
+    monkeypatch.chdir(tmp_path)  # where an example writes its files
     blocks = re.findall(r"```python\n(.*?)```", (ROOT / page).read_text(), re.S)
     assert blocks
+    scope: dict = {}  # a page's blocks build on each other
     for code in blocks:
-        exec(compile(code, page, "exec"), {})
+        exec(compile(code, page, "exec"), scope)
 
 
 def test_the_api_page_lists_every_public_name():
