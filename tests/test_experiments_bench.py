@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import os
 
 import numpy as np
 import pytest
@@ -182,3 +183,29 @@ def test_run_measures_only_the_rows_asked_for():
     # dominates its relative error at this tiny size)
     fovea = [r for r in res["rows"] if r["method"] == "exact" and r["image"] == "photo"]
     assert len(fovea) == 2 and all(r["grad_rel_err"] < 1e-3 for r in fovea)
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/clear_refs"), reason="needs Linux's /proc")
+def test_the_memory_child_measures_a_fixed_layouts_first_call_with_and_without_cached_weights(monkeypatch):
+    # run in this process (the bench spawns it): the growth it reports, and whether the call it
+    # measured built area weights (cache_size 0: the compiled walk, no weights)
+    from layoutwarp import resampler
+    from layoutwarp.experiments import bench
+
+    sent: list[float] = []
+
+    class Conn:
+        def send(self, value: float) -> None:
+            sent.append(value)
+
+        def close(self) -> None:
+            pass
+
+    monkeypatch.setattr(resampler, "CACHE_SIZE", resampler.CACHE_SIZE)  # restored afterwards
+    spec = {"layout": bench.bench_layouts((0.3, 0.2))["curv"], "method": "exact", "opts": {}}
+    spec |= {"src": (64, 96), "size": (9, 13), "threads": torch.get_num_threads()}
+    for size, built in ((0, False), (4, True)):
+        resampler.clear_resampler_cache()
+        bench._memory_child(spec | {"cache_size": size}, Conn())
+        assert resampler.CACHE_SIZE == size and bool(resampler._CACHE) == built
+    assert len(sent) == 2 and all(v >= 0 for v in sent)

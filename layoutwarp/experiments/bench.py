@@ -29,7 +29,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .. import kernels
+from .. import kernels, resampler
 from ..checks import check_size
 from ..coords import uniform_corners
 from ..files import atomic_write, run_info
@@ -156,6 +156,8 @@ def _status_mb(key: str) -> float:
 
 def _memory_child(spec: dict, conn) -> None:  # pragma: no cover - runs in a spawned process
     torch.set_num_threads(spec["threads"])
+    if "cache_size" in spec:  # how many fixed layouts' area weights simulate keeps
+        resampler.CACHE_SIZE = spec["cache_size"]
     img = blurred_noise(*spec["src"])
     npimg = np.ascontiguousarray(img[0].permute(1, 2, 0).numpy())
     layout = layout_from_spec(spec["layout"])
@@ -185,7 +187,8 @@ def peak_memory_mb(spec: dict) -> float | None:
 
     ``spec`` names the run: ``layout`` (a :func:`layout_from_spec` dict), ``method`` (a
     :func:`simulate` method, ``"inter_area"`` or ``"remap"``), ``opts``, ``src``, ``size``,
-    ``threads``. (A forked child would deadlock in torch's thread pool.)
+    ``threads``, and optionally ``cache_size`` (:data:`~layoutwarp.resampler.CACHE_SIZE`). (A
+    forked child would deadlock in torch's thread pool.)
     """
     if not os.path.exists("/proc/self/clear_refs"):
         return None
@@ -524,7 +527,6 @@ def reuse_row(cfg: BenchConfig, image_name: str, img: Tensor) -> Row:
     image, as the anchor). The error is against the compiled kernel's float64 result;
     ``extra["walk_ms"]``: the same call with no weights kept (``resampler.CACHE_SIZE = 0``), the
     compiled walk over the mesh."""
-    from .. import resampler
     from ..integrators import integrate_exact
     from ..resampler import clear_resampler_cache
 
@@ -547,6 +549,12 @@ def reuse_row(cfg: BenchConfig, image_name: str, img: Tensor) -> Row:
         walk = _time(fwd, cfg.repeats)
     finally:
         resampler.CACHE_SIZE = kept
+    extra = {"first_call_ms": first, "over_inter_area": repeat / area, "walk_ms": walk}
+    if cfg.memory and cfg.device == "cpu":  # the first call's memory without the weights
+        spec = {"layout": bench_layouts(cfg.theta)["curv"], "method": "exact", "opts": {}, "src": cfg.src}
+        extra["walk_peak_mb"] = peak_memory_mb(
+            spec | {"size": cfg.size, "threads": torch.get_num_threads(), "cache_size": 0}
+        )
     return Row(
         image_name,
         "curv",
@@ -555,7 +563,7 @@ def reuse_row(cfg: BenchConfig, image_name: str, img: Tensor) -> Row:
         repeat,
         rmse=float(err.pow(2).mean().sqrt()),
         max_err=float(err.max()),
-        extra={"first_call_ms": first, "over_inter_area": repeat / area, "walk_ms": walk},
+        extra=extra,
     )
 
 
@@ -927,6 +935,12 @@ def report_text(result: dict) -> str:
                 f"({r['extra']['over_inter_area']:.2f}x INTER_AREA, in pairs); its first call, "
                 f"which builds the area weights: {r['extra']['first_call_ms']:.1f} ms; with no weights "
                 f"kept (resampler.CACHE_SIZE = 0), the compiled walk: {r['extra']['walk_ms']:.2f} ms"
+                + (
+                    f", its first call {r['extra']['walk_peak_mb'] / result['input_mb']:.2f} input copies "
+                    "of memory"
+                    if r["extra"].get("walk_peak_mb") is not None
+                    else ""
+                )
             )
         if r["method"] == "exact + physics":
             lines.append(
