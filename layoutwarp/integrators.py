@@ -774,18 +774,25 @@ class _FluxGrad(torch.autograd.Function):
     def backward(ctx, grad_out):
         value, theta, vol = ctx.saved_tensors
         image, layout, size, samples, radiance, generator = ctx.args
-        f_pix, g_pix = _flux_derivative(image, layout, theta.detach(), size, samples, radiance, generator)
-        d_value = (f_pix - value.detach().to(f_pix.dtype)[..., None] * g_pix) / vol[..., None]
-        grad_theta = (grad_out[..., None].to(d_value.dtype) * d_value).sum((0, 1, 2))
+        weight = grad_out / vol  # ∂loss/∂I_k over |A_k|
+        grad_theta = _flux_gradient(
+            image, layout, theta.detach(), size, samples, radiance, generator, weight, value
+        )
         return grad_out, grad_theta.to(theta.dtype), None, None, None, None, None, None, None
 
 
-def _flux_derivative(image, layout: Layout, theta: Tensor, size, m: int, radiance, generator):
-    """Boundary fluxes of every pixel: ``(∮ L ⟨∂r/∂θ, n⟩ ds, ∮ ⟨∂r/∂θ, n⟩ ds)``.
+def _flux_gradient(
+    image, layout: Layout, theta: Tensor, size, m: int, radiance, generator, weight: Tensor, value: Tensor
+) -> Tensor:
+    """``Σ_{n,k} weight[n, k] ∮_∂A_k (L_n − I_nk) ⟨∂r/∂θ, n⟩ ds``: θ's gradient of the pixel
+    means through their boundary fluxes, for ``weight`` and ``value`` ``(N, h, w)``.
 
-    Returns ``(N, h, w, P)`` and ``(h, w, P)``. Along an edge ``r(t) = φ(γ(t))`` the outward
-    normal line element of the positively oriented pixel boundary is ``n ds = (ṙ_y, −ṙ_x) dt``
-    with ``ṙ = J_φ γ̇``.
+    Along an edge ``r(t) = φ(γ(t))`` the outward normal line element of the positively
+    oriented pixel boundary is ``n ds = (ṙ_y, −ṙ_x) dt`` with ``ṙ = J_φ γ̇``, sampled at ``m``
+    stratified points. The weights are summed onto the edges first (each edge adds to one
+    pixel and subtracts from the other), so each sample carries one coefficient ``c``, and the
+    gradient is one vector-Jacobian product of φ in θ with the cotangent ``c · (ṙ_y, −ṙ_x)``:
+    no ``∂φ/∂θ`` of ``(E, m, 2, P)`` is formed, so the cost does not grow with θ's length.
     """
     dtype, dev = theta.dtype, theta.device
     topo = MeshTopology(size)
@@ -796,14 +803,20 @@ def _flux_derivative(image, layout: Layout, theta: Tensor, size, m: int, radianc
         + torch.rand(m, generator=generator, dtype=dtype, device=at).to(dev)
     ) / m
     pts = a[:, None] + t[:, None] * (b - a)[:, None]  # (E, m, 2) stratified along every edge
-    r = layout.phi(pts, theta)
-    rdot = (layout.phi_jacobian(pts, theta) @ (b - a)[:, None, :, None])[..., 0]  # J γ̇
-    drdth = layout.phi_dtheta(pts, theta)  # (E, m, 2, P)
-    flux = drdth[..., 0, :] * rdot[..., 1:2] - drdth[..., 1, :] * rdot[..., 0:1]  # (E, m, P)
-    lv = _sample(image, r, radiance).to(dtype)  # (N, E, m)
-    f_pix = topo.combine((lv[..., None] * flux).mean(-2).movedim(-1, 1)).movedim(1, -1)  # (N, h, w, P)
-    g_pix = topo.combine(flux.mean(-2).T).movedim(0, -1)  # (h, w, P)
-    return f_pix, g_pix
+    with torch.enable_grad():
+        th = theta.requires_grad_(True)
+        r = layout.phi(pts, th)
+        rdot = (layout.phi_jacobian(pts, theta.detach()) @ (b - a)[:, None, :, None])[..., 0]  # J γ̇
+        lv = _sample(image, r.detach(), radiance).to(dtype)  # (N, E, m)
+        w = weight.to(dtype)
+        per_edge = topo.combine_adjoint(w)  # (N, E): Σ_k ±weight[n, k] over the edge's two pixels
+        offset = topo.combine_adjoint(w * value.to(dtype)).sum(0)  # (E,): the same of weight · I
+        c = ((lv * per_edge[..., None]).sum(0) - offset[:, None]) / m  # (E, m)
+        cot = torch.stack([c * rdot[..., 1], -c * rdot[..., 0]], -1)  # (E, m, 2)
+        if not r.requires_grad:  # φ does not depend on θ
+            return torch.zeros_like(theta)
+        (grad,) = torch.autograd.grad(r, th, cot, allow_unused=True)
+    return torch.zeros_like(theta) if grad is None else grad
 
 
 def integrate_montecarlo(

@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
 from conftest import clip_reference, rand_theta
 
 import layoutwarp as lw
@@ -222,6 +223,52 @@ def test_montecarlo_gradients_agree_with_finite_differences(family, size, grad, 
     slack = 0.01 * fd.abs().max() if radiance == "bilinear" else 0.0
     assert bool(((mean - fd).abs() <= 5.5 * se + slack + 1e-3).all()), (mean, se, fd)
     assert bool((se < 0.2 * fd.abs().max() + 0.05).all())  # the estimate is informative
+
+
+@pytest.mark.parametrize("name", ["rect", "curv ±", "fovea", "grid 8x8"])
+def test_reynolds_gradient_is_the_boundary_flux_formula_with_the_same_draws(name, gen):
+    # the backward contracts the weights onto the edges and takes one vector-Jacobian product of
+    # φ; the reference forms ∂φ/∂θ column by column (closed forms or autograd columns) and the
+    # pixels' fluxes, as the paper writes them, from the same generator draws
+    from layoutwarp.experiments.bench import bench_layouts
+    from layoutwarp.layoutfile import layout_from_spec
+    from layoutwarp.maps import sample_points
+    from layoutwarp.mesh import MeshTopology
+
+    spec = bench_layouts(tuple(float(v) for v in rand_theta(gen, 0.8)))[name]
+    layout = layout_from_spec(spec, learn=True).to(F64)
+    size, m, seed = (5, 7), 3, int(torch.randint(0, 2**31, (1,), generator=gen))
+    img = torch.rand(2, 30, 40, generator=gen, dtype=F64)
+    wts = torch.randn(2, *size, generator=gen, dtype=F64)
+    out = lw.integrators.integrate_montecarlo(
+        img, layout, size, samples=m, generator=torch.Generator().manual_seed(seed)
+    )
+    params = [p for p in layout.parameters() if p.requires_grad]
+    got = torch.autograd.grad((out * wts).sum(), params)
+    # the reference, its draws in the same order: the forward's jitter, then the edges' samples
+    g2 = torch.Generator().manual_seed(seed)
+    sample_points(size, m, jitter=True, generator=g2, dtype=F64)
+    theta_graph = layout.resolve_theta(None)  # θ from the parameters (bounded, or control points)
+    with torch.no_grad():
+        theta = theta_graph.detach()
+        topo = MeshTopology(size)
+        a, b = topo.edge_ends(F64)
+        t = (torch.arange(m, dtype=F64) + torch.rand(m, generator=g2, dtype=F64)) / m
+        pts = a[:, None] + t[:, None] * (b - a)[:, None]
+        r = layout.phi(pts, theta)
+        rdot = (layout.phi_jacobian(pts, theta) @ (b - a)[:, None, :, None])[..., 0]
+        drdth = layout.phi_dtheta(pts, theta)  # (E, m, 2, P)
+        flux = drdth[..., 0, :] * rdot[..., 1:2] - drdth[..., 1, :] * rdot[..., 0:1]
+        lv = F.grid_sample(img[None], r[None], align_corners=False, padding_mode="border")[0]
+        f_pix = topo.combine((lv[..., None] * flux).mean(-2).movedim(-1, 1)).movedim(1, -1)
+        g_pix = topo.combine(flux.mean(-2).T).movedim(0, -1)
+        h, w = size
+        u = sample_points(size, m, jitter=True, generator=torch.Generator().manual_seed(seed), dtype=F64)
+        vol = layout.phi_jacobian_det(u, theta).abs().reshape(h, m, w, m).sum((1, 3)) * (4 / (h * w * m * m))
+        d_value = (f_pix - out.detach()[..., None] * g_pix) / vol[..., None]
+        ref_theta = (wts[..., None] * d_value).sum((0, 1, 2))
+    (ref,) = torch.autograd.grad(theta_graph, params, ref_theta)  # θ through its parametrisation
+    assert torch.allclose(got[0], ref, rtol=1e-10, atol=1e-12 * float(ref.abs().max())), (got[0], ref)
 
 
 def test_autograd_estimator_refuses_box_radiance():
