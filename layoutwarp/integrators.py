@@ -804,18 +804,18 @@ def _flux_gradient(
     ) / m
     pts = a[:, None] + t[:, None] * (b - a)[:, None]  # (E, m, 2) stratified along every edge
     with torch.enable_grad():
-        th = theta.requires_grad_(True)
+        th = theta.detach().requires_grad_(True)
         r = layout.phi(pts, th)
-        rdot = (layout.phi_jacobian(pts, theta.detach()) @ (b - a)[:, None, :, None])[..., 0]  # J γ̇
-        lv = _sample(image, r.detach(), radiance).to(dtype)  # (N, E, m)
-        w = weight.to(dtype)
-        per_edge = topo.combine_adjoint(w)  # (N, E): Σ_k ±weight[n, k] over the edge's two pixels
-        offset = topo.combine_adjoint(w * value.to(dtype)).sum(0)  # (E,): the same of weight · I
-        c = ((lv * per_edge[..., None]).sum(0) - offset[:, None]) / m  # (E, m)
-        cot = torch.stack([c * rdot[..., 1], -c * rdot[..., 0]], -1)  # (E, m, 2)
-        if not r.requires_grad:  # φ does not depend on θ
-            return torch.zeros_like(theta)
-        (grad,) = torch.autograd.grad(r, th, cot, allow_unused=True)
+    if not r.requires_grad:  # φ does not depend on θ
+        return torch.zeros_like(theta)
+    rdot = (layout.phi_jacobian(pts, theta) @ (b - a)[:, None, :, None])[..., 0]  # J γ̇
+    lv = _sample(image, r.detach(), radiance).to(dtype)  # (N, E, m)
+    w = weight.to(dtype)
+    per_edge = topo.combine_adjoint(w)  # (N, E): Σ_k ±weight[n, k] over the edge's two pixels
+    offset = topo.combine_adjoint(w * value.to(dtype)).sum(0)  # (E,): the same of weight · I
+    c = ((lv * per_edge[..., None]).sum(0) - offset[:, None]) / m  # (E, m)
+    cot = torch.stack([c * rdot[..., 1], -c * rdot[..., 0]], -1)  # (E, m, 2)
+    (grad,) = torch.autograd.grad(r, th, cot, allow_unused=True)
     return torch.zeros_like(theta) if grad is None else grad
 
 

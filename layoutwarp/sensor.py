@@ -321,7 +321,7 @@ class _Integration:
         it writes them."""
         plan, layout, size = self.plan, self.layout, self.size
         if plan.method in ("separable", "exact"):
-            weights = self._weights(work) if plan.method == "exact" else None
+            weights = self._weights(work)  # None but for an exact fixed layout
             if weights is not None:  # one sparse product: the exact integral of a fixed layout
                 return weights.apply(work, allow_nonfinite=self.allow_nonfinite)
             if plan.method == "separable":

@@ -552,9 +552,8 @@ def reuse_row(cfg: BenchConfig, image_name: str, img: Tensor) -> Row:
     extra = {"first_call_ms": first, "over_inter_area": repeat / area, "walk_ms": walk}
     if cfg.memory and cfg.device == "cpu":  # the first call's memory without the weights
         spec = {"layout": bench_layouts(cfg.theta)["curv"], "method": "exact", "opts": {}, "src": cfg.src}
-        extra["walk_peak_mb"] = peak_memory_mb(
-            spec | {"size": cfg.size, "threads": torch.get_num_threads(), "cache_size": 0}
-        )
+        spec |= {"size": cfg.size, "threads": torch.get_num_threads(), "cache_size": 0}
+        extra["walk_peak_mb"] = peak_memory_mb(spec)
     return Row(
         image_name,
         "curv",
