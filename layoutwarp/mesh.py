@@ -526,6 +526,7 @@ def pixel_mesh(
     subdivisions: Tensor | int | None = None,
     dtype: torch.dtype | None = None,
     theta: Tensor | None = None,
+    cache: bool = True,
 ) -> PixelMesh:
     """Build the pixel polygon mesh of ``layout`` for a sensor of ``size = (H, W)``.
 
@@ -551,6 +552,8 @@ def pixel_mesh(
             (smooth in θ, for finite differences) and fabrication masks.
         dtype: vertex dtype (default: θ's dtype).
         theta: use this θ instead of the layout's own (see :meth:`Layout.resolve_theta`).
+        cache: ``False``: a mesh this call builds is not kept (a kept one is still returned):
+            for a caller that keeps what it derives from the mesh instead.
 
     Returns:
         a :class:`PixelMesh` on θ's device. The meshes of fixed layouts (θ without gradient)
@@ -571,7 +574,7 @@ def pixel_mesh(
         _CACHE.move_to_end(key)
         return _CACHE[key]
     mesh = _build_mesh(layout, (h, w), theta, tol, max_subdiv, subdivisions, dtype)
-    if key is not None:
+    if key is not None and cache:
         _CACHE[key] = mesh
         while len(_CACHE) > CACHE_SIZE:
             _CACHE.popitem(last=False)

@@ -46,7 +46,6 @@ from .files import atomic_write, run_info
 from .labels import LABEL_RULES as SENSOR_RULES
 from .layoutfile import layout_from_spec, layout_spec, load_layout, same_spec, save_layout
 from .layouts import Layout
-from .mesh import pixel_mesh
 from .physics import SensorPhysics, apply_psf, measure
 from .resampler import AreaResampler
 
@@ -143,12 +142,9 @@ class _Job:
         blurred = apply_psf(src.contiguous(), self.physics).permute(1, 2, 0).numpy()
         mean = torch.from_numpy(res(blurred)).to(torch.float64)
         mean = mean[None] if mean.ndim == 2 else mean.permute(2, 0, 1)
-        tol = res.tol  # the resampler's polygons: their areas (cached with the fixed layout's mesh)
-        with self._lock:  # the mesh cache is shared by the worker threads
-            areas = pixel_mesh(self.layout, self.size, tol=tol, dtype=torch.float64).areas()
         gen = torch.Generator().manual_seed(file_seed(self.physics.seed, rel))
         with torch.no_grad():
-            out = measure(mean, areas, self.physics, generator=gen)
+            out = measure(mean, res.areas.cpu(), self.physics, generator=gen)  # the weights' polygons
         out = out.permute(1, 2, 0).numpy() * scale
         return out[..., 0] if img.ndim == 2 else out
 

@@ -24,7 +24,7 @@ from .integrators import data_tolerance, green_pieces
 from .labels import labels_to_sensor
 from .layoutfile import layout_key
 from .layouts import Layout
-from .mesh import pixel_mesh
+from .mesh import PixelMesh, pixel_mesh
 from .physics import SensorPhysics, kernel_arguments, measure
 
 if TYPE_CHECKING:
@@ -46,6 +46,7 @@ def area_weights(
     tol: float | None = None,
     dtype: torch.dtype | np.dtype | type = np.float32,
     weights_dtype: np.dtype | type = np.float64,
+    mesh: PixelMesh | None = None,
 ) -> scipy.sparse.csr_matrix:
     """Exact area weights of every sensor pixel over the source cells, as a sparse matrix.
 
@@ -70,6 +71,8 @@ def area_weights(
             (:func:`~layoutwarp.data_tolerance`).
         dtype: the dtype of the images the weights are for (sets the default ``tol``).
         weights_dtype: the dtype of the returned weights (float64 or float32).
+        mesh: the layout's float64 :func:`~layoutwarp.mesh.pixel_mesh` at ``tol``, where the
+            caller has built it (default: the cached one, built on first use).
 
     Returns:
         a ``(h · w, H · W)`` ``scipy.sparse.csr_matrix``.
@@ -77,7 +80,8 @@ def area_weights(
     (h, w), (hs, ws) = check_size(size), check_size(src_size, "src_size")
     tol = data_tolerance(dtype)[0] if tol is None else tol
     with torch.no_grad():
-        mesh = pixel_mesh(layout, (h, w), tol=tol, dtype=torch.float64)
+        if mesh is None:
+            mesh = pixel_mesh(layout, (h, w), tol=tol, dtype=torch.float64)
         verts = mesh.pixel_vertices((hs, ws))
         area = mesh.areas(verts).flatten().cpu().numpy()  # source pixel units, same polylines
         verts, starts, ends = verts.cpu(), mesh.seg_start.cpu(), mesh.seg_end.cpu()
@@ -195,10 +199,14 @@ class AreaResampler:
         self.layout = layout
         self.tol = data_tolerance(dtype)[0] if tol is None else tol
         self.device = torch.device(device)
-        with torch.no_grad():  # the pixels' areas, from the (cached) mesh the weights are built on,
-            # before the weights: the two are never held together with the areas' temporaries
-            self.areas = pixel_mesh(layout, self.size, tol=self.tol, dtype=torch.float64).areas().to(device)
-        self.weights = area_weights(layout, self.size, self.src_size, tol=self.tol, weights_dtype=np.float32)
+        with torch.no_grad():  # the mesh the weights are built on, not kept: the weights and the
+            # areas are all later calls need (a kept mesh is 0.5-0.8 copies of an RGB image)
+            mesh = pixel_mesh(layout, self.size, tol=self.tol, dtype=torch.float64, cache=False)
+            # the areas before the weights: the two are never held with the areas' temporaries
+            self.areas = mesh.areas().to(device)
+        self.weights = area_weights(
+            layout, self.size, self.src_size, tol=self.tol, weights_dtype=np.float32, mesh=mesh
+        )
         self._csr: torch.Tensor | None = None
 
     @property

@@ -176,6 +176,26 @@ def test_meshes_of_fixed_layouts_are_cached_and_learnable_ones_never(gen):
     )
     registered = lw.CurvLayout(theta, dtype=F64)  # while a registered family at that θ is
     assert lw.pixel_mesh(registered, (5, 6)) is lw.pixel_mesh(lw.CurvLayout(theta, dtype=F64), (5, 6))
+    # cache=False: a mesh it builds is not kept, a kept one is still returned
+    unkept = lw.pixel_mesh(registered, (5, 7), cache=False)
+    assert lw.pixel_mesh(registered, (5, 7), cache=False) is not unkept
+    kept = lw.pixel_mesh(registered, (5, 7))
+    assert kept is not unkept and torch.equal(kept.vertices, unkept.vertices)
+    assert lw.pixel_mesh(registered, (5, 7), cache=False) is kept
+
+
+def test_an_area_resampler_keeps_no_mesh_and_its_areas_are_the_meshes(gen):
+    from layoutwarp.mesh import clear_mesh_cache
+    from layoutwarp.resampler import area_weights
+
+    clear_mesh_cache()
+    layout = lw.CurvLayout(rand_theta(gen), dtype=F64)
+    res = lw.AreaResampler(layout, (5, 6), (40, 50), tol=1e-4)
+    mesh = lw.pixel_mesh(layout, (5, 6), tol=1e-4, dtype=F64, cache=False)
+    assert lw.pixel_mesh(layout, (5, 6), tol=1e-4, dtype=F64, cache=False) is not mesh  # none kept
+    assert torch.equal(res.areas, mesh.areas())  # the polygons the weights are built on
+    ref = area_weights(layout, (5, 6), (40, 50), tol=1e-4, weights_dtype=np.float32, mesh=mesh)
+    assert (abs(res.weights - ref)).max() == 0
 
 
 class Cubic(lw.Layout):
