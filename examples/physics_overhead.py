@@ -1,9 +1,9 @@
 """What sensor physics adds to a fixed layout's forward, and that forward against INTER_AREA.
 
-Times four calls in interleaved rounds (each round calls every one once, so all meet the same
-machine state; the rounds take the calls' 24 orders in turn, so each follows each other as
-often, a call after OpenCV's spinning threads being slower; a rotation of one order would keep
-each call's predecessor): ``cv2.resize(INTER_AREA)``, ``simulate`` of a
+Times four calls in the bench's interleaved rounds (``interleaved_times``: each round calls
+every one once, so all meet the same machine state, and the rounds take the calls' 24 orders
+in turn, so each follows each other as often, a call after OpenCV's spinning threads being
+slower): ``cv2.resize(INTER_AREA)``, ``simulate`` of a
 fixed curv layout (its cached area weights), the same with ``allow_nonfinite=True`` (no check
 for NaN/Inf) and the same with the bench's camera (shot and read noise, full well, 12-bit ADC),
 on a random 2048x1024 RGB image to a 257x129 sensor, and prints the medians, their ratio for
@@ -16,16 +16,14 @@ Run: ``python examples/physics_overhead.py [--rounds 60] [--threads 2]``.
 from __future__ import annotations
 
 import argparse
-import itertools
 import statistics
-import time
 
 import cv2
 import numpy as np
 import torch
 
 import layoutwarp as lw
-from layoutwarp.experiments.bench import BENCH_PHYSICS
+from layoutwarp.experiments.bench import BENCH_PHYSICS, interleaved_times
 
 
 def main() -> None:
@@ -45,16 +43,8 @@ def main() -> None:
         "no finiteness check": lambda: lw.simulate(img, layout, (129, 257), allow_nonfinite=True),
         "simulate + physics": lambda: lw.simulate(img, layout, (129, 257), physics=camera),
     }
-    times: dict[str, list[float]] = {name: [] for name in calls}
-    with torch.no_grad():
-        for call in calls.values():  # warm-up: compiles, builds and caches the area weights
-            call()
-        orders = list(itertools.permutations(calls))
-        for k in range(args.rounds):  # each round in the next of the orders
-            for name in orders[k % len(orders)]:
-                t0 = time.perf_counter()
-                calls[name]()
-                times[name].append(1e3 * (time.perf_counter() - t0))
+    with torch.no_grad():  # the warm-up call compiles, builds and caches the area weights
+        times = dict(zip(calls, interleaved_times(list(calls.values()), args.rounds), strict=True))
     ms = {name: statistics.median(t) for name, t in times.items()}
     for name, value in ms.items():
         print(f"{name:20s} {value:7.2f} ms")

@@ -49,6 +49,7 @@ __all__ = [
     "fd_theta_gradient",
     "format_scaling",
     "format_table",
+    "interleaved_times",
     "main_bench",
     "preprocess_baseline",
     "report_text",
@@ -82,21 +83,25 @@ def _sync() -> None:
 
 
 def _time_paired(fns: Sequence[Callable[[], object]], repeats: int) -> list[float]:
-    """Median ms of each of ``fns`` over ``max(repeats, 1)`` rounds that call them in turn after
-    one warm-up call each, so that every one meets the same machine state (a background load,
-    the CPU's clock); round ``k`` takes the ``k``-th of the calls' orders (all of them in turn),
-    so each follows each other as often (what a call leaves behind, caches or another pool's
-    spinning threads, is shared alike; a rotation would keep each call's predecessor)."""
-    return [float(np.median(col)) for col in _rounds(fns, repeats)]
+    """Median ms of each of ``fns`` over the rounds of :func:`interleaved_times`."""
+    return [float(np.median(col)) for col in interleaved_times(fns, repeats)]
 
 
-def _rounds(fns: Sequence[Callable[[], object]], repeats: int) -> list[list[float]]:
-    """:func:`_time_paired`'s times: ``times[i][k]``, the ms of ``fns[i]`` in round ``k``."""
+def interleaved_times(fns: Sequence[Callable[[], object]], rounds: int) -> list[list[float]]:
+    """Time calls that are to be compared, in interleaved rounds: ``times[i][k]``, the ms of
+    ``fns[i]`` in round ``k`` (``max(rounds, 1)`` rounds, after one warm-up call each).
+
+    Every round calls each of ``fns`` once, so the calls of a round meet the same machine state
+    (on a small virtual machine the speed drifts by 1.5x within seconds): compare two calls by
+    the median of their rounds' ratios. Round ``k`` takes the ``k``-th of the calls' orders (all
+    of them in turn), so each call follows each other as often: what a call leaves behind
+    (caches, another pool's spinning threads) is shared alike, which a rotation of one order,
+    keeping every call's predecessor, would not do."""
     for fn in fns:
         fn()
     orders = list(itertools.permutations(range(len(fns))))
     times: list[list[float]] = [[] for _ in fns]
-    for k in range(max(repeats, 1)):
+    for k in range(max(rounds, 1)):
         for i in orders[k % len(orders)]:
             times[i].append(_time(fns[i], 0))
     return times
@@ -679,7 +684,7 @@ def physics_rows(cfg: BenchConfig, image_name: str, img: Tensor, anchors: dict[s
     # a difference of a few percent between two times, on a machine whose speed drifts by 1.5x
     # within seconds: many pairs (200 at the default repeats, about 1.5 s), and the overhead as
     # the median of each round's ratio, both calls of a round meeting the same machine state
-    times = _rounds([plain, measured], cfg.repeats * 40)
+    times = interleaved_times([plain, measured], cfg.repeats * 40)
     tp, tq = (float(np.median(col)) for col in times)
     over = float(np.median(np.divide(times[1], times[0]))) - 1
     noise = float((measured().cpu().double() - plain().cpu().double()).pow(2).mean().sqrt())
