@@ -1015,6 +1015,47 @@ def _pixel_constants(a: float, params: np.ndarray) -> tuple[float, float, float,
     return eta * light * a, dark_um2 * a, full_um2 * a, zero, inv
 
 
+@_inline
+def _measure_run(
+    row: np.ndarray,
+    orow: np.ndarray,
+    flags: np.ndarray,
+    scale: np.ndarray,
+    dark: np.ndarray,
+    full: np.ndarray,
+    zero: np.ndarray,
+    inv: np.ndarray,
+    params: np.ndarray,
+    key: np.uint64,
+    noise: int,
+    read: float,
+    output: int,
+) -> None:
+    """One plane of a run of :func:`sensor_measure`: the means ``row`` to ``orow`` (which may be
+    ``row``), the pixel constants from :func:`_pixel_constants`, ``key`` the first element's shot
+    stream. Without noise a loop with no draws; with noise each draw's first try
+    (:func:`_first_tries`), ``flags[j]`` set where one was rejected and that element's mean left
+    in ``orow`` for the rescan. Both loops are branch-free and vectorise."""
+    m = row.size
+    if noise == 0:
+        for j in range(m):
+            e = row[j] * scale[j] + dark[j]
+            orow[j] = _recorded(e, full[j], zero[j], inv[j], params, output)
+        return
+    poisson = noise == 1
+    for j in range(m):
+        mean = row[j]
+        e = mean * scale[j] + dark[j]
+        shot_key = key + np.uint64(j) * _ELEMENT_G
+        mu = max(e, 0.0)
+        k, g, z2, ok_z1, ok_k, ok_z2 = _first_tries(mu, shot_key, shot_key + _STREAM_G)
+        shot = k if poisson else g + (e - mu)  # Gaussian: e + √max(e, 0)·z, bit for bit
+        flag = (not (ok_z1 and (ok_k or not poisson))) | (not ok_z2 and read != 0.0)
+        flags[j] = flag
+        value = _recorded(shot + read * z2, full[j], zero[j], inv[j], params, output)
+        orow[j] = mean if flag else value
+
+
 @_jit
 def sensor_measure(
     mean: np.ndarray,
@@ -1028,7 +1069,8 @@ def sensor_measure(
     out: np.ndarray,
     threads: int,
 ) -> None:
-    """:func:`layoutwarp.physics.measure` in one pass: means ``(N, P)`` to ``out`` ``(N, P)``.
+    """:func:`layoutwarp.physics.measure` in one pass: means ``(N, P)`` to ``out`` ``(N, P)``,
+    which may be ``mean`` itself (measured in place, one buffer less; no other overlap).
 
     ``params``: photons per µm² × fill factor, η, PRNU, DSNU, dark e⁻/µm², read noise, full well
     per µm² (``inf``: none), gain K, black level, ADC top (``inf``: no ADC); ``prnu``/``dsnu``
@@ -1042,18 +1084,18 @@ def sensor_measure(
     the share of a ``prange`` over them that the same thread had in the forward just before (its
     output still in that core's cache), in runs of :data:`MEASURE_CHUNK` pixels through all ``N``
     planes, with work space of its own. A run first derives its pixels' constants
-    (:func:`_pixel_constants`, then the fixed patterns). Per plane, a branch-free loop takes
-    every draw's first try (:func:`_first_tries`; without noise, a loop with none: both
-    vectorise) and flags the elements where one was rejected (about 0.4 % of the normals, a few
-    tenths of a percent of the Poisson draws at large means, all of them below a mean of 10
-    electrons). After its last run the thread rescans its flags, eight a word, and reruns a full
-    sampler there from the start of its stream: the rare slow path in one tight loop, whose code
-    and branch history stay warm (a rescan after every run made the kernel 5–25 % slower).
+    (:func:`_pixel_constants`, then the fixed patterns). Per plane, a branch-free loop
+    (:func:`_measure_run`) takes every draw's first try and flags the elements where one was
+    rejected (about 0.4 % of the normals, a few tenths of a percent of the Poisson draws at large
+    means, all of them below a mean of 10 electrons), which keep their means. After its last run
+    the thread rescans its flags, eight a word, and reruns a full sampler there from the start of
+    its stream: the rare slow path in one tight loop, whose code and branch history stay warm (a
+    rescan after every run made the kernel 5–25 % slower).
     """
     g_prnu, g_dsnu, read = params[2], params[3], params[5]
     n, p = mean.shape
     state0 = _mix(np.uint64(seed) * _GOLDEN + np.uint64(0x632BE59BD9B4E019))
-    poisson = noise == 1
+    in_place = out.ctypes.data == mean.ctypes.data
     for thread in prange(threads):  # each thread its work space, and its share of the pixels
         c = MEASURE_CHUNK
         scale, dark, full, zero, inv = np.empty(c), np.empty(c), np.empty(c), np.empty(c), np.empty(c)
@@ -1072,22 +1114,18 @@ def sensor_measure(
                 for j in range(m):
                     dark[j] = dark[j] + g_dsnu * dsnu[lo + j]
             for r in range(n):
-                row, orow = mean[r, lo : lo + m], out[r, lo : lo + m]  # 1-d: 1.5x the 2-d stores
-                if noise == 0:
-                    for j in range(m):
-                        e = row[j] * scale[j] + dark[j]
-                        orow[j] = _recorded(e, full[j], zero[j], inv[j], params, output)
-                    continue
+                row = mean[r, lo : lo + m]  # 1-d: 1.5x the 2-d stores
                 flags = redo[r * share + lo - start : r * share + lo - start + m]
-                first = np.uint64(r * p + lo)
-                for j in range(m):
-                    e = row[j] * scale[j] + dark[j]
-                    key = state0 + (first + np.uint64(j)) * _ELEMENT_G  # the shot stream's start
-                    mu = max(e, 0.0)
-                    k, g, z2, ok_z1, ok_k, ok_z2 = _first_tries(mu, key, key + _STREAM_G)
-                    shot = k if poisson else g + (e - mu)  # Gaussian: e + √max(e, 0)·z, bit for bit
-                    flags[j] = (not (ok_z1 and (ok_k or not poisson))) | (not ok_z2 and read != 0.0)
-                    orow[j] = _recorded(shot + read * z2, full[j], zero[j], inv[j], params, output)
+                key = state0 + np.uint64(r * p + lo) * _ELEMENT_G  # the run's first shot stream
+                if in_place:  # one array read and written: no overlap check, the loop vectorises
+                    _measure_run(
+                        row, row, flags, scale, dark, full, zero, inv, params, key, noise, read, output
+                    )
+                else:
+                    orow = out[r, lo : lo + m]
+                    _measure_run(
+                        row, orow, flags, scale, dark, full, zero, inv, params, key, noise, read, output
+                    )
         for b in range(words.size):  # the rescan
             if words[b] == 0:
                 continue
@@ -1104,6 +1142,7 @@ def sensor_measure(
                 key = state0 + np.uint64(r * p + i) * _ELEMENT_G
                 mu = max(e, 0.0)
                 k, g, z2, ok_z1, ok_k, ok_z2 = _first_tries(mu, key, key + _STREAM_G)
+                poisson = noise == 1
                 shot = k if poisson else g + (e - mu)
                 if not (ok_z1 and (ok_k or not poisson)):  # from the start of the shot stream
                     if poisson:

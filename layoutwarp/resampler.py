@@ -266,9 +266,8 @@ class AreaResampler:
                 nt = kernels.threads()  # numba's threads for this launch, bounded by torch's
                 if measured is None:
                     bad = kernels.csr_apply(w.indptr, w.indices, w.data, x, out)
-                else:
-                    mean, out = out, np.empty_like(out)
-                    bad = kernels.measured_csr_apply(w.indptr, w.indices, w.data, x, mean, *measured, out, nt)
+                else:  # the means measured in place: the buffer is this call's own
+                    bad = kernels.measured_csr_apply(w.indptr, w.indices, w.data, x, out, *measured, out, nt)
             if bad and not allow_nonfinite:
                 raise_nonfinite(images)
             return torch.from_numpy(out).view(n, *self.size)

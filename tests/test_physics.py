@@ -199,15 +199,19 @@ def test_the_resampler_measures_in_one_call_what_measure_records(gen):
     assert torch.equal(a, b) and torch.equal(x.grad, y.grad) and x.grad.abs().sum() > 0
 
 
-def _kernel_electrons(mean: np.ndarray, noise: int, read: float, seed: int) -> np.ndarray:
+def _kernel_electrons(
+    mean: np.ndarray, noise: int, read: float, seed: int, in_place: bool = False
+) -> np.ndarray:
     """The fused kernel's electrons for means ``mean`` (one plane; 1 e⁻ per unit, no patterns,
-    no dark signal, full well or ADC): each element its own draw."""
+    no dark signal, full well or ADC): each element its own draw; ``in_place``: written over a
+    copy of the means."""
     from layoutwarp import kernels
 
     params = np.array([1.0, 1.0, 0.0, 0.0, 0.0, read, math.inf, 1.0, 0.0, math.inf])
     ones, zeros = np.ones(mean.size), np.zeros(mean.size)
-    out = np.empty((1, mean.size))
-    kernels.sensor_measure(mean[None], ones, zeros, zeros, params, seed, noise, 1, out, kernels.threads())
+    means = mean[None].copy() if in_place else mean[None]
+    out = means if in_place else np.empty((1, mean.size))
+    kernels.sensor_measure(means, ones, zeros, zeros, params, seed, noise, 1, out, kernels.threads())
     return out[0]
 
 
@@ -268,7 +272,8 @@ def test_the_kernels_normal_draws_follow_the_normal_law(gen):
 @pytest.mark.parametrize("noise", [1, 2])
 def test_the_kernels_first_tries_give_the_full_samplers_draws_bit_for_bit(noise, gen):
     # the vectorised first tries (and the partial reruns where one stream's try fails) must
-    # return exactly what the full samplers draw from each element's two streams
+    # return exactly what the full samplers draw from each element's two streams, also when the
+    # kernel writes over its means (the rescan then reads the means its first tries left)
     numba = pytest.importorskip("numba")
     from layoutwarp import kernels
 
@@ -290,7 +295,9 @@ def test_the_kernels_first_tries_give_the_full_samplers_draws_bit_for_bit(noise,
     n = 200_000  # a few thousand failed first tries of each kind
     mu = np.exp(torch.empty(n, dtype=F64).uniform_(math.log(0.5), math.log(1e5), generator=gen).numpy())
     seed = int(torch.randint(0, 2**62, (), generator=gen))
-    assert np.array_equal(_kernel_electrons(mu, noise, 2.5, seed), reference(mu, seed, 2.5, noise))
+    expected = reference(mu, seed, 2.5, noise)
+    assert np.array_equal(_kernel_electrons(mu, noise, 2.5, seed), expected)
+    assert np.array_equal(_kernel_electrons(mu, noise, 2.5, seed, in_place=True), expected)
 
 
 def test_quantiser_levels_and_full_well_clipping():
