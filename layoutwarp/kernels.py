@@ -1095,7 +1095,7 @@ def sensor_measure(
     g_prnu, g_dsnu, read = params[2], params[3], params[5]
     n, p = mean.shape
     state0 = _mix(np.uint64(seed) * _GOLDEN + np.uint64(0x632BE59BD9B4E019))
-    in_place = out.ctypes.data == mean.ctypes.data
+    poisson, in_place = noise == 1, out.ctypes.data == mean.ctypes.data
     for thread in prange(threads):  # each thread its work space, and its share of the pixels
         c = MEASURE_CHUNK
         scale, dark, full, zero, inv = np.empty(c), np.empty(c), np.empty(c), np.empty(c), np.empty(c)
@@ -1142,7 +1142,6 @@ def sensor_measure(
                 key = state0 + np.uint64(r * p + i) * _ELEMENT_G
                 mu = max(e, 0.0)
                 k, g, z2, ok_z1, ok_k, ok_z2 = _first_tries(mu, key, key + _STREAM_G)
-                poisson = noise == 1
                 shot = k if poisson else g + (e - mu)
                 if not (ok_z1 and (ok_k or not poisson)):  # from the start of the shot stream
                     if poisson:
