@@ -10,7 +10,10 @@ on a random 2048x1024 RGB image to a 257x129 sensor, and prints the medians, the
 ``simulate`` against INTER_AREA and, for the finiteness check and the physics, the median of
 each round's ratio against ``simulate`` (both calls of a round meet the same machine state,
 which drifts by 1.5x within seconds on small virtual machines), as ``layoutwarp bench`` does.
-Run: ``python examples/physics_overhead.py [--rounds 60] [--threads 2]``.
+``--kernels`` then times the compiled calls beneath (the product alone, and the product with the
+measurement written to a buffer of its own or over the means, as ``AreaResampler.apply`` does)
+and prints each measurement's overhead on the product alone, the same way.
+Run: ``python examples/physics_overhead.py [--rounds 60] [--threads 2] [--kernels]``.
 """
 
 from __future__ import annotations
@@ -30,6 +33,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rounds", type=int, default=60, help="interleaved rounds (default 60)")
     parser.add_argument("--threads", type=int, default=2, help="torch and OpenCV threads (default 2)")
+    parser.add_argument("--kernels", action="store_true", help="also time the compiled calls beneath")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     cv2.setNumThreads(args.threads)
@@ -55,6 +59,35 @@ def main() -> None:
 
     print(f"finiteness check: {over('simulate', 'no finiteness check'):+.1f} % (the same median)")
     print(f"physics overhead: {over('simulate + physics', 'simulate'):+.1f} % (median of the rounds' ratios)")
+    if args.kernels:
+        kernel_overheads(img, layout, camera, args.rounds)
+
+
+def kernel_overheads(img: torch.Tensor, layout: lw.Layout, camera: lw.SensorPhysics, rounds: int) -> None:
+    """The compiled calls under ``simulate``: the cached weights' product alone, and with the
+    measurement (shot and read noise, full well, ADC) into a buffer of its own or over the means."""
+    tol = lw.data_tolerance(img.dtype)[0]  # simulate's default for these images: its cached resampler
+    res = lw.resampler.resampler_for(layout, (129, 257), tuple(img.shape[-2:]), tol, "cpu")
+    w, x = res.weights, np.ascontiguousarray(img.reshape(img.shape[1], -1).numpy())
+    measured, nt = lw.physics.kernel_arguments(camera, res.areas), lw.kernels.threads()
+
+    def product(measure: str = "") -> None:
+        mean = np.empty((x.shape[0], w.shape[0]), np.float32)
+        if not measure:
+            lw.kernels.csr_apply(w.indptr, w.indices, w.data, x, mean)
+            return
+        out = mean if measure == "in place" else np.empty_like(mean)
+        lw.kernels.measured_csr_apply(w.indptr, w.indices, w.data, x, mean, *measured, out, nt)
+
+    calls = {
+        "product": product,
+        "own buffer": lambda: product("own"),
+        "in place": lambda: product("in place"),
+    }
+    times = dict(zip(calls, interleaved_times(list(calls.values()), rounds), strict=True))
+    for name in ("own buffer", "in place"):
+        ratio = statistics.median([q / p for p, q in zip(times["product"], times[name], strict=True)])
+        print(f"product + measurement, {name:10s}: {100 * (ratio - 1):+.1f} % over the product alone")
 
 
 if __name__ == "__main__":
