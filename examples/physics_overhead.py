@@ -29,6 +29,11 @@ import layoutwarp as lw
 from layoutwarp.experiments.bench import BENCH_PHYSICS, interleaved_times
 
 
+def over(slow: list[float], fast: list[float]) -> float:
+    """The % that ``slow`` takes over ``fast``: the median of their rounds' ratios."""
+    return 100 * (statistics.median([q / p for p, q in zip(fast, slow, strict=True)]) - 1)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rounds", type=int, default=60, help="interleaved rounds (default 60)")
@@ -53,12 +58,11 @@ def main() -> None:
     for name, value in ms.items():
         print(f"{name:20s} {value:7.2f} ms")
     print(f"simulate / INTER_AREA: {ms['simulate'] / ms['INTER_AREA']:.2f}x")
-
-    def over(slow: str, fast: str) -> float:  # % that `slow` takes over `fast`, the rounds' median
-        return 100 * (statistics.median([q / p for p, q in zip(times[fast], times[slow], strict=True)]) - 1)
-
-    print(f"finiteness check: {over('simulate', 'no finiteness check'):+.1f} % (the same median)")
-    print(f"physics overhead: {over('simulate + physics', 'simulate'):+.1f} % (median of the rounds' ratios)")
+    print(
+        f"finiteness check: {over(times['simulate'], times['no finiteness check']):+.1f} % (the same median)"
+    )
+    physics = over(times["simulate + physics"], times["simulate"])
+    print(f"physics overhead: {physics:+.1f} % (median of the rounds' ratios)")
     if args.kernels:
         kernel_overheads(img, layout, camera, args.rounds)
 
@@ -86,8 +90,8 @@ def kernel_overheads(img: torch.Tensor, layout: lw.Layout, camera: lw.SensorPhys
     }
     times = dict(zip(calls, interleaved_times(list(calls.values()), rounds), strict=True))
     for name in ("own buffer", "in place"):
-        ratio = statistics.median([q / p for p, q in zip(times["product"], times[name], strict=True)])
-        print(f"product + measurement, {name:10s}: {100 * (ratio - 1):+.1f} % over the product alone")
+        pct = over(times[name], times["product"])
+        print(f"product + measurement, {name:10s}: {pct:+.1f} % over the product alone")
 
 
 if __name__ == "__main__":
