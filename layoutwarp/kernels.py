@@ -890,7 +890,8 @@ def _normal(state: np.uint64) -> tuple[float, np.uint64]:
 
 @_inline
 def _log_poisson(mu: float, k: float) -> float:
-    """``log p_k`` of a Poisson of mean ``mu`` (``k ≥ 0`` whole): ``lgamma`` below 10, above the
+    """``log p_k`` of a Poisson of mean ``mu`` (``k ≥ 0`` whole, a float: an integer's ``k⁵``
+    overflows int64 above 6208, and wraps to 0 at multiples of 8192): ``lgamma`` below 10, above the
     cancellation-free Stirling form ``k·(log1p(v) − v) − δ(k) − ½·log(2πk)``, ``v = (mu − k)/k``,
     with ``δ`` to its ``k⁻⁵`` term (relative error below 1e-12 at ``k = 10``)."""
     if k < 10.0:
@@ -951,7 +952,7 @@ def _poisson(mu: float, state: np.uint64) -> tuple[float, np.uint64]:
     z, state = _normal(state)
     g = mu + s * z
     if g >= 0.0:
-        k = math.floor(g)
+        k = np.floor(g)  # a float, as _log_poisson needs (numba's math.floor gives an integer)
         if _pd_step_i(mu, k):
             return k, state
         u, state = _uniform(state)
@@ -968,7 +969,7 @@ def _poisson(mu: float, state: np.uint64) -> tuple[float, np.uint64]:
         t = 1.8 + (e if u >= 0.0 else -e)
         if t <= -0.6744:
             continue
-        k = math.floor(mu + s * t)
+        k = np.floor(mu + s * t)
         fx, fy = _modified_normal(mu, s, k)
         if 0.1069 / mu * abs(u) <= math.exp(_log_poisson(mu, k) + e) - fy * math.exp(fx + e):
             return k, state

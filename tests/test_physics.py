@@ -300,6 +300,30 @@ def test_the_kernels_first_tries_give_the_full_samplers_draws_bit_for_bit(noise,
     assert np.array_equal(_kernel_electrons(mu, noise, 2.5, seed, in_place=True), expected)
 
 
+def test_the_kernels_poisson_sampler_keeps_large_counts_finite_in_its_rare_steps():
+    # a draw at mean 98946 whose normal gives k = 98304 = 12·8192, rejected by the squeeze, so
+    # step Q evaluates log p_k: with k an int64, k⁵ wrapped to 0 and log p_k was -inf (that k
+    # could never be accepted there); numba's default error model raises on that division
+    numba = pytest.importorskip("numba")
+    stats = pytest.importorskip("scipy.stats")
+    from layoutwarp import kernels
+
+    @numba.njit  # error_model="python": x / 0 raises
+    def draw(mu, seed, i):
+        state0 = kernels._mix(np.uint64(seed) * kernels._GOLDEN + np.uint64(0x632BE59BD9B4E019))
+        return kernels._poisson(mu, state0 + np.uint64(i) * kernels._ELEMENT_G)[0]
+
+    @numba.njit
+    def log_p(mu, k):
+        return kernels._log_poisson(mu, k)
+
+    k = draw(98946.46779494225, 515249225436444668, 131632)
+    assert k == round(k) and abs(k - 98946.47) < 6 * math.sqrt(98946.47)
+    for j in (1, 5, 12):  # whole multiples of 8192, where an integer k⁵ wraps to 0
+        mu = 8192.0 * j + 0.37 * math.sqrt(8192.0 * j)
+        assert math.isclose(log_p(mu, 8192.0 * j), stats.poisson.logpmf(8192 * j, mu), rel_tol=1e-10)
+
+
 def test_quantiser_levels_and_full_well_clipping():
     layout = lw.RectLayout((0.5, 0.5), dtype=F64)
     ph = physics(
