@@ -200,13 +200,18 @@ def segment_cells(
     sub, col = _ranges(c0, c1 - c0 + 1)
     colf = col.to(a.dtype)
     sa = pa[sub]
-    # one column: keep the row piece's range (X → t is ill-conditioned for tiny ΔX)
-    vert = (vertical | (c1 == c0))[sub]
-    inv_dx = 1 / torch.where(vert, torch.ones_like(dxv[sub]), dxv[sub])
-    u0 = ((torch.maximum(xlo[sub], colf) - sa[:, 0]) * inv_dx).clamp(0, 1)
-    u1 = ((torch.minimum(xhi[sub], colf + 1) - sa[:, 0]) * inv_dx).clamp(0, 1)
-    t0 = torch.where(vert, t_lo[sub], torch.maximum(torch.minimum(u0, u1), t_lo[sub]))
-    t1 = torch.where(vert, t_hi[sub], torch.minimum(torch.maximum(u0, u1), t_hi[sub]))
+    # from one column line's crossing to the next, the row piece's ends in place of the outer
+    # lines: the columns tile t_lo .. t_hi exactly, however ill-conditioned X → t is for a tiny
+    # ΔX (one column keeps the row piece's range)
+    one = (vertical | (c1 == c0))[sub]
+    lo, hi, d = t_lo[sub], t_hi[sub], dxv[sub]
+    inv_dx = 1 / torch.where(one, torch.ones_like(d), d)
+    forward = d > 0  # X grows with t
+    ua = torch.where(col == c0[sub], torch.where(forward, lo, hi), (colf - sa[:, 0]) * inv_dx)
+    ub = torch.where(col == c1[sub], torch.where(forward, hi, lo), (colf + 1 - sa[:, 0]) * inv_dx)
+    ua, ub = torch.minimum(torch.maximum(ua, lo), hi), torch.minimum(torch.maximum(ub, lo), hi)
+    t0 = torch.where(one, lo, torch.minimum(ua, ub))
+    t1 = torch.where(one, hi, torch.maximum(ua, ub))
     # a vertical piece on a column boundary reads the columns on both sides
     on_col = vertical[sub] & (sa[:, 0] == colf) & (col > 0)
     col2 = torch.where(on_col, col - 1, col)

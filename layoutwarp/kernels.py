@@ -20,8 +20,10 @@ pixel edge), launched by :func:`cuda_launch`; :func:`cuda_available` says whethe
 works here.
 
 Compiled code is cached on disk (``cache=True``): a second process loads it instead of
-compiling again. :func:`available` says whether numba is installed; without it the torch
-reference runs.
+compiling again. numba invalidates a cache only when the function's own file changes, and
+:mod:`layoutwarp.meshkernels` inlines functions of this one: after editing this file, delete
+the package's ``*.nbi``/``*.nbc`` caches. :func:`available` says whether numba is installed;
+without it the torch reference runs.
 """
 
 from __future__ import annotations
@@ -213,11 +215,11 @@ def _cell(incl: np.ndarray, row: int, col: int, k: int, block: int) -> float:
 @_inline
 def _row_piece(
     row: int, x0: float, y0: float, dxv: float, inv_dy: float, ylo: float, yhi: float, flat: bool, w: int
-) -> tuple[float, float, float, float, int, int, float]:
+) -> tuple[float, float, int, int, float]:
     """The piece in source row ``row`` of the segment from ``(x0, y0)`` by ``(dxv, 1/inv_dy)``,
     ``Y`` from ``ylo`` to ``yhi`` (a flat segment: all of it): its parameter range
-    ``t_lo .. t_hi``, its ``X`` range, the columns ``c0 .. c1`` it crosses (one for a vertical
-    segment) and ``1/dxv`` where it crosses more than one."""
+    ``t_lo .. t_hi``, the columns ``c0 .. c1`` it crosses (one for a vertical segment) and
+    ``1/dxv`` where it crosses more than one."""
     if flat:
         t_lo, t_hi = 0.0, 1.0
     else:
@@ -230,19 +232,28 @@ def _row_piece(
     c1 = max(min(max(math.ceil(xhi) - 1, 0), w - 1), c0)
     if dxv == 0.0:
         c1 = c0
-    return t_lo, t_hi, xlo, xhi, c0, c1, (1.0 / dxv if c1 != c0 else 1.0)
+    return t_lo, t_hi, c0, c1, (1.0 / dxv if c1 != c0 else 1.0)
 
 
 @_inline
 def _cell_piece(
-    col: int, x0: float, inv_dx: float, t_lo: float, t_hi: float, xlo: float, xhi: float, one_column: bool
+    col: int, x0: float, inv_dx: float, t_lo: float, t_hi: float, c0: int, c1: int
 ) -> tuple[float, float]:
-    """The parameter range inside column ``col`` of a row piece (:func:`_row_piece`)."""
-    if one_column:  # keep the row piece's range (X → t is ill-conditioned)
+    """The parameter range inside column ``col`` of a row piece (:func:`_row_piece`): from the
+    crossing of one of the column's lines to the next, ``t = (X − x0) / ΔX``, and the piece's own
+    ends in place of the outer lines of its first and last columns. The columns so tile
+    ``t_lo .. t_hi`` exactly, however few ulps ``ΔX`` spans (``X → t`` is ill-conditioned
+    there: ranges taken from the piece's rounded ``X`` ends could leave a gap or overlap)."""
+    if c1 == c0:  # one column: the row piece's range
         return t_lo, t_hi
-    u0 = min(max((max(xlo, col) - x0) * inv_dx, 0.0), 1.0)
-    u1 = min(max((min(xhi, col + 1.0) - x0) * inv_dx, 0.0), 1.0)
-    return max(min(u0, u1), t_lo), min(max(u0, u1), t_hi)
+    forward = inv_dx > 0.0  # X grows with t
+    ua = t_lo if forward else t_hi
+    ub = t_hi if forward else t_lo
+    if col != c0:
+        ua = min(max((col - x0) * inv_dx, t_lo), t_hi)
+    if col != c1:
+        ub = min(max((col + 1.0 - x0) * inv_dx, t_lo), t_hi)
+    return min(ua, ub), max(ua, ub)
 
 
 @_inline
@@ -284,10 +295,10 @@ def _segment_rows(
     inv_dy = 1.0 / dyv
     ylo, yhi = min(y0, y1), max(y0, y1)
     for row in range(rlo, rhi + 1):
-        t_lo, t_hi, xlo, xhi, c0, c1, inv_dx = _row_piece(row, x0, y0, dxv, inv_dy, ylo, yhi, False, w)
+        t_lo, t_hi, c0, c1, inv_dx = _row_piece(row, x0, y0, dxv, inv_dy, ylo, yhi, False, w)
         rr = row - ra
         for col in range(c0, c1 + 1):
-            t0, t1 = _cell_piece(col, x0, inv_dx, t_lo, t_hi, xlo, xhi, c1 == c0)
+            t0, t1 = _cell_piece(col, x0, inv_dx, t_lo, t_hi, c0, c1)
             dy = (t1 - t0) * dyv
             frac = min(max(x0 + (t0 + t1) / 2 * dxv - col, 0.0), 1.0)
             blk = col // block
@@ -522,9 +533,9 @@ def _segment_weights(
     ylo, yhi = min(y0, y1), max(y0, y1)
     r0, r1 = _row_span(y0, y1, h)
     for row in range(r0, (r0 if flat else r1) + 1):
-        t_lo, t_hi, xlo, xhi, c0, c1, inv_dx = _row_piece(row, x0, y0, dxv, inv_dy, ylo, yhi, flat, w)
+        t_lo, t_hi, c0, c1, inv_dx = _row_piece(row, x0, y0, dxv, inv_dy, ylo, yhi, flat, w)
         for col in range(c0, c1 + 1):
-            t0, t1 = _cell_piece(col, x0, inv_dx, t_lo, t_hi, xlo, xhi, c1 == c0)
+            t0, t1 = _cell_piece(col, x0, inv_dx, t_lo, t_hi, c0, c1)
             row2, col2 = _other_cell(row, col, x0, y0, flat, vertical)
             gl = 0.0
             if row2 == row and col2 == col:  # inside the cell (nearly always): one look-up
@@ -560,9 +571,9 @@ def _segment_moments(
     ylo, yhi = min(y0, y1), max(y0, y1)
     r0, r1 = _row_span(y0, y1, h)
     for row in range(r0, (r0 if flat else r1) + 1):
-        t_lo, t_hi, xlo, xhi, c0, c1, inv_dx = _row_piece(row, x0, y0, dxv, inv_dy, ylo, yhi, flat, w)
+        t_lo, t_hi, c0, c1, inv_dx = _row_piece(row, x0, y0, dxv, inv_dy, ylo, yhi, flat, w)
         for col in range(c0, c1 + 1):
-            t0, t1 = _cell_piece(col, x0, inv_dx, t_lo, t_hi, xlo, xhi, c1 == c0)
+            t0, t1 = _cell_piece(col, x0, inv_dx, t_lo, t_hi, c0, c1)
             row2, col2 = _other_cell(row, col, x0, y0, flat, vertical)
             m1 = (t1 * t1 - t0 * t0) / 2
             m0 = (t1 - t0) - m1

@@ -62,17 +62,23 @@ def test_segment_cells_tile_every_segment_in_order(gen):
     b[:100, 0] = a[:100, 0] + torch.randn(100, generator=gen, dtype=F64) * 1e-13  # nearly vertical
     b[100:150, 1] = a[100:150, 1]  # horizontal
     a[150:200, 0] = b[150:200, 0] = a[150:200, 0].round()  # vertical on a column line
+    # across a column line by a few ulps (a 1-ulp move of an end shifts X → t by ~10 % here:
+    # ranges taken from the pieces' rounded X ends left gaps, seed 3834281190)
+    line = a[200:260, 0].round().clamp(1, 29)
+    ulp = torch.finfo(F64).eps * 32
+    a[200:260, 0] = line + torch.randint(1, 4, (60,), generator=gen) * ulp
+    b[200:260, 0] = line - torch.randint(1, 16, (60,), generator=gen) * ulp
     top = torch.tensor([30.0, 20.0], dtype=F64)
     a, b = torch.minimum(a.clamp_min(0), top), torch.minimum(b.clamp_min(0), top)
     seg, t0, t1, row, col, _ = segment_cells(a, b, 20, 30)
     for s in range(n):
-        k = seg == s
+        assert bool((t1[seg == s] >= t0[seg == s]).all()), s
+        k = (seg == s) & (t1 > t0)  # the pieces of non-zero length
         order = torch.argsort(t0[k])  # pieces come in row order, not parameter order
         lo, hi = t0[k][order], t1[k][order]
-        assert bool((hi >= lo).all())
-        # the pieces tile [0, 1] without gaps or overlaps
+        # the pieces tile [0, 1] without gaps or overlaps: neighbours share their ends exactly
         assert abs(float(lo[0])) < 1e-12 and abs(float(hi[-1]) - 1) < 1e-12, s
-        assert bool(((lo[1:] - hi[:-1]).abs() < 1e-12).all()), s
+        assert torch.equal(lo[1:], hi[:-1]), s
         mid = (lo + hi) / 2  # each piece lies in its cell
         x = a[s, 0] + mid * (b[s, 0] - a[s, 0])
         y = a[s, 1] + mid * (b[s, 1] - a[s, 1])

@@ -110,6 +110,31 @@ def test_extreme_theta_matches_the_reference_to_its_rounding(gen):
     assert float((ga - gb).abs().max()) <= 64 * eps / e**2 * max(float(gb.abs().max()), 1.0)
 
 
+def test_a_segment_across_a_column_line_by_a_few_ulps_integrates_as_one_on_it(gen):
+    # ΔX of a few ulps across a column line makes X → t ill-conditioned: column ranges taken from
+    # the rounded X ends of a row piece lost 2 % of a segment's ΔY (seed 3834281190); its ∫ P dY
+    # must equal, to rounding, the vertical segment's on the line: Σ_rows ΔY_r · Σ_{c < line} L
+    hs, ws, n = 24, 20, 60
+    img = torch.rand(2, hs, ws, generator=gen, dtype=F64)
+    line = torch.randint(1, ws, (n,), generator=gen).to(F64)
+    ulp = torch.finfo(F64).eps * 16
+    ya, yb = (torch.rand(2, n, generator=gen, dtype=F64) * hs).unbind()
+    xa = line + torch.randint(-3, 4, (n,), generator=gen) * ulp
+    xb = line - torch.randint(-16, 17, (n,), generator=gen) * ulp
+    verts = torch.stack([torch.stack([xa, ya], 1), torch.stack([xb, yb], 1)], 1).reshape(-1, 2)
+    ss, se, eo = np.arange(0, 2 * n, 2), np.arange(1, 2 * n, 2), np.arange(n + 1)
+    tables = kernels.prefix_tables(img.numpy(), kernels.BLOCK)
+    got = kernels.exact_forward(verts.numpy(), ss, se, eo, *tables, kernels.BLOCK, 1)
+    rows = torch.arange(hs, dtype=F64)
+    ylo, yhi = torch.minimum(ya, yb), torch.maximum(ya, yb)
+    dy = (torch.minimum(yhi[:, None], rows + 1) - torch.maximum(ylo[:, None], rows)).clamp_min(0)
+    dy = dy * torch.sign(yb - ya)[:, None]  # (n, hs)
+    left = torch.cumsum(img, -1)  # Σ_{c ≤ j} L[r, c]
+    p = left[:, :, line.long() - 1].permute(0, 2, 1)  # (2, n, hs): Σ_{c < line}
+    ref = (dy[None] * p).sum(-1).numpy()
+    np.testing.assert_allclose(got[:2], ref, rtol=0, atol=1e-11)
+
+
 def test_gradcheck_on_the_kernel(gen):
     layout = lw.CurvLayout(dtype=F64)
     img = torch.rand(2, 13, 17, generator=gen, dtype=F64)
