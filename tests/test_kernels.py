@@ -8,7 +8,7 @@ import warnings
 import numpy as np
 import pytest
 import torch
-from conftest import ptx_or_skip, rand_theta
+from conftest import grad_tol, ptx_or_skip, rand_theta
 
 import layoutwarp as lw
 from layoutwarp import kernels
@@ -31,13 +31,6 @@ def both(img, layout, size, theta=None, weights=None, **kw):
         (g,) = torch.autograd.grad((val * w).sum(), th)
         out.append((val.detach(), g))
     return out
-
-
-def grad_tol(layout: lw.Layout, g: torch.Tensor) -> float:
-    """How far two summation orders of the same θ-gradient may differ in float64: rounding times
-    the conditioning; near |θ| = 1 the per-vertex terms reach ~1/(1 − |θ|)² of the sum and cancel
-    in it (at θ = 0.95 the backends differed by 6e-12 of the gradient, seed 1296022901)."""
-    return 1e-12 * max(float(g.abs().max()), 1.0) / (1 - float(layout.theta.detach().abs().max())) ** 2
 
 
 def random_case(family: str, gen: torch.Generator) -> tuple:
