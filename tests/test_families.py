@@ -233,12 +233,19 @@ def test_theta_gradients_match_central_differences(name, size, gen):
 
     th = layout.theta.detach().clone().requires_grad_(True)
     (g,) = torch.autograd.grad(loss(th), th)
-    h = 1e-6
-    with torch.no_grad():
-        fd = torch.stack(
-            [(loss(th + h * e) - loss(th - h * e)) / (2 * h) for e in torch.eye(th.numel(), dtype=F64)]
-        )
-    assert float((g - fd).abs().max()) <= 1e-5 * max(float(fd.abs().max()), 1e-3)
+
+    def central(h: float) -> torch.Tensor:
+        with torch.no_grad():
+            steps = torch.eye(th.numel(), dtype=F64) * h
+            return torch.stack([(loss(th + d) - loss(th - d)) / (2 * h) for d in steps])
+
+    # the loss is C¹ in θ, not C²: its second derivative jumps where a vertex crosses a cell line
+    # (by 220 within 1e-6 of a grid's θ, seed 1094171718), which puts a central difference off
+    # by up to a quarter of the jump times the step (6e-5 at h = 1e-6): each component takes the
+    # closer of two steps; a wrong gradient misses both
+    fd = central(1e-6)
+    err = torch.minimum((g - fd).abs(), (g - central(1e-7)).abs())
+    assert float(err.max()) <= 1e-5 * max(float(fd.abs().max()), 1e-3)
     if layout.separable:  # the polygon path's gradient is the same
         (g2,) = torch.autograd.grad(
             (lw.integrators.integrate_exact(img, layout, size, theta=th) * wts).sum(), th
