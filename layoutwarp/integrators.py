@@ -203,13 +203,13 @@ def segment_cells(
     # from one column line's crossing to the next, the row piece's ends in place of the outer
     # lines: the columns tile t_lo .. t_hi exactly, however ill-conditioned X → t is for a tiny
     # ΔX (one column keeps the row piece's range)
-    one = (vertical | (c1 == c0))[sub]
+    one = (c1 == c0)[sub]  # vertical pieces included (c1 set to c0 above)
     lo, hi, d = t_lo[sub], t_hi[sub], dxv[sub]
     inv_dx = 1 / torch.where(one, torch.ones_like(d), d)
     forward = d > 0  # X grows with t
     ua = torch.where(col == c0[sub], torch.where(forward, lo, hi), (colf - sa[:, 0]) * inv_dx)
     ub = torch.where(col == c1[sub], torch.where(forward, hi, lo), (colf + 1 - sa[:, 0]) * inv_dx)
-    ua, ub = torch.minimum(torch.maximum(ua, lo), hi), torch.minimum(torch.maximum(ub, lo), hi)
+    ua, ub = ua.clamp(lo, hi), ub.clamp(lo, hi)
     t0 = torch.where(one, lo, torch.minimum(ua, ub))
     t1 = torch.where(one, hi, torch.maximum(ua, ub))
     # a vertical piece on a column boundary reads the columns on both sides
