@@ -592,7 +592,11 @@ def _add_physics_args(p: argparse.ArgumentParser, extent: str | None = None) -> 
     g = p.add_argument_group(
         "sensor physics", "record as a real sensor would: photons, noise, full well, ADC, optics"
     )
-    g.add_argument("--physics", metavar="FILE", help="a SensorPhysics JSON file (SensorPhysics.to_json)")
+    g.add_argument(
+        "--physics",
+        metavar="FILE",
+        help="a SensorPhysics JSON file (SensorPhysics.to_json); the flags below override its values",
+    )
     g.add_argument(
         "--photons-per-um2",
         type=positive_float,
@@ -623,24 +627,28 @@ PHYSICS_FLAGS = {
 
 def _physics_from_args(args: argparse.Namespace, extent: tuple[float, float] | None = None):
     """The :class:`~layoutwarp.SensorPhysics` of ``--physics FILE`` and the physics flags, or
-    ``None`` when none is given. ``extent``: the sensor extent when no flag or file sets one."""
+    ``None`` when none is given. ``extent``: the sensor extent when no flag or file sets one.
+    A flag overrides the file's value, and the values are checked once merged, so a file may
+    leave out what the flags give; an error names the flag, or the file, that set the value."""
     from .physics import SensorPhysics
 
     values: dict[str, Any] = {}
+    source = f"--physics: {args.physics}"
     if args.physics:
         try:
             values = json.loads(Path(args.physics).read_text())
-            SensorPhysics.from_dict(values)
-        except (OSError, json.JSONDecodeError, ValueError) as exc:
-            raise UsageError(f"argument --physics: {args.physics}: {exc}") from None
+        except (OSError, json.JSONDecodeError) as exc:
+            raise UsageError(f"argument {source}: {exc}") from None
+        if not isinstance(values, dict):
+            raise UsageError(f"argument {source}: must hold a JSON object, got {type(values).__name__}")
     flags = {
-        field: getattr(args, dest)
+        field: ("--" + dest.replace("_", "-"), getattr(args, dest))
         for dest, field in PHYSICS_FLAGS.items()
         if getattr(args, dest, None) is not None
     }
     if not values and not set(flags) - {"sensor_um"}:  # an extent alone (export's own) asks for no physics
         return None
-    values |= flags
+    values |= {field: value for field, (_, value) in flags.items()}
     if "sensor_um" not in values and extent is not None:
         values["sensor_um"] = extent
     for field, flag in (("photons_per_um2", "--photons-per-um2"), ("sensor_um", "--sensor-um")):
@@ -649,7 +657,9 @@ def _physics_from_args(args: argparse.Namespace, extent: tuple[float, float] | N
     try:
         return SensorPhysics.from_dict(values)
     except ValueError as exc:
-        raise UsageError(f"sensor physics: {exc}") from None
+        field = getattr(exc, "argument", None)
+        where = flags[field][0] if field in flags else source if args.physics else None
+        raise UsageError(f"argument {where}: {exc}" if where else f"sensor physics: {exc}") from None
 
 
 def _add_layout_args(p: argparse.ArgumentParser, families: Sequence[str]) -> None:

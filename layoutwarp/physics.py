@@ -196,7 +196,13 @@ class SensorPhysics:
             raise ValueError(f"sensor physics: {exc}") from None
 
     def to_json(self) -> str:
+        """The physics as JSON text (what ``--physics FILE`` and :meth:`from_json` read)."""
         return json.dumps(self.to_dict(), indent=2)
+
+    @classmethod
+    def from_json(cls, text: str) -> SensorPhysics:
+        """Rebuild from :meth:`to_json`'s text (``ValueError`` for text that is not JSON)."""
+        return cls.from_dict(json.loads(text))
 
     # -- derived -------------------------------------------------------------------
     def um2_per_unit(self) -> float:

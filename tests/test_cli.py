@@ -32,6 +32,10 @@ def files(tmp_path):
         json.dumps({"format": "layoutwarp.layout/1", "family": "rect", "theta": [1.5, 0]})
     )
     (tmp_path / "afile").write_text("")
+    (tmp_path / "list.json").write_text("[1, 2]")
+    light = {"sensor_um": [60, 80], "photons_per_um2": 5}
+    (tmp_path / "extra.json").write_text(json.dumps(light | {"exposure": 2}))
+    (tmp_path / "fill.json").write_text(json.dumps(light | {"fill_factor": 1.5}))
     return tmp_path
 
 
@@ -170,6 +174,80 @@ CASES = {
     "preprocess on an unknown device": (
         ["preprocess", CAMVID_VAL, "{tmp}/out", "--family", "uniform", "--size", "8x6", "--device", "gpu0"],
         ["--device", "'gpu0'", "torch device"],
+    ),
+    "physics file not JSON": (
+        [
+            "preprocess",
+            CAMVID_VAL,
+            "{tmp}/out",
+            "--family",
+            "uniform",
+            "--size",
+            "8x6",
+            "--physics",
+            "{tmp}/bad.json",
+        ],
+        ["argument --physics", "bad.json", "Expecting property name"],
+    ),
+    "physics file a list": (
+        [
+            "preprocess",
+            CAMVID_VAL,
+            "{tmp}/out",
+            "--family",
+            "uniform",
+            "--size",
+            "8x6",
+            "--physics",
+            "{tmp}/list.json",
+        ],
+        ["argument --physics", "list.json", "must hold a JSON object, got list"],
+    ),
+    "physics file with an unknown field": (
+        [
+            "preprocess",
+            CAMVID_VAL,
+            "{tmp}/out",
+            "--family",
+            "uniform",
+            "--size",
+            "8x6",
+            "--physics",
+            "{tmp}/extra.json",
+        ],
+        ["argument --physics", "extra.json", "unknown sensor physics field(s) ['exposure']"],
+    ),
+    "physics file with a bad value": (
+        [
+            "preprocess",
+            CAMVID_VAL,
+            "{tmp}/out",
+            "--family",
+            "uniform",
+            "--size",
+            "8x6",
+            "--physics",
+            "{tmp}/fill.json",
+        ],
+        ["argument --physics", "fill.json", "fill_factor must be a finite number in (0, 1], got 1.5"],
+    ),
+    "physics flag over the range": (
+        [
+            "preprocess",
+            CAMVID_VAL,
+            "{tmp}/out",
+            "--family",
+            "uniform",
+            "--size",
+            "8x6",
+            "--photons-per-um2",
+            "5",
+            "--sensor-um",
+            "80x60",
+            "--adc-bits",
+            "40",
+        ],
+        ["argument --adc-bits", "adc_bits must be an integer in [1, 32] or None, got 40"],
     ),
     "family without a file": (
         ["export", "--family", "spline", *MASK, "--out", "{tmp}/x.svg"],

@@ -50,6 +50,9 @@ CAMERA = {
         ("adc_bits", 0, "adc_bits must be an integer in [1, 32] or None, got 0"),
         ("sensor_um", (10.0, -2.0), "sensor_um[1] (width) must be a finite number > 0, got -2.0"),
         ("noise", "shot", "noise must be one of 'auto', 'poisson', 'gaussian', 'none'; got 'shot'"),
+        ("seed", -3, "seed must be a non-negative integer, got -3"),
+        ("pattern_seed", True, "pattern_seed must be a non-negative integer, got True"),
+        ("psf_energy", 1.0, "psf_energy must be a finite number in [0.5, 1), got 1.0"),
     ],
 )
 def test_bad_values_are_refused_naming_field_value_and_range(field, value, needle):
@@ -69,6 +72,11 @@ def test_a_full_well_below_the_read_noise_is_refused():
 def test_physics_round_trips_through_json_and_layout_files(tmp_path):
     ph = physics(psf="airy", f_number=4.0, adc_bits=10, full_well_per_um2=900.0, prnu=0.01, seed=7)
     assert SensorPhysics.from_dict(ph.to_dict()) == ph
+    assert SensorPhysics.from_json(ph.to_json()) == ph
+    with pytest.raises(ValueError, match="sensor physics must be a JSON object, got list"):
+        SensorPhysics.from_dict([1.0, 2.0])
+    with pytest.raises(ValueError, match="missing 1 required positional argument: 'photons_per_um2'"):
+        SensorPhysics.from_dict({"sensor_um": [1.0, 1.0]})
     with pytest.raises(ValueError, match=r"unknown sensor physics field\(s\) \['exposure'\]"):
         SensorPhysics.from_dict(ph.to_dict() | {"exposure": 1})
     layer = lw.SensorLayer((4, 4), "curv", physics=ph)
@@ -620,6 +628,30 @@ def test_preprocessing_records_with_physics_and_reruns_to_the_same_bytes(tmp_pat
     assert '"photons_per_um2": 3.0' in manifest and clean.processed == 3
     with pytest.raises(ValueError, match="other sensor physics"):
         lw.preprocess_folder(src, tmp_path / "a", layout, (36, 48), progress=False)
+
+
+def test_the_preprocess_command_reads_a_physics_file_and_its_flags_override_it(tmp_path):
+    import json
+
+    from conftest import SAMPLES
+
+    from layoutwarp.cli import main
+
+    src = SAMPLES / "camvid" / "val"
+    file = tmp_path / "camera.json"  # no light in the file: the flag gives it; the flag's read noise wins
+    file.write_text(json.dumps({"sensor_um": [360.0, 480.0], "read_noise_e": 9.0, "seed": 4, "adc_bits": 10}))
+    argv = ["preprocess", str(src), str(tmp_path / "cli"), "--family", "curv", "--theta", "0.4,0.2"]
+    argv += ["--size", "48x36", "--physics", str(file), "--photons-per-um2", "3", "--read-noise-e", "2"]
+    assert main([*argv, "--no-progress"]) == 0
+    ph = physics(sensor_um=(360.0, 480.0), photons_per_um2=3.0, read_noise_e=2.0, seed=4, adc_bits=10)
+    api = lw.preprocess_folder(
+        src, tmp_path / "api", lw.CurvLayout((0.4, 0.2)), (36, 48), physics=ph, progress=False
+    )
+    files = sorted(p.relative_to(tmp_path / "api") for p in (tmp_path / "api").rglob("*.png"))
+    assert api.processed == len(files) == 3
+    assert all((tmp_path / "cli" / f).read_bytes() == (tmp_path / "api" / f).read_bytes() for f in files)
+    recorded = json.loads((tmp_path / "cli" / "manifest.json").read_text())
+    assert SensorPhysics.from_dict(recorded["physics"]) == ph
 
 
 def test_export_report_gives_each_pixels_full_well_and_snr(tmp_path):
