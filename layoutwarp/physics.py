@@ -44,6 +44,7 @@ from __future__ import annotations
 import functools
 import json
 import math
+import numbers
 from collections import OrderedDict
 from dataclasses import asdict, dataclass, fields
 from typing import Any
@@ -63,6 +64,7 @@ __all__ = [
     "SensorPhysics",
     "airy_profile",
     "apply_psf",
+    "check_output",
     "kernel_arguments",
     "measure",
     "pixel_snr",
@@ -81,6 +83,29 @@ NOISE_CODES = {"none": 0, "poisson": 1, "gaussian": 2}
 GAUSS_AIRY_SIGMA = 0.42
 #: The first zero of the Airy pattern's ``2 J1(x)/x``.
 AIRY_FIRST_ZERO = 3.8317059702075125
+
+
+#: :class:`SensorPhysics`' number fields and their ranges ``(lo, hi, lo open, hi open)``.
+_RANGES = {
+    "photons_per_um2": (0, None, True, False),
+    "quantum_efficiency": (0, 1, True, False),
+    "fill_factor": (0, 1, True, False),
+    "full_well_per_um2": (0, None, True, False),
+    "read_noise_e": (0, None, False, False),
+    "dark_e_per_um2": (0, None, False, False),
+    "gain_dn_per_e": (0, None, True, False),
+    "black_level_dn": (0, None, False, False),
+    "prnu": (0, None, False, False),
+    "dsnu": (0, None, False, False),
+    "f_number": (0, None, True, False),
+    "wavelength_um": (0, None, True, False),
+    "psf_sigma_um": (0, None, True, False),
+    "psf_energy": (0.5, 1, False, True),
+}
+#: The number fields that may be ``None``.
+_OPTIONAL = {"full_well_per_um2", "gain_dn_per_e", "psf_sigma_um"}
+#: The integer fields: ``(lo, hi, may be None)``.
+_INTEGERS = {"adc_bits": (1, 32, True), "pattern_seed": (0, math.inf, False), "seed": (0, math.inf, True)}
 
 
 @dataclass(frozen=True)
@@ -137,39 +162,26 @@ class SensorPhysics:
     noise: str = "auto"
 
     def __post_init__(self) -> None:
-        extent = check_extent(self.sensor_um)
-        object.__setattr__(self, "sensor_um", extent)
-        check_number(self.photons_per_um2, "photons_per_um2", 0, lo_open=True)
-        check_number(self.quantum_efficiency, "quantum_efficiency", 0, 1, lo_open=True)
-        check_number(self.fill_factor, "fill_factor", 0, 1, lo_open=True)
-        if self.full_well_per_um2 is not None:
-            check_number(self.full_well_per_um2, "full_well_per_um2", 0, lo_open=True)
-        for name in ("read_noise_e", "dark_e_per_um2", "black_level_dn", "prnu", "dsnu"):
-            check_number(getattr(self, name), name, 0)
-        if self.adc_bits is not None and (
-            isinstance(self.adc_bits, bool)
-            or not isinstance(self.adc_bits, int)
-            or not 1 <= self.adc_bits <= 32
-        ):
-            raise ArgumentError(
-                "adc_bits", f"adc_bits must be an integer in [1, 32] or None, got {self.adc_bits!r}"
-            )
-        if self.gain_dn_per_e is not None:
-            check_number(self.gain_dn_per_e, "gain_dn_per_e", 0, lo_open=True)
+        # checked and stored as plain Python numbers (a numpy or torch scalar, or an int, becomes
+        # a float or an int: the physics compares, hashes and writes to JSON the same way)
+        object.__setattr__(self, "sensor_um", check_extent(self.sensor_um))
+        for name, (lo, hi, lo_open, hi_open) in _RANGES.items():
+            v = getattr(self, name)
+            if v is not None or name not in _OPTIONAL:
+                object.__setattr__(
+                    self, name, check_number(v, name, lo, hi, lo_open=lo_open, hi_open=hi_open)
+                )
+        for name, (lo, hi, optional) in _INTEGERS.items():
+            v = getattr(self, name)
+            if v is None and optional:
+                continue
+            if isinstance(v, bool) or not isinstance(v, numbers.Integral) or not lo <= v <= hi:
+                what = f"an integer in [{lo}, {hi}]" if hi < math.inf else "a non-negative integer"
+                raise ArgumentError(name, f"{name} must be {what}{' or None' * optional}, got {v!r}")
+            object.__setattr__(self, name, int(v))
         if self.psf is not None:
             check_choice(self.psf, PSFS, "psf")
-        check_number(self.f_number, "f_number", 0, lo_open=True)
-        check_number(self.wavelength_um, "wavelength_um", 0, lo_open=True)
-        if self.psf_sigma_um is not None:
-            check_number(self.psf_sigma_um, "psf_sigma_um", 0, lo_open=True)
-        check_number(self.psf_energy, "psf_energy", 0.5, 1, hi_open=True)
         check_choice(self.noise, NOISE, "noise")
-        for name in ("seed", "pattern_seed"):
-            v = getattr(self, name)
-            if not (v is None and name == "seed") and (
-                isinstance(v, bool) or not isinstance(v, int) or v < 0
-            ):
-                raise ArgumentError(name, f"{name} must be a non-negative integer, got {v!r}")
 
     # -- files ---------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
@@ -408,6 +420,17 @@ def measure(
     return recovered / (eta * physics.photons_per_um2 * physics.fill_factor * a_um2)
 
 
+def check_output(output: str, physics: SensorPhysics | None) -> str:
+    """``output`` if it is one of :data:`OUTPUTS` and a sensor records it: electrons and digital
+    numbers need ``physics`` (without it a sensor gives the noise-free mean, in radiance units)."""
+    check_choice(output, OUTPUTS, "output")
+    if physics is None and output != "radiance":
+        raise ArgumentError(
+            "output", f"output={output!r} needs physics (a SensorPhysics); without it the output is radiance"
+        )
+    return output
+
+
 def pixel_snr(areas_um2: Tensor, physics: SensorPhysics, level: float = 1.0) -> dict[str, Tensor]:
     """Each pixel's full well and its SNR for a flat field at ``level`` (image units, 1.0 is
     ``photons_per_um2``), from the EMVA 1288 formula
@@ -418,6 +441,7 @@ def pixel_snr(areas_um2: Tensor, physics: SensorPhysics, level: float = 1.0) -> 
         ``{"full_well_e", "signal_e", "snr"}``, each shaped like ``areas_um2`` (full well ``inf``
         without one).
     """
+    check_number(level, "level", 0)
     a = areas_um2.to(torch.float64)
     full = (
         physics.full_well_per_um2 * a

@@ -31,7 +31,7 @@ from .integrators import (
 from .layoutfile import load_layout, save_layout
 from .layouts import Layout, make_layout
 from .mesh import PixelMesh, pixel_mesh
-from .physics import OUTPUTS, SensorPhysics, apply_psf, measure
+from .physics import SensorPhysics, apply_psf, check_output, measure
 from .resampler import AreaResampler, resampler_for
 
 __all__ = ["METHODS", "SensorLayer", "SimulationPlan", "plan_simulation", "simulate"]
@@ -197,7 +197,8 @@ def simulate(
             then noisy electrons, clipped at the full well and quantised. ``None``: the
             noise-free mean, bit for bit as without physics.
         output: with ``physics``: ``"radiance"`` (default: the ISP's estimate in the image's
-            units, whose expectation is the noise-free mean), ``"electrons"`` or ``"dn"``.
+            units, whose expectation is the noise-free mean), ``"electrons"`` or ``"dn"``
+            (these two need ``physics``).
         return_plan: also return the :class:`SimulationPlan` that ran.
 
     Returns:
@@ -223,10 +224,10 @@ def simulate(
     # the tolerance every geometry of this call uses: the plan's for curved edges, else the data's
     # (meshes of straight edges ignore it; area weights and physics' pixel areas are keyed by it)
     tol = plan.details.get("tol", data_tolerance(dtype)[0] if tol is None else tol)
+    check_output(output, physics)
     if physics is not None:
         if not isinstance(physics, SensorPhysics):
             raise TypeError(f"physics must be a SensorPhysics, got {type(physics).__name__}")
-        check_choice(output, OUTPUTS, "output")
         if is_callable and physics.psf is not None:
             raise ValueError("physics.psf blurs a source image; a callable radiance must include its optics")
     if generator is None and seed is not None:
@@ -363,7 +364,7 @@ class SensorLayer(nn.Module):
             layer records what a real sensor would (see :func:`simulate`). With ``physics.seed``
             the layer's noise is a seeded sequence (new noise every call, the same sequence in
             every run); without, fresh noise.
-        output: with ``physics``: ``"radiance"``, ``"electrons"`` or ``"dn"``.
+        output: with ``physics``: ``"radiance"``, ``"electrons"`` or ``"dn"`` (these two need ``physics``).
         **options: further :func:`simulate` options (``tol``, ``samples``, ``radiance``, ...).
 
     Examples:
@@ -388,7 +389,7 @@ class SensorLayer(nn.Module):
         super().__init__()
         self.size = check_size(size)
         self.physics = SensorPhysics.from_dict(physics) if isinstance(physics, dict) else physics
-        self.output = check_choice(output, OUTPUTS, "output")
+        self.output = check_output(output, self.physics)
         self._noise: torch.Generator | None = None
         self.layout = (
             layout if isinstance(layout, Layout) else make_layout(layout, theta, bound=bound, learn=learn)

@@ -50,7 +50,8 @@ CAMERA = {
         ("adc_bits", 0, "adc_bits must be an integer in [1, 32] or None, got 0"),
         ("sensor_um", (10.0, -2.0), "sensor_um[1] (width) must be a finite number > 0, got -2.0"),
         ("noise", "shot", "noise must be one of 'auto', 'poisson', 'gaussian', 'none'; got 'shot'"),
-        ("seed", -3, "seed must be a non-negative integer, got -3"),
+        ("seed", -3, "seed must be a non-negative integer or None, got -3"),
+        ("seed", 2.0, "seed must be a non-negative integer or None, got 2.0"),
         ("pattern_seed", True, "pattern_seed must be a non-negative integer, got True"),
         ("psf_energy", 1.0, "psf_energy must be a finite number in [0.5, 1), got 1.0"),
     ],
@@ -59,6 +60,31 @@ def test_bad_values_are_refused_naming_field_value_and_range(field, value, needl
     with pytest.raises(ArgumentError) as info:
         physics(**{field: value})
     assert needle in str(info.value) and "\n" not in str(info.value) and info.value.argument == field
+
+
+def test_numpy_and_torch_numbers_are_kept_as_plain_numbers_that_write_to_json():
+    ph = physics(
+        photons_per_um2=np.float32(2.5),
+        read_noise_e=torch.tensor(1.5, dtype=F64),
+        full_well_per_um2=700,
+        adc_bits=np.int64(10),
+        seed=np.uint8(3),
+    )
+    values = (ph.photons_per_um2, ph.read_noise_e, ph.full_well_per_um2, ph.adc_bits, ph.seed)
+    assert values == (2.5, 1.5, 700.0, 10, 3) and [type(v) for v in values] == [float] * 3 + [int] * 2
+    back = SensorPhysics.from_json(ph.to_json())
+    assert back == ph and hash(back) == hash(ph)
+
+
+def test_electrons_and_digital_numbers_need_physics_and_snr_a_level_of_light(gen):
+    img = torch.rand(1, 1, 16, 16, generator=gen)
+    for output in ("dn", "electrons"):
+        with pytest.raises(ArgumentError, match=f"output='{output}' needs physics"):
+            lw.simulate(img, lw.CurvLayout((0.3, 0.1)), (4, 4), output=output)
+        with pytest.raises(ArgumentError, match=f"output='{output}' needs physics"):
+            lw.SensorLayer((4, 4), "curv", output=output)
+    with pytest.raises(ArgumentError, match="level must be a finite number >= 0, got -1"):
+        lw.physics.pixel_snr(torch.ones(2, 2), physics(), level=-1)
 
 
 def test_a_full_well_below_the_read_noise_is_refused():
