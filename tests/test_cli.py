@@ -16,6 +16,7 @@ from layoutwarp.cli import build_parser, main, parse_wxh
 
 CAMVID_VAL = str(SAMPLES / "camvid" / "val")
 MASK = ["--size", "4x4", "--sensor-um", "40x40"]
+PRE = ["preprocess", CAMVID_VAL, "{tmp}/out", "--family", "uniform", "--size", "8x6"]
 
 
 def test_parse_wxh_is_width_by_height():
@@ -157,96 +158,32 @@ CASES = {
         ["--format", "'jpg'", "one of 'gds', 'dxf', 'svg', 'png'"],
     ),
     "address without dask": (
-        [
-            "preprocess",
-            CAMVID_VAL,
-            "{tmp}/out",
-            "--family",
-            "uniform",
-            "--size",
-            "8x6",
-            "--address",
-            "tcp://h:1",
-        ],
+        [*PRE, "--address", "tcp://h:1"],
         ["--address", "needs engine='dask'"],
     ),
     "unknown bench row": (["bench", "--quick", "--layouts", "curv,hex"], ["--layouts", "'hex'", "fovea"]),
     "preprocess on an unknown device": (
-        ["preprocess", CAMVID_VAL, "{tmp}/out", "--family", "uniform", "--size", "8x6", "--device", "gpu0"],
+        [*PRE, "--device", "gpu0"],
         ["--device", "'gpu0'", "torch device"],
     ),
     "physics file not JSON": (
-        [
-            "preprocess",
-            CAMVID_VAL,
-            "{tmp}/out",
-            "--family",
-            "uniform",
-            "--size",
-            "8x6",
-            "--physics",
-            "{tmp}/bad.json",
-        ],
+        [*PRE, "--physics", "{tmp}/bad.json"],
         ["argument --physics", "bad.json", "Expecting property name"],
     ),
     "physics file a list": (
-        [
-            "preprocess",
-            CAMVID_VAL,
-            "{tmp}/out",
-            "--family",
-            "uniform",
-            "--size",
-            "8x6",
-            "--physics",
-            "{tmp}/list.json",
-        ],
+        [*PRE, "--physics", "{tmp}/list.json"],
         ["argument --physics", "list.json", "must hold a JSON object, got list"],
     ),
     "physics file with an unknown field": (
-        [
-            "preprocess",
-            CAMVID_VAL,
-            "{tmp}/out",
-            "--family",
-            "uniform",
-            "--size",
-            "8x6",
-            "--physics",
-            "{tmp}/extra.json",
-        ],
+        [*PRE, "--physics", "{tmp}/extra.json"],
         ["argument --physics", "extra.json", "unknown sensor physics field(s) ['exposure']"],
     ),
     "physics file with a bad value": (
-        [
-            "preprocess",
-            CAMVID_VAL,
-            "{tmp}/out",
-            "--family",
-            "uniform",
-            "--size",
-            "8x6",
-            "--physics",
-            "{tmp}/fill.json",
-        ],
+        [*PRE, "--physics", "{tmp}/fill.json"],
         ["argument --physics", "fill.json", "fill_factor must be a finite number in (0, 1], got 1.5"],
     ),
     "physics flag over the range": (
-        [
-            "preprocess",
-            CAMVID_VAL,
-            "{tmp}/out",
-            "--family",
-            "uniform",
-            "--size",
-            "8x6",
-            "--photons-per-um2",
-            "5",
-            "--sensor-um",
-            "80x60",
-            "--adc-bits",
-            "40",
-        ],
+        [*PRE, "--photons-per-um2", "5", "--sensor-um", "80x60", "--adc-bits", "40"],
         ["argument --adc-bits", "adc_bits must be an integer in [1, 32] or None, got 40"],
     ),
     "family without a file": (
