@@ -47,6 +47,43 @@ def test_the_front_pages_python_examples_run(page, tmp_path, monkeypatch):
         exec(compile(code, page, "exec"), scope)
 
 
+#: What each guide page's fragments take as given (the names its text speaks of), small.
+PLACEHOLDERS = {
+    "docs/dense.md": """
+layer = lw.SensorLayer((18, 24), "curv")
+layout, images = layer.layout, torch.rand(2, 3, 360, 480)
+net, labels = torch.nn.Conv2d(3, 12, 1), torch.randint(0, 12, (2, 360, 480))
+sensor_uint8_hwc = np.random.default_rng(0).integers(0, 256, (18, 24, 3), dtype=np.uint8)
+""",
+    "docs/families.md": """
+control = lw.GridLayout.from_layout(lw.CurvLayout((0.3, 0.2)), grid=(6, 8)).control_points().detach()
+src_size = (72, 96)
+map_x, map_y = lw.forward_maps(lw.RectLayout((0.3, 0.2)), (12, 16), src_size).numpy()
+train_images = torch.rand(4, 1, 72, 96)
+""",
+    "docs/kornia.md": """
+images, masks = torch.rand(2, 3, 180, 240), torch.randint(0, 5, (2, 1, 180, 240)).float()
+keypoints = torch.rand(2, 6, 2) * torch.tensor([240.0, 180.0])
+""",
+    "docs/physics.md": """
+img, layout = torch.rand(1, 3, 258, 514), lw.CurvLayout((0.3, -0.1))
+""",
+}
+
+
+@pytest.mark.parametrize("page", list(PLACEHOLDERS))
+def test_the_guides_python_fragments_run_on_placeholders(page, tmp_path, monkeypatch):
+    import re
+
+    monkeypatch.chdir(tmp_path)
+    blocks = re.findall(r"```python\n(.*?)```", (ROOT / page).read_text(), re.S)
+    assert blocks
+    scope: dict = {}
+    exec("import numpy as np\nimport torch\nimport layoutwarp as lw\n" + PLACEHOLDERS[page], scope)
+    for code in blocks:
+        exec(compile(code, page, "exec"), scope)
+
+
 def test_the_api_page_lists_every_public_name():
     import layoutwarp as lw
 
