@@ -11,6 +11,7 @@ its construction are not counted (``layoutwarp bench`` measures the whole call).
 
 from __future__ import annotations
 
+import argparse
 import ctypes
 import subprocess
 import sys
@@ -51,8 +52,12 @@ def measure(tol: float) -> None:
 
 
 if __name__ == "__main__":
-    if len(sys.argv) == 3 and sys.argv[1] == "--one":
-        measure(float(sys.argv[2]))
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("tols", nargs="*", type=float, default=[1e-2, 1e-3, 1e-4], metavar="TOL")
+    parser.add_argument("--one", type=float, help=argparse.SUPPRESS)  # a child process: one tolerance
+    args = parser.parse_args()
+    if args.one is not None:
+        measure(args.one)
     else:
-        for tol in sys.argv[1:] or ["1e-2", "1e-3", "1e-4"]:
-            subprocess.run([sys.executable, __file__, "--one", tol], check=True)
+        for tol in args.tols:
+            subprocess.run([sys.executable, __file__, "--one", repr(tol)], check=True)
