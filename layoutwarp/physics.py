@@ -55,7 +55,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from . import kernels
-from .checks import ArgumentError, check_choice, check_extent, check_number
+from .checks import ArgumentError, check_choice, check_extent, check_number, check_size
 
 __all__ = [
     "NOISE",
@@ -264,13 +264,30 @@ def psf_kernels(physics: SensorPhysics, src_size: tuple[int, int]) -> dict[str, 
 
     The source pixel pitch is ``sensor_um / src_size`` per axis. The Airy pattern is averaged over
     each source pixel (8 × 8 samples) out to the radius that holds ``psf_energy`` of its energy
-    (encircled energy ``1 − J0(x)² − J1(x)²``).
+    (encircled energy ``1 − J0(x)² − J1(x)²``). The kernels of the last 16 (physics, size) pairs
+    are kept (an Airy kernel takes 10–20 ms to build), so their arrays are read-only.
     """
+    return _psf_kernels(physics, check_size(src_size, "src_size"))
+
+
+@functools.lru_cache(maxsize=16)
+def _psf_kernels(physics: SensorPhysics, src_size: tuple[int, int]) -> dict[str, Any]:
     hs, ws = src_size
     py, px = physics.sensor_um[0] / hs, physics.sensor_um[1] / ws
     if physics.psf == "gaussian":
         s = physics.psf_sigma()
-        return {"ky": _gauss_taps(s / py), "kx": _gauss_taps(s / px), "error": 0.0}
+        k = {"ky": _gauss_taps(s / py), "kx": _gauss_taps(s / px), "error": 0.0}
+    else:
+        k = {"k2d": _airy_kernel(physics, py, px), "error": 1 - physics.psf_energy}
+    for v in k.values():
+        if isinstance(v, np.ndarray):
+            v.setflags(write=False)
+    return k
+
+
+def _airy_kernel(physics: SensorPhysics, py: float, px: float) -> np.ndarray:
+    """The Airy pattern averaged over source pixels of pitch ``(py, px)`` µm, truncated at the
+    radius holding ``psf_energy`` of its energy, summing to 1."""
     lam_n = physics.wavelength_um * physics.f_number
     x = torch.linspace(1e-6, 400, 400_001, dtype=torch.float64)
     enc = 1 - torch.special.bessel_j0(x) ** 2 - torch.special.bessel_j1(x) ** 2
@@ -288,7 +305,7 @@ def psf_kernels(physics: SensorPhysics, src_size: tuple[int, int]) -> dict[str, 
         r <= r_um, airy_profile(r, physics.f_number, physics.wavelength_um), torch.zeros_like(r)
     )
     k2d = fine.reshape(2 * ry + 1, sub, 2 * rx + 1, sub).mean((1, 3)).numpy()
-    return {"k2d": k2d / k2d.sum(), "error": 1 - physics.psf_energy}
+    return k2d / k2d.sum()
 
 
 def apply_psf(image: Tensor, physics: SensorPhysics) -> Tensor:
@@ -301,7 +318,7 @@ def apply_psf(image: Tensor, physics: SensorPhysics) -> Tensor:
     """
     if physics.psf is None:
         return image
-    k = psf_kernels(physics, tuple(image.shape[-2:]))
+    k = psf_kernels(physics, (int(image.shape[-2]), int(image.shape[-1])))
     n, h, w = image.shape
     if image.device.type == "cpu" and not image.requires_grad and n > 0:
         import cv2
@@ -319,7 +336,7 @@ def apply_psf(image: Tensor, physics: SensorPhysics) -> Tensor:
         return torch.from_numpy(out)
     x = image[:, None]
     if "k2d" in k:
-        kern = torch.from_numpy(k["k2d"]).to(image)
+        kern = torch.tensor(k["k2d"], dtype=image.dtype, device=image.device)
         ry, rx = (s // 2 for s in kern.shape)
         x = (
             F.pad(x, (rx, rx, ry, ry), mode="reflect")
@@ -327,7 +344,7 @@ def apply_psf(image: Tensor, physics: SensorPhysics) -> Tensor:
             else F.pad(x, (rx, rx, ry, ry), mode="replicate")
         )
         return F.conv2d(x, kern[None, None])[:, 0]
-    ky, kx = (torch.from_numpy(k[a]).to(image) for a in ("ky", "kx"))
+    ky, kx = (torch.tensor(k[a], dtype=image.dtype, device=image.device) for a in ("ky", "kx"))
     ry, rx = len(ky) // 2, len(kx) // 2
     mode = "reflect" if min(h, w) > max(ry, rx) else "replicate"
     x = F.conv2d(F.pad(x, (0, 0, ry, ry), mode=mode), ky.view(1, 1, -1, 1))

@@ -500,6 +500,13 @@ def test_psf_kernels_conserve_energy_and_the_airy_zero_is_at_1_22_lambda_n(gen):
     x = np.arange(len(k["kx"])) - len(k["kx"]) // 2
     assert float((k["kx"] * x**2).sum()) == pytest.approx(9 + 1 / 12, rel=1e-3)  # σ² plus a pixel's box
     assert psf_kernels(physics(psf="airy", psf_energy=0.9), (64, 64))["error"] == pytest.approx(0.1)
+    # kept per camera and size, read-only; another camera (here only its seed differs) builds anew
+    ph = physics(psf="airy", sensor_um=(100.0, 120.0))
+    k = psf_kernels(ph, (80, 60))
+    assert psf_kernels(physics(psf="airy", sensor_um=(100.0, 120.0)), [80, 60]) is k
+    assert not k["k2d"].flags.writeable
+    again = psf_kernels(physics(psf="airy", sensor_um=(100.0, 120.0), seed=5), (80, 60))
+    assert again is not k and np.array_equal(again["k2d"], k["k2d"])
     # a blob away from the border keeps its energy; OpenCV (CPU, no grad) and torch agree
     img = torch.zeros(2, 64, 64, dtype=torch.float32)
     img[:, 20:40, 25:35] = torch.rand(2, 20, 10, generator=gen)
