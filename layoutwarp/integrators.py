@@ -388,9 +388,10 @@ def _cpu_weights(
 
 
 class _CompiledExact(torch.autograd.Function):
-    """θ → the exact pixel means ``(N, h, w)`` (float64) of a layout with a compiled mesh
-    (:mod:`layoutwarp.meshkernels`): mesh, integrals and Reynolds weights in compiled kernels, and
-    θ's gradient as one contraction with the vertices' θ-derivatives, so a training step runs a
+    """θ → the exact pixel means ``(N, h, w)`` and the pixels' areas ``(h, w)`` in sensor units
+    (float64; an area is the boundary integral of 1 the means divide by) of a layout with a
+    compiled mesh (:mod:`layoutwarp.meshkernels`): mesh, integrals and Reynolds weights in compiled
+    kernels, and θ's gradient as one contraction with the vertices' θ-derivatives, so a training step runs a
     handful of torch operations instead of the thousands of the mesh's autograd graph. On the
     CPU the mesh is never held: :func:`~layoutwarp.meshkernels.mesh_integrals` places each chunk
     of edges' vertices and integrates them while they are in cache, carrying their θ-derivatives
@@ -403,6 +404,8 @@ class _CompiledExact(torch.autograd.Function):
     def forward(ctx, theta: Tensor, image: Tensor, spec: MeshSpec, size: tuple[int, int], tol: float):
         hs, ws = image.shape[-2:]
         topo = MeshTopology(size)
+        ctx.set_materialize_grads(False)  # an output nobody used gives None: no work for it
+        ctx.unit = 4 / (hs * ws)  # a source pixel's area in sensor units ([-1, 1]² is 4)
         if image.is_cuda:  # the mesh built where it is used: none of it crosses the bus
             dm = build_mesh_device(spec, size, theta.detach().to(image.device), tol, (hs, ws))
             out, ctx.tables = _cuda_forward(dm.pixel_vertices, image.detach().contiguous(), dm.mesh)
@@ -410,30 +413,38 @@ class _CompiledExact(torch.autograd.Function):
             means = pix[:-1] / pix[-1]
             ctx.dm, ctx.src_size, ctx.topo = dm, (hs, ws), topo
             ctx.save_for_backward(means, pix[-1])
-            return means
+            return means, pix[-1] * ctx.unit
         th = theta.detach().double().cpu().numpy()
         with kernels.LOCK:  # mesh, integrals and their θ-Jacobian, chunk by chunk
             tables = kernels.prefix_tables(image.detach().contiguous().numpy(), kernels.BLOCK)
             out, ctx.jac = mesh_integrals(spec, size, th, tol, tables, (hs, ws))
         pix = topo.combine(out)
         ctx.means, ctx.areas = pix[:-1] / pix[-1], pix[-1]
-        return torch.from_numpy(ctx.means)
+        return torch.from_numpy(ctx.means), torch.from_numpy(ctx.areas * ctx.unit)
 
     @staticmethod
-    def backward(ctx, grad: Tensor):
-        if grad.is_cuda:
+    def backward(ctx, grad: Tensor | None, grad_areas: Tensor | None):
+        if grad is None and grad_areas is None:
+            return None, None, None, None, None
+        ref = grad if grad is not None else grad_areas
+        if ref.is_cuda:
             dm, topo = ctx.dm, ctx.topo
             means, areas = ctx.saved_tensors
-            g = grad.double()
-            g_pix = torch.cat([g / areas, -(g * means).sum(0, keepdim=True) / areas])
+            g = torch.zeros_like(means) if grad is None else grad.double()
+            g_area = -(g * means).sum(0, keepdim=True) / areas
+            if grad_areas is not None:  # the areas' own gradient, per source pixel of area
+                g_area = g_area + grad_areas.double() * ctx.unit
+            g_pix = torch.cat([g / areas, g_area])
             g_v = _cuda_backward(dm.pixel_vertices, ctx.tables, dm.mesh, topo.combine_adjoint(g_pix))
             hs, ws = ctx.src_size
             g_v = g_v * torch.tensor([ws / 2, hs / 2], dtype=g_v.dtype, device=g_v.device)
-            return torch.einsum("vi,vip->p", g_v, dm.dverts).to(grad.dtype), None, None, None, None
+            return torch.einsum("vi,vip->p", g_v, dm.dverts).to(ref.dtype), None, None, None, None
+        g = np.zeros_like(ctx.means) if grad is None else grad.detach().double().cpu().numpy()
+        own = None if grad_areas is None else grad_areas.detach().double().cpu().numpy() * ctx.unit
         with kernels.LOCK:
-            g_edge = edge_gradient(grad.detach().double().cpu().numpy(), ctx.means, ctx.areas)
+            g_edge = edge_gradient(g, ctx.means, ctx.areas, own)
             g_theta = theta_gradient(g_edge, ctx.jac)
-        return torch.from_numpy(g_theta).to(grad.dtype), None, None, None, None
+        return torch.from_numpy(g_theta).to(ref.dtype), None, None, None, None
 
 
 def _kernel_arrays(verts: Tensor, mesh: PixelMesh) -> list[np.ndarray]:
@@ -486,7 +497,8 @@ def integrate_exact(
     mesh: PixelMesh | None = None,
     theta: Tensor | None = None,
     backend: str = "auto",
-) -> Tensor:
+    return_areas: bool = False,
+) -> Tensor | tuple[Tensor, Tensor]:
     """Exact mean of a piecewise-constant (box) image over every polygonal pixel.
 
     Uses Green's theorem ``∬_A L dA = ∮_∂A P dY`` with ``P(X, Y) = ∫_0^X L(s, Y) ds``: each
@@ -511,11 +523,14 @@ def integrate_exact(
             CUDA where numba's CUDA target runs; no image gradient), ``"torch"`` (the
             vectorised reference: any device, image gradient) or ``"auto"`` (numba when it
             applies, else torch).
+        return_areas: also return the pixels' areas ``(h, w)`` (float64, sensor units: the square
+            ``[-1, 1]²`` is 4), differentiable in θ like the means (what sensor physics needs: a
+            learnable layout's compiled path has them as the boundary integral of 1 it divides by).
 
     Returns:
-        ``(N, h, w)`` in float64.
+        ``(N, h, w)`` in float64; with ``return_areas``, ``(means, areas)``.
     """
-    n, hs, ws = _check_image(image).shape
+    _check_image(image)
     check_choice(backend, BACKENDS, "backend")
     kernel_ok = kernels.available() and not image.requires_grad
     if kernel_ok and image.device.type != "cpu":
@@ -531,10 +546,18 @@ def integrate_exact(
         th = layout.resolve_theta(theta)
         spec = mesh_spec(layout) if backend != "torch" and kernel_ok else None
         if spec is not None and th.requires_grad and torch.is_grad_enabled():  # a learnable layout
-            return _CompiledExact.apply(th, work, spec, check_size(size), tol)
+            means, areas = _CompiledExact.apply(th, work, spec, check_size(size), tol)
+            return (means, areas) if return_areas else means
         mesh = pixel_mesh(layout, check_size(size), tol=tol, dtype=torch.float64, theta=theta)
+    means = _exact_on_mesh(work, mesh, backend != "torch" and kernel_ok)
+    return (means, mesh.areas()) if return_areas else means
+
+
+def _exact_on_mesh(work: Tensor, mesh: PixelMesh, compiled: bool) -> Tensor:
+    """:func:`integrate_exact` on a mesh: the compiled kernels, or the torch reference."""
+    n, hs, ws = work.shape
     verts = mesh.pixel_vertices((hs, ws))
-    if backend != "torch" and kernel_ok:
+    if compiled:
         pix = mesh.combine_edges(_ExactKernel.apply(verts, work, mesh))
         return pix[:-1] / pix[-1]
     vd = verts.detach()
@@ -683,8 +706,13 @@ def _edge_grad(grad: Tensor, out: Tensor, vals: Tensor, edges: Tensor, dim: int)
 
 
 def integrate_separable(
-    image: Tensor, layout: Layout, size: tuple[int, int], *, theta: Tensor | None = None
-) -> Tensor:
+    image: Tensor,
+    layout: Layout,
+    size: tuple[int, int],
+    *,
+    theta: Tensor | None = None,
+    return_areas: bool = False,
+) -> Tensor | tuple[Tensor, Tensor]:
     """Exact box-radiance mean over the rectangular pixels of a separable layout.
 
     Two sparse passes, rows (``H → h``) then columns (``W → w``), with per-axis overlap
@@ -697,15 +725,21 @@ def integrate_separable(
         layout: a layout with ``separable = True``.
         size: sensor size ``(h, w)``.
         theta: use this θ instead of the layout's own (e.g. for ``gradcheck``).
+        return_areas: also return the pixels' areas ``(h, w)`` (float64, sensor units: the square
+            ``[-1, 1]²`` is 4), differentiable in θ: products of the rows' and columns' widths.
 
     Returns:
-        ``(N, h, w)`` in float64 for float64 input, else float32.
+        ``(N, h, w)`` in float64 for float64 input, else float32; with ``return_areas``,
+        ``(means, areas)``.
     """
     _, hs, ws = _check_image(image).shape
     if not layout.separable:
         raise ValueError(f"integrate_separable needs a separable layout, got {type(layout).__name__}")
     ex, ey = _separable_edges(layout, check_size(size), (hs, ws), layout.resolve_theta(theta))
-    return _SeparableArea.apply(image.to(floating_dtype(image.dtype)).contiguous(), ex, ey)
+    means = _SeparableArea.apply(image.to(floating_dtype(image.dtype)).contiguous(), ex, ey)
+    if not return_areas:
+        return means
+    return means, torch.outer(ey.diff() * (2 / hs), ex.diff() * (2 / ws))
 
 
 # ----------------------------------------------------------------------------------------

@@ -969,18 +969,21 @@ def pixel_vertices(mesh: CompiledMesh, src_size: tuple[int, int]) -> np.ndarray:
 
 
 @_jit
-def _edge_gradient(grad: np.ndarray, means: np.ndarray, areas: np.ndarray) -> np.ndarray:
+def _edge_gradient(
+    grad: np.ndarray, means: np.ndarray, areas: np.ndarray, area_grad: np.ndarray
+) -> np.ndarray:
     n, h, w = grad.shape
     nh = (h + 1) * w
     out = np.empty((n + 1, nh + h * (w + 1)))
     gp = np.empty((n + 1, h, w))
+    own = area_grad.shape[0] > 0
     for i in prange(h):  # the pixels' boundary integrals' gradient: the quotient rule
         for j in range(w):
             acc = 0.0
             for k in range(n):
                 gp[k, i, j] = grad[k, i, j] / areas[i, j]
                 acc += grad[k, i, j] * means[k, i, j]
-            gp[n, i, j] = -acc / areas[i, j]
+            gp[n, i, j] = -acc / areas[i, j] + area_grad[i, j] if own else -acc / areas[i, j]
     for k in range(n + 1):  # each edge: + the pixel it bounds above / on the right, − below / left
         for i in prange(h + 1):
             for j in range(w):
@@ -993,12 +996,16 @@ def _edge_gradient(grad: np.ndarray, means: np.ndarray, areas: np.ndarray) -> np
     return out
 
 
-def edge_gradient(grad: np.ndarray, means: np.ndarray, areas: np.ndarray) -> np.ndarray:
+def edge_gradient(
+    grad: np.ndarray, means: np.ndarray, areas: np.ndarray, area_grad: np.ndarray | None = None
+) -> np.ndarray:
     """The gradient ``(N + 1, E)`` of a mesh's edge integrals (``N`` channels and the area, as
     :class:`~layoutwarp.mesh.MeshTopology` numbers the edges) from the gradient ``grad``
-    ``(N, H, W)`` of the pixel means ``means = Σ_edges / areas``: the quotient rule, then
-    :meth:`~layoutwarp.mesh.MeshTopology.combine_adjoint`, in one compiled pass."""
-    return _edge_gradient(*(np.ascontiguousarray(a, dtype=np.float64) for a in (grad, means, areas)))
+    ``(N, H, W)`` of the pixel means ``means = Σ_edges / areas`` and, where the areas ``(H, W)``
+    are an output too (sensor physics), ``area_grad``, the gradient of the areas themselves: the
+    quotient rule, then :meth:`~layoutwarp.mesh.MeshTopology.combine_adjoint`, in one compiled pass."""
+    own = np.zeros((0, 0)) if area_grad is None else area_grad
+    return _edge_gradient(*(np.ascontiguousarray(a, dtype=np.float64) for a in (grad, means, areas, own)))
 
 
 @_jit

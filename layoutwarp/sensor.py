@@ -30,7 +30,7 @@ from .integrators import (
 )
 from .layoutfile import load_layout, save_layout
 from .layouts import Layout, make_layout
-from .mesh import PixelMesh, pixel_mesh
+from .mesh import pixel_mesh
 from .physics import SensorPhysics, apply_psf, check_output, measure
 from .resampler import AreaResampler, resampler_for
 
@@ -297,11 +297,11 @@ class _Integration:
                 generator=self.generator,
                 allow_nonfinite=self.allow_nonfinite,
             )
-        mesh = None
-        if self.plan.method != "separable":  # the polygons the pixels' areas come from
-            mesh = pixel_mesh(self.layout, self.size, tol=self.tol, dtype=torch.float64)
-        mean = self._dispatch(work, mesh)
-        areas = (mesh or pixel_mesh(self.layout, self.size, dtype=torch.float64)).areas()
+        if self.plan.method in ("exact", "separable"):  # the integrator's own areas (a learnable
+            mean, areas = self._dispatch(work, with_areas=True)  # layout's compiled path: no torch mesh)
+        else:  # the sampling integrators: the areas of the polygons the pixels are
+            mean = self._dispatch(work)
+            areas = pixel_mesh(self.layout, self.size, tol=self.tol, dtype=torch.float64).areas()
         return measure(mean, areas, self.physics, output=self.output, generator=self.generator)
 
     def _weights(self, work: Tensor | Radiance) -> AreaResampler | None:
@@ -315,23 +315,25 @@ class _Integration:
             return None
         return resampler_for(self.layout, self.size, tuple(work.shape[-2:]), self.tol, work.device)
 
-    def _dispatch(self, work: Tensor | Radiance, mesh: PixelMesh | None = None) -> Tensor:
-        """The pixel means. An exact method's are checked for NaN/Inf (unless ``allow_nonfinite``):
-        every source pixel reaches some sensor pixel with positive weight, so a bad input value
-        always reaches its (small) output; the fixed layout's compiled product counts them as
-        it writes them."""
+    def _dispatch(self, work: Tensor | Radiance, with_areas: bool = False) -> Tensor | tuple[Tensor, Tensor]:
+        """The pixel means (and, for the exact and separable methods ``with_areas``, the pixels'
+        areas in sensor units, from the integrator). An exact method's are checked for NaN/Inf (unless
+        ``allow_nonfinite``): every source pixel reaches some sensor pixel with positive weight,
+        so a bad input value always reaches its (small) output; the fixed layout's compiled
+        product counts them as it writes them."""
         plan, layout, size = self.plan, self.layout, self.size
         if plan.method in ("separable", "exact"):
             weights = self._weights(work)  # None but for an exact fixed layout
             if weights is not None:  # one sparse product: the exact integral of a fixed layout
                 return weights.apply(work, allow_nonfinite=self.allow_nonfinite)
             if plan.method == "separable":
-                mean = integrate_separable(work, layout, size)
+                out = integrate_separable(work, layout, size, return_areas=with_areas)
             else:
-                mean = integrate_exact(work, layout, size, tol=self.tol, mesh=mesh)
+                out = integrate_exact(work, layout, size, tol=self.tol, return_areas=with_areas)
+            mean = out[0] if with_areas else out
             if not (self.allow_nonfinite or all_finite(mean)):
                 raise_nonfinite(work)
-            return mean
+            return out if with_areas else mean
         radiance = "bilinear" if plan.radiance == "callable" else plan.radiance  # ignored for callables
         if plan.method == "montecarlo":
             return integrate_montecarlo(

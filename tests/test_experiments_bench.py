@@ -139,6 +139,9 @@ def test_run_small_reports_every_method_and_plots(tmp_path):
     assert phys["exact + physics"]["extra"]["plain_ms"] > 0 and phys["exact + physics"]["rmse"] > 0  # noisy
     ex = phys["exact + physics"]["extra"]  # the kernel alone, with and without its sampler
     assert ex["kernel_ms"] > 0 and ex["kernel_noise_free_ms"] > 0 and "without noise" in report_text(res)
+    learning = next(r for r in rows if r["method"] == "physics train step")  # the compiled path
+    assert learning["extra"]["plain_ms"] > 0 and 10 < learning["extra"]["ops"] < 100
+    assert "learning a layout under that camera" in report_text(res)
     assert 0 < phys["psf airy"]["rmse"] < 0.05 and phys["psf airy"]["extra"][
         "truncated_energy"
     ] == pytest.approx(0.05)

@@ -152,6 +152,27 @@ def test_gradcheck_exact_and_separable(cls, fn, size, gen):
     assert torch.autograd.gradcheck(f, (theta, img), eps=1e-6, atol=1e-5, rtol=1e-4)
 
 
+def test_the_integrators_areas_are_the_meshs_with_their_theta_gradients(gen):
+    # what sensor physics takes from the integrator: the pixels' areas (sensor units), and their
+    # θ-gradient, against the shoelace areas of the torch mesh and autograd through it
+    img = torch.rand(2, 29, 37, generator=gen, dtype=F64)
+    for fn, layout in (
+        (lw.integrators.integrate_separable, lw.RectLayout(rand_theta(gen, 0.8), learn=True, dtype=F64)),
+        (lw.integrators.integrate_exact, lw.RectLayout(rand_theta(gen, 0.8), learn=True, dtype=F64)),
+        (lw.integrators.integrate_exact, lw.CurvLayout(rand_theta(gen, 0.8), learn=True, dtype=F64)),
+    ):
+        size = (rint(gen, 2, 9), rint(gen, 2, 9))
+        mean, areas = fn(img, layout, size, return_areas=True)
+        assert torch.equal(mean, fn(img, layout, size))  # the means are the same either way
+        w = torch.randn(areas.shape, generator=gen, dtype=F64)
+        (g,) = torch.autograd.grad((areas * w).sum(), layout.rho)
+        mesh = lw.pixel_mesh(layout, size, tol=lw.data_tolerance(F64)[0], dtype=F64)
+        ref = mesh.areas()
+        (g_ref,) = torch.autograd.grad((ref * w).sum(), layout.rho)
+        assert abs(float(areas.detach().sum()) - 4) < 1e-12 and torch.allclose(areas, ref, rtol=1e-12, atol=0)
+        assert float((g - g_ref).abs().max()) <= 1e-10 * max(1.0, float(g_ref.abs().max())), (fn, g, g_ref)
+
+
 @pytest.mark.parametrize("family", ["rect", "curv"])
 def test_gradient_at_theta_zero_on_cell_boundaries(family, gen):
     # 28 -> 4 puts every uniform grid line on a source cell boundary (the MNIST setup): the

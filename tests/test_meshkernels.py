@@ -90,17 +90,20 @@ def test_compiled_values_and_theta_gradients_match_the_torch_reference(family, h
     image = torch.rand(2, int(rng.integers(20, 60)), int(rng.integers(20, 60)), dtype=dtype)
     tol = 1e-3
     theta = layout.theta.detach().clone().requires_grad_(True)
-    out = integrate_exact(image, layout, size, tol=tol, theta=theta)  # the compiled path
+    # the compiled path, with the pixels' areas (what sensor physics uses) in the loss too
+    out, areas = integrate_exact(image, layout, size, tol=tol, theta=theta, return_areas=True)
     weights = torch.randn(out.shape, dtype=torch.float64)
-    (grad,) = torch.autograd.grad((out * weights).sum(), theta)
+    w_areas = torch.randn(areas.shape, dtype=torch.float64) / float(areas.detach().mean())
+    (grad,) = torch.autograd.grad((out * weights).sum() + (areas * w_areas).sum(), theta)
     cm = mk.build_mesh(mk.mesh_spec(layout), size, theta.detach().numpy(), tol)
     theta_ref = theta.detach().clone().requires_grad_(True)
     mesh = pixel_mesh(
         layout, size, subdivisions=torch.from_numpy(cm.counts), dtype=torch.float64, theta=theta_ref
     )
-    ref = integrate_exact(image, layout, size, mesh=mesh, backend="torch")
-    (grad_ref,) = torch.autograd.grad((ref * weights).sum(), theta_ref)
+    ref, ref_areas = integrate_exact(image, layout, size, mesh=mesh, backend="torch", return_areas=True)
+    (grad_ref,) = torch.autograd.grad((ref * weights).sum() + (ref_areas * w_areas).sum(), theta_ref)
     assert torch.allclose(out, ref, rtol=0, atol=rel)
+    assert torch.allclose(areas, ref_areas, rtol=0, atol=1e-13 * float(ref_areas.detach().max()))
     # float64: rounding times the conditioning near |θ| = 1 (see grad_tol)
     scale = max(float(grad_ref.abs().max()), 1.0)
     gtol = grad_tol(layout, grad_ref) if dtype == torch.float64 else rel * scale
@@ -167,6 +170,12 @@ def test_edge_gradient_is_the_quotient_rule_then_combine_adjoint(size: tuple[int
     pix = np.concatenate([grad / areas, -(grad * means).sum(0, keepdims=True) / areas])
     ref = MeshTopology(size).combine_adjoint(pix)
     np.testing.assert_array_equal(mk.edge_gradient(grad, means, areas), ref)
+    area_grad = rng.standard_normal(size)  # where the areas are an output of their own (physics)
+    pix_own = pix.copy()
+    pix_own[-1] += area_grad
+    np.testing.assert_array_equal(
+        mk.edge_gradient(grad, means, areas, area_grad), MeshTopology(size).combine_adjoint(pix_own)
+    )
     # and it is the transpose of combine: <combine(x), pix> = <x, combine_adjoint(pix)>
     x = rng.standard_normal(ref.shape)
     lhs = float((MeshTopology(size).combine(x) * pix).sum())
@@ -214,6 +223,13 @@ def test_a_training_step_runs_few_torch_operations():
         layout.rho.grad = None
 
     assert count_ops(step) <= 50
+    camera = lw.SensorPhysics((96.0, 128.0), photons_per_um2=20.0, read_noise_e=2.0, adc_bits=10)
+
+    def recorded_step() -> None:  # the areas come from the compiled path too: no torch mesh
+        lw.simulate(image, layout, (17, 23), physics=camera).sum().backward()
+        layout.rho.grad = None
+
+    assert count_ops(recorded_step) <= 90
     # and the step's gradient is the torch reference's (the same float32 tables)
     layout.rho.grad = None
     lw.simulate(image, layout, (17, 23)).sum().backward()
@@ -303,8 +319,8 @@ def test_compiled_path_on_cuda_matches_cpu(family: str):
     for device in ("cpu", "cuda"):
         lay = layout.to(device)
         theta = lay.theta.detach().clone().requires_grad_(True)
-        out = integrate_exact(image.to(device), lay, (9, 11), tol=1e-3, theta=theta)
-        out.sum().backward()
+        out, areas = integrate_exact(image.to(device), lay, (9, 11), tol=1e-3, theta=theta, return_areas=True)
+        (out.sum() + 100 * areas.sum() + 10 * areas[2, 3]).backward()
         outs.append(out.cpu())
         grads.append(theta.grad.cpu())
     assert torch.allclose(outs[0], outs[1], rtol=0, atol=1e-6)

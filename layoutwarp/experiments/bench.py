@@ -703,6 +703,23 @@ def physics_rows(cfg: BenchConfig, image_name: str, img: Tensor, anchors: dict[s
             lambda: kernels.sensor_measure(mean, *quiet, out, nt), cfg.repeats * 40
         )
     rows = [Row(image_name, "curv", "exact + physics", "noise,FW,ADC", tq, rmse=noise, extra=extra)]
+    # learning a layout under this camera: the training step of a learnable curv (mixed-sign θ)
+    # with and without physics (the reparameterised noise; the areas from the compiled path)
+    learnable = layout_from_spec({"family": "curv", "theta": [cfg.theta[0], -cfg.theta[1]]}, learn=True)
+    learnable = learnable.to(cfg.device)
+
+    def step(physics: SensorPhysics | None = None) -> None:
+        simulate(dev_img, learnable, cfg.size, physics=physics).sum().backward()
+        learnable.rho.grad = None
+
+    times = interleaved_times([step, lambda: step(ph)], cfg.repeats * 4)
+    t_plain, t_phys = (float(np.median(col)) for col in times)
+    extra = {
+        "over_plain": float(np.median(np.divide(times[1], times[0]))) - 1,
+        "plain_ms": t_plain,
+        "ops": count_ops(lambda: step(ph)),
+    }
+    rows.append(Row(image_name, "curv ±", "physics train step", "noise,FW,ADC", t_phys, extra=extra))
     flat = dev_img.reshape(-1, h, w)
     for kind in ("gaussian", "airy"):
         psf = SensorPhysics(sensor_um=extent, photons_per_um2=1.0, psf=kind)
@@ -957,6 +974,12 @@ def report_text(result: dict) -> str:
                     if "kernel_ms" in r["extra"]
                     else ""
                 )
+            )
+        if r["method"] == "physics train step":
+            lines.append(
+                f"learning a layout under that camera (curv ±, train step): {r['forward_ms']:.1f} ms "
+                f"against {r['extra']['plain_ms']:.1f} ms without physics, "
+                f"{100 * r['extra']['over_plain']:+.0f} %; {r['extra']['ops']} torch ops"
             )
     c = result.get("compile")
     if c:
