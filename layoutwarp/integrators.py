@@ -390,9 +390,10 @@ def _cpu_weights(
 class _CompiledExact(torch.autograd.Function):
     """θ → the exact pixel means ``(N, h, w)`` and the pixels' areas ``(h, w)`` in sensor units
     (float64; an area is the boundary integral of 1 the means divide by) of a layout with a
-    compiled mesh (:mod:`layoutwarp.meshkernels`): mesh, integrals and Reynolds weights in compiled
-    kernels, and θ's gradient as one contraction with the vertices' θ-derivatives, so a training step runs a
-    handful of torch operations instead of the thousands of the mesh's autograd graph. On the
+    compiled mesh (:mod:`layoutwarp.meshkernels`): mesh, integrals and Reynolds weights in
+    compiled kernels, and θ's gradient as one contraction with the vertices' θ-derivatives, so a
+    training step runs a handful of torch operations instead of the thousands of the mesh's
+    autograd graph (an output nobody uses costs its backward nothing). On the
     CPU the mesh is never held: :func:`~layoutwarp.meshkernels.mesh_integrals` places each chunk
     of edges' vertices and integrates them while they are in cache, carrying their θ-derivatives
     to the θ-Jacobian of every edge integral, so the backward is the quotient rule and one
