@@ -7,7 +7,7 @@ to the output folder).
 
 from __future__ import annotations
 
-import sys
+import argparse
 import tempfile
 from pathlib import Path
 
@@ -42,8 +42,11 @@ def main(out: Path) -> None:
 
 
 if __name__ == "__main__":
-    if len(sys.argv) > 1:
-        main(Path(sys.argv[1]))
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("out", nargs="?", type=Path, metavar="OUT_DIR", help="keep the files here")
+    args = parser.parse_args()
+    if args.out is not None:
+        main(args.out)
     else:
         with tempfile.TemporaryDirectory() as tmp:
             print("writing to a temporary folder, removed at the end (pass OUT_DIR to keep the files)")
