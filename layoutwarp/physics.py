@@ -9,7 +9,8 @@ order, in the notation of the EMVA 1288 standard (release 4.0):
    width in µm becomes source pixels through the image's extent on the sensor, ``sensor_um``);
 2. the integrators (unchanged): ``L̄_k``, the mean over the pixel ``A_k``;
 3. photons: ``μ_p,k = photons_per_um2 · L̄_k · a_k · fill_factor`` with ``a_k`` the pixel's
-   area in µm² (from the pixel mesh, differentiable in θ);
+   area in µm² (from the pixel polygons, differentiable in θ: the exact and separable
+   integrators return it with the means, ``return_areas=True``);
 4. electrons: ``μ_e,k = η μ_p,k (1 + prnu · z_k) + μ_d,k`` with ``η`` the quantum efficiency,
    ``z_k`` a fixed standard-normal pattern (PRNU) and the dark signal
    ``μ_d,k = dark_e_per_um2 · a_k + dsnu · z'_k`` (DSNU, a second fixed pattern);
