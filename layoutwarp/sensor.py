@@ -242,6 +242,10 @@ def simulate(
     work, out_dtype, lead = _prepare(image)
     if work.shape[0] == 0:
         out = work.new_zeros(*lead, *size).to(out_dtype)
+        # nothing to integrate, but the output stays in θ's and the image's graph, as a module's would
+        ties = [t.sum() for t in (layout.rho, work) if torch.is_grad_enabled() and t.requires_grad]
+        if ties:
+            out = out + (sum(ties) * 0).to(out_dtype)
     else:
         if not (allow_nonfinite or plan.method in ("exact", "separable")):
             raise_nonfinite(work)  # samples may miss a bad pixel: look at the input

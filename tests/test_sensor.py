@@ -79,6 +79,15 @@ def test_empty_batch_and_channels():
     layout = lw.RectLayout((0.1, 0.2))
     assert lw.simulate(torch.rand(0, 3, 10, 10), layout, (2, 3)).shape == (0, 3, 2, 3)
     assert lw.simulate(torch.rand(2, 0, 10, 10), layout, (2, 3)).shape == (2, 0, 2, 3)
+    # a learnable sensor's empty output is still in θ's (and the image's) graph, with zero gradient
+    layer = lw.SensorLayer((2, 3), "curv")
+    x = torch.rand(0, 1, 10, 10, dtype=torch.float64, requires_grad=True)
+    out = layer(x)
+    assert out.shape == (0, 1, 2, 3) and out.dtype == torch.float64 and out.requires_grad
+    out.sum().backward()
+    assert torch.equal(layer.layout.rho.grad, torch.zeros_like(layer.layout.rho)) and x.grad.shape == x.shape
+    with torch.no_grad():
+        assert not layer(torch.rand(0, 1, 10, 10)).requires_grad
 
 
 @pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf")])
