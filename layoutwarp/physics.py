@@ -319,7 +319,7 @@ def apply_psf(image: Tensor, physics: SensorPhysics) -> Tensor:
     """
     if physics.psf is None:
         return image
-    k = psf_kernels(physics, (int(image.shape[-2]), int(image.shape[-1])))
+    k = psf_kernels(physics, image.shape[-2:])
     n, h, w = image.shape
     if image.device.type == "cpu" and not image.requires_grad and n > 0:
         import cv2

@@ -87,6 +87,17 @@ def _time_paired(fns: Sequence[Callable[[], object]], repeats: int) -> list[floa
     return [float(np.median(col)) for col in interleaved_times(fns, repeats)]
 
 
+def _time_overhead(
+    base: Callable[[], object], other: Callable[[], object], rounds: int
+) -> tuple[float, float, float]:
+    """``other`` against ``base`` over :func:`interleaved_times`' rounds: the median ms of each,
+    and how much longer ``other`` takes as the median of the rounds' ratios minus 1 (both calls
+    of a round meet the same machine state)."""
+    times = interleaved_times([base, other], rounds)
+    t_base, t_other = (float(np.median(col)) for col in times)
+    return t_base, t_other, float(np.median(np.divide(times[1], times[0]))) - 1
+
+
 def interleaved_times(fns: Sequence[Callable[[], object]], rounds: int) -> list[list[float]]:
     """Time calls that are to be compared, in interleaved rounds: ``times[i][k]``, the ms of
     ``fns[i]`` in round ``k`` (``max(rounds, 1)`` rounds, after one warm-up call each).
@@ -684,9 +695,7 @@ def physics_rows(cfg: BenchConfig, image_name: str, img: Tensor, anchors: dict[s
     # a difference of a few percent between two times, on a machine whose speed drifts by 1.5x
     # within seconds: many pairs (200 at the default repeats, about 1.5 s), and the overhead as
     # the median of each round's ratio, both calls of a round meeting the same machine state
-    times = interleaved_times([plain, measured], cfg.repeats * 40)
-    tp, tq = (float(np.median(col)) for col in times)
-    over = float(np.median(np.divide(times[1], times[0]))) - 1
+    tp, tq, over = _time_overhead(plain, measured, cfg.repeats * 40)
     noise = float((measured().cpu().double() - plain().cpu().double()).pow(2).mean().sqrt())
     extra = {"over_plain": over, "plain_ms": tp, "physics": ph.to_dict()}
     if cfg.device == "cpu" and kernels.available():
@@ -712,13 +721,8 @@ def physics_rows(cfg: BenchConfig, image_name: str, img: Tensor, anchors: dict[s
         simulate(dev_img, learnable, cfg.size, physics=physics).sum().backward()
         learnable.rho.grad = None
 
-    times = interleaved_times([step, lambda: step(ph)], cfg.repeats * 4)
-    t_plain, t_phys = (float(np.median(col)) for col in times)
-    extra = {
-        "over_plain": float(np.median(np.divide(times[1], times[0]))) - 1,
-        "plain_ms": t_plain,
-        "ops": count_ops(lambda: step(ph)),
-    }
+    t_plain, t_phys, over = _time_overhead(step, lambda: step(ph), cfg.repeats * 4)
+    extra = {"over_plain": over, "plain_ms": t_plain, "ops": count_ops(lambda: step(ph))}
     rows.append(Row(image_name, "curv ±", "physics train step", "noise,FW,ADC", t_phys, extra=extra))
     flat = dev_img.reshape(-1, h, w)
     for kind in ("gaussian", "airy"):
