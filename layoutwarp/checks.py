@@ -9,8 +9,9 @@ carries the argument's name), which the command line turns into an error line na
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Iterable, Sequence
-from typing import Any
+from typing import Any, Literal, overload
 
 import numpy as np
 import torch
@@ -105,14 +106,38 @@ def check_choice(value: Any, choices: Iterable[Any], name: str) -> Any:
     return value
 
 
-def check_int(value: Any, name: str, minimum: int | None = None, maximum: int | None = None) -> int:
-    """An integer within ``[minimum, maximum]`` (bools are refused)."""
-    ok = isinstance(value, int) and not isinstance(value, bool)
+@overload
+def check_int(
+    value: Any,
+    name: str,
+    minimum: int | None = ...,
+    maximum: int | None = ...,
+    *,
+    optional: Literal[False] = ...,
+) -> int: ...
+@overload
+def check_int(
+    value: Any, name: str, minimum: int | None = ..., maximum: int | None = ..., *, optional: bool
+) -> int | None: ...
+def check_int(
+    value: Any, name: str, minimum: int | None = None, maximum: int | None = None, *, optional: bool = False
+) -> int | None:
+    """An integer within ``[minimum, maximum]`` as a Python ``int`` (numpy integers too; bools are
+    refused), or ``None`` where ``optional``.
+
+    Examples:
+        >>> check_int(np.int64(3), "workers", 1)
+        3
+    """
+    if value is None and optional:
+        return None
+    ok = isinstance(value, numbers.Integral) and not isinstance(value, bool)
     if ok and (minimum is None or value >= minimum) and (maximum is None or value <= maximum):
         return int(value)
     raise ArgumentError(
         _argument(name),
-        f"{name} must be an integer {_interval(minimum, maximum, False, False)}, got {value!r}",
+        f"{name} must be an integer {_interval(minimum, maximum, False, False)}"
+        f"{' or None' * optional}, got {value!r}",
     )
 
 

@@ -45,7 +45,6 @@ from __future__ import annotations
 import functools
 import json
 import math
-import numbers
 from collections import OrderedDict
 from dataclasses import asdict, dataclass, fields
 from typing import Any
@@ -56,7 +55,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from . import kernels
-from .checks import ArgumentError, check_choice, check_extent, check_number, check_size
+from .checks import ArgumentError, check_choice, check_extent, check_int, check_number, check_size
 
 __all__ = [
     "NOISE",
@@ -106,7 +105,7 @@ _RANGES = {
 #: The number fields that may be ``None``.
 _OPTIONAL = {"full_well_per_um2", "gain_dn_per_e", "psf_sigma_um"}
 #: The integer fields: ``(lo, hi, may be None)``.
-_INTEGERS = {"adc_bits": (1, 32, True), "pattern_seed": (0, math.inf, False), "seed": (0, math.inf, True)}
+_INTEGERS = {"adc_bits": (1, 32, True), "pattern_seed": (0, None, False), "seed": (0, None, True)}
 
 
 @dataclass(frozen=True)
@@ -173,13 +172,7 @@ class SensorPhysics:
                     self, name, check_number(v, name, lo, hi, lo_open=lo_open, hi_open=hi_open)
                 )
         for name, (lo, hi, optional) in _INTEGERS.items():
-            v = getattr(self, name)
-            if v is None and optional:
-                continue
-            if isinstance(v, bool) or not isinstance(v, numbers.Integral) or not lo <= v <= hi:
-                what = f"an integer in [{lo}, {hi}]" if hi < math.inf else "a non-negative integer"
-                raise ArgumentError(name, f"{name} must be {what}{' or None' * optional}, got {v!r}")
-            object.__setattr__(self, name, int(v))
+            object.__setattr__(self, name, check_int(getattr(self, name), name, lo, hi, optional=optional))
         if self.psf is not None:
             check_choice(self.psf, PSFS, "psf")
         check_choice(self.noise, NOISE, "noise")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
@@ -43,6 +44,11 @@ def test_check_shape_patterns():
         (lambda: check_int(True, "samples", 1), r"got True"),
         (lambda: check_int(2.0, "workers", 1), r"workers must be an integer >= 1, got 2.0"),
         (
+            lambda: check_int(40, "bits", 1, 32, optional=True),
+            r"bits must be an integer in \[1, 32\] or None, got 40",
+        ),
+        (lambda: check_int(None, "bits", 1, 32), r"bits must be an integer in \[1, 32\], got None"),
+        (
             lambda: check_choice("auto", ("exact", "point"), "method"),
             r"method must be one of 'exact', 'point'; got 'auto'",
         ),
@@ -61,6 +67,8 @@ def test_messages_name_argument_value_and_range(call, message):
 def test_checks_return_normalised_values():
     assert check_size([3.0, 4]) == (3, 4) and check_int(5, "n", 1, 9) == 5 and check_number("0.5", "t") == 0.5
     assert check_choice("exact", ("exact",), "method") == "exact"
+    n = check_int(np.int64(7), "n", 1, 9)  # a numpy integer comes back a Python int
+    assert n == 7 and type(n) is int and check_int(None, "n", 1, optional=True) is None
     assert check_device("cpu") == torch.device("cpu")
     if not torch.cuda.is_available():
         with pytest.raises(ValueError, match="device 'cuda:1' asked for, but no CUDA GPU is available here"):

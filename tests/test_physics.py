@@ -50,9 +50,9 @@ CAMERA = {
         ("adc_bits", 0, "adc_bits must be an integer in [1, 32] or None, got 0"),
         ("sensor_um", (10.0, -2.0), "sensor_um[1] (width) must be a finite number > 0, got -2.0"),
         ("noise", "shot", "noise must be one of 'auto', 'poisson', 'gaussian', 'none'; got 'shot'"),
-        ("seed", -3, "seed must be a non-negative integer or None, got -3"),
-        ("seed", 2.0, "seed must be a non-negative integer or None, got 2.0"),
-        ("pattern_seed", True, "pattern_seed must be a non-negative integer, got True"),
+        ("seed", -3, "seed must be an integer >= 0 or None, got -3"),
+        ("seed", 2.0, "seed must be an integer >= 0 or None, got 2.0"),
+        ("pattern_seed", True, "pattern_seed must be an integer >= 0, got True"),
         ("psf_energy", 1.0, "psf_energy must be a finite number in [0.5, 1), got 1.0"),
     ],
 )
