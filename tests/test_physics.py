@@ -303,6 +303,25 @@ def test_the_kernels_normal_draws_follow_the_normal_law(gen):
     assert abs(float(np.corrcoef(shot, read)[0, 1])) < 5 / math.sqrt(n)  # two independent streams
 
 
+def test_the_first_try_table_holds_each_edge_exactly_and_a_close_lower_bound_of_its_ratio():
+    # one 64-bit word per layer: decoded with numpy's bit views (not the kernels' bit cast), the
+    # edges must be the ziggurat's bit for bit (a draw is u·x[i]), the ratio bounds at most the
+    # ratios (else a try the exact test rejects would be accepted) and close (each bound's
+    # 1 − ratio at most 1/32 above the exact one, so few accepted tries are rerun)
+    from layoutwarp import kernels
+
+    words = kernels._ZIG_P
+    assert words.dtype == np.uint64 and words.shape == (1024,)
+    edge = ((words & kernels._X_MASK) + kernels._X_BASE).view(np.float64)
+    assert np.array_equal(edge, kernels._ZIG_X[:1024])
+    bound = 1.0 - (((words >> np.uint64(8)) & kernels._D_MASK) + kernels._D_BASE).view(np.float64)
+    x = kernels._ZIG_X
+    ratio = x[1:] / x[:-1]  # recomputed from the edges
+    assert (bound <= ratio).all() and bound[-1] == 0.0  # the top layer: every try to its wedge
+    assert ((1.0 - bound) <= (1.0 - ratio) * (1 + 1 / 32)).all()
+    assert float((ratio - bound).mean()) < 0.01 * float((1.0 - ratio).mean())  # < 1 % more reruns
+
+
 @pytest.mark.parametrize("noise", [1, 2])
 def test_the_kernels_first_tries_give_the_full_samplers_draws_bit_for_bit(noise, gen):
     # the vectorised first tries (and the partial reruns where one stream's try fails) must
