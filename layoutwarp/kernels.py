@@ -42,6 +42,10 @@ try:  # numba is a dependency, but the torch reference keeps working without it
     from numba.extending import intrinsic
 except ImportError:  # pragma: no cover - depends on the environment
     njit = prange = get_num_threads = set_num_threads = numba_config = numba_types = intrinsic = None
+try:  # numba's own code generator, present wherever numba is
+    from llvmlite import ir as llvm_ir
+except ImportError:  # pragma: no cover - depends on the environment
+    llvm_ir = None
 
 __all__ = [
     "BLOCK",
@@ -895,10 +899,39 @@ if intrinsic is not None:
 
         return numba_types.float64(numba_types.uint64), codegen
 
+    @intrinsic
+    def _prefetch(typingctx, array, index):
+        """A hint to fetch the cache line of ``array[index]`` (1-d, contiguous) ahead of its use:
+        LLVM's ``prefetch`` (a read, kept in every cache level), which loads nothing into a register
+        and never faults, so an index past the end is harmless."""
+        if not (isinstance(array, numba_types.Array) and array.ndim == 1 and array.layout == "C"):
+            return None
+
+        def codegen(context, builder, signature, args):
+            data = context.make_array(signature.args[0])(context, builder, args[0]).data
+            ptr = builder.bitcast(builder.gep(data, [args[1]]), llvm_ir.IntType(8).as_pointer())
+            i32 = llvm_ir.IntType(32)
+            fnty = llvm_ir.FunctionType(llvm_ir.VoidType(), [ptr.type, i32, i32, i32])
+            fn = builder.module.declare_intrinsic("llvm.prefetch", [ptr.type], fnty)
+            builder.call(fn, [ptr, i32(0), i32(3), i32(1)])  # read, all levels, data
+            return context.get_dummy_value()
+
+        return numba_types.void(array, numba_types.intp), codegen
+
 else:  # pragma: no cover - without numba the kernels are not compiled
 
     def _as_float(bits: np.uint64) -> float:
         return float(np.uint64(bits).view(np.float64))
+
+    def _prefetch(array: np.ndarray, index: int) -> None:
+        pass
+
+
+@_inline
+def _prefetch_span(array: np.ndarray, lo: int, hi: int) -> None:
+    """:func:`_prefetch` of every 64-byte line of ``array[lo:hi]``."""
+    for i in range(lo, hi, max(1, 64 // array.itemsize)):
+        _prefetch(array, i)
 
 
 @_inline
@@ -1088,6 +1121,39 @@ def _pixel_constants(a: float, params: np.ndarray) -> tuple[float, float, float,
 
 
 @_inline
+def _noisy_run(
+    row: np.ndarray,
+    orow: np.ndarray,
+    flags: np.ndarray,
+    scale: np.ndarray,
+    dark: np.ndarray,
+    full: np.ndarray,
+    zero: np.ndarray,
+    inv: np.ndarray,
+    params: np.ndarray,
+    key: np.uint64,
+    poisson: bool,
+    read: float,
+    output: int,
+) -> None:
+    """:func:`_measure_run` with noise, Poisson or Gaussian: each draw's first try
+    (:func:`_first_tries`), ``flags[j]`` set where one was rejected and that element's mean left
+    in ``orow`` for the rescan. Called with ``poisson`` a constant, so each kind of noise gets a
+    loop of its own with no test of it inside."""
+    for j in range(row.size):
+        mean = row[j]
+        e = mean * scale[j] + dark[j]
+        shot_key = key + np.uint64(j) * _ELEMENT_G
+        mu = max(e, 0.0)
+        k, g, z2, ok_z1, ok_k, ok_z2 = _first_tries(mu, shot_key, shot_key + _STREAM_G)
+        shot = k if poisson else g + (e - mu)  # Gaussian: e + √max(e, 0)·z, bit for bit
+        flag = (not (ok_z1 and (ok_k or not poisson))) | (not ok_z2 and read != 0.0)
+        flags[j] = flag
+        value = _recorded(shot + read * z2, full[j], zero[j], inv[j], params, output)
+        orow[j] = mean if flag else value
+
+
+@_inline
 def _measure_run(
     row: np.ndarray,
     orow: np.ndarray,
@@ -1105,27 +1171,37 @@ def _measure_run(
 ) -> None:
     """One plane of a run of :func:`sensor_measure`: the means ``row`` to ``orow`` (which may be
     ``row``), the pixel constants from :func:`_pixel_constants`, ``key`` the first element's shot
-    stream. Without noise a loop with no draws; with noise each draw's first try
-    (:func:`_first_tries`), ``flags[j]`` set where one was rejected and that element's mean left
-    in ``orow`` for the rescan. Both loops are branch-free and vectorise."""
-    m = row.size
+    stream. Without noise a loop with no draws; with noise :func:`_noisy_run`. Each loop is
+    branch-free and vectorises."""
     if noise == 0:
-        for j in range(m):
+        for j in range(row.size):
             e = row[j] * scale[j] + dark[j]
             orow[j] = _recorded(e, full[j], zero[j], inv[j], params, output)
-        return
-    poisson = noise == 1
-    for j in range(m):
-        mean = row[j]
-        e = mean * scale[j] + dark[j]
-        shot_key = key + np.uint64(j) * _ELEMENT_G
-        mu = max(e, 0.0)
-        k, g, z2, ok_z1, ok_k, ok_z2 = _first_tries(mu, shot_key, shot_key + _STREAM_G)
-        shot = k if poisson else g + (e - mu)  # Gaussian: e + √max(e, 0)·z, bit for bit
-        flag = (not (ok_z1 and (ok_k or not poisson))) | (not ok_z2 and read != 0.0)
-        flags[j] = flag
-        value = _recorded(shot + read * z2, full[j], zero[j], inv[j], params, output)
-        orow[j] = mean if flag else value
+    elif noise == 1:
+        _noisy_run(row, orow, flags, scale, dark, full, zero, inv, params, key, True, read, output)
+    else:
+        _noisy_run(row, orow, flags, scale, dark, full, zero, inv, params, key, False, read, output)
+
+
+@_inline
+def _prefetch_inputs(
+    mean: np.ndarray,
+    area_um2: np.ndarray,
+    prnu: np.ndarray,
+    dsnu: np.ndarray,
+    params: np.ndarray,
+    lo: int,
+    hi: int,
+) -> None:
+    """:func:`_prefetch_span` of :func:`sensor_measure`'s inputs at the pixels ``[lo, hi)``: the
+    means of every plane, the areas and the fixed patterns it reads."""
+    _prefetch_span(area_um2, lo, hi)
+    if params[2] != 0.0:
+        _prefetch_span(prnu, lo, hi)
+    if params[3] != 0.0:
+        _prefetch_span(dsnu, lo, hi)
+    for r in range(mean.shape[0]):
+        _prefetch_span(mean[r], lo, hi)
 
 
 @_jit
@@ -1153,9 +1229,11 @@ def sensor_measure(
     on the thread count.
 
     Thread ``t`` of ``threads`` (see :func:`threads`) takes the pixels ``[t·P/T, (t + 1)·P/T)``,
-    the share of a ``prange`` over them that the same thread had in the forward just before (its
-    output still in that core's cache), in runs of :data:`MEASURE_CHUNK` pixels through all ``N``
-    planes, with work space of its own. A run first derives its pixels' constants
+    the share of a ``prange`` over them that the same thread had in the forward just before, in
+    runs of :data:`MEASURE_CHUNK` pixels through all ``N`` planes, with work space of its own. The
+    forward's streams (tens of MB) push most of its output out of the caches, so the thread first
+    hints its first two runs' inputs to the caches, and each run those of the run after next
+    (:func:`_prefetch_inputs`). A run then derives its pixels' constants
     (:func:`_pixel_constants`, then the fixed patterns). Per plane, a branch-free loop
     (:func:`_measure_run`) takes every draw's first try and flags the elements where one was
     rejected (about 0.4 % of the normals, a few tenths of a percent of the Poisson draws at large
@@ -1175,8 +1253,10 @@ def sensor_measure(
         share = stop - start
         words = np.zeros((n * share + 7) // 8 if noise != 0 else 0, dtype=np.uint64)
         redo = words.view(np.uint8)  # element (r, start + j)'s flag at r·share + j: 1 to rerun
+        _prefetch_inputs(mean, area_um2, prnu, dsnu, params, start, min(stop, start + 2 * c))
         for lo in range(start, stop, MEASURE_CHUNK):
             m = min(stop, lo + MEASURE_CHUNK) - lo
+            _prefetch_inputs(mean, area_um2, prnu, dsnu, params, lo + 2 * c, min(stop, lo + 3 * c))
             for j in range(m):  # the run's pixels' constants
                 scale[j], dark[j], full[j], zero[j], inv[j] = _pixel_constants(area_um2[lo + j], params)
             if g_prnu != 0.0:  # the fixed patterns in loops of their own: the one above vectorises
