@@ -12,14 +12,24 @@ each round's ratio against ``simulate`` (both calls of a round meet the same mac
 which drifts by 1.5x within seconds on small virtual machines), as ``layoutwarp bench`` does.
 ``--kernels`` then times the compiled calls beneath (the product alone, and the product with the
 measurement written to a buffer of its own or over the means, as ``AreaResampler.apply`` does)
-and prints each measurement's overhead on the product alone, the same way.
-Run: ``python examples/physics_overhead.py [--rounds 60] [--threads 2] [--kernels]``.
+and prints each measurement's overhead on the product alone, the same way. ``--against COMMIT``
+adds to those rounds the fused call of ``layoutwarp/kernels.py`` as it was at ``COMMIT`` (from
+git, imported as a module of its own, compiled once into a temporary folder): an A/B of a kernel
+change in one process, where the machine's drift between two runs cannot read as a difference.
+Run: ``python examples/physics_overhead.py [--rounds 500] [--threads 2] [--kernels] [--against COMMIT]``
+(500 rounds take about 10 s and 15 s more with ``--kernels``; the median of the rounds' ratios
+moves by about a point between runs of 120 rounds, by a few tenths at 1000).
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import statistics
+import subprocess
+import tempfile
+from pathlib import Path
+from types import ModuleType
 
 import cv2
 import numpy as np
@@ -27,6 +37,8 @@ import torch
 
 import layoutwarp as lw
 from layoutwarp.experiments.bench import BENCH_PHYSICS, interleaved_times
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def over(slow: list[float], fast: list[float]) -> float:
@@ -36,10 +48,18 @@ def over(slow: list[float], fast: list[float]) -> float:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--rounds", type=int, default=60, help="interleaved rounds (default 60)")
+    parser.add_argument("--rounds", type=int, default=500, help="interleaved rounds (default 500)")
     parser.add_argument("--threads", type=int, default=2, help="torch and OpenCV threads (default 2)")
     parser.add_argument("--kernels", action="store_true", help="also time the compiled calls beneath")
+    parser.add_argument(
+        "--against", metavar="COMMIT", help="with --kernels: also the fused call of COMMIT's kernels.py"
+    )
     args = parser.parse_args()
+    if args.rounds < 1:
+        parser.error(f"--rounds must be an integer >= 1, got {args.rounds}")
+    if args.against and not args.kernels:
+        parser.error("--against needs --kernels")
+    other = kernels_at(args.against) if args.against else None  # a bad commit fails before the timing
     torch.set_num_threads(args.threads)
     cv2.setNumThreads(args.threads)
     img = torch.rand(1, 3, 1024, 2048, generator=torch.Generator().manual_seed(0))
@@ -64,32 +84,58 @@ def main() -> None:
     physics = over(times["simulate + physics"], times["simulate"])
     print(f"physics overhead: {physics:+.1f} % (median of the rounds' ratios)")
     if args.kernels:
-        kernel_overheads(img, layout, camera, args.rounds)
+        kernel_overheads(img, layout, camera, args.rounds, other, args.against)
 
 
-def kernel_overheads(img: torch.Tensor, layout: lw.Layout, camera: lw.SensorPhysics, rounds: int) -> None:
+def kernels_at(commit: str) -> ModuleType:
+    """``layoutwarp/kernels.py`` as it was at ``commit``, imported as a module of its own (its
+    compiled code cached in a temporary folder); exits with git's message if there is none."""
+    done = subprocess.run(
+        ["git", "-C", str(ROOT), "show", f"{commit}:layoutwarp/kernels.py"], capture_output=True, text=True
+    )
+    if done.returncode != 0:
+        raise SystemExit(f"--against {commit}: {done.stderr.strip()}")
+    path = Path(tempfile.mkdtemp(prefix="layoutwarp-kernels-")) / "kernels_against.py"
+    path.write_text(done.stdout)
+    spec = importlib.util.spec_from_file_location(path.stem, path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def kernel_overheads(
+    img: torch.Tensor,
+    layout: lw.Layout,
+    camera: lw.SensorPhysics,
+    rounds: int,
+    other: ModuleType | None = None,
+    commit: str = "",
+) -> None:
     """The compiled calls under ``simulate``: the cached weights' product alone, and with the
-    measurement (shot and read noise, full well, ADC) into a buffer of its own or over the means."""
+    measurement (shot and read noise, full well, ADC) into a buffer of its own or over the means;
+    with ``other`` (the kernels of ``commit``), also its fused call over the means."""
     tol = lw.data_tolerance(img.dtype)[0]  # simulate's default for these images: its cached resampler
     res = lw.resampler.resampler_for(layout, (129, 257), tuple(img.shape[-2:]), tol, "cpu")
     w, x = res.weights, np.ascontiguousarray(img.reshape(img.shape[1], -1).numpy())
     measured, nt = lw.physics.kernel_arguments(camera, res.areas), lw.kernels.threads()
 
-    def product(measure: str = "") -> None:
+    def product(measure: str = "", module: ModuleType = lw.kernels) -> None:
         mean = np.empty((x.shape[0], w.shape[0]), np.float32)
         if not measure:
             lw.kernels.csr_apply(w.indptr, w.indices, w.data, x, mean)
             return
         out = mean if measure == "in place" else np.empty_like(mean)
-        lw.kernels.measured_csr_apply(w.indptr, w.indices, w.data, x, mean, *measured, out, nt)
+        module.measured_csr_apply(w.indptr, w.indices, w.data, x, mean, *measured, out, nt)
 
     calls = {
         "product": product,
         "own buffer": lambda: product("own"),
         "in place": lambda: product("in place"),
     }
+    if other is not None:
+        calls[f"in place at {commit}"] = lambda: product("in place", other)
     times = dict(zip(calls, interleaved_times(list(calls.values()), rounds), strict=True))
-    for name in ("own buffer", "in place"):
+    for name in list(calls)[1:]:
         pct = over(times[name], times["product"])
         print(f"product + measurement, {name:10s}: {pct:+.1f} % over the product alone")
 

@@ -672,7 +672,7 @@ BENCH_PHYSICS = {
 def physics_rows(cfg: BenchConfig, image_name: str, img: Tensor, anchors: dict[str, float]) -> list[Row]:
     """What sensor physics costs (fixed curv layout, the data tolerance, no gradient): the forward
     with noise, full well and ADC against the same forward without (``extra["over_plain"]``: the
-    median of the rounds' ratios over ``40 × repeats`` rounds that call both), and the PSFs on the
+    median of the rounds' ratios over ``200 × repeats`` rounds that call both), and the PSFs on the
     source image against INTER_AREA; the Airy row's error is the RMSE of its truncated kernel
     against one holding 99.9 % of the energy, relative to the image's range
     (``extra["truncated_energy"]``: what the kernel leaves out)."""
@@ -693,9 +693,10 @@ def physics_rows(cfg: BenchConfig, image_name: str, img: Tensor, anchors: dict[s
             return simulate(dev_img, layout, cfg.size, physics=ph)
 
     # a difference of a few percent between two times, on a machine whose speed drifts by 1.5x
-    # within seconds: many pairs (200 at the default repeats, about 1.5 s), and the overhead as
-    # the median of each round's ratio, both calls of a round meeting the same machine state
-    tp, tq, over = _time_overhead(plain, measured, cfg.repeats * 40)
+    # within seconds: many pairs (1000 at the default repeats, about 5 s; the median moves by about
+    # a point between runs of 200), and the overhead as the median of each round's ratio, both
+    # calls of a round meeting the same machine state
+    tp, tq, over = _time_overhead(plain, measured, cfg.repeats * 200)
     noise = float((measured().cpu().double() - plain().cpu().double()).pow(2).mean().sqrt())
     extra = {"over_plain": over, "plain_ms": tp, "physics": ph.to_dict()}
     if cfg.device == "cpu" and kernels.available():
