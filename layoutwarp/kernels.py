@@ -901,15 +901,16 @@ if intrinsic is not None:
 
     @intrinsic
     def _prefetch(typingctx, array, index):
-        """A hint to fetch the cache line of ``array[index]`` (1-d, contiguous) ahead of its use:
+        """A hint to fetch the cache line of ``array[index]`` (a 1-d array) ahead of its use:
         LLVM's ``prefetch`` (a read, kept in every cache level), which loads nothing into a register
         and never faults, so an index past the end is harmless."""
-        if not (isinstance(array, numba_types.Array) and array.ndim == 1 and array.layout == "C"):
+        if not (isinstance(array, numba_types.Array) and array.ndim == 1):
             return None
 
         def codegen(context, builder, signature, args):
-            data = context.make_array(signature.args[0])(context, builder, args[0]).data
-            ptr = builder.bitcast(builder.gep(data, [args[1]]), llvm_ir.IntType(8).as_pointer())
+            view = context.make_array(signature.args[0])(context, builder, args[0])
+            offset = builder.mul(args[1], builder.extract_value(view.strides, 0))  # in bytes
+            ptr = builder.gep(builder.bitcast(view.data, llvm_ir.IntType(8).as_pointer()), [offset])
             i32 = llvm_ir.IntType(32)
             fnty = llvm_ir.FunctionType(llvm_ir.VoidType(), [ptr.type, i32, i32, i32])
             fn = builder.module.declare_intrinsic("llvm.prefetch", [ptr.type], fnty)

@@ -234,16 +234,18 @@ def test_the_resampler_measures_in_one_call_what_measure_records(gen):
 
 
 def _kernel_electrons(
-    mean: np.ndarray, noise: int, read: float, seed: int, in_place: bool = False
+    mean: np.ndarray, noise: int, read: float, seed: int, in_place: bool = False, strided: bool = False
 ) -> np.ndarray:
     """The fused kernel's electrons for means ``mean`` (one plane; 1 e⁻ per unit, no patterns,
     no dark signal, full well or ADC): each element its own draw; ``in_place``: written over a
-    copy of the means."""
+    copy of the means; ``strided``: read from every other element of a buffer twice as long."""
     from layoutwarp import kernels
 
     params = np.array([1.0, 1.0, 0.0, 0.0, 0.0, read, math.inf, 1.0, 0.0, math.inf])
     ones, zeros = np.ones(mean.size), np.zeros(mean.size)
     means = mean[None].copy() if in_place else mean[None]
+    if strided:
+        means = np.repeat(mean, 2)[None, ::2]
     out = means if in_place else np.empty((1, mean.size))
     kernels.sensor_measure(means, ones, zeros, zeros, params, seed, noise, 1, out, kernels.threads())
     return out[0]
@@ -326,7 +328,8 @@ def test_the_first_try_table_holds_each_edge_exactly_and_a_close_lower_bound_of_
 def test_the_kernels_first_tries_give_the_full_samplers_draws_bit_for_bit(noise, gen):
     # the vectorised first tries (and the partial reruns where one stream's try fails) must
     # return exactly what the full samplers draw from each element's two streams, also when the
-    # kernel writes over its means (the rescan then reads the means its first tries left)
+    # kernel writes over its means (the rescan then reads the means its first tries left) or
+    # reads them from a strided view (its cache hints step by the view's strides)
     numba = pytest.importorskip("numba")
     from layoutwarp import kernels
 
@@ -351,6 +354,7 @@ def test_the_kernels_first_tries_give_the_full_samplers_draws_bit_for_bit(noise,
     expected = reference(mu, seed, 2.5, noise)
     assert np.array_equal(_kernel_electrons(mu, noise, 2.5, seed), expected)
     assert np.array_equal(_kernel_electrons(mu, noise, 2.5, seed, in_place=True), expected)
+    assert np.array_equal(_kernel_electrons(mu, noise, 2.5, seed, strided=True), expected)
 
 
 def test_the_kernels_poisson_sampler_keeps_large_counts_finite_in_its_rare_steps():
