@@ -1124,7 +1124,6 @@ def _pixel_constants(a: float, params: np.ndarray) -> tuple[float, float, float,
 @_inline
 def _noisy_run(
     row: np.ndarray,
-    orow: np.ndarray,
     flags: np.ndarray,
     scale: np.ndarray,
     dark: np.ndarray,
@@ -1139,7 +1138,7 @@ def _noisy_run(
 ) -> None:
     """:func:`_measure_run` with noise, Poisson or Gaussian: each draw's first try
     (:func:`_first_tries`), ``flags[j]`` set where one was rejected and that element's mean left
-    in ``orow`` for the rescan. Called with ``poisson`` a constant, so each kind of noise gets a
+    in ``row`` for the rescan. Called with ``poisson`` a constant, so each kind of noise gets a
     loop of its own with no test of it inside."""
     for j in range(row.size):
         mean = row[j]
@@ -1151,13 +1150,12 @@ def _noisy_run(
         flag = (not (ok_z1 and (ok_k or not poisson))) | (not ok_z2 and read != 0.0)
         flags[j] = flag
         value = _recorded(shot + read * z2, full[j], zero[j], inv[j], params, output)
-        orow[j] = mean if flag else value
+        row[j] = mean if flag else value
 
 
 @_inline
 def _measure_run(
     row: np.ndarray,
-    orow: np.ndarray,
     flags: np.ndarray,
     scale: np.ndarray,
     dark: np.ndarray,
@@ -1170,21 +1168,21 @@ def _measure_run(
     read: float,
     output: int,
 ) -> None:
-    """One plane of a run of :func:`sensor_measure`: the means ``row`` to ``orow`` (which may be
-    ``row``), the pixel constants from :func:`_pixel_constants`, ``key`` the first element's shot
+    """One plane of a run of :func:`sensor_measure`: the means ``row`` measured in place, the pixel
+    constants from :func:`_pixel_constants`, ``key`` the first element's shot
     stream. Without noise a loop with no draws; with noise :func:`_noisy_run`. Each loop is
     branch-free and vectorises."""
     if noise == 0:
         for j in range(row.size):
             e = row[j] * scale[j] + dark[j]
-            orow[j] = _recorded(e, full[j], zero[j], inv[j], params, output)
+            row[j] = _recorded(e, full[j], zero[j], inv[j], params, output)
     elif noise == 1:
-        _noisy_run(row, orow, flags, scale, dark, full, zero, inv, params, key, True, read, output)
+        _noisy_run(row, flags, scale, dark, full, zero, inv, params, key, True, read, output)
     else:
-        _noisy_run(row, orow, flags, scale, dark, full, zero, inv, params, key, False, read, output)
+        _noisy_run(row, flags, scale, dark, full, zero, inv, params, key, False, read, output)
 
 
-@_inline
+@_serial
 def _prefetch_inputs(
     mean: np.ndarray,
     area_um2: np.ndarray,
@@ -1218,8 +1216,9 @@ def sensor_measure(
     out: np.ndarray,
     threads: int,
 ) -> None:
-    """:func:`layoutwarp.physics.measure` in one pass: means ``(N, P)`` to ``out`` ``(N, P)``,
-    which may be ``mean`` itself (measured in place, one buffer less; no other overlap).
+    """:func:`layoutwarp.physics.measure` in one pass: means ``(N, P)`` to ``out`` ``(N, P)``, of
+    their dtype, which may be ``mean`` itself (measured in place, one buffer less; no other
+    overlap).
 
     ``params``: photons per µm² × fill factor, η, PRNU, DSNU, dark e⁻/µm², read noise, full well
     per µm² (``inf``: none), gain K, black level, ADC top (``inf``: no ADC); ``prnu``/``dsnu``
@@ -1235,8 +1234,9 @@ def sensor_measure(
     forward's streams (tens of MB) push most of its output out of the caches, so the thread first
     hints its first two runs' inputs to the caches, and each run those of the run after next
     (:func:`_prefetch_inputs`). A run then derives its pixels' constants
-    (:func:`_pixel_constants`, then the fixed patterns). Per plane, a branch-free loop
-    (:func:`_measure_run`) takes every draw's first try and flags the elements where one was
+    (:func:`_pixel_constants`, then the fixed patterns). Per plane, its means copied to ``out``
+    first where that is another buffer (so every loop works in place, with no overlap to test), a
+    branch-free loop (:func:`_measure_run`) takes every draw's first try and flags the elements where one was
     rejected (about 0.4 % of the normals, a few tenths of a percent of the Poisson draws at large
     means, all of them below a mean of 10 electrons), which keep their means. After its last run
     the thread rescans its flags, eight a word, and reruns a full sampler there from the start of
@@ -1267,18 +1267,12 @@ def sensor_measure(
                 for j in range(m):
                     dark[j] = dark[j] + g_dsnu * dsnu[lo + j]
             for r in range(n):
-                row = mean[r, lo : lo + m]  # 1-d: 1.5x the 2-d stores
+                row = out[r, lo : lo + m]  # 1-d: 1.5x the 2-d stores
+                if not in_place:  # measured where they are written: no overlap check, one loop
+                    row[:] = mean[r, lo : lo + m]
                 flags = redo[r * share + lo - start : r * share + lo - start + m]
                 key = state0 + np.uint64(r * p + lo) * _ELEMENT_G  # the run's first shot stream
-                if in_place:  # one array read and written: no overlap check, the loop vectorises
-                    _measure_run(
-                        row, row, flags, scale, dark, full, zero, inv, params, key, noise, read, output
-                    )
-                else:
-                    orow = out[r, lo : lo + m]
-                    _measure_run(
-                        row, orow, flags, scale, dark, full, zero, inv, params, key, noise, read, output
-                    )
+                _measure_run(row, flags, scale, dark, full, zero, inv, params, key, noise, read, output)
         for b in range(words.size):  # the rescan
             if words[b] == 0:
                 continue
