@@ -1236,12 +1236,12 @@ def sensor_measure(
     (:func:`_prefetch_inputs`). A run then derives its pixels' constants
     (:func:`_pixel_constants`, then the fixed patterns). Per plane, its means copied to ``out``
     first where that is another buffer (so every loop works in place, with no overlap to test), a
-    branch-free loop (:func:`_measure_run`) takes every draw's first try and flags the elements where one was
-    rejected (about 0.4 % of the normals, a few tenths of a percent of the Poisson draws at large
-    means, all of them below a mean of 10 electrons), which keep their means. After its last run
-    the thread rescans its flags, eight a word, and reruns a full sampler there from the start of
-    its stream: the rare slow path in one tight loop, whose code and branch history stay warm (a
-    rescan after every run made the kernel 5–25 % slower).
+    branch-free loop (:func:`_measure_run`) takes every draw's first try and flags the elements
+    where one was rejected (about 0.4 % of the normals, a few tenths of a percent of the Poisson
+    draws at large means, all of them below a mean of 10 electrons), which keep their means. After
+    its last run the thread rescans its flags, eight a word, and reruns a full sampler there from
+    the start of its stream: the rare slow path in one tight loop, whose code and branch history
+    stay warm (a rescan after every run made the kernel 5–25 % slower).
     """
     g_prnu, g_dsnu, read = params[2], params[3], params[5]
     n, p = mean.shape
