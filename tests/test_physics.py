@@ -329,7 +329,8 @@ def test_the_kernels_first_tries_give_the_full_samplers_draws_bit_for_bit(noise,
     # the vectorised first tries (and the partial reruns where one stream's try fails) must
     # return exactly what the full samplers draw from each element's two streams, also when the
     # kernel writes over its means (the rescan then reads the means its first tries left) or
-    # reads them from a strided view (its cache hints step by the view's strides)
+    # reads them from a strided view (a signature of its own: each run's means copied into the
+    # output, the cache hints stepping by the view's stride, which no result can show)
     numba = pytest.importorskip("numba")
     from layoutwarp import kernels
 
