@@ -38,6 +38,7 @@ import numpy as np
 import torch
 
 import layoutwarp as lw
+from layoutwarp.cli import positive_int
 from layoutwarp.experiments.bench import BENCH_PHYSICS, interleaved_times
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -50,15 +51,15 @@ def over(slow: list[float], fast: list[float]) -> float:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--rounds", type=int, default=500, help="interleaved rounds (default 500)")
-    parser.add_argument("--threads", type=int, default=2, help="torch and OpenCV threads (default 2)")
+    parser.add_argument("--rounds", type=positive_int, default=500, help="interleaved rounds (default 500)")
+    parser.add_argument(
+        "--threads", type=positive_int, default=2, help="torch and OpenCV threads (default 2)"
+    )
     parser.add_argument("--kernels", action="store_true", help="also time the compiled calls beneath")
     parser.add_argument(
         "--against", metavar="COMMIT", help="with --kernels: also the fused call of COMMIT's kernels.py"
     )
     args = parser.parse_args()
-    if args.rounds < 1:
-        parser.error(f"--rounds must be an integer >= 1, got {args.rounds}")
     if args.against and not args.kernels:
         parser.error("--against needs --kernels")
     other = kernels_at(args.against) if args.against else None  # a bad commit fails before the timing
