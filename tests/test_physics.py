@@ -243,9 +243,10 @@ def _kernel_electrons(
 
     params = np.array([1.0, 1.0, 0.0, 0.0, 0.0, read, math.inf, 1.0, 0.0, math.inf])
     ones, zeros = np.ones(mean.size), np.zeros(mean.size)
-    means = mean[None].copy() if in_place else mean[None]
     if strided:
         means = np.repeat(mean, 2)[None, ::2]
+    else:
+        means = mean[None].copy() if in_place else mean[None]
     out = means if in_place else np.empty((1, mean.size))
     kernels.sensor_measure(means, ones, zeros, zeros, params, seed, noise, 1, out, kernels.threads())
     return out[0]
