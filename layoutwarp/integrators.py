@@ -27,7 +27,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from . import kernels
+from . import jit, kernels
 from .checks import check_choice, check_int, check_shape, check_size, floating_dtype
 from .coords import grid_lines, pixel_centers, sensor_to_pixels
 from .layouts import Layout
@@ -533,9 +533,13 @@ def integrate_exact(
     """
     _check_image(image)
     check_choice(backend, BACKENDS, "backend")
-    kernel_ok = kernels.available() and not image.requires_grad
-    if kernel_ok and image.device.type != "cpu":
-        kernel_ok = image.is_cuda and kernels.cuda_available(str(floating_dtype(image.dtype)).split(".")[1])
+    if image.requires_grad or backend == "torch":
+        kernel_ok = False
+    elif image.device.type == "cpu":  # compiled, unless its kernels are still compiling (jit)
+        kernel_ok = jit.ready("learn", floating_dtype(image.dtype), wait=backend == "numba")
+    else:
+        kernel_ok = image.is_cuda and kernels.available()
+        kernel_ok = kernel_ok and kernels.cuda_available(str(floating_dtype(image.dtype)).split(".")[1])
     if backend == "numba" and not kernel_ok:
         raise ValueError(
             "backend='numba' needs numba installed, a CPU image or a CUDA image where numba's CUDA "

@@ -28,6 +28,8 @@ without it the torch reference runs.
 
 from __future__ import annotations
 
+import contextlib
+import importlib
 import math
 import threading
 import warnings
@@ -700,11 +702,28 @@ _CUDA_SOURCES = {
 CUDA_THREADS = 128
 
 
+#: numpy's names that numpy removed and numba-cuda still registers overloads for when it first
+#: compiles (0.30.4: ``np.row_stack``, gone in numpy 2.5), each with the function it aliased.
+REMOVED_NUMPY_ALIASES = {"row_stack": "vstack"}
+
+
 def _import_cuda() -> None:
+    """Import numba's CUDA target, and its numpy overloads with numpy's removed aliases in place
+    for that moment only (numba-cuda 0.30.4 reads ``np.row_stack`` while it registers them, and
+    without it on numpy ≥ 2.5 no kernel compiles; numba's own CPU target checks the version)."""
     global cuda
     if cuda is None:
-        from numba import cuda as numba_cuda
+        missing = [name for name in REMOVED_NUMPY_ALIASES if not hasattr(np, name)]
+        for name in missing:
+            setattr(np, name, getattr(np, REMOVED_NUMPY_ALIASES[name]))
+        try:
+            from numba import cuda as numba_cuda
 
+            with contextlib.suppress(ImportError):  # numba's own (older) CUDA target has no such module
+                importlib.import_module("numba.cuda.np.arrayobj")
+        finally:
+            for name in missing:
+                delattr(np, name)
         cuda = numba_cuda
 
 

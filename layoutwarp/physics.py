@@ -54,7 +54,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from . import kernels
+from . import jit, kernels
 from .checks import ArgumentError, check_choice, check_extent, check_int, check_number, check_size
 
 __all__ = [
@@ -390,7 +390,8 @@ def measure(
         ValueError: a full well below the read noise in the smallest pixel.
     """
     needs_grad = torch.is_grad_enabled() and (mean.requires_grad or areas.requires_grad)
-    if not needs_grad and mean.device.type == "cpu" and kernels.available():
+    kernel_dtype = mean.dtype if mean.dtype == torch.float32 else torch.float64  # its two builds
+    if not needs_grad and mean.device.type == "cpu" and jit.ready("measure", kernel_dtype, wait=True):
         return _measure_compiled(mean, kernel_arguments(physics, areas, output, generator))  # checks output
     check_choice(output, OUTPUTS, "output")
     mode = physics.noise

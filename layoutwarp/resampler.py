@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
-from . import kernels
+from . import jit, kernels
 from .checks import all_finite, check_size, raise_nonfinite
 from .integrators import data_tolerance, green_pieces
 from .labels import labels_to_sensor
@@ -259,7 +259,9 @@ class AreaResampler:
         means (as :func:`~layoutwarp.simulate` does by default); ``True`` passes them through."""
         n = images.shape[0]
         flat = images.reshape(n, -1)
-        if flat.device.type == "cpu" and not flat.requires_grad and kernels.available():
+        # compiled unless its kernels are still compiling (the noise's draws wait for theirs: jit)
+        compiled = flat.device.type == "cpu" and not flat.requires_grad
+        if compiled and jit.ready("fixed" if physics is None else "measure", flat.dtype, physics is not None):
             w = self.weights
             out = np.empty((n, w.shape[0]), dtype=np.float32)
             x = np.ascontiguousarray(flat.numpy())  # needs no gradient: no detach

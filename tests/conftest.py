@@ -19,6 +19,9 @@ SAMPLES = ROOT / "data_samples"
 SHARED = ROOT.parent / "shared" / "data"
 
 torch.set_num_threads(min(2, torch.get_num_threads()))
+# the suite compiles in process (results the same to the bit from the first call on, as the tests
+# compare them); tests/test_jit.py tries the background compile in processes of its own
+os.environ.setdefault("LAYOUTWARP_JIT", "wait")
 if SHARED.is_dir():  # the full data sets, where this checkout has them (tests that need them skip else)
     os.environ.setdefault("LAYOUTWARP_DATA", str(SHARED))
 

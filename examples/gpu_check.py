@@ -1,0 +1,174 @@
+"""One command on a fresh GPU machine: the CUDA tests, then every GPU figure the docs quote, printed
+and written to ``examples/gpu/gpu_check.json`` (keys: ``device``, ``torch``, ``numpy``,
+``step_over_gs16`` per family, ``step_over_reference_b1``/``_b4`` (``null``: the paper's reference
+layer is not part of this project; see docs/speed.md), ``fixed_over_pool``, ``physics_overhead``
+(a fraction), ``launches_per_step``, ``first_call_s``).
+
+    python examples/gpu_check.py [--no-tests] [--out examples/gpu/gpu_check.json]
+
+2048x1024 RGB float32 → 257x129; every time the median of synchronized calls in this process, each
+ratio against an anchor timed in the same process. The first call runs in a fresh subprocess with
+an empty numba cache (``NUMBA_CACHE_DIR``), so it includes compiling the CUDA kernels.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+import layoutwarp as lw
+
+SIZE = (129, 257)
+FIRST_CALL = """
+import time, torch, torch.nn.functional as F, layoutwarp as lw
+img = F.interpolate(torch.rand(1, 3, 256, 512), size=(1024, 2048), mode="bilinear").cuda()
+torch.cuda.synchronize()
+t = time.perf_counter()
+layout = lw.CurvLayout((0.3, -0.24), learn=True).cuda()
+lw.simulate(img, layout, (129, 257)).sum().backward()
+torch.cuda.synchronize()
+print(time.perf_counter() - t)
+"""
+
+
+def median_ms(fn, n: int = 15, warm: int = 3) -> float:
+    for _ in range(warm):
+        fn()
+    torch.cuda.synchronize()
+    times = []
+    for _ in range(n):
+        torch.cuda.synchronize()
+        t = time.perf_counter()
+        fn()
+        torch.cuda.synchronize()
+        times.append(time.perf_counter() - t)
+    return statistics.median(times) * 1e3
+
+
+def launches(fn, calls: int = 5) -> float:
+    """GPU activities (kernels, copies, memsets) per call, from torch's profiler."""
+    from torch.profiler import ProfilerActivity, profile
+
+    fn()
+    torch.cuda.synchronize()
+    with profile(activities=[ProfilerActivity.CUDA]) as prof:
+        for _ in range(calls):
+            fn()
+        torch.cuda.synchronize()
+    events = [e for e in prof.events() if e.device_type == torch.autograd.DeviceType.CUDA]
+    return len(events) / calls
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--no-tests", action="store_true", help="skip the CUDA tests")
+    ap.add_argument("--out", default=str(Path(__file__).parent / "gpu" / "gpu_check.json"))
+    args = ap.parse_args()
+    if not torch.cuda.is_available():
+        print("gpu_check: no CUDA GPU here", file=sys.stderr)
+        return 2
+    res: dict = {"device": torch.cuda.get_device_name(), "torch": torch.__version__, "numpy": np.__version__}
+    if not args.no_tests:
+        t = time.perf_counter()
+        tests = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "pytest",
+                "-q",
+                "-p",
+                "no:cacheprovider",
+                "tests/test_kernels.py",
+                "tests/test_meshkernels.py",
+                "tests/test_jit.py",
+                "-k",
+                "cuda or device or gpu or numpy",
+            ],
+            cwd=Path(__file__).resolve().parents[1],
+            capture_output=True,
+            text=True,
+        )
+        summary = tests.stdout.strip().splitlines()[-1] if tests.stdout.strip() else tests.stderr[-500:]
+        res["cuda_tests"] = {"rc": tests.returncode, "summary": summary, "seconds": time.perf_counter() - t}
+        print("CUDA tests:", summary, flush=True)
+        if tests.returncode:
+            print(tests.stdout[-6000:], flush=True)
+    with tempfile.TemporaryDirectory() as cache:
+        env = {**os.environ, "NUMBA_CACHE_DIR": cache}
+        first = subprocess.run([sys.executable, "-c", FIRST_CALL], env=env, capture_output=True, text=True)
+        res["first_call_s"] = float(first.stdout.split()[-1]) if first.returncode == 0 else None
+        print(f"first learnable CUDA step from an empty cache: {res['first_call_s']} s", first.stderr[-300:])
+    g = torch.Generator().manual_seed(0)
+    img = F.interpolate(torch.rand(1, 3, 256, 512, generator=g), size=(1024, 2048), mode="bilinear").cuda()
+    learnable = {
+        "curv+-": lw.CurvLayout((0.3, -0.24), learn=True).cuda(),
+        "fovea": lw.FoveaLayout((0.35, -0.25), center=(0.3, -0.2), learn=True).cuda(),
+    }
+
+    def step(layout):
+        layout.zero_grad()
+        lw.simulate(img, layout, SIZE).sum().backward()
+
+    curv = learnable["curv+-"]
+
+    def gs16_step():  # the paper's estimator, bare: 4x4 jittered samples a pixel through grid_sample
+        u = lw.maps.sample_points(SIZE, 4, jitter=True, dtype=torch.float32, device="cuda")
+        p = curv.phi(u, curv.theta.float())
+        out = F.grid_sample(img, p[None], mode="bilinear", align_corners=False)
+        out.reshape(1, 3, SIZE[0], 4, SIZE[1], 4).mean((3, 5)).sum().backward()
+        curv.zero_grad()
+
+    gs16 = median_ms(gs16_step)
+    res["gs16_ms"] = gs16
+    res["step_ms"], res["step_over_gs16"] = {}, {}
+    for name, layout in learnable.items():
+        ms = median_ms(lambda layout=layout: step(layout))
+        res["step_ms"][name], res["step_over_gs16"][name] = ms, ms / gs16
+        print(
+            f"learnable {name} step {ms:.2f} ms = {ms / gs16:.2f}x a bare grid_sample 16-sample step "
+            f"({gs16:.2f} ms)"
+        )
+    res["step_over_reference_b1"] = res["step_over_reference_b4"] = None
+    res["launches_per_step"] = launches(lambda: step(curv))
+    print(f"GPU activities per learnable curv step: {res['launches_per_step']:.0f}")
+    fixed = lw.CurvLayout((0.3, -0.24)).cuda()
+    phys = lw.SensorPhysics(
+        (2800, 5600), photons_per_um2=50, read_noise_e=2.0, full_well_per_um2=1000.0, adc_bits=12
+    )
+    with torch.no_grad():
+        t_fixed = median_ms(lambda: lw.simulate(img, fixed, SIZE), n=30)
+        t_pool = median_ms(lambda: F.adaptive_avg_pool2d(img, SIZE), n=30)
+        t_phys = median_ms(lambda: lw.simulate(img, fixed, SIZE, physics=phys), n=30)
+    res.update(fixed_ms=t_fixed, pool_ms=t_pool, physics_ms=t_phys)
+    res["fixed_over_pool"], res["physics_overhead"] = t_fixed / t_pool, t_phys / t_fixed - 1
+    print(
+        f"fixed curv forward {t_fixed:.3f} ms = {t_fixed / t_pool:.2f}x adaptive_avg_pool2d "
+        f"({t_pool:.3f} ms); "
+        f"with physics {t_phys:.3f} ms (+{res['physics_overhead']:.0%})"
+    )
+    with torch.no_grad():  # the device kernels against the CPU kernels, float64
+        small = img[:, :, :256, :512].double()
+        a = lw.simulate(small, fixed.double(), (33, 65)).cpu()
+        b = lw.simulate(small.cpu(), lw.CurvLayout((0.3, -0.24)).double(), (33, 65))
+    res["cuda_vs_cpu_f64_maxabs"] = float((a - b).abs().max())
+    print("CUDA vs CPU, float64, max abs difference:", res["cuda_vs_cpu_f64_maxabs"])
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.out).write_text(json.dumps(res, indent=1) + "\n")
+    if os.environ.get("OUT"):
+        Path(os.environ["OUT"], "gpu_check.json").write_text(json.dumps(res, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

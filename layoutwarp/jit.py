@@ -1,0 +1,372 @@
+"""Compiled code without the wait: which groups of kernels are ready, and compiling them once.
+
+numba compiles a kernel at its first call and keeps the machine code in a disk cache
+(``cache=True``: beside the package, or under ``NUMBA_CACHE_DIR``), so only the first process of
+an installation pays. From an empty cache that first payment is about a minute and a half of
+compiling on 2 cores for the kernels a user meets first (``docs/speed.md``), and nothing could be
+cut from it without slowing every later call. So by default no call waits for it:
+
+- ``"background"`` (the default): the first call that could use a group of kernels missing from
+  the cache starts one worker process (niced) that compiles every group into the cache, the one
+  asked for first, and the call answers from the torch path (the same values to rounding). A
+  call after the worker has compiled its group loads it from the cache in milliseconds and runs
+  compiled from then on. A call whose result would differ beyond rounding (the sensor's noise
+  draws: the compiled sampler and torch's are different streams) waits for its group instead. The
+  worker finishes the cache even after its parent has ended, so the next process finds it warm.
+- ``"wait"``: compile in this process at first use, as plain numba does: every call compiled, and
+  results the same to the bit from a process's first call on (the test suite runs this way).
+- ``"off"``: the torch path only.
+
+The mode comes from the environment variable ``LAYOUTWARP_JIT`` or :func:`set_mode`. Any group
+that has to be compiled in a process says so once, in one line on stderr. ``layoutwarp doctor``
+reports each group's state; ``layoutwarp doctor --compile`` fills the cache in the foreground
+(for a container image or a cluster node, before the jobs start).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+from . import kernels
+
+if TYPE_CHECKING:
+    import torch
+
+__all__ = [
+    "DTYPES",
+    "GROUPS",
+    "MODES",
+    "UNITS",
+    "compile_all",
+    "mode",
+    "ready",
+    "serve",
+    "set_mode",
+    "status",
+]
+
+#: What each group of kernels computes (the names :func:`ready` takes).
+GROUPS = {
+    "fixed": "a fixed layout's forward (area weights and their product)",
+    "learn": "the exact integrator and the mesh of a learnable layout",
+    "measure": "the sensor's measurement (noise, full well, ADC)",
+}
+#: The image dtypes kernels are compiled for, each on its own (a process seldom needs both).
+DTYPES = ("float32", "float64")
+#: A group for one dtype: what is compiled, loaded and reported at a time.
+UNITS = tuple(f"{g}/{d}" for d in DTYPES for g in GROUPS)
+#: The modes of :func:`set_mode` and of ``LAYOUTWARP_JIT``.
+MODES = ("background", "wait", "off")
+#: The environment variable that sets the mode.
+ENV = "LAYOUTWARP_JIT"
+
+_LOCK = threading.RLock()
+_READY: set[str] = set()  # groups loaded in this process
+_ANNOUNCED: set[str] = set()
+_MODE: list[str] = []  # set_mode's choice, if any
+_WORKER: _Worker | None = None
+_CHECKING = threading.local()  # set while this thread checks the cache: numba may load, not compile
+_WARMING = threading.local()  # set while this thread runs a warm-up
+
+
+def mode() -> str:
+    """The current mode: :func:`set_mode`'s, else ``LAYOUTWARP_JIT``'s, else ``"background"``."""
+    if _MODE:
+        return _MODE[-1]
+    value = os.environ.get(ENV, "background")
+    if value not in MODES:
+        raise ValueError(f"{ENV} must be one of {', '.join(MODES)}, got {value!r}")
+    return value
+
+
+def set_mode(value: str | None) -> None:
+    """Set the mode for this process (``None``: back to ``LAYOUTWARP_JIT``'s)."""
+    if value is not None and value not in MODES:
+        raise ValueError(f"mode must be one of {', '.join(MODES)}, got {value!r}")
+    _MODE[:] = [] if value is None else [value]
+
+
+def ready(group: str, dtype: str | torch.dtype = "float32", wait: bool = False) -> bool:
+    """Whether ``group``'s compiled kernels for images of ``dtype`` (float32 or float64) run now
+    (see the module docstring). ``wait``: the caller needs the compiled kernels (its result would
+    differ on the torch path): unless the mode is ``"off"``, wait for the background worker where
+    it is on them, else compile here, then ``True``. ``False`` where numba is missing or the mode
+    is ``"off"``: the caller takes its torch path."""
+    unit = _unit(group, dtype)
+    if unit in _READY or getattr(_WARMING, "on", False):  # a warm-up takes the compiled paths
+        return True
+    current = mode()
+    if not kernels.available() or current == "off":
+        return False
+    with _LOCK:
+        worker = _WORKER
+        if worker is not None and worker.has(unit) and not wait and current == "background":
+            return False  # still to compile: no need to look at the cache
+        if unit not in _READY and _loads(unit):
+            _READY.add(unit)
+        if unit in _READY:
+            return True
+        if current == "background" and not wait and worker is None:
+            _start_worker(unit)
+            return False
+        if worker is not None and worker.current == unit and worker.has(unit):
+            _announce(unit, "waiting for the background compile of")
+            worker.wait_for(unit)
+            if _loads(unit):
+                _READY.add(unit)
+                return True
+        if worker is not None:
+            worker.drop(unit)  # compiled here, beside the worker's current unit
+        _announce(unit, "compiling")
+        _warm(unit)  # numba's own first call
+        _READY.add(unit)
+        return True
+
+
+def status() -> dict[str, str]:
+    """Each group's state per dtype in this process (``"learn/float32"``: ...): ``"ready"``
+    (loaded), ``"in cache"`` (compiled, not yet loaded), ``"compiling"`` (the background worker
+    has it to do), ``"not compiled"`` or ``"no numba"``."""
+    out = {}
+    for unit in UNITS:
+        if not kernels.available():
+            out[unit] = "no numba"
+        elif unit in _READY:
+            out[unit] = "ready"
+        elif _WORKER is not None and _WORKER.has(unit):
+            out[unit] = "compiling"
+        else:
+            out[unit] = "in cache" if _loads(unit) else "not compiled"
+    return out
+
+
+def compile_all(progress: Callable[[str, float], None] | None = None) -> None:
+    """Compile (or load) every group for both dtypes in this process, telling
+    ``progress(unit, seconds)`` after each: what ``layoutwarp doctor --compile`` runs."""
+    for unit in UNITS:
+        start = time.perf_counter()
+        _warm(unit)
+        _READY.add(unit)
+        if progress is not None:
+            progress(unit, time.perf_counter() - start)
+
+
+def _unit(group: str, dtype: str | torch.dtype) -> str:
+    name = str(dtype).removeprefix("torch.")
+    if group not in GROUPS:
+        raise ValueError(f"group must be one of {', '.join(GROUPS)}, got {group!r}")
+    if name not in DTYPES:
+        raise ValueError(f"dtype must be one of {', '.join(DTYPES)}, got {dtype!r}")
+    return f"{group}/{name}"
+
+
+# ----------------------------------------------------------------------------------------
+# Is a group in the cache? Run its warm-up with numba allowed to load, not to compile.
+# ----------------------------------------------------------------------------------------
+class _WouldCompile(Exception):
+    pass
+
+
+def _abort_compiles() -> contextlib.AbstractContextManager:
+    """Within: a numba compile in this thread raises :class:`_WouldCompile` before it starts
+    (loading from the disk cache happens before numba's compile event, so it still works)."""
+    from numba.core import event
+
+    class Abort(event.Listener):
+        def on_start(self, ev: event.Event) -> None:
+            if getattr(_CHECKING, "on", False):
+                raise _WouldCompile
+
+        def on_end(self, ev: event.Event) -> None:
+            pass
+
+    return event.install_listener("numba:compile", Abort())
+
+
+def _loads(unit: str) -> bool:
+    """Whether every kernel of ``unit`` loads from the disk cache (then they stay loaded: numba
+    keeps what it loaded)."""
+    _CHECKING.on = True
+    try:
+        with _abort_compiles():
+            _warm(unit)
+        return True
+    except _WouldCompile:
+        return False
+    finally:
+        _CHECKING.on = False
+
+
+def _warm(unit: str) -> None:
+    """Run ``unit``'s warm-up, every :func:`ready` within it answering ``True``."""
+    import torch
+
+    group, dtype = unit.split("/")
+    _WARMING.on = True
+    try:
+        with torch.enable_grad():  # whatever the caller's grad mode: the learnable paths need it
+            _WARMUPS[group](getattr(torch, dtype))
+    finally:
+        _WARMING.on = False
+
+
+def _announce(unit: str, doing: str) -> None:
+    if unit not in _ANNOUNCED:
+        _ANNOUNCED.add(unit)
+        group, dtype = unit.split("/")
+        once = "once per installation; see layoutwarp doctor"
+        print(f"layoutwarp: {doing} {GROUPS[group]}, {dtype} ({once})", file=sys.stderr, flush=True)
+
+
+# ----------------------------------------------------------------------------------------
+# The warm-ups: each group's public paths on tiny inputs, in every type the library calls them
+# with (tests/test_jit.py checks that after them the entry points compile nothing)
+# ----------------------------------------------------------------------------------------
+def _warm_fixed(dtype: torch.dtype) -> None:
+    import torch
+
+    from .layouts import CurvLayout, RectLayout
+    from .resampler import clear_resampler_cache
+    from .sensor import simulate
+
+    with torch.no_grad():
+        for layout in (CurvLayout((0.3, -0.2)), RectLayout((0.3, -0.2))):
+            simulate(torch.full((1, 3, 8, 8), 0.5, dtype=dtype), layout.to(dtype), (3, 3))
+    clear_resampler_cache()
+
+
+def _warm_learn(dtype: torch.dtype) -> None:
+    import numpy as np
+    import torch
+
+    from .integrators import integrate_exact
+    from .layouts import CurvLayout, EllipticLayout, FoveaLayout
+    from .sensor import simulate
+
+    img = torch.full((1, 3, 8, 8), 0.5, dtype=dtype)
+    for layout in (
+        CurvLayout((0.3, -0.2), learn=True),
+        FoveaLayout((0.3, -0.2), center=(0.1, 0.1), learn=True),
+        EllipticLayout((0.3, -0.2), learn=True),
+    ):
+        simulate(img, layout.to(dtype), (3, 3)).sum().backward()
+    with torch.no_grad():  # a fixed layout's mesh, integrated without area weights
+        integrate_exact(img[0], CurvLayout((0.3, -0.2)).to(dtype), (3, 3), backend="numba")
+    # an image over WHOLE_TABLE_BYTES is integrated in bands of rows
+    verts = np.array([[0.5, 0.5], [1.5, 0.5], [1.5, 1.5], [0.5, 1.5]])
+    idx = np.arange(4, dtype=np.int64)
+    nt = kernels.threads()
+    seg = (verts, idx, (idx + 1) % 4, np.array([0, 4]), np.zeros(4, np.int64))
+    kernels.exact_forward_banded(*seg, img[0].numpy(), kernels.BLOCK, 2, nt)
+
+
+def _warm_measure(dtype: torch.dtype) -> None:
+    import torch
+
+    from .layouts import CurvLayout
+    from .physics import SensorPhysics
+    from .resampler import clear_resampler_cache
+    from .sensor import simulate
+
+    img = torch.full((1, 3, 8, 8), 0.5, dtype=dtype)
+    with torch.no_grad():
+        for noise in ("poisson", "gaussian", "none"):
+            for output in ("radiance", "dn"):
+                phys = SensorPhysics((30.0, 30.0), photons_per_um2=50, noise=noise, adc_bits=8, seed=0)
+                simulate(img, CurvLayout((0.3, -0.2)).to(dtype), (3, 3), physics=phys, output=output)
+    clear_resampler_cache()
+
+
+_WARMUPS: dict[str, Callable[[torch.dtype], None]] = {
+    "fixed": _warm_fixed,
+    "learn": _warm_learn,
+    "measure": _warm_measure,
+}
+
+
+# ----------------------------------------------------------------------------------------
+# The background worker: one process, a unit at a time, the most wanted first
+# ----------------------------------------------------------------------------------------
+class _Worker:
+    """A ``python -m layoutwarp.jit`` process compiling the units it is sent, one a line on its
+    stdin, and answering each on stdout; the next unit goes out as the last comes back (the
+    first asked for first, then the other groups of its dtype), so a process that needs a unit
+    the worker has not begun compiles it itself beside it (:meth:`drop`)."""
+
+    def __init__(self, first: str) -> None:
+        dtype = first.split("/")[1]
+        self.queue = sorted((u for u in UNITS if u != first), key=lambda u: not u.endswith(dtype))
+        self.done: set[str] = set()
+        self.current = first
+        self.changed = threading.Condition(_LOCK)
+        self.proc = subprocess.Popen(
+            [sys.executable, "-c", "from layoutwarp.jit import serve; serve()"],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.DEVNULL,
+            text=True,
+            env={**os.environ, ENV: "wait", "OMP_NUM_THREADS": "1"},
+            # in the parent's session: a session of its own gets a CPU share of its own (Linux's
+            # autogroups) whatever its priority, and a torch-path step on 2 cores ran 50x slower
+        )
+        self._send(first)
+        threading.Thread(target=self._read, daemon=True, name="layoutwarp-jit").start()
+
+    def has(self, unit: str) -> bool:
+        """Whether ``unit`` is still to come from the worker."""
+        return (unit == self.current or unit in self.queue) and self.proc.poll() is None
+
+    def drop(self, unit: str) -> None:
+        with self.changed:
+            if unit in self.queue:
+                self.queue.remove(unit)
+
+    def wait_for(self, unit: str) -> None:
+        with self.changed:
+            while self.has(unit):
+                self.changed.wait(0.5)
+
+    def _send(self, unit: str | None) -> None:
+        self.current = unit
+        if unit is None:
+            self.proc.stdin.close()
+        else:
+            self.proc.stdin.write(unit + "\n")
+            self.proc.stdin.flush()
+
+    def _read(self) -> None:
+        for line in self.proc.stdout:
+            with self.changed:
+                self.done.add(line.split()[-1])
+                self._send(self.queue.pop(0) if self.queue else None)
+                self.changed.notify_all()
+        with self.changed:
+            self.current, self.queue = None, []  # ended: nothing more will come from it
+            self.changed.notify_all()
+
+
+def _start_worker(unit: str) -> None:
+    global _WORKER
+    _announce(unit, "compiling in the background (the torch path answers meanwhile):")
+    _WORKER = _Worker(unit)
+
+
+def serve() -> None:
+    """The background worker's loop: compile each unit named on stdin, answer ``done UNIT``. It
+    ignores Ctrl-C (meant for its parent) and finishes the cache after its parent has ended."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    with contextlib.suppress(OSError, AttributeError):  # the user's own work comes first: this
+        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))  # runs on cores nobody wants
+    for line in sys.stdin:
+        unit = line.strip()
+        with contextlib.suppress(Exception):  # a failure shows as a unit that does not load
+            _warm(unit)
+        print(f"done {unit}", flush=True)

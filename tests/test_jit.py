@@ -1,0 +1,179 @@
+"""Compiled code without the wait (layoutwarp.jit) and the CUDA kernels on a newer numpy."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+
+import pytest
+import torch
+from conftest import ROOT, ptx_or_skip
+
+import layoutwarp as lw
+from layoutwarp import jit
+
+pytestmark = pytest.mark.skipif(not lw.kernels.available(), reason="needs numba")
+
+
+def run_python(code: str, env: dict[str, str], timeout: float = 600) -> subprocess.CompletedProcess:
+    full = {**os.environ, **env}
+    return subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(code)],
+        cwd=ROOT,
+        env=full,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
+
+
+def test_mode_comes_from_the_environment_and_is_checked(monkeypatch):
+    monkeypatch.setenv(jit.ENV, "off")
+    assert jit.mode() == "off"
+    assert not jit.ready("learn", torch.float64)  # off: the torch path, nothing compiled
+    monkeypatch.setenv(jit.ENV, "sometimes")
+    with pytest.raises(
+        ValueError, match="LAYOUTWARP_JIT must be one of background, wait, off, got 'sometimes'"
+    ):
+        jit.mode()
+    with pytest.raises(ValueError, match="mode must be one of"):
+        jit.set_mode("eventually")
+    with pytest.raises(ValueError, match="group must be one of"):
+        jit.ready("everything")
+    with pytest.raises(ValueError, match=r"dtype must be one of float32, float64, got torch\.float16"):
+        jit.ready("learn", torch.float16)
+
+
+@pytest.mark.slow
+def test_the_first_call_answers_from_torch_while_a_worker_compiles_then_runs_compiled(tmp_path):
+    """From an empty cache in the background mode: the first fixed-layout forward (float64: the
+    exact integrator on the mesh, the ``learn`` kernels) returns at
+    once from the torch path, one line says what is compiling, the worker fills the cache, and a
+    later call loads the compiled kernels (nothing compiled in the process itself) and gives the
+    same values to rounding; the sensor's noise waits for its kernels, so its draws are the
+    compiled sampler's from the first call (the same as in wait mode)."""
+    code = """
+        import json, time, torch, layoutwarp as lw
+        from numba.core import event
+        from layoutwarp import jit
+        compiles = []
+        class Count(event.Listener):  # compiles that ran to the end (a look at the cache aborts some)
+            def on_start(self, ev): pass
+            def on_end(self, ev):
+                if not ev.is_failed: compiles.append(ev.data["dispatcher"].py_func.__name__)
+        event.register("numba:compile", Count())
+        g = torch.Generator().manual_seed(5)
+        img = torch.rand(2, 3, 40, 60, generator=g, dtype=torch.float64)
+        layout = lw.CurvLayout((0.4, -0.3))
+        t = time.perf_counter()
+        with torch.no_grad():
+            first = lw.simulate(img, layout, (7, 9))
+        first_s = time.perf_counter() - t
+        state = jit.status()["learn/float64"]
+        jit._WORKER.wait_for("learn/float64")
+        with torch.no_grad():
+            later = lw.simulate(img, lw.CurvLayout((0.4, -0.3)), (7, 9))  # new weights, compiled
+        phys = lw.SensorPhysics((300.0, 400.0), photons_per_um2=20, seed=3)
+        noisy = lw.simulate(img, layout, (7, 9), physics=phys)
+        print(json.dumps({"first_s": first_s, "state": state, "after": jit.status()["learn/float64"],
+            "diff": float((first - later).abs().max()), "scale": float(later.abs().max()),
+            "compiles_here": sorted(set(compiles)), "noisy": noisy.flatten().tolist()}))
+    """
+    env = {"NUMBA_CACHE_DIR": str(tmp_path / "cache"), jit.ENV: "background"}
+    res = run_python(code, env)
+    assert res.returncode == 0, res.stderr[-3000:]
+    import json
+
+    out = json.loads(res.stdout.strip().splitlines()[-1])
+    assert out["state"] == "compiling" and out["after"] == "ready"
+    assert out["first_s"] < 5  # the torch path, not a compile (which takes tens of seconds)
+    assert out["diff"] <= 1e-13 * out["scale"]
+    # the integrator came from the worker's cache; the noise's kernels compiled here
+    assert "exact_forward" not in out["compiles_here"] and "exact_backward" not in out["compiles_here"]
+    assert "sensor_measure" in out["compiles_here"]
+    notices = [line for line in res.stderr.splitlines() if line.startswith("layoutwarp:")]
+    assert any("compiling in the background" in n and "exact integrator" in n for n in notices)
+    assert all("once per installation" in n for n in notices)
+    # the same draws as a process that compiled everything before its first call
+    env[jit.ENV] = "wait"
+    code_wait = code.replace('jit._WORKER.wait_for("learn/float64")', "")
+    res_wait = run_python(code_wait, env)
+    assert res_wait.returncode == 0, res_wait.stderr[-3000:]
+    assert json.loads(res_wait.stdout.strip().splitlines()[-1])["noisy"] == out["noisy"]
+
+
+def test_a_look_at_the_cache_compiles_nothing(tmp_path):
+    """:func:`jit.status` on an empty cache says 'not compiled' and compiles nothing (a look at
+    the cache must not turn into the compile it was meant to avoid)."""
+    code = """
+        import time, layoutwarp as lw
+        t = time.perf_counter()
+        print(lw.jit.status(), round(time.perf_counter() - t, 1))
+    """
+    res = run_python(code, {"NUMBA_CACHE_DIR": str(tmp_path / "cache")})
+    assert res.returncode == 0, res.stderr[-3000:]
+    states, seconds = res.stdout.rsplit(" ", 1)
+    assert states.count("'not compiled'") == len(jit.UNITS)
+    assert float(seconds) < 5
+
+
+@pytest.mark.slow
+def test_after_the_warm_ups_the_entry_points_compile_nothing():
+    """The warm-ups cover every type the entry points call the kernels with: after
+    :func:`jit.compile_all`, the README's example (a learnable curv step at 2048x1024 RGB, a fixed
+    forward, a call with physics), the other learnable families and float64 compile nothing."""
+    from numba.core import event
+
+    jit.compile_all()
+    compiles = []
+
+    class Count(event.Listener):
+        def on_start(self, ev):
+            compiles.append(ev.data["dispatcher"].py_func.__name__)
+
+        def on_end(self, ev):
+            pass
+
+    g = torch.Generator().manual_seed(1)
+    img = torch.rand(1, 3, 1024, 2048, generator=g)
+    with event.install_listener("numba:compile", Count()):
+        for layout in (
+            lw.CurvLayout((0.3, -0.24), learn=True),
+            lw.FoveaLayout((0.35, -0.25), center=(0.3, -0.2), learn=True),
+            lw.EllipticLayout((0.2, 0.3), learn=True),
+        ):
+            lw.simulate(img, layout, (129, 257)).sum().backward()
+        lw.simulate(
+            img[:, :, :300, :500].double(), lw.CurvLayout((0.3, -0.2), learn=True), (33, 65)
+        ).sum().backward()
+        with torch.no_grad():
+            lw.simulate(img, lw.CurvLayout((0.3, -0.1)), (129, 257))
+            lw.simulate(img, lw.RectLayout((0.3, -0.1)), (129, 257))
+        phys = lw.SensorPhysics((2800, 5600), photons_per_um2=50)
+        lw.simulate(img, lw.CurvLayout((0.3, -0.1)), (129, 257), physics=phys)
+    assert compiles == []
+
+
+def test_the_cuda_kernels_compile_on_numpy_2_5_without_its_removed_aliases():
+    """numpy 2.5 removed ``np.row_stack``, which numba-cuda 0.30.4 reads while registering its
+    overloads: emulated here (the version string set, the alias deleted, before anything is
+    imported), every CUDA kernel still compiles to PTX, and numpy is left without the alias."""
+    ptx_or_skip("edge_sums")  # skips where numba-cuda or the CUDA compilers are missing
+    code = """
+        import numpy
+        numpy.__version__ = "2.5.0"
+        del numpy.row_stack
+        numpy.__all__ = [n for n in numpy.__all__ if n != "row_stack"]
+        from layoutwarp import kernels, meshkernels as mk
+        for dtype in ("float32", "float64"):
+            for name in ("prefix_blocks", "prefix_offsets", "forward", "edge_sums", "backward"):
+                assert ".entry" in kernels.cuda_ptx(name, dtype), name
+        for name, (fn, sig) in mk.CUDA_KERNELS.items():
+            assert ".entry" in kernels.cuda_ptx(fn, signature=sig), name
+        print("compiled", hasattr(numpy, "row_stack"))
+    """
+    res = run_python(code, {})
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert res.stdout.strip().splitlines()[-1] == "compiled False"
