@@ -101,11 +101,13 @@ def ready(group: str, dtype: str | torch.dtype = "float32", wait: bool = False) 
     it is on them, else compile here, then ``True``. ``False`` where numba is missing or the mode
     is ``"off"``: the caller takes its torch path."""
     unit = _unit(group, dtype)
-    if unit in _READY or getattr(_WARMING, "on", False):  # a warm-up takes the compiled paths
+    if getattr(_WARMING, "on", False):  # a warm-up takes the compiled paths
         return True
     current = mode()
     if not kernels.available() or current == "off":
         return False
+    if unit in _READY:
+        return True
     with _LOCK:
         worker = _WORKER
         if worker is not None and worker.has(unit) and not wait and current == "background":
