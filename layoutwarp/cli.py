@@ -181,6 +181,16 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_doctor(args: argparse.Namespace) -> int:
+    from . import doctor, jit
+
+    if args.compile:
+        print(f"compiling every group of kernels into {doctor.cache_folder()} (once per installation)")
+        jit.compile_all(lambda unit, seconds: print(f"  {unit:<16} {seconds:6.1f} s", flush=True))
+    print(doctor.report())
+    return 0
+
+
 def _cmd_bench(args: argparse.Namespace) -> int:
     import torch
 
@@ -809,6 +819,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     d.add_argument("--out", default="results/demo", help="output folder")
     d.set_defaults(func=_cmd_demo)
+
+    dr = command("doctor", "Versions, which backend each path runs here and why, and the compiled kernels.")
+    dr.add_argument(
+        "--compile",
+        action="store_true",
+        help="compile every group of kernels now, in the foreground (e.g. when building a container image)",
+    )
+    dr.set_defaults(func=_cmd_doctor)
 
     b = command("bench", "Time and error of every integrator against anchors measured in the same run.")
     b.add_argument("--quick", action="store_true", help="small sizes, few repeats")

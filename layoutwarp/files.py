@@ -72,10 +72,12 @@ def run_info(device: Any = None, seeds: Any = None) -> dict[str, Any]:
     Returns:
         the layoutwarp, torch, numba, NumPy and Python versions, the machine, ``device``, torch's
         thread count, the world size and rank under ``torchrun`` (1 and 0 alone), the command
-        line and ``seeds``.
+        line, ``seeds``, and which backend each path took (:func:`~layoutwarp.doctor.backends`).
     """
     import numpy as np
     import torch
+
+    from .doctor import backends
 
     try:
         from importlib.metadata import version
@@ -95,5 +97,6 @@ def run_info(device: Any = None, seeds: Any = None) -> dict[str, Any]:
         "world_size": int(os.environ.get("WORLD_SIZE", "1")),
         "rank": int(os.environ.get("RANK", "0")),
         "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]]) if sys.argv else None,
+        "backends": backends(),
         "seeds": seeds,
     }

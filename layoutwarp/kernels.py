@@ -58,6 +58,7 @@ __all__ = [
     "band_rows",
     "csr_apply",
     "cuda_available",
+    "cuda_checked",
     "cuda_launch",
     "cuda_ptx",
     "exact_backward",
@@ -807,6 +808,11 @@ def cuda_available(dtype: str = "float32") -> bool:
     if dtype not in _CUDA_OK:
         _CUDA_OK[dtype] = _cuda_smoke_test(dtype)
     return _CUDA_OK[dtype]
+
+
+def cuda_checked() -> dict[str, bool]:
+    """What :func:`cuda_available` found so far in this process, per dtype (nothing compiled)."""
+    return dict(_CUDA_OK)
 
 
 def _cuda_smoke_test(dtype: str) -> bool:

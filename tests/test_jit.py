@@ -179,3 +179,42 @@ def test_the_cuda_kernels_compile_on_numpy_2_5_without_its_removed_aliases():
     res = run_python(code, {})
     assert res.returncode == 0, res.stderr[-3000:]
     assert res.stdout.strip().splitlines()[-1] == "compiled False"
+
+
+def test_doctor_names_each_paths_backend_and_the_kernels_state(capsys, monkeypatch):
+    from layoutwarp import cli
+
+    assert cli.main(["doctor"]) == 0
+    out = capsys.readouterr().out
+    assert f"numpy {__import__('numpy').__version__}" in " ".join(out.split())
+    assert "CPU:  compiled (numba" in out and "LAYOUTWARP_JIT=wait" in out
+    for unit in jit.UNITS:
+        assert any(line.split()[:1] == [unit] for line in out.splitlines()), unit
+    monkeypatch.setenv(jit.ENV, "off")
+    assert cli.main(["doctor"]) == 0
+    assert "CPU:  torch (LAYOUTWARP_JIT=off)" in capsys.readouterr().out
+    monkeypatch.setenv(jit.ENV, "later")
+    assert cli.main(["doctor"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == "layoutwarp doctor: error: LAYOUTWARP_JIT must be one of background, wait, off, got 'later'"
+
+
+def test_a_cuda_fallback_is_named_with_its_reason(monkeypatch):
+    """Where the CUDA kernels do not run (numba-cuda fails to compile, as on numpy 2.5 before),
+    doctor and every results file say the torch path runs, and why."""
+    import warnings
+
+    from layoutwarp import doctor, kernels
+
+    def broken(dtype="float32"):
+        reason = "layoutwarp: numba's CUDA kernels do not run here (AttributeError: row_stack)"
+        warnings.warn(reason, RuntimeWarning, stacklevel=2)
+        return False
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "get_device_name", lambda *a: "a test GPU")
+    monkeypatch.setattr(kernels, "cuda_available", broken)
+    assert doctor.cuda_backend() == "torch (numba's CUDA kernels do not run here (AttributeError: row_stack))"
+    assert doctor.cuda_backend(probe=False) == "not used yet in this process (a test GPU)"
+    monkeypatch.setattr(kernels, "cuda_checked", lambda: {"float32": False})
+    assert "cuda: torch (numba's CUDA kernels do not run here" in lw.files.run_info()["backends"]
