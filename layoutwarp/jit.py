@@ -32,7 +32,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING
 
 from . import kernels
@@ -51,6 +51,7 @@ __all__ = [
     "serve",
     "set_mode",
     "status",
+    "use_mode",
 ]
 
 #: What each group of kernels computes (the names :func:`ready` takes).
@@ -92,6 +93,17 @@ def set_mode(value: str | None) -> None:
     if value is not None and value not in MODES:
         raise ValueError(f"mode must be one of {', '.join(MODES)}, got {value!r}")
     _MODE[:] = [] if value is None else [value]
+
+
+@contextlib.contextmanager
+def use_mode(value: str) -> Iterator[None]:
+    """Within: mode ``value`` (e.g. ``"wait"`` where the compiled kernels are what is measured)."""
+    saved = _MODE[:]
+    set_mode(value)
+    try:
+        yield
+    finally:
+        _MODE[:] = saved
 
 
 def ready(group: str, dtype: str | torch.dtype = "float32", wait: bool = False) -> bool:

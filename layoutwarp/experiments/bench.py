@@ -29,7 +29,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .. import kernels, resampler
+from .. import jit, kernels, resampler
 from ..checks import check_size
 from ..coords import uniform_corners
 from ..files import atomic_write, run_info
@@ -355,6 +355,7 @@ class BenchConfig:
         return cls(**({"src": (256, 512), "size": (33, 65), "repeats": 3, "memory": False} | changes))
 
 
+@jit.use_mode("wait")  # the compiled kernels are timed, never the torch path while they compile
 def run(config: BenchConfig | None = None, progress: Callable[[str], None] | None = None) -> dict:
     """Measure every integrator against the anchors on a photo and a synthetic scene.
 
@@ -807,6 +808,7 @@ SCALING_METHODS: dict[str, tuple[str, str, dict]] = {
 }
 
 
+@jit.use_mode("wait")
 def scaling(
     srcs: Sequence[tuple[int, int]] = ((256, 512), (512, 1024), (1024, 2048)),
     sizes: Sequence[tuple[int, int]] = ((33, 65), (65, 129), (129, 257)),
@@ -939,8 +941,9 @@ def main_bench(
 
 def report_text(result: dict) -> str:
     """Everything the benchmark prints: the table, the training steps, the cached weights, the
-    physics, the compile time and the scaling grid."""
-    lines = [format_table(result)]
+    physics, the compile time and the scaling grid; first, the backends it ran on."""
+    backends = result.get("run", {}).get("backends")
+    lines = ([f"backends: {backends}"] if backends else []) + [format_table(result)]
     for r in result["rows"]:
         if r["method"].startswith("train step"):
             lines.append(
