@@ -21,6 +21,8 @@ import layoutwarp as lw
 from layoutwarp.experiments.scene import load_photo
 from layoutwarp.integrators import data_tolerance
 
+lw.jit.set_mode("wait")  # time the compiled kernels, never the torch path while they compile
+
 SIZE = (129, 257)
 
 

@@ -30,6 +30,8 @@ from layoutwarp.experiments.bench import count_ops
 from layoutwarp.experiments.scene import load_photo
 from layoutwarp.integrators import data_tolerance, integrate_exact
 
+lw.jit.set_mode("wait")  # time the compiled kernels, never the torch path while they compile
+
 SIZE = (129, 257)
 
 

@@ -22,6 +22,8 @@ import torch
 import layoutwarp as lw
 from layoutwarp import kernels
 
+lw.jit.set_mode("wait")  # time the compiled kernels, never the torch path while they compile
+
 
 def rss_mib(key: str) -> float:
     with open("/proc/self/status") as f:

@@ -41,6 +41,8 @@ import layoutwarp as lw
 from layoutwarp.cli import positive_int
 from layoutwarp.experiments.bench import BENCH_PHYSICS, interleaved_times
 
+lw.jit.set_mode("wait")  # time the compiled kernels, never the torch path while they compile
+
 ROOT = Path(__file__).resolve().parents[1]
 
 

@@ -18,6 +18,8 @@ import json, resource, sys, torch
 import layoutwarp as lw
 from layoutwarp import kernels
 from layoutwarp.layoutfile import layout_from_spec
+
+lw.jit.set_mode("wait")  # time the compiled kernels, never the torch path while they compile
 kernels.retain_freed_memory()
 img = torch.rand(1, 3, 1024, 2048, generator=torch.Generator().manual_seed(0))
 layout = layout_from_spec(json.loads(sys.argv[1]), learn=True)

@@ -24,6 +24,8 @@ from layoutwarp import kernels
 from layoutwarp.integrators import integrate_exact
 from layoutwarp.layoutfile import layout_from_spec
 
+lw.jit.set_mode("wait")  # time the compiled kernels, never the torch path while they compile
+
 SPECS = {
     "curv ±": {"family": "curv", "theta": [0.35, -0.25]},
     "fovea": {"family": "fovea", "theta": [0.35, -0.25], "center": [0.3, -0.2], "learn_center": True},
