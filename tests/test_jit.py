@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -48,58 +49,48 @@ def test_mode_comes_from_the_environment_and_is_checked(monkeypatch):
 
 @pytest.mark.slow
 def test_the_first_call_answers_from_torch_while_a_worker_compiles_then_runs_compiled(tmp_path):
-    """From an empty cache in the background mode: the first fixed-layout forward (float64: the
-    exact integrator on the mesh, the ``learn`` kernels) returns at
+    """From an empty cache in the background mode: the first fixed-layout forward returns at
     once from the torch path, one line says what is compiling, the worker fills the cache, and a
-    later call loads the compiled kernels (nothing compiled in the process itself) and gives the
-    same values to rounding; the sensor's noise waits for its kernels, so its draws are the
-    compiled sampler's from the first call (the same as in wait mode)."""
+    later call loads the compiled kernels (nothing of them compiled in the process itself) and
+    gives the same values to float32 rounding; the sensor's noise waits for its kernels, so its
+    draws are the compiled sampler's from the first call on (the same as in wait mode)."""
     code = """
         import json, time, torch, layoutwarp as lw
-        from numba.core import event
         from layoutwarp import jit
-        compiles = []
-        class Count(event.Listener):  # compiles that ran to the end (a look at the cache aborts some)
-            def on_start(self, ev): pass
-            def on_end(self, ev):
-                if not ev.is_failed: compiles.append(ev.data["dispatcher"].py_func.__name__)
-        event.register("numba:compile", Count())
         g = torch.Generator().manual_seed(5)
-        img = torch.rand(2, 3, 40, 60, generator=g, dtype=torch.float64)
+        img = torch.rand(2, 3, 40, 60, generator=g)
         layout = lw.CurvLayout((0.4, -0.3))
         t = time.perf_counter()
         with torch.no_grad():
             first = lw.simulate(img, layout, (7, 9))
         first_s = time.perf_counter() - t
-        state = jit.status()["learn/float64"]
-        jit._WORKER.wait_for("learn/float64")
+        state = jit.status()["fixed/float32"]
+        jit._WORKER.wait_for("fixed/float32")
         with torch.no_grad():
-            later = lw.simulate(img, lw.CurvLayout((0.4, -0.3)), (7, 9))  # new weights, compiled
+            later = lw.simulate(img, layout, (7, 9))
         phys = lw.SensorPhysics((300.0, 400.0), photons_per_um2=20, seed=3)
         noisy = lw.simulate(img, layout, (7, 9), physics=phys)
-        print(json.dumps({"first_s": first_s, "state": state, "after": jit.status()["learn/float64"],
+        print(json.dumps({"first_s": first_s, "state": state, "after": jit.status()["fixed/float32"],
             "diff": float((first - later).abs().max()), "scale": float(later.abs().max()),
-            "compiles_here": sorted(set(compiles)), "noisy": noisy.flatten().tolist()}))
+            "noisy": noisy.flatten().tolist()}))
     """
     env = {"NUMBA_CACHE_DIR": str(tmp_path / "cache"), jit.ENV: "background"}
     res = run_python(code, env)
     assert res.returncode == 0, res.stderr[-3000:]
-    import json
-
     out = json.loads(res.stdout.strip().splitlines()[-1])
     assert out["state"] == "compiling" and out["after"] == "ready"
-    assert out["first_s"] < 5  # the torch path, not a compile (which takes tens of seconds)
-    assert out["diff"] <= 1e-13 * out["scale"]
-    # the integrator came from the worker's cache; the noise's kernels compiled here
-    assert "exact_forward" not in out["compiles_here"] and "exact_backward" not in out["compiles_here"]
-    assert "sensor_measure" in out["compiles_here"]
+    assert out["first_s"] < 5  # the torch path, not a compile
+    assert 0 < out["diff"] <= 1e-6 * out["scale"]  # float32 sums in another order: rounding, no more
     notices = [line for line in res.stderr.splitlines() if line.startswith("layoutwarp:")]
-    assert any("compiling in the background" in n and "exact integrator" in n for n in notices)
     assert all("once per installation" in n for n in notices)
+    assert any("compiling in the background" in n and "fixed layout" in n for n in notices)
+    # the product came from the worker's cache, never compiled here; the noise's kernels came from
+    # this process's compile or the worker's, whichever had them first
+    assert not any(n.startswith("layoutwarp: compiling a fixed layout") for n in notices)
+    assert any("sensor's measurement" in n for n in notices)
     # the same draws as a process that compiled everything before its first call
     env[jit.ENV] = "wait"
-    code_wait = code.replace('jit._WORKER.wait_for("learn/float64")', "")
-    res_wait = run_python(code_wait, env)
+    res_wait = run_python(code.replace('jit._WORKER.wait_for("fixed/float32")', ""), env)
     assert res_wait.returncode == 0, res_wait.stderr[-3000:]
     assert json.loads(res_wait.stdout.strip().splitlines()[-1])["noisy"] == out["noisy"]
 
@@ -121,12 +112,18 @@ def test_a_look_at_the_cache_compiles_nothing(tmp_path):
 
 @pytest.mark.slow
 def test_after_the_warm_ups_the_entry_points_compile_nothing():
-    """The warm-ups cover every type the entry points call the kernels with: after
-    :func:`jit.compile_all`, the README's example (a learnable curv step at 2048x1024 RGB, a fixed
+    """The warm-ups cover every type the entry points call the kernels with: after those of the
+    groups they use, the README's example (a learnable curv step at 2048x1024 RGB, a fixed
     forward, a call with physics), the other learnable families and float64 compile nothing."""
     from numba.core import event
 
-    jit.compile_all()
+    for group, dtype in (
+        ("learn", "float32"),
+        ("fixed", "float32"),
+        ("measure", "float32"),
+        ("learn", "float64"),
+    ):
+        assert jit.ready(group, dtype, wait=True)  # compiled or loaded, as a first call would
     compiles = []
 
     class Count(event.Listener):
@@ -159,7 +156,8 @@ def test_after_the_warm_ups_the_entry_points_compile_nothing():
 def test_the_cuda_kernels_compile_on_numpy_2_5_without_its_removed_aliases():
     """numpy 2.5 removed ``np.row_stack``, which numba-cuda 0.30.4 reads while registering its
     overloads: emulated here (the version string set, the alias deleted, before anything is
-    imported), every CUDA kernel still compiles to PTX, and numpy is left without the alias.
+    imported), a CUDA kernel of each module compiles to PTX (the overloads register once, at the
+    first compile; the other tests compile every kernel), and numpy is left without the alias.
     (On an H200 with numpy 2.5.2 itself the CUDA tests pass: examples/gpu/gpu_check.json.)"""
     ptx_or_skip("edge_sums")  # skips where numba-cuda or the CUDA compilers are missing
     code = """
@@ -169,11 +167,9 @@ def test_the_cuda_kernels_compile_on_numpy_2_5_without_its_removed_aliases():
             del numpy.row_stack
         numpy.__all__ = [n for n in numpy.__all__ if n != "row_stack"]
         from layoutwarp import kernels, meshkernels as mk
-        for dtype in ("float32", "float64"):
-            for name in ("prefix_blocks", "prefix_offsets", "forward", "edge_sums", "backward"):
-                assert ".entry" in kernels.cuda_ptx(name, dtype), name
-        for name, (fn, sig) in mk.CUDA_KERNELS.items():
-            assert ".entry" in kernels.cuda_ptx(fn, signature=sig), name
+        assert ".entry" in kernels.cuda_ptx("edge_sums", "float32")
+        fn, sig = mk.CUDA_KERNELS["amin"]
+        assert ".entry" in kernels.cuda_ptx(fn, signature=sig)
         print("compiled", hasattr(numpy, "row_stack"))
     """
     res = run_python(code, {})
