@@ -185,7 +185,7 @@ def _cmd_doctor(args: argparse.Namespace) -> int:
     from . import doctor, jit
 
     if args.compile:
-        print(f"compiling every group of kernels into {doctor.cache_folder()} (once per installation)")
+        print(f"compiling every group of kernels into {jit.cache_folder()} (once per installation)")
         jit.compile_all(lambda unit, seconds: print(f"  {unit:<16} {seconds:6.1f} s", flush=True))
     print(doctor.report())
     return 0

@@ -10,7 +10,7 @@ import warnings
 
 from . import jit, kernels
 
-__all__ = ["backends", "cache_folder", "cuda_backend", "report"]
+__all__ = ["backends", "cpu_backend", "cuda_backend", "report"]
 
 #: The distributions whose versions the report lists (absent ones say so).
 PACKAGES = ("torch", "numpy", "numba", "numba-cuda", "kornia", "opencv-contrib-python-headless", "scipy")
@@ -21,14 +21,6 @@ def _version(name: str) -> str | None:
         return importlib.metadata.version(name)
     except importlib.metadata.PackageNotFoundError:
         return None
-
-
-def cache_folder() -> str | None:
-    """Where numba keeps this installation's compiled kernels (``None`` without numba)."""
-    if not kernels.available():
-        return None
-    cache = getattr(kernels.prefix_tables, "_cache", None)
-    return getattr(cache, "_cache_path", None)
 
 
 def cpu_backend() -> str:
@@ -76,7 +68,7 @@ def report() -> str:
     lines = [f"layoutwarp {__version__}, python {platform.python_version()} ({platform.machine()})"]
     lines += [f"  {name:<32} {_version(name) or 'not installed'}" for name in PACKAGES]
     lines += [f"CPU:  {cpu_backend()}", f"CUDA: {cuda_backend()}"]
-    folder = cache_folder()
+    folder = jit.cache_folder()
     lines.append(f"compiled kernels: {folder or 'none (numba is not installed)'}")
     if folder:
         states = jit.status()

@@ -30,6 +30,7 @@ import os
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -45,6 +46,7 @@ __all__ = [
     "GROUPS",
     "MODES",
     "UNITS",
+    "cache_folder",
     "compile_all",
     "mode",
     "ready",
@@ -373,6 +375,29 @@ def _start_worker(unit: str) -> None:
     _WORKER = _Worker(unit)
 
 
+def cache_folder() -> str | None:
+    """Where numba keeps this installation's compiled kernels (``None`` without numba)."""
+    if not kernels.available():
+        return None
+    return getattr(getattr(kernels.prefix_tables, "_cache", None), "_cache_path", None)
+
+
+@contextlib.contextmanager
+def _unit_lock(unit: str) -> Iterator[None]:
+    """Held while a worker compiles ``unit``: the workers of several processes on one cache (the
+    ranks of a ``torchrun`` job) take the units in turn, and each after the first loads them."""
+    try:
+        import fcntl
+    except ImportError:  # not POSIX: no lock, at worst the same unit compiled twice
+        yield
+        return
+    folder = cache_folder() or tempfile.gettempdir()
+    os.makedirs(folder, exist_ok=True)
+    with open(os.path.join(folder, f"layoutwarp-{unit.replace('/', '-')}.lock"), "w") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        yield
+
+
 def serve() -> None:
     """The background worker's loop: compile each unit named on stdin, answer ``done UNIT``. It
     ignores Ctrl-C (meant for its parent) and finishes the cache after its parent has ended."""
@@ -381,6 +406,6 @@ def serve() -> None:
         os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))  # runs on cores nobody wants
     for line in sys.stdin:
         unit = line.strip()
-        with contextlib.suppress(Exception):  # a failure shows as a unit that does not load
+        with contextlib.suppress(Exception), _unit_lock(unit):  # a failure: a unit that does not load
             _warm(unit)
         print(f"done {unit}", flush=True)

@@ -70,6 +70,8 @@ def test_the_first_call_answers_from_torch_while_a_worker_compiles_then_runs_com
             later = lw.simulate(img, layout, (7, 9))
         phys = lw.SensorPhysics((300.0, 400.0), photons_per_um2=20, seed=3)
         noisy = lw.simulate(img, layout, (7, 9), physics=phys)
+        if jit._WORKER is not None:
+            jit._WORKER.proc.kill()  # the test's cache is thrown away: no need to finish it
         print(json.dumps({"first_s": first_s, "state": state, "after": jit.status()["fixed/float32"],
             "diff": float((first - later).abs().max()), "scale": float(later.abs().max()),
             "noisy": noisy.flatten().tolist()}))
@@ -214,3 +216,29 @@ def test_a_cuda_fallback_is_named_with_its_reason(monkeypatch):
     assert doctor.cuda_backend(probe=False) == "not used yet in this process (a test GPU)"
     monkeypatch.setattr(kernels, "cuda_checked", lambda: {"float32": False})
     assert "cuda: torch (numba's CUDA kernels do not run here" in lw.files.run_info()["backends"]
+
+
+def test_workers_on_one_cache_take_a_unit_in_turn():
+    """Several processes on one cache (the ranks of a torchrun job) each start a worker: a worker
+    compiles a unit only while no other does (a lock beside the cache), then loads it."""
+    import select
+    import time
+
+    unit = "fixed/float32"
+    jit.ready("fixed", torch.float32, wait=True)  # in this cache, as another worker would leave it
+    with jit._unit_lock(unit):
+        proc = subprocess.Popen(
+            [sys.executable, "-c", "from layoutwarp.jit import serve; serve()"],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
+            cwd=ROOT,
+            env={**os.environ, jit.ENV: "wait"},
+        )
+        proc.stdin.write(unit + "\n")
+        proc.stdin.flush()
+        time.sleep(4)
+        assert proc.poll() is None and not select.select([proc.stdout], [], [], 0)[0]  # waits its turn
+    assert proc.stdout.readline().strip() == f"done {unit}"
+    proc.stdin.close()
+    assert proc.wait(timeout=60) == 0
