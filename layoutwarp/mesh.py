@@ -180,8 +180,8 @@ def polygon_area(poly: _A) -> _A:
     """Signed area of polygons ``(..., n, 2)`` (first vertex not repeated), by the shoelace sum.
 
     Examples:
-        >>> polygon_area(np.array([[0.0, 0.0], [2.0, 0.0], [2.0, 1.0], [0.0, 1.0]]))
-        np.float64(2.0)
+        >>> float(polygon_area(np.array([[0.0, 0.0], [2.0, 0.0], [2.0, 1.0], [0.0, 1.0]])))
+        2.0
     """
     n = poly.shape[-2]
     return segment_area(poly, poly[..., [*range(1, n), 0], :]).sum(-1)
