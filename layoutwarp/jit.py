@@ -141,8 +141,7 @@ def ready(group: str, dtype: str | torch.dtype = "float32", wait: bool = False) 
                 return True
         if worker is not None:
             worker.drop(unit)  # compiled here, beside the worker's current unit
-        _announce(unit, "compiling")
-        _warm(unit)  # numba's own first call
+        _announce(unit, "compiling")  # numba compiles what the call uses, as it comes
         _READY.add(unit)
         return True
 
