@@ -6,8 +6,8 @@ layer is not part of this project; see docs/speed.md), ``fixed_over_pool``, ``ph
 
     python examples/gpu_check.py [--no-tests] [--out examples/gpu/gpu_check.json]
 
-2048x1024 RGB float32 → 257x129; every time the median of synchronized calls in this process, each
-ratio against an anchor timed in the same process. The first call runs in a fresh subprocess with
+2048x1024 RGB float32 → 257x129; every ratio the median over interleaved rounds of the call and
+its anchor in this process (synchronized calls). The first call runs in a fresh subprocess with
 an empty numba cache (``NUMBA_CACHE_DIR``), so it includes compiling the CUDA kernels.
 """
 
@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import statistics
 import subprocess
 import sys
 import tempfile
@@ -28,6 +27,7 @@ import torch
 import torch.nn.functional as F
 
 import layoutwarp as lw
+from layoutwarp.experiments.bench import interleaved_times
 
 SIZE = (129, 257)
 FIRST_CALL = """
@@ -44,18 +44,12 @@ print(time.perf_counter() - t)
 """
 
 
-def median_ms(fn, n: int = 15, warm: int = 3) -> float:
-    for _ in range(warm):
-        fn()
-    torch.cuda.synchronize()
-    times = []
-    for _ in range(n):
-        torch.cuda.synchronize()
-        t = time.perf_counter()
-        fn()
-        torch.cuda.synchronize()
-        times.append(time.perf_counter() - t)
-    return statistics.median(times) * 1e3
+def paired_ms(fn, anchor, rounds: int = 15) -> tuple[float, float, float]:
+    """Median ms of ``fn`` and of ``anchor`` in interleaved rounds, and the median of the rounds'
+    ratios (the bench's way: both calls of a round meet the same machine state)."""
+    t_fn, t_anchor = interleaved_times([fn, anchor], rounds)
+    ratio = float(np.median(np.divide(t_fn, t_anchor)))
+    return float(np.median(t_fn)), float(np.median(t_anchor)), ratio
 
 
 def launches(fn, calls: int = 5) -> float:
@@ -131,14 +125,12 @@ def main() -> int:
         out.reshape(1, 3, SIZE[0], 4, SIZE[1], 4).mean((3, 5)).sum().backward()
         curv.zero_grad()
 
-    gs16 = median_ms(gs16_step)
-    res["gs16_ms"] = gs16
     res["step_ms"], res["step_over_gs16"] = {}, {}
     for name, layout in learnable.items():
-        ms = median_ms(lambda layout=layout: step(layout))
-        res["step_ms"][name], res["step_over_gs16"][name] = ms, ms / gs16
+        ms, gs16, ratio = paired_ms(lambda layout=layout: step(layout), gs16_step)
+        res["step_ms"][name], res["step_over_gs16"][name], res["gs16_ms"] = ms, ratio, gs16
         print(
-            f"learnable {name} step {ms:.2f} ms = {ms / gs16:.2f}x a bare grid_sample 16-sample step "
+            f"learnable {name} step {ms:.2f} ms = {ratio:.2f}x a bare grid_sample 16-sample step "
             f"({gs16:.2f} ms)"
         )
     res["step_over_reference_b1"] = res["step_over_reference_b4"] = None
@@ -149,13 +141,16 @@ def main() -> int:
         (2800, 5600), photons_per_um2=50, read_noise_e=2.0, full_well_per_um2=1000.0, adc_bits=12
     )
     with torch.no_grad():
-        t_fixed = median_ms(lambda: lw.simulate(img, fixed, SIZE), n=30)
-        t_pool = median_ms(lambda: F.adaptive_avg_pool2d(img, SIZE), n=30)
-        t_phys = median_ms(lambda: lw.simulate(img, fixed, SIZE, physics=phys), n=30)
+        t_fixed, t_pool, over_pool = paired_ms(
+            lambda: lw.simulate(img, fixed, SIZE), lambda: F.adaptive_avg_pool2d(img, SIZE), 30
+        )
+        t_phys, _, over_fixed = paired_ms(
+            lambda: lw.simulate(img, fixed, SIZE, physics=phys), lambda: lw.simulate(img, fixed, SIZE), 30
+        )
     res.update(fixed_ms=t_fixed, pool_ms=t_pool, physics_ms=t_phys)
-    res["fixed_over_pool"], res["physics_overhead"] = t_fixed / t_pool, t_phys / t_fixed - 1
+    res["fixed_over_pool"], res["physics_overhead"] = over_pool, over_fixed - 1
     print(
-        f"fixed curv forward {t_fixed:.3f} ms = {t_fixed / t_pool:.2f}x adaptive_avg_pool2d "
+        f"fixed curv forward {t_fixed:.3f} ms = {over_pool:.2f}x adaptive_avg_pool2d "
         f"({t_pool:.3f} ms); "
         f"with physics {t_phys:.3f} ms (+{res['physics_overhead']:.0%})"
     )
