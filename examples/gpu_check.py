@@ -29,11 +29,10 @@ import torch.nn.functional as F
 import layoutwarp as lw
 from layoutwarp.experiments.bench import interleaved_times
 
+lw.jit.set_mode("wait")  # time the compiled kernels, never the torch path while they compile
 SIZE = (129, 257)
 FIRST_CALL = """
 import time, torch, torch.nn.functional as F, layoutwarp as lw
-
-lw.jit.set_mode("wait")  # time the compiled kernels, never the torch path while they compile
 img = F.interpolate(torch.rand(1, 3, 256, 512), size=(1024, 2048), mode="bilinear").cuda()
 torch.cuda.synchronize()
 t = time.perf_counter()

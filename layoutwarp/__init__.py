@@ -59,7 +59,7 @@ _LAZY = {
     "preprocess_folder": "preprocess",
 }
 #: Submodules that ``layoutwarp.<name>`` loads on first use.
-_LAZY_MODULES = ("augment", "export", "labels", "preprocess", "resampler")
+_LAZY_MODULES = ("augment", "doctor", "export", "jit", "labels", "preprocess", "resampler")
 
 
 def __getattr__(name: str) -> Any:
