@@ -21,6 +21,7 @@ from __future__ import annotations
 import importlib
 from typing import TYPE_CHECKING, Any
 
+from . import warmups  # noqa: F401  (registers the compiled kernels' warm-ups with layoutwarp.jit)
 from .backwarp import backwarp, backwarp_cross_entropy, backwarp_numpy
 from .density import edge_density, layout_from_density
 from .grids import GridLayout

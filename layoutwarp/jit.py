@@ -7,8 +7,8 @@ compiling on 2 cores for the kernels a user meets first (``docs/speed.md``), and
 cut from it without slowing every later call. So by default no call waits for it:
 
 - ``"background"`` (the default): the first call that could use a group of kernels missing from
-  the cache starts one worker process (niced) that compiles every group into the cache, the one
-  asked for first, and the call answers from the torch path (the same values to rounding). A
+  the cache starts one worker process (at idle priority) that compiles every group into the
+  cache, the one asked for first, and the call answers from the torch path (the same values to rounding). A
   call after the worker has compiled its group loads it from the cache in milliseconds and runs
   compiled from then on. A call whose result would differ beyond rounding (the sensor's noise
   draws: the compiled sampler and torch's are different streams) waits for its group instead. The
@@ -50,6 +50,7 @@ __all__ = [
     "compile_all",
     "mode",
     "ready",
+    "register_warmup",
     "serve",
     "set_mode",
     "status",
@@ -241,70 +242,16 @@ def _announce(unit: str, doing: str) -> None:
         print(f"layoutwarp: {doing} {GROUPS[group]}, {dtype} ({once})", file=sys.stderr, flush=True)
 
 
-# ----------------------------------------------------------------------------------------
-# The warm-ups: each group's public paths on tiny inputs, in every type the library calls them
-# with (tests/test_jit.py checks that after them the entry points compile nothing)
-# ----------------------------------------------------------------------------------------
-def _warm_fixed(dtype: torch.dtype) -> None:
-    import torch
-
-    from .layouts import CurvLayout, RectLayout
-    from .resampler import clear_resampler_cache
-    from .sensor import simulate
-
-    with torch.no_grad():
-        for layout in (CurvLayout((0.3, -0.2)), RectLayout((0.3, -0.2))):
-            simulate(torch.full((1, 3, 8, 8), 0.5, dtype=dtype), layout.to(dtype), (3, 3))
-    clear_resampler_cache()
+#: Each group's warm-up: its public paths on tiny inputs of one dtype, in every type the library
+#: calls its kernels with (registered by :mod:`layoutwarp.warmups`, which the package imports).
+_WARMUPS: dict[str, Callable[[torch.dtype], None]] = {}
 
 
-def _warm_learn(dtype: torch.dtype) -> None:
-    import numpy as np
-    import torch
-
-    from .integrators import integrate_exact
-    from .layouts import CurvLayout, EllipticLayout, FoveaLayout
-    from .sensor import simulate
-
-    img = torch.full((1, 3, 8, 8), 0.5, dtype=dtype)
-    for layout in (
-        CurvLayout((0.3, -0.2), learn=True),
-        FoveaLayout((0.3, -0.2), center=(0.1, 0.1), learn=True),
-        EllipticLayout((0.3, -0.2), learn=True),
-    ):
-        simulate(img, layout.to(dtype), (3, 3)).sum().backward()
-    with torch.no_grad():  # a fixed layout's mesh, integrated without area weights
-        integrate_exact(img[0], CurvLayout((0.3, -0.2)).to(dtype), (3, 3), backend="numba")
-    # an image over WHOLE_TABLE_BYTES is integrated in bands of rows
-    verts = np.array([[0.5, 0.5], [1.5, 0.5], [1.5, 1.5], [0.5, 1.5]])
-    idx = np.arange(4, dtype=np.int64)
-    nt = kernels.threads()
-    seg = (verts, idx, (idx + 1) % 4, np.array([0, 4]), np.zeros(4, np.int64))
-    kernels.exact_forward_banded(*seg, img[0].numpy(), kernels.BLOCK, 2, nt)
-
-
-def _warm_measure(dtype: torch.dtype) -> None:
-    import torch
-
-    from .layouts import CurvLayout
-    from .physics import SensorPhysics
-    from .resampler import clear_resampler_cache
-    from .sensor import simulate
-
-    img = torch.full((1, 3, 8, 8), 0.5, dtype=dtype)
-    with torch.no_grad():
-        for noise in ("poisson", "gaussian", "none"):
-            for output in ("radiance", "dn"):
-                phys = SensorPhysics((30.0, 30.0), photons_per_um2=50, noise=noise, adc_bits=8, seed=0)
-                simulate(img, CurvLayout((0.3, -0.2)).to(dtype), (3, 3), physics=phys, output=output)
-    clear_resampler_cache()
-
-
-_WARMUPS: dict[str, Callable[[torch.dtype], None]] = {
-    "fixed": _warm_fixed,
-    "learn": _warm_learn,
-    "measure": _warm_measure,
-}
+def register_warmup(group: str, fn: Callable[[torch.dtype], None]) -> None:
+    """Make ``fn(dtype)`` the warm-up of ``group`` (one of :data:`GROUPS`)."""
+    if group not in GROUPS:
+        raise ValueError(f"group must be one of {', '.join(GROUPS)}, got {group!r}")
+    _WARMUPS[group] = fn
 
 
 # ----------------------------------------------------------------------------------------
@@ -323,7 +270,8 @@ class _Worker:
         self.current = first
         self.changed = threading.Condition(_LOCK)
         self.proc = subprocess.Popen(
-            [sys.executable, "-c", "from layoutwarp.jit import serve; serve()"],
+            [sys.executable, "-c", "from layoutwarp.jit import serve; serve()"],  # the package's
+            # import registers the warm-ups
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             stderr=subprocess.DEVNULL,
@@ -359,6 +307,8 @@ class _Worker:
 
     def _read(self) -> None:
         for line in self.proc.stdout:
+            if not line.startswith("done "):  # anything else a warm-up printed
+                continue
             with self.changed:
                 self.done.add(line.split()[-1])
                 self._send(self.queue.pop(0) if self.queue else None)

@@ -1,0 +1,56 @@
+"""The warm-ups of :mod:`layoutwarp.jit`: each group's public paths on tiny inputs of one dtype,
+in every type the library calls the group's kernels with, so that after a group's warm-up the
+entry points compile nothing (tests/test_jit.py checks it). The background worker and
+``layoutwarp doctor --compile`` run them; a look at the cache runs them with compiling forbidden."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from . import jit, kernels
+from .integrators import integrate_exact
+from .layouts import CurvLayout, EllipticLayout, FoveaLayout, RectLayout
+from .physics import SensorPhysics
+from .resampler import clear_resampler_cache
+from .sensor import simulate
+
+
+def _warm_fixed(dtype: torch.dtype) -> None:
+    with torch.no_grad():
+        for layout in (CurvLayout((0.3, -0.2)), RectLayout((0.3, -0.2))):
+            simulate(torch.full((1, 3, 8, 8), 0.5, dtype=dtype), layout.to(dtype), (3, 3))
+    clear_resampler_cache()
+
+
+def _warm_learn(dtype: torch.dtype) -> None:
+    img = torch.full((1, 3, 8, 8), 0.5, dtype=dtype)
+    for layout in (
+        CurvLayout((0.3, -0.2), learn=True),
+        FoveaLayout((0.3, -0.2), center=(0.1, 0.1), learn=True),
+        EllipticLayout((0.3, -0.2), learn=True),
+    ):
+        simulate(img, layout.to(dtype), (3, 3)).sum().backward()
+    with torch.no_grad():  # a fixed layout's mesh, integrated without area weights
+        integrate_exact(img[0], CurvLayout((0.3, -0.2)).to(dtype), (3, 3), backend="numba")
+    # an image over WHOLE_TABLE_BYTES is integrated in bands of rows
+    verts = np.array([[0.5, 0.5], [1.5, 0.5], [1.5, 1.5], [0.5, 1.5]])
+    idx = np.arange(4, dtype=np.int64)
+    nt = kernels.threads()
+    seg = (verts, idx, (idx + 1) % 4, np.array([0, 4]), np.zeros(4, np.int64))
+    kernels.exact_forward_banded(*seg, img[0].numpy(), kernels.BLOCK, 2, nt)
+
+
+def _warm_measure(dtype: torch.dtype) -> None:
+    img = torch.full((1, 3, 8, 8), 0.5, dtype=dtype)
+    with torch.no_grad():
+        for noise in ("poisson", "gaussian", "none"):
+            for output in ("radiance", "dn"):
+                phys = SensorPhysics((30.0, 30.0), photons_per_um2=50, noise=noise, adc_bits=8, seed=0)
+                simulate(img, CurvLayout((0.3, -0.2)).to(dtype), (3, 3), physics=phys, output=output)
+    clear_resampler_cache()
+
+
+jit.register_warmup("fixed", _warm_fixed)
+jit.register_warmup("learn", _warm_learn)
+jit.register_warmup("measure", _warm_measure)
