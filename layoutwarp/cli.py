@@ -11,6 +11,7 @@ import argparse
 import json
 import math
 import os
+import re
 import sys
 import tempfile
 from collections.abc import Callable, Sequence
@@ -876,7 +877,7 @@ def build_parser() -> argparse.ArgumentParser:
             "--range",
             type=parse_range,
             default="-0.8,0.8",
-            help="θ range LO,HI on both axes (write --range=LO,HI)",
+            help="θ range LO,HI on both axes",
         )
         sizes = _sizes_text(task.study.learned_sizes[:1])
         lt.add_argument("--size", type=parse_wxh, help=f"sensor WIDTHxHEIGHT (default: {sizes})")
@@ -981,9 +982,29 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def join_negative_values(argv: Sequence[str]) -> list[str]:
+    """``--flag -0.5,0.5`` as ``--flag=-0.5,0.5``: a value that starts with a minus and a digit is
+    the flag's value, not a flag (argparse takes only plain negative numbers so, and read
+    ``--theta -0.5,0.5`` or ``--size -4x4`` as a missing value)."""
+    out: list[str] = []
+    i = 0
+    while i < len(argv):
+        arg = argv[i]
+        if arg.startswith("--") and "=" not in arg and i + 1 < len(argv) and _NEGATIVE.match(argv[i + 1]):
+            out.append(f"{arg}={argv[i + 1]}")
+            i += 2
+        else:
+            out.append(arg)
+            i += 1
+    return out
+
+
+_NEGATIVE = re.compile(r"^-\.?\d")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; returns the exit status."""
-    args = build_parser().parse_args(argv)
+    args = build_parser().parse_args(join_negative_values(sys.argv[1:] if argv is None else argv))
     prog = f"layoutwarp {args.command}" + (
         f" {args.task}" if args.command in ("train", "study", "landscape") else ""
     )

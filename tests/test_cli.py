@@ -316,3 +316,30 @@ def test_examples_run(script):
     cmd = [sys.executable, str(ROOT / "examples" / script)]
     res = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
     assert res.returncode == 0, res.stderr[-2000:]
+
+
+def test_a_negative_value_after_its_flag_is_the_flags_value(tmp_path, capsys):
+    """``--theta -0.5,0.5`` works as ``--theta=-0.5,0.5`` does (argparse alone read a value that
+    starts with a minus as a flag and said 'expected one argument'); a flag followed by a flag stays."""
+    from layoutwarp.cli import join_negative_values, main
+
+    argv = ["export", "--theta", "-0.5,0.5", "--size", "-4x4", "--manhattan", "--range", "-.8,.8", "-o", "x"]
+    assert join_negative_values(argv) == [
+        "export",
+        "--theta=-0.5,0.5",
+        "--size=-4x4",
+        "--manhattan",
+        "--range=-.8,.8",
+        "-o",
+        "x",
+    ]
+    out = tmp_path / "neg.svg"
+    common = ["--sensor-um", "40x40", "--out", str(out)]
+    assert main(["export", "--family", "curv", "--theta", "-0.5,0.5", "--size", "4x4", *common]) == 0
+    assert out.is_file()
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as stop:  # argparse's own refusal of the value, as for any bad value
+        main(["export", "--family", "curv", "--theta", "-0.5,0.5", "--size", "-4x4", *common])
+    assert stop.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert err.endswith("argument --size: width and height must be >= 1, got '-4x4'")
