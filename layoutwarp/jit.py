@@ -73,7 +73,7 @@ MODES = ("background", "wait", "off")
 ENV = "LAYOUTWARP_JIT"
 
 _LOCK = threading.RLock()
-_READY: set[str] = set()  # groups loaded in this process
+_READY: set[str] = set()  # units loaded (or compiled) in this process
 _ANNOUNCED: set[str] = set()
 _MODE: list[str] = []  # set_mode's choice, if any
 _WORKER: _Worker | None = None
@@ -217,6 +217,8 @@ def _loads(unit: str) -> bool:
         return True
     except _WouldCompile:
         return False
+    except Exception:  # a look must not fail the user's call: what failed here is compiled (and
+        return False  # fails, if it does) where the call itself runs it
     finally:
         _CHECKING.on = False
 
