@@ -56,7 +56,8 @@ def cuda_backend(probe: bool = True) -> str:
 def backends() -> str:
     """One line: the versions that matter and each path's backend (what results files record;
     the CUDA kernels are not compiled to find out)."""
-    versions = ", ".join(f"{n} {_version(n)}" for n in ("torch", "numpy", "numba") if _version(n))
+    found = {n: _version(n) for n in ("torch", "numpy", "numba")}
+    versions = ", ".join(f"{n} {v}" for n, v in found.items() if v)
     cuda = cuda_backend(probe=False)
     return f"python {platform.python_version()}, {versions}; cpu: {cpu_backend()}; cuda: {cuda}"
 
