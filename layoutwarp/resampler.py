@@ -10,9 +10,11 @@ simulation use it.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import warnings
 from collections import OrderedDict
+from collections.abc import Iterator
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -30,7 +32,14 @@ from .physics import SensorPhysics, kernel_arguments, measure
 if TYPE_CHECKING:
     import scipy.sparse
 
-__all__ = ["CACHE_SIZE", "AreaResampler", "area_weights", "clear_resampler_cache", "resampler_for"]
+__all__ = [
+    "CACHE_SIZE",
+    "AreaResampler",
+    "area_weights",
+    "cache_kept",
+    "clear_resampler_cache",
+    "resampler_for",
+]
 
 
 #: Boundary pieces (segments cut at source cell lines) that :func:`area_weights` handles at once:
@@ -336,3 +345,15 @@ def resampler_for(
 def clear_resampler_cache() -> None:
     """Forget the resamplers :func:`resampler_for` keeps."""
     _CACHE.clear()
+
+
+@contextlib.contextmanager
+def cache_kept() -> Iterator[None]:
+    """Within: :func:`resampler_for` as usual; after: its cache as it was before (what was built
+    within is forgotten, and nothing kept before was pushed out)."""
+    saved = _CACHE.copy()
+    try:
+        yield
+    finally:
+        _CACHE.clear()
+        _CACHE.update(saved)

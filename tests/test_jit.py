@@ -242,3 +242,18 @@ def test_workers_on_one_cache_take_a_unit_in_turn():
     assert proc.stdout.readline().strip() == f"done {unit}"
     proc.stdin.close()
     assert proc.wait(timeout=60) == 0
+
+
+def test_a_look_at_the_cache_keeps_the_users_cached_weights():
+    """The warm-ups go through simulate's cached area weights on tiny layouts; a look at the cache
+    (or a compile) in a user's process leaves that cache as it found it."""
+    from layoutwarp import resampler, warmups
+
+    img = torch.rand(1, 3, 40, 60)
+    with torch.no_grad():
+        lw.simulate(img, lw.CurvLayout((0.4, -0.3)), (7, 9))
+    before = list(resampler._CACHE)
+    assert before
+    for group in ("fixed", "measure"):
+        getattr(warmups, f"_warm_{group}")(torch.float32)
+    assert list(resampler._CACHE) == before
