@@ -11,8 +11,12 @@ cut from it without slowing every later call. So by default no call waits for it
   cache, the one asked for first, and the call answers from the torch path (the same values to rounding). A
   call after the worker has compiled its group loads it from the cache in milliseconds and runs
   compiled from then on. A call whose result would differ beyond rounding (the sensor's noise
-  draws: the compiled sampler and torch's are different streams) waits for its group instead. The
+  draws: the compiled sampler and torch's are different streams) takes :func:`compiled`. The
   worker finishes the cache even after its parent has ended, so the next process finds it warm.
+  The sensor's noise is the one such call, and it does not wait long: while the worker has its
+  group to do, it runs a *quick build* of its kernel (:func:`quick`: the same code compiled
+  without numba's IR inlining, in seconds rather than half a minute, the same values to the bit,
+  1.5–6x slower), compiled in the process and kept in the cache beside the full build.
 - ``"wait"``: compile in this process at first use, as plain numba does: every call compiled, and
   results the same to the bit from a process's first call on (the test suite runs this way).
 - ``"off"``: the torch path only.
@@ -33,8 +37,9 @@ import sys
 import tempfile
 import threading
 import time
+import types
 from collections.abc import Callable, Iterator
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from . import kernels
 
@@ -48,7 +53,9 @@ __all__ = [
     "UNITS",
     "cache_folder",
     "compile_all",
+    "compiled",
     "mode",
+    "quick",
     "ready",
     "register_warmup",
     "serve",
@@ -74,7 +81,8 @@ ENV = "LAYOUTWARP_JIT"
 
 _LOCK = threading.RLock()
 _READY: set[str] = set()  # units loaded (or compiled) in this process
-_ANNOUNCED: set[str] = set()
+_ANNOUNCED: set[tuple[str, str]] = set()
+_QUICK: dict[Any, Any] = {}  # each kernel's quick build
 _MODE: list[str] = []  # set_mode's choice, if any
 _WORKER: _Worker | None = None
 _CHECKING = threading.local()  # set while this thread checks the cache: numba may load, not compile
@@ -145,6 +153,54 @@ def ready(group: str, dtype: str | torch.dtype = "float32", wait: bool = False) 
         _announce(unit, "compiling")  # numba compiles what the call uses, as it comes
         _READY.add(unit)
         return True
+
+
+def compiled(group: str, dtype: str | torch.dtype, kernel: Any) -> Any | None:
+    """What to call for ``kernel`` (a compiled kernel of ``group``) where the result must come
+    from compiled code (the sensor's noise draws): ``kernel`` itself where its group is ready or
+    the mode is ``"wait"`` (compiled here if need be); in ``"background"`` mode while the worker
+    has the group to do, its :func:`quick` build (compiled here in seconds the first time, the
+    same values); ``None`` where numba is missing or the mode is ``"off"`` (the torch path)."""
+    if ready(group, dtype):  # in background mode this starts the worker
+        return kernel
+    current = mode()
+    if current == "off" or not kernels.available():
+        return None
+    if current == "wait":
+        return kernel if ready(group, dtype, wait=True) else None
+    unit = _unit(group, dtype)
+    _announce(unit, "compiling a quick build (seconds; the full one follows in the background) of")
+    return quick(kernel)
+
+
+def quick(kernel: Any) -> Any:
+    """``kernel``'s quick build: its Python function and every compiled function it calls,
+    recompiled without numba's IR inlining (``inline="always"``; the rest of its options kept).
+    IR inlining makes numba type and lower each helper again at every call site, most of a large
+    kernel's compile time (``sensor_measure``: 21 s, quick 6 s); without it LLVM still inlines
+    small helpers, and the arithmetic is the same, so the results are the same to the bit (the
+    kernels use no fast-math), at 1.5–6x the run time. Cached under a name of its own
+    (``NAME_quick``) beside the full build."""
+    with _LOCK:
+        if kernel not in _QUICK:
+            _QUICK[kernel] = _rebuild(kernel)
+        return _QUICK[kernel]
+
+
+def _rebuild(kernel: Any) -> Any:
+    from numba import njit
+    from numba.core.dispatcher import Dispatcher
+
+    func = kernel.py_func
+    scope = dict(func.__globals__)
+    for name in func.__code__.co_names:  # the compiled functions it calls, by their global names
+        if isinstance(scope.get(name), Dispatcher):
+            scope[name] = quick(scope[name])
+    rebuilt = types.FunctionType(func.__code__, scope, func.__name__, func.__defaults__, func.__closure__)
+    rebuilt.__qualname__ = f"{func.__qualname__}_quick"  # numba's cache files are named by it
+    rebuilt.__module__, rebuilt.__doc__ = func.__module__, func.__doc__
+    options = {k: v for k, v in kernel.targetoptions.items() if k not in ("inline", "nopython")}
+    return njit(cache=True, **options)(rebuilt)  # every kernel of the package is cached
 
 
 def status() -> dict[str, str]:
@@ -237,8 +293,8 @@ def _warm(unit: str) -> None:
 
 
 def _announce(unit: str, doing: str) -> None:
-    if unit not in _ANNOUNCED:
-        _ANNOUNCED.add(unit)
+    if (unit, doing) not in _ANNOUNCED:
+        _ANNOUNCED.add((unit, doing))
         group, dtype = unit.split("/")
         once = "once per installation; see layoutwarp doctor"
         print(f"layoutwarp: {doing} {GROUPS[group]}, {dtype} ({once})", file=sys.stderr, flush=True)

@@ -46,6 +46,7 @@ import functools
 import json
 import math
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, fields
 from typing import Any
 
@@ -391,8 +392,12 @@ def measure(
     """
     needs_grad = torch.is_grad_enabled() and (mean.requires_grad or areas.requires_grad)
     kernel_dtype = mean.dtype if mean.dtype == torch.float32 else torch.float64  # its two builds
-    if not needs_grad and mean.device.type == "cpu" and jit.ready("measure", kernel_dtype, wait=True):
-        return _measure_compiled(mean, kernel_arguments(physics, areas, output, generator))  # checks output
+    kernel = None
+    if not needs_grad and mean.device.type == "cpu":
+        kernel = jit.compiled("measure", kernel_dtype, kernels.sensor_measure)
+    if kernel is not None:
+        args = kernel_arguments(physics, areas, output, generator)  # checks output
+        return _measure_compiled(mean, args, kernel)
     check_choice(output, OUTPUTS, "output")
     mode = physics.noise
     if mode == "auto":
@@ -558,15 +563,16 @@ def kernel_arguments(
     return (*_compiled_sensor(physics, areas), seed, NOISE_CODES[mode], OUTPUTS.index(output))
 
 
-def _measure_compiled(mean: Tensor, args: tuple) -> Tensor:
+def _measure_compiled(mean: Tensor, args: tuple, kernel: Callable) -> Tensor:
     """:func:`measure` without gradient on the CPU: the fused kernel
-    :func:`~layoutwarp.kernels.sensor_measure` with :func:`kernel_arguments`' ``args``."""
+    :func:`~layoutwarp.kernels.sensor_measure` (``kernel``: it or its quick build, see
+    :func:`~layoutwarp.jit.compiled`) with :func:`kernel_arguments`' ``args``."""
     x = mean.detach() if mean.requires_grad else mean
     if x.dtype not in (torch.float32, torch.float64) or not x.is_contiguous():
         x = x.to(torch.float64).contiguous()  # the kernel's two builds: float32 and float64
     flat = x.numpy().reshape(-1, args[0].size)  # numpy's views: a torch call each costs more
     out = np.empty(flat.shape, flat.dtype)
     with kernels.LOCK:
-        kernels.sensor_measure(flat, *args, out, kernels.threads())  # threads bounded by torch's
+        kernel(flat, *args, out, kernels.threads())  # threads bounded by torch's
     res = torch.from_numpy(out.reshape(mean.shape))
     return res if res.dtype == mean.dtype else res.to(mean.dtype)

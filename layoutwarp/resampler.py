@@ -268,9 +268,14 @@ class AreaResampler:
         means (as :func:`~layoutwarp.simulate` does by default); ``True`` passes them through."""
         n = images.shape[0]
         flat = images.reshape(n, -1)
-        # compiled unless its kernels are still compiling (the noise's draws wait for theirs: jit)
-        compiled = flat.device.type == "cpu" and not flat.requires_grad
-        if compiled and jit.ready("fixed" if physics is None else "measure", flat.dtype, physics is not None):
+        # compiled unless its kernels are still compiling (the noise's draws take a quick build: jit)
+        kernel = None
+        if flat.device.type == "cpu" and not flat.requires_grad:
+            if physics is None:
+                kernel = kernels.csr_apply if jit.ready("fixed", flat.dtype) else None
+            else:
+                kernel = jit.compiled("measure", flat.dtype, kernels.measured_csr_apply)
+        if kernel is not None:
             w = self.weights
             out = np.empty((n, w.shape[0]), dtype=np.float32)
             x = np.ascontiguousarray(flat.numpy())  # needs no gradient: no detach
@@ -278,9 +283,9 @@ class AreaResampler:
             with kernels.LOCK:
                 nt = kernels.threads()  # numba's threads for this launch, bounded by torch's
                 if measured is None:
-                    bad = kernels.csr_apply(w.indptr, w.indices, w.data, x, out)
+                    bad = kernel(w.indptr, w.indices, w.data, x, out)
                 else:  # the means measured in place: the buffer is this call's own
-                    bad = kernels.measured_csr_apply(w.indptr, w.indices, w.data, x, out, *measured, out, nt)
+                    bad = kernel(w.indptr, w.indices, w.data, x, out, *measured, out, nt)
             if bad and not allow_nonfinite:
                 raise_nonfinite(images)
             return torch.from_numpy(out).view(n, *self.size)

@@ -8,6 +8,7 @@ import subprocess
 import sys
 import textwrap
 
+import numpy as np
 import pytest
 import torch
 from conftest import ROOT, ptx_or_skip
@@ -52,8 +53,9 @@ def test_the_first_call_answers_from_torch_while_a_worker_compiles_then_runs_com
     """From an empty cache in the background mode: the first fixed-layout forward returns at
     once from the torch path, one line says what is compiling, the worker fills the cache, and a
     later call loads the compiled kernels (nothing of them compiled in the process itself) and
-    gives the same values to float32 rounding; the sensor's noise waits for its kernels, so its
-    draws are the compiled sampler's from the first call on (the same as in wait mode)."""
+    gives the same values to float32 rounding; the sensor's noise, while the worker is on other
+    groups, runs its kernel's quick build, so its draws are the compiled sampler's from the first
+    call on (the same as in wait mode)."""
     code = """
         import json, time, torch, layoutwarp as lw
         from layoutwarp import jit
@@ -86,15 +88,49 @@ def test_the_first_call_answers_from_torch_while_a_worker_compiles_then_runs_com
     notices = [line for line in res.stderr.splitlines() if line.startswith("layoutwarp:")]
     assert all("once per installation" in n for n in notices)
     assert any("compiling in the background" in n and "fixed layout" in n for n in notices)
-    # the product came from the worker's cache, never compiled here; the noise's kernels came from
-    # this process's compile or the worker's, whichever had them first
+    # the product came from the worker's cache, never compiled here; the noise from the quick build
+    # (the worker took the learnable layout's kernels after the fixed ones: it was not on them)
     assert not any(n.startswith("layoutwarp: compiling a fixed layout") for n in notices)
-    assert any("sensor's measurement" in n for n in notices)
+    assert any("quick build" in n and "sensor's measurement" in n for n in notices)
     # the same draws as a process that compiled everything before its first call
     env[jit.ENV] = "wait"
     res_wait = run_python(code.replace('jit._WORKER.wait_for("fixed/float32")', ""), env)
     assert res_wait.returncode == 0, res_wait.stderr[-3000:]
     assert json.loads(res_wait.stdout.strip().splitlines()[-1])["noisy"] == out["noisy"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_a_quick_build_gives_the_full_builds_values_to_the_bit(dtype):
+    """jit.quick recompiles a kernel and its callees without IR inlining: the sensor's
+    measurement (every noise model and output, fixed patterns, full well, ADC, negative means) and
+    the fused product + measurement agree with the full build bit for bit, under a name of their
+    own in numba's cache."""
+    rng = np.random.default_rng()
+    p, seed = 3001, int(rng.integers(2**62))
+    mean = rng.uniform(-0.2, 4.0, (3, p)).astype(dtype)
+    area = rng.uniform(0.5, 1.5, p)
+    prnu, dsnu = rng.standard_normal(p), rng.standard_normal(p)
+    params = np.array([40.0, 0.6, 0.02, 0.5, 0.1, 2.5, 150.0, 1.3, 3.0, 1023.0])
+    quick = jit.quick(lw.kernels.sensor_measure)
+    assert (
+        quick.py_func.__qualname__ == "sensor_measure_quick" and jit.quick(lw.kernels.sensor_measure) is quick
+    )
+    for noise in (0, 1, 2):
+        for output in (0, 1, 2):
+            full_out, quick_out = np.empty_like(mean), np.empty_like(mean)
+            lw.kernels.sensor_measure(mean, area, prnu, dsnu, params, seed, noise, output, full_out, 2)
+            quick(mean, area, prnu, dsnu, params, seed, noise, output, quick_out, 2)
+            assert np.array_equal(full_out, quick_out, equal_nan=True), (noise, output)
+    weights = lw.AreaResampler(lw.CurvLayout((0.3, -0.2)), (4, 5), (20, 30)).weights
+    x = rng.uniform(0, 1, (2, 600)).astype(np.float32)
+    outs = []
+    for kernel in (lw.kernels.measured_csr_apply, jit.quick(lw.kernels.measured_csr_apply)):
+        out = np.empty((2, 20), np.float32)
+        args = (area[:20], prnu[:20], dsnu[:20], params, seed, 1, 2)
+        kernel(weights.indptr, weights.indices, weights.data, x, out, *args, out, 2)
+        outs.append(out)
+    assert np.array_equal(*outs)
 
 
 def test_a_look_at_the_cache_compiles_nothing(tmp_path):
