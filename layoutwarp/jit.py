@@ -61,6 +61,7 @@ __all__ = [
     "serve",
     "set_mode",
     "status",
+    "stop_worker",
     "use_mode",
 ]
 
@@ -380,6 +381,18 @@ def _start_worker(unit: str) -> None:
     global _WORKER
     _announce(unit, "compiling in the background (the torch path answers meanwhile):")
     _WORKER = _Worker(unit)
+
+
+def stop_worker() -> None:
+    """Stop this process's background worker, if any, leaving what it has not finished
+    uncompiled (a benchmark's throw-away cache; a test). By default it runs on after its parent
+    ends, to finish the cache for the next process."""
+    global _WORKER
+    with _LOCK:
+        worker, _WORKER = _WORKER, None
+    if worker is not None:
+        worker.proc.kill()
+        worker.proc.wait()
 
 
 def cache_folder() -> str | None:

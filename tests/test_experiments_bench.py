@@ -212,3 +212,20 @@ def test_the_memory_child_measures_a_fixed_layouts_first_call_with_and_without_c
         bench._memory_child(spec | {"cache_size": size}, Conn())
         assert resampler.CACHE_SIZE == size and bool(resampler._CACHE) == built
     assert len(sent) == 2 and all(v >= 0 for v in sent)
+
+
+@pytest.mark.skipif(not lw.kernels.available(), reason="needs numba")
+def test_first_calls_time_an_entry_point_from_an_empty_cache_and_warm(tmp_path, monkeypatch):
+    """bench.first_calls runs an entry point in a fresh process with a throw-away empty cache
+    (background mode) and with this installation's, reports both, and its report line gives the
+    difference; the throw-away cache is left by a stopped worker (nothing compiles on after)."""
+    from layoutwarp.experiments.bench import ENTRY_POINTS, first_calls, format_first_calls
+
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "home"))  # this test's "installation"
+    out = first_calls(["export"], fill=True)
+    assert set(out) == {"export"} and set(ENTRY_POINTS) >= {"export", "preprocess", "float64 learnable step"}
+    first, warm = out["export"]["first_s"], out["export"]["warm_s"]
+    assert 0.2 < first < 120 and 0.2 < warm < 120
+    (line,) = format_first_calls(out)
+    expected = f"export: {first:.1f} s (warm {warm:.1f} s, {first - warm:+.1f} s)"
+    assert line == f"first call from an empty kernel cache, {expected}"

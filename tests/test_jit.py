@@ -72,8 +72,7 @@ def test_the_first_call_answers_from_torch_while_a_worker_compiles_then_runs_com
             later = lw.simulate(img, layout, (7, 9))
         phys = lw.SensorPhysics((300.0, 400.0), photons_per_um2=20, seed=3)
         noisy = lw.simulate(img, layout, (7, 9), physics=phys)
-        if jit._WORKER is not None:
-            jit._WORKER.proc.kill()  # the test's cache is thrown away: no need to finish it
+        jit.stop_worker()  # the test's cache is thrown away: no need to finish it
         print(json.dumps({"first_s": first_s, "state": state, "after": jit.status()["fixed/float32"],
             "diff": float((first - later).abs().max()), "scale": float(later.abs().max()),
             "noisy": noisy.flatten().tolist()}))

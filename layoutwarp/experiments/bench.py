@@ -43,10 +43,13 @@ from ..sensor import simulate
 from .scene import SineScene, blurred_noise, load_photo
 
 __all__ = [
+    "ENTRY_POINTS",
+    "README_EXAMPLE",
     "BenchConfig",
     "Row",
     "bench_layouts",
     "fd_theta_gradient",
+    "first_calls",
     "format_scaling",
     "format_table",
     "interleaved_times",
@@ -744,42 +747,102 @@ def physics_rows(cfg: BenchConfig, image_name: str, img: Tensor, anchors: dict[s
     return rows
 
 
-_COMPILE_PROBE = """
-import time
+#: The README's example (import, a learnable curv step at 2048x1024 RGB -> 257x129, a fixed
+#: forward, a call with physics): the first call a user meets. Prints its seconds as JSON.
+README_EXAMPLE = """
+import json, time
 t0 = time.perf_counter()
 import torch, layoutwarp as lw
+t = [time.perf_counter()]
+img = torch.rand(1, 3, 1024, 2048)
+lw.simulate(img, lw.CurvLayout((0.3, -0.24), learn=True), (129, 257)).sum().backward()
+t.append(time.perf_counter())
+with torch.no_grad():
+    lw.simulate(img, lw.CurvLayout((0.3, -0.1)), (129, 257))
+t.append(time.perf_counter())
+phys = lw.SensorPhysics((2800, 5600), photons_per_um2=50)
+lw.simulate(img, lw.CurvLayout((0.3, -0.1)), (129, 257), physics=phys)
+t.append(time.perf_counter())
+names = ("import", "learnable curv step", "fixed forward", "call with physics")
+steps = dict(zip(names, [t[0] - t0] + [b - a for a, b in zip(t, t[1:])]))
+lw.jit.stop_worker()
+print(json.dumps({"total": t[-1] - t0, "steps": steps}))
+"""
+
+#: Other entry points a user meets first, each timed from ``import`` to its answer in a process
+#: of its own (``{SAMPLES}``: the bundled samples, ``{TMP}``: a scratch folder).
+ENTRY_POINTS = {
+    "float64 learnable step": "img = torch.rand(1, 3, 256, 512, dtype=torch.float64)\n"
+    "lw.simulate(img, lw.CurvLayout((0.3, -0.24), learn=True).double(), (33, 65)).sum().backward()",
+    "Monte Carlo forward": "img = torch.rand(1, 3, 512, 1024)\n"
+    "lw.simulate(img, lw.CurvLayout((0.3, -0.24)), (65, 129), 'montecarlo', samples=4, seed=0)",
+    **{
+        f"{family} learnable step": f"img = torch.rand(1, 3, 512, 1024)\n"
+        f"lw.simulate(img, lw.make_layout({family!r}, learn=True), (65, 129)).sum().backward()"
+        for family in ("rect", "fovea", "elliptic", "spline", "grid")
+    },
+    "preprocess": "lw.preprocess_folder('{SAMPLES}/photos', '{TMP}/pre', lw.CurvLayout((0.3, -0.2)),"
+    " (24, 32), progress=False)",
+    "export": "lw.export_layout(lw.CurvLayout((0.3, -0.2)), (48, 64), '{TMP}/mask.svg', (3000.0, 4000.0))",
+}
+_ENTRY = """
+import json, time
+t0 = time.perf_counter()
+import torch, layoutwarp as lw
+{CODE}
 t1 = time.perf_counter()
-layout = lw.CurvLayout((0.35, -0.25), learn=True)
-out = lw.integrators.integrate_exact(torch.rand(3, 64, 80), layout, (9, 11), tol=1e-3, backend="numba")
-out.sum().backward()
-t2 = time.perf_counter()
-print(t1 - t0, t2 - t1)
+lw.jit.stop_worker()
+print(json.dumps({{"total": t1 - t0}}))
 """
 
 
-def compile_times() -> dict:
-    """Seconds of the first exact forward + backward in a fresh process, with an empty numba
-    cache (the kernels compile) and again in a second process (they load from the cache).
-
-    Each process also reports its import time; a third call in the first process would cost
-    milliseconds. Run in children with ``NUMBA_CACHE_DIR`` pointing at a new folder, so the
-    user's cache is left alone.
-    """
+def first_calls(
+    entries: Sequence[str] = ("README example",),
+    progress: Callable[[str], None] | None = None,
+    fill: bool = True,
+) -> dict:
+    """Seconds from a fresh process's start to the answer of each entry point (``"README
+    example"``, :data:`README_EXAMPLE`, or a key of :data:`ENTRY_POINTS`): ``first_s`` with an
+    empty numba cache in the default (background) mode, as a new installation meets it, and
+    ``warm_s`` with this installation's cache (``fill``: filled first in wait mode, outside the
+    timing; ``layoutwarp bench --quick`` has compiled what the README example uses already);
+    their difference is what the first call costs. Each process stops its background worker at
+    the end, so the throw-away cache is not filled after it."""
     import subprocess
     import sys
     import tempfile
 
+    from .data import samples_dir
+
+    say = progress or (lambda msg: None)
+
+    def once(code: str, env: dict[str, str]) -> dict:
+        res = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
+        if res.returncode:
+            raise RuntimeError(f"first-call probe failed: {res.stderr[-2000:]}")
+        return json.loads(res.stdout.strip().splitlines()[-1])
+
     out = {}
-    with tempfile.TemporaryDirectory() as cache:
-        env = {**os.environ, "NUMBA_CACHE_DIR": cache}
-        for label in ("first_process", "second_process"):
-            res = subprocess.run(
-                [sys.executable, "-c", _COMPILE_PROBE], env=env, capture_output=True, text=True
+    for name in entries:
+        say(f"first call: {name}")
+        with tempfile.TemporaryDirectory() as tmp:
+            if name == "README example":
+                code = README_EXAMPLE
+            else:
+                body = ENTRY_POINTS[name].replace("{SAMPLES}", str(samples_dir())).replace("{TMP}", tmp)
+                code = _ENTRY.format(CODE=body)
+            cold = once(
+                code, {**os.environ, "NUMBA_CACHE_DIR": os.path.join(tmp, "cache"), jit.ENV: "background"}
             )
-            if res.returncode:
-                raise RuntimeError(f"compile probe failed: {res.stderr[-2000:]}")
-            imp, first = (float(v) for v in res.stdout.split())
-            out[label] = {"import_s": imp, "first_call_s": first}
+            home = {**os.environ, jit.ENV: "wait"}
+            if fill:
+                once(code, home)  # this installation's cache holds what the entry uses
+            warm = once(code, home)
+        out[name] = {
+            "first_s": cold["total"],
+            "warm_s": warm["total"],
+            **({"steps": cold["steps"]} if "steps" in cold else {}),
+        }
     return out
 
 
@@ -923,8 +986,8 @@ def main_bench(
         result = run(BenchConfig(memory=memory, photo=photo, device=device, only=rows), progress=say)
         if with_scaling:
             result["scaling"] = scaling()
-    say("compile time of the kernels")
-    result["compile"] = compile_times()
+    entries = ("README example",) if quick else ("README example", *ENTRY_POINTS)
+    result["first_calls"] = first_calls(entries, progress=say, fill=not quick)
     text = report_text(result)
     print(text)
     if text_path:
@@ -937,6 +1000,16 @@ def main_bench(
 
         print(f"wrote {pareto_figure(result, plot_path)}")
     return result
+
+
+def format_first_calls(calls: dict) -> list[str]:
+    """A line per entry point of :func:`first_calls`' result."""
+    return [
+        f"first call from an empty kernel cache, {name}: {c['first_s']:.1f} s "
+        f"(warm {c['warm_s']:.1f} s, {c['first_s'] - c['warm_s']:+.1f} s)"
+        + ("; " + ", ".join(f"{k} {v:.1f} s" for k, v in c["steps"].items()) if "steps" in c else "")
+        for name, c in calls.items()
+    ]
 
 
 def report_text(result: dict) -> str:
@@ -989,13 +1062,7 @@ def report_text(result: dict) -> str:
                 f"against {r['extra']['plain_ms']:.1f} ms without physics, "
                 f"{100 * r['extra']['over_plain']:+.0f} %; {r['extra']['ops']} torch ops"
             )
-    c = result.get("compile")
-    if c:
-        lines.append(
-            f"first exact forward+backward in a new process: {c['first_process']['first_call_s']:.2f} s "
-            f"with an empty kernel cache (compiling), {c['second_process']['first_call_s']:.2f} s with the "
-            "cache filled"
-        )
+    lines += format_first_calls(result.get("first_calls", {}))
     if "scaling" in result:
         lines.append(format_scaling(result["scaling"]))
     return "\n".join(lines)
