@@ -791,12 +791,21 @@ def _add_study_parser(sub: argparse._SubParsersAction, task: Task, families: Seq
     st.set_defaults(func=_cmd_study, task=task.name)
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The ``layoutwarp`` argument parser."""
-    from .experiments.tasks import TASKS
-    from .layouts import FAMILIES
+#: The commands whose options name tasks or layout families (their parser imports torch).
+CATALOGUED = ("study", "landscape", "evaluate", "preprocess", "export", "train")
+
+
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The ``layoutwarp`` argument parser: every command's options, or with ``command`` (a
+    command's name, or anything else) that command's alone, the others bare: the help and the
+    errors of commands that list no tasks or families import nothing heavy (no torch)."""
     from .version import __version__
 
+    if command is None or command in CATALOGUED:
+        from .experiments.tasks import TASKS
+        from .layouts import FAMILIES
+    else:
+        TASKS, FAMILIES = {}, {}  # the catalogues unread: these commands list neither
     families = list(FAMILIES)
     p = _Parser(
         prog="layoutwarp",
@@ -1002,9 +1011,16 @@ def join_negative_values(argv: Sequence[str]) -> list[str]:
 _NEGATIVE = re.compile(r"^-\.?\d")
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """Run the command line; returns the exit status."""
-    args = build_parser().parse_args(join_negative_values(sys.argv[1:] if argv is None else argv))
+def main(argv: Sequence[str] | None = None, *, own_process: bool = False) -> int:
+    """Run the command line; returns the exit status. ``own_process``: the process is the
+    command's alone, and its allocator keeps freed memory for the next training step
+    (:func:`~layoutwarp.kernels.retain_freed_memory`)."""
+    argv = join_negative_values(sys.argv[1:] if argv is None else argv)
+    args = build_parser(argv[0] if argv else "").parse_args(argv)
+    if own_process:
+        from .kernels import retain_freed_memory
+
+        retain_freed_memory()
     prog = f"layoutwarp {args.command}" + (
         f" {args.task}" if args.command in ("train", "study", "landscape") else ""
     )
@@ -1017,12 +1033,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def run() -> None:
     """The ``layoutwarp`` command (and ``python -m layoutwarp``): :func:`main` in a process of
-    its own, whose allocator keeps freed memory for the next training step
-    (:func:`~layoutwarp.kernels.retain_freed_memory`)."""
-    from .kernels import retain_freed_memory
-
-    retain_freed_memory()
-    sys.exit(main())
+    its own."""
+    sys.exit(main(own_process=True))
 
 
 def _name_the_flag(exc: Exception) -> str:

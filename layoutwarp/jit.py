@@ -30,6 +30,7 @@ reports each group's state; ``layoutwarp doctor --compile`` fills the cache in t
 from __future__ import annotations
 
 import contextlib
+import importlib
 import os
 import signal
 import subprocess
@@ -285,6 +286,8 @@ def _warm(unit: str) -> None:
     import torch
 
     group, dtype = unit.split("/")
+    if group not in _WARMUPS:  # registered when the warm-ups' module loads (with the package's core)
+        importlib.import_module(f"{__package__}.warmups")
     _WARMING.on = True
     try:
         with torch.enable_grad():  # whatever the caller's grad mode: the learnable paths need it
@@ -302,7 +305,7 @@ def _announce(unit: str, doing: str) -> None:
 
 
 #: Each group's warm-up: its public paths on tiny inputs of one dtype, in every type the library
-#: calls its kernels with (registered by :mod:`layoutwarp.warmups`, which the package imports).
+#: calls its kernels with (registered by :mod:`layoutwarp.warmups`, loaded when first needed).
 _WARMUPS: dict[str, Callable[[torch.dtype], None]] = {}
 
 

@@ -17,6 +17,7 @@ The functional forms (:func:`phi_rect`, :func:`phi_curv`, their inverses, Jacobi
 
 from __future__ import annotations
 
+import importlib
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -1057,3 +1058,9 @@ def make_layout(family: str | Layout, theta: Sequence[float] | Tensor | None = N
     if cls is None:
         raise ValueError(f"family must be one of {', '.join(map(repr, FAMILIES))}; got {family!r}")
     return cls(theta, **kwargs)
+
+
+# The other built-in families (splines, control grids) register themselves in their own modules,
+# which build on this one: loaded with it, so that FAMILIES is complete wherever it is read.
+for _module in ("splines", "grids"):
+    importlib.import_module(f"{__package__}.{_module}")

@@ -343,3 +343,37 @@ def test_a_negative_value_after_its_flag_is_the_flags_value(tmp_path, capsys):
     assert stop.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()[-1]
     assert err.endswith("argument --size: width and height must be >= 1, got '-4x4'")
+
+
+@pytest.mark.parametrize(
+    "argv, status",
+    [
+        (["--help"], 0),
+        (["--version"], 0),
+        ([], 2),
+        (["frobnicate"], 2),
+        (["doctor", "--bogus"], 2),
+        (["bench", "--threads", "0"], 2),
+        (["demo", "--size", "4"], 2),
+    ],
+)
+def test_help_and_errors_of_commands_that_list_no_tasks_import_no_torch(argv, status):
+    """The top-level help, the version, a missing or unknown command and the errors of commands
+    whose options name no task or family answer before torch (or numba) is imported: the parser
+    builds the named command's options alone."""
+    code = (
+        "import sys\nfrom layoutwarp.cli import main\n"
+        f"try:\n    main({argv!r})\nexcept SystemExit as exc:\n    print('status', exc.code)\n"
+        "print('heavy', sorted(m for m in ('torch', 'numba') if m in sys.modules))"
+    )
+    res = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert f"status {status}" in res.stdout and "heavy []" in res.stdout, res.stdout + res.stderr
+
+
+def test_the_parser_of_one_command_is_the_full_parsers_for_that_command():
+    """build_parser(command) gives that command the options the full parser gives it."""
+    full = dict(_subparsers(build_parser()))
+    for command in ("export", "demo", "doctor", "bench"):
+        one = dict(_subparsers(build_parser(command)))
+        assert one[command].format_help() == full[command].format_help()
+    assert "train mnist" in full and "train mnist" not in one  # no catalogue read for bench
