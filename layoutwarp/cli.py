@@ -265,6 +265,9 @@ def _task_folder(task: Task, args: argparse.Namespace) -> Path:
 
 def _training_flags(task: Task, args: argparse.Namespace) -> dict[str, Any]:
     """The run options every training command (train, study, landscape) reads from its flags."""
+    weights = getattr(args, "backbone_weights", None)
+    if weights is not None and not Path(weights).is_file():
+        raise UsageError(f"argument --backbone-weights: no such file {weights!r}")
     return {
         "freeze_epochs": args.freeze_epochs,
         "theta_lr": args.theta_lr,
@@ -272,6 +275,7 @@ def _training_flags(task: Task, args: argparse.Namespace) -> dict[str, Any]:
         "amp": args.amp,
         "progress": not args.no_progress,
         "task_options": {k: getattr(args, k) for k in task.extra_dests},
+        "backbone_weights": getattr(args, "backbone_weights", None),
     }
 
 
@@ -294,7 +298,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     from .experiments.tasks import get_task
     from .experiments.training import init_distributed
 
-    task = get_task(args.task)
+    task = get_task(args.task).with_net(getattr(args, "net", None))
     d = task.quick_defaults() if args.quick else task.defaults
     folder = _task_folder(task, args)
     families = tuple(dict.fromkeys(args.family)) if args.family else d.families
@@ -362,7 +366,7 @@ def _cmd_study(args: argparse.Namespace) -> int:
     from .experiments.tasks import get_task
     from .experiments.training import init_distributed
 
-    task = get_task(args.task)
+    task = get_task(args.task).with_net(getattr(args, "net", None))
     folder = _task_folder(task, args)
     out = _out_dir(args.out or f"results/study-{task.name}")
     plan = task.study
@@ -418,7 +422,7 @@ def _cmd_landscape(args: argparse.Namespace) -> int:
     from .experiments.tasks import get_task
     from .experiments.training import init_distributed
 
-    task = get_task(args.task)
+    task = get_task(args.task).with_net(getattr(args, "net", None))
     folder = _task_folder(task, args)
     size = args.size or task.study.learned_sizes[0]
     _check_memory(size)
@@ -709,6 +713,18 @@ def _add_training_args(p: argparse.ArgumentParser, task: Task, quick_help: str) 
         help=f"epochs with θ frozen at the start (default: {d.freeze_epochs}; 0 with --quick)",
     )
     p.add_argument("--theta-lr", type=positive_float, help=f"θ's own learning rate (default: {d.theta_lr:g})")
+    if task.nets:
+        p.add_argument(
+            "--net",
+            choices=list(task.nets),
+            help=f"the network, with its training protocol's defaults (default: {task.net})",
+        )
+        p.add_argument(
+            "--backbone-weights",
+            metavar="FILE",
+            help="a torchvision-format ResNet state dict (e.g. ImageNet weights you downloaded) the "
+            "network's backbone starts from (networks with a ResNet backbone; nothing is downloaded)",
+        )
     task.add_arguments(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     _add_run_args(p)

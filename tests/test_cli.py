@@ -288,6 +288,9 @@ def test_each_task_takes_the_same_options_and_shows_its_own_defaults():
         assert f"(default: {sizes}; the first with --quick)" in text
         flags = {o for a in subs[f"train {task.name}"]._actions for o in a.option_strings}
         flags -= {o for dest in task.extra_dests for o in ("--" + dest.replace("_", "-"),)}
+        if task.nets:  # a task with several networks: which one, and its backbone's start
+            assert {"--net", "--backbone-weights"} <= flags, task.name
+            flags -= {"--net", "--backbone-weights"}
         assert common is None or flags == common, task.name  # the same options, less the task's own
         common = flags
     assert {"--size", "--freeze-epochs", "--theta-lr", "--data", "--quick"} <= common

@@ -78,7 +78,7 @@ class FacesTask(Task):
         lr=2e-3,
         theta_lr=0.01,
         tol=1e-3,
-        cosine=True,
+        schedule="cosine",
     )
     quick: ClassVar[dict[str, Any]] = {"epochs": 2}
     study = StudyPlan(((4, 4), (6, 6), (8, 8), (12, 12), (16, 16)), ((6, 6), (8, 8)))

@@ -37,7 +37,14 @@ WEIGHTS = ("float32", "float16", "int8")
 
 
 def save_model(
-    path: str | Path, task: str, model: nn.Module, *, sensor: dict, training: dict, weights: str = "float32"
+    path: str | Path,
+    task: str,
+    model: nn.Module,
+    *,
+    sensor: dict,
+    training: dict,
+    weights: str = "float32",
+    net: str = "",
 ) -> Path:
     """Write ``model`` (a task network with a ``sensor``) to a model file, atomically.
 
@@ -45,6 +52,7 @@ def save_model(
         path: the file to write.
         task: a registered task's name.
         model: the trained network.
+        net: which of the task's networks it is (:attr:`~.tasks.Task.nets`; ``""``: its default).
         sensor: the sensor options it was trained with (``method``, ``tol``, ...).
         training: anything JSON-able that describes the run (seed, epochs, scores, ...).
         weights: ``"float32"``; ``"float16"`` (half the size); ``"int8"`` (a quarter: conv and
@@ -52,7 +60,7 @@ def save_model(
             can shift slightly with either; the sensor's θ is always kept in full precision.
     """
     check_choice(weights, WEIGHTS, "weights")
-    get_task(task)
+    get_task(task).with_net(net or None)  # checks both
     layout = model.sensor.layout
     state, scales = {}, {}
     for k, v in model.state_dict().items():
@@ -68,6 +76,7 @@ def save_model(
     data = {
         "format": FORMAT if scales else READS[0],
         "task": task,
+        "net": net,
         "version": info["layoutwarp"],
         "run": info,
         "layout": layout_spec(layout),
@@ -112,7 +121,7 @@ def load_model(
     if task is not None and data.get("task") != task:
         raise ValueError(f"{path}: a {data.get('task')!r} model, not a {task!r} model")
     try:
-        network = get_task(data.get("task")).network
+        network = get_task(data.get("task")).with_net(data.get("net") or None).network
         layout = layout_from_spec(data["layout"])
     except ValueError as exc:
         raise ValueError(f"{path}: {exc}") from None

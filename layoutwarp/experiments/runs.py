@@ -25,7 +25,7 @@ from ..layouts import Layout
 from ..mesh import polygon_area
 from .models import save_model
 from .tasks import Task, TaskData, TaskDefaults
-from .training import fit, format_theta, optimizer
+from .training import fit, format_theta, optimizer, schedule
 
 __all__ = [
     "RESULTS_FORMAT",
@@ -46,10 +46,12 @@ class RunOptions:
     """How a run trains: the task's defaults, with what the command line changed.
 
     Attributes:
-        epochs, batch_size, lr, theta_lr, freeze_epochs, cosine: as :class:`TaskDefaults`
-            (frozen epochs are capped at ``epochs − 1``, so θ always trains).
+        epochs, batch_size, lr, theta_lr, freeze_epochs, schedule, optimizer, weight_decay: as
+            :class:`TaskDefaults` (frozen epochs are capped at ``epochs − 1``, so θ always trains).
         sensor: :class:`~layoutwarp.SensorLayer` options (``method``, ``tol``, ...).
         device: where the network and sensor run.
+        backbone_weights: a torchvision-format ResNet state dict the network's backbone starts
+            from (networks with a ResNet backbone; ``None``: random initialisation).
         amp: mixed precision for the network (the sensor stays float32).
         progress: draw progress bars (on terminals).
         task_options: the task's own options (see :meth:`Task.add_arguments`).
@@ -60,9 +62,12 @@ class RunOptions:
     lr: float
     theta_lr: float
     freeze_epochs: int
-    cosine: bool
+    schedule: str
+    optimizer: str
+    weight_decay: float
     sensor: dict[str, Any]
     device: str = "cpu"
+    backbone_weights: str | None = None
     amp: bool = False
     progress: bool = True
     task_options: dict[str, Any] = field(default_factory=dict)
@@ -76,7 +81,9 @@ class RunOptions:
             "lr": defaults.lr,
             "theta_lr": defaults.theta_lr,
             "freeze_epochs": defaults.freeze_epochs,
-            "cosine": defaults.cosine,
+            "schedule": defaults.schedule,
+            "optimizer": defaults.optimizer,
+            "weight_decay": defaults.weight_decay,
             "sensor": defaults.sensor(),
         }
         return cls(**(base | {k: v for k, v in changes.items() if v is not None}))
@@ -109,6 +116,10 @@ class RunRecord:
     @property
     def name(self) -> str:
         return run_name(self.family, self.size_hw, self.seed)
+
+
+def _net_name(task: Task) -> str:
+    return f"{task.name} {task.net}".strip()
 
 
 def run_name(family: str, size: Sequence[int], seed: int) -> str:
@@ -159,12 +170,14 @@ def train_run(
     learn = layout is None and family != "uniform"
     model = task.network(layout if layout is not None else family, size, learn=learn, **options.sensor)
     model = model.to(options.device)
-    opt = optimizer(model, options.lr, options.theta_lr)
+    if options.backbone_weights:
+        if not hasattr(model, "load_backbone"):
+            raise ValueError(f"backbone_weights: the {_net_name(task)} network has no ResNet backbone")
+        model.load_backbone(options.backbone_weights)
+    opt = optimizer(model, options.lr, options.theta_lr, options.optimizer, options.weight_decay)
     indices, batch_loss = task.batches(model, data.train, gen, options.task_options)
     t0 = time.perf_counter()
-    sched = (
-        torch.optim.lr_scheduler.CosineAnnealingLR(opt, max(options.epochs, 1)) if options.cosine else None
-    )
+    sched = schedule(opt, options.schedule, options.epochs)
     history = fit(
         model,
         indices,
@@ -270,6 +283,7 @@ def run_experiment(
                     model,
                     sensor=options.sensor,
                     training=training,
+                    net=task.net,
                 )
                 scores = "  ".join(f"{m} {record.scores[m]:6.2f}%" for m in task.metrics)
                 say(
@@ -292,6 +306,7 @@ def _results(
     return {
         "format": RESULTS_FORMAT,
         "task": task.name,
+        "net": task.net,
         "data": str(data.source),
         "train_size": data.sizes.get("train"),
         "report_split": task.report_split,

@@ -100,7 +100,14 @@ def run_study(
         data = data or task.load(Path(folder))
         record, model = train_run(task, data, family, size, seed, options)
         training = options.record() | {"family": family, "seed": seed, "scores": record.scores}
-        save_model(out / "models" / f"{name}.pt", task.name, model, sensor=options.sensor, training=training)
+        save_model(
+            out / "models" / f"{name}.pt",
+            task.name,
+            model,
+            sensor=options.sensor,
+            training=training,
+            net=task.net,
+        )
         rec = asdict(record) | {
             "sensor": options.sensor,
             "training": options.record(),
@@ -190,6 +197,7 @@ def summarise_study(task: Task, records: list[dict]) -> dict:
         r |= {"saving_interval": [lo / r["pixels"], hi / r["pixels"]]}
     return {
         "task": task.name,
+        "net": task.net,
         "metric": task.metric,
         "label": task.metric_label,
         "units": "percent",
@@ -346,6 +354,7 @@ def ship_study(
             sensor=b["info"]["sensor"],
             training=b["info"]["training"],
             weights=weights,
+            net=task.net,
         )
         if samples is not None:
             shipped, _ = load_model(path, task.name)

@@ -15,6 +15,7 @@ the model files then know it.
 from __future__ import annotations
 
 import argparse
+import copy
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, ClassVar, TypeVar
@@ -42,8 +43,12 @@ class TaskDefaults:
         batch_size: samples per step.
         lr: the network's Adam learning rate.
         theta_lr: the sensor's (θ's) learning rate (the same as ``lr``: plain Adam).
-        freeze_epochs: epochs with θ frozen at the start (the paper's protocol for CamVid).
-        cosine: anneal both learning rates to 0 over the epochs (cosine schedule).
+        freeze_epochs: epochs with θ frozen at the start (the paper's protocol).
+        schedule: the learning rates over the epochs: ``"constant"``, ``"cosine"`` (annealed to
+            0) or ``"poly"`` (PSPNet's: ``(1 − epoch/epochs)^0.9``).
+        optimizer: ``"adam"``, or ``"sgd"`` (momentum 0.9, PSPNet's); θ has a group of its own
+            (``theta_lr``, no weight decay) in either.
+        weight_decay: the network's weight decay (PSPNet: 1e-4).
         tol: the exact integrator's tolerance, pinned so that runs compare.
     """
 
@@ -56,7 +61,9 @@ class TaskDefaults:
     theta_lr: float
     tol: float
     freeze_epochs: int = 0
-    cosine: bool = False
+    schedule: str = "constant"
+    optimizer: str = "adam"
+    weight_decay: float = 0.0
 
     def sensor(self) -> dict[str, Any]:
         """The sensor options of the task unless the caller gives its own."""
@@ -125,6 +132,33 @@ class Task:
     defaults: ClassVar[TaskDefaults]
     quick: ClassVar[dict[str, Any]] = {}
     study: ClassVar[StudyPlan]
+    #: The networks ``--net`` selects, each to the attributes above its training protocol
+    #: changes (``defaults``, ``study``, ``quick``); the first is the task's default network, with
+    #: none. Empty: the task has one network. See :meth:`with_net`.
+    nets: ClassVar[dict[str, dict[str, Any]]] = {}
+    #: This instance's network (a key of :attr:`nets`; ``""`` where there are none).
+    net: str = ""
+
+    def __init__(self) -> None:
+        if self.nets and not self.net:
+            self.net = next(iter(self.nets))
+
+    def with_net(self, net: str | None) -> Task:
+        """This task with network ``net`` and its protocol's defaults (``None``: this task).
+
+        Raises:
+            ValueError: ``net`` is not one of :attr:`nets`.
+        """
+        if net is None or net == self.net:
+            return self
+        if net not in self.nets:
+            known = ", ".join(map(repr, self.nets)) or "none (one network)"
+            raise ValueError(f"net of task {self.name!r} must be one of {known}; got {net!r}")
+        variant = copy.copy(self)
+        variant.net = net
+        for name, value in self.nets[net].items():
+            setattr(variant, name, value)
+        return variant
 
     # -- data ------------------------------------------------------------------------
     def load(self, folder: Path, limit: int | None = None) -> TaskData:

@@ -9,7 +9,10 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
+from ..checks import check_choice
+
 __all__ = [
+    "SCHEDULES",
     "BatchLoss",
     "autocast",
     "default_device",
@@ -18,6 +21,7 @@ __all__ = [
     "init_distributed",
     "model_device",
     "optimizer",
+    "schedule",
     "world",
 ]
 
@@ -141,13 +145,36 @@ def fit(
     return history
 
 
-def optimizer(model: nn.Module, lr: float, theta_lr: float) -> torch.optim.Optimizer:
-    """Adam with the sensor's trainable parameters in a group of their own (``theta_lr``; Adam
-    is elementwise, so ``theta_lr = lr`` is plain Adam over every parameter)."""
+def optimizer(
+    model: nn.Module, lr: float, theta_lr: float, kind: str = "adam", weight_decay: float = 0.0
+) -> torch.optim.Optimizer:
+    """Adam, or SGD with momentum 0.9 (``kind="sgd"``, PSPNet's), with the sensor's trainable
+    parameters in a group of their own (``theta_lr``, no weight decay; Adam is elementwise, so
+    ``theta_lr = lr`` is plain Adam over every parameter); ``weight_decay`` on the network."""
+    check_choice(kind, ("adam", "sgd"), "optimizer")
     sensor = [p for p in model.sensor.parameters() if p.requires_grad]
     rest = [p for n, p in model.named_parameters() if not n.startswith("sensor.")]
-    groups = [{"params": rest, "lr": lr}] + ([{"params": sensor, "lr": theta_lr}] if sensor else [])
-    return torch.optim.Adam(groups)
+    groups = [{"params": rest, "lr": lr, "weight_decay": weight_decay}]
+    groups += [{"params": sensor, "lr": theta_lr, "weight_decay": 0.0}] if sensor else []
+    return torch.optim.SGD(groups, momentum=0.9) if kind == "sgd" else torch.optim.Adam(groups)
+
+
+def schedule(
+    opt: torch.optim.Optimizer, kind: str, epochs: int
+) -> torch.optim.lr_scheduler.LRScheduler | None:
+    """The learning rates over ``epochs`` (stepped once an epoch): ``"constant"`` (``None``),
+    ``"cosine"`` (annealed to 0) or ``"poly"`` (PSPNet's ``(1 − epoch/epochs)^0.9``)."""
+    check_choice(kind, SCHEDULES, "schedule")
+    epochs = max(epochs, 1)
+    if kind == "cosine":
+        return torch.optim.lr_scheduler.CosineAnnealingLR(opt, epochs)
+    if kind == "poly":
+        return torch.optim.lr_scheduler.LambdaLR(opt, lambda e: max(1.0 - e / epochs, 0.0) ** 0.9)
+    return None
+
+
+#: The learning-rate schedules of :func:`schedule`.
+SCHEDULES = ("constant", "cosine", "poly")
 
 
 def format_theta(values: Sequence[float], digits: int = 3) -> str:
