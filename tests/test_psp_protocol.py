@@ -8,6 +8,7 @@ import math
 
 import pytest
 import torch
+from conftest import SAMPLES
 
 from layoutwarp.cli import main
 from layoutwarp.experiments.camvid import IMAGENET_MEAN, PSP_DEFAULTS, PSPSegNet, SegNet, scale_jitter
@@ -121,3 +122,43 @@ def test_train_camvid_psp_quick_writes_psp_models_that_evaluate_rebuilds(tmp_pat
     bad = ["train", "camvid", "--quick", "--net", "psp", "--backbone-weights", str(tmp_path / "none.pth")]
     assert main(bad) == 2
     assert "argument --backbone-weights: no such file" in capsys.readouterr().err
+
+
+def test_a_run_stopped_in_its_second_epoch_resumes_from_its_checkpoint_to_the_same_values(
+    tmp_path, monkeypatch
+):
+    """fit's checkpoint: a run stopped in its second epoch (an interrupt in its first batch
+    there) and resumed trains to the values of an uninterrupted run, θ history included."""
+    from layoutwarp.experiments.runs import RunOptions, train_run
+
+    task = get_task("camvid")
+    data = task.load(SAMPLES / "camvid", limit=4)
+    sensor = {"method": "exact", "tol": 1e-2}
+    options = RunOptions.of(task.quick_defaults(), epochs=2, batch_size=2, progress=False, sensor=sensor)
+    whole, whole_model = train_run(task, data, "rect", (9, 12), 3, options)
+    batches, calls = task.batches, []
+
+    def stopping(*args):
+        indices, loss = batches(*args)
+
+        def batch_loss(idx, net):
+            calls.append(1)
+            if len(calls) == 3 and stop:  # two batches an epoch: the second epoch's first
+                raise KeyboardInterrupt
+            return loss(idx, net)
+
+        return indices, batch_loss
+
+    ckpt, stop = tmp_path / "run.pt", True
+    monkeypatch.setattr(task, "batches", stopping)
+    with pytest.raises(KeyboardInterrupt):
+        train_run(task, data, "rect", (9, 12), 3, options, checkpoint=ckpt)
+    state = torch.load(ckpt, weights_only=False)
+    assert state["epochs_done"] == 1 and len(state["history"]) == 2
+    calls.clear()
+    stop = False
+    resumed, resumed_model = train_run(task, data, "rect", (9, 12), 3, options, checkpoint=ckpt)
+    assert len(calls) == 2  # the second epoch's batches alone: the first came from the checkpoint
+    assert resumed.theta_history == whole.theta_history and resumed.scores == whole.scores
+    for (k, a), b in zip(whole_model.state_dict().items(), resumed_model.state_dict().values(), strict=True):
+        assert torch.equal(a, b), k

@@ -75,6 +75,7 @@ def test_quick_study_resumes_and_its_models_evaluate(tmp_path, capsys):
     assert {r["family"] for r in summary["rows"]} == {"uniform", "rect", "density"}
     assert (out / "study.md").read_text().startswith("| family |")
     assert (out / "study_mnist.png").stat().st_size > 5000
+    assert list((out / "checkpoints").iterdir()) == []  # each run's checkpoint goes once it is kept
     stamps = {p.name: p.stat().st_mtime_ns for p in (out / "runs").iterdir()}
     (out / "runs" / "rect_3x3_seed0.json").unlink()  # as if killed during this run
     capsys.readouterr()

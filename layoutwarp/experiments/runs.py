@@ -146,6 +146,7 @@ def train_run(
     options: RunOptions,
     *,
     layout: Layout | None = None,
+    checkpoint: Path | None = None,
 ) -> tuple[RunRecord, nn.Module]:
     """Train one configuration of ``task`` and score it on the report split.
 
@@ -159,6 +160,8 @@ def train_run(
         options: how to train.
         layout: train with this layout instead (used as it is: fixed or learnable), recorded
             under ``family``.
+        checkpoint: written after every epoch and resumed from (see :func:`~.training.fit`);
+            the caller removes it once the run's results are kept.
 
     Returns:
         the run's record and the trained network.
@@ -191,6 +194,7 @@ def train_run(
         desc=f"{task.name} {family} {size[1]}x{size[0]} seed {seed}",
         progress=options.progress,
         amp=options.amp,
+        checkpoint=checkpoint,
     )
     scores = task.score(model, data.report)
     fixed = model.sensor.layout

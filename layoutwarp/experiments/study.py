@@ -98,7 +98,8 @@ def run_study(
         if path.exists():
             continue
         data = data or task.load(Path(folder))
-        record, model = train_run(task, data, family, size, seed, options)
+        checkpoint = out / "checkpoints" / f"{name}.pt"  # a stopped run resumes from its last epoch
+        record, model = train_run(task, data, family, size, seed, options, checkpoint=checkpoint)
         training = options.record() | {"family": family, "seed": seed, "scores": record.scores}
         save_model(
             out / "models" / f"{name}.pt",
@@ -114,6 +115,7 @@ def run_study(
             "run": run_info(options.device),
         }
         atomic_write(path, json.dumps(rec, indent=2))
+        checkpoint.unlink(missing_ok=True)
         score = record.scores[task.metric]
         say(f"  [{k + 1}/{len(todo)}] {name}: {task.metric} {score:.2f}%  [{record.seconds:.0f} s]")
         write_summary(task, out, plan, planned=len(todo))  # a stopped study still has its figures

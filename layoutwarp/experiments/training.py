@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
+import io
 import os
 from collections.abc import Callable, Sequence
+from pathlib import Path
 
 import torch
 from torch import nn
 from tqdm import tqdm
 
 from ..checks import check_choice
+from ..files import atomic_write
 
 __all__ = [
     "SCHEDULES",
@@ -75,6 +78,7 @@ def fit(
     desc: str = "train",
     progress: bool = True,
     amp: bool = False,
+    checkpoint: Path | None = None,
 ) -> list[list[float]]:
     """The training loop shared by every experiment; returns θ after each epoch (and at start).
 
@@ -95,12 +99,20 @@ def fit(
 
     Nothing in the loop reads a device value back except the progress bar's loss and θ
     (every 20th step, only when the bar is drawn) and the θ check between epochs.
+
+    ``checkpoint``: a file the loop writes after every epoch (the model, the optimiser, the
+    schedule, ``gen``'s and torch's random states and the history; rank 0, atomically) and
+    resumes from when it exists, so that a stopped run loses at most an epoch and, resumed,
+    trains as it would have without the stop (the same values on the CPU).
     """
     sensor = list(model.sensor.parameters())
     history = [model.sensor.theta.detach().tolist()]
     device = model_device(model)
     # float16 (CUDA autocast) needs loss scaling; bfloat16 (CPU autocast) and float32 do not
     scaler = torch.amp.GradScaler(device.type, enabled=amp and device.type == "cuda")
+    first = 0
+    if checkpoint is not None and checkpoint.exists():
+        first, history = _resume(checkpoint, model, opt, sched, scaler, gen)
     n = len(indices)
     starts = list(range(0, n, batch_size))
     if len(starts) > 1 and n - starts[-1] == 1:  # no 1-sample batch: batch norm needs two
@@ -111,11 +123,12 @@ def fit(
         nn.SyncBatchNorm.convert_sync_batchnorm(model)  # the parameters, and so `opt`, stay)
     bar = tqdm(
         total=epochs * len(bounds),
+        initial=first * len(bounds),
         desc=desc,
         disable=None if progress and rank == 0 else True,
         leave=False,
     )
-    for epoch in range(epochs):
+    for epoch in range(first, epochs):
         for p in sensor:
             p.requires_grad_(epoch >= freeze_epochs)
         model.train()
@@ -141,8 +154,58 @@ def fit(
         if size > 1:
             _check_same_theta(model.sensor.theta)
         history.append(model.sensor.theta.detach().tolist())
+        if checkpoint is not None and rank == 0:
+            _save_checkpoint(checkpoint, epoch + 1, model, opt, sched, scaler, gen, history)
     bar.close()
     return history
+
+
+def _save_checkpoint(
+    path: Path,
+    epochs_done: int,
+    model: nn.Module,
+    opt: torch.optim.Optimizer,
+    sched: torch.optim.lr_scheduler.LRScheduler | None,
+    scaler: torch.amp.GradScaler,
+    gen: torch.Generator,
+    history: list[list[float]],
+) -> None:
+    state = {
+        "epochs_done": epochs_done,
+        "model": model.state_dict(),
+        "opt": opt.state_dict(),
+        "sched": None if sched is None else sched.state_dict(),
+        "scaler": scaler.state_dict(),
+        "gen": gen.get_state(),
+        "rng": torch.get_rng_state(),
+        "cuda_rng": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None,
+        "history": history,
+    }
+    buf = io.BytesIO()
+    torch.save(state, buf)
+    atomic_write(path, buf.getvalue())
+
+
+def _resume(
+    path: Path,
+    model: nn.Module,
+    opt: torch.optim.Optimizer,
+    sched: torch.optim.lr_scheduler.LRScheduler | None,
+    scaler: torch.amp.GradScaler,
+    gen: torch.Generator,
+) -> tuple[int, list[list[float]]]:
+    """Load a checkpoint of :func:`fit`'s into the run's objects: the epochs done and the history."""
+    state = torch.load(path, map_location=model_device(model), weights_only=False)
+    model.load_state_dict(state["model"])
+    opt.load_state_dict(state["opt"])
+    if sched is not None and state["sched"] is not None:
+        sched.load_state_dict(state["sched"])
+    scaler.load_state_dict(state["scaler"])
+    gen.set_state(state["gen"])
+    torch.set_rng_state(state["rng"])
+    if state["cuda_rng"] is not None and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(state["cuda_rng"])
+    return int(state["epochs_done"]), state["history"]
 
 
 def optimizer(
