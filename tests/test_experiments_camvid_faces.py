@@ -11,10 +11,11 @@ from conftest import SAMPLES
 
 import layoutwarp as lw
 from layoutwarp.cli import main
-from layoutwarp.experiments.camvid import SegNet, median_frequency_weights, segmentation_scores
+from layoutwarp.experiments.camvid import SegNet, median_frequency_weights
 from layoutwarp.experiments.data import AGE_GROUPS, age_group, load_camvid, load_faces
 from layoutwarp.experiments.faces import FaceNet, split_faces
 from layoutwarp.experiments.runs import RunOptions, train_run
+from layoutwarp.experiments.segmentation import segmentation_scores
 from layoutwarp.experiments.tasks import TASKS
 
 CAMVID = TASKS["camvid"]

@@ -11,9 +11,10 @@ import torch
 from conftest import SAMPLES
 
 from layoutwarp.cli import main
-from layoutwarp.experiments.camvid import IMAGENET_MEAN, PSP_DEFAULTS, PSPSegNet, SegNet, scale_jitter
+from layoutwarp.experiments.camvid import PSP_DEFAULTS, SegNet
 from layoutwarp.experiments.data import VOID
 from layoutwarp.experiments.models import load_model
+from layoutwarp.experiments.segmentation import IMAGENET_MEAN, PSPSegNet, scale_jitter
 from layoutwarp.experiments.tasks import TASKS, get_task
 from layoutwarp.experiments.training import optimizer, schedule
 
@@ -66,7 +67,7 @@ def test_scale_jitter_scales_then_crops_or_pads_with_void_and_the_mean():
     seen = {"up": False, "down": False}
     for seed in range(40):
         gen = torch.Generator().manual_seed(seed)
-        xs, ys = scale_jitter(x, y, gen)
+        xs, ys = scale_jitter(x, y, gen, ignore=VOID)
         assert xs.shape == x.shape and ys.shape == y.shape and ys.dtype == y.dtype
         s = 0.5 + 1.5 * float(torch.rand((), generator=torch.Generator().manual_seed(seed)))
         sh, sw = round(h * s), round(w * s)
@@ -79,7 +80,7 @@ def test_scale_jitter_scales_then_crops_or_pads_with_void_and_the_mean():
         else:  # cropped: every label is one of the originals, no void added
             seen["up"] = True
             assert not (ys == VOID).any()
-        again = scale_jitter(x, y, torch.Generator().manual_seed(seed))
+        again = scale_jitter(x, y, torch.Generator().manual_seed(seed), ignore=VOID)
         assert torch.equal(again[0], xs) and torch.equal(again[1], ys)  # the generator decides
     assert seen == {"up": True, "down": True}
 

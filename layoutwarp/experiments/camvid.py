@@ -25,27 +25,28 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ..backwarp import backwarp, backwarp_cross_entropy
 from ..layouts import Layout
 from ..sensor import SensorLayer
 from .data import CAMVID_CLASSES, VOID, images_to_tensor, load_camvid
 from .nets import conv_block, normalise_rgb
-from .resnets import AUX_WEIGHT, PSPNet, load_backbone
+from .segmentation import (
+    PSPSegNet,
+    confusion,
+    predict_labels,
+    scale_jitter,
+    segmentation_loss,
+    segmentation_scores,
+)
 from .tasks import StudyPlan, Task, TaskData, TaskDefaults, register_task
 from .training import BatchLoss, model_device
 
 __all__ = [
-    "IMAGENET_MEAN",
-    "IMAGENET_STD",
     "PALETTE",
     "PSP_DEFAULTS",
     "CamVidTask",
-    "PSPSegNet",
     "SegNet",
     "median_frequency_weights",
     "predict_camvid",
-    "scale_jitter",
-    "segmentation_scores",
 ]
 
 #: The colour of every class (and of void, last) in figures, RGB.
@@ -115,82 +116,6 @@ class SegNet(nn.Module):
         return self.head(d)
 
 
-#: ImageNet's channel means and deviations, which a pretrained ResNet expects its inputs scaled by.
-IMAGENET_MEAN = (0.485, 0.456, 0.406)
-IMAGENET_STD = (0.229, 0.224, 0.225)
-
-
-class PSPSegNet(nn.Module):
-    """Sensor layer + PSPNet on a dilated ResNet-50 (:class:`~.resnets.PSPNet`): ``(B, 3, H, W)``
-    images in [0, 1] to sensor-grid logits ``(B, K, h, w)``; in training mode ``(logits,
-    aux_logits)``. The sensor's values are scaled by ImageNet's statistics, as a pretrained
-    backbone expects (:meth:`load_backbone`)."""
-
-    def __init__(
-        self, layout: str | Layout, size: tuple[int, int], classes: int = 11, learn: bool = True, **sensor
-    ):
-        super().__init__()
-        self.sensor = SensorLayer(size, layout, learn=learn, **sensor)
-        self.psp = PSPNet(classes)
-        self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
-        self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
-        return self.psp((self.sensor(x) - self.mean) / self.std)
-
-    def load_backbone(self, path: str | Path) -> None:
-        """Start the ResNet-50 from a torchvision-format state dict (:func:`~.resnets.load_backbone`)."""
-        load_backbone(self.psp.backbone, path)
-
-
-def scale_jitter(
-    x: torch.Tensor,
-    y: torch.Tensor,
-    gen: torch.Generator,
-    lo: float = 0.5,
-    hi: float = 2.0,
-    ignore: int = VOID,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """PSPNet's random scaling for whole images: images ``(B, 3, H, W)`` and labels ``(B, H, W)``
-    scaled by one factor drawn uniformly from ``[lo, hi]`` (bilinear; labels nearest), then cut
-    back to ``H x W`` at a random place where larger, or padded where smaller (images with
-    :data:`IMAGENET_MEAN`, labels with ``ignore``), so the sensor always sees a whole frame."""
-    h, w = x.shape[-2:]
-    s = lo + (hi - lo) * float(torch.rand((), generator=gen))
-    sh, sw = max(1, round(h * s)), max(1, round(w * s))
-    xs = F.interpolate(x, (sh, sw), mode="bilinear", align_corners=False)
-    ys = F.interpolate(y[:, None].float(), (sh, sw), mode="nearest")[:, 0].to(y.dtype)
-    ox = int(torch.randint(0, abs(sw - w) + 1, (), generator=gen))
-    oy = int(torch.randint(0, abs(sh - h) + 1, (), generator=gen))
-    if s >= 1:
-        return xs[..., oy : oy + h, ox : ox + w], ys[..., oy : oy + h, ox : ox + w]
-    xo = (
-        torch.tensor(IMAGENET_MEAN, dtype=x.dtype, device=x.device)
-        .view(1, 3, 1, 1)
-        .expand(len(x), 3, h, w)
-        .clone()
-    )
-    yo = torch.full((len(y), h, w), ignore, dtype=y.dtype, device=y.device)
-    xo[..., oy : oy + sh, ox : ox + sw], yo[..., oy : oy + sh, ox : ox + sw] = xs, ys
-    return xo, yo
-
-
-def segmentation_scores(confusion: np.ndarray) -> dict:
-    """mIoU, pixel accuracy and per-class IoU (percent) from a ``(K, K)`` confusion matrix.
-
-    Rows are ground truth, columns predictions; classes absent from both are left out of
-    the mean.
-    """
-    tp = np.diag(confusion).astype(np.float64)
-    denom = confusion.sum(0) + confusion.sum(1) - tp
-    iou = np.where(denom > 0, tp / np.maximum(denom, 1), np.nan)
-    return {
-        "miou": float(np.nanmean(iou) * 100),
-        "pixel_accuracy": float(tp.sum() / max(confusion.sum(), 1) * 100),
-        "iou": [None if np.isnan(v) else float(v * 100) for v in iou],
-    }
-
-
 def median_frequency_weights(labels: np.ndarray, k: int, ignore: int = VOID) -> np.ndarray:
     """Median-frequency class balancing: ``w_c = median(f) / f_c`` (float32, ``(k,)``).
 
@@ -213,22 +138,10 @@ def median_frequency_weights(labels: np.ndarray, k: int, ignore: int = VOID) -> 
     return np.where(freq > 0, med / np.where(freq > 0, freq, 1.0), 0.0).astype(np.float32)
 
 
-def _confusion(pred: torch.Tensor, labels: torch.Tensor, k: int, ignore: int) -> np.ndarray:
-    keep = labels != ignore
-    idx = labels[keep].long() * k + pred[keep].long()
-    return torch.bincount(idx, minlength=k * k).reshape(k, k).numpy()
-
-
-@torch.no_grad()
-def predict_camvid(model: SegNet, images: np.ndarray, batch_size: int = 8) -> torch.Tensor:
-    """Back-warped full-resolution class predictions ``(N, H, W)`` int64."""
-    model.eval()
-    x = images_to_tensor(images)
-    out = []
-    for k in range(0, len(x), batch_size):
-        logits = model(x[k : k + batch_size].to(model_device(model)).float().div(255))
-        out.append(backwarp(logits.argmax(1), model.sensor.layout, tuple(x.shape[-2:])).cpu())
-    return torch.cat(out)
+def predict_camvid(model: nn.Module, images: np.ndarray, batch_size: int = 8) -> torch.Tensor:
+    """Back-warped full-resolution class predictions ``(N, H, W)`` int64 of ``(N, H, W, 3)``
+    uint8 images (:func:`~.segmentation.predict_labels`)."""
+    return predict_labels(model, images_to_tensor(images), batch_size)
 
 
 #: The PSP protocol on CamVid (``--net psp``): the paper's optimiser, schedule and batch, and
@@ -330,16 +243,8 @@ class CamVidTask(Task):
             if bool(torch.rand((), generator=gen) < 0.5):  # horizontal flip
                 xb, yb = xb.flip(-1), yb.flip(-1)
             if psp:
-                xb, yb = scale_jitter(xb, yb, gen)
-            out = net(xb)
-            logits, aux = out if isinstance(out, tuple) else (out, None)
-            layout = model.sensor.layout
-            loss = backwarp_cross_entropy(logits, yb, layout, ignore_index=VOID, weight=weight)
-            if aux is not None:
-                loss = loss + AUX_WEIGHT * backwarp_cross_entropy(
-                    aux, yb, layout, ignore_index=VOID, weight=weight
-                )
-            return loss
+                xb, yb = scale_jitter(xb, yb, gen, ignore=VOID)
+            return segmentation_loss(net(xb), yb, model.sensor.layout, VOID, weight)
 
         return torch.arange(len(x)), batch_loss
 
@@ -356,5 +261,5 @@ class CamVidTask(Task):
         """mIoU and pixel accuracy on ``part`` at full resolution, void ignored."""
         pred = predict_camvid(model, part[0])
         return segmentation_scores(
-            _confusion(pred, torch.from_numpy(part[1]).long(), len(CAMVID_CLASSES), VOID)
+            confusion(pred, torch.from_numpy(part[1]).long(), len(CAMVID_CLASSES), VOID)
         )
