@@ -922,9 +922,14 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
         required=True,
         metavar="DIR",
         help="a folder laid out like the training data (MNIST: IDX files; CamVid: NAME/ and NAMEannot/; "
-        "faces: images and labels.csv)",
+        "faces: images and labels.csv; Cityscapes: leftImg8bit/ and gtFine/; CelebA: img_align_celeba/ "
+        "and its two lists)",
     )
-    ev.add_argument("--split", help="MNIST: test or train (default: test); CamVid: NAME (default: val)")
+    ev.add_argument(
+        "--split",
+        help="MNIST: test or train (default: test); CamVid: NAME (default: val); Cityscapes: train or val "
+        "(default: val); CelebA: train, val or test (default: test)",
+    )
     _add_run_args(ev)
     ev.set_defaults(func=_cmd_evaluate)
 

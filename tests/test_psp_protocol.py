@@ -14,7 +14,8 @@ from layoutwarp.cli import main
 from layoutwarp.experiments.camvid import PSP_DEFAULTS, SegNet
 from layoutwarp.experiments.data import VOID
 from layoutwarp.experiments.models import load_model
-from layoutwarp.experiments.segmentation import IMAGENET_MEAN, PSPSegNet, scale_jitter
+from layoutwarp.experiments.resnets import IMAGENET_MEAN
+from layoutwarp.experiments.segmentation import PSPSegNet, scale_jitter
 from layoutwarp.experiments.tasks import TASKS, get_task
 from layoutwarp.experiments.training import optimizer, schedule
 

@@ -14,4 +14,4 @@ Nothing in :mod:`layoutwarp` imports this subpackage; the command line loads it 
 * :mod:`.plots` and :mod:`.demo` — figures.
 """
 
-from . import camvid, faces, mnist  # noqa: F401  (registers the built-in tasks)
+from . import camvid, celeba, cityscapes, faces, mnist  # noqa: F401  (registers the built-in tasks)

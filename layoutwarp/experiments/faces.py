@@ -3,7 +3,9 @@
 Gender (2 classes), age group (:data:`~layoutwarp.experiments.data.AGE_GROUPS`) and race (5)
 from an 8x8 or 16x16 sensor, one head each; accuracies per attribute and their mean. The
 faces are split once (a fixed permutation, a fifth for testing); the uniform layout is the
-baseline.
+baseline. Two networks (``--net``): ``small`` (the default, a small CNN) and ``resnet18``, the
+paper's ResNet-18 with its CelebA protocol (Adam 1e-3, batch 64, 15 epochs; start it from
+ImageNet weights with ``--backbone-weights FILE``).
 """
 
 from __future__ import annotations
@@ -20,10 +22,19 @@ from ..layouts import Layout
 from ..sensor import SensorLayer
 from .data import AGE_GROUPS, images_to_tensor, load_faces
 from .nets import conv_block, normalise_rgb
+from .resnets import IMAGENET_MEAN, IMAGENET_STD, load_backbone, resnet18
 from .tasks import StudyPlan, Task, TaskData, TaskDefaults, register_task
 from .training import BatchLoss, model_device
 
-__all__ = ["TEST_FRACTION", "FaceNet", "FacesTask", "split_faces"]
+__all__ = [
+    "RESNET18_DEFAULTS",
+    "TEST_FRACTION",
+    "FaceNet",
+    "FaceResNet",
+    "FacesTask",
+    "SensorResNet",
+    "split_faces",
+]
 
 #: The share of the faces held out for testing.
 TEST_FRACTION = 0.2
@@ -46,6 +57,54 @@ class FaceNet(nn.Module):
         s = normalise_rgb(self.sensor(x))
         z = self.fc(self.pool(self.body(s)))
         return {k: head(z) for k, head in self.heads.items()}
+
+
+class SensorResNet(nn.Module):
+    """Sensor layer + ResNet-18 (:func:`~.resnets.resnet18`) on the sensor image as it is (an
+    8x8 sensor leaves layer 4 a 1x1 map), ImageNet's scaling first, as a pretrained backbone
+    expects (:meth:`load_backbone`): ``(B, 3, H, W)`` images in [0, 1] to ``(B, classes)``
+    logits."""
+
+    def __init__(
+        self, layout: str | Layout, size: tuple[int, int], classes: int, learn: bool = True, **sensor: Any
+    ):
+        super().__init__()
+        self.sensor = SensorLayer(size, layout, learn=learn, **sensor)
+        self.resnet = resnet18(classes)
+        self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.resnet((self.sensor(x) - self.mean) / self.std)
+
+    def load_backbone(self, path: str | Path) -> None:
+        """Start the ResNet-18 from a torchvision-format state dict (its ``fc`` is the task's)."""
+        load_backbone(self.resnet, path)
+
+
+class FaceResNet(SensorResNet):
+    """:class:`SensorResNet` with one head per attribute (gender, age group, race): its ``fc``
+    gives all the heads' logits, split into :class:`FaceNet`'s dict."""
+
+    def __init__(self, layout: str | Layout, size: tuple[int, int], learn: bool = True, **sensor: Any):
+        super().__init__(layout, size, sum(FaceNet.HEADS.values()), learn, **sensor)
+
+    def forward(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
+        logits = super().forward(x).split(list(FaceNet.HEADS.values()), 1)
+        return dict(zip(FaceNet.HEADS, logits, strict=True))
+
+
+#: The paper's CelebA protocol for ResNet-18 (``--net resnet18``): Adam 1e-3, batch 64, 15 epochs.
+RESNET18_DEFAULTS = TaskDefaults(
+    families=("uniform", "rect"),
+    sizes=((8, 8), (16, 16)),
+    seeds=3,
+    epochs=15,
+    batch_size=64,
+    lr=1e-3,
+    theta_lr=1e-3,
+    tol=1e-3,
+)
 
 
 def split_faces(faces: dict[str, np.ndarray]) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
@@ -82,6 +141,7 @@ class FacesTask(Task):
     )
     quick: ClassVar[dict[str, Any]] = {"epochs": 2}
     study = StudyPlan(((4, 4), (6, 6), (8, 8), (12, 12), (16, 16)), ((6, 6), (8, 8)))
+    nets: ClassVar[dict[str, dict[str, Any]]] = {"small": {}, "resnet18": {"defaults": RESNET18_DEFAULTS}}
 
     def load(self, folder: Path, limit: int | None = None) -> TaskData:
         train, test = split_faces(load_faces(folder, limit))
@@ -105,7 +165,7 @@ class FacesTask(Task):
     def network(
         self, layout: str | Layout, size: tuple[int, int], learn: bool = True, **sensor: Any
     ) -> nn.Module:
-        return FaceNet(layout, size, learn=learn, **sensor)
+        return (FaceResNet if self.net == "resnet18" else FaceNet)(layout, size, learn=learn, **sensor)
 
     def batches(
         self, model: nn.Module, train: Any, gen: torch.Generator, options: dict[str, Any]

@@ -154,5 +154,11 @@ def evaluate_model(task: str, model: nn.Module, folder: str | Path, split: str |
     """
     t = get_task(task)
     part = t.load_split(Path(folder), split)
-    n = len(part["images"]) if isinstance(part, dict) else len(part[0])
+    n = (
+        len(part["images"])
+        if isinstance(part, dict)
+        else len(part[0])
+        if isinstance(part, tuple)
+        else len(part)
+    )
     return {"n": n, **t.score(model, part)}

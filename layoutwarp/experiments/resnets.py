@@ -24,6 +24,8 @@ from torch import Tensor, nn
 
 __all__ = [
     "AUX_WEIGHT",
+    "IMAGENET_MEAN",
+    "IMAGENET_STD",
     "PSP_BINS",
     "PSPNet",
     "ResNet",
@@ -36,6 +38,9 @@ __all__ = [
 PSP_BINS = (1, 2, 3, 6)
 #: The auxiliary loss's weight (Zhao et al.).
 AUX_WEIGHT = 0.4
+#: ImageNet's channel means and deviations, which a pretrained ResNet expects its inputs scaled by.
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
 
 
 class BasicBlock(nn.Module):
@@ -140,11 +145,15 @@ class ResNet(nn.Module):
         c3 = self.layer3(self.layer2(self.layer1(x)))
         return c3, self.layer4(c3)
 
+    def embed(self, x: Tensor) -> Tensor:
+        """Layer 4 averaged over the image: ``(B, channels)``, what ``fc`` reads."""
+        return torch.flatten(self.avgpool(self.features(x)[1]), 1)
+
     def forward(self, x: Tensor) -> Tensor:
-        """Class logits ``(B, classes)`` (global average pooling of layer 4, then ``fc``)."""
+        """Class logits ``(B, classes)`` (:meth:`embed`, then ``fc``)."""
         if self.fc is None:
-            raise RuntimeError("a backbone (classes=0) has no fc: call features()")
-        return self.fc(torch.flatten(self.avgpool(self.features(x)[1]), 1))
+            raise RuntimeError("a backbone (classes=0) has no fc: call features() or embed()")
+        return self.fc(self.embed(x))
 
 
 def resnet18(classes: int = 1000) -> ResNet:

@@ -18,12 +18,10 @@ from torch import nn
 from ..backwarp import backwarp, backwarp_cross_entropy
 from ..layouts import Layout
 from ..sensor import SensorLayer
-from .resnets import AUX_WEIGHT, PSPNet, load_backbone
+from .resnets import AUX_WEIGHT, IMAGENET_MEAN, IMAGENET_STD, PSPNet, load_backbone
 from .training import model_device
 
 __all__ = [
-    "IMAGENET_MEAN",
-    "IMAGENET_STD",
     "PSPSegNet",
     "confusion",
     "predict_labels",
@@ -31,10 +29,6 @@ __all__ = [
     "segmentation_loss",
     "segmentation_scores",
 ]
-
-#: ImageNet's channel means and deviations, which a pretrained ResNet expects its inputs scaled by.
-IMAGENET_MEAN = (0.485, 0.456, 0.406)
-IMAGENET_STD = (0.229, 0.224, 0.225)
 
 
 class PSPSegNet(nn.Module):
