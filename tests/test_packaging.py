@@ -54,6 +54,9 @@ def test_the_installed_wheel_runs_the_quick_job_and_the_demo_outside_the_source_
     assert "bundled" in out and (work / "q" / "results.json").exists()
     result = json.loads((work / "q" / "results.json").read_text())
     assert Path(result["data"]).is_relative_to(site)  # the samples shipped inside the package
+    shipped = site / "layoutwarp" / "data_samples"  # the deepest ones too (Cityscapes' layout)
+    assert len(list((shipped / "cityscapes" / "gtFine" / "val" / "frankfurt").glob("*_labelIds.png"))) == 2
+    assert (shipped / "celeba" / "list_eval_partition.txt").is_file()
     run([cli, "demo", "--size", "16x12", "--out", "d"], work, env)
     assert (work / "d" / "layouts.png").stat().st_size > 10_000
     # without the samples' flag, the full data is asked for in one line
