@@ -28,6 +28,8 @@ __all__ = ["build_parser", "main", "parse_theta", "parse_wxh"]
 BYTES_PER_SENSOR_PIXEL = 200
 #: Library argument names and the command-line flags that set them, for error lines.
 FLAGS = {
+    "out": "--out",
+    "report": "--report",
     "dst": "DST",
     "src": "SRC",
     "format": "--format",
@@ -574,8 +576,11 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
 
 def _cmd_export(args: argparse.Namespace) -> int:
     from .export import export_layout, report_json
-    from .files import atomic_write
+    from .files import atomic_write, check_file_destination
 
+    check_file_destination(args.out, "out")  # both before any work: nothing written, then refused
+    if args.report:
+        check_file_destination(args.report, "report")
     layout, size = _layout_from_args(args)
     report = export_layout(
         layout,

@@ -11,9 +11,10 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from .checks import ArgumentError
 from .version import __version__
 
-__all__ = ["atomic_write", "run_info"]
+__all__ = ["atomic_write", "check_file_destination", "run_info"]
 
 
 @functools.cache
@@ -34,6 +35,26 @@ def _file_mode() -> int:
     return 0o666 & ~mask
 
 
+def check_file_destination(path: str | Path, argument: str = "path") -> Path:
+    """``path`` as a file that can be written: not a folder, and no file where one of its folders
+    would be (those folders are created by the writer).
+
+    Raises:
+        ArgumentError: naming ``argument``, the path and the file in the way, in one line.
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise ArgumentError(argument, f"must be a file; {str(path)!r} is a folder")
+    for folder in path.parents:
+        if folder.exists():
+            if not folder.is_dir():
+                raise ArgumentError(
+                    argument, f"cannot write {str(path)!r}: {str(folder)!r} is a file, not a folder"
+                )
+            break
+    return path
+
+
 def atomic_write(path: str | Path, content: bytes | str | Callable[[str], object]) -> Path:
     """Write ``path`` so that no reader ever sees it half-written, even if the process dies.
 
@@ -47,8 +68,11 @@ def atomic_write(path: str | Path, content: bytes | str | Callable[[str], object
 
     Returns:
         ``path`` as a :class:`~pathlib.Path`.
+
+    Raises:
+        ArgumentError: ``path`` cannot be a file (:func:`check_file_destination`).
     """
-    path = Path(path)
+    path = check_file_destination(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
     try:

@@ -196,6 +196,23 @@ CASES = {
     ),
 }
 CASES |= {
+    f"mask under a file ({fmt})": (
+        ["export", "--family", "uniform", *MASK, "--out", "{tmp}/afile/x." + fmt],
+        ["--out", "afile/x." + fmt, "afile' is a file, not a folder"],
+    )
+    for fmt in ("gds", "svg")
+}
+CASES |= {
+    "report under a file": (
+        ["export", "--family", "uniform", *MASK, "--out", "{tmp}/x.svg", "--report", "{tmp}/afile/r.json"],
+        ["--report", "afile/r.json", "is a file, not a folder"],
+    ),
+    "mask onto a folder": (
+        ["export", "--family", "uniform", *MASK, "--out", "{tmp}"],
+        ["--out", "must be a file", "is a folder"],
+    ),
+}
+CASES |= {
     f"grid coarser than a pixel ({fmt})": (
         ["export", "--family", "uniform", *MASK, "--grid-um", "20", "--out", "{tmp}/x." + fmt],
         ["--grid-um", "20", "not finer than the smallest pixel", "pitch 10"],
@@ -380,3 +397,12 @@ def test_the_parser_of_one_command_is_the_full_parsers_for_that_command():
         one = dict(_subparsers(build_parser(command)))
         assert one[command].format_help() == full[command].format_help()
     assert "train mnist" in full and "train mnist" not in one  # no catalogue read for bench
+
+
+def test_save_layout_under_a_file_says_so_in_one_line(files):
+    with pytest.raises(
+        lw.checks.ArgumentError, match=r"cannot write .*afile/x\.json': .*afile' is a file, not a folder"
+    ):
+        lw.save_layout(lw.CurvLayout((0.3, 0.1)), files / "afile" / "x.json")
+    with pytest.raises(lw.checks.ArgumentError, match=r"must be a file; .* is a folder"):
+        lw.save_layout(lw.CurvLayout((0.3, 0.1)), files)
