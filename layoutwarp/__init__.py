@@ -5,16 +5,16 @@ Learning of Task-Specific Camera Parameters": a sensor whose pixel ``k`` is the 
 ``φ(U_k, θ)`` of a uniform cell, simulated as the mean radiance over that pixel and
 differentiable in θ and in the image.
 
-The top level is the front door: the sensor (:func:`simulate`, :class:`SensorLayer`), the
+The top level is the front door: the sensor ([`simulate`][], [`SensorLayer`][]), the
 layout families, maps and back-warping, layout files (imported together at the first use of
 any of them), and, each on its own first use, the Kornia augmentation, dataset preprocessing and
 fabrication export; ``import layoutwarp`` alone imports nothing heavy. The building blocks
 stay in their modules:
-:mod:`layoutwarp.integrators` (the integrators one by one), :mod:`layoutwarp.layouts` (the
-paper's φ in functional form), :mod:`layoutwarp.coords` (the coordinate convention),
-:mod:`layoutwarp.mesh`, :mod:`layoutwarp.maps`, :mod:`layoutwarp.labels`,
-:mod:`layoutwarp.resampler`, :mod:`layoutwarp.export`. The paper's experiments and the
-benchmark live beside the library in :mod:`layoutwarp.experiments`.
+[`layoutwarp.integrators`][integrators] (the integrators one by one), [`layoutwarp.layouts`][layouts] (the
+paper's φ in functional form), [`layoutwarp.coords`][coords] (the coordinate convention),
+[`layoutwarp.mesh`][mesh], [`layoutwarp.maps`][maps], [`layoutwarp.labels`][labels],
+[`layoutwarp.resampler`][resampler], `layoutwarp.export`. The paper's experiments and the
+benchmark live beside the library in `layoutwarp.experiments`.
 """
 
 from __future__ import annotations
@@ -90,7 +90,7 @@ _LAZY_MODULES = ("augment", "doctor", "export", "jit", "labels", "preprocess", "
 
 
 def _load_core() -> None:
-    """Import the front door's core (:data:`_CORE`); what the first use of one of its names does."""
+    """Import the front door's core ([`_CORE`][]); what the first use of one of its names does."""
     for module, names in _CORE.items():
         mod = importlib.import_module(f".{module}", __name__)
         globals().update({name: getattr(mod, name) for name in names})

@@ -1,24 +1,24 @@
 """The sensor as a step of a Kornia augmentation pipeline.
 
-:class:`SensorAugmentation` fits inside ``kornia.augmentation.AugmentationSequential`` next
+[`SensorAugmentation`][] fits inside ``kornia.augmentation.AugmentationSequential`` next
 to Kornia's own augmentations. Per data key:
 
-* ``input`` images go through a :class:`~layoutwarp.SensorLayer` (differentiable in θ, which is
+* ``input`` images go through a [`SensorLayer`][] (differentiable in θ, which is
   a parameter of the augmentation and therefore of the container; a learnable layout is
-  guarded as the layer guards it, e.g. a :class:`~layoutwarp.GridLayout` against folding);
+  guarded as the layer guards it, e.g. a [`GridLayout`][layoutwarp.grids.GridLayout] against folding);
 * ``mask`` label maps go to the sensor grid by ``mask_rule``
-  (:func:`~layoutwarp.labels.labels_to_sensor`): ``"nearest"`` (the label at the deformed
+  ([`labels_to_sensor`][]): ``"nearest"`` (the label at the deformed
   pixel centre) or ``"majority"`` (the label covering most of the pixel's area);
 * ``keypoints`` go through ``φ⁻¹`` to sensor pixel coordinates (Kornia's convention: pixel
   centres at integers), and back through ``φ`` on ``inverse``;
 * ``bbox`` boxes: the tight axis-aligned box of the box's outline mapped through ``φ⁻¹`` (and
   through ``φ`` on ``inverse``), as learned-zoom detectors map boxes through a warp. Exact for
   separable (rectangular) layouts, where a box maps to a box; for the others the outline is
-  sampled at :data:`BOX_SAMPLES` points a side, which keeps the box within 0.01 sensor pixels
+  sampled at [`BOX_SAMPLES`][] points a side, which keeps the box within 0.01 sensor pixels
   of the outline's true extent (tested against 4097 points a side).
 
 ``AugmentationSequential.inverse`` back-warps images and masks to the input size with
-nearest neighbour (:func:`~layoutwarp.backwarp`).
+nearest neighbour (`backwarp`).
 """
 
 from __future__ import annotations
@@ -50,12 +50,12 @@ class SensorAugmentation(GeometricAugmentationBase2D):
     Args:
         size: sensor size ``(h, w)``.
         layout: a registered family name (``"rect"``, ``"curv"``, ``"uniform"``, ...) or a
-            :class:`~layoutwarp.Layout`.
-        method: integrator (see :func:`~layoutwarp.simulate`).
+            [`Layout`][].
+        method: integrator (see [`simulate`][layoutwarp.sensor.simulate]).
         mask_rule: ``"nearest"`` or ``"majority"`` (see the module docstring).
-        learn: train θ (for a family name), as :class:`~layoutwarp.SensorLayer`.
+        learn: train θ (for a family name), as [`SensorLayer`][].
         theta: initial θ (for a family name).
-        **options: as :class:`~layoutwarp.SensorLayer` (unknown options are
+        **options: as [`SensorLayer`][] (unknown options are
             refused here, not at the first batch).
 
     Examples:

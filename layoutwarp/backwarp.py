@@ -37,7 +37,7 @@ def sensor_index_maps(
         target_size: target size ``(H, W)``.
         method: ``"inverse"`` (the exact point inverse φ⁻¹ of every target centre) or
             ``"raster"`` (the pixel polygons filled into the target grid by OpenCV, see
-            :func:`~layoutwarp.maps.raster_index_map`: no inverse needed; differs from
+            [`raster_index_map`][]: no inverse needed; differs from
             ``"inverse"`` only in target pixels that a pixel boundary passes through).
 
     Returns:
@@ -71,7 +71,7 @@ def backwarp(
             contains its centre; any dtype) or ``"bilinear"`` (smooth display of continuous
             outputs, sampled at ``φ⁻¹(q)`` with border padding; floating dtypes).
         index_method: how ``"nearest"`` finds each target's sensor pixel (see
-            :func:`sensor_index_maps`).
+            [`sensor_index_maps`][]).
 
     Returns:
         ``(B, C, H, W)`` (or ``(B, H, W)``) with ``pred``'s dtype, on ``pred``'s device.
@@ -112,7 +112,7 @@ def backwarp_numpy(
 ) -> np.ndarray:
     """OpenCV back-warping of an HW or HWC numpy array (nearest; ``cv2.remap``).
 
-    Bit-identical to :func:`backwarp` with ``mode="nearest"`` and the same ``index_method``:
+    Bit-identical to `backwarp` with ``mode="nearest"`` and the same ``index_method``:
     the remap maps hold the integer sensor indices, so ``INTER_NEAREST`` reads exactly the
     same pixel.
     Supports the dtypes ``cv2.remap`` does (uint8, uint16, int16, float32, float64).

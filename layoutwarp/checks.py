@@ -2,7 +2,7 @@
 
 Each helper returns the validated (normalised) value or raises with a one-line message that
 names the argument, the value it got and what is allowed, in the manner of Kornia's
-``KORNIA_CHECK_SHAPE``. Bad values raise :class:`ArgumentError` (a ``ValueError`` that also
+``KORNIA_CHECK_SHAPE``. Bad values raise [`ArgumentError`][] (a ``ValueError`` that also
 carries the argument's name), which the command line turns into an error line naming its flag.
 """
 
@@ -36,7 +36,7 @@ __all__ = [
 
 class ArgumentError(ValueError):
     """A bad argument value. A ``ValueError`` whose message names the argument, the value and
-    what is allowed; :attr:`argument` holds the argument's name for callers that map it to
+    what is allowed; `argument` holds the argument's name for callers that map it to
     their own (the command line to its flag).
 
     Examples:

@@ -646,7 +646,7 @@ PHYSICS_FLAGS = {
 
 
 def _physics_from_args(args: argparse.Namespace, extent: tuple[float, float] | None = None):
-    """The :class:`~layoutwarp.SensorPhysics` of ``--physics FILE`` and the physics flags, or
+    """The [`SensorPhysics`][layoutwarp.physics.SensorPhysics] of ``--physics FILE`` and the physics flags, or
     ``None`` when none is given. ``extent``: the sensor extent when no flag or file sets one.
     A flag overrides the file's value, and the values are checked once merged, so a file may
     leave out what the flags give; an error names the flag, or the file, that set the value."""
@@ -1040,7 +1040,7 @@ _NEGATIVE = re.compile(r"^-\.?\d")
 def main(argv: Sequence[str] | None = None, *, own_process: bool = False) -> int:
     """Run the command line; returns the exit status. ``own_process``: the process is the
     command's alone, and its allocator keeps freed memory for the next training step
-    (:func:`~layoutwarp.kernels.retain_freed_memory`)."""
+    ([`retain_freed_memory`][layoutwarp.kernels.retain_freed_memory])."""
     argv = join_negative_values(sys.argv[1:] if argv is None else argv)
     args = build_parser(argv[0] if argv else "").parse_args(argv)
     if own_process:
@@ -1058,13 +1058,13 @@ def main(argv: Sequence[str] | None = None, *, own_process: bool = False) -> int
 
 
 def run() -> None:
-    """The ``layoutwarp`` command (and ``python -m layoutwarp``): :func:`main` in a process of
+    """The ``layoutwarp`` command (and ``python -m layoutwarp``): [`main`][] in a process of
     its own."""
     sys.exit(main(own_process=True))
 
 
 def _name_the_flag(exc: Exception) -> str:
-    """A library error about an argument (:class:`~layoutwarp.checks.ArgumentError`) prefixed
+    """A library error about an argument ([`ArgumentError`][layoutwarp.checks.ArgumentError]) prefixed
     with the flag that sets it; any other error's message as it is."""
     from .checks import ArgumentError
 

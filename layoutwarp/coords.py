@@ -96,5 +96,5 @@ def sensor_to_pixels(p: Tensor, size: tuple[float, float], *, centered: bool = F
 
 
 def pixels_to_sensor(p: Tensor, size: tuple[float, float], *, centered: bool = False) -> Tensor:
-    """Inverse of :func:`sensor_to_pixels`."""
+    """Inverse of [`sensor_to_pixels`][]."""
     return (p + 0.5 if centered else p) / _half_extent(p, size) - 1

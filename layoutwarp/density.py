@@ -1,7 +1,7 @@
 """Layouts from an importance map: pixels where a scene needs them, without learning.
 
-:func:`layout_from_density` makes the pixel density (pixels per unit sensor area) follow a
-non-negative importance map ``d``, e.g. a dataset's mean edge strength (:func:`edge_density`)
+[`layout_from_density`][] makes the pixel density (pixels per unit sensor area) follow a
+non-negative importance map ``d``, e.g. a dataset's mean edge strength ([`edge_density`][])
 or label-boundary density. The map is first mixed with the uniform density,
 ``d' = (1 − floor) d / mean(d) + floor``, which bounds how far pixels can grow: a spline
 layout's pixel rows and columns, and a grid layout's control rows, are at most ``1 / floor``
@@ -10,11 +10,11 @@ the map's cells):
 
 * ``kind="spline"`` (separable, rectangular pixels): each axis is the inverse of the CDF of
   ``d'``'s marginal, sampled at ``k`` equal quantiles: a piecewise-linear
-  :class:`~layoutwarp.SplineLayout` whose ``k`` pieces each hold an equal share of the mass;
+  [`SplineLayout`][] whose ``k`` pieces each hold an equal share of the mass;
 * ``kind="grid"``: the Knothe–Rosenblatt map on a control grid: control rows at equal
   quantiles of the vertical marginal, and along each control row the columns at equal
   quantiles of the density averaged over the two control bands around that row. Control cells
-  are trapezoids with horizontal top and bottom, so the :class:`~layoutwarp.GridLayout` never
+  are trapezoids with horizontal top and bottom, so the [`GridLayout`][] never
   folds, and the pixel density follows ``d'`` in both directions.
 """
 
@@ -64,7 +64,7 @@ def layout_from_density(
     learn: bool = False,
     dtype: torch.dtype | None = torch.float64,
 ) -> Layout:
-    """A layout whose pixel density follows ``density`` (see :mod:`layoutwarp.density`).
+    """A layout whose pixel density follows ``density`` (see `layoutwarp.density`).
 
     Args:
         density: ``(h_d, w_d)`` non-negative importance map over the sensor (row 0 at the top),
@@ -113,7 +113,7 @@ def layout_from_density(
 
 def edge_density(images: Tensor | np.ndarray, size: Sequence[int] | None = None) -> Tensor:
     """Mean gradient magnitude (Sobel) of a stack of images: an importance map for
-    :func:`layout_from_density`.
+    [`layout_from_density`][].
 
     Args:
         images: ``(N, H, W)`` or ``(N, C, H, W)`` (channels are averaged), any real dtype.

@@ -1,5 +1,5 @@
 """What runs here: the versions, which backend each path takes and why, and where compiled code
-lives (``layoutwarp doctor``; :func:`backends` is the one line the bench and every results file
+lives (``layoutwarp doctor``; [`backends`][] is the one line the bench and every results file
 record, so a silent fallback to a slower path shows in the numbers it produced)."""
 
 from __future__ import annotations

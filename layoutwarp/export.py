@@ -95,7 +95,7 @@ def _edge_polylines(
     min_steps: np.ndarray | None = None,
 ) -> tuple[list[np.ndarray], float]:
     """Every edge as a polyline in µm (image orientation) within ``tol_um``; and the max deviation
-    (:func:`~layoutwarp.mesh.distance_subdivisions`, then the mesh with those counts)."""
+    ([`distance_subdivisions`][], then the mesh with those counts)."""
     counts, dev = distance_subdivisions(
         layout, size, tol_um, scale=sensor_um, manhattan=manhattan, min_counts=min_steps
     )
@@ -344,16 +344,16 @@ def export_layout(
             ``.npy`` int32 above 65534 pixels).
         tol_um: curved-edge tolerance; grid_um: manufacturing grid (GDSII: default the 1 nm
             database unit, which the file stores anyway); manhattan: axis-aligned steps (see
-            :func:`pixel_polygons_um`).
+            [`pixel_polygons_um`][]).
         px_per_um: raster resolution (default: 4096 raster pixels on the longer side).
         min_feature_um: warn when the smallest pitch is below this.
         physics: add each pixel's full well and its SNR for a flat field at the physics' exposure
-            (``photons_per_um2``, :func:`~layoutwarp.physics.pixel_snr`; the pixel areas are the
+            (``photons_per_um2``, [`pixel_snr`][]; the pixel areas are the
             exported polygons') to the report (``physics``: the camera, ``full_well_e`` and
             ``snr`` per pixel, row-major). Its ``sensor_um`` is replaced by this sensor's.
 
     Returns:
-        an :class:`ExportReport` (also printed by ``layoutwarp export``).
+        an [`ExportReport`][] (also printed by ``layoutwarp export``).
     """
     path = Path(path)
     suffix = path.suffix.lstrip(".").lower()

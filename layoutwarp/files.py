@@ -67,10 +67,10 @@ def atomic_write(path: str | Path, content: bytes | str | Callable[[str], object
         content: bytes or text, or a function that writes the file at the path it is given.
 
     Returns:
-        ``path`` as a :class:`~pathlib.Path`.
+        ``path`` as a `Path`.
 
     Raises:
-        ArgumentError: ``path`` cannot be a file (:func:`check_file_destination`).
+        ArgumentError: ``path`` cannot be a file ([`check_file_destination`][]).
     """
     path = check_file_destination(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -96,7 +96,7 @@ def run_info(device: Any = None, seeds: Any = None) -> dict[str, Any]:
     Returns:
         the layoutwarp, torch, numba, NumPy and Python versions, the machine, ``device``, torch's
         thread count, the world size and rank under ``torchrun`` (1 and 0 alone), the command
-        line, ``seeds``, and which backend each path took (:func:`~layoutwarp.doctor.backends`).
+        line, ``seeds``, and which backend each path took ([`backends`][layoutwarp.doctor.backends]).
     """
     import numpy as np
     import torch

@@ -1,6 +1,6 @@
 """Grid layouts: any layout given as a control grid, bilinear inside each control cell.
 
-A :class:`GridLayout` maps the uniform ``(g_h + 1) × (g_w + 1)`` control grid of S onto given
+A [`GridLayout`][] maps the uniform ``(g_h + 1) × (g_w + 1)`` control grid of S onto given
 control points and interpolates bilinearly inside each control cell. Restricted to a line
 parallel to an axis, a bilinear map is affine, so the image of a uniform pixel edge is a
 polyline with a vertex where it crosses a control line: the pixel mesh is exact, with no
@@ -80,14 +80,14 @@ def inverse_bilinear(a: Tensor, b: Tensor, c: Tensor, d: Tensor, q: Tensor) -> T
 
 @register_family
 class GridLayout(Layout):
-    """A layout given by control points, bilinear in each control cell (see :mod:`layoutwarp.grids`).
+    """A layout given by control points, bilinear in each control cell (see `layoutwarp.grids`).
 
     θ holds the free control coordinates: ``(x, y)`` of interior points and the coordinate
     along the border of border points (corners have none), in row-major order. Every pixel edge
     is straight between control lines, so the exact integrator is exact at any tolerance.
 
-    A learnable grid could fold under a large optimiser step; :meth:`project_` (called by
-    :class:`~layoutwarp.SensorLayer` before every forward pass) undoes the part of a step that
+    A learnable grid could fold under a large optimiser step; [`project_`][] (called by
+    [`SensorLayer`][layoutwarp.sensor.SensorLayer] before every forward pass) undoes the part of a step that
     would bring any cell's corner determinant below ``min_det``, by halving the step from the
     last valid control points.
 
@@ -98,9 +98,9 @@ class GridLayout(Layout):
         grid: ``(g_h, g_w)`` control cells when ``control`` is ``None``.
         min_det: the smallest corner determinant (in units of the uniform cell) a learning step
             may produce; a grid given below it is kept but not made worse.
-        bound: unused (accepted for :func:`make_layout`).
-        learn: as :class:`~layoutwarp.Layout`.
-        dtype: as :class:`~layoutwarp.Layout` (default: a tensor ``control``'s own floating dtype).
+        bound: unused (accepted for [`make_layout`][layoutwarp.layouts.make_layout]).
+        learn: as [`Layout`][].
+        dtype: as [`Layout`][] (default: a tensor ``control``'s own floating dtype).
 
     Raises:
         ValueError: a malformed grid, or a folded one (naming the first bad cell).
@@ -156,7 +156,7 @@ class GridLayout(Layout):
         """Sample any layout at the ``(g_h + 1) × (g_w + 1)`` uniform control points.
 
         Exact (the same φ) for separable layouts that are affine between control lines, e.g. a
-        piecewise-linear :class:`~layoutwarp.SplineLayout` whose knots lie on the grid; for
+        piecewise-linear [`SplineLayout`][layoutwarp.splines.SplineLayout] whose knots lie on the grid; for
         others the pixel corners on control points agree and the edges between are chords.
         """
         gh, gw = check_size(grid, "grid")
@@ -182,7 +182,7 @@ class GridLayout(Layout):
             points: ``"corners"``: the maps hold the ``(g_h + 1) × (g_w + 1)`` pixel corners,
                 used as control points (border points must lie on the source border
                 ``−0.5`` / ``W − 0.5`` within 1e-3 px); ``"centers"``: they hold the ``g_h × g_w``
-                pixel centres (e.g. :func:`~layoutwarp.forward_maps`); each interior corner is
+                pixel centres (e.g. [`forward_maps`][layoutwarp.maps.forward_maps]); each interior corner is
                 the mean of its four neighbouring centres and each border corner the mean of its
                 two, moved onto the border (an approximation of the layout the centres came
                 from, exact for affine cells).
@@ -226,7 +226,7 @@ class GridLayout(Layout):
 
     @torch.no_grad()
     def project_(self) -> bool:
-        """Undo the part of the last step that folds the grid (see :meth:`Layout.project_`).
+        """Undo the part of the last step that folds the grid (see [`Layout.project_`][]).
 
         The current control points are kept if every corner determinant is at least
         ``min(min_det, the last valid grid's)``; otherwise the step from the last valid points is

@@ -5,14 +5,14 @@ All functions take a source ``image`` of shape ``(N, H, W)`` (channels flattened
 Source pixel ``(r, c)`` covers ``[c, c + 1) × [r, r + 1)`` in source pixel units, which map
 to the sensor square by ``X = (x + 1) · W / 2``, ``Y = (y + 1) · H / 2``.
 
-* :func:`integrate_exact` — box radiance over polygonal pixels by Green's theorem,
+* [`integrate_exact`][] — box radiance over polygonal pixels by Green's theorem,
   ``∬_A L = ∮_∂A P dY`` with ``P`` the row prefix integral. Cost grows with the pixel
   perimeter; each shared edge is integrated once. Tables are float64.
-* :func:`integrate_separable` — rectangular layouts: per-axis overlap weights (the
+* [`integrate_separable`][] — rectangular layouts: per-axis overlap weights (the
   weights ``cv2.resize(INTER_AREA)`` uses for the uniform layout).
-* :func:`integrate_montecarlo` — the paper's stratified Monte Carlo, with the Reynolds
+* [`integrate_montecarlo`][] — the paper's stratified Monte Carlo, with the Reynolds
   transport (boundary flux) or the autograd gradient estimator.
-* :func:`integrate_point` — one sample per pixel at the deformed centre.
+* [`integrate_point`][] — one sample per pixel at the deformed centre.
 """
 
 from __future__ import annotations
@@ -52,7 +52,7 @@ __all__ = [
 
 #: Radiance models of a pixel image: each source pixel a constant square, or bilinear.
 RADIANCES = ("box", "bilinear")
-#: Implementations of the exact integrator (see :func:`integrate_exact`).
+#: Implementations of the exact integrator (see [`integrate_exact`][]).
 BACKENDS = ("auto", "numba", "torch")
 
 
@@ -124,7 +124,7 @@ class _PrefixTables:
     the box image ``I(c) − I(c − 1)`` (``L`` up to the rounding of one block), and two
     look-ups of the same cell use bit-identical numbers, so the left and right boundaries of
     a pixel narrower than a source cell cancel exactly. The compiled kernels use the same
-    formula (:func:`layoutwarp.kernels.exact_forward`).
+    formula ([`layoutwarp.kernels.exact_forward`][]).
     """
 
     def __init__(self, image: Tensor, block: int = kernels.BLOCK):
@@ -242,7 +242,7 @@ class GreenPieces(NamedTuple):
 
 def green_pieces(a: Tensor, b: Tensor, src_size: tuple[int, int]) -> GreenPieces:
     """Cut boundary segments ``a → b`` (``(S, 2)``, source pixel units, inside the image)
-    into the :class:`GreenPieces` of an ``(H, W)`` box image."""
+    into the [`GreenPieces`][] of an ``(H, W)`` box image."""
     hs, ws = src_size
     keep = torch.nonzero(a[:, 1] != b[:, 1]).squeeze(1)  # ΔY = 0 adds nothing
     a, b = a[keep], b[keep]
@@ -315,7 +315,7 @@ def _vertex_gradient(verts: Tensor, seg_start: Tensor, seg_end: Tensor, wa: Tens
 
 class _ExactKernel(torch.autograd.Function):
     """Per-edge Green integrals and areas by the compiled kernel, ``(N + 1, E)``; its backward
-    is the exact Reynolds vertex gradient (as :class:`_BoundaryFlux`), also compiled. No image
+    is the exact Reynolds vertex gradient (as [`_BoundaryFlux`][]), also compiled. No image
     gradient."""
 
     @staticmethod
@@ -379,7 +379,7 @@ def _cpu_weights(
     grad: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The compiled backward on the CPU: the Reynolds weights ``(wa, wb)`` of every segment
-    (:func:`~layoutwarp.kernels.exact_backward`) for the edge gradient ``grad`` ``(N + 1, E)``."""
+    ([`exact_backward`][layoutwarp.kernels.exact_backward]) for the edge gradient ``grad`` ``(N + 1, E)``."""
     with kernels.LOCK:
         incl = (tables or kernels.prefix_tables(image, kernels.BLOCK))[0]
         seg_edge = np.ascontiguousarray(seg_edge)
@@ -390,15 +390,15 @@ def _cpu_weights(
 class _CompiledExact(torch.autograd.Function):
     """θ → the exact pixel means ``(N, h, w)`` and the pixels' areas ``(h, w)`` in sensor units
     (float64; an area is the boundary integral of 1 the means divide by) of a layout with a
-    compiled mesh (:mod:`layoutwarp.meshkernels`): mesh, integrals and Reynolds weights in
+    compiled mesh ([`layoutwarp.meshkernels`][]): mesh, integrals and Reynolds weights in
     compiled kernels, and θ's gradient as one contraction with the vertices' θ-derivatives, so a
     training step runs a handful of torch operations instead of the thousands of the mesh's
     autograd graph (an output nobody uses costs its backward nothing). On the
-    CPU the mesh is never held: :func:`~layoutwarp.meshkernels.mesh_integrals` places each chunk
+    CPU the mesh is never held: [`mesh_integrals`][] places each chunk
     of edges' vertices and integrates them while they are in cache, carrying their θ-derivatives
     to the θ-Jacobian of every edge integral, so the backward is the quotient rule and one
     contraction. On a CUDA device the mesh is built there
-    (:func:`~layoutwarp.meshkernels.build_mesh_device`) and the CUDA kernels integrate it and
+    ([`build_mesh_device`][]) and the CUDA kernels integrate it and
     weigh its vertices for the backward. No image gradient."""
 
     @staticmethod
@@ -455,7 +455,7 @@ def _kernel_arrays(verts: Tensor, mesh: PixelMesh) -> list[np.ndarray]:
 
 
 def _cuda_forward(verts: Tensor, image: Tensor, mesh: PixelMesh) -> tuple[Tensor, Tensor]:
-    """:class:`_ExactKernel`'s forward on a CUDA device: ``(N + 1, E)`` and the prefix table
+    """[`_ExactKernel`][]'s forward on a CUDA device: ``(N + 1, E)`` and the prefix table
     ``incl`` (kept for the backward); the tables and a value per segment are the memory it takes."""
     n, h, w = image.shape
     stream = torch.cuda.current_stream(image.device).cuda_stream
@@ -477,7 +477,7 @@ def _cuda_forward(verts: Tensor, image: Tensor, mesh: PixelMesh) -> tuple[Tensor
 
 
 def _cuda_backward(verts: Tensor, incl: Tensor, mesh: PixelMesh, grad: Tensor) -> Tensor:
-    """:class:`_ExactKernel`'s vertex gradient on a CUDA device."""
+    """[`_ExactKernel`][]'s vertex gradient on a CUDA device."""
     stream = torch.cuda.current_stream(verts.device).cuda_stream
     v = verts.detach().double().contiguous()
     seg_start, seg_end, seg_edge = (t.to(verts.device) for t in (mesh.seg_start, mesh.seg_end, mesh.seg_edge))
@@ -506,7 +506,7 @@ def integrate_exact(
     boundary segment is cut at source rows and columns, and within one cell ``P`` is linear
     in ``X``, so a piece contributes ``ΔY · P(mid-X)`` exactly. Each shared edge is computed
     once; straight-edged pixels are exact, curved edges are polylines within ``tol``
-    (see :func:`layoutwarp.mesh.pixel_mesh`). Differentiable in the image (autograd through
+    (see [`layoutwarp.mesh.pixel_mesh`][pixel_mesh]). Differentiable in the image (autograd through
     the prefix tables) and, through the mesh vertices, in θ, with the exact Reynolds
     boundary gradient (symmetric where an edge lies on a source cell boundary).
 
@@ -517,10 +517,10 @@ def integrate_exact(
         size: sensor size ``(h, w)``.
         tol: bound on each pixel's error relative to the image's value range, spent on the
             polyline approximation of curved edges; ``None``: what the image's dtype resolves
-            (:func:`data_tolerance`), as :func:`~layoutwarp.simulate` does.
+            ([`data_tolerance`][]), as [`simulate`][layoutwarp.sensor.simulate] does.
         mesh: a precomputed mesh (overrides ``layout``/``tol``/``theta`` for the geometry).
         theta: use this θ instead of the layout's own (e.g. for ``gradcheck``).
-        backend: ``"numba"`` (the compiled kernels of :mod:`layoutwarp.kernels`: CPU, and
+        backend: ``"numba"`` (the compiled kernels of `layoutwarp.kernels`: CPU, and
             CUDA where numba's CUDA target runs; no image gradient), ``"torch"`` (the
             vectorised reference: any device, image gradient) or ``"auto"`` (numba when it
             applies, else torch).
@@ -559,7 +559,7 @@ def integrate_exact(
 
 
 def _exact_on_mesh(work: Tensor, mesh: PixelMesh, compiled: bool) -> Tensor:
-    """:func:`integrate_exact` on a mesh: the compiled kernels, or the torch reference."""
+    """[`integrate_exact`][] on a mesh: the compiled kernels, or the torch reference."""
     n, hs, ws = work.shape
     verts = mesh.pixel_vertices((hs, ws))
     if compiled:

@@ -11,17 +11,17 @@ cut from it without slowing every later call. So by default no call waits for it
   cache, the one asked for first, and the call answers from the torch path (the same values to rounding). A
   call after the worker has compiled its group loads it from the cache in milliseconds and runs
   compiled from then on. A call whose result would differ beyond rounding (the sensor's noise
-  draws: the compiled sampler and torch's are different streams) takes :func:`compiled`. The
+  draws: the compiled sampler and torch's are different streams) takes [`compiled`][]. The
   worker finishes the cache even after its parent has ended, so the next process finds it warm.
   The sensor's noise is the one such call, and it does not wait long: while the worker has its
-  group to do, it runs a *quick build* of its kernel (:func:`quick`: the same code compiled
+  group to do, it runs a *quick build* of its kernel ([`quick`][]: the same code compiled
   without numba's IR inlining, in seconds rather than half a minute, the same values to the bit,
   1.5–6x slower), compiled in the process and kept in the cache beside the full build.
 - ``"wait"``: compile in this process at first use, as plain numba does: every call compiled, and
   results the same to the bit from a process's first call on (the test suite runs this way).
 - ``"off"``: the torch path only.
 
-The mode comes from the environment variable ``LAYOUTWARP_JIT`` or :func:`set_mode`. Any group
+The mode comes from the environment variable ``LAYOUTWARP_JIT`` or [`set_mode`][]. Any group
 that has to be compiled in a process says so once, in one line on stderr. ``layoutwarp doctor``
 reports each group's state; ``layoutwarp doctor --compile`` fills the cache in the foreground
 (for a container image or a cluster node, before the jobs start).
@@ -66,7 +66,7 @@ __all__ = [
     "use_mode",
 ]
 
-#: What each group of kernels computes (the names :func:`ready` takes).
+#: What each group of kernels computes (the names [`ready`][] takes).
 GROUPS = {
     "fixed": "a fixed layout's forward (area weights and their product)",
     "learn": "the exact integrator and the mesh of a learnable layout",
@@ -76,7 +76,7 @@ GROUPS = {
 DTYPES = ("float32", "float64")
 #: A group for one dtype: what is compiled, loaded and reported at a time.
 UNITS = tuple(f"{g}/{d}" for d in DTYPES for g in GROUPS)
-#: The modes of :func:`set_mode` and of ``LAYOUTWARP_JIT``.
+#: The modes of [`set_mode`][] and of ``LAYOUTWARP_JIT``.
 MODES = ("background", "wait", "off")
 #: The environment variable that sets the mode.
 ENV = "LAYOUTWARP_JIT"
@@ -92,7 +92,7 @@ _WARMING = threading.local()  # set while this thread runs a warm-up
 
 
 def mode() -> str:
-    """The current mode: :func:`set_mode`'s, else ``LAYOUTWARP_JIT``'s, else ``"background"``."""
+    """The current mode: [`set_mode`][]'s, else ``LAYOUTWARP_JIT``'s, else ``"background"``."""
     if _MODE:
         return _MODE[-1]
     value = os.environ.get(ENV, "background")
@@ -161,7 +161,7 @@ def compiled(group: str, dtype: str | torch.dtype, kernel: Any) -> Any | None:
     """What to call for ``kernel`` (a compiled kernel of ``group``) where the result must come
     from compiled code (the sensor's noise draws): ``kernel`` itself where its group is ready or
     the mode is ``"wait"`` (compiled here if need be); in ``"background"`` mode while the worker
-    has the group to do, its :func:`quick` build (compiled here in seconds the first time, the
+    has the group to do, its [`quick`][] build (compiled here in seconds the first time, the
     same values); ``None`` where numba is missing or the mode is ``"off"`` (the torch path)."""
     if ready(group, dtype):  # in background mode this starts the worker
         return kernel
@@ -250,7 +250,7 @@ class _WouldCompile(Exception):
 
 
 def _abort_compiles() -> contextlib.AbstractContextManager:
-    """Within: a numba compile in this thread raises :class:`_WouldCompile` before it starts
+    """Within: a numba compile in this thread raises [`_WouldCompile`][] before it starts
     (loading from the disk cache happens before numba's compile event, so it still works)."""
     from numba.core import event
 
@@ -282,7 +282,7 @@ def _loads(unit: str) -> bool:
 
 
 def _warm(unit: str) -> None:
-    """Run ``unit``'s warm-up, every :func:`ready` within it answering ``True``."""
+    """Run ``unit``'s warm-up, every [`ready`][] within it answering ``True``."""
     import torch
 
     group, dtype = unit.split("/")
@@ -305,12 +305,12 @@ def _announce(unit: str, doing: str) -> None:
 
 
 #: Each group's warm-up: its public paths on tiny inputs of one dtype, in every type the library
-#: calls its kernels with (registered by :mod:`layoutwarp.warmups`, loaded when first needed).
+#: calls its kernels with (registered by [`layoutwarp.warmups`][], loaded when first needed).
 _WARMUPS: dict[str, Callable[[torch.dtype], None]] = {}
 
 
 def register_warmup(group: str, fn: Callable[[torch.dtype], None]) -> None:
-    """Make ``fn(dtype)`` the warm-up of ``group`` (one of :data:`GROUPS`)."""
+    """Make ``fn(dtype)`` the warm-up of ``group`` (one of [`GROUPS`][])."""
     if group not in GROUPS:
         raise ValueError(f"group must be one of {', '.join(GROUPS)}, got {group!r}")
     _WARMUPS[group] = fn
@@ -323,7 +323,7 @@ class _Worker:
     """A ``python -m layoutwarp.jit`` process compiling the units it is sent, one a line on its
     stdin, and answering each on stdout; the next unit goes out as the last comes back (the
     first asked for first, then the other groups of its dtype), so a process that needs a unit
-    the worker has not begun compiles it itself beside it (:meth:`drop`)."""
+    the worker has not begun compiles it itself beside it ([`drop`][])."""
 
     def __init__(self, first: str) -> None:
         dtype = first.split("/")[1]

@@ -1,28 +1,28 @@
 """Compiled kernels of the exact integrator, CPU and CUDA, and of the sensor's measurement (numba;
 no compiler needed on the user's machine).
 
-Each kernel fuses what the torch reference in :mod:`layoutwarp.integrators` does in some
+Each kernel fuses what the torch reference in [`layoutwarp.integrators`][] does in some
 forty vectorised passes: cutting every pixel-boundary segment into single-cell pieces, the
 prefix-table look-ups of Green's theorem and the accumulation. For an image up to
-:data:`WHOLE_TABLE_BYTES` the forward builds the whole prefix table once (kept for the
+[`WHOLE_TABLE_BYTES`][] the forward builds the whole prefix table once (kept for the
 backward) and runs over chunks of segments dealt to the threads in turn (curved edges, which
 have many segments often all of one orientation, are shared out evenly); a larger image is
 integrated in bands of rows, each thread building one band's table at a time in a buffer of
 its own, adding every piece straight into per-edge sums of its own, so neither a whole table
 nor a value per segment and channel is held (the backward builds the table when it is called). The
 whole-table forward writes one value per segment and a last pass sums each pixel edge's
-segments (contiguous in a :class:`~layoutwarp.PixelMesh`). The
+segments (contiguous in a [`PixelMesh`][layoutwarp.mesh.PixelMesh]). The
 arithmetic mirrors the reference step for step, so both agree to rounding.
 
 The per-segment steps are ``@njit`` functions that numba also compiles for CUDA: there the
 whole-table forward runs one GPU thread per segment (and per table row × block × channel, per
-pixel edge), launched by :func:`cuda_launch`; :func:`cuda_available` says whether that target
+pixel edge), launched by [`cuda_launch`][]; [`cuda_available`][] says whether that target
 works here.
 
 Compiled code is cached on disk (``cache=True``): a second process loads it instead of
 compiling again. numba invalidates a cache only when the function's own file changes, and
-:mod:`layoutwarp.meshkernels` inlines functions of this one: after editing this file, delete
-the package's ``*.nbi``/``*.nbc`` caches. :func:`available` says whether numba is installed;
+[`layoutwarp.meshkernels`][] inlines functions of this one: after editing this file, delete
+the package's ``*.nbi``/``*.nbc`` caches. [`available`][] says whether numba is installed;
 without it the torch reference runs.
 """
 
@@ -72,7 +72,7 @@ __all__ = [
     "threads",
 ]
 
-#: Columns per block of the prefix tables (see :func:`prefix_tables`).
+#: Columns per block of the prefix tables (see [`prefix_tables`][]).
 BLOCK = 16
 #: Segments per work chunk; chunks go to the threads in turn.
 CHUNK = 256
@@ -87,7 +87,7 @@ def available() -> bool:
     return njit is not None
 
 
-#: Per Python thread: torch's thread count at :func:`threads`' last call there, and what it set.
+#: Per Python thread: torch's thread count at [`threads`][]' last call there, and what it set.
 _THREADS = threading.local()
 
 
@@ -175,8 +175,8 @@ def _row_offsets(rr: int, k: int, block: int, incl: np.ndarray, offsets: np.ndar
 def _band_prefix(
     image: np.ndarray, ra: int, rb: int, block: int, incl: np.ndarray, offsets: np.ndarray
 ) -> None:
-    """The prefix tables (see :func:`prefix_tables`) of rows ``ra .. rb − 1`` into ``incl``/
-    ``offsets`` (row ``ra`` at index 0); :func:`_block_prefix` and :func:`_row_offsets` are
+    """The prefix tables (see [`prefix_tables`][]) of rows ``ra .. rb − 1`` into ``incl``/
+    ``offsets`` (row ``ra`` at index 0); [`_block_prefix`][] and [`_row_offsets`][] are
     the one home of their arithmetic."""
     n, _, w = image.shape
     nb = (w + block - 1) // block
@@ -248,7 +248,7 @@ def _row_piece(
 def _cell_piece(
     col: int, x0: float, inv_dx: float, t_lo: float, t_hi: float, c0: int, c1: int
 ) -> tuple[float, float]:
-    """The parameter range inside column ``col`` of a row piece (:func:`_row_piece`): from the
+    """The parameter range inside column ``col`` of a row piece ([`_row_piece`][]): from the
     crossing of one of the column's lines to the next, ``t = (X − x0) / ΔX``, and the piece's own
     ends in place of the outer lines of its first and last columns. The columns so tile
     ``t_lo .. t_hi`` exactly, however few ulps ``ΔX`` spans (``X → t`` is ill-conditioned
@@ -296,9 +296,9 @@ def _segment_rows(
     mb: np.ndarray,
 ) -> None:
     """Add segment ``(x0, y0) → (x1, y1)``'s ``∫ P dY`` over source rows ``rlo .. rhi`` to
-    ``out[at, :]``; the tables hold rows from ``ra`` on (see :func:`exact_forward`). With
+    ``out[at, :]``; the tables hold rows from ``ra`` on (see [`exact_forward`][]). With
     ``moments``, also its Reynolds moments to ``ma[at, :]``, ``mb[at, :]`` from the same pieces
-    and look-ups (:func:`_segment_moments` gives them for a flat segment)."""
+    and look-ups ([`_segment_moments`][] gives them for a flat segment)."""
     n = incl.shape[2]
     dxv, dyv = x1 - x0, y1 - y0
     inv_dy = 1.0 / dyv
@@ -339,7 +339,7 @@ def _segment_forward(
     per_seg: np.ndarray,
 ) -> None:
     """Segment ``s``'s ``∫ P dY`` per channel and its ``∫ X dY`` into ``per_seg[s, :]``, from
-    the whole image's tables (see :func:`exact_forward`)."""
+    the whole image's tables (see [`exact_forward`][])."""
     h, w, n = incl.shape
     x0, y0 = verts[seg_start[s], 0], verts[seg_start[s], 1]
     x1, y1 = verts[seg_end[s], 0], verts[seg_end[s], 1]
@@ -364,11 +364,11 @@ def segment_moments(
     mb: np.ndarray,
 ) -> None:
     """Segment ``(x0, y0) → (x1, y1)``'s ``∫ P dY`` per channel and its ``∫ X dY`` into
-    ``acc[0, :]`` (as :func:`exact_forward` integrates a segment), and its Reynolds moments
+    ``acc[0, :]`` (as [`exact_forward`][] integrates a segment), and its Reynolds moments
     ``∫ (1 − t) L_n dt`` and ``∫ t L_n dt`` into ``ma[0, :]``, ``mb[0, :]`` (``(1, N)`` each),
     from the same pieces and look-ups; all three set here, none need be zeroed. A scalar
-    function for other kernels (:func:`~layoutwarp.meshkernels.mesh_integrals`): the segment's
-    weights in :func:`exact_backward` are ``grad[N, e]/2 + Σ_n grad[n, e]·m[n]``."""
+    function for other kernels ([`mesh_integrals`][layoutwarp.meshkernels.mesh_integrals]): the segment's
+    weights in [`exact_backward`][] are ``grad[N, e]/2 + Σ_n grad[n, e]·m[n]``."""
     h, w, n = incl.shape
     acc[0, :] = 0.0
     ma[0, :] = 0.0
@@ -415,11 +415,11 @@ def exact_forward(
     ``verts`` are ``(V, 2)`` float64 in source pixel units (inside the image); segment ``s``
     runs from ``verts[seg_start[s]]`` to ``verts[seg_end[s]]`` and edge ``e`` is made of the
     segments ``edge_offsets[e] .. edge_offsets[e + 1] − 1``; ``incl``/``offsets`` are the
-    image's :func:`prefix_tables`. Each segment is cut at source rows, then each row piece at
+    image's [`prefix_tables`][]. Each segment is cut at source rows, then each row piece at
     columns; a piece in cell ``(r, c)`` with mid-``X`` fraction ``f`` adds ``ΔY · P_r(c + f)``,
     where ``P_r`` interpolates the prefix table linearly inside the cell: ``P_r(c + f) =
     offset + I(c − 1) + f · (I(c) − I(c − 1))``, exact for the box image ``L(c) = I(c) −
-    I(c − 1)``. Row ``N`` sums to the pixel areas. ``threads``: see :func:`threads`.
+    I(c − 1)``. Row ``N`` sums to the pixel areas. ``threads``: see [`threads`][].
     """
     s_count = seg_start.shape[0]
     per_seg = np.zeros((s_count, incl.shape[2] + 1), dtype=np.float64)
@@ -443,7 +443,7 @@ def exact_forward_banded(
     band: int,
     threads: int,
 ) -> np.ndarray:
-    """:func:`exact_forward` from the image ``(N, H, W)`` itself, in bands of ``band`` rows:
+    """[`exact_forward`][] from the image ``(N, H, W)`` itself, in bands of ``band`` rows:
     each thread builds the prefix table of one band at a time in a buffer of its own (that
     stays in cache) and adds every segment piece in those rows to its own per-edge sums, so
     neither a table of the whole image nor anything per segment and channel is held (memory
@@ -505,12 +505,12 @@ def exact_forward_banded(
 
 
 #: Whole-image prefix tables up to this size are built once and kept for the backward; larger
-#: images are integrated in bands (:func:`exact_forward_banded`), which holds no whole table.
+#: images are integrated in bands ([`exact_forward_banded`][]), which holds no whole table.
 WHOLE_TABLE_BYTES = 8 << 20
 
 
 def band_rows(image: np.ndarray, workers: int, cache_bytes: int = 1 << 20) -> int:
-    """Rows per band of :func:`exact_forward_banded`: a band's prefix table fills about
+    """Rows per band of [`exact_forward_banded`][]: a band's prefix table fills about
     ``cache_bytes``, and there are at least four bands per worker thread."""
     n, h, w = image.shape
     by_cache = cache_bytes // max(1, w * n * image.itemsize)
@@ -530,7 +530,7 @@ def _segment_weights(
     wa: np.ndarray,
     wb: np.ndarray,
 ) -> None:
-    """Segment ``s``'s Reynolds weights into ``wa[s]``/``wb[s]`` (see :func:`exact_backward`)."""
+    """Segment ``s``'s Reynolds weights into ``wa[s]``/``wb[s]`` (see [`exact_backward`][])."""
     h, w, n = incl.shape
     e = seg_edge[s]
     x0, y0 = verts[seg_start[s], 0], verts[seg_start[s], 1]
@@ -572,7 +572,7 @@ def _segment_moments(
 ) -> None:
     """Add segment ``(x0, y0) → (x1, y1)``'s Reynolds moments per channel, ``∫ (1 − t) L_k dt``
     and ``∫ t L_k dt`` over its pieces, to ``ma[0, k]`` and ``mb[0, k]``: the walk of
-    :func:`_segment_weights` before any gradient is known."""
+    [`_segment_weights`][] before any gradient is known."""
     h, w, n = incl.shape
     dxv, dyv = x1 - x0, y1 - y0
     flat, vertical = dyv == 0.0, dxv == 0.0
@@ -608,11 +608,11 @@ def exact_backward(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Reynolds weights of every segment's end points for the vertex gradient.
 
-    ``grad`` is ``(N + 1, E)``, the gradient of :func:`exact_forward`'s output, and segment
+    ``grad`` is ``(N + 1, E)``, the gradient of [`exact_forward`][]'s output, and segment
     ``s`` belongs to edge ``seg_edge[s]``. For segment ``s`` of edge ``e`` with
     ``r(t) = a + t (b − a)``: ``wa = Σ_n grad[n, e] ∫ (1 − t) L_n dt`` and
     ``wb = Σ_n grad[n, e] ∫ t L_n dt`` over its pieces, with ``L`` the box image of the prefix
-    table (see :func:`exact_forward`) and ``L ≡ 1`` for the area row ``n = N``; on a cell
+    table (see [`exact_forward`][]) and ``L ≡ 1`` for the area row ``n = N``; on a cell
     boundary line ``L`` is the mean of the two cells (the symmetric derivative). The caller
     multiplies by the segment's normal ``(ΔY, −ΔX)`` and adds to the vertices.
     """
@@ -636,7 +636,7 @@ _CUDA_OK: dict = {}
 
 
 def _cuda_prefix_blocks(image: np.ndarray, block: int, incl: np.ndarray) -> None:
-    """One thread per (row, block, channel): :func:`_block_prefix`."""
+    """One thread per (row, block, channel): [`_block_prefix`][]."""
     i = cuda.grid(1)
     n, h, w = image.shape
     nb = (w + block - 1) // block
@@ -646,7 +646,7 @@ def _cuda_prefix_blocks(image: np.ndarray, block: int, incl: np.ndarray) -> None
 
 
 def _cuda_prefix_offsets(block: int, incl: np.ndarray, offsets: np.ndarray) -> None:
-    """One thread per (row, channel): :func:`_row_offsets`."""
+    """One thread per (row, channel): [`_row_offsets`][]."""
     i = cuda.grid(1)
     h, _, n = incl.shape
     if i < h * n:
@@ -662,14 +662,14 @@ def _cuda_forward(
     block: int,
     per_seg: np.ndarray,
 ) -> None:
-    """One thread per segment: :func:`_segment_forward`."""
+    """One thread per segment: [`_segment_forward`][]."""
     s = cuda.grid(1)
     if s < seg_start.shape[0]:
         _segment_forward(s, verts, seg_start, seg_end, incl, offsets, block, per_seg)
 
 
 def _cuda_edge_sums(per_seg: np.ndarray, edge_offsets: np.ndarray, out: np.ndarray) -> None:
-    """One thread per pixel edge: :func:`_edge_sum`."""
+    """One thread per pixel edge: [`_edge_sum`][]."""
     e = cuda.grid(1)
     if e < edge_offsets.shape[0] - 1:
         _edge_sum(e, per_seg, edge_offsets, out)
@@ -686,7 +686,7 @@ def _cuda_backward(
     wa: np.ndarray,
     wb: np.ndarray,
 ) -> None:
-    """One thread per segment: :func:`_segment_weights`."""
+    """One thread per segment: [`_segment_weights`][]."""
     s = cuda.grid(1)
     if s < seg_start.shape[0]:
         _segment_weights(s, verts, seg_start, seg_end, seg_edge, incl, block, grad, wa, wb)
@@ -741,7 +741,7 @@ def _kernel_source(kernel: str | Callable) -> Callable:
 
 def _cuda_signature(name: str, dtype: str) -> str:
     """Kernel ``name``'s argument types for images of ``dtype``, C-contiguous arrays, as
-    :func:`cuda_launch` passes them."""
+    [`cuda_launch`][] passes them."""
     img, idx, f64 = f"{dtype}[:, :, ::1]", "int64[::1]", "float64[::1]"
     f64_2, f64_3 = "float64[:, ::1]", "float64[:, :, ::1]"
     args = {
@@ -759,7 +759,7 @@ def cuda_ptx(
 ) -> str:
     """The PTX of CUDA kernel ``kernel`` for compute capability ``cc``, compiled without a GPU: a
     check that the kernels compile for the device, where no device is at hand. ``kernel``: a name
-    of :func:`cuda_launch`'s (for images of ``dtype``, ``"float32"``/``"float64"``), or another
+    of [`cuda_launch`][]'s (for images of ``dtype``, ``"float32"``/``"float64"``), or another
     module's kernel function with its argument types ``signature`` (numba's notation, e.g.
     ``"void(float64[:, ::1], int64)"``). Needs NVIDIA's numba-cuda target (``pip install
     "layoutwarp[cuda]"``; numba 0.68's built-in CUDA target does not type ``min``/``max`` of two
@@ -783,8 +783,8 @@ def cuda_launch(name: str | Callable, count: int, stream: int, *args) -> None:
     module's kernel source (a function of a source file, compiled on first use). The kernels, by
     name:
     ``"prefix_blocks"`` (items: row × block × channel) and ``"prefix_offsets"`` (row ×
-    channel) build :func:`prefix_tables`; ``"forward"`` (segment) and ``"edge_sums"`` (pixel
-    edge) do :func:`exact_forward`; ``"backward"`` (segment) does :func:`exact_backward`,
+    channel) build [`prefix_tables`][]; ``"forward"`` (segment) and ``"edge_sums"`` (pixel
+    edge) do [`exact_forward`][]; ``"backward"`` (segment) does [`exact_backward`][],
     each step for step as on the CPU. Array arguments are torch CUDA tensors or numba device
     arrays (anything with ``__cuda_array_interface__``), read and written in place. Kernels
     compile on first use and are cached on disk."""
@@ -811,7 +811,7 @@ def cuda_available(dtype: str = "float32") -> bool:
 
 
 def cuda_checked() -> dict[str, bool]:
-    """What :func:`cuda_available` found so far in this process, per dtype (nothing compiled)."""
+    """What [`cuda_available`][] found so far in this process, per dtype (nothing compiled)."""
     return dict(_CUDA_OK)
 
 
@@ -862,7 +862,7 @@ _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
 _STREAM_G = np.uint64((0x9E3779B97F4A7C15 << 32) % 2**64)
 _ELEMENT_G = np.uint64((0x9E3779B97F4A7C15 << 33) % 2**64)
 _U53 = 1.0 / 9007199254740992.0
-#: Pixels per work item of :func:`sensor_measure` (a run of pixels through every plane).
+#: Pixels per work item of `sensor_measure` (a run of pixels through every plane).
 MEASURE_CHUNK = 512
 
 
@@ -882,7 +882,7 @@ def _ziggurat_tables(layers: int = 1024) -> tuple[np.ndarray, np.ndarray, np.nda
 
 
 _ZIG_X, _ZIG_R, _ZIG_Y = _ziggurat_tables()
-#: The first try's table (:func:`_first_try_table`): its bases and masks.
+#: The first try's table ([`_first_try_table`][]): its bases and masks.
 _X_BASE = np.float64(0.125).view(np.uint64)
 _X_MASK = np.uint64((1 << 55) - 1)
 _D_BASE = np.float64(2.0**-11).view(np.uint64)
@@ -955,7 +955,7 @@ else:  # pragma: no cover - without numba the kernels are not compiled
 
 @_inline
 def _prefetch_span(array: np.ndarray, lo: int, hi: int) -> None:
-    """:func:`_prefetch` of every 64-byte line of ``array[lo:hi]``."""
+    """[`_prefetch`][] of every 64-byte line of ``array[lo:hi]``."""
     for i in range(lo, hi, max(1, 64 // array.itemsize)):
         _prefetch(array, i)
 
@@ -963,7 +963,7 @@ def _prefetch_span(array: np.ndarray, lo: int, hi: int) -> None:
 @_inline
 def _first_try_layer(i: int) -> tuple[float, float]:
     """Layer ``i``'s edge ``x[i]`` (exact) and a lower bound of its ratio, from one look-up of
-    :func:`_first_try_table`."""
+    [`_first_try_table`][]."""
     word = _ZIG_P[i]
     edge = _as_float((word & _X_MASK) + _X_BASE)
     return edge, 1.0 - _as_float(((word >> np.uint64(8)) & _D_MASK) + _D_BASE)
@@ -1062,7 +1062,7 @@ def _poisson(mu: float, state: np.uint64) -> tuple[float, np.uint64]:
     """An exact Poisson draw, and the advanced state: multiplication of uniforms below 10, above
     Ahrens and Dieter's algorithm PD (1982; a normal draw accepted outright or by a squeeze
     about 99 % of the time at large means, else their exponential hat), its acceptance tests on
-    the exact ``p_k`` of :func:`_log_poisson`."""
+    the exact ``p_k`` of [`_log_poisson`][]."""
     if mu <= 0.0:
         return 0.0, state
     if not mu < math.inf:  # NaN or inf (allow_nonfinite): passed through, no count to draw
@@ -1104,12 +1104,12 @@ def _poisson(mu: float, state: np.uint64) -> tuple[float, np.uint64]:
 
 @_inline
 def _first_tries(mu: float, shot: np.uint64, read: np.uint64) -> tuple[float, float, float, bool, bool, bool]:
-    """What :func:`_poisson` and :func:`_normal` return when their first tries succeed, without a
+    """What [`_poisson`][] and [`_normal`][] return when their first tries succeed, without a
     branch (so whole runs of pixels vectorise), for a mean ``mu ≥ 0``: the Poisson draw
     (steps N, I, S), the shot stream's normal draw scaled to ``mu + √mu·z``, the read stream's
     normal, and whether each is valid (the normals', the Poisson's given its normal's; never for
     an infinite mean, whose floor is no count; a normal's try tests a lower bound of its layer's
-    ratio, :func:`_first_try_layer`); where one is not, the caller runs the full algorithms,
+    ratio, [`_first_try_layer`][]); where one is not, the caller runs the full algorithms,
     which return exactly these values where they are."""
     u1, i1 = _strip(_mix(shot + _GOLDEN))
     x1, r1 = _first_try_layer(i1)
@@ -1138,7 +1138,7 @@ def _recorded(e: float, full: float, zero: float, inv: float, params: np.ndarray
 def _pixel_constants(a: float, params: np.ndarray) -> tuple[float, float, float, float, float]:
     """A pixel of ``a`` µm²'s electrons per unit mean, dark electrons and full well, and the ISP's
     offset and reciprocal gain (before the fixed patterns): the one formula of the main loop and
-    the rescan of :func:`sensor_measure`."""
+    the rescan of `sensor_measure`."""
     light, eta, dark_um2 = params[0], params[1], params[4]
     full_um2, gain, black = params[6], params[7], params[8]
     zero = black + gain * dark_um2 * a  # the ISP subtracts the mean dark signal ...
@@ -1161,8 +1161,8 @@ def _noisy_run(
     read: float,
     output: int,
 ) -> None:
-    """:func:`_measure_run` with noise, Poisson or Gaussian: each draw's first try
-    (:func:`_first_tries`), ``flags[j]`` set where one was rejected and that element's mean left
+    """[`_measure_run`][] with noise, Poisson or Gaussian: each draw's first try
+    ([`_first_tries`][]), ``flags[j]`` set where one was rejected and that element's mean left
     in ``row`` for the rescan. Called with ``poisson`` a constant, so each kind of noise gets a
     loop of its own with no test of it inside."""
     for j in range(row.size):
@@ -1193,9 +1193,9 @@ def _measure_run(
     read: float,
     output: int,
 ) -> None:
-    """One plane of a run of :func:`sensor_measure`: the means ``row`` measured in place, the pixel
-    constants from :func:`_pixel_constants`, ``key`` the first element's shot
-    stream. Without noise a loop with no draws; with noise :func:`_noisy_run`. Each loop is
+    """One plane of a run of `sensor_measure`: the means ``row`` measured in place, the pixel
+    constants from [`_pixel_constants`][], ``key`` the first element's shot
+    stream. Without noise a loop with no draws; with noise [`_noisy_run`][]. Each loop is
     branch-free and vectorises."""
     if noise == 0:
         for j in range(row.size):
@@ -1217,7 +1217,7 @@ def _prefetch_inputs(
     lo: int,
     hi: int,
 ) -> None:
-    """:func:`_prefetch_span` of :func:`sensor_measure`'s inputs at the pixels ``[lo, hi)``: the
+    """[`_prefetch_span`][] of `sensor_measure`'s inputs at the pixels ``[lo, hi)``: the
     means of every plane, the areas and the fixed patterns it reads."""
     _prefetch_span(area_um2, lo, hi)
     if params[2] != 0.0:
@@ -1241,7 +1241,7 @@ def sensor_measure(
     out: np.ndarray,
     threads: int,
 ) -> None:
-    """:func:`layoutwarp.physics.measure` in one pass: means ``(N, P)`` to ``out`` ``(N, P)``, of
+    """[`layoutwarp.physics.measure`][] in one pass: means ``(N, P)`` to ``out`` ``(N, P)``, of
     their dtype, which may be ``mean`` itself (measured in place, one buffer less; no other
     overlap).
 
@@ -1250,18 +1250,18 @@ def sensor_measure(
     are read only where their gains are not 0 (empty arrays will do). ``noise``: 0 none,
     1 Poisson, 2 Gaussian; ``output``: 0 radiance, 1 electrons, 2 DN. Element ``i`` (row-major)
     draws its shot noise and its read noise from two streams of its own, disjoint blocks of one
-    SplitMix64 sequence seeded by ``seed`` (:data:`_ELEMENT_G`), so the result does not depend
+    SplitMix64 sequence seeded by ``seed`` ([`_ELEMENT_G`][]), so the result does not depend
     on the thread count.
 
-    Thread ``t`` of ``threads`` (see :func:`threads`) takes the pixels ``[t·P/T, (t + 1)·P/T)``,
+    Thread ``t`` of ``threads`` (see [`threads`][]) takes the pixels ``[t·P/T, (t + 1)·P/T)``,
     the share of a ``prange`` over them that the same thread had in the forward just before, in
-    runs of :data:`MEASURE_CHUNK` pixels through all ``N`` planes, with work space of its own. The
+    runs of [`MEASURE_CHUNK`][] pixels through all ``N`` planes, with work space of its own. The
     forward's streams (tens of MB) push most of its output out of the caches, so the thread first
     hints its first two runs' inputs to the caches, and each run those of the run after next
-    (:func:`_prefetch_inputs`). A run then derives its pixels' constants
-    (:func:`_pixel_constants`, then the fixed patterns). Per plane, its means copied to ``out``
+    ([`_prefetch_inputs`][]). A run then derives its pixels' constants
+    ([`_pixel_constants`][], then the fixed patterns). Per plane, its means copied to ``out``
     first where that is another buffer (so every loop works in place, with no overlap to test), a
-    branch-free loop (:func:`_measure_run`) takes every draw's first try and flags the elements
+    branch-free loop ([`_measure_run`][]) takes every draw's first try and flags the elements
     where one was rejected (about 0.4 % of the normals, a few tenths of a percent of the Poisson
     draws at large means, all of them below a mean of 10 electrons), which keep their means. After
     its last run the thread rescans its flags, eight a word, and reruns a full sampler there from
@@ -1360,10 +1360,11 @@ def csr_apply(
     indptr: np.ndarray, indices: np.ndarray, data: np.ndarray, x: np.ndarray, out: np.ndarray
 ) -> int:
     """``out[n] = W @ x[n]`` for a CSR matrix ``W`` (``(R, M)``) and planes ``x`` ``(N, M)`` (the
-    fixed-layout area weights of :class:`~layoutwarp.AreaResampler`), rows dealt to the threads:
+    fixed-layout area weights of [`AreaResampler`][layoutwarp.resampler.AreaResampler]), rows dealt to
+    the threads:
     each row of ``W`` is read once for every four planes (RGB: once; 2.3x faster than once per
     plane at 2048x1024 → 257x129). Returns how many of the values written are not finite (NaN
-    or ±inf): the finiteness check of :func:`~layoutwarp.simulate` while they are in registers
+    or ±inf): the finiteness check of [`simulate`][layoutwarp.sensor.simulate] while they are in registers
     (a pass over ``out`` afterwards cost about 3 % of the call)."""
     n = x.shape[0]
     bad = 0
@@ -1383,10 +1384,10 @@ def csr_apply(
 def measured_csr_apply(
     indptr: np.ndarray, indices: np.ndarray, data: np.ndarray, x: np.ndarray, mean: np.ndarray, *measure
 ) -> int:
-    """:func:`csr_apply` into ``mean``, then :func:`sensor_measure` of ``mean`` with its other
+    """[`csr_apply`][] into ``mean``, then `sensor_measure` of ``mean`` with its other
     arguments ``measure`` (``area_um2, …, out, threads``): a fixed layout's exact forward with
     sensor physics in one call from Python, no interpreter between the two launches, each thread
-    measuring the rows it has just summed. Returns :func:`csr_apply`'s count of non-finite
+    measuring the rows it has just summed. Returns [`csr_apply`][]'s count of non-finite
     means (the measurement passes NaN and ±inf through)."""
     bad = csr_apply(indptr, indices, data, x, mean)
     sensor_measure(mean, *measure)

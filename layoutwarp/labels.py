@@ -9,7 +9,7 @@ A class-index map of the source resolution goes to the sensor grid by one of two
   integral of each class's indicator; shares within ``1e-6`` of the largest count as ties, and
   a tie goes to the smaller label.
 
-The way back, sensor grid to full resolution, is :func:`~layoutwarp.backwarp`.
+The way back, sensor grid to full resolution, is `backwarp`.
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ from .maps import map_points
 
 __all__ = ["LABEL_RULES", "TIE", "labels_to_sensor", "source_pixels"]
 
-#: The rules :func:`labels_to_sensor` knows.
+#: The rules [`labels_to_sensor`][] knows.
 LABEL_RULES = ("nearest", "majority")
 #: Area shares closer than this to the largest one tie (and go to the smaller label).
 TIE = 1e-6
@@ -76,7 +76,7 @@ def labels_to_sensor(
         rule: ``"nearest"`` or ``"majority"`` (see the module docstring).
         area: for ``"majority"``, the area operator that integrates class indicators
             ``(K, H, W)`` to pixel means ``(K, h, w)`` (e.g. an
-            :class:`~layoutwarp.AreaResampler`'s weights); default: the exact integrator.
+            [`AreaResampler`][layoutwarp.resampler.AreaResampler]'s weights); default: the exact integrator.
 
     Returns:
         the labels on the sensor grid, of ``labels``' type, dtype and (tensor) device.

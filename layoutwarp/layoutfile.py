@@ -1,8 +1,8 @@
 """Layout files: a layout, its sensor size and free-form extras as a small JSON document.
 
 A file holds ``format`` (``"layoutwarp.layout/2"``), ``family`` (a registered family, see
-:func:`~layoutwarp.layouts.register_family`), the family's constructor arguments
-(:meth:`~layoutwarp.Layout.to_config`: for the paper's families ``theta``, ``bound``,
+[`register_family`][layoutwarp.layouts.register_family]), the family's constructor arguments
+([`to_config`][layoutwarp.layouts.Layout.to_config]: for the paper's families ``theta``, ``bound``,
 ``center`` and ``learn_center``; for splines ``theta``, ``knots`` and ``kind``; for grids
 ``grid`` and ``control``), ``size_hw`` (optional sensor size ``[H, W]``), ``version`` (the
 package version that wrote it) and ``extra`` (anything JSON-able the writer adds, e.g. the
@@ -58,18 +58,18 @@ def layout_spec(layout: Layout) -> dict[str, Any]:
     return {"family": layout.family, **layout.to_config()}
 
 
-#: :func:`layout_key`'s texts, each with the layout's tensors, their versions and its settings
+#: [`layout_key`][]'s texts, each with the layout's tensors, their versions and its settings
 #: when it was made (held, so that no new tensor can take a held one's ``id``).
 _KEYS: weakref.WeakKeyDictionary[Layout, tuple[tuple, str]] = weakref.WeakKeyDictionary()
 
 
 def layout_key(layout: Layout) -> str | None:
-    """The layout's identity as text (its :func:`layout_spec`, keys sorted), for caches keyed by
+    """The layout's identity as text (its [`layout_spec`][], keys sorted), for caches keyed by
     layout; ``None`` for a layout that is not of a registered family, whose description may not
     hold all its state (such a layout is never cached).
 
     Kept per layout while its tensors (the same objects, unchanged in place) and its other
-    attributes are as they were: a fixed layout's repeated :func:`~layoutwarp.simulate` call asks
+    attributes are as they were: a fixed layout's repeated [`simulate`][layoutwarp.sensor.simulate] call asks
     for it every time, and writing the JSON text cost more than checking that."""
     if FAMILIES.get(layout.family) is not type(layout):
         return None
@@ -90,7 +90,7 @@ def layout_key(layout: Layout) -> str | None:
 def layout_from_spec(
     spec: dict[str, Any], *, learn: bool = False, dtype: torch.dtype | None = None
 ) -> Layout:
-    """Rebuild a layout from :func:`layout_spec`'s dict (other keys, e.g. ``size_hw``, are ignored
+    """Rebuild a layout from [`layout_spec`][]'s dict (other keys, e.g. ``size_hw``, are ignored
     by the families that do not take them).
 
     Raises:
@@ -142,7 +142,7 @@ def save_layout(layout: Layout, path: str | Path, size: tuple[int, int] | None =
 def load_layout(
     path: str | Path, *, learn: bool = False, dtype: torch.dtype | None = None
 ) -> tuple[Layout, dict[str, Any]]:
-    """Read a layout file written by :func:`save_layout`.
+    """Read a layout file written by [`save_layout`][].
 
     Returns:
         ``(layout, info)`` where ``info`` holds ``size_hw``, ``version`` and ``extra``.

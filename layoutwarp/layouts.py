@@ -11,8 +11,8 @@ Camera Parameters", §3.2). Conventions used everywhere in this package:
   pixels at the centre, ``θ < 0`` at the border. A learnable layout stores the unconstrained
   parameter ``ρ`` and derives ``θ = bound · tanh(ρ)``.
 
-The functional forms (:func:`phi_rect`, :func:`phi_curv`, their inverses, Jacobians and
-θ-derivatives) take ``θ`` explicitly; the :class:`Layout` modules wrap them.
+The functional forms ([`phi_rect`][], [`phi_curv`][], their inverses, Jacobians and
+θ-derivatives) take ``θ`` explicitly; the [`Layout`][] modules wrap them.
 """
 
 from __future__ import annotations
@@ -103,7 +103,7 @@ def config_numbers(
 ) -> list[float] | None:
     """``config[key]`` as a list of numbers (``default`` when absent); ``ValueError`` otherwise.
 
-    Used by :meth:`Layout.from_config` of every family to read layout files.
+    Used by [`Layout.from_config`][] of every family to read layout files.
     """
     value = config.get(key, default)
     if value is not None and (
@@ -133,12 +133,12 @@ def phi_rect(p: Tensor, theta: Tensor) -> Tensor:
 
 
 def phi_rect_inverse(q: Tensor, theta: Tensor) -> Tensor:
-    """Closed-form inverse of :func:`phi_rect`: ``φ_rect⁻¹(·, θ) = φ_rect(·, −θ)``."""
+    """Closed-form inverse of [`phi_rect`][]: ``φ_rect⁻¹(·, θ) = φ_rect(·, −θ)``."""
     return phi_rect(q, -theta)
 
 
 def phi_rect_jacobian(p: Tensor, theta: Tensor) -> Tensor:
-    """Spatial Jacobian ``∂φ_i/∂p_j`` of :func:`phi_rect`, shape ``(..., 2, 2)`` (diagonal).
+    """Spatial Jacobian ``∂φ_i/∂p_j`` of [`phi_rect`][], shape ``(..., 2, 2)`` (diagonal).
 
     ``dφ_j/dp_j = (1 − θ_j²) / D_j²`` with ``D_j = 1 + θ_j − 2θ_j|p_j|``; 1 outside S.
     """
@@ -149,7 +149,7 @@ def phi_rect_jacobian(p: Tensor, theta: Tensor) -> Tensor:
 
 
 def phi_rect_dtheta(p: Tensor, theta: Tensor) -> Tensor:
-    """``∂φ_i/∂θ_j`` of :func:`phi_rect`, shape ``(..., 2, 2)`` (diagonal).
+    """``∂φ_i/∂θ_j`` of [`phi_rect`][], shape ``(..., 2, 2)`` (diagonal).
 
     ``∂φ_j/∂θ_j = 2 p_j (|p_j| − 1) / D_j²``.
     """
@@ -178,7 +178,7 @@ def phi_curv(p: Tensor, theta: Tensor) -> Tensor:
 
 
 def phi_curv_inverse(q: Tensor, theta: Tensor) -> Tensor:
-    """Closed-form inverse of :func:`phi_curv`.
+    """Closed-form inverse of [`phi_curv`][].
 
     With ``p_j = q_j D_j(r) / (1 − θ_j)``, ``D_j(r) = (1 + θ_j) − 2θ_j r`` linear in
     ``r = ‖p‖``, the constraint ``r² = Σ p_j²`` is a quadratic ``a r² + b r + c = 0`` with
@@ -213,7 +213,7 @@ def phi_curv_inverse(q: Tensor, theta: Tensor) -> Tensor:
 
 
 def phi_curv_jacobian(p: Tensor, theta: Tensor) -> Tensor:
-    """Spatial Jacobian ``∂φ_i/∂p_j`` of :func:`phi_curv`, shape ``(..., 2, 2)``.
+    """Spatial Jacobian ``∂φ_i/∂p_j`` of [`phi_curv`][], shape ``(..., 2, 2)``.
 
     ``∂φ_i/∂p_j = δ_ij s_i + p_i s_i'(r) p_j / r`` with ``s_i = (1 − θ_i)/D_i(r)`` and
     ``s_i' = 2θ_i(1 − θ_i)/D_i²``; the second term vanishes at the origin (limit) and the
@@ -233,7 +233,7 @@ def phi_curv_jacobian(p: Tensor, theta: Tensor) -> Tensor:
 
 
 def phi_curv_jacobian_det(p: Tensor, theta: Tensor) -> Tensor:
-    """``det ∂φ/∂p`` of :func:`phi_curv`, shape ``(...)``, in closed form.
+    """``det ∂φ/∂p`` of [`phi_curv`][], shape ``(...)``, in closed form.
 
     The Jacobian is ``diag(s) + a uᵀ`` with ``a = p s'(r)`` and ``u = p / r``, so by the matrix
     determinant lemma ``det = s_x s_y + (s_y s_x' p_x² + s_x s_y' p_y²) / r``; 1 outside the unit
@@ -253,7 +253,7 @@ def phi_curv_jacobian_det(p: Tensor, theta: Tensor) -> Tensor:
 
 
 def phi_curv_dtheta(p: Tensor, theta: Tensor) -> Tensor:
-    """``∂φ_i/∂θ_j`` of :func:`phi_curv`, shape ``(..., 2, 2)`` (diagonal).
+    """``∂φ_i/∂θ_j`` of [`phi_curv`][], shape ``(..., 2, 2)`` (diagonal).
 
     ``∂φ_j/∂θ_j = 2 p_j (r − 1) / D_j(r)²`` (the reference code's formula for this is wrong).
     """
@@ -269,13 +269,13 @@ def phi_curv_dtheta(p: Tensor, theta: Tensor) -> Tensor:
 # ----------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class FoldoverReport:
-    """Result of :meth:`Layout.check_foldover` on an ``n × n`` grid of S.
+    """Result of [`Layout.check_foldover`][] on an ``n × n`` grid of S.
 
     Attributes:
         min_det: smallest Jacobian determinant found.
         num_nonpositive: number of grid points with ``det J <= 0`` (fold-overs).
         worst_point: ``(x, y)`` where ``det J`` is smallest.
-        grid: the grid side ``n`` (0 for an exact check, e.g. :class:`~layoutwarp.GridLayout`'s).
+        grid: the grid side ``n`` (0 for an exact check, e.g. [`GridLayout`][layoutwarp.grids.GridLayout]'s).
         cell: the first folded control cell ``(row, col)`` of an exact check, else ``None``.
     """
 
@@ -294,32 +294,32 @@ class FoldoverReport:
 class Layout(nn.Module):
     """Base class of pixel layouts.
 
-    A subclass writes :meth:`phi` (``φ(p, θ)`` for points ``(..., 2)`` and parameters
+    A subclass writes [`phi`][] (``φ(p, θ)`` for points ``(..., 2)`` and parameters
     ``(P,)``). Optional overrides, with generic fallbacks here:
 
-    * :meth:`phi_inverse` — default: damped Newton iteration in float64;
-    * :meth:`phi_jacobian` — default: autograd, ``(..., 2, 2)``;
-    * :meth:`phi_dtheta` — default: autograd, ``(..., 2, P)``.
+    * [`phi_inverse`][] — default: damped Newton iteration in float64;
+    * [`phi_jacobian`][] — default: autograd, ``(..., 2, 2)``;
+    * [`phi_dtheta`][] — default: autograd, ``(..., 2, P)``.
 
     Class attributes tell the integrators what machinery a layout needs:
 
     * ``separable``: ``φ_x`` depends on ``x`` only and ``φ_y`` on ``y`` only, so pixels are
       axis-aligned rectangles (the fast separable integrator applies);
     * ``straight_edges``: images of the uniform grid lines are straight between the cuts of
-      :meth:`edge_breakpoints`, so pixel edges are polylines with a vertex at each cut and are
+      [`edge_breakpoints`][], so pixel edges are polylines with a vertex at each cut and are
       never subdivided further (exact meshes at any tolerance);
     * ``unbounded``: every finite θ is a valid layout, so θ is stored as it is (no ``tanh``).
 
     The parameter is stored unconstrained as ``rho`` with ``θ = bound · tanh(ρ)`` (families
-    with unbounded parameters override :meth:`_to_theta` and :meth:`_to_rho`). A layout built
+    with unbounded parameters override `_to_theta` and `_to_rho`). A layout built
     from θ is fixed (``rho`` is a buffer) unless ``learn=True``;
-    :class:`~layoutwarp.SensorLayer` learns by default. ``num_params`` is the length of θ
+    [`SensorLayer`][layoutwarp.sensor.SensorLayer] learns by default. ``num_params`` is the length of θ
     (``None`` on the class for families whose instances choose it).
 
     A new family subclasses this, sets ``family`` and is declared with
-    :func:`register_family`: layout files, :func:`make_layout` and the command line's
-    ``--family`` then know it. Families with more state than θ override :meth:`to_config`
-    and :meth:`from_config`.
+    [`register_family`][]: layout files, [`make_layout`][] and the command line's
+    ``--family`` then know it. Families with more state than θ override [`to_config`][]
+    and [`from_config`][].
 
     Args:
         theta: initial ``θ`` (length ``num_params``), each in ``(-bound, bound)``; a family
@@ -365,7 +365,7 @@ class Layout(nn.Module):
         return rho if self.unbounded else self._bounds().to(rho) * torch.tanh(rho)
 
     def _to_rho(self, theta: Tensor) -> Tensor:
-        """Inverse of :meth:`_to_theta`."""
+        """Inverse of `_to_theta`."""
         return theta.clone() if self.unbounded else torch.atanh(theta / self._bounds().to(theta))
 
     def _check_theta(self, theta: Tensor) -> None:
@@ -411,15 +411,15 @@ class Layout(nn.Module):
 
     def resolve_theta(self, theta: Tensor | None = None) -> Tensor:
         """The θ a computation uses: ``theta`` when given (e.g. a tensor that
-        ``torch.autograd.gradcheck`` varies), else the layout's own :attr:`theta`."""
+        ``torch.autograd.gradcheck`` varies), else the layout's own [`theta`][]."""
         return self.theta if theta is None else theta
 
     def project_(self) -> bool:
         """Pull the parameters back into the valid set after an optimiser step.
 
         Families whose every θ is a bijection (the default) have nothing to do; others (e.g.
-        :class:`~layoutwarp.GridLayout`) undo the part of a step that would fold the layout.
-        :class:`~layoutwarp.SensorLayer` calls this before each forward pass.
+        [`GridLayout`][layoutwarp.grids.GridLayout]) undo the part of a step that would fold the layout.
+        [`SensorLayer`][layoutwarp.sensor.SensorLayer] calls this before each forward pass.
 
         Returns:
             whether the parameters were changed.
@@ -428,14 +428,14 @@ class Layout(nn.Module):
 
     # -- files -----------------------------------------------------------------------
     def to_config(self) -> dict[str, Any]:
-        """The JSON-able constructor arguments that rebuild this layout (see :meth:`from_config`)."""
+        """The JSON-able constructor arguments that rebuild this layout (see [`from_config`][])."""
         return {"theta": [float(v) for v in self.theta.detach().double().cpu()], "bound": self.bound}
 
     @classmethod
     def from_config(
         cls, config: dict[str, Any], *, learn: bool = False, dtype: torch.dtype | None = None
     ) -> Layout:
-        """Rebuild a layout from :meth:`to_config`'s dict (raises ``ValueError`` on bad values)."""
+        """Rebuild a layout from [`to_config`][]'s dict (raises ``ValueError`` on bad values)."""
         theta = config_numbers(config, "theta")
         return cls(theta, bound=config.get("bound", 1.0), learn=learn, dtype=dtype)
 
@@ -445,7 +445,7 @@ class Layout(nn.Module):
         raise NotImplementedError(f"{type(self).__name__} must implement phi(p, theta)")
 
     def phi_inverse(self, q: Tensor, theta: Tensor) -> Tensor:
-        """``φ⁻¹(q, θ)``; generic fallback: :func:`newton_inverse`."""
+        """``φ⁻¹(q, θ)``; generic fallback: [`newton_inverse`][]."""
         return newton_inverse(self.phi, q, theta)
 
     def phi_jacobian(self, p: Tensor, theta: Tensor) -> Tensor:
@@ -462,7 +462,7 @@ class Layout(nn.Module):
 
     def phi_jacobian_det(self, p: Tensor, theta: Tensor) -> Tensor:
         """``det ∂φ/∂p``, shape ``(...)``: the local area scale (Monte Carlo weights); generic
-        fallback from :meth:`phi_jacobian` in closed 2x2 form."""
+        fallback from [`phi_jacobian`][] in closed 2x2 form."""
         j = self.phi_jacobian(p, theta)
         return j[..., 0, 0] * j[..., 1, 1] - j[..., 0, 1] * j[..., 1, 0]
 
@@ -552,15 +552,18 @@ class Layout(nn.Module):
         return f"theta=({th}), bound={self.bound:g}, learn={self.learnable}"
 
 
-#: Every registered layout family by name (see :func:`register_family`).
 FAMILIES: dict[str, type[Layout]] = {}
+"""Every registered layout family by name: ``uniform``, ``rect``, ``curv``, ``fovea`` and
+``elliptic`` (this module), ``spline`` and ``grid`` (their modules, loaded with this one), and any
+a user adds with [`register_family`][]. Each family registers itself when its module loads, so
+the dict is filled on import (the source reads ``{}``)."""
 _L = TypeVar("_L", bound=type[Layout])
 
 
 def register_family(cls: _L) -> _L:
     """Class decorator declaring a layout family under ``cls.family``.
 
-    Registration is what layout files, :func:`make_layout` and the command line's ``--family``
+    Registration is what layout files, [`make_layout`][] and the command line's ``--family``
     read, so a new family is added in one place.
     """
     if not (isinstance(cls, type) and issubclass(cls, Layout)) or cls.family in ("", "custom"):
@@ -607,8 +610,8 @@ def _side_scale(p: Tensor, center: Tensor) -> Tensor:
 
 class CenteredLayout(Layout):
     """Base of the paper's two families: a centred map φ0 deformed about a movable centre
-    ``c = (c_x, c_y)``, ``|c_j| < 1``. Not a family itself: subclasses (:class:`RectLayout`,
-    :class:`CurvLayout`) write the centred map's ``_phi0``, ``_inverse0``, ``_jacobian0``,
+    ``c = (c_x, c_y)``, ``|c_j| < 1``. Not a family itself: subclasses ([`RectLayout`][],
+    [`CurvLayout`][]) write the centred map's ``_phi0``, ``_inverse0``, ``_jacobian0``,
     ``_det0`` and ``_dtheta0``.
 
     The square is mapped onto itself by the per-axis piecewise-affine ``T(p)_j = (p_j − c_j) /
@@ -626,9 +629,9 @@ class CenteredLayout(Layout):
         center: the centre ``(c_x, c_y)`` in sensor coordinates.
         learn_center: make the centre part of θ, which becomes ``(θ_x, θ_y, c_x, c_y)`` (each
             centre entry bounded by 1), so that it is learned with θ (``learn=True``).
-        bound: as :class:`Layout`.
-        learn: as :class:`Layout`.
-        dtype: as :class:`Layout`.
+        bound: as [`Layout`][].
+        learn: as [`Layout`][].
+        dtype: as [`Layout`][].
     """
 
     num_params: int | None = 2
@@ -785,7 +788,7 @@ class CenteredLayout(Layout):
 @register_family
 class RectLayout(CenteredLayout):
     """The rectangular layout φ_rect of the paper (separable; pixels are rectangles), about a
-    movable centre (see :class:`CenteredLayout`: ``center``, ``learn_center``).
+    movable centre (see [`CenteredLayout`][]: ``center``, ``learn_center``).
 
     Examples:
         >>> layout = RectLayout(theta=(0.3, -0.2))
@@ -833,7 +836,7 @@ def _circle_crossings(a: Tensor, d: Tensor, lo: Tensor, hi: Tensor, scale: Tenso
 @register_family
 class CurvLayout(CenteredLayout):
     """The curvilinear layout φ_curv of the paper (radial, fixed outside the unit circle), about
-    a movable centre (see :class:`CenteredLayout`: ``center``, ``learn_center``)."""
+    a movable centre (see [`CenteredLayout`][]: ``center``, ``learn_center``)."""
 
     family = "curv"
 
@@ -886,7 +889,7 @@ class CurvLayout(CenteredLayout):
 
 @register_family
 class FoveaLayout(CurvLayout):
-    """φ_curv about a learnable centre: :class:`CurvLayout` with ``learn_center=True``, so θ is
+    """φ_curv about a learnable centre: [`CurvLayout`][] with ``learn_center=True``, so θ is
     ``(θ_x, θ_y, c_x, c_y)`` and a learned layout moves its fovea to where the task needs it.
 
     Examples:
@@ -919,7 +922,7 @@ def square_to_disk(p: Tensor) -> Tensor:
 
 
 def disk_to_square(q: Tensor) -> Tensor:
-    """The inverse of :func:`square_to_disk`: ``x = ½√(2 + u² − v² + 2√2 u) − ½√(2 + u² − v² − 2√2 u)``
+    """The inverse of [`square_to_disk`][]: ``x = ½√(2 + u² − v² + 2√2 u) − ½√(2 + u² − v² − 2√2 u)``
     and likewise ``y`` with ``u`` and ``v`` exchanged."""
     u, v = q[..., 0], q[..., 1]
     r2 = 2 * math.sqrt(2)
@@ -932,7 +935,7 @@ def disk_to_square(q: Tensor) -> Tensor:
 @register_family
 class EllipticLayout(Layout):
     """The curvilinear map in a disk that fills the square: ``φ = E⁻¹ ∘ φ_curv ∘ E`` with ``E`` the
-    elliptical square-to-disk mapping (:func:`square_to_disk`).
+    elliptical square-to-disk mapping ([`square_to_disk`][]).
 
     The paper's φ_curv deforms only inside the unit circle, so the sensor's corners keep uniform
     pixels (§5: "restricted to a circular region"); the paper's public code has this third family,
@@ -961,7 +964,7 @@ class EllipticLayout(Layout):
 
 
 def _through_disk(fn: Callable[[Tensor, Tensor], Tensor], p: Tensor, theta: Tensor) -> Tensor:
-    """``E⁻¹ ∘ fn ∘ E`` inside the open square (:func:`square_to_disk`), the identity on and outside
+    """``E⁻¹ ∘ fn ∘ E`` inside the open square ([`square_to_disk`][]), the identity on and outside
     its border."""
     p, theta = _promote(p, theta)
     inside = (p.abs() < 1).all(-1, keepdim=True)
@@ -1039,10 +1042,10 @@ def newton_inverse(
 
 
 def make_layout(family: str | Layout, theta: Sequence[float] | Tensor | None = None, **kwargs: Any) -> Layout:
-    """Build a layout of a registered family (see :data:`FAMILIES`) or pass a layout through.
+    """Build a layout of a registered family (see [`FAMILIES`][]) or pass a layout through.
 
     Args:
-        family: a family name (``"uniform"``, ``"rect"``, ``"curv"``, ...) or a :class:`Layout`.
+        family: a family name (``"uniform"``, ``"rect"``, ``"curv"``, ...) or a [`Layout`][].
         theta: initial θ (``None``: zeros; the uniform layout takes ``None``, ``()`` or zeros).
         **kwargs: ``bound``, ``learn`` (default ``False``), ``dtype``.
 

@@ -124,7 +124,7 @@ def forward_maps(
         generator: random generator for the jitter.
 
     Returns:
-        :class:`Maps` of shape ``(h·s, w·s)``. Average each ``s × s`` block of the remapped
+        [`Maps`][] of shape ``(h·s, w·s)``. Average each ``s × s`` block of the remapped
         image for a (uniform-weight) pixel estimate.
 
     Examples:
@@ -146,7 +146,7 @@ def inverse_maps(layout: Layout, size: tuple[int, int], target_size: tuple[int, 
         target_size: output size ``(H, W)`` (e.g. the ground-truth resolution).
 
     Returns:
-        :class:`Maps` of shape ``(H, W)`` with coordinates on the sensor image: target pixel
+        [`Maps`][] of shape ``(H, W)`` with coordinates on the sensor image: target pixel
         centre ``q`` maps to ``sensor_to_pixels(φ⁻¹(q), (h, w), centered=True)``, so
         ``floor(map + 0.5)`` is the index of the sensor pixel that contains ``q``.
     """
@@ -179,7 +179,7 @@ def raster_index_map(
         size: sensor size ``(h, w)``.
         target_size: target size ``(H, W)``.
         tol: polyline tolerance of curved edges: the area between a polyline and its curve,
-            relative to the pixel's area (unitless, as :func:`~layoutwarp.pixel_mesh`); the
+            relative to the pixel's area (unitless, as [`pixel_mesh`][]); the
             default ``1e-4`` keeps the polygons far closer to the curves than a target pixel.
         oversample: odd refinement of the drawing grid (memory: ``oversample²`` int32 per target
             pixel).

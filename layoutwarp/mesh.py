@@ -7,7 +7,7 @@ straight for rectangular layouts (one segment), curved for curvilinear ones (a p
 subdivided only as much as its curvature and the requested tolerance need).
 
 Every pixel is bounded by four edges, and every interior edge is shared by two pixels with
-opposite orientation; :class:`MeshTopology` numbers the edges once for everyone, so a
+opposite orientation; [`MeshTopology`][] numbers the edges once for everyone, so a
 boundary integral is computed once per edge and pixel ``(i, j)`` collects
 ``E_top − E_bottom + E_right − E_left`` (positive orientation in ``(x, y)``).
 """
@@ -87,7 +87,7 @@ class MeshTopology:
     def edge_corners(self, device: torch.device | str | None = None) -> tuple[Tensor, Tensor]:
         """Start and end corner of every edge, ``(E,)`` each, as row-major corner indices.
 
-        Cached per size and device, as is :meth:`edge_ends`: do not modify the tensors."""
+        Cached per size and device, as is [`edge_ends`][]: do not modify the tensors."""
         return _edge_corners(self.size, torch.device(device or "cpu"))
 
     def edge_ends(
@@ -97,7 +97,7 @@ class MeshTopology:
         return _edge_ends(self.size, dtype, torch.device(device or "cpu"))
 
     def corners(self, dtype: torch.dtype = torch.float64, device: torch.device | str | None = None) -> Tensor:
-        """:func:`~layoutwarp.uniform_corners` flattened to ``(V, 2)``, row-major (cached)."""
+        """`uniform_corners` flattened to ``(V, 2)``, row-major (cached)."""
         return _corners(self.size, dtype, torch.device(device or "cpu"))
 
     def pixel_edges(self) -> np.ndarray:
@@ -130,7 +130,7 @@ class MeshTopology:
         return (eh[..., :-1, :] - eh[..., 1:, :]) + (ev[..., :, 1:] - ev[..., :, :-1])
 
     def combine_adjoint(self, pixel_values: _A) -> _A:
-        """The transpose of :meth:`combine`: the gradient ``(..., E)`` of the edge integrals from
+        """The transpose of [`combine`][]: the gradient ``(..., E)`` of the edge integrals from
         that of the pixels' ``(..., H, W)`` (a tensor or an array)."""
         h, w = self.size
         lead = tuple(pixel_values.shape[:-2])
@@ -192,7 +192,7 @@ def smooth_pieces(
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Cut the uniform segments ``a → b`` (``(E, 2)``) where φ is not smooth along them.
 
-    The cuts are :meth:`Layout.edge_breakpoints` for ``theta`` (e.g. the unit circle of
+    The cuts are [`Layout.edge_breakpoints`][] for ``theta`` (e.g. the unit circle of
     φ_curv; differentiable where they move with θ) and any ``extra`` parameters ``(E, K)``
     (NaN for none); cuts within ``1e-6`` of an end are dropped.
 
@@ -223,7 +223,7 @@ class PixelMesh:
         vertices: ``(V, 2)`` polyline vertices in sensor coordinates; the first
             ``(H + 1)(W + 1)`` are the corners in row-major order. Differentiable in θ.
         seg_start, seg_end: ``(S,)`` vertex indices of each boundary segment, oriented along
-            its edge (see :class:`MeshTopology`).
+            its edge (see [`MeshTopology`][]).
         seg_edge: ``(S,)`` edge index of each segment.
         edge_offsets: ``(E + 1,)`` start of each edge's (contiguous) segments.
     """
@@ -272,7 +272,7 @@ class PixelMesh:
         """Polygon area of every pixel, ``(H, W)`` (in sensor units they sum to 4).
 
         ``vertices`` replaces the mesh's own (same topology, other units), e.g.
-        :meth:`pixel_vertices`. The mesh's own areas are computed once where its vertices need
+        [`pixel_vertices`][]. The mesh's own areas are computed once where its vertices need
         no gradient (a fixed layout's cached mesh serves every call).
         """
         fixed = vertices is None and not self.vertices.requires_grad
@@ -334,7 +334,7 @@ def _edge_parameters(
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Polyline parameters of every edge so that pixel values stay within ``tol``.
 
-    Each uniform edge is first cut where φ is not smooth along it (:func:`smooth_pieces`),
+    Each uniform edge is first cut where φ is not smooth along it ([`smooth_pieces`][]),
     so that a polyline vertex sits on every kink. A smooth piece with chord ``ℓ`` and sagitta
     ``e`` cut into ``n`` equal parameter steps deviates by about ``e / n²`` from the curve and
     changes the area next to it by at most ``(2/3) ℓ e / n²``. Giving each of a pixel's four
@@ -371,7 +371,7 @@ def _segment_counts(
     max_subdiv: int,
     with_grad: bool,
 ) -> Tensor:
-    """The count stage of :func:`_edge_parameters` (its caller runs it under ``no_grad``):
+    """The count stage of `_edge_parameters` (its caller runs it under ``no_grad``):
     segments per smooth piece, ``(pieces,)``."""
     h, w = topo.size
     dev = th.device
@@ -405,7 +405,7 @@ def _chord_and_sagitta(
 ) -> tuple[Tensor, Tensor]:
     """Chord length and sagitta bound of smooth pieces ``a0 + [lo, hi] · d`` of uniform edges
     under φ, from second differences at the parameters ``lo + (hi − lo) · s_t`` (and of
-    ``∂φ/∂θ`` with ``with_grad``): see :func:`_edge_parameters`."""
+    ``∂φ/∂θ`` with ``with_grad``): see `_edge_parameters`."""
     k_s = s_t.numel() - 1
     pts = a0[:, None] + (lo[:, None] + (hi - lo)[:, None] * s_t)[..., None] * d[:, None]  # (pieces, K+1, 2)
     pts = pts.transpose(0, 1)  # (K+1, pieces, 2)
@@ -441,9 +441,9 @@ def distance_subdivisions(
 ) -> tuple[Tensor, float]:
     """Segments per smooth piece so that every polyline stays within a distance of its curve.
 
-    The geometric counterpart of the value tolerance of :func:`pixel_mesh` (used for fabrication
+    The geometric counterpart of the value tolerance of [`pixel_mesh`][] (used for fabrication
     masks, where the edge's position is what matters): each smooth piece of every edge
-    (:func:`smooth_pieces`, a vertex on every kink) is split into ``2^k`` equal parameter steps
+    ([`smooth_pieces`][], a vertex on every kink) is split into ``2^k`` equal parameter steps
     until the curve's distance from every chord, measured at the step's middle, is at most
     ``tol``. Distances are in the units of ``scale``, the sensor's extent ``(H, W)``
     (micrometres for a mask; the default ``(2, 2)`` measures in sensor coordinates). With
@@ -497,7 +497,7 @@ INNER = 1e-6
 #: Segments per chunk when the mesh's vertices are mapped (bounds φ's temporaries and its input).
 PHI_CHUNK = 1 << 16
 
-#: Meshes of fixed layouts of registered families, most recently used last (see :func:`pixel_mesh`).
+#: Meshes of fixed layouts of registered families, most recently used last (see [`pixel_mesh`][]).
 _CACHE: OrderedDict[tuple, PixelMesh] = OrderedDict()
 CACHE_SIZE = 4
 
@@ -538,26 +538,27 @@ def pixel_mesh(
             bound on every pixel's box-radiance mean, relative to the image's value range (a
             unitless fraction: the area between polyline and curve, over the pixel's area, is at
             most ``tol``), and on its θ-gradient when θ requires grad (see
-            :func:`_edge_parameters`). The default ``1e-5`` is a geometric reference; the
-            integrators pass what the data needs (:func:`~layoutwarp.data_tolerance`). ``None``:
+            `_edge_parameters`). The default ``1e-5`` is a geometric reference; the
+            integrators pass what the data needs
+            ([`data_tolerance`][layoutwarp.integrators.data_tolerance]). ``None``:
             one segment per edge. Ignored for straight-edged layouts, which always use one
-            segment per straight piece (between the cuts of :meth:`Layout.edge_breakpoints`).
+            segment per straight piece (between the cuts of [`Layout.edge_breakpoints`][]).
         max_subdiv: cap on segments per smooth piece of an edge. Where the cap binds (very
             fine ``tol`` with long, strongly curved edges: few large pixels, θ near ±1) the
             error can exceed ``tol``; raise it for such references.
         subdivisions: force the segment counts instead of the adaptive choice, with a vertex on
             every kink: an int for every smooth piece, an ``(E,)`` tensor per edge (for each of
             its pieces), or a ``(pieces,)`` tensor per smooth piece in the order of
-            :func:`smooth_pieces` (e.g. :func:`distance_subdivisions`). Used for references
+            [`smooth_pieces`][] (e.g. [`distance_subdivisions`][]). Used for references
             (smooth in θ, for finite differences) and fabrication masks.
         dtype: vertex dtype (default: θ's dtype).
-        theta: use this θ instead of the layout's own (see :meth:`Layout.resolve_theta`).
+        theta: use this θ instead of the layout's own (see [`Layout.resolve_theta`][]).
         cache: ``False``: a mesh this call builds is not kept (a kept one is still returned):
             for a caller that keeps what it derives from the mesh instead.
 
     Returns:
-        a :class:`PixelMesh` on θ's device. The meshes of fixed layouts (θ without gradient)
-        of registered families are cached (the last :data:`CACHE_SIZE`), so simulating many
+        a [`PixelMesh`][] on θ's device. The meshes of fixed layouts (θ without gradient)
+        of registered families are cached (the last `CACHE_SIZE`), so simulating many
         images with one fixed layout builds its mesh once; do not modify a returned mesh.
 
     Examples:

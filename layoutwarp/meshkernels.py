@@ -1,26 +1,26 @@
 """Compiled pixel meshes of the built-in curved families, with every vertex's θ-derivative.
 
-:func:`~layoutwarp.pixel_mesh` builds a learnable layout's mesh in some thousand torch
+[`pixel_mesh`][layoutwarp.mesh.pixel_mesh] builds a learnable layout's mesh in some thousand torch
 operations (cut every edge at φ's kinks, bound each piece's sagitta, count its segments, place
 the vertices, then autograd back through all of it): on a CPU it costs more than the integral,
 on a GPU each operation is a kernel launch. For the curvilinear families (``curv`` and
 ``fovea``, about any centre, and ``elliptic``) this module does the same in one compiled pass:
 φ, its Jacobian and ``∂φ/∂θ`` in closed form as numba functions without a branch on the point
 (so a chunk's sample points and new vertices are mapped in one loop that runs in SIMD lanes,
-:func:`_phi_run`), the kinks of every edge (with their θ-derivatives where they move with a
+[`_phi_run`][]), the kinks of every edge (with their θ-derivatives where they move with a
 learned centre), the count stage and the vertex placement, each step in the order and arithmetic
-of :func:`~layoutwarp.mesh.pixel_mesh`, so the two agree to rounding (the same segment counts,
+of [`pixel_mesh`][layoutwarp.mesh.pixel_mesh], so the two agree to rounding (the same segment counts,
 vertices within a few ulp). Instead of an
 autograd graph it returns ``∂v/∂θ`` of every vertex ``v``: for a vertex at parameter
 ``t = lo + (hi − lo) k/m`` of a smooth piece of the uniform edge ``a + t (b − a)``,
 ``dv/dθ = ∂φ/∂θ + J (b − a) (∂lo/∂θ (1 − k/m) + ∂hi/∂θ k/m)``, the second term where the piece's
-ends (kinks) move with θ. For a training step on the CPU, :func:`mesh_integrals` places the
+ends (kinks) move with θ. For a training step on the CPU, [`mesh_integrals`][] places the
 vertices and integrates over them chunk by chunk, carrying ``∂v/∂θ`` to the θ-Jacobian of every
 edge integral, so θ's gradient is one contraction with the edge gradient.
-On a CUDA device :func:`build_mesh_device` builds the same mesh there, one GPU thread per
+On a CUDA device [`build_mesh_device`][] builds the same mesh there, one GPU thread per
 corner, edge or vertex running the same scalar functions.
 
-:func:`mesh_spec` says whether a layout has a compiled form (exactly these classes: a
+[`mesh_spec`][] says whether a layout has a compiled form (exactly these classes: a
 subclass may change φ, so it keeps the torch path).
 """
 
@@ -67,7 +67,7 @@ class MeshSpec:
     """What the compiled mesh needs to know of a layout besides θ.
 
     Attributes:
-        kind: :data:`CURV` (φ_curv about ``center``) or :data:`ELLIPTIC`.
+        kind: [`CURV`][] (φ_curv about ``center``) or [`ELLIPTIC`][].
         center: the fixed centre ``(c_x, c_y)``; a learned one is θ's last two entries.
         centred: φ is the centred map itself (fixed centre at the origin): no affine step.
         nparams: θ's length ``P`` (2, or 4 with a learned centre).
@@ -93,8 +93,8 @@ def mesh_spec(layout: Layout) -> MeshSpec | None:
 
 @dataclass
 class CompiledMesh:
-    """A pixel mesh as :func:`build_mesh` returns it: the arrays of a
-    :class:`~layoutwarp.PixelMesh` (float64 / int64, CPU) plus ``dverts`` ``(V, 2, P)``, each
+    """A pixel mesh as [`build_mesh`][] returns it: the arrays of a
+    [`PixelMesh`][] (float64 / int64, CPU) plus ``dverts`` ``(V, 2, P)``, each
     vertex's derivative in θ, and ``counts``, the segments of every smooth piece (what
     ``pixel_mesh(..., subdivisions=counts)`` takes to rebuild the same mesh)."""
 
@@ -108,7 +108,7 @@ class CompiledMesh:
     counts: np.ndarray
 
     def pixel_mesh(self, device: torch.device | str = "cpu") -> PixelMesh:
-        """The :class:`~layoutwarp.PixelMesh` of these arrays (vertices without gradient)."""
+        """The [`PixelMesh`][] of these arrays (vertices without gradient)."""
 
         def t(a: np.ndarray) -> torch.Tensor:
             return torch.from_numpy(a).to(device)
@@ -137,7 +137,7 @@ def _jit(fn):  # numpy's error model: a division by zero gives inf, so loops of 
 @_inline
 def _den(t: float) -> tuple:
     """``(A, B, C)`` with ``A + B (1 − r) + C r = 1 + t − 2tr`` summed as
-    :func:`layoutwarp.layouts._denom` sums it (two non-negative terms), for any ``r`` in [0, 1]."""
+    [`layoutwarp.layouts._denom`][] sums it (two non-negative terms), for any ``r`` in [0, 1]."""
     return (1 - t, 2 * t, 0.0) if t >= 0 else (1 + t, 0.0, 2 * (-t))
 
 
@@ -145,7 +145,7 @@ def _den(t: float) -> tuple:
 def _curv0(x: float, y: float, tx: float, ty: float, kx: tuple, ky: tuple) -> tuple:
     """φ_curv about the origin at ``(x, y)``: ``(φ_x, φ_y, ∂φ_x/∂θ_x, ∂φ_y/∂θ_y, J_00, J_01,
     J_10, J_11)`` with ``J`` the spatial Jacobian (the identity on and outside the unit circle);
-    ``kx``, ``ky``: :func:`_den` of ``tx``, ``ty``."""
+    ``kx``, ``ky``: [`_den`][] of ``tx``, ``ty``."""
     r = math.sqrt(x * x + y * y)
     inside = r < 1
     dx = kx[0] + kx[1] * (1 - r) + kx[2] * r
@@ -257,7 +257,7 @@ def _phi(
 
 @_inline
 def _store(out: np.ndarray, i: int, f: tuple, p: int) -> None:
-    """:func:`_curv`'s point ``f`` into column ``i`` of :func:`_phi_run`'s rows (θ of ``p``)."""
+    """[`_curv`][]'s point ``f`` into column ``i`` of [`_phi_run`][]'s rows (θ of ``p``)."""
     out[0, i], out[1, i] = f[0], f[1]
     for r in range(p):
         out[2 + r, i], out[2 + p + r, i] = f[2 + r], f[6 + r]
@@ -268,7 +268,7 @@ def _phi_run(
     kind: int, centred: bool, th: np.ndarray, c: np.ndarray, pts: np.ndarray, n: int, out: np.ndarray
 ) -> None:
     """φ and ``∂φ/∂θ`` at the points ``(pts[0, i], pts[1, i])``, ``i < n``, into ``out[:, i]``:
-    ``(φ_x, φ_y, ∂φ_x/∂θ (P), ∂φ_y/∂θ (P))``, as :func:`_phi` gives them. Rows, not points, are
+    ``(φ_x, φ_y, ∂φ_x/∂θ (P), ∂φ_y/∂θ (P))``, as [`_phi`][] gives them. Rows, not points, are
     contiguous, and CURV runs one loop per case without a branch on θ inside it: the loop runs in
     SIMD lanes."""
     p = th.shape[0]
@@ -295,7 +295,7 @@ def _phi_run(
 
 @_inline
 def _unpack(out: np.ndarray, n: int, q: np.ndarray, dq: np.ndarray) -> None:
-    """:func:`_phi_run`'s rows into points: ``q[i]`` (2,) and ``dq[i]`` (2, P) for ``i < n``."""
+    """[`_phi_run`][]'s rows into points: ``q[i]`` (2,) and ``dq[i]`` (2, P) for ``i < n``."""
     p = dq.shape[2]
     for i in range(n):
         q[i, 0], q[i, 1] = out[0, i], out[1, i]
@@ -462,7 +462,7 @@ def _segment_counts(
 ) -> int:  # fmt: skip
     """The segment counts of an edge's ``n`` pieces ``base ..`` into ``counts`` (their sagitta
     bounds and chord lengths at ``sag[j0 + i]``, ``length[j0 + i]``; ``amin_e``: the edge's
-    smaller pixel area), as :func:`layoutwarp.mesh._segment_counts` bounds them; returns their
+    smaller pixel area), as [`layoutwarp.mesh._segment_counts`][] bounds them; returns their
     sum."""
     edge_len = 0.0
     for i in range(n):
@@ -483,7 +483,7 @@ def _edge_bounds(
     piece_offsets: np.ndarray, scratch: np.ndarray, cuts: np.ndarray, dcuts: np.ndarray,
     lo: np.ndarray, dlo: np.ndarray, bounds: np.ndarray, dbounds: np.ndarray,
 ) -> int:  # fmt: skip
-    """Edge ``e``'s smooth pieces with their θ-derivatives (:func:`_edge_pieces`; one piece from
+    """Edge ``e``'s smooth pieces with their θ-derivatives ([`_edge_pieces`][]; one piece from
     0 to 1 where ``piece_offsets`` says it has no kink) into ``lo``, ``dlo`` and its rows of
     ``bounds``, ``dbounds``; returns their number. The other arrays: work space."""
     p = th.shape[0]
@@ -507,7 +507,7 @@ def _sagittas(
     out: np.ndarray, n: int, ns: int, grad: bool, p: int, sag: np.ndarray, length: np.ndarray
 ) -> None:  # fmt: skip
     """Chord length and sagitta bound of each of ``n`` pieces whose ``ns`` samples are columns
-    ``q·ns ..`` of :func:`_phi_run`'s rows ``out`` (five along the piece, then, where ``grad``,
+    ``q·ns ..`` of [`_phi_run`][]'s rows ``out`` (five along the piece, then, where ``grad``,
     two just inside its ends for ``∂φ/∂θ``, which may jump at a kink): the largest of the
     second differences of φ and, where ``grad``, of every ``∂φ/∂θ`` across the chord, over 8."""
     for q in range(n):
@@ -537,9 +537,9 @@ def _pieces_and_counts(
     span: int, bounds: np.ndarray, dbounds: np.ndarray, counts: np.ndarray, edge_counts: np.ndarray,
 ) -> None:  # fmt: skip
     """Every smooth piece's parameter range (``bounds`` (pieces, 2), ``dbounds`` (pieces, 2, P))
-    and its segment count, bounding the sagitta as :func:`layoutwarp.mesh._segment_counts` does,
+    and its segment count, bounding the sagitta as [`layoutwarp.mesh._segment_counts`][] does,
     and every edge's segments (``edge_counts[e + 1]``; ``edge_counts[0]`` is left alone). A chunk
-    of edges places its sample points first, maps them in one loop (:func:`_phi_run`), then
+    of edges places its sample points first, maps them in one loop ([`_phi_run`][]), then
     counts; ``span``: the most pieces a chunk has."""
     ne, p = ends.shape[0], th.shape[0]
     n_chunks = (ne + CHUNK - 1) // CHUNK
@@ -584,7 +584,7 @@ def _pieces_and_counts(
 @functools.lru_cache(maxsize=16)
 def _topology(size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Uniform edge ends ``(E, 4)``, their corner indices and the uniform corners ``(V0, 2)`` of
-    :class:`~layoutwarp.mesh.MeshTopology` as arrays (cached per size; do not modify)."""
+    [`MeshTopology`][] as arrays (cached per size; do not modify)."""
     topo = MeshTopology(size)
     ua, ub = topo.edge_ends()
     ea, eb = topo.edge_corners()
@@ -708,7 +708,7 @@ def _place_chunk(
     """The new vertices of edges ``e0 .. e1 − 1`` into ``verts[i]`` ``(2,)`` and ``dverts[i]``
     ``(2, P)``, ``i`` counted from the chunk's first new vertex (segment ``s`` of edge ``e`` ends
     at new vertex ``s − e`` of the mesh unless it is the edge's last): their points first, then
-    one loop of :func:`_phi_run`; ``pts``, ``out``, ``moving``, ``qi``, ``dq``: work space."""
+    one loop of [`_phi_run`][]; ``pts``, ``out``, ``moving``, ``qi``, ``dq``: work space."""
     p = th.shape[0]
     base = edge_offsets[e0] - e0
     nm = 0  # the chunk's pieces that move with a learned centre: (piece, edge, first segment)
@@ -752,10 +752,10 @@ def _place_vertices(
     counts: np.ndarray, edge_offsets: np.ndarray, ncorner: int, threads: int, span: int,
     verts: np.ndarray, dverts: np.ndarray, seg_start: np.ndarray, seg_end: np.ndarray, seg_edge: np.ndarray,
 ) -> None:  # fmt: skip
-    """Segments and interior vertices of every edge, numbered as :func:`~layoutwarp.pixel_mesh`
+    """Segments and interior vertices of every edge, numbered as [`pixel_mesh`][layoutwarp.mesh.pixel_mesh]
     numbers them: segment ``s`` of edge ``e`` starts at the new vertex ``V0 + s − e − 1`` unless
     it is the edge's first. A chunk's new vertices are consecutive (``span``: the most a chunk
-    has), placed by :func:`_place_chunk`."""
+    has), placed by [`_place_chunk`][]."""
     ne, p = ends.shape[0], th.shape[0]
     n_chunks = (ne + CHUNK - 1) // CHUNK
     mesh = (kind, centred, ends, th, c, piece_offsets, bounds, dbounds, counts, edge_offsets)
@@ -787,10 +787,10 @@ def _integrate(
     counts: np.ndarray, edge_offsets: np.ndarray, corners: np.ndarray, dcorners: np.ndarray,
     incl: np.ndarray, offsets: np.ndarray, block: int, ws: float, hs: float, threads: int, span: int,
 ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
-    """:func:`mesh_integrals` a chunk of edges at a time: its new vertices into work space
-    (:func:`_place_chunk`), in pixel units as :func:`_to_pixels` gives them; its segments'
+    """[`mesh_integrals`][] a chunk of edges at a time: its new vertices into work space
+    ([`_place_chunk`][]), in pixel units as [`_to_pixels`][] gives them; its segments'
     integrals (each edge summed in segment order), moments
-    (:func:`~layoutwarp.kernels.segment_moments`) and θ-Jacobian while the segment is at hand.
+    ([`segment_moments`][]) and θ-Jacobian while the segment is at hand.
     ``corners`` ``(V0, 2)`` in pixel units, ``span``: the most new vertices a chunk has."""
     ne, p, n = ends.shape[0], th.shape[0], incl.shape[2]
     out = np.empty((n + 1, ne))  # every edge's written once, from work space: no zeroing
@@ -845,7 +845,7 @@ def _integrate(
 
 @dataclass
 class _Counted:
-    """The count stage's results (see :func:`_count_stage`)."""
+    """The count stage's results (see [`_count_stage`][])."""
 
     th: np.ndarray
     c: np.ndarray
@@ -863,7 +863,7 @@ def _count_stage(
     spec: MeshSpec, size: tuple[int, int], theta: np.ndarray, tol: float, max_subdiv: int, with_grad: bool
 ) -> _Counted:
     """Corners, every edge's smooth pieces and their segment counts: what the vertices' placement
-    needs (:func:`build_mesh`, :func:`mesh_integrals`)."""
+    needs ([`build_mesh`][], [`mesh_integrals`][])."""
     h, w = size
     ends, _, _, uniform = _topology(size)
     th = np.ascontiguousarray(theta, dtype=np.float64)
@@ -898,7 +898,7 @@ def build_mesh(
     max_subdiv: int = 4096,
     with_grad: bool = True,
 ) -> CompiledMesh:
-    """The mesh :func:`~layoutwarp.pixel_mesh` builds for the layout of ``spec`` at ``theta``
+    """The mesh [`pixel_mesh`][layoutwarp.mesh.pixel_mesh] builds for the layout of ``spec`` at ``theta``
     (``(P,)`` float64) with tolerance ``tol``, compiled, with every vertex's θ-derivative.
 
     ``with_grad`` bounds the polylines' error in ``∂φ/∂θ`` too (as ``pixel_mesh`` does when θ
@@ -928,10 +928,11 @@ def mesh_integrals(
     *,
     max_subdiv: int = 4096,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The exact integrator's edge integrals ``(N + 1, E)`` of :func:`build_mesh`'s mesh (with
+    """The exact integrator's edge integrals ``(N + 1, E)`` of [`build_mesh`][]'s mesh (with
     ``with_grad``) over an ``(H, W)`` source of prefix tables ``tables``
-    (:func:`~layoutwarp.kernels.prefix_tables`), as :func:`~layoutwarp.kernels.exact_forward`
-    gives them for the mesh's :func:`pixel_vertices`, and their θ-Jacobian ``(N + 1, E, P)``,
+    ([`prefix_tables`][layoutwarp.kernels.prefix_tables]), as
+    [`exact_forward`][layoutwarp.kernels.exact_forward]
+    gives them for the mesh's [`pixel_vertices`][], and their θ-Jacobian ``(N + 1, E, P)``,
     without the mesh's arrays: each chunk of edges places its vertices in work space of its own
     and integrates its segments while they are in cache (a training step's mesh is 50–100 MB of
     vertices, θ-derivatives and indices at 2048x1024 → 257x129, written once and read twice).
@@ -940,8 +941,8 @@ def mesh_integrals(
     ``b`` of edge ``e`` adds ``ma[n]·v_a + mb[n]·v_b`` to row ``n`` and ``(v_a + v_b)/2`` to the
     area row ``N``, with its normal ``ν = (ΔY, −ΔX)``, ``v = ν · (W/2 ∂x/∂θ, H/2 ∂y/∂θ)`` at each
     end and its moments ``ma[n] = ∫ (1 − t) L_n dt``, ``mb[n] = ∫ t L_n dt``
-    (:func:`~layoutwarp.kernels.segment_moments`); θ's gradient is then one contraction with
-    the edge gradient (:func:`edge_gradient`, :func:`theta_gradient`).
+    ([`segment_moments`][]); θ's gradient is then one contraction with
+    the edge gradient ([`edge_gradient`][], [`theta_gradient`][]).
     """
     hs, ws = src_size
     ends, ea, eb, _ = _topology(size)
@@ -963,7 +964,7 @@ def _to_pixels(verts: np.ndarray, ws: float, hs: float) -> np.ndarray:
 
 def pixel_vertices(mesh: CompiledMesh, src_size: tuple[int, int]) -> np.ndarray:
     """The mesh's vertices in pixel units of an ``(H, W)`` source, clamped to it, as
-    :meth:`~layoutwarp.PixelMesh.pixel_vertices` gives them."""
+    [`pixel_vertices`][layoutwarp.mesh.PixelMesh.pixel_vertices] gives them."""
     hs, ws = src_size
     return _to_pixels(mesh.vertices, float(ws), float(hs))
 
@@ -1000,10 +1001,11 @@ def edge_gradient(
     grad: np.ndarray, means: np.ndarray, areas: np.ndarray, area_grad: np.ndarray | None = None
 ) -> np.ndarray:
     """The gradient ``(N + 1, E)`` of a mesh's edge integrals (``N`` channels and the area, as
-    :class:`~layoutwarp.mesh.MeshTopology` numbers the edges) from the gradient ``grad``
+    [`MeshTopology`][] numbers the edges) from the gradient ``grad``
     ``(N, H, W)`` of the pixel means ``means = Σ_edges / areas`` and, where the areas ``(H, W)``
     are an output too (sensor physics), ``area_grad``, the gradient of the areas themselves: the
-    quotient rule, then :meth:`~layoutwarp.mesh.MeshTopology.combine_adjoint`, in one compiled pass."""
+    quotient rule, then [`combine_adjoint`][layoutwarp.mesh.MeshTopology.combine_adjoint], in one
+    compiled pass."""
     own = np.zeros((0, 0)) if area_grad is None else area_grad
     return _edge_gradient(*(np.ascontiguousarray(a, dtype=np.float64) for a in (grad, means, areas, own)))
 
@@ -1026,8 +1028,8 @@ def _contract(g: np.ndarray, jac: np.ndarray) -> np.ndarray:
 
 def theta_gradient(g_edge: np.ndarray, jac: np.ndarray) -> np.ndarray:
     """θ's gradient ``(P,)`` from the edge integrals' gradient ``g_edge`` ``(N + 1, E)``
-    (:func:`edge_gradient`) and their θ-Jacobian ``jac`` ``(N + 1, E, P)``
-    (:func:`mesh_integrals`): ``Σ g_edge[n, e]·jac[n, e, :]``, compiled and with no BLAS call,
+    ([`edge_gradient`][]) and their θ-Jacobian ``jac`` ``(N + 1, E, P)``
+    ([`mesh_integrals`][]): ``Σ g_edge[n, e]·jac[n, e, :]``, compiled and with no BLAS call,
     whose worker threads would keep spinning on the cores into the next step's kernels (a
     2048x1024 → 257x129 fovea step ran 2.5x slower with numpy's ``@`` here)."""
     p = jac.shape[-1]
@@ -1048,7 +1050,7 @@ F8 = np.float64
 def _phi_at(
     kind: int, centred: bool, x: float, y: float, th: np.ndarray, c: np.ndarray, q: np.ndarray, dq: np.ndarray
 ) -> None:
-    """:func:`_phi` at ``(x, y)``, with ``dq`` ``(2, P_MAX + 2)`` work space whose first ``P``
+    """[`_phi`][] at ``(x, y)``, with ``dq`` ``(2, P_MAX + 2)`` work space whose first ``P``
     columns take ``∂φ/∂θ`` and the next two the Jacobian (the device's local arrays have one
     size for every ``P``)."""
     _phi(kind, centred, x, y, th, c, q, dq[:, : th.shape[0] + 2])
@@ -1063,7 +1065,7 @@ def _edge_pieces_and_counts(
     sag: np.ndarray, length: np.ndarray,
     bounds: np.ndarray, dbounds: np.ndarray, counts: np.ndarray, edge_counts: np.ndarray,
 ) -> None:  # fmt: skip
-    """Edge ``e``'s part of :func:`_pieces_and_counts` (always ``with_grad``): its pieces'
+    """Edge ``e``'s part of [`_pieces_and_counts`][] (always ``with_grad``): its pieces'
     bounds and segment counts, and its segments into ``edge_counts[e + 1]``; ``rows``
     ``(2 + 2 P_MAX, 7)`` (a piece's seven samples), ``one``, ``one_len`` (1,), ``sag``,
     ``length`` (10,): work space."""
@@ -1093,7 +1095,7 @@ def _edge_vertices(
     counts: np.ndarray, edge_offsets: np.ndarray, ncorner: int, q: np.ndarray, dq: np.ndarray,
     verts: np.ndarray, dverts: np.ndarray, seg_start: np.ndarray, seg_end: np.ndarray, seg_edge: np.ndarray,
 ) -> None:  # fmt: skip
-    """Edge ``e``'s part of :func:`_place_vertices`: its segments and new vertices, numbered as
+    """Edge ``e``'s part of [`_place_vertices`][]: its segments and new vertices, numbered as
     there, each vertex's ``∂v/∂θ`` with the term of a piece whose ends move with θ."""
     p = th.shape[0]
     _edge_segments(e, ea, eb, edge_offsets, ncorner, seg_start, seg_end, seg_edge)
@@ -1138,7 +1140,7 @@ def _cuda_corners(
 
 
 def _cuda_areas(q: np.ndarray, area: np.ndarray) -> None:
-    """One thread per pixel: :func:`_quad_area` of its deformed corners."""
+    """One thread per pixel: [`_quad_area`][] of its deformed corners."""
     i = cuda.grid(1)
     h, w = area.shape
     if i < h * w:
@@ -1146,8 +1148,8 @@ def _cuda_areas(q: np.ndarray, area: np.ndarray) -> None:
 
 
 def _cuda_amin(area: np.ndarray, amin: np.ndarray) -> None:
-    """One thread per edge (horizontal, then vertical): :func:`_amin_across`,
-    :func:`_amin_beside`."""
+    """One thread per edge (horizontal, then vertical): [`_amin_across`][],
+    [`_amin_beside`][]."""
     e = cuda.grid(1)
     h, w = area.shape
     nh = (h + 1) * w
@@ -1160,7 +1162,7 @@ def _cuda_amin(area: np.ndarray, amin: np.ndarray) -> None:
 def _cuda_count_pieces(
     kind: int, centred: bool, ends: np.ndarray, th: np.ndarray, c: np.ndarray, out: np.ndarray
 ) -> None:
-    """One thread per edge: :func:`_edge_pieces`' count."""
+    """One thread per edge: [`_edge_pieces`][]' count."""
     e = cuda.grid(1)
     if e < ends.shape[0]:
         scratch, cuts = cuda.local.array((8, P_MAX), F8), cuda.local.array(8, F8)
@@ -1174,7 +1176,7 @@ def _cuda_pieces_and_counts(
     piece_offsets: np.ndarray, amin: np.ndarray, tol: float, max_subdiv: int, inner: float,
     bounds: np.ndarray, dbounds: np.ndarray, counts: np.ndarray, edge_counts: np.ndarray,
 ) -> None:  # fmt: skip
-    """One thread per edge: :func:`_edge_pieces_and_counts`."""
+    """One thread per edge: [`_edge_pieces_and_counts`][]."""
     e = cuda.grid(1)
     if e < ends.shape[0]:
         scratch, cuts = cuda.local.array((8, P_MAX), F8), cuda.local.array(8, F8)
@@ -1200,7 +1202,7 @@ def _cuda_place(
     counts: np.ndarray, edge_offsets: np.ndarray, ncorner: int, verts: np.ndarray,
     dverts: np.ndarray, seg_start: np.ndarray, seg_end: np.ndarray, seg_edge: np.ndarray,
 ) -> None:  # fmt: skip
-    """One thread per edge: :func:`_edge_vertices`."""
+    """One thread per edge: [`_edge_vertices`][]."""
     e = cuda.grid(1)
     if e < ends.shape[0]:
         q, dq = cuda.local.array(2, F8), cuda.local.array((2, _DQ), F8)
@@ -1211,15 +1213,15 @@ def _cuda_place(
 
 
 def _cuda_to_pixels(verts: np.ndarray, ws: float, hs: float, out: np.ndarray) -> None:
-    """One thread per vertex: :func:`_pixel_vertex`."""
+    """One thread per vertex: [`_pixel_vertex`][]."""
     v = cuda.grid(1)
     if v < verts.shape[0]:
         out[v, 0], out[v, 1] = _pixel_vertex(verts[v, 0], verts[v, 1], ws, hs)
 
 
 _A1, _A2, _A3, _I1 = "float64[::1]", "float64[:, ::1]", "float64[:, :, ::1]", "int64[::1]"
-#: The device kernels of :func:`build_mesh_device`, by name, with their argument types (what
-#: :func:`~layoutwarp.kernels.cuda_ptx` compiles them with, without a GPU).
+#: The device kernels of [`build_mesh_device`][], by name, with their argument types (what
+#: [`cuda_ptx`][layoutwarp.kernels.cuda_ptx] compiles them with, without a GPU).
 CUDA_KERNELS = {
     "corners": (_cuda_corners, f"void(int64, boolean, {_A2}, {_A1}, {_A1}, {_A2}, {_A3})"),
     "areas": (_cuda_areas, f"void({_A2}, {_A2})"),
@@ -1241,10 +1243,10 @@ CUDA_KERNELS = {
 
 @dataclass
 class DeviceMesh:
-    """A compiled mesh built where its θ lives (:func:`build_mesh_device`), as torch tensors
-    there: the :class:`~layoutwarp.PixelMesh`, its vertices in pixel units of the source
+    """A compiled mesh built where its θ lives ([`build_mesh_device`][]), as torch tensors
+    there: the [`PixelMesh`][], its vertices in pixel units of the source
     (clamped to it), every vertex's θ-derivative ``(V, 2, P)`` and every smooth piece's segment
-    count (as :class:`CompiledMesh` has them)."""
+    count (as [`CompiledMesh`][] has them)."""
 
     mesh: PixelMesh
     pixel_vertices: torch.Tensor
@@ -1254,7 +1256,7 @@ class DeviceMesh:
 
 @functools.lru_cache(maxsize=16)
 def _device_topology(size: tuple[int, int], device: str) -> tuple[torch.Tensor, ...]:
-    """:func:`_topology` on ``device`` (cached per size and device; do not modify)."""
+    """[`_topology`][] on ``device`` (cached per size and device; do not modify)."""
     return tuple(torch.from_numpy(np.ascontiguousarray(a)).to(device) for a in _topology(size))
 
 
@@ -1267,7 +1269,7 @@ def build_mesh_device(
     *,
     max_subdiv: int = 4096,
 ) -> DeviceMesh:
-    """:func:`build_mesh` (``with_grad``) and :func:`pixel_vertices` on the CUDA device that
+    """[`build_mesh`][] (``with_grad``) and [`pixel_vertices`][] on the CUDA device that
     holds ``theta`` ``(P,)``, in seven kernels (corners, pixel areas, edges' smaller areas,
     pieces, counts, vertices, pixel units: one thread per corner, pixel, edge or vertex, each
     thread the CPU's steps for its item) and

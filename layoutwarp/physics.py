@@ -1,11 +1,11 @@
 """Photons, noise, pixel apertures and optics: the measurement equation beyond its mean.
 
 The integrators give each pixel's mean radiance ``L̄_k`` (the paper's noise-free sensor). A
-real pixel records light in proportion to its area, with noise; :class:`SensorPhysics` holds
-the camera in physical units, and :func:`~layoutwarp.simulate` (``physics=``) runs, in this
+real pixel records light in proportion to its area, with noise; [`SensorPhysics`][] holds
+the camera in physical units, and [`simulate`][layoutwarp.sensor.simulate] (``physics=``) runs, in this
 order, in the notation of the EMVA 1288 standard (release 4.0):
 
-1. optics: the lens's point spread function blurs the *source* image (:func:`apply_psf`; its
+1. optics: the lens's point spread function blurs the *source* image ([`apply_psf`][]; its
    width in µm becomes source pixels through the image's extent on the sensor, ``sensor_um``);
 2. the integrators (unchanged): ``L̄_k``, the mean over the pixel ``A_k``;
 3. photons: ``μ_p,k = photons_per_um2 · L̄_k · a_k · fill_factor`` with ``a_k`` the pixel's
@@ -34,7 +34,7 @@ noise; ``"poisson"``/``"gaussian"`` force one, ``"none"`` keeps the expectation.
 patterns come from ``pattern_seed`` alone (one sensor, the same in every frame); temporal noise
 from ``seed`` (the same seed and input give the same noise; every image of a batch, and every
 channel, gets its own). Where no gradient is needed on the CPU, steps 3–8 are one compiled pass
-(:func:`~layoutwarp.kernels.sensor_measure`): exact Poisson draws by Ahrens and Dieter's
+(`sensor_measure`): exact Poisson draws by Ahrens and Dieter's
 algorithm PD (multiplication of uniforms below a mean of 10), normals by the ziggurat, each
 pixel's noise from counter-based streams of its own, so the thread count does not change it;
 elsewhere torch's ``poisson`` and ``randn``.
@@ -74,7 +74,7 @@ __all__ = [
 
 #: Point spread functions of the optics.
 PSFS = ("gaussian", "airy")
-#: What :func:`measure` returns: radiance units (the ISP's output), electrons or digital numbers.
+#: What [`measure`][] returns: radiance units (the ISP's output), electrons or digital numbers.
 OUTPUTS = ("radiance", "electrons", "dn")
 #: Shot-noise models (see the module docstring).
 NOISE = ("auto", "poisson", "gaussian", "none")
@@ -86,7 +86,7 @@ GAUSS_AIRY_SIGMA = 0.42
 AIRY_FIRST_ZERO = 3.8317059702075125
 
 
-#: :class:`SensorPhysics`' number fields and their ranges ``(lo, hi, lo open, hi open)``.
+#: [`SensorPhysics`][]' number fields and their ranges ``(lo, hi, lo open, hi open)``.
 _RANGES = {
     "photons_per_um2": (0, None, True, False),
     "quantum_efficiency": (0, 1, True, False),
@@ -114,7 +114,8 @@ class SensorPhysics:
     """A camera in physical units: light, sensor, electronics and optics (see the module docstring).
 
     Attributes:
-        sensor_um: the sensor's extent ``(H_um, W_um)`` in µm (as in :func:`~layoutwarp.export_layout`).
+        sensor_um: the sensor's extent ``(H_um, W_um)`` in µm (as in
+            [`export_layout`][layoutwarp.export.export_layout]).
         photons_per_um2: mean photons per µm² per exposure where the image's value is 1.0 (the
             exposure: light level times exposure time).
         quantum_efficiency: ``η``, electrons per photon, in ``(0, 1]``.
@@ -187,7 +188,7 @@ class SensorPhysics:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> SensorPhysics:
-        """Rebuild from :meth:`to_dict` (unknown keys are refused, naming them)."""
+        """Rebuild from [`to_dict`][] (unknown keys are refused, naming them)."""
         if not isinstance(data, dict):
             raise ValueError(f"sensor physics must be a JSON object, got {type(data).__name__}")
         names = {f.name for f in fields(cls)}
@@ -203,12 +204,12 @@ class SensorPhysics:
             raise ValueError(f"sensor physics: {exc}") from None
 
     def to_json(self) -> str:
-        """The physics as JSON text (what ``--physics FILE`` and :meth:`from_json` read)."""
+        """The physics as JSON text (what ``--physics FILE`` and [`from_json`][] read)."""
         return json.dumps(self.to_dict(), indent=2)
 
     @classmethod
     def from_json(cls, text: str) -> SensorPhysics:
-        """Rebuild from :meth:`to_json`'s text (``ValueError`` for text that is not JSON)."""
+        """Rebuild from [`to_json`][]'s text (``ValueError`` for text that is not JSON)."""
         return cls.from_dict(json.loads(text))
 
     # -- derived -------------------------------------------------------------------
@@ -377,7 +378,7 @@ def measure(
     Args:
         mean: the integrators' mean radiance per pixel (image units; 1.0 is ``photons_per_um2``).
         areas: pixel areas ``(h, w)`` in sensor units (the square ``[-1, 1]²``: they sum to 4),
-            e.g. :meth:`~layoutwarp.PixelMesh.areas`; differentiable in θ.
+            e.g. [`areas`][layoutwarp.mesh.PixelMesh.areas]; differentiable in θ.
         physics: the camera.
         output: ``"radiance"`` (the ISP's estimate of ``mean``), ``"electrons"`` (after the full
             well, before the ADC) or ``"dn"`` (the ADC's digital numbers).
@@ -438,7 +439,7 @@ def measure(
 
 
 def check_output(output: str, physics: SensorPhysics | None) -> str:
-    """``output`` if it is one of :data:`OUTPUTS` and a sensor records it: electrons and digital
+    """``output`` if it is one of `OUTPUTS` and a sensor records it: electrons and digital
     numbers need ``physics`` (without it a sensor gives the noise-free mean, in radiance units)."""
     check_choice(output, OUTPUTS, "output")
     if physics is None and output != "radiance":
@@ -493,7 +494,7 @@ def _full_well(physics: SensorPhysics, a_um2: Tensor) -> Tensor | None:
     return full
 
 
-#: The compiled measurement's per-sensor inputs, most recently used last (see :func:`_compiled_sensor`).
+#: The compiled measurement's per-sensor inputs, most recently used last (see [`_compiled_sensor`][]).
 _SENSORS: OrderedDict[tuple, tuple[Tensor, SensorPhysics, int, tuple[np.ndarray, ...]]] = OrderedDict()
 SENSOR_CACHE_SIZE = 8
 
@@ -501,7 +502,7 @@ SENSOR_CACHE_SIZE = 8
 def _compiled_sensor(physics: SensorPhysics, areas: Tensor) -> tuple[np.ndarray, ...]:
     """The kernel's inputs that depend on the camera and the pixel areas alone: areas in µm²,
     the PRNU and DSNU patterns (float64, flat) and the parameter vector. Kept for the last
-    :data:`SENSOR_CACHE_SIZE` (camera, areas) pairs, an areas tensor recognised by identity and
+    [`SENSOR_CACHE_SIZE`][] (camera, areas) pairs, an areas tensor recognised by identity and
     version (a fixed layout's cached mesh gives the same tensor every call), so a repeated call
     costs no torch operation."""
     last = _SENSORS[next(reversed(_SENSORS))] if _SENSORS else None
@@ -548,8 +549,8 @@ def _kernel_seed(seed: int) -> int:
 def kernel_arguments(
     physics: SensorPhysics, areas: Tensor, output: str = "radiance", generator: torch.Generator | None = None
 ) -> tuple:
-    """The arguments of :func:`~layoutwarp.kernels.sensor_measure` after the means, for
-    :func:`measure` without gradient on the CPU (``noise="auto"``: exact Poisson draws): the
+    """The arguments of `sensor_measure` after the means, for
+    [`measure`][] without gradient on the CPU (``noise="auto"``: exact Poisson draws): the
     pixels' inputs (kept per camera and areas), the noise's seed (from ``generator``, else
     ``physics.seed``, else torch's global generator), the noise model's and ``output``'s codes."""
     check_choice(output, OUTPUTS, "output")
@@ -564,9 +565,9 @@ def kernel_arguments(
 
 
 def _measure_compiled(mean: Tensor, args: tuple, kernel: Callable) -> Tensor:
-    """:func:`measure` without gradient on the CPU: the fused kernel
-    :func:`~layoutwarp.kernels.sensor_measure` (``kernel``: it or its quick build, see
-    :func:`~layoutwarp.jit.compiled`) with :func:`kernel_arguments`' ``args``."""
+    """[`measure`][] without gradient on the CPU: the fused kernel
+    `sensor_measure` (``kernel``: it or its quick build, see
+    [`compiled`][layoutwarp.jit.compiled]) with [`kernel_arguments`][]' ``args``."""
     x = mean.detach() if mean.requires_grad else mean
     if x.dtype not in (torch.float32, torch.float64) or not x.is_contiguous():
         x = x.to(torch.float64).contiguous()  # the kernel's two builds: float32 and float64

@@ -1,9 +1,9 @@
 """Dataset preprocessing: a folder of images to their sensor images for a fixed layout.
 
-Each source size gets one :class:`~layoutwarp.AreaResampler` (the exact integrator as a sparse
+Each source size gets one [`AreaResampler`][] (the exact integrator as a sparse
 matrix), shared by every file of that size; OpenCV reads and writes the files.
 
-:func:`preprocess_folder` walks a folder tree (PNG, JPEG, TIFF, BMP; 8/16-bit or float,
+[`preprocess_folder`][] walks a folder tree (PNG, JPEG, TIFF, BMP; 8/16-bit or float,
 gray, colour or with alpha: every channel is integrated alike, straight alpha) and writes
 each sensor image under the same relative path of the destination. It is resumable (a
 re-run skips files the done-list records with an unchanged source and a complete output),
@@ -61,7 +61,7 @@ __all__ = [
 ]
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
-#: Label rules: the sensor-grid rules of :mod:`layoutwarp.labels`, or full-size copies with back-warp maps.
+#: Label rules: the sensor-grid rules of [`layoutwarp.labels`][], or full-size copies with back-warp maps.
 LABEL_RULES = (*SENSOR_RULES, "inverse")
 
 
@@ -70,7 +70,7 @@ LABEL_RULES = (*SENSOR_RULES, "inverse")
 # ----------------------------------------------------------------------------------------
 @dataclass
 class PreprocessResult:
-    """What a :func:`preprocess_folder` run did."""
+    """What a [`preprocess_folder`][] run did."""
 
     processed: int = 0
     skipped: int = 0
@@ -240,7 +240,7 @@ def file_seed(seed: int | None, rel: str | Path) -> int:
 
 
 def list_images(src: str | Path, exclude: str | Path | None = None) -> list[Path]:
-    """Every image file (by suffix, see :data:`IMAGE_SUFFIXES`) under ``src`` in sorted order,
+    """Every image file (by suffix, see [`IMAGE_SUFFIXES`][]) under ``src`` in sorted order,
     leaving out the folder ``exclude`` (e.g. a destination inside the source)."""
     src = Path(src)
     exclude = Path(exclude).resolve() if exclude is not None else None
@@ -308,10 +308,11 @@ def preprocess_folder(
         labels: folder of class-index label maps with the same relative paths (a ``.png``
             of the same stem is also accepted), or None.
         label_rule: ``"nearest"``, ``"majority"`` (sensor-grid labels) or ``"inverse"``
-            (full-resolution copies plus back-warp maps); see :mod:`layoutwarp.labels`.
+            (full-resolution copies plus back-warp maps); see [`layoutwarp.labels`][].
         workers: worker threads (1: no pool).
         tol: bound on each pixel's error relative to the value range, spent on curved edges
-            (default ``None``: what each file's dtype resolves, :func:`~layoutwarp.data_tolerance`:
+            (default ``None``: what each file's dtype resolves,
+            [`data_tolerance`][layoutwarp.integrators.data_tolerance]:
             a quarter of a level for integer images, i.e. 9.8e-4 at 8 bit and 3.8e-6 at 16 bit,
             and 2^-12 for float images); with rounding, integer outputs stay within 0.75 levels
             of the exact integral.
@@ -326,14 +327,14 @@ def preprocess_folder(
             ``src`` and ``dst`` at the same paths (a shared file system).
         device: where the sparse products run (``"cpu"``, ``"cuda"``; on a Dask cluster, the
             device of each worker). The CPU's outputs are the reference; see
-            :class:`~layoutwarp.AreaResampler` for CUDA's.
-        physics: record the images as a real sensor would (:mod:`layoutwarp.physics`: the image's
+            [`AreaResampler`][] for CUDA's.
+        physics: record the images as a real sensor would ([`layoutwarp.physics`][]: the image's
             full range is ``photons_per_um2``; outputs in the image's units, the ISP's estimate);
             each file's noise is seeded from ``physics.seed`` (0 when ``None``) and its relative
-            path (:func:`file_seed`), so a rerun, or another engine, writes the same bytes.
+            path ([`file_seed`][]), so a rerun, or another engine, writes the same bytes.
 
     Returns:
-        a :class:`PreprocessResult`; failures (unreadable files) are listed, not raised.
+        a [`PreprocessResult`][]; failures (unreadable files) are listed, not raised.
 
     Raises:
         ValueError: for a bad ``label_rule``, ``workers`` or sensor ``size``, or if ``dst``

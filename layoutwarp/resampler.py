@@ -1,9 +1,9 @@
 """The exact integrator as a sparse matrix, for fixed layouts.
 
 For a fixed layout nothing needs gradients, so the exact integrator (Green's theorem over the
-pixel polygons, :func:`~layoutwarp.integrators.integrate_exact`) becomes a sparse matrix:
-:func:`area_weights` gives, for every sensor pixel, the fraction of its area that falls in every
-source cell. :class:`AreaResampler` builds it once per source size and applies it to any number
+pixel polygons, [`integrate_exact`][layoutwarp.integrators.integrate_exact]) becomes a sparse matrix:
+[`area_weights`][] gives, for every sensor pixel, the fraction of its area that falls in every
+source cell. [`AreaResampler`][] builds it once per source size and applies it to any number
 of images with one sparse product each (CPU or CUDA); preprocessing, label maps and fixed-layout
 simulation use it.
 """
@@ -42,7 +42,7 @@ __all__ = [
 ]
 
 
-#: Boundary pieces (segments cut at source cell lines) that :func:`area_weights` handles at once:
+#: Boundary pieces (segments cut at source cell lines) that [`area_weights`][] handles at once:
 #: it works through blocks of sensor rows of about this many, so its temporaries stay bounded.
 PIECES_PER_BLOCK = 1 << 14
 
@@ -68,7 +68,7 @@ def area_weights(
     the steps of one pixel and row are summed by a sort and a cumulative sum, so only the
     cells inside the pixel get (non-zero) weights; ``nnz ≈`` source pixels plus the cells on
     pixel boundaries. Computed in float64, block by block of sensor rows
-    (:data:`PIECES_PER_BLOCK`), each block's rows written in order: besides the result, what
+    ([`PIECES_PER_BLOCK`][]), each block's rows written in order: besides the result, what
     the build holds at once is one block's pieces.
 
     Args:
@@ -77,10 +77,10 @@ def area_weights(
         src_size: source size ``(H, W)``.
         tol: bound on each pixel's error relative to the images' value range, spent on the
             polyline approximation of curved edges; ``None``: what images of ``dtype`` resolve
-            (:func:`~layoutwarp.data_tolerance`).
+            ([`data_tolerance`][]).
         dtype: the dtype of the images the weights are for (sets the default ``tol``).
         weights_dtype: the dtype of the returned weights (float64 or float32).
-        mesh: the layout's float64 :func:`~layoutwarp.mesh.pixel_mesh` at ``tol``, where the
+        mesh: the layout's float64 [`pixel_mesh`][] at ``tol``, where the
             caller has built it (default: the cached one, built on first use).
 
     Returns:
@@ -178,7 +178,7 @@ class AreaResampler:
         layout: the pixel layout (its current θ is frozen in the weights).
         size: sensor size ``(h, w)``.
         src_size: source image size ``(H, W)``.
-        tol: the accuracy, as :func:`area_weights` (default: what ``dtype`` images need).
+        tol: the accuracy, as [`area_weights`][] (default: what ``dtype`` images need).
         dtype: the dtype of the images the weights are for.
         device: where the sparse products run.
 
@@ -189,7 +189,7 @@ class AreaResampler:
     the CPU's in the last bits (a rounded integer output by one level, rarely).
 
     Attributes:
-        weights: the ``(h · w, H · W)`` float32 ``scipy.sparse.csr_matrix`` of :func:`area_weights`.
+        weights: the ``(h · w, H · W)`` float32 ``scipy.sparse.csr_matrix`` of [`area_weights`][].
         areas: the pixels' areas ``(h, w)``, float64, in sensor units (the square ``[-1, 1]²``),
             on ``device`` (what sensor physics needs besides the means).
     """
@@ -220,8 +220,8 @@ class AreaResampler:
 
     @property
     def sparse(self) -> torch.Tensor:
-        """The weights as a torch sparse CSR tensor on :attr:`device`, built on first use (the CPU's
-        compiled product reads :attr:`weights` itself, so a CPU resampler that needs no image
+        """The weights as a torch sparse CSR tensor on `device`, built on first use (the CPU's
+        compiled product reads `weights` itself, so a CPU resampler that needs no image
         gradient never holds this second copy)."""
         if self._csr is None:
             w = self.weights
@@ -260,12 +260,12 @@ class AreaResampler:
         CPU without gradient; torch's sparse product, plane by plane, otherwise).
 
         With ``physics``: what that sensor records of the pixel means
-        (:func:`~layoutwarp.physics.measure` with :attr:`areas`, ``output`` and ``generator``);
+        ([`measure`][] with `areas`, ``output`` and ``generator``);
         on the CPU without gradient, the product and the measurement are one compiled call
-        (:func:`~layoutwarp.kernels.measured_csr_apply`).
+        (`measured_csr_apply`).
 
         ``allow_nonfinite=False`` raises ``ValueError`` where NaN/Inf in the images reach the
-        means (as :func:`~layoutwarp.simulate` does by default); ``True`` passes them through."""
+        means (as [`simulate`][layoutwarp.sensor.simulate] does by default); ``True`` passes them through."""
         n = images.shape[0]
         flat = images.reshape(n, -1)
         # compiled unless its kernels are still compiling (the noise's draws take a quick build: jit)
@@ -299,7 +299,7 @@ class AreaResampler:
 
     def labels(self, label: np.ndarray, rule: str = "nearest") -> np.ndarray:
         """Move an integer label map ``(H, W)`` to the sensor grid by ``rule`` (``"nearest"`` or
-        ``"majority"``, see :func:`~layoutwarp.labels.labels_to_sensor`; majority uses these
+        ``"majority"``, see [`labels_to_sensor`][]; majority uses these
         weights)."""
         if label.ndim != 2 or label.shape != self.src_size:
             raise ValueError(f"label map must be {self.src_size} (H, W), got shape {label.shape}")
@@ -313,7 +313,7 @@ class AreaResampler:
         return out.T.reshape(x.shape[0], *self.size).cpu()
 
 
-#: Resamplers of fixed layouts that :func:`~layoutwarp.simulate` keeps (see :func:`resampler_for`);
+#: Resamplers of fixed layouts that [`simulate`][layoutwarp.sensor.simulate] keeps (see [`resampler_for`][]);
 #: 0 keeps none, and a fixed layout's every call then runs the compiled exact walk.
 CACHE_SIZE = 4
 _CACHE: OrderedDict[tuple, AreaResampler] = OrderedDict()
@@ -322,14 +322,14 @@ _CACHE: OrderedDict[tuple, AreaResampler] = OrderedDict()
 def resampler_for(
     layout: Layout, size: tuple[int, int], src_size: tuple[int, int], tol: float, device: torch.device | str
 ) -> AreaResampler | None:
-    """The :class:`AreaResampler` of a fixed layout of a registered family, built on first use
-    and kept (the last :data:`CACHE_SIZE`, least recently used out first); ``None`` for a layout
+    """The [`AreaResampler`][] of a fixed layout of a registered family, built on first use
+    and kept (the last [`CACHE_SIZE`][], least recently used out first); ``None`` for a layout
     whose state its description does not hold (an unregistered family).
 
-    This is how :func:`~layoutwarp.simulate` runs the exact integrator for a fixed layout
+    This is how [`simulate`][layoutwarp.sensor.simulate] runs the exact integrator for a fixed layout
     (θ needs no gradient) on float32 images: one sparse product per call after the first. An
     entry holds its weights, about 8 bytes per source pixel (0.87 copies of a float32 RGB image);
-    with :data:`CACHE_SIZE` 0 none is built (``None``), and every call runs the compiled walk
+    with [`CACHE_SIZE`][] 0 none is built (``None``), and every call runs the compiled walk
     instead, slower (about 6x at 2048x1024 → 257x129: the bench's cached-weights line) but
     holding no weights.
     """
@@ -348,13 +348,13 @@ def resampler_for(
 
 
 def clear_resampler_cache() -> None:
-    """Forget the resamplers :func:`resampler_for` keeps."""
+    """Forget the resamplers [`resampler_for`][] keeps."""
     _CACHE.clear()
 
 
 @contextlib.contextmanager
 def cache_kept() -> Iterator[None]:
-    """Within: :func:`resampler_for` as usual; after: its cache as it was before (what was built
+    """Within: [`resampler_for`][] as usual; after: its cache as it was before (what was built
     within is forgotten, and nothing kept before was pushed out)."""
     saved = _CACHE.copy()
     try:

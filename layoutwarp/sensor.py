@@ -1,4 +1,4 @@
-"""The differentiable sensor: :func:`simulate` and its :class:`SensorLayer` module."""
+"""The differentiable sensor: [`simulate`][] and its [`SensorLayer`][] module."""
 
 from __future__ import annotations
 
@@ -36,14 +36,14 @@ from .resampler import AreaResampler, resampler_for
 
 __all__ = ["METHODS", "SensorLayer", "SimulationPlan", "plan_simulation", "simulate"]
 
-#: The integrators :func:`simulate` runs.
+#: The integrators [`simulate`][] runs.
 METHODS = ("exact", "separable", "montecarlo", "point")
 _OPTIONS = {"radiance", "tol", "samples", "grad", "seed", "generator", "allow_nonfinite"}
 
 
 @dataclass(frozen=True)
 class SimulationPlan:
-    """What :func:`simulate` does for a layout, size and options, and why.
+    """What [`simulate`][] does for a layout, size and options, and why.
 
     Attributes:
         method: the integrator that runs (``"separable"``, ``"exact"``, ``"montecarlo"``,
@@ -74,10 +74,10 @@ def plan_simulation(
     callable_radiance: bool = False,
     dtype: torch.dtype = torch.float32,
 ) -> SimulationPlan:
-    """Choose the integrator for ``method`` (see :func:`simulate`) without running it.
+    """Choose the integrator for ``method`` (see [`simulate`][]) without running it.
 
     ``dtype`` is the input image's dtype; with ``tol=None`` it sets the tolerance
-    (:func:`data_tolerance`).
+    ([`data_tolerance`][]).
 
     Examples:
         >>> from layoutwarp import CurvLayout
@@ -183,7 +183,7 @@ def simulate(
             methods) or ``"bilinear"`` (the paper's choice, default for sampling methods).
         tol: the accuracy a scene needs: bound on each pixel's error relative to the
             image's value range, spent on the polyline approximation of curved edges;
-            default: what the image's dtype needs (:func:`data_tolerance`: 0.25/255 for
+            default: what the image's dtype needs ([`data_tolerance`][]: 0.25/255 for
             uint8, 2⁻¹² for float32). The plan states the bound and why.
         samples: ``s`` for Monte Carlo (``s²`` samples per pixel).
         grad: Monte Carlo θ-gradient estimator, ``"reynolds"`` or ``"autograd"``.
@@ -192,14 +192,14 @@ def simulate(
             the image's device, so one seed gives other samples on another device); a
             ``generator`` also draws the physics' noise (else ``physics.seed`` does).
         allow_nonfinite: let NaN/Inf through instead of raising ``ValueError``.
-        physics: a :class:`~layoutwarp.SensorPhysics` (see :mod:`layoutwarp.physics`): the PSF
+        physics: a [`SensorPhysics`][] (see [`layoutwarp.physics`][]): the PSF
             blurs the image, the pixel means become photons in proportion to each pixel's area,
             then noisy electrons, clipped at the full well and quantised. ``None``: the
             noise-free mean, bit for bit as without physics.
         output: with ``physics``: ``"radiance"`` (default: the ISP's estimate in the image's
             units, whose expectation is the noise-free mean), ``"electrons"`` or ``"dn"``
             (these two need ``physics``).
-        return_plan: also return the :class:`SimulationPlan` that ran.
+        return_plan: also return the [`SimulationPlan`][] that ran.
 
     Returns:
         ``(B, C, h, w)`` (or ``(C, h, w)``) in the image's floating dtype (float32 for uint8);
@@ -256,7 +256,7 @@ def simulate(
 
 @dataclass(frozen=True)
 class _Integration:
-    """One :func:`simulate` call's integrator, with the options its plan needs."""
+    """One [`simulate`][] call's integrator, with the options its plan needs."""
 
     plan: SimulationPlan
     layout: Layout
@@ -361,17 +361,17 @@ class SensorLayer(nn.Module):
     Args:
         size: sensor size ``(h, w)``.
         layout: a registered family name (``"rect"``, ``"curv"``, ``"uniform"``, ...) or a
-            :class:`~layoutwarp.Layout` (used as it is, learnable or not).
-        method: integrator (see :func:`simulate`).
+            [`Layout`][] (used as it is, learnable or not).
+        method: integrator (see [`simulate`][]).
         learn: train θ (for a family name).
         theta: initial θ (for a family name).
         bound: bound on ``|θ|`` (for a family name).
-        physics: a :class:`~layoutwarp.SensorPhysics` (or its dict, as files store it): the
-            layer records what a real sensor would (see :func:`simulate`). With ``physics.seed``
+        physics: a [`SensorPhysics`][] (or its dict, as files store it): the
+            layer records what a real sensor would (see [`simulate`][]). With ``physics.seed``
             the layer's noise is a seeded sequence (new noise every call, the same sequence in
             every run); without, fresh noise.
         output: with ``physics``: ``"radiance"``, ``"electrons"`` or ``"dn"`` (these two need ``physics``).
-        **options: further :func:`simulate` options (``tol``, ``samples``, ``radiance``, ...).
+        **options: further [`simulate`][] options (``tol``, ``samples``, ``radiance``, ...).
 
     Examples:
         >>> layer = SensorLayer((4, 4), "curv")
@@ -415,8 +415,8 @@ class SensorLayer(nn.Module):
     def forward(self, image: Tensor) -> Tensor:
         """``(B, C, H, W)`` image to ``(B, C, h, w)`` sensor image.
 
-        A learnable layout is first pulled back into its valid set (:meth:`Layout.project_`:
-        a no-op for the paper's families, the fold guard of a :class:`~layoutwarp.GridLayout`),
+        A learnable layout is first pulled back into its valid set ([`Layout.project_`][]:
+        a no-op for the paper's families, the fold guard of a [`GridLayout`][layoutwarp.grids.GridLayout]),
         so any training loop gets the guarded step.
         """
         if self.layout.learnable:
@@ -446,7 +446,7 @@ class SensorLayer(nn.Module):
 
     def save_layout(self, path: str | Path, **extra: Any) -> Path:
         """Write the layer's layout, sensor size, method and physics (when set) to a JSON file
-        (see :func:`save_layout`)."""
+        (see [`save_layout`][])."""
         if self.physics is not None:
             extra = {"physics": self.physics.to_dict(), **extra}
         return save_layout(self.layout, path, self.size, method=self.method, **extra)
@@ -459,7 +459,7 @@ class SensorLayer(nn.Module):
 
         ``size`` defaults to the sensor size stored in the file; ``method`` to the stored
         method, else ``"exact"``; ``physics`` to the stored physics, if any; other keyword
-        arguments go to :class:`SensorLayer`.
+        arguments go to [`SensorLayer`][].
         """
         layout, info = load_layout(path, learn=learn)
         size = size if size is not None else info["size_hw"]

@@ -26,7 +26,7 @@ from .layouts import Layout, config_numbers, register_family, tensor_dtype
 
 __all__ = ["KINDS", "SplineLayout", "knot_outputs", "spline_1d", "spline_1d_derivative", "spline_1d_inverse"]
 
-#: The spline kinds of :class:`SplineLayout`.
+#: The spline kinds of [`SplineLayout`][].
 KINDS = ("linear", "smooth")
 
 
@@ -63,7 +63,7 @@ def spline_1d(x: Tensor, y: Tensor, kind: str = "linear") -> Tensor:
 
     Args:
         x: points, any shape.
-        y: knot outputs ``(k + 1,)`` (see :func:`knot_outputs`).
+        y: knot outputs ``(k + 1,)`` (see [`knot_outputs`][]).
         kind: ``"linear"`` or ``"smooth"``.
     """
     k = y.numel() - 1
@@ -78,7 +78,7 @@ def spline_1d(x: Tensor, y: Tensor, kind: str = "linear") -> Tensor:
 
 
 def spline_1d_derivative(x: Tensor, y: Tensor, kind: str = "linear") -> Tensor:
-    """``dφ/dx`` of :func:`spline_1d` (the right-hand value at a knot); 1 outside ``[-1, 1]``."""
+    """``dφ/dx`` of [`spline_1d`][] (the right-hand value at a knot); 1 outside ``[-1, 1]``."""
     k = y.numel() - 1
     i, xi = cell_index(x, k)
     s, d = _slopes(y)
@@ -94,7 +94,7 @@ def spline_1d_derivative(x: Tensor, y: Tensor, kind: str = "linear") -> Tensor:
 
 
 def spline_1d_inverse(q: Tensor, y: Tensor, kind: str = "linear") -> Tensor:
-    """Closed-form inverse of :func:`spline_1d`: the piece by binary search on ``y``, then the
+    """Closed-form inverse of [`spline_1d`][]: the piece by binary search on ``y``, then the
     linear or (stable-root) quadratic solve inside it."""
     k = y.numel() - 1
     qc = q.clamp(-1, 1)
@@ -124,15 +124,16 @@ class SplineLayout(Layout):
     """A separable layout with a monotone spline per axis (rectangular pixels).
 
     θ holds the ``k_x + k_y`` knot logits (x first); all zeros is the uniform layout, and every
-    θ is a bijection, so training needs no constraint. See :mod:`layoutwarp.splines`.
+    θ is a bijection, so training needs no constraint. See `layoutwarp.splines`.
 
     Args:
         theta: initial logits (``None``: zeros).
         knots: ``(k_x, k_y)`` pieces per axis, each ``>= 1``.
         kind: ``"linear"`` (piecewise-constant pixel density) or ``"smooth"`` (C¹).
-        bound: unused (the logits are unbounded); accepted for :func:`make_layout`.
-        learn: as :class:`~layoutwarp.Layout`.
-        dtype: as :class:`~layoutwarp.Layout`.
+        bound: unused (the logits are unbounded); accepted for
+            [`make_layout`][layoutwarp.layouts.make_layout].
+        learn: as [`Layout`][].
+        dtype: as [`Layout`][].
 
     Examples:
         >>> layout = SplineLayout.from_knots([-1, -0.2, 1], [-1, 0.5, 1])

@@ -1,4 +1,4 @@
-"""The warm-ups of :mod:`layoutwarp.jit`: each group's public paths on tiny inputs of one dtype,
+"""The warm-ups of [`layoutwarp.jit`][jit]: each group's public paths on tiny inputs of one dtype,
 in every type the library calls the group's kernels with, so that after a group's warm-up the
 entry points compile nothing (tests/test_jit.py checks it). The background worker and
 ``layoutwarp doctor --compile`` run them; a look at the cache runs them with compiling forbidden."""

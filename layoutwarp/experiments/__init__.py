@@ -1,17 +1,17 @@
 """The paper's experiments, the speed-vs-error benchmark and the figures, beside the library.
 
-Nothing in :mod:`layoutwarp` imports this subpackage; the command line loads it on demand.
+Nothing in [`layoutwarp`][] imports this subpackage; the command line loads it on demand.
 
-* :mod:`.tasks` — a task as a registered object (:data:`~.tasks.TASKS`), its defaults and
-  study plan; :mod:`.mnist`, :mod:`.camvid`, :mod:`.faces` — one file per task (its network,
+* [`tasks`][] — a task as a registered object ([`TASKS`][tasks.TASKS]), its defaults and
+  study plan; [`mnist`][], [`camvid`][], [`faces`][] — one file per task (its network,
   data split, loss and scores), registered on import below;
-* :mod:`.data` — data roots, the bundled samples and the dataset readers; :mod:`.nets` —
+* [`data`][] — data roots, the bundled samples and the dataset readers; [`nets`][] —
   shared network blocks;
-* :mod:`.training` — the training loop (devices, AMP, torchrun); :mod:`.runs` — one run, its
-  record, the results file and the experiment loop; :mod:`.models` — model files and
-  ``evaluate``; :mod:`.study` — the pixel-budget study;
-* :mod:`.bench` and :mod:`.scene` — speed against error, and the images it measures on;
-* :mod:`.plots` and :mod:`.demo` — figures.
+* [`training`][] — the training loop (devices, AMP, torchrun); `runs` — one run, its
+  record, the results file and the experiment loop; `models` — model files and
+  ``evaluate``; `study` — the pixel-budget study;
+* `bench` and `scene` — speed against error, and the images it measures on;
+* `plots` and `demo` — figures.
 """
 
 from . import camvid, celeba, cityscapes, faces, mnist  # noqa: F401  (registers the built-in tasks)

@@ -5,7 +5,7 @@ measured in the same run: ``cv2.resize(INTER_AREA)`` (the uniform box integral),
 ``cv2.remap(INTER_LINEAR)`` on precomputed maps (point sampling) and a bare ``grid_sample``
 stratified Monte Carlo with 16 samples per pixel. Forward errors are against a float64 exact
 reference; on the synthetic scene also against the scene's analytic pixel means
-(:class:`SineScene`). Gradient errors are against central finite differences of the float64
+([`SineScene`][]). Gradient errors are against central finite differences of the float64
 exact forward. Peak memory is measured in a spawned child (growth of its resident set) on the
 CPU, and as the growth of allocated GPU memory on a CUDA device.
 The caller chooses torch's thread count (``layoutwarp bench --threads``); nothing here sets it.
@@ -86,14 +86,14 @@ def _sync() -> None:
 
 
 def _time_paired(fns: Sequence[Callable[[], object]], repeats: int) -> list[float]:
-    """Median ms of each of ``fns`` over the rounds of :func:`interleaved_times`."""
+    """Median ms of each of ``fns`` over the rounds of [`interleaved_times`][]."""
     return [float(np.median(col)) for col in interleaved_times(fns, repeats)]
 
 
 def _time_overhead(
     base: Callable[[], object], other: Callable[[], object], rounds: int
 ) -> tuple[float, float, float]:
-    """``other`` against ``base`` over :func:`interleaved_times`' rounds: the median ms of each,
+    """``other`` against ``base`` over [`interleaved_times`][]' rounds: the median ms of each,
     and how much longer ``other`` takes as the median of the rounds' ratios minus 1 (both calls
     of a round meet the same machine state)."""
     times = interleaved_times([base, other], rounds)
@@ -204,9 +204,9 @@ def peak_memory_mb(spec: dict) -> float | None:
     The child first runs the method once on a small image and sensor, so that loading code
     (the compiled kernels) is not counted; the measured call builds its mesh and tables anew.
 
-    ``spec`` names the run: ``layout`` (a :func:`layout_from_spec` dict), ``method`` (a
-    :func:`simulate` method, ``"inter_area"`` or ``"remap"``), ``opts``, ``src``, ``size``,
-    ``threads``, and optionally ``cache_size`` (:data:`~layoutwarp.resampler.CACHE_SIZE`). (A
+    ``spec`` names the run: ``layout`` (a [`layout_from_spec`][] dict), ``method`` (a
+    [`simulate`][] method, ``"inter_area"`` or ``"remap"``), ``opts``, ``src``, ``size``,
+    ``threads``, and optionally ``cache_size`` ([`CACHE_SIZE`][layoutwarp.resampler.CACHE_SIZE]). (A
     forked child would deadlock in torch's thread pool.)
     """
     if not os.path.exists("/proc/self/clear_refs"):
@@ -302,7 +302,7 @@ PAPER_ROWS = ("uniform", "rect", "curv", "curv ±")
 
 
 def bench_layouts(theta: tuple[float, float]) -> dict[str, dict]:
-    """The benchmark's layouts by row name, as :func:`layout_from_spec` dicts: the paper's
+    """The benchmark's layouts by row name, as [`layout_from_spec`][] dicts: the paper's
     families at θ (``"curv ±"`` with mixed-sign θ: S-shaped pixel edges), a smooth spline and an
     8x8 control grid (fixed pseudo-random parameters) and the curvilinear fovea off the centre."""
     gen = torch.Generator().manual_seed(20261122)
@@ -322,7 +322,7 @@ def bench_layouts(theta: tuple[float, float]) -> dict[str, dict]:
 
 @dataclass(frozen=True)
 class BenchConfig:
-    """What :func:`run` measures.
+    """What [`run`][] measures.
 
     Attributes:
         src: source image size ``(H, W)``.
@@ -338,7 +338,7 @@ class BenchConfig:
             stay on the CPU. Peak memory is host RSS in children on ``"cpu"``, the growth of
             allocated GPU memory on ``"cuda"`` (then also ``extra["train_peak_mb"]``, forward +
             backward of the learnable layout).
-        only: measure only these rows of :func:`bench_layouts` (the anchors always).
+        only: measure only these rows of [`bench_layouts`][] (the anchors always).
     """
 
     src: tuple[int, int] = (1024, 2048)
@@ -363,11 +363,11 @@ def run(config: BenchConfig | None = None, progress: Callable[[str], None] | Non
     """Measure every integrator against the anchors on a photo and a synthetic scene.
 
     Args:
-        config: what to measure (default: :class:`BenchConfig`'s full run).
+        config: what to measure (default: [`BenchConfig`][]'s full run).
         progress: called with a short message before each configuration.
 
     Returns:
-        a JSON-able dict: sizes, anchors (ms), and one :class:`Row` per configuration.
+        a JSON-able dict: sizes, anchors (ms), and one [`Row`][] per configuration.
     """
     cfg = config or BenchConfig()
     say = progress or (lambda msg: None)
@@ -541,7 +541,7 @@ def _layout_rows(
 
 def reuse_row(cfg: BenchConfig, image_name: str, img: Tensor) -> Row:
     """A fixed curv layout's repeated exact forward (``simulate`` keeps its area weights,
-    :func:`~layoutwarp.resampler.resampler_for`), and its first call, which builds them
+    [`resampler_for`][layoutwarp.resampler.resampler_for]), and its first call, which builds them
     (``extra["first_call_ms"]``), at the data tolerance; ``extra["over_inter_area"]``: the
     repeated call over ``cv2.resize(INTER_AREA)`` timed with it in interleaved pairs (the CPU
     image, as the anchor). The error is against the compiled kernel's float64 result;
@@ -598,7 +598,7 @@ def count_ops(fn: Callable[[], object]) -> int:
 
 def _learnable_mesh(layout: Layout, size: tuple[int, int]) -> object:
     """The mesh a training step of ``layout`` builds: compiled where the family has a compiled
-    form (:mod:`layoutwarp.meshkernels`), else :func:`pixel_mesh` with θ's autograd graph."""
+    form ([`layoutwarp.meshkernels`][]), else [`pixel_mesh`][] with θ's autograd graph."""
     tol = data_tolerance(torch.float32)[0]
     spec = mesh_spec(layout)
     if spec is None:
@@ -802,7 +802,7 @@ def first_calls(
     fill: bool = True,
 ) -> dict:
     """Seconds from a fresh process's start to the answer of each entry point (``"README
-    example"``, :data:`README_EXAMPLE`, or a key of :data:`ENTRY_POINTS`): ``first_s`` with an
+    example"``, [`README_EXAMPLE`][], or a key of [`ENTRY_POINTS`][]): ``first_s`` with an
     empty numba cache in the default (background) mode, as a new installation meets it, and
     ``warm_s`` with this installation's cache (``fill``: filled first in wait mode, outside the
     timing; ``layoutwarp bench --quick`` has compiled what the README example uses already);
@@ -847,7 +847,7 @@ def first_calls(
 
 
 def _forward_fn(img: Tensor, layout: Layout, size, method: str, opts: dict) -> Callable[[], object]:
-    """A no-grad forward call: a :func:`simulate` method, ``"inter_area"`` or ``"remap"`` (OpenCV)."""
+    """A no-grad forward call: a [`simulate`][] method, ``"inter_area"`` or ``"remap"`` (OpenCV)."""
     npimg = np.ascontiguousarray(img[0].permute(1, 2, 0).numpy())
     if method == "inter_area":
         return lambda: cv2.resize(npimg, size[::-1], interpolation=cv2.INTER_AREA)
@@ -1003,7 +1003,7 @@ def main_bench(
 
 
 def format_first_calls(calls: dict) -> list[str]:
-    """A line per entry point of :func:`first_calls`' result."""
+    """A line per entry point of [`first_calls`][]' result."""
     return [
         f"first call from an empty kernel cache, {name}: {c['first_s']:.1f} s "
         f"(warm {c['warm_s']:.1f} s, {c['first_s'] - c['warm_s']:+.1f} s)"

@@ -1,6 +1,6 @@
 """CamVid street-scene segmentation (the paper's Cityscapes experiment, on CamVid).
 
-A :class:`~layoutwarp.SensorLayer` in front of a network (480x360 images, 11 classes + void 11);
+A [`SensorLayer`][] in front of a network (480x360 images, 11 classes + void 11);
 its logits are back-warped to 480x360 for the loss and for mIoU (void ignored). θ stays frozen
 for the first ``freeze_epochs`` epochs, as in the paper; the uniform layout is the baseline. Two
 networks (``--net``):
@@ -8,10 +8,10 @@ networks (``--net``):
 - ``small`` (the default): a compact PSPNet-style encoder–decoder that trains on a CPU, Adam,
   cosine schedule, horizontal flips.
 - ``psp``: the paper's network and protocol, Zhao et al.'s PSPNet on a dilated ResNet-50
-  (:mod:`~layoutwarp.experiments.resnets`) with its auxiliary loss (weight 0.4), SGD with
+  ([`resnets`][layoutwarp.experiments.resnets]) with its auxiliary loss (weight 0.4), SGD with
   momentum 0.9, learning rate 0.01 with poly decay, weight decay 1e-4, batch 4, whole images
   through the sensor with horizontal flips and scale jitter (0.5–2.0; no rotation, as in the
-  paper); fewer epochs than the paper's 200 (see :data:`PSP_DEFAULTS`).
+  paper); fewer epochs than the paper's 200 (see [`PSP_DEFAULTS`][]).
 """
 
 from __future__ import annotations
@@ -74,7 +74,7 @@ class SegNet(nn.Module):
 
     Encoder 32-64-128 channels with two poolings, a pyramid pooling module (bins 1, 2, 4),
     and a decoder with skip connections back to the sensor grid. Returns ``(B, K, h, w)``
-    logits on the sensor grid; back-warp them with :func:`layoutwarp.backwarp`.
+    logits on the sensor grid; back-warp them with `layoutwarp.backwarp`.
     """
 
     def __init__(self, layout: str, size: tuple[int, int], classes: int = 11, learn: bool = True, **sensor):
@@ -140,7 +140,7 @@ def median_frequency_weights(labels: np.ndarray, k: int, ignore: int = VOID) -> 
 
 def predict_camvid(model: nn.Module, images: np.ndarray, batch_size: int = 8) -> torch.Tensor:
     """Back-warped full-resolution class predictions ``(N, H, W)`` int64 of ``(N, H, W, 3)``
-    uint8 images (:func:`~.segmentation.predict_labels`)."""
+    uint8 images ([`predict_labels`][])."""
     return predict_labels(model, images_to_tensor(images), batch_size)
 
 

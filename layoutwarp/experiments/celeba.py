@@ -5,7 +5,7 @@ Reads the dataset as it is distributed (Liu et al., ICCV 2015): the aligned face
 attribute names, then a file name and 40 values ±1 a line) and ``list_eval_partition.txt`` (a
 file name and 0 train, 1 val, 2 test a line). Images are read from disk batch by batch.
 
-The paper's protocol is the default: ResNet-18 (:class:`~.faces.SensorResNet`, 40 outputs, a
+The paper's protocol is the default: ResNet-18 ([`SensorResNet`][], 40 outputs, a
 binary cross-entropy each) behind 8x8 and 16x16 sensors, Adam with learning rate 1e-3, batch
 64, 15 epochs, the rect layout against uniform; the score is the mean accuracy over the 40
 attributes on ``test``. The paper fine-tunes from ImageNet weights: pass them with

@@ -3,12 +3,12 @@
 Reads the dataset as it is distributed (Cordts et al., CVPR 2016): images
 ``leftImg8bit/{train,val}/CITY/NAME_leftImg8bit.png`` (2048x1024 RGB) and fine labels
 ``gtFine/{train,val}/CITY/NAME_gtFine_labelIds.png`` (8-bit label ids), mapped to the 19
-evaluation classes by the official table (:data:`LABEL_IDS`; every other id, void, is
-:data:`IGNORE`). Images are read from disk batch by batch (the training split is 18 GB as
+evaluation classes by the official table ([`LABEL_IDS`][]; every other id, void, is
+[`IGNORE`][]). Images are read from disk batch by batch (the training split is 18 GB as
 arrays).
 
 The paper's protocol is the default: PSPNet on a dilated ResNet-50
-(:class:`~.segmentation.PSPSegNet`), whole images through the sensor, the loss on outputs
+([`PSPSegNet`][]), whole images through the sensor, the loss on outputs
 back-warped to the labels' 2048x1024, batch 4, 200 epochs with θ frozen for the first 10, and
 PSPNet's SGD (momentum 0.9, learning rate 0.01 with poly decay, weight decay 1e-4, auxiliary
 loss 0.4) with flips and scale jitter (no rotation); sensors 129x65, 257x129 and 513x257; mIoU
@@ -108,7 +108,7 @@ _LUT[list(LABEL_IDS)] = np.arange(len(LABEL_IDS))
 
 
 def train_ids(label_ids: np.ndarray) -> np.ndarray:
-    """Label ids (uint8, any shape) to train ids ``0..18``, :data:`IGNORE` elsewhere."""
+    """Label ids (uint8, any shape) to train ids ``0..18``, [`IGNORE`][] elsewhere."""
     return _LUT[label_ids]
 
 

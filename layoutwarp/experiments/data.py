@@ -8,9 +8,9 @@ A *data root* is a folder with one subfolder per task, laid out as each task exp
                                    same-named 8-bit class-index maps, 11 = void)
     ROOT/faces/utkface_subset/     labels.csv (file, age, gender, race) and the images it lists
 
-The bundled samples (:func:`samples_dir`, a few MB that ship with the package) are such a
+The bundled samples ([`samples_dir`][], a few MB that ship with the package) are such a
 root (``--quick``); the full data sets are another, named by the environment variable
-``LAYOUTWARP_DATA`` (:func:`data_root`), or a task's own folder is given with ``--data DIR``.
+``LAYOUTWARP_DATA`` ([`data_root`][]), or a task's own folder is given with ``--data DIR``.
 Sources and licences: the samples' README. Nothing is downloaded.
 """
 
@@ -66,7 +66,7 @@ def samples_dir() -> Path:
 
 def data_root(root: str | Path | None = None, quick: bool = False) -> Path | None:
     """The data root: ``root`` when given, the bundled samples with ``quick``, else the folder
-    the environment variable :data:`DATA_ENV` names, else ``None`` (no full data here)."""
+    the environment variable [`DATA_ENV`][] names, else ``None`` (no full data here)."""
     if root is not None:
         return Path(root)
     if quick:
@@ -153,7 +153,7 @@ def load_camvid(root: str | Path, split: str, limit: int | None = None) -> tuple
 
 
 def age_group(age: np.ndarray) -> np.ndarray:
-    """Index into :data:`AGE_GROUPS` for ages in years."""
+    """Index into [`AGE_GROUPS`][] for ages in years."""
     edges = np.array([lo for lo, _ in AGE_GROUPS[1:]])
     return np.searchsorted(edges, age, side="right")
 

@@ -1,6 +1,6 @@
 """UTKFace attributes (the paper's CelebA experiment, on UTKFace).
 
-Gender (2 classes), age group (:data:`~layoutwarp.experiments.data.AGE_GROUPS`) and race (5)
+Gender (2 classes), age group ([`AGE_GROUPS`][layoutwarp.experiments.data.AGE_GROUPS]) and race (5)
 from an 8x8 or 16x16 sensor, one head each; accuracies per attribute and their mean. The
 faces are split once (a fixed permutation, a fifth for testing); the uniform layout is the
 baseline. Two networks (``--net``): ``small`` (the default, a small CNN) and ``resnet18``, the
@@ -60,9 +60,9 @@ class FaceNet(nn.Module):
 
 
 class SensorResNet(nn.Module):
-    """Sensor layer + ResNet-18 (:func:`~.resnets.resnet18`) on the sensor image as it is (an
+    """Sensor layer + ResNet-18 ([`resnet18`][]) on the sensor image as it is (an
     8x8 sensor leaves layer 4 a 1x1 map), ImageNet's scaling first, as a pretrained backbone
-    expects (:meth:`load_backbone`): ``(B, 3, H, W)`` images in [0, 1] to ``(B, classes)``
+    expects ([`load_backbone`][]): ``(B, 3, H, W)`` images in [0, 1] to ``(B, classes)``
     logits."""
 
     def __init__(
@@ -83,8 +83,8 @@ class SensorResNet(nn.Module):
 
 
 class FaceResNet(SensorResNet):
-    """:class:`SensorResNet` with one head per attribute (gender, age group, race): its ``fc``
-    gives all the heads' logits, split into :class:`FaceNet`'s dict."""
+    """[`SensorResNet`][] with one head per attribute (gender, age group, race): its ``fc``
+    gives all the heads' logits, split into [`FaceNet`][]'s dict."""
 
     def __init__(self, layout: str | Layout, size: tuple[int, int], learn: bool = True, **sensor: Any):
         super().__init__(layout, size, sum(FaceNet.HEADS.values()), learn, **sensor)
@@ -109,7 +109,7 @@ RESNET18_DEFAULTS = TaskDefaults(
 
 def split_faces(faces: dict[str, np.ndarray]) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
     """The one fixed train/test split of a faces set (a permutation seeded 1234; the test part is
-    :data:`TEST_FRACTION` of the faces, at least one), each part in its original order."""
+    [`TEST_FRACTION`][] of the faces, at least one), each part in its original order."""
     n = len(faces["images"])
     order = np.random.default_rng(1234).permutation(n)
     n_test = max(1, round(n * TEST_FRACTION))
@@ -119,7 +119,7 @@ def split_faces(faces: dict[str, np.ndarray]) -> tuple[dict[str, np.ndarray], di
 
 @register_task
 class FacesTask(Task):
-    """UTKFace attributes (train and test: the fixed split of :func:`split_faces`)."""
+    """UTKFace attributes (train and test: the fixed split of [`split_faces`][])."""
 
     name = "faces"
     folder = "faces/utkface_subset"

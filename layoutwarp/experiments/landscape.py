@@ -5,7 +5,7 @@ The task's network trains with θ *frozen* at every point of an ``N × N`` grid 
 data, split, epochs and training options as the pixel-budget study; each learned θ of a study
 (``--study DIR``: its runs of the family at the size) is rerun frozen too, so that learned-jointly
 and best-frozen compare on equal terms (a network from scratch either way). Every point is one
-:func:`~.runs.train_run`, recorded when it finishes (``runs/*.json``), so a stopped landscape
+[`train_run`][], recorded when it finishes (``runs/*.json``), so a stopped landscape
 resumes where it stopped; it writes ``landscape.json``, ``landscape.md`` and
 ``landscape_<task>_<family>.png`` (the metric as a heat map over θ, uniform, the learned θ and
 the best grid point marked).

@@ -2,10 +2,10 @@
 
 A model file (``torch.save`` of a plain dict, read with ``weights_only=True``) holds
 ``format`` (``"layoutwarp.model/1"``), ``task``, ``version`` (the package version that wrote
-it), ``layout`` (the family and :meth:`~layoutwarp.Layout.to_config`), ``size_hw``, ``sensor``
-(the :class:`~layoutwarp.SensorLayer` options), ``training`` (seed, epochs and the like) and
-``state_dict`` (the network's weights, the sensor's θ included). :func:`load_model` rebuilds
-the network of the file's task (:data:`~layoutwarp.experiments.tasks.TASKS`) with the layout
+it), ``layout`` (the family and [`to_config`][layoutwarp.layouts.Layout.to_config]), ``size_hw``, ``sensor``
+(the [`SensorLayer`][layoutwarp.sensor.SensorLayer] options), ``training`` (seed, epochs and the like) and
+``state_dict`` (the network's weights, the sensor's θ included). [`load_model`][] rebuilds
+the network of the file's task ([`TASKS`][layoutwarp.experiments.tasks.TASKS]) with the layout
 fixed, so scoring never changes it.
 
 Format ``layoutwarp.model/2`` adds int8 weights for shipping (``quantized``: the float32
@@ -30,9 +30,9 @@ from .tasks import get_task
 __all__ = ["FORMAT", "READS", "WEIGHTS", "evaluate_model", "load_model", "save_model"]
 
 FORMAT = "layoutwarp.model/2"
-#: Formats :func:`load_model` reads.
+#: Formats [`load_model`][] reads.
 READS = ("layoutwarp.model/1", FORMAT)
-#: Precisions :func:`save_model` stores the network's weights in.
+#: Precisions [`save_model`][] stores the network's weights in.
 WEIGHTS = ("float32", "float16", "int8")
 
 
@@ -52,7 +52,8 @@ def save_model(
         path: the file to write.
         task: a registered task's name.
         model: the trained network.
-        net: which of the task's networks it is (:attr:`~.tasks.Task.nets`; ``""``: its default).
+        net: which of the task's networks it is ([`nets`][layoutwarp.experiments.tasks.Task.nets];
+            ``""``: its default).
         sensor: the sensor options it was trained with (``method``, ``tol``, ...).
         training: anything JSON-able that describes the run (seed, epochs, scores, ...).
         weights: ``"float32"``; ``"float16"`` (half the size); ``"int8"`` (a quarter: conv and
@@ -96,7 +97,7 @@ def load_model(
     """Rebuild a network from a model file (in eval mode, its layout fixed).
 
     Args:
-        path: a file written by :func:`save_model`.
+        path: a file written by [`save_model`][].
         task: the task the caller expects (``None``: any).
         device: where to put the network.
 
@@ -142,7 +143,7 @@ def load_model(
 
 
 def evaluate_model(task: str, model: nn.Module, folder: str | Path, split: str | None = None) -> dict:
-    """Score a model on a folder laid out like the task's data (see :meth:`Task.load_split`):
+    """Score a model on a folder laid out like the task's data (see `Task.load_split`):
 
     * MNIST: IDX files; ``split`` ``"test"`` (default, ``t10k-*``) or ``"train"``;
     * CamVid: ``NAME/`` images and ``NAMEannot/`` label maps, ``split`` = NAME (default ``"val"``);

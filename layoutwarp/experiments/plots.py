@@ -128,10 +128,10 @@ def training_figures(task, data, models: dict, records: Sequence, out: str | Pat
     parameters, θ itself.
 
     Args:
-        task: the :class:`~layoutwarp.experiments.tasks.Task`.
-        data: its :class:`~layoutwarp.experiments.tasks.TaskData`.
+        task: the [`Task`][layoutwarp.experiments.tasks.Task].
+        data: its [`TaskData`][layoutwarp.experiments.tasks.TaskData].
         models: ``{(family, size): model}`` on the CPU.
-        records: the runs' :class:`~layoutwarp.experiments.runs.RunRecord`.
+        records: the runs' [`RunRecord`][layoutwarp.experiments.runs.RunRecord].
         out: the output folder.
     """
     out = Path(out)
@@ -206,7 +206,7 @@ _METHOD_MARKERS = {"separable": "s", "exact": "D", "montecarlo": "o", "point": "
 
 
 def pareto_figure(result: dict, path: str | Path) -> Path:
-    """Speed against error from a :func:`layoutwarp.bench.run` result, one panel per image.
+    """Speed against error from a `layoutwarp.experiments.bench.run` result, one panel per image.
 
     Forward time (ms) against RMSE to the float64 exact reference, log-log, one colour per
     layout and one marker per method; Monte Carlo budgets and exact tolerances are joined by

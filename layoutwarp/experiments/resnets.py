@@ -2,14 +2,14 @@
 
 The ResNets follow torchvision's layout exactly (He et al. 2016, "v1.5": the stride of a
 bottleneck on its 3x3 convolution), parameter names included, so a torchvision-format state dict
-a user downloaded loads with :func:`load_backbone` (``--backbone-weights FILE``; nothing downloads
-at run time). :class:`PSPNet` is Zhao et al.'s pyramid scene parsing network ("Pyramid Scene
+a user downloaded loads with [`load_backbone`][] (``--backbone-weights FILE``; nothing downloads
+at run time). [`PSPNet`][] is Zhao et al.'s pyramid scene parsing network ("Pyramid Scene
 Parsing Network", CVPR 2017) on a dilated ResNet-50: layers 3 and 4 dilated instead of strided
 (output stride 8), a pyramid pooling module of bins 1, 2, 3 and 6 on the 2048 channels, a 3x3
 fusion to 512 channels, dropout 0.1 and a 1x1 classifier; during training an auxiliary head on
-layer 3 (1024 channels → 256 → classes, weight :data:`AUX_WEIGHT` in the loss).
+layer 3 (1024 channels → 256 → classes, weight [`AUX_WEIGHT`][] in the loss).
 
-Shapes: images ``(B, 3, H, W)``; :meth:`ResNet.features` returns layer 3 and layer 4
+Shapes: images ``(B, 3, H, W)``; [`ResNet.features`][] returns layer 3 and layer 4
 ``(B, C, H/8, W/8)`` dilated (``(B, C, H/16, W/16)``, ``(B, C, H/32, W/32)`` plain).
 """
 
@@ -94,7 +94,7 @@ class ResNet(nn.Module):
     """A ResNet in torchvision's layout (``conv1``, ``bn1``, ``layer1``–``layer4``, ``fc``).
 
     Args:
-        block: :class:`BasicBlock` or :class:`Bottleneck`.
+        block: [`BasicBlock`][] or [`Bottleneck`][].
         layers: blocks per stage.
         classes: outputs of ``fc`` (``0``: no ``fc``, a backbone).
         dilate: stages 3 and 4 dilated (2 and 4) instead of strided, as torchvision's
@@ -150,7 +150,7 @@ class ResNet(nn.Module):
         return torch.flatten(self.avgpool(self.features(x)[1]), 1)
 
     def forward(self, x: Tensor) -> Tensor:
-        """Class logits ``(B, classes)`` (:meth:`embed`, then ``fc``)."""
+        """Class logits ``(B, classes)`` ([`embed`][], then ``fc``)."""
         if self.fc is None:
             raise RuntimeError("a backbone (classes=0) has no fc: call features() or embed()")
         return self.fc(self.embed(x))

@@ -1,7 +1,7 @@
 """Training runs: one run of a task, its record, and the experiment loop over many.
 
-Every task trains through :func:`train_run` (the study and the landscape too), records a run
-as a :class:`RunRecord` and writes one results format (:data:`RESULTS_FORMAT`), so a number
+Every task trains through [`train_run`][] (the study and the landscape too), records a run
+as a [`RunRecord`][] and writes one results format ([`RESULTS_FORMAT`][]), so a number
 printed by ``train``, ``study`` or ``landscape`` means the same thing everywhere.
 """
 
@@ -47,14 +47,14 @@ class RunOptions:
 
     Attributes:
         epochs, batch_size, lr, theta_lr, freeze_epochs, schedule, optimizer, weight_decay: as
-            :class:`TaskDefaults` (frozen epochs are capped at ``epochs − 1``, so θ always trains).
-        sensor: :class:`~layoutwarp.SensorLayer` options (``method``, ``tol``, ...).
+            [`TaskDefaults`][] (frozen epochs are capped at ``epochs − 1``, so θ always trains).
+        sensor: [`SensorLayer`][layoutwarp.sensor.SensorLayer] options (``method``, ``tol``, ...).
         device: where the network and sensor run.
         backbone_weights: a torchvision-format ResNet state dict the network's backbone starts
             from (networks with a ResNet backbone; ``None``: random initialisation).
         amp: mixed precision for the network (the sensor stays float32).
         progress: draw progress bars (on terminals).
-        task_options: the task's own options (see :meth:`Task.add_arguments`).
+        task_options: the task's own options (see [`Task.add_arguments`][]).
     """
 
     epochs: int
@@ -152,15 +152,15 @@ def train_run(
 
     Args:
         task: the task.
-        data: its data (:meth:`Task.load`).
+        data: its data ([`Task.load`][]).
         family: a registered layout family (learned from θ = 0; ``"uniform"`` fixed), or
-            ``"density"`` (the task's unlearned :meth:`Task.density_layout`).
+            ``"density"`` (the task's unlearned [`Task.density_layout`][]).
         size: sensor size ``(H, W)``.
         seed: seeds the network's initialisation, the batch order and the augmentation.
         options: how to train.
         layout: train with this layout instead (used as it is: fixed or learnable), recorded
             under ``family``.
-        checkpoint: written after every epoch and resumed from (see :func:`~.training.fit`);
+        checkpoint: written after every epoch and resumed from (see [`fit`][]);
             the caller removes it once the run's results are kept.
 
     Returns:

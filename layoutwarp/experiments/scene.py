@@ -48,8 +48,8 @@ class SineScene:
     """A synthetic radiance with known pixel integrals, one frequency pair per channel.
 
     ``f_c(x, y) = 0.5 + 0.4 sin(a_c x + p_c) sin(b_c y + q_c)`` in sensor coordinates
-    ``[-1, 1]²``. :meth:`image` gives the exact cell averages of ``f`` on a source grid (so a
-    box integrator sees the best pixel image of the scene); :meth:`pixel_means` gives the
+    ``[-1, 1]²``. [`image`][] gives the exact cell averages of ``f`` on a source grid (so a
+    box integrator sees the best pixel image of the scene); [`pixel_means`][] gives the
     exact mean of ``f`` over every pixel of a layout, by Green's theorem along the true
     (curved) edges with Gauss–Legendre quadrature between the kinks of φ (and the axes).
     """

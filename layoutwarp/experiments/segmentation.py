@@ -2,7 +2,7 @@
 its loss on back-warped outputs, PSPNet's scale jitter for whole images, predictions at the
 labels' resolution and the scores (mIoU, pixel accuracy).
 
-Shapes: images ``(B, 3, H, W)`` in [0, 1] (uint8 for :func:`predict_labels`), label maps
+Shapes: images ``(B, 3, H, W)`` in [0, 1] (uint8 for [`predict_labels`][]), label maps
 ``(B, H, W)`` int64 with one ``ignore`` value, logits ``(B, K, h, w)`` on the sensor grid.
 """
 
@@ -32,10 +32,10 @@ __all__ = [
 
 
 class PSPSegNet(nn.Module):
-    """Sensor layer + PSPNet on a dilated ResNet-50 (:class:`~.resnets.PSPNet`): ``(B, 3, H, W)``
+    """Sensor layer + PSPNet on a dilated ResNet-50 ([`PSPNet`][]): ``(B, 3, H, W)``
     images in [0, 1] to sensor-grid logits ``(B, K, h, w)``; in training mode ``(logits,
     aux_logits)``. The sensor's values are scaled by ImageNet's statistics, as a pretrained
-    backbone expects (:meth:`load_backbone`)."""
+    backbone expects ([`load_backbone`][])."""
 
     def __init__(
         self, layout: str | Layout, size: tuple[int, int], classes: int = 11, learn: bool = True, **sensor
@@ -50,7 +50,7 @@ class PSPSegNet(nn.Module):
         return self.psp((self.sensor(x) - self.mean) / self.std)
 
     def load_backbone(self, path: str | Path) -> None:
-        """Start the ResNet-50 from a torchvision-format state dict (:func:`~.resnets.load_backbone`)."""
+        """Start the ResNet-50 from a torchvision-format state dict ([`load_backbone`][])."""
         load_backbone(self.psp.backbone, path)
 
 
@@ -65,7 +65,7 @@ def scale_jitter(
     """PSPNet's random scaling for whole images: images ``(B, 3, H, W)`` and labels ``(B, H, W)``
     scaled by one factor drawn uniformly from ``[lo, hi]`` (bilinear; labels nearest), then cut
     back to ``H x W`` at a random place where larger, or padded where smaller (images with
-    :data:`IMAGENET_MEAN`, labels with ``ignore``), so the sensor always sees a whole frame."""
+    [`IMAGENET_MEAN`][], labels with ``ignore``), so the sensor always sees a whole frame."""
     h, w = x.shape[-2:]
     s = lo + (hi - lo) * float(torch.rand((), generator=gen))
     sh, sw = max(1, round(h * s)), max(1, round(w * s))
@@ -116,8 +116,9 @@ def segmentation_loss(
     weight: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Cross-entropy of sensor-grid logits back-warped to the labels' resolution (the paper's
-    loss), ``ignore`` left out; with ``out`` a training-mode :class:`PSPSegNet`'s ``(logits,
-    aux_logits)``, plus :data:`~.resnets.AUX_WEIGHT` times the auxiliary head's."""
+    loss), ``ignore`` left out; with ``out`` a training-mode [`PSPSegNet`][]'s ``(logits,
+    aux_logits)``, plus [`AUX_WEIGHT`][layoutwarp.experiments.resnets.AUX_WEIGHT] times the auxiliary
+    head's."""
     logits, aux = out if isinstance(out, tuple) else (out, None)
     loss = backwarp_cross_entropy(logits, labels, layout, ignore_index=ignore, weight=weight)
     if aux is not None:

@@ -7,13 +7,15 @@ count* is the pixel count at which the (log-linearly interpolated) uniform curve
 learned metric, and the *pixel saving factor* is that count over the learned sensor's pixels.
 The interval maps the learned metric's mean ± one seed standard deviation the same way.
 
-``density`` is the unlearned baseline :meth:`~.tasks.Task.density_layout` on the training
+``density`` is the unlearned baseline
+[`density_layout`][layoutwarp.experiments.tasks.Task.density_layout] on the training
 set's statistics (mean edge strength of the images; of the label maps for CamVid). What a task's
-study trains is its :class:`~.tasks.StudyPlan` (``task.study``); every run is one
-:func:`~.runs.train_run`.
+study trains is its [`StudyPlan`][] (``task.study``); every run is one
+[`train_run`][].
 
 Every run writes its record (``runs/<family>_<W>x<H>_seed<s>.json``, a
-:class:`~.runs.RunRecord`) and model file (``models/…pt``) when it finishes, atomically; a
+[`RunRecord`][layoutwarp.experiments.runs.RunRecord]) and model file (``models/…pt``) when it finishes,
+atomically; a
 restarted study skips finished runs, so it can be stopped at any time. Nothing is chosen on the
 report split: fixed epochs, no early stopping.
 """
@@ -79,7 +81,7 @@ def run_study(
         out: the study folder (rerun with the same folder to resume).
         plan: what to train (default: ``task.study``).
         seeds: seeds per configuration (default: the plan's).
-        options: how every run trains (default: :func:`study_options`).
+        options: how every run trains (default: [`study_options`][]).
         say: where progress lines go.
 
     Returns:
@@ -310,9 +312,10 @@ def ship_study(
 
     Writes ``dest/study.json``, ``study.md``, ``study_<task>.png``; ``layouts/<run>.json``, the
     layout file of every run with a non-uniform layout; with ``models``,
-    ``models/<run>.pt`` (in ``weights`` precision, see :func:`~.models.save_model`) of each
+    ``models/<run>.pt`` (in ``weights`` precision, see [`save_model`][]) of each
     family's best seed at each learned size;
-    with a ``scene`` (e.g. :meth:`~.tasks.Task.scene`), ``layouts_<task>.png``: those best
+    with a ``scene`` (e.g. [`scene`][layoutwarp.experiments.tasks.Task.scene]), ``layouts_<task>.png``:
+    those best
     layouts drawn over it; with
     ``samples`` (a small data folder, e.g. the bundled ``data_samples/``),
     ``samples_scores.json``: each shipped model's scores there, read back from its shipped

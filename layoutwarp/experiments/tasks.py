@@ -4,11 +4,11 @@ A task is everything that differs between experiments: its name and data folder,
 data is read and split, its network, its loss on a batch, its scores, its defaults and what
 ``--quick`` changes, and the plan of its pixel-budget study. Everything else (the training
 loop, run records, results files, model files, figures, the study and the command line) is
-written once and looks tasks up by name in :data:`TASKS`, as layout families are looked up in
-:data:`~layoutwarp.FAMILIES`.
+written once and looks tasks up by name in [`TASKS`][], as layout families are looked up in
+[`FAMILIES`][layoutwarp.FAMILIES].
 
-A new task is one file: subclass :class:`Task`, fill in its class attributes and methods and
-decorate it with :func:`register_task`; ``layoutwarp train NAME``, ``study``, ``evaluate`` and
+A new task is one file: subclass [`Task`][], fill in its class attributes and methods and
+decorate it with [`register_task`][]; ``layoutwarp train NAME``, ``study``, ``evaluate`` and
 the model files then know it.
 """
 
@@ -72,7 +72,7 @@ class TaskDefaults:
 
 @dataclass(frozen=True)
 class StudyPlan:
-    """What a task's pixel-budget study trains (see :mod:`~layoutwarp.experiments.study`).
+    """What a task's pixel-budget study trains (see [`study`][layoutwarp.experiments.study]).
 
     Attributes:
         uniform_sizes: sensor sizes ``(H, W)`` of the uniform curve.
@@ -109,17 +109,17 @@ class Task:
 
     Class attributes:
         name: the task's name (``layoutwarp train NAME``).
-        folder: its folder under a data root (see :mod:`~layoutwarp.experiments.data`).
+        folder: its folder under a data root (see [`data`][layoutwarp.experiments.data]).
         description: one line for the command line's help.
         metrics: the scores of a run, in percent; the first is the headline (higher is better).
         metric_label: the headline metric as figures and tables name it.
         report_split: the split scores are reported on (``"test"``, ``"val"``).
         image_size: the task's images' size ``(H, W)``; with sensor physics, the sensor's extent
             in µm unless given (1 µm a source pixel).
-        defaults: :class:`TaskDefaults`.
+        defaults: [`TaskDefaults`][].
         quick: what ``--quick`` changes in the defaults (it always uses the bundled samples,
             one seed, the first size and no frozen epochs).
-        study: the :class:`StudyPlan` of its pixel-budget study.
+        study: the [`StudyPlan`][] of its pixel-budget study.
     """
 
     name: ClassVar[str]
@@ -134,9 +134,9 @@ class Task:
     study: ClassVar[StudyPlan]
     #: The networks ``--net`` selects, each to the attributes above its training protocol
     #: changes (``defaults``, ``study``, ``quick``); the first is the task's default network, with
-    #: none. Empty: the task has one network. See :meth:`with_net`.
+    #: none. Empty: the task has one network. See [`with_net`][].
     nets: ClassVar[dict[str, dict[str, Any]]] = {}
-    #: This instance's network (a key of :attr:`nets`; ``""`` where there are none).
+    #: This instance's network (a key of [`nets`][]; ``""`` where there are none).
     net: str = ""
 
     def __init__(self) -> None:
@@ -147,7 +147,7 @@ class Task:
         """This task with network ``net`` and its protocol's defaults (``None``: this task).
 
         Raises:
-            ValueError: ``net`` is not one of :attr:`nets`.
+            ValueError: ``net`` is not one of [`nets`][].
         """
         if net is None or net == self.net:
             return self
@@ -180,19 +180,20 @@ class Task:
         raise NotImplementedError
 
     def prediction_image(self, model: nn.Module, data: TaskData) -> np.ndarray | None:
-        """An RGB picture of ``model``'s prediction on :meth:`scene` for figures (dense tasks),
+        """An RGB picture of ``model``'s prediction on [`scene`][] for figures (dense tasks),
         or ``None``."""
         return None
 
     def legend(self) -> dict[str, tuple[int, int, int]]:
-        """Names and RGB colours of what :meth:`prediction_image` draws (empty: none)."""
+        """Names and RGB colours of what [`prediction_image`][] draws (empty: none)."""
         return {}
 
     # -- model -----------------------------------------------------------------------
     def network(
         self, layout: str | Layout, size: tuple[int, int], learn: bool = True, **sensor: Any
     ) -> nn.Module:
-        """The task's network with a :class:`~layoutwarp.SensorLayer` in front, as ``.sensor``."""
+        """The task's network with a [`SensorLayer`][layoutwarp.sensor.SensorLayer] in front, as
+        ``.sensor``."""
         raise NotImplementedError
 
     def batches(
@@ -200,21 +201,21 @@ class Task:
     ) -> tuple[torch.Tensor, BatchLoss]:
         """The indices of the training items and the loss of a batch of them (on ``model``'s
         device; random augmentation draws from ``gen``). ``options``: the task's own
-        command-line options (:meth:`add_arguments`)."""
+        command-line options ([`add_arguments`][])."""
         raise NotImplementedError
 
     def score(self, model: nn.Module, part: Any) -> dict[str, Any]:
-        """Scores (percent) of ``model`` on a split, :attr:`metrics` among them."""
+        """Scores (percent) of ``model`` on a split, `metrics` among them."""
         raise NotImplementedError
 
     # -- command line ----------------------------------------------------------------
     def add_arguments(self, parser: argparse.ArgumentParser) -> None:
-        """Options of this task alone (their values reach :meth:`batches` as ``options``)."""
+        """Options of this task alone (their values reach [`batches`][] as ``options``)."""
 
     # -- derived ---------------------------------------------------------------------
     @property
     def extra_dests(self) -> tuple[str, ...]:
-        """The names of the options :meth:`add_arguments` adds (as ``options`` keys)."""
+        """The names of the options [`add_arguments`][] adds (as ``options`` keys)."""
         parser = argparse.ArgumentParser(add_help=False)
         self.add_arguments(parser)
         return tuple(a.dest for a in parser._actions)
@@ -234,7 +235,7 @@ class Task:
         return layout_from_density(edge_density(self.density_images(data)), size, "grid", dtype=torch.float32)
 
 
-#: Every registered task by name (see :func:`register_task`).
+#: Every registered task by name (see [`register_task`][]).
 TASKS: dict[str, Task] = {}
 _T = TypeVar("_T", bound=type[Task])
 

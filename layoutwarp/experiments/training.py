@@ -35,7 +35,7 @@ BatchLoss = Callable[[torch.Tensor, nn.Module], torch.Tensor]
 def init_distributed() -> tuple[int, int]:
     """Join the process group ``torchrun`` set up for this process (``WORLD_SIZE`` > 1), once:
     gloo for CPU tensors and NCCL for CUDA tensors where CUDA is available (so ``--device cpu``
-    works on a GPU machine). Returns :func:`world`; alone, it does nothing."""
+    works on a GPU machine). Returns [`world`][]; alone, it does nothing."""
     import torch.distributed as dist
 
     if int(os.environ.get("WORLD_SIZE", "1")) > 1 and dist.is_available() and not dist.is_initialized():
@@ -45,7 +45,7 @@ def init_distributed() -> tuple[int, int]:
 
 def world() -> tuple[int, int]:
     """``(rank, world size)`` of this process: the process group's once
-    :func:`init_distributed` joined it, else ``(0, 1)``. Starts nothing."""
+    [`init_distributed`][] joined it, else ``(0, 1)``. Starts nothing."""
     import torch.distributed as dist
 
     if dist.is_available() and dist.is_initialized():
@@ -88,9 +88,9 @@ def fit(
     normalisation needs two samples). ``model.sensor``'s parameters are frozen for the first
     ``freeze_epochs`` epochs; ``sched`` steps once per epoch. tqdm draws on terminals only
     (``disable=None``), so logs stay readable. ``amp`` runs the network under autocast
-    (:func:`autocast`; the sensor itself always integrates in float32).
+    ([`autocast`][]; the sensor itself always integrates in float32).
 
-    Under ``torchrun`` (:func:`init_distributed`) every rank draws the same permutation and takes its
+    Under ``torchrun`` ([`init_distributed`][]) every rank draws the same permutation and takes its
     share ``batch[rank::world_size]`` of each global batch; DistributedDataParallel averages
     the gradients (θ included, as an ordinary parameter), so a step equals the single-process
     step on the global batch. After every epoch the ranks' θ are compared (they must agree
@@ -194,7 +194,7 @@ def _resume(
     scaler: torch.amp.GradScaler,
     gen: torch.Generator,
 ) -> tuple[int, list[list[float]]]:
-    """Load a checkpoint of :func:`fit`'s into the run's objects: the epochs done and the history."""
+    """Load a checkpoint of [`fit`][]'s into the run's objects: the epochs done and the history."""
     state = torch.load(path, map_location=model_device(model), weights_only=False)
     model.load_state_dict(state["model"])
     opt.load_state_dict(state["opt"])
@@ -236,7 +236,7 @@ def schedule(
     return None
 
 
-#: The learning-rate schedules of :func:`schedule`.
+#: The learning-rate schedules of [`schedule`][].
 SCHEDULES = ("constant", "cosine", "poly")
 
 
@@ -261,7 +261,7 @@ def default_device() -> str:
 
 def autocast(model: nn.Module, enabled: bool) -> torch.autocast:
     """Mixed precision for ``model``'s device: float16 on CUDA, bfloat16 on the CPU. The
-    sensor layer turns it off for its own integration (:func:`~layoutwarp.simulate`)."""
+    sensor layer turns it off for its own integration ([`simulate`][layoutwarp.sensor.simulate])."""
     device = model_device(model).type
     dtype = torch.float16 if device == "cuda" else torch.bfloat16
     return torch.autocast(device_type=device, dtype=dtype, enabled=enabled)
