@@ -112,3 +112,47 @@ def test_the_api_page_lists_every_public_name():
     api = (ROOT / "docs" / "api.md").read_text()
     missing = [n for n in lw.__all__ if n != "__version__" and f"- {n}\n" not in api and f".{n}\n" not in api]
     assert not missing, missing
+
+
+def _table_rows(text: str) -> list[tuple[int, list[list[str]]]]:
+    """Every Markdown table outside code blocks: (line of its header, its rows' cells), a pipe
+    inside a code span not splitting a cell."""
+    lines, tables, fenced, i = text.splitlines(), [], False, 0
+    while i < len(lines):
+        fenced ^= lines[i].startswith("```")
+        if (
+            not fenced
+            and lines[i].startswith("|")
+            and i + 1 < len(lines)
+            and re.fullmatch(r"\|[\s:|-]+\|", lines[i + 1])
+        ):
+            rows, j = [lines[i]], i + 2
+            while j < len(lines) and lines[j].startswith("|"):
+                rows.append(lines[j])
+                j += 1
+            cells = [
+                [c.strip() for c in re.sub(r"`[^`]*`", "code", r).strip().strip("|").split("|")] for r in rows
+            ]
+            tables.append((i + 1, cells))
+            i = j
+        else:
+            i += 1
+    return tables
+
+
+@pytest.mark.parametrize("page", ["README.md", *sorted(p.name for p in (ROOT / "docs").glob("*.md"))])
+def test_every_table_has_a_header_for_each_column_and_rows_of_its_width(page):
+    path = ROOT / page if page == "README.md" else ROOT / "docs" / page
+    for line, (head, *rows) in _table_rows(path.read_text()):
+        assert all(head), f"{page}:{line}: a column without a header: {head}"
+        for k, row in enumerate(rows):
+            assert len(row) == len(head), f"{page}:{line + 2 + k}: {len(row)} cells under {len(head)} headers"
+
+
+def test_the_home_pages_figure_says_what_it_shows():
+    """The CamVid figure shows the uniform, curvilinear and rectangular layouts; its alt text names
+    those, and no other family."""
+    for page in ("README.md", "docs/index.md"):
+        (alt,) = re.findall(r"!\[([^\]]*)\]\([^)]*camvid_48x36\.png\)", (ROOT / page).read_text())
+        for other in ("fovea", "spline", "grid", "elliptic"):
+            assert other not in alt.lower(), (page, alt)
