@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import math
 import numbers
+import os
+import warnings
 from collections.abc import Iterable, Sequence
 from typing import Any, Literal, overload
 
@@ -18,12 +20,15 @@ import torch
 from torch import Tensor
 
 __all__ = [
+    "BYTES_PER_SENSOR_PIXEL",
     "ArgumentError",
     "all_finite",
+    "available_bytes",
     "check_choice",
     "check_device",
     "check_extent",
     "check_int",
+    "check_memory",
     "check_number",
     "check_points",
     "check_shape",
@@ -31,6 +36,7 @@ __all__ = [
     "check_tensor",
     "floating_dtype",
     "raise_nonfinite",
+    "warn_if_finer",
 ]
 
 
@@ -66,7 +72,7 @@ def check_size(size: Any, name: str = "size") -> tuple[int, int]:
     """
     try:
         h, w = (int(v) for v in size)
-        whole = all(float(v) == int(v) for v in size)
+        whole = all(float(v) == int(v) and not isinstance(v, (bool, np.bool_)) for v in size)
     except (TypeError, ValueError):
         raise ArgumentError(
             _argument(name), f"{name} must be a pair (H, W) of positive integers, got {size!r}"
@@ -76,6 +82,63 @@ def check_size(size: Any, name: str = "size") -> tuple[int, int]:
             _argument(name), f"{name} must be a pair (H, W) of positive integers, got {size!r}"
         )
     return h, w
+
+
+#: A lower bound on the memory one sensor pixel needs on any path (its mesh and weights).
+BYTES_PER_SENSOR_PIXEL = 200
+
+
+def available_bytes() -> int:
+    """The memory the system can give this process now (Linux: ``MemAvailable``; else all of it)."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+
+
+_WARNED_FINER: set[tuple[tuple[int, int], tuple[int, int]]] = set()
+
+
+def warn_if_finer(size: tuple[int, int], src_size: tuple[int, int]) -> None:
+    """Warn (a ``UserWarning``, once a process for each pair of sizes) where the sensor
+    ``(h, w)`` has more pixels along an axis than its source image ``(H, W)``: each sensor pixel
+    is then smaller than a source pixel, which adds no detail and costs memory and time (most
+    likely the two sizes were swapped or mistyped)."""
+    h, w = size
+    src_h, src_w = src_size
+    if (h > src_h or w > src_w) and (tuple(size), tuple(src_size)) not in _WARNED_FINER:
+        _WARNED_FINER.add((tuple(size), tuple(src_size)))
+        warnings.warn(
+            f"the sensor ({h}, {w}) has more pixels along an axis than its source image "
+            f"({src_h}, {src_w}): its pixels are smaller than the image's and add no detail",
+            UserWarning,
+            stacklevel=3,
+        )
+
+
+def check_memory(size: tuple[int, int], name: str = "size") -> None:
+    """Refuse a sensor whose pixels alone need more memory than is available, before anything
+    is allocated (`BYTES_PER_SENSOR_PIXEL` a pixel, a lower bound).
+
+    Raises:
+        ArgumentError: naming ``name``, the size, what it needs and what is available.
+    """
+    h, w = size
+    need, have = h * w * BYTES_PER_SENSOR_PIXEL, available_bytes()
+    if need > have:
+        raise ArgumentError(
+            _argument(name),
+            f"{name} (H, W) = ({h}, {w}) is {h * w:.3g} sensor pixels and needs at least {_gib(need)} "
+            f"of memory ({BYTES_PER_SENSOR_PIXEL} bytes a pixel), more than the {_gib(have)} available",
+        )
+
+
+def _gib(n: float) -> str:
+    return f"{n / 2**40:.3g} TiB" if n >= 2**40 else f"{n / 2**30:.3g} GiB"
 
 
 def check_extent(sensor_um: Any, name: str = "sensor_um") -> tuple[float, float]:

@@ -8,12 +8,14 @@ flag, the value and what is allowed, with exit status 2.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import os
 import re
 import sys
 import tempfile
+import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NoReturn
@@ -24,8 +26,6 @@ if TYPE_CHECKING:  # the experiments load on demand
 
 __all__ = ["build_parser", "main", "parse_theta", "parse_wxh"]
 
-#: A lower bound on the memory one sensor pixel needs in any command (its mesh and weights).
-BYTES_PER_SENSOR_PIXEL = 200
 #: Library argument names and the command-line flags that set them, for error lines.
 FLAGS = {
     "out": "--out",
@@ -58,7 +58,7 @@ class _Formatter(argparse.ArgumentDefaultsHelpFormatter):
     """Shows every default as ``(default: X)``, except for flags and options without one."""
 
     def _get_help_string(self, action: argparse.Action) -> str | None:
-        if action.default in (None, False) or isinstance(action, argparse._VersionAction):
+        if action.default is None or action.default is False or isinstance(action, argparse._VersionAction):
             return action.help
         return super()._get_help_string(action)
 
@@ -124,38 +124,40 @@ positive_float = _number(0, open_lo=True)
 non_negative_float = _number(0)
 
 
-def _available_bytes() -> int:
-    try:
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemAvailable:"):
-                return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-
-
 def _check_memory(size: tuple[int, int], flag: str = "--size") -> None:
-    """Refuse a sensor whose pixels alone need more memory than is available, before allocating."""
-    h, w = size
-    need, have = h * w * BYTES_PER_SENSOR_PIXEL, _available_bytes()
-    if need > have:
-        raise UsageError(
-            f"argument {flag}: {w}x{h} is {h * w:.3g} sensor pixels and needs at least "
-            f"{_gib(need)} of memory ({BYTES_PER_SENSOR_PIXEL} bytes a pixel), "
-            f"more than the {_gib(have)} available"
-        )
+    """Refuse a sensor whose pixels alone need more memory than is available, before allocating
+    ([`check_memory`][layoutwarp.checks.check_memory], with the flag named)."""
+    from .checks import ArgumentError, check_memory
 
-
-def _gib(n: float) -> str:
-    return f"{n / 2**40:.3g} TiB" if n >= 2**40 else f"{n / 2**30:.3g} GiB"
+    try:
+        check_memory(size)
+    except ArgumentError as exc:
+        h, w = size
+        raise UsageError(f"argument {flag}: {w}x{h}{str(exc).split(f'({h}, {w})', 1)[1]}") from None
 
 
 # ----------------------------------------------------------------------------------------
 # Commands
 # ----------------------------------------------------------------------------------------
+def _existing_folder(path: str | Path, flag: str) -> Path:
+    """A folder that must exist: refused in one line if it is missing or is a file."""
+    path = Path(path)
+    if path.is_file():
+        raise UsageError(f"argument {flag}: must be a folder; {str(path)!r} is a file")
+    if not path.is_dir():
+        raise UsageError(f"argument {flag}: no such folder {str(path)!r}")
+    return path
+
+
+#: Output folders the running command will create (a failed command removes them if empty).
+_NEW_FOLDERS: list[Path] = []
+
+
 def _out_dir(path: str | Path, flag: str = "--out") -> Path:
     """An output folder that can be created: refused in one line if it is, or lies under, a file."""
     path = Path(path)
+    if not path.exists():
+        _NEW_FOLDERS.append(path)
     for p in (path, *path.parents):
         if p.exists():
             if not p.is_dir():
@@ -248,10 +250,7 @@ def _task_folder(task: Task, args: argparse.Namespace) -> Path:
     from .experiments.data import DATA_ENV, data_root
 
     if args.data:
-        folder = Path(args.data)
-        if not folder.is_dir():
-            raise UsageError(f"argument --data: no such folder {str(folder)!r}")
-        return folder
+        return _existing_folder(args.data, "--data")
     root = data_root(quick=args.quick)
     if root is None:
         raise UsageError(
@@ -459,8 +458,7 @@ def parse_range(text: str) -> tuple[float, float]:
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     from .experiments.models import evaluate_model, load_model
 
-    if not Path(args.data).is_dir():
-        raise UsageError(f"argument --data: no such folder {args.data!r}")
+    _existing_folder(args.data, "--data")
     try:
         model, info = load_model(args.model, args.task, _device(args.device))
     except ValueError as exc:
@@ -525,8 +523,7 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
     from .files import atomic_write
     from .preprocess import check_destination, list_images, preprocess_folder
 
-    if not Path(args.src).is_dir():
-        raise UsageError(f"argument SRC: no such folder {args.src!r}")
+    _existing_folder(args.src, "SRC")
     check_destination(Path(args.dst))
     layout, size = _layout_from_args(args)
     dst = Path(args.dst)
@@ -597,6 +594,7 @@ def _cmd_export(args: argparse.Namespace) -> int:
         line_width=args.line_width,
         min_feature_um=args.min_feature_um,
         physics=_physics_from_args(args, args.sensor_um),
+        progress=False if args.no_progress else None,
     )
     print(report.summary())
     if args.report:
@@ -992,7 +990,10 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     )
     ex.add_argument("--tol-um", type=positive_float, default=0.01, help="curved-edge tolerance in µm")
     ex.add_argument(
-        "--grid-um", type=positive_float, help="snap vertices to this grid (µm), finer than a pixel"
+        "--grid-um",
+        type=positive_float,
+        help="snap vertices to this grid (µm), finer than a pixel "
+        "(default: no snapping; GDSII's 1 nm for *.gds)",
     )
     ex.add_argument("--manhattan", action="store_true", help="axis-aligned steps instead of slanted edges")
     ex.add_argument(
@@ -1007,6 +1008,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     )
     ex.add_argument("--min-feature-um", type=positive_float, help="warn below this pitch (µm)")
     ex.add_argument("--report", metavar="FILE", help="also write the report as JSON to this file")
+    ex.add_argument("--no-progress", action="store_true", help="no progress bars (drawn for large sensors)")
     _add_physics_args(ex, extent="--sensor-um")
     ex.set_defaults(func=_cmd_export)
 
@@ -1047,14 +1049,28 @@ def main(argv: Sequence[str] | None = None, *, own_process: bool = False) -> int
         from .kernels import retain_freed_memory
 
         retain_freed_memory()
+        warnings.formatwarning = _one_line_warning
     prog = f"layoutwarp {args.command}" + (
         f" {args.task}" if args.command in ("train", "study", "landscape") else ""
     )
+    _NEW_FOLDERS.clear()
+    status = 1  # what an unexpected exception leaves
     try:
-        return int(args.func(args) or 0)
+        status = int(args.func(args) or 0)
     except (UsageError, ValueError, FileNotFoundError) as exc:
         print(f"{prog}: error: {_name_the_flag(exc)}", file=sys.stderr)
-        return 2
+        status = 2
+    finally:
+        if status != 0:  # a failed command leaves no empty output folder of its own behind
+            for folder in reversed(_NEW_FOLDERS):
+                with contextlib.suppress(OSError):  # kept if anything was written there
+                    folder.rmdir()
+    return status
+
+
+def _one_line_warning(message: Warning | str, category: type[Warning], *args: Any, **kwargs: Any) -> str:
+    """A warning on the command line: one line, no source location."""
+    return f"layoutwarp: warning: {message}\n"
 
 
 def run() -> None:

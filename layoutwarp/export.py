@@ -25,6 +25,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from .checks import ArgumentError, check_choice, check_extent, check_number, check_size
 from .coords import sensor_to_pixels, uniform_corners
@@ -79,10 +80,13 @@ class ExportReport:
         ]
         if self.physics is not None:
             p = self.physics
-            lines.append(
-                f"  at {p['photons_per_um2']:g} photons/µm²: full well {p['min_full_well_e']:.4g} .. "
-                f"{p['max_full_well_e']:.4g} e⁻, SNR {p['min_snr']:.3g} .. {p['max_snr']:.3g}"
+            full = (
+                f"full well {p['min_full_well_e']:.4g} .. {p['max_full_well_e']:.4g} e⁻"
+                if np.isfinite(p["max_full_well_e"])
+                else "no full well"
             )
+            snr = f"SNR {p['min_snr']:.3g} .. {p['max_snr']:.3g}"
+            lines.append(f"  at {p['photons_per_um2']:g} photons/µm²: {full}, {snr}")
         return "\n".join(lines + [f"  warning: {w}" for w in self.warnings])
 
 
@@ -160,6 +164,19 @@ def _self_crossing(ring: np.ndarray) -> bool:
     return bool((apart & overlap_x & overlap_y).any())
 
 
+#: Sensors of this many pixels or more show progress on a terminal by default.
+PROGRESS_PIXELS = 100_000
+
+
+def _bar(items, desc: str, progress: bool | None) -> tqdm:
+    """``items`` with a progress bar: always (``True``), never (``False``), or on a terminal for
+    `PROGRESS_PIXELS` items or more (``None``)."""
+    show = progress if progress is not None else len(items) >= PROGRESS_PIXELS
+    return tqdm(
+        items, desc=desc, unit="px", leave=False, disable=None if progress is None and show else not show
+    )
+
+
 def pixel_polygons_um(
     layout: Layout,
     size: tuple[int, int],
@@ -168,6 +185,7 @@ def pixel_polygons_um(
     tol_um: float = 0.01,
     grid_um: float | None = None,
     manhattan: bool = False,
+    progress: bool | None = None,
 ) -> tuple[list[np.ndarray], dict]:
     """Every pixel's closed polygon in µm (image orientation), row-major.
 
@@ -179,6 +197,8 @@ def pixel_polygons_um(
         grid_um: snap vertices to this grid (None: no snapping); it must be finer than the
             smallest pixel (``ValueError`` otherwise).
         manhattan: axis-aligned steps instead of slanted segments.
+        progress: a progress bar on stderr (``None``: on a terminal, for sensors of
+            `PROGRESS_PIXELS` pixels or more).
 
     Returns:
         ``(polygons, info)``: ``(n_k, 2)`` float64 arrays (first vertex not repeated) and
@@ -207,7 +227,8 @@ def pixel_polygons_um(
             lines, dev = _edge_polylines(layout, (h, w), sensor_um, tol_um, manhattan, steps)
         snapped = [np.rint(p / grid_um).astype(np.int64) for p in lines] if grid_um else lines
         polys, crossed = [], []
-        for edges in topo.pixel_edges().reshape(-1, 4):
+        bar = _bar(topo.pixel_edges().reshape(-1, 4), "pixel outlines", progress)
+        for edges in bar:
             top, right, bottom, left = (snapped[e] for e in edges)
             ring = _clean(np.concatenate([top[:-1], right[:-1], bottom[::-1][:-1], left[::-1][:-1]]))
             if manhattan and _self_crossing(ring):
@@ -267,7 +288,7 @@ def _write_dxf(path: Path, polys, hu: float, layer: int) -> None:
     atomic_write(path, doc.saveas)
 
 
-def _write_svg(path: Path, polys, wu: float, hu: float, size) -> None:
+def _write_svg(path: Path, polys, wu: float, hu: float, size, progress: bool | None = None) -> None:
     stroke = min(wu / size[1], hu / size[0]) / 50
     parts = [
         '<?xml version="1.0" encoding="UTF-8"?>',
@@ -276,7 +297,7 @@ def _write_svg(path: Path, polys, wu: float, hu: float, size) -> None:
         f'<g fill="none" stroke="black" stroke-width="{stroke:.6g}">',
     ]
     w = size[1]
-    for k, p in enumerate(polys):
+    for k, p in enumerate(_bar(polys, "writing SVG", progress)):
         pts = " ".join(f"{x!r},{y!r}" for x, y in p.tolist())
         parts.append(f'<polygon id="p{k // w}_{k % w}" points="{pts}"/>')
     parts += ["</g>", "</svg>", ""]
@@ -325,6 +346,7 @@ def export_layout(
     line_width: int = 1,
     min_feature_um: float | None = None,
     physics: SensorPhysics | None = None,
+    progress: bool | None = None,
 ) -> ExportReport:
     """Write the pixel boundaries of ``layout`` as a fabrication mask.
 
@@ -351,6 +373,8 @@ def export_layout(
             (``photons_per_um2``, [`pixel_snr`][]; the pixel areas are the
             exported polygons') to the report (``physics``: the camera, ``full_well_e`` and
             ``snr`` per pixel, row-major). Its ``sensor_um`` is replaced by this sensor's.
+        progress: progress bars on stderr while outlines are built and written (``None``: on
+            a terminal, for sensors of `PROGRESS_PIXELS` (100 000) pixels or more).
 
     Returns:
         an [`ExportReport`][] (also printed by ``layoutwarp export``).
@@ -367,7 +391,7 @@ def export_layout(
     if fmt == "gds" and grid_um is None:
         grid_um = GDS_DBU_UM  # GDSII stores integers: snap here so the report matches the file
     polys, info = pixel_polygons_um(
-        layout, size, (hu, wu), tol_um=tol_um, grid_um=grid_um, manhattan=manhattan
+        layout, size, (hu, wu), tol_um=tol_um, grid_um=grid_um, manhattan=manhattan, progress=progress
     )
     areas = np.array([abs(float(polygon_area(p))) for p in polys])
     pitch = np.minimum(info["width_um"], info["height_um"])
@@ -422,7 +446,7 @@ def export_layout(
     elif fmt == "dxf":
         _write_dxf(path, polys, hu, layer)
     elif fmt == "svg":
-        _write_svg(path, polys, wu, hu, size)
+        _write_svg(path, polys, wu, hu, size, progress)
     else:
         ppu = px_per_um or 4096 / max(wu, hu)
         report.files += _write_png(path, polys, wu, hu, ppu, line_width)
@@ -430,5 +454,10 @@ def export_layout(
 
 
 def report_json(report: ExportReport) -> str:
-    """The report as JSON text."""
-    return json.dumps(asdict(report), indent=2)
+    """The report as JSON text. The extent is written twice, each key naming its order:
+    ``sensor_um_hw`` (height, width, as the API takes it) and ``sensor_um_wxh`` (the command
+    line's ``WIDTHxHEIGHT``)."""
+    data = asdict(report)
+    hu, wu = data.pop("sensor_um")
+    data = {"sensor_um_hw": [hu, wu], "sensor_um_wxh": f"{wu:g}x{hu:g}", **data}
+    return json.dumps(data, indent=2)

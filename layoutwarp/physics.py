@@ -65,6 +65,7 @@ __all__ = [
     "SensorPhysics",
     "airy_profile",
     "apply_psf",
+    "as_physics",
     "check_output",
     "kernel_arguments",
     "measure",
@@ -436,6 +437,20 @@ def measure(
         return dn
     recovered = (dn - physics.black_level_dn) / k - physics.dark_e_per_um2 * a_um2
     return recovered / (eta * physics.photons_per_um2 * physics.fill_factor * a_um2)
+
+
+def as_physics(physics: SensorPhysics | dict | None) -> SensorPhysics | None:
+    """A camera given as a [`SensorPhysics`][], its dict ([`SensorPhysics.to_dict`][]) or
+    ``None``: the one rule of [`simulate`][layoutwarp.simulate] and [`SensorLayer`][layoutwarp.SensorLayer].
+
+    Raises:
+        TypeError: anything else.
+    """
+    if physics is None or isinstance(physics, SensorPhysics):
+        return physics
+    if isinstance(physics, dict):
+        return SensorPhysics.from_dict(physics)
+    raise TypeError(f"physics must be a SensorPhysics, its dict or None, got {type(physics).__name__}")
 
 
 def check_output(output: str, physics: SensorPhysics | None) -> str:

@@ -25,13 +25,14 @@ Destination layout::
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -41,7 +42,7 @@ import numpy as np
 import torch
 
 from .backwarp import sensor_index_maps
-from .checks import ArgumentError, check_choice, check_int, check_size
+from .checks import ArgumentError, check_choice, check_int, check_size, warn_if_finer
 from .files import atomic_write, run_info
 from .labels import LABEL_RULES as SENSOR_RULES
 from .layoutfile import layout_from_spec, layout_spec, load_layout, same_spec, save_layout
@@ -97,13 +98,36 @@ def _to_dtype(values: np.ndarray, dtype: np.dtype) -> np.ndarray:
     return values.astype(dtype)
 
 
+_QUIET_LOCK = threading.Lock()
+_QUIET = {"depth": 0, "level": 0}
+
+
+@contextlib.contextmanager
+def _opencv_quiet() -> Iterator[None]:
+    """Within: OpenCV logs errors only (its warnings off), and as it was after the last thread
+    leaves (the level is process-wide; the worker threads decode at once)."""
+    with _QUIET_LOCK:
+        if _QUIET["depth"] == 0:
+            _QUIET["level"] = cv2.utils.logging.getLogLevel()
+            cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+        _QUIET["depth"] += 1
+    try:
+        yield
+    finally:
+        with _QUIET_LOCK:
+            _QUIET["depth"] -= 1
+            if _QUIET["depth"] == 0:
+                cv2.utils.logging.setLogLevel(_QUIET["level"])
+
+
 def read_image(path: Path, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray:
     """An image file as OpenCV decodes it (HW or HWC, its own dtype); ``ValueError`` if unreadable.
 
     Read as bytes first, so paths OpenCV's own reader cannot open (non-ASCII names) work too.
     """
     data = np.fromfile(str(path), dtype=np.uint8)
-    img = cv2.imdecode(data, flags) if data.size else None
+    with _opencv_quiet():  # a broken file is reported once, as the run's failure, not also as
+        img = cv2.imdecode(data, flags) if data.size else None  # OpenCV's own [ WARN ] line
     if img is None:
         raise ValueError("unreadable or not an image")
     return img
@@ -153,6 +177,7 @@ class _Job:
         key = (src_size, None if self.tol is not None else np.dtype(dtype).str)
         with self._lock:
             if key not in self._cache:
+                warn_if_finer(self.size, src_size)  # once a source size (and once a calling line)
                 self._cache[key] = AreaResampler(
                     self.layout, self.size, src_size, tol=self.tol, dtype=dtype, device=self.device
                 )

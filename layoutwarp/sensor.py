@@ -14,10 +14,12 @@ from .checks import (
     all_finite,
     check_choice,
     check_int,
+    check_memory,
     check_number,
     check_shape,
     check_size,
     raise_nonfinite,
+    warn_if_finer,
 )
 from .integrators import (
     RADIANCES,
@@ -31,7 +33,7 @@ from .integrators import (
 from .layoutfile import load_layout, save_layout
 from .layouts import Layout, make_layout
 from .mesh import pixel_mesh
-from .physics import SensorPhysics, apply_psf, check_output, measure
+from .physics import SensorPhysics, apply_psf, as_physics, check_output, measure
 from .resampler import AreaResampler, resampler_for
 
 __all__ = ["METHODS", "SensorLayer", "SimulationPlan", "plan_simulation", "simulate"]
@@ -161,7 +163,7 @@ def simulate(
     seed: int | None = None,
     generator: torch.Generator | None = None,
     allow_nonfinite: bool = False,
-    physics: SensorPhysics | None = None,
+    physics: SensorPhysics | dict | None = None,
     output: str = "radiance",
     return_plan: bool = False,
 ) -> Tensor | tuple[Tensor, SimulationPlan]:
@@ -192,7 +194,7 @@ def simulate(
             the image's device, so one seed gives other samples on another device); a
             ``generator`` also draws the physics' noise (else ``physics.seed`` does).
         allow_nonfinite: let NaN/Inf through instead of raising ``ValueError``.
-        physics: a [`SensorPhysics`][] (see [`layoutwarp.physics`][]): the PSF
+        physics: a [`SensorPhysics`][] or its dict (see [`layoutwarp.physics`][]): the PSF
             blurs the image, the pixel means become photons in proportion to each pixel's area,
             then noisy electrons, clipped at the full well and quantised. ``None``: the
             noise-free mean, bit for bit as without physics.
@@ -207,6 +209,7 @@ def simulate(
         outputs of the right shape.
     """
     size = check_size(size)
+    check_memory(size)
     if not isinstance(layout, Layout):
         raise TypeError(f"layout must be a layoutwarp Layout, got {type(layout).__name__}")
     is_callable = callable(image) and not isinstance(image, Tensor)
@@ -224,10 +227,9 @@ def simulate(
     # the tolerance every geometry of this call uses: the plan's for curved edges, else the data's
     # (meshes of straight edges ignore it; area weights and physics' pixel areas are keyed by it)
     tol = plan.details.get("tol", data_tolerance(dtype)[0] if tol is None else tol)
+    physics = as_physics(physics)
     check_output(output, physics)
     if physics is not None:
-        if not isinstance(physics, SensorPhysics):
-            raise TypeError(f"physics must be a SensorPhysics, got {type(physics).__name__}")
         if is_callable and physics.psf is not None:
             raise ValueError("physics.psf blurs a source image; a callable radiance must include its optics")
     if generator is None and seed is not None:
@@ -240,6 +242,7 @@ def simulate(
         out = run(image)[None]
         return (out, plan) if return_plan else out
     work, out_dtype, lead = _prepare(image)
+    warn_if_finer(size, tuple(work.shape[-2:]))
     if work.shape[0] == 0:
         out = work.new_zeros(*lead, *size).to(out_dtype)
         # nothing to integrate, but the output stays in θ's and the image's graph, as a module's would
@@ -394,7 +397,8 @@ class SensorLayer(nn.Module):
     ) -> None:
         super().__init__()
         self.size = check_size(size)
-        self.physics = SensorPhysics.from_dict(physics) if isinstance(physics, dict) else physics
+        check_memory(self.size)
+        self.physics = as_physics(physics)
         self.output = check_output(output, self.physics)
         self._noise: torch.Generator | None = None
         self.layout = (

@@ -1,0 +1,130 @@
+"""What a new user trips over: giant or swapped sizes, files where folders go, warnings and
+messages that must be one clear line, and the physics argument's one rule."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import warnings
+
+import numpy as np
+import pytest
+import torch
+from conftest import ROOT, SAMPLES
+
+import layoutwarp as lw
+from layoutwarp.checks import ArgumentError, check_size
+from layoutwarp.cli import build_parser, main
+from layoutwarp.export import export_layout, report_json
+
+
+def test_a_boolean_is_not_a_size():
+    for size in [(True, 4), (4, np.bool_(True))]:
+        with pytest.raises(ArgumentError, match=r"size must be a pair \(H, W\) of positive integers"):
+            check_size(size)
+
+
+def test_a_giant_sensor_is_refused_with_the_memory_it_needs_before_anything_is_allocated():
+    with pytest.raises(
+        ArgumentError,
+        match=r"size \(H, W\) = \(100000, 100000\) is 1e\+10 sensor pixels and needs at least 1\.82 TiB",
+    ):
+        lw.simulate(torch.rand(1, 3, 8, 8), lw.CurvLayout((0.3, 0.1)), (100000, 100000))
+    with pytest.raises(ArgumentError, match="more than the"):
+        lw.SensorLayer((100000, 100000), "curv")
+
+
+def test_a_sensor_finer_than_its_image_is_warned_about_once():
+    img = torch.rand(1, 3, 20, 30)
+    size = (21, 7)  # more rows than the image has
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        for _ in range(3):
+            lw.simulate(img, lw.CurvLayout((0.3, 0.1)), size)
+        lw.simulate(img, lw.CurvLayout((0.3, 0.1)), (10, 15))  # coarser: no warning
+    finer = [w for w in caught if "more pixels along an axis than its source image" in str(w.message)]
+    assert len(finer) == 1 and "(21, 7)" in str(finer[0].message) and "(20, 30)" in str(finer[0].message)
+
+
+def test_preprocess_says_so_in_one_line_and_opencv_adds_no_line_of_its_own(tmp_path):
+    src = tmp_path / "src"
+    src.mkdir()
+    (src / "bad.png").write_bytes((SAMPLES / "photos" / "kodim03.png").read_bytes()[:100])  # cut short
+    (src / "good.png").write_bytes((SAMPLES / "photos" / "kodim20.png").read_bytes())
+    cmd = [sys.executable, "-m", "layoutwarp", "preprocess", str(src), str(tmp_path / "dst")]
+    cmd += ["--family", "uniform", "--size", "640x600", "--no-progress"]
+    res = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 1, res.stderr  # one file failed
+    assert "[ WARN" not in res.stderr and "Traceback" not in res.stderr, res.stderr
+    warned = [line for line in res.stderr.splitlines() if line.startswith("layoutwarp: warning:")]
+    assert len(warned) == 1 and "(600, 640)" in warned[0] and "(500, 500)" in warned[0], res.stderr
+    assert "1 written" in res.stdout + res.stderr
+    assert "failed: bad.png: ValueError: unreadable or not an image" in res.stdout + res.stderr
+
+
+def test_a_file_given_as_a_folder_is_named_as_a_file(tmp_path, capsys):
+    photo = SAMPLES / "photos" / "kodim03.png"
+    assert main(["preprocess", str(photo), str(tmp_path / "out"), "--size", "8x6"]) == 2
+    assert capsys.readouterr().err.strip() == (
+        f"layoutwarp preprocess: error: argument SRC: must be a folder; {str(photo)!r} is a file"
+    )
+    assert main(["train", "mnist", "--data", str(photo), "--out", str(tmp_path / "t")]) == 2
+    assert "argument --data: must be a folder" in capsys.readouterr().err
+
+
+def test_a_failed_command_leaves_no_empty_output_folder(tmp_path, capsys):
+    empty = tmp_path / "no-camvid"
+    empty.mkdir()
+    out = tmp_path / "results" / "t"
+    assert main(["train", "camvid", "--data", str(empty), "--out", str(out), "--no-progress"]) == 2
+    assert "no CamVid images" in capsys.readouterr().err and not out.exists()
+    bad = tmp_path / "bad.png"
+    bad.write_bytes(b"not a png")
+    assert main(["demo", "--image", str(bad), "--out", str(tmp_path / "d")]) == 2
+    assert not (tmp_path / "d").exists()
+    kept = tmp_path / "kept"
+    kept.mkdir()
+    assert main(["demo", "--image", str(bad), "--out", str(kept)]) == 2
+    assert kept.is_dir()  # a folder the user had stays
+
+
+def test_simulate_takes_physics_as_a_dict_as_sensor_layer_does():
+    phys = lw.SensorPhysics((80.0, 80.0), photons_per_um2=20, seed=4)
+    img = torch.rand(1, 3, 16, 16, generator=torch.Generator().manual_seed(1))
+    a = lw.simulate(img, lw.CurvLayout((0.3, 0.1)), (4, 4), physics=phys)
+    b = lw.simulate(img, lw.CurvLayout((0.3, 0.1)), (4, 4), physics=phys.to_dict())
+    assert torch.equal(a, b) and lw.SensorLayer((4, 4), "curv", physics=phys.to_dict()).physics == phys
+    with pytest.raises(TypeError, match="physics must be a SensorPhysics, its dict or None, got int"):
+        lw.simulate(img, lw.CurvLayout((0.3, 0.1)), (4, 4), physics=3)
+
+
+def test_the_export_report_names_the_extents_order_and_says_no_full_well(tmp_path, capsys):
+    phys = lw.SensorPhysics((1.0, 1.0), photons_per_um2=50)  # no full well given
+    report = export_layout(
+        lw.CurvLayout((0.3, 0.1)), (6, 8), tmp_path / "m.svg", (300.0, 800.0), physics=phys
+    )
+    data = json.loads(report_json(report))
+    assert (
+        data["sensor_um_hw"] == [300.0, 800.0]
+        and data["sensor_um_wxh"] == "800x300"
+        and "sensor_um" not in data
+    )
+    assert "no full well" in report.summary() and "inf" not in report.summary()
+    svg = (tmp_path / "m.svg").read_text()
+    assert 'width="0.8mm" height="0.3mm" viewBox="0 0 800.0 300.0"' in svg  # physical size, and scalable
+
+
+def test_export_draws_progress_when_asked(tmp_path, capsys):
+    export_layout(lw.CurvLayout((0.3, 0.1)), (6, 8), tmp_path / "m.svg", (300.0, 400.0), progress=True)
+    err = capsys.readouterr().err
+    assert "pixel outlines" in err and "writing SVG" in err
+    export_layout(lw.CurvLayout((0.3, 0.1)), (6, 8), tmp_path / "n.svg", (300.0, 400.0))  # small: quiet
+    assert capsys.readouterr().err == ""
+
+
+def test_export_help_shows_every_default():
+    (export,) = [a.choices["export"] for a in build_parser("export")._actions if getattr(a, "choices", None)]
+    text = " ".join(export.format_help().split())
+    assert "GDSII datatype (default: 0)" in text
+    assert "(default: no snapping; GDSII's 1 nm for *.gds)" in text
