@@ -237,12 +237,14 @@ def _phi(
             sa, sb = 2 + a * a - b * b, 2 - a * a + b * b
             p1, m1 = _sqrt0(sa + r2 * a), _sqrt0(sa - r2 * a)
             p2, m2 = _sqrt0(sb + r2 * b), _sqrt0(sb - r2 * b)
-            q[0], q[1] = (p1 - m1) / 2, (p2 - m2) / 2
-            # the Jacobian of E⁻¹ at (a, b) times ∂φ_curv/∂θ (diagonal)
+            # (p − m)/2 as (p² − m²)/(2(p + m)) = r2·a/(p + m): no cancellation near the axes
+            s1, s2 = p1 + m1, p2 + m2
+            q[0], q[1] = r2 * a * _inv(s1), r2 * b * _inv(s2)
+            # the Jacobian of E⁻¹ at (a, b) times ∂φ_curv/∂θ (diagonal); 1/m − 1/p as (p − m)/(p m)
             ip1, im1, ip2, im2 = _inv(p1), _inv(m1), _inv(p2), _inv(m2)
             dq[0, 0] = ((2 * a + r2) * ip1 - (2 * a - r2) * im1) / 4 * da
-            dq[0, 1] = (-2 * b * ip1 + 2 * b * im1) / 4 * db
-            dq[1, 0] = (-2 * a * ip2 + 2 * a * im2) / 4 * da
+            dq[0, 1] = b * (r2 * a * _inv(s1)) * ip1 * im1 * db
+            dq[1, 0] = a * (r2 * b * _inv(s2)) * ip2 * im2 * da
             dq[1, 1] = ((2 * b + r2) * ip2 - (2 * b - r2) * im2) / 4 * db
         else:
             q[0], q[1] = x, y
