@@ -229,3 +229,26 @@ def test_first_calls_time_an_entry_point_from_an_empty_cache_and_warm(tmp_path, 
     (line,) = format_first_calls(out)
     expected = f"export: {first:.1f} s (warm {warm:.1f} s, {first - warm:+.1f} s)"
     assert line == f"first call from an empty kernel cache, {expected}"
+
+
+def test_the_bench_table_keeps_every_number_under_its_header_whatever_the_settings_length():
+    """A setting longer than the column (tol=0.0001) once pushed its row's numbers one column on."""
+    from layoutwarp.experiments.bench import format_table
+
+    row = {"extra": {}, "backward_ms": None, "rmse": 1e-6, "max_err": 2e-6, "scene_rmse": None}
+    row |= {"grad_rel_err": None, "peak_mb": None, "forward_ms": 2.5}
+    rows = [
+        row | {"image": "photo", "layout": "curv ±", "method": "exact", "setting": s}
+        for s in ("default", "tol=0.0001", "1 spp")
+    ]
+    result = {
+        "anchors_ms": {"inter_area": 4.0, "grid_sample_mc16": 17.0},
+        "src_hw": [8, 8],
+        "sensor_hw": [2, 2],
+    }
+    result |= {"theta": [0.3, 0.2], "threads": 2, "input_mb": 1.0, "rows": rows}
+    lines = format_table(result).splitlines()
+    head = next(line for line in lines if line.startswith("image"))
+    end = head.index("fwd ms") + len("fwd ms")
+    for line in lines[-3:]:
+        assert line[end - 4 : end] == "2.50", line  # right-aligned under "fwd ms"

@@ -926,17 +926,26 @@ def format_table(result: dict) -> str:
         "(synthetic only); grad: relative error of dL/dθ against float64 finite differences",
         "fwd ms: a fixed layout (its mesh is built once and reused); train ms: forward + backward "
         "of a learnable layout (mesh rebuilt every call, as in training); bwd/fwd within training",
-        f"{'image':9s} {'layout':8s} {'method':25s} {'setting':8s} {'fwd ms':>8s} {'/AREA':>6s} "
-        f"{'/GS16':>6s} {'train ms':>8s} {'bwd/fwd':>7s} {'RMSE':>8s} {'max err':>8s} {'scene':>8s} "
-        f"{'grad':>8s} {'peak/in':>7s}",
     ]
+    # the text columns as wide as their longest entry, so every number stays under its header
+    w = {
+        k: max([len(k), *(len(r[k]) for r in result["rows"])])
+        for k in ("image", "layout", "method", "setting")
+    }
+    lines.append(
+        f"{'image':{w['image']}s} {'layout':{w['layout']}s} {'method':{w['method']}s} "
+        f"{'setting':{w['setting']}s} {'fwd ms':>8s} {'/AREA':>6s} "
+        f"{'/GS16':>6s} {'train ms':>8s} {'bwd/fwd':>7s} {'RMSE':>8s} {'max err':>8s} {'scene':>8s} "
+        f"{'grad':>8s} {'peak/in':>7s}"
+    )
     for r in result["rows"]:
         fg = r["extra"].get("forward_with_grad_ms")
         bwd = None if r["backward_ms"] is None else r["backward_ms"] / fg
         train = None if r["backward_ms"] is None else r["backward_ms"] + fg
         peak = None if r["peak_mb"] is None else r["peak_mb"] / result["input_mb"]
         lines.append(
-            f"{r['image']:9s} {r['layout']:8s} {r['method']:25s} {r['setting']:8s} {r['forward_ms']:8.2f} "
+            f"{r['image']:{w['image']}s} {r['layout']:{w['layout']}s} {r['method']:{w['method']}s} "
+            f"{r['setting']:{w['setting']}s} {r['forward_ms']:8.2f} "
             f"{r['forward_ms'] / a['inter_area']:6.2f} {r['forward_ms'] / a['grid_sample_mc16']:6.2f} "
             f"{_fmt(train, '8.1f'):>8s} {_fmt(bwd, '.2f'):>7s} {_fmt(r['rmse'], '.2e'):>8s} "
             f"{_fmt(r['max_err'], '.2e'):>8s} "
@@ -1063,6 +1072,13 @@ def report_text(result: dict) -> str:
                 f"{100 * r['extra']['over_plain']:+.0f} %; {r['extra']['ops']} torch ops"
             )
     lines += format_first_calls(result.get("first_calls", {}))
+    c = result.get("compile")  # results written before the first-call lines: their compile probe
+    if c:
+        lines.append(
+            f"first exact forward+backward in a new process: {c['first_process']['first_call_s']:.2f} s "
+            f"with an empty kernel cache (compiling), {c['second_process']['first_call_s']:.2f} s with the "
+            "cache filled"
+        )
     if "scaling" in result:
         lines.append(format_scaling(result["scaling"]))
     return "\n".join(lines)
