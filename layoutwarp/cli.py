@@ -1075,8 +1075,14 @@ def _one_line_warning(message: Warning | str, category: type[Warning], *args: An
 
 def run() -> None:
     """The ``layoutwarp`` command (and ``python -m layoutwarp``): [`main`][] in a process of
-    its own."""
-    sys.exit(main(own_process=True))
+    its own. Output cut short by its reader (``| head``) ends the command quietly."""
+    try:
+        status = main(own_process=True)
+        sys.stdout.flush()
+    except BrokenPipeError:
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit
+        status = 141  # as a shell reports a command ended by SIGPIPE
+    sys.exit(status)
 
 
 def _name_the_flag(exc: Exception) -> str:

@@ -128,3 +128,23 @@ def test_export_help_shows_every_default():
     text = " ".join(export.format_help().split())
     assert "GDSII datatype (default: 0)" in text
     assert "(default: no snapping; GDSII's 1 nm for *.gds)" in text
+
+
+def test_output_cut_short_by_its_reader_ends_the_command_quietly(monkeypatch):
+    """``layoutwarp doctor | head -1``: the reader closes the pipe, the command ends with status 141
+    and no BrokenPipeError traceback."""
+    import os
+
+    from layoutwarp.cli import run
+
+    read, write = os.pipe()
+    os.close(read)  # the reader is gone
+    out = os.fdopen(write, "w")
+    monkeypatch.setattr(sys, "stdout", out)
+    monkeypatch.setattr(sys, "argv", ["layoutwarp", "doctor"])
+    monkeypatch.setattr(warnings, "formatwarning", warnings.formatwarning)  # run() sets its own: restored
+    with pytest.raises(SystemExit) as ended:
+        run()
+    assert ended.value.code == 141
+    out.write("more")
+    out.flush()  # stdout now leads nowhere: later writes are dropped, not errors
