@@ -30,6 +30,7 @@ from ..sensor import SensorLayer
 from .data import CAMVID_CLASSES, VOID, images_to_tensor, load_camvid
 from .nets import conv_block, normalise_rgb
 from .segmentation import (
+    PSPNET_TRAINING,
     PSPSegNet,
     confusion,
     predict_labels,
@@ -153,14 +154,9 @@ PSP_DEFAULTS = TaskDefaults(
     sizes=((72, 96),),
     seeds=3,
     epochs=20,
-    batch_size=4,
-    lr=0.01,
-    theta_lr=0.01,
     tol=1e-3,
     freeze_epochs=1,
-    schedule="poly",
-    optimizer="sgd",
-    weight_decay=1e-4,
+    **PSPNET_TRAINING,
 )
 
 

@@ -29,6 +29,7 @@ from torch import nn
 
 from ..layouts import Layout
 from .segmentation import (
+    PSPNET_TRAINING,
     PSPSegNet,
     confusion,
     predict_labels,
@@ -153,14 +154,9 @@ PAPER_DEFAULTS = TaskDefaults(
     sizes=((65, 129), (129, 257), (257, 513)),
     seeds=1,
     epochs=200,
-    batch_size=4,
-    lr=0.01,
-    theta_lr=0.01,
     tol=1e-3,
     freeze_epochs=10,
-    schedule="poly",
-    optimizer="sgd",
-    weight_decay=1e-4,
+    **PSPNET_TRAINING,
 )
 
 
