@@ -21,8 +21,9 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, NoReturn
 
 if TYPE_CHECKING:  # the experiments load on demand
+    from .experiments.protocols import StudyPlan, TaskDefaults, TaskSpec
     from .experiments.runs import RunOptions
-    from .experiments.tasks import StudyPlan, Task, TaskDefaults
+    from .experiments.tasks import Task
 
 __all__ = ["build_parser", "main", "parse_theta", "parse_wxh"]
 
@@ -687,7 +688,7 @@ def _add_layout_args(p: argparse.ArgumentParser, families: Sequence[str]) -> Non
     p.add_argument("--size", type=parse_wxh, help="sensor WIDTHxHEIGHT (default: the layout file's)")
 
 
-def _extent_text(task: Task) -> str:
+def _extent_text(task: TaskSpec) -> str:
     h, w = task.image_size
     return f"{w}x{h} µm"
 
@@ -696,7 +697,7 @@ def _sizes_text(sizes) -> str:
     return " and ".join(f"{w}x{h}" for h, w in sizes)
 
 
-def _add_training_args(p: argparse.ArgumentParser, task: Task, quick_help: str) -> None:
+def _add_training_args(p: argparse.ArgumentParser, task: TaskSpec, quick_help: str) -> None:
     """The options every training command of every task takes, and the task's own."""
     d, q = task.defaults, task.quick_defaults()
     p.add_argument("--quick", action="store_true", help=quick_help)
@@ -734,7 +735,7 @@ def _add_training_args(p: argparse.ArgumentParser, task: Task, quick_help: str) 
     _add_physics_args(p, extent=f"the task's images at 1 µm a source pixel ({_extent_text(task)})")
 
 
-def _add_train_parser(sub: argparse._SubParsersAction, task: Task, families: Sequence[str]) -> None:
+def _add_train_parser(sub: argparse._SubParsersAction, task: TaskSpec, families: Sequence[str]) -> None:
     d = task.defaults
     t = sub.add_parser(
         task.name,
@@ -777,7 +778,7 @@ def _add_train_parser(sub: argparse._SubParsersAction, task: Task, families: Seq
     t.set_defaults(func=_cmd_train, task=task.name)
 
 
-def _add_study_parser(sub: argparse._SubParsersAction, task: Task, families: Sequence[str]) -> None:
+def _add_study_parser(sub: argparse._SubParsersAction, task: TaskSpec, families: Sequence[str]) -> None:
     plan = task.study
     st = sub.add_parser(
         task.name,
@@ -820,12 +821,12 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     errors of commands that list no tasks or families import nothing heavy (no torch)."""
     from .version import __version__
 
-    if command is None or command in CATALOGUED:
-        from .experiments.tasks import TASKS
-        from .layouts import FAMILIES
-    else:
-        TASKS, FAMILIES = {}, {}  # the catalogues unread: these commands list neither
-    families = list(FAMILIES)
+    if command is None or command in CATALOGUED:  # torch-free, as the rest of the parser
+        from .catalog import BUILTIN_FAMILIES, TWO_PARAMETER_FAMILIES
+        from .experiments.protocols import SPECS
+    else:  # these commands list neither
+        SPECS, BUILTIN_FAMILIES, TWO_PARAMETER_FAMILIES = {}, (), ()
+    families = list(BUILTIN_FAMILIES)
     p = _Parser(
         prog="layoutwarp",
         description="Differentiable sensor pixel layouts: simulate, learn and export task-specific sensors.",
@@ -881,7 +882,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
         "study", "The pixel-budget study: uniform layouts at several sizes, every family at some; resumable."
     )
     st_tasks = st.add_subparsers(dest="task", required=True, metavar="TASK", parser_class=_Parser)
-    for task in TASKS.values():
+    for task in SPECS.values():
         _add_study_parser(st_tasks, task, families)
 
     la = command(
@@ -889,8 +890,8 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
         "Train the task's network with θ frozen at every point of a grid: does learning find the best θ?",
     )
     la_tasks = la.add_subparsers(dest="task", required=True, metavar="TASK", parser_class=_Parser)
-    two = [name for name, cls in FAMILIES.items() if cls.num_params == 2 and cls().num_params == 2]
-    for task in TASKS.values():
+    two = list(TWO_PARAMETER_FAMILIES)
+    for task in SPECS.values():
         lt = la_tasks.add_parser(
             task.name,
             help=task.description,
@@ -918,7 +919,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
         lt.set_defaults(func=_cmd_landscape, task=task.name)
 
     ev = command("evaluate", "Score a saved model (a train run's model_*.pt) on a data folder; print JSON.")
-    ev.add_argument("task", choices=list(TASKS), metavar="TASK", help=", ".join(TASKS))
+    ev.add_argument("task", choices=list(SPECS), metavar="TASK", help=", ".join(SPECS))
     ev.add_argument("--model", required=True, metavar="FILE", help="a model file written by train")
     ev.add_argument(
         "--data",
@@ -1014,7 +1015,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
 
     t = command("train", "Train a layout jointly with a network: the paper's experiments.")
     tasks = t.add_subparsers(dest="task", required=True, metavar="TASK", parser_class=_Parser)
-    for task in TASKS.values():
+    for task in SPECS.values():
         _add_train_parser(tasks, task, families)
     return p
 

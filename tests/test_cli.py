@@ -8,6 +8,7 @@ import json
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 from conftest import ROOT, SAMPLES
 
@@ -375,12 +376,19 @@ def test_a_negative_value_after_its_flag_is_the_flags_value(tmp_path, capsys):
         (["doctor", "--bogus"], 2),
         (["bench", "--threads", "0"], 2),
         (["demo", "--size", "4"], 2),
+        (["train", "mnist", "--help"], 0),
+        (["train", "camvid", "--net", "unet"], 2),
+        (["study", "faces", "--epochs", "0"], 2),
+        (["landscape", "mnist", "--family", "fovea"], 2),
+        (["export", "--size", "-4x4"], 2),
+        (["evaluate", "nope", "--model", "m", "--data", "d"], 2),
+        (["preprocess", "--help"], 0),
     ],
 )
-def test_help_and_errors_of_commands_that_list_no_tasks_import_no_torch(argv, status):
-    """The top-level help, the version, a missing or unknown command and the errors of commands
-    whose options name no task or family answer before torch (or numba) is imported: the parser
-    builds the named command's options alone."""
+def test_help_and_argument_errors_import_no_torch(argv, status):
+    """Every help and every argument error answers before torch (or numba) is imported: the
+    parser builds the named command's options alone, from the torch-free task protocols and
+    family names."""
     code = (
         "import sys\nfrom layoutwarp.cli import main\n"
         f"try:\n    main({argv!r})\nexcept SystemExit as exc:\n    print('status', exc.code)\n"
@@ -406,3 +414,18 @@ def test_save_layout_under_a_file_says_so_in_one_line(files):
         lw.save_layout(lw.CurvLayout((0.3, 0.1)), files / "afile" / "x.json")
     with pytest.raises(lw.checks.ArgumentError, match=r"must be a file; .* is a folder"):
         lw.save_layout(lw.CurvLayout((0.3, 0.1)), files)
+
+
+def test_the_torch_free_catalogues_are_the_registered_tasks_and_families():
+    """What the parser lists without torch (experiments.protocols, layoutwarp.catalog) is what
+    the registries hold once torch is loaded."""
+    from layoutwarp.catalog import BUILTIN_FAMILIES, TWO_PARAMETER_FAMILIES
+    from layoutwarp.experiments.protocols import SPECS, UINT8_TOLERANCE
+    from layoutwarp.experiments.tasks import TASKS
+    from layoutwarp.integrators import data_tolerance
+
+    assert list(SPECS) == list(TASKS) and all(TASKS[n].spec is SPECS[n] for n in SPECS)
+    assert list(lw.FAMILIES)[: len(BUILTIN_FAMILIES)] == list(BUILTIN_FAMILIES)  # a user's come after
+    two = [n for n, cls in lw.FAMILIES.items() if cls.num_params == 2 and cls().num_params == 2]
+    assert list(TWO_PARAMETER_FAMILIES) == two
+    assert UINT8_TOLERANCE == data_tolerance(np.uint8)[0]

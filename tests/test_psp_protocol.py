@@ -11,9 +11,10 @@ import torch
 from conftest import SAMPLES
 
 from layoutwarp.cli import main
-from layoutwarp.experiments.camvid import PSP_DEFAULTS, SegNet
+from layoutwarp.experiments.camvid import SegNet
 from layoutwarp.experiments.data import VOID
 from layoutwarp.experiments.models import load_model
+from layoutwarp.experiments.protocols import PSP_CAMVID as PSP_DEFAULTS
 from layoutwarp.experiments.resnets import IMAGENET_MEAN
 from layoutwarp.experiments.segmentation import PSPSegNet, scale_jitter
 from layoutwarp.experiments.tasks import TASKS, get_task

@@ -2,9 +2,10 @@
 
 Nothing in [`layoutwarp`][] imports this subpackage; the command line loads it on demand.
 
-* [`tasks`][] — a task as a registered object ([`TASKS`][tasks.TASKS]), its defaults and
-  study plan; [`mnist`][], [`camvid`][], [`faces`][] — one file per task (its network,
-  data split, loss and scores), registered on import below;
+* [`protocols`][] — every task's protocol as data, without torch (its defaults, study plan,
+  networks and options: what the command line lists); [`tasks`][] — a task as a registered
+  object ([`TASKS`][tasks.TASKS]); [`mnist`][], [`camvid`][], [`faces`][], `cityscapes`, `celeba`
+  — one file per task (its network, data, loss and scores), loaded with `tasks`;
 * [`data`][] — data roots, the bundled samples and the dataset readers; [`nets`][] —
   shared network blocks;
 * [`training`][] — the training loop (devices, AMP, torchrun); `runs` — one run, its
@@ -13,5 +14,3 @@ Nothing in [`layoutwarp`][] imports this subpackage; the command line loads it o
 * `bench` and `scene` — speed against error, and the images it measures on;
 * `plots` and `demo` — figures.
 """
-
-from . import camvid, celeba, cityscapes, faces, mnist  # noqa: F401  (registers the built-in tasks)

@@ -11,14 +11,13 @@ networks (``--net``):
   ([`resnets`][layoutwarp.experiments.resnets]) with its auxiliary loss (weight 0.4), SGD with
   momentum 0.9, learning rate 0.01 with poly decay, weight decay 1e-4, batch 4, whole images
   through the sensor with horizontal flips and scale jitter (0.5–2.0; no rotation, as in the
-  paper); fewer epochs than the paper's 200 (see [`PSP_DEFAULTS`][]).
+  paper); fewer epochs than the paper's 200 (see [`PSP_CAMVID`][layoutwarp.experiments.protocols.PSP_CAMVID]).
 """
 
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any
 
 import numpy as np
 import torch
@@ -29,8 +28,8 @@ from ..layouts import Layout
 from ..sensor import SensorLayer
 from .data import CAMVID_CLASSES, VOID, images_to_tensor, load_camvid
 from .nets import conv_block, normalise_rgb
+from .protocols import SPECS
 from .segmentation import (
-    PSPNET_TRAINING,
     PSPSegNet,
     confusion,
     predict_labels,
@@ -38,12 +37,11 @@ from .segmentation import (
     segmentation_loss,
     segmentation_scores,
 )
-from .tasks import StudyPlan, Task, TaskData, TaskDefaults, register_task
+from .tasks import Task, TaskData, register_task
 from .training import BatchLoss, model_device
 
 __all__ = [
     "PALETTE",
-    "PSP_DEFAULTS",
     "CamVidTask",
     "SegNet",
     "median_frequency_weights",
@@ -145,57 +143,11 @@ def predict_camvid(model: nn.Module, images: np.ndarray, batch_size: int = 8) ->
     return predict_labels(model, images_to_tensor(images), batch_size)
 
 
-#: The PSP protocol on CamVid (``--net psp``): the paper's optimiser, schedule and batch, and
-#: its θ frozen for the first 5 % of the epochs (10 of 200); 20 epochs, about an hour a run on
-#: 2 CPU cores at 96x72 (a training epoch 2–4 minutes), where the paper trains 200 on
-#: Cityscapes. No class weights unless asked.
-PSP_DEFAULTS = TaskDefaults(
-    families=("uniform", "rect", "curv"),
-    sizes=((72, 96),),
-    seeds=3,
-    epochs=20,
-    tol=1e-3,
-    freeze_epochs=1,
-    **PSPNET_TRAINING,
-)
-
-
 @register_task
 class CamVidTask(Task):
     """CamVid (train: ``train/``; report: ``val/``), mIoU, pixel accuracy and per-class IoU."""
 
-    name = "camvid"
-    folder = "camvid"
-    description = "CamVid street-scene segmentation, back-warped to full resolution"
-    metrics = ("miou", "pixel_accuracy")
-    metric_label = "val mIoU (%)"
-    image_size = (360, 480)
-    report_split = "val"
-    defaults = TaskDefaults(
-        families=("uniform", "curv", "rect"),
-        sizes=((36, 48), (72, 96)),
-        seeds=2,
-        epochs=12,
-        batch_size=8,
-        lr=2e-3,
-        theta_lr=0.01,
-        tol=1e-3,
-        freeze_epochs=3,
-        schedule="cosine",
-    )
-    quick: ClassVar[dict[str, Any]] = {"epochs": 1}
-    study = StudyPlan(
-        ((18, 24), (27, 36), (36, 48), (54, 72), (72, 96), (90, 120)),
-        ((36, 48), (72, 96)),
-    )
-    nets: ClassVar[dict[str, dict[str, Any]]] = {
-        "small": {},
-        "psp": {
-            "defaults": PSP_DEFAULTS,
-            "study": StudyPlan(((72, 96),), ((72, 96),), families=("rect", "curv")),
-            "quick": {"epochs": 1},
-        },
-    }
+    spec = SPECS["camvid"]
 
     def load(self, folder: Path, limit: int | None = None) -> TaskData:
         train, val = load_camvid(folder, "train", limit), load_camvid(folder, "val", limit)
@@ -215,14 +167,6 @@ class CamVidTask(Task):
     ) -> nn.Module:
         net = PSPSegNet if self.net == "psp" else SegNet
         return net(layout, size, classes=len(CAMVID_CLASSES), learn=learn, **sensor)
-
-    def add_arguments(self, parser: argparse.ArgumentParser) -> None:
-        parser.add_argument(
-            "--class-weights",
-            choices=["none", "median"],
-            help="loss class weights: none or median-frequency balancing (default: median with the small "
-            "network, none with psp, as PSPNet trains)",
-        )
 
     def batches(
         self, model: nn.Module, train: Any, gen: torch.Generator, options: dict[str, Any]

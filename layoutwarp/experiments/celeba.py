@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any
 
 import cv2
 import numpy as np
@@ -26,7 +26,8 @@ from torch import nn
 
 from ..layouts import Layout
 from .faces import SensorResNet
-from .tasks import StudyPlan, Task, TaskData, TaskDefaults, register_task
+from .protocols import SPECS
+from .tasks import Task, TaskData, register_task
 from .training import BatchLoss, model_device
 
 __all__ = ["PARTITIONS", "CelebAPart", "CelebATask", "read_attributes", "read_celeba", "read_partition"]
@@ -121,33 +122,11 @@ def read_celeba(folder: str | Path, split: str, limit: int | None = None) -> Cel
     return CelebAPart(paths, values[keep], names)
 
 
-#: The paper's protocol (Sec. 5.4).
-PAPER_DEFAULTS = TaskDefaults(
-    families=("uniform", "rect"),
-    sizes=((8, 8), (16, 16)),
-    seeds=1,
-    epochs=15,
-    batch_size=64,
-    lr=1e-3,
-    theta_lr=1e-3,
-    tol=1e-3,
-)
-
-
 @register_task
 class CelebATask(Task):
     """CelebA (train: ``train``; report: ``test``), mean accuracy over the 40 attributes."""
 
-    name = "celeba"
-    folder = "celeba"
-    description = "CelebA's 40 face attributes from a small sensor, ResNet-18"
-    metrics = ("mean",)
-    metric_label = "mean test accuracy (%)"
-    image_size = (218, 178)
-    report_split = "test"
-    defaults = PAPER_DEFAULTS
-    quick: ClassVar[dict[str, Any]] = {"epochs": 2, "batch_size": 8}
-    study = StudyPlan(((4, 4), (8, 8), (16, 16)), ((8, 8), (16, 16)), families=("rect",), seeds=1)
+    spec = SPECS["celeba"]
 
     def load(self, folder: Path, limit: int | None = None) -> TaskData:
         train, test = read_celeba(folder, "train", limit), read_celeba(folder, "test", limit)

@@ -19,7 +19,7 @@ and pixel accuracy on ``val``. Start the backbone from ImageNet weights with
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any
 
 import cv2
 import numpy as np
@@ -28,8 +28,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..layouts import Layout
+from .protocols import SPECS
 from .segmentation import (
-    PSPNET_TRAINING,
     PSPSegNet,
     confusion,
     predict_labels,
@@ -37,7 +37,7 @@ from .segmentation import (
     segmentation_loss,
     segmentation_scores,
 )
-from .tasks import StudyPlan, Task, TaskData, TaskDefaults, register_task
+from .tasks import Task, TaskData, register_task
 from .training import BatchLoss, model_device
 
 __all__ = [
@@ -148,32 +148,11 @@ def read_pairs(pairs: list[tuple[Path, Path]]) -> tuple[torch.Tensor, torch.Tens
     return torch.stack(images), torch.stack(labels)
 
 
-#: The paper's protocol (Sec. 5.3): PSPNet's, batch 4, 200 epochs, θ frozen for 10.
-PAPER_DEFAULTS = TaskDefaults(
-    families=("uniform", "curv", "rect"),
-    sizes=((65, 129), (129, 257), (257, 513)),
-    seeds=1,
-    epochs=200,
-    tol=1e-3,
-    freeze_epochs=10,
-    **PSPNET_TRAINING,
-)
-
-
 @register_task
 class CityscapesTask(Task):
     """Cityscapes (train: ``train``; report: ``val``), mIoU and pixel accuracy at 2048x1024."""
 
-    name = "cityscapes"
-    folder = "cityscapes"
-    description = "Cityscapes street scenes (19 classes), PSPNet, back-warped to the labels' resolution"
-    metrics = ("miou", "pixel_accuracy")
-    metric_label = "val mIoU (%)"
-    image_size = (1024, 2048)
-    report_split = "val"
-    defaults = PAPER_DEFAULTS
-    quick: ClassVar[dict[str, Any]] = {"epochs": 1}
-    study = StudyPlan(PAPER_DEFAULTS.sizes, PAPER_DEFAULTS.sizes, families=("rect", "curv"), seeds=1)
+    spec = SPECS["cityscapes"]
 
     def load(self, folder: Path, limit: int | None = None) -> TaskData:
         train, val = find_pairs(folder, "train")[:limit], find_pairs(folder, "val")[:limit]

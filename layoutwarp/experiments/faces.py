@@ -22,12 +22,12 @@ from ..layouts import Layout
 from ..sensor import SensorLayer
 from .data import AGE_GROUPS, images_to_tensor, load_faces
 from .nets import conv_block, normalise_rgb
+from .protocols import SPECS
 from .resnets import IMAGENET_MEAN, IMAGENET_STD, load_backbone, resnet18
-from .tasks import StudyPlan, Task, TaskData, TaskDefaults, register_task
+from .tasks import Task, TaskData, register_task
 from .training import BatchLoss, model_device
 
 __all__ = [
-    "RESNET18_DEFAULTS",
     "TEST_FRACTION",
     "FaceNet",
     "FaceResNet",
@@ -94,19 +94,6 @@ class FaceResNet(SensorResNet):
         return dict(zip(FaceNet.HEADS, logits, strict=True))
 
 
-#: The paper's CelebA protocol for ResNet-18 (``--net resnet18``): Adam 1e-3, batch 64, 15 epochs.
-RESNET18_DEFAULTS = TaskDefaults(
-    families=("uniform", "rect"),
-    sizes=((8, 8), (16, 16)),
-    seeds=3,
-    epochs=15,
-    batch_size=64,
-    lr=1e-3,
-    theta_lr=1e-3,
-    tol=1e-3,
-)
-
-
 def split_faces(faces: dict[str, np.ndarray]) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
     """The one fixed train/test split of a faces set (a permutation seeded 1234; the test part is
     [`TEST_FRACTION`][] of the faces, at least one), each part in its original order."""
@@ -121,27 +108,7 @@ def split_faces(faces: dict[str, np.ndarray]) -> tuple[dict[str, np.ndarray], di
 class FacesTask(Task):
     """UTKFace attributes (train and test: the fixed split of [`split_faces`][])."""
 
-    name = "faces"
-    folder = "faces/utkface_subset"
-    description = "UTKFace gender, age group and race from a small sensor"
-    metrics = ("mean", *FaceNet.HEADS)
-    metric_label = "mean test accuracy (%)"
-    image_size = (200, 200)
-    report_split = "test"
-    defaults = TaskDefaults(
-        families=("uniform", "rect"),
-        sizes=((8, 8), (16, 16)),
-        seeds=3,
-        epochs=30,
-        batch_size=64,
-        lr=2e-3,
-        theta_lr=0.01,
-        tol=1e-3,
-        schedule="cosine",
-    )
-    quick: ClassVar[dict[str, Any]] = {"epochs": 2}
-    study = StudyPlan(((4, 4), (6, 6), (8, 8), (12, 12), (16, 16)), ((6, 6), (8, 8)))
-    nets: ClassVar[dict[str, dict[str, Any]]] = {"small": {}, "resnet18": {"defaults": RESNET18_DEFAULTS}}
+    spec = SPECS["faces"]
 
     def load(self, folder: Path, limit: int | None = None) -> TaskData:
         train, test = split_faces(load_faces(folder, limit))

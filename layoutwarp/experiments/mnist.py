@@ -8,18 +8,18 @@ channels), max pooling and two fully connected layers (hidden 128): Adam with le
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ..integrators import data_tolerance
 from ..layouts import Layout
 from ..sensor import SensorLayer
 from .data import load_mnist_split
-from .tasks import StudyPlan, Task, TaskData, TaskDefaults, register_task
+from .protocols import SPECS
+from .tasks import Task, TaskData, register_task
 from .training import BatchLoss, model_device
 
 __all__ = ["MnistNet", "MnistTask"]
@@ -57,29 +57,7 @@ def _images(images: np.ndarray, device: torch.device) -> torch.Tensor:
 class MnistTask(Task):
     """MNIST digits (train: the training set; report: the test set), accuracy in percent."""
 
-    name = "mnist"
-    folder = "mnist"
-    description = "MNIST digits from a tiny sensor (the paper's 4x4 experiment)"
-    metrics = ("accuracy",)
-    metric_label = "test accuracy (%)"
-    image_size = (28, 28)
-    report_split = "test"
-    defaults = TaskDefaults(
-        families=("uniform", "curv", "rect"),
-        sizes=((4, 4),),
-        seeds=3,
-        epochs=14,
-        batch_size=64,
-        lr=0.01,
-        theta_lr=0.01,
-        tol=data_tolerance(np.uint8)[0],  # MNIST is 8-bit: a quarter of one level
-    )
-    quick: ClassVar[dict[str, Any]] = {"epochs": 3}
-    study = StudyPlan(
-        ((2, 2), (3, 3), (4, 4), (5, 5), (6, 6), (7, 7)),
-        ((3, 3), (4, 4)),
-        tol=1e-5,  # the default when the study was run; kept so its runs compare
-    )
+    spec = SPECS["mnist"]
 
     def load(self, folder: Path, limit: int | None = None) -> TaskData:
         train = tuple(a[:limit] for a in load_mnist_split(folder, "train"))

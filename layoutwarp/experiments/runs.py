@@ -24,7 +24,8 @@ from ..layoutfile import save_layout
 from ..layouts import Layout
 from ..mesh import polygon_area
 from .models import save_model
-from .tasks import Task, TaskData, TaskDefaults
+from .protocols import TaskDefaults
+from .tasks import Task, TaskData
 from .training import fit, format_theta, optimizer, schedule
 
 __all__ = [

@@ -22,7 +22,6 @@ from .resnets import AUX_WEIGHT, IMAGENET_MEAN, IMAGENET_STD, PSPNet, load_backb
 from .training import model_device
 
 __all__ = [
-    "PSPNET_TRAINING",
     "PSPSegNet",
     "confusion",
     "predict_labels",
@@ -30,18 +29,6 @@ __all__ = [
     "segmentation_loss",
     "segmentation_scores",
 ]
-
-
-#: PSPNet's training (Zhao et al.), which the paper keeps but for a batch of 4: SGD with momentum
-#: 0.9, learning rate 0.01 with poly decay, weight decay 1e-4 (θ: the same rate, no decay).
-PSPNET_TRAINING = {
-    "batch_size": 4,
-    "lr": 0.01,
-    "theta_lr": 0.01,
-    "schedule": "poly",
-    "optimizer": "sgd",
-    "weight_decay": 1e-4,
-}
 
 
 class PSPSegNet(nn.Module):

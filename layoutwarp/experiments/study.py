@@ -34,8 +34,9 @@ import numpy as np
 from ..files import atomic_write, run_info
 from ..layouts import Layout
 from .models import save_model
+from .protocols import StudyPlan
 from .runs import RunOptions, run_name, train_run
-from .tasks import StudyPlan, Task
+from .tasks import Task
 
 __all__ = [
     "equivalent_pixels",
