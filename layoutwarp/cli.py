@@ -815,18 +815,34 @@ def _add_study_parser(sub: argparse._SubParsersAction, task: TaskSpec, families:
 CATALOGUED = ("study", "landscape", "evaluate", "preprocess", "export", "train")
 
 
+def _catalogues() -> tuple[dict[str, TaskSpec], list[str], list[str]]:
+    """The tasks' protocols, the families and the two-parameter families the parser lists: the
+    built-in ones from torch-free modules, and, in a process that has loaded the registries, any a
+    user registered there (without loading them)."""
+    from .catalog import BUILTIN_FAMILIES, TWO_PARAMETER_FAMILIES
+    from .experiments.protocols import SPECS
+
+    specs, families, two = dict(SPECS), list(BUILTIN_FAMILIES), list(TWO_PARAMETER_FAMILIES)
+    layouts = sys.modules.get(f"{__package__}.layouts")
+    if layouts is not None:
+        for name, cls in layouts.FAMILIES.items():
+            if name not in families:
+                families.append(name)
+                if cls.num_params == 2:
+                    two.append(name)
+    tasks = sys.modules.get(f"{__package__}.experiments.tasks")
+    if tasks is not None:
+        specs |= {name: task.spec for name, task in tasks.TASKS.items() if name not in specs}
+    return specs, families, two
+
+
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     """The ``layoutwarp`` argument parser: every command's options, or with ``command`` (a
     command's name, or anything else) that command's alone, the others bare: the help and the
     errors of commands that list no tasks or families import nothing heavy (no torch)."""
     from .version import __version__
 
-    if command is None or command in CATALOGUED:  # torch-free, as the rest of the parser
-        from .catalog import BUILTIN_FAMILIES, TWO_PARAMETER_FAMILIES
-        from .experiments.protocols import SPECS
-    else:  # these commands list neither
-        SPECS, BUILTIN_FAMILIES, TWO_PARAMETER_FAMILIES = {}, (), ()
-    families = list(BUILTIN_FAMILIES)
+    specs, families, two = _catalogues() if command is None or command in CATALOGUED else ({}, [], [])
     p = _Parser(
         prog="layoutwarp",
         description="Differentiable sensor pixel layouts: simulate, learn and export task-specific sensors.",
@@ -882,7 +898,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
         "study", "The pixel-budget study: uniform layouts at several sizes, every family at some; resumable."
     )
     st_tasks = st.add_subparsers(dest="task", required=True, metavar="TASK", parser_class=_Parser)
-    for task in SPECS.values():
+    for task in specs.values():
         _add_study_parser(st_tasks, task, families)
 
     la = command(
@@ -890,8 +906,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
         "Train the task's network with θ frozen at every point of a grid: does learning find the best θ?",
     )
     la_tasks = la.add_subparsers(dest="task", required=True, metavar="TASK", parser_class=_Parser)
-    two = list(TWO_PARAMETER_FAMILIES)
-    for task in SPECS.values():
+    for task in specs.values():
         lt = la_tasks.add_parser(
             task.name,
             help=task.description,
@@ -919,7 +934,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
         lt.set_defaults(func=_cmd_landscape, task=task.name)
 
     ev = command("evaluate", "Score a saved model (a train run's model_*.pt) on a data folder; print JSON.")
-    ev.add_argument("task", choices=list(SPECS), metavar="TASK", help=", ".join(SPECS))
+    ev.add_argument("task", choices=list(specs), metavar="TASK", help=", ".join(specs))
     ev.add_argument("--model", required=True, metavar="FILE", help="a model file written by train")
     ev.add_argument(
         "--data",
@@ -1015,7 +1030,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
 
     t = command("train", "Train a layout jointly with a network: the paper's experiments.")
     tasks = t.add_subparsers(dest="task", required=True, metavar="TASK", parser_class=_Parser)
-    for task in SPECS.values():
+    for task in specs.values():
         _add_train_parser(tasks, task, families)
     return p
 
