@@ -46,6 +46,9 @@ def test_the_installed_wheel_runs_the_quick_job_and_the_demo_outside_the_source_
     work = tmp_path / "work"  # far from the checkout: no data_samples/ beside it
     work.mkdir()
     env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "LAYOUTWARP_DATA")}
+    # the torch path: the installed copy's kernels would compile from an empty cache (a minute and a
+    # half here, what tests/test_jit.py covers); this test is about what the wheel holds and runs
+    env["LAYOUTWARP_JIT"] = "off"
     where = run([python, "-c", "import layoutwarp; print(layoutwarp.__file__)"], work, env).stdout.strip()
     assert Path(where).is_relative_to(site) and not Path(where).is_relative_to(ROOT)
     cli = env_dir / ("Scripts/layoutwarp.exe" if os.name == "nt" else "bin/layoutwarp")
