@@ -241,6 +241,7 @@ def test_a_training_step_runs_few_torch_operations():
     assert float((compiled - ref).abs().max()) <= 1e-6 * float(ref.abs().max())
 
 
+@pytest.mark.slow  # a minute of PTX compiling
 def test_the_device_mesh_kernels_compile_for_the_device_without_one():
     """Every kernel of :func:`~layoutwarp.meshkernels.build_mesh_device` compiles to PTX (no GPU
     needed: numba-cuda and the CUDA compilers), with every shared function it calls."""
