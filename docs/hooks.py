@@ -13,7 +13,8 @@ from pathlib import Path
 from mkdocs.structure.files import File, Files
 
 SUFFIXES = {".png", ".txt", ".json"}
-ROLE = re.compile(r":(?:func|class|meth|mod|data|attr|exc|obj|ref):(?:`[^`]*`|<code>[^<]*</code>)")  # raw, or rendered
+# a role raw, or as rendered (its backticks become <code>)
+ROLE = re.compile(r":(?:func|class|meth|mod|data|attr|exc|obj|ref):(?:`[^`]*`|<code>[^<]*</code>)")
 log = logging.getLogger("mkdocs.plugins.layoutwarp")
 
 
