@@ -21,6 +21,7 @@ from torch import Tensor
 
 __all__ = [
     "BYTES_PER_SENSOR_PIXEL",
+    "UNCHECKED_BYTES",
     "ArgumentError",
     "all_finite",
     "available_bytes",
@@ -120,20 +121,32 @@ def warn_if_finer(size: tuple[int, int], src_size: tuple[int, int]) -> None:
         )
 
 
-def check_memory(size: tuple[int, int], name: str = "size") -> None:
+#: Sensors needing less than this are not checked against the free memory (every call of
+#: [`simulate`][layoutwarp.simulate] checks its size: reading the system's numbers costs more than
+#: a small fixed-layout forward).
+UNCHECKED_BYTES = 64 << 20
+
+
+def check_memory(size: tuple[int, int], name: str = "size", shown: str | None = None) -> None:
     """Refuse a sensor whose pixels alone need more memory than is available, before anything
-    is allocated (`BYTES_PER_SENSOR_PIXEL` a pixel, a lower bound).
+    is allocated (`BYTES_PER_SENSOR_PIXEL` a pixel, a lower bound; sizes needing less than
+    `UNCHECKED_BYTES` pass unread). ``shown``: the size as the caller's user wrote it (default
+    ``(H, W) = (h, w)``).
 
     Raises:
         ArgumentError: naming ``name``, the size, what it needs and what is available.
     """
     h, w = size
-    need, have = h * w * BYTES_PER_SENSOR_PIXEL, available_bytes()
+    need = h * w * BYTES_PER_SENSOR_PIXEL
+    if need < UNCHECKED_BYTES:
+        return
+    have = available_bytes()
     if need > have:
         raise ArgumentError(
             _argument(name),
-            f"{name} (H, W) = ({h}, {w}) is {h * w:.3g} sensor pixels and needs at least {_gib(need)} "
-            f"of memory ({BYTES_PER_SENSOR_PIXEL} bytes a pixel), more than the {_gib(have)} available",
+            f"{name} {shown or f'(H, W) = ({h}, {w})'} is {h * w:.3g} sensor pixels and needs at least "
+            f"{_gib(need)} of memory ({BYTES_PER_SENSOR_PIXEL} bytes a pixel), more than the {_gib(have)} "
+            "available",
         )
 
 

@@ -130,11 +130,11 @@ def _check_memory(size: tuple[int, int], flag: str = "--size") -> None:
     ([`check_memory`][layoutwarp.checks.check_memory], with the flag named)."""
     from .checks import ArgumentError, check_memory
 
+    h, w = size
     try:
-        check_memory(size)
+        check_memory(size, shown=f"{w}x{h}")
     except ArgumentError as exc:
-        h, w = size
-        raise UsageError(f"argument {flag}: {w}x{h}{str(exc).split(f'({h}, {w})', 1)[1]}") from None
+        raise UsageError(f"argument {flag}: {str(exc).removeprefix('size ')}") from None
 
 
 # ----------------------------------------------------------------------------------------
@@ -156,15 +156,15 @@ _NEW_FOLDERS: list[Path] = []
 
 def _out_dir(path: str | Path, flag: str = "--out") -> Path:
     """An output folder that can be created: refused in one line if it is, or lies under, a file."""
+    from .files import file_in_the_way
+
     path = Path(path)
+    blocker = file_in_the_way(path)
+    if blocker is not None:
+        what = "is a file" if blocker == path else f"lies under {str(blocker)!r}, which is a file"
+        raise UsageError(f"argument {flag}: must be a folder; {str(path)!r} {what}")
     if not path.exists():
         _NEW_FOLDERS.append(path)
-    for p in (path, *path.parents):
-        if p.exists():
-            if not p.is_dir():
-                what = "is a file" if p == path else f"lies under {str(p)!r}, which is a file"
-                raise UsageError(f"argument {flag}: must be a folder; {str(path)!r} {what}")
-            break
     return path
 
 
@@ -811,10 +811,6 @@ def _add_study_parser(sub: argparse._SubParsersAction, task: TaskSpec, families:
     st.set_defaults(func=_cmd_study, task=task.name)
 
 
-#: The commands whose options name tasks or layout families (their parser imports torch).
-CATALOGUED = ("study", "landscape", "evaluate", "preprocess", "export", "train")
-
-
 def _catalogues() -> tuple[dict[str, TaskSpec], list[str], list[str]]:
     """The tasks' protocols, the families and the two-parameter families the parser lists: the
     built-in ones from torch-free modules, and, in a process that has loaded the registries, any a
@@ -836,13 +832,12 @@ def _catalogues() -> tuple[dict[str, TaskSpec], list[str], list[str]]:
     return specs, families, two
 
 
-def build_parser(command: str | None = None) -> argparse.ArgumentParser:
-    """The ``layoutwarp`` argument parser: every command's options, or with ``command`` (a
-    command's name, or anything else) that command's alone, the others bare: the help and the
-    errors of commands that list no tasks or families import nothing heavy (no torch)."""
+def build_parser() -> argparse.ArgumentParser:
+    """The ``layoutwarp`` argument parser. It imports nothing heavy (the tasks and families it
+    lists come from torch-free modules), so help and argument errors answer at once."""
     from .version import __version__
 
-    specs, families, two = _catalogues() if command is None or command in CATALOGUED else ({}, [], [])
+    specs, families, two = _catalogues()
     p = _Parser(
         prog="layoutwarp",
         description="Differentiable sensor pixel layouts: simulate, learn and export task-specific sensors.",
@@ -1060,7 +1055,7 @@ def main(argv: Sequence[str] | None = None, *, own_process: bool = False) -> int
     command's alone, and its allocator keeps freed memory for the next training step
     ([`retain_freed_memory`][layoutwarp.kernels.retain_freed_memory])."""
     argv = join_negative_values(sys.argv[1:] if argv is None else argv)
-    args = build_parser(argv[0] if argv else "").parse_args(argv)
+    args = build_parser().parse_args(argv)
     if own_process:
         from .kernels import retain_freed_memory
 

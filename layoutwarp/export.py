@@ -171,10 +171,11 @@ PROGRESS_PIXELS = 100_000
 def _bar(items, desc: str, progress: bool | None) -> tqdm:
     """``items`` with a progress bar: always (``True``), never (``False``), or on a terminal for
     `PROGRESS_PIXELS` items or more (``None``)."""
-    show = progress if progress is not None else len(items) >= PROGRESS_PIXELS
-    return tqdm(
-        items, desc=desc, unit="px", leave=False, disable=None if progress is None and show else not show
-    )
+    if progress is None:  # tqdm's None: drawn on a terminal only
+        disable = None if len(items) >= PROGRESS_PIXELS else True
+    else:
+        disable = not progress
+    return tqdm(items, desc=desc, unit="px", leave=False, disable=disable)
 
 
 def pixel_polygons_um(

@@ -14,7 +14,7 @@ from typing import Any
 from .checks import ArgumentError
 from .version import __version__
 
-__all__ = ["atomic_write", "check_file_destination", "run_info"]
+__all__ = ["atomic_write", "check_file_destination", "file_in_the_way", "run_info"]
 
 
 @functools.cache
@@ -45,14 +45,19 @@ def check_file_destination(path: str | Path, argument: str = "path") -> Path:
     path = Path(path)
     if path.is_dir():
         raise ArgumentError(argument, f"must be a file; {str(path)!r} is a folder")
-    for folder in path.parents:
-        if folder.exists():
-            if not folder.is_dir():
-                raise ArgumentError(
-                    argument, f"cannot write {str(path)!r}: {str(folder)!r} is a file, not a folder"
-                )
-            break
+    blocker = file_in_the_way(path.parent)
+    if blocker is not None:
+        raise ArgumentError(argument, f"cannot write {str(path)!r}: {str(blocker)!r} is a file, not a folder")
     return path
+
+
+def file_in_the_way(folder: str | Path) -> Path | None:
+    """The file that stands where ``folder`` (to be created if need be) or one of the folders
+    above it would be: its nearest existing path, when that is not a folder; else ``None``."""
+    for p in (Path(folder), *Path(folder).parents):
+        if p.exists():
+            return None if p.is_dir() else p
+    return None
 
 
 def atomic_write(path: str | Path, content: bytes | str | Callable[[str], object]) -> Path:

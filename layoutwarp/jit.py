@@ -163,14 +163,11 @@ def compiled(group: str, dtype: str | torch.dtype, kernel: Any) -> Any | None:
     the mode is ``"wait"`` (compiled here if need be); in ``"background"`` mode while the worker
     has the group to do, its [`quick`][] build (compiled here in seconds the first time, the
     same values); ``None`` where numba is missing or the mode is ``"off"`` (the torch path)."""
-    if ready(group, dtype):  # in background mode this starts the worker
+    if ready(group, dtype):  # in wait mode, compiled here; in background mode, starts the worker
         return kernel
-    current = mode()
-    if current == "off" or not kernels.available():
+    if mode() == "off" or not kernels.available():
         return None
-    if current == "wait":
-        return kernel if ready(group, dtype, wait=True) else None
-    unit = _unit(group, dtype)
+    unit = _unit(group, dtype)  # background mode, the worker on the group
     _announce(unit, "compiling a quick build (seconds; the full one follows in the background) of")
     return quick(kernel)
 

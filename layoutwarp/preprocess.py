@@ -43,7 +43,7 @@ import torch
 
 from .backwarp import sensor_index_maps
 from .checks import ArgumentError, check_choice, check_int, check_size, warn_if_finer
-from .files import atomic_write, run_info
+from .files import atomic_write, file_in_the_way, run_info
 from .labels import LABEL_RULES as SENSOR_RULES
 from .layoutfile import layout_from_spec, layout_spec, load_layout, same_spec, save_layout
 from .layouts import Layout
@@ -298,12 +298,10 @@ def _find_label(labels: Path, rel: Path) -> Path | None:
 
 def check_destination(dst: Path) -> None:
     """Refuse a destination that is a file or lies under one, before anything is written."""
-    for p in (dst, *dst.parents):
-        if p.exists():
-            if not p.is_dir():
-                what = "is a file" if p == dst else f"lies under {str(p)!r}, which is a file"
-                raise ArgumentError("dst", f"dst must be a folder; {str(dst)!r} {what}")
-            return
+    blocker = file_in_the_way(dst)
+    if blocker is not None:
+        what = "is a file" if blocker == dst else f"lies under {str(blocker)!r}, which is a file"
+        raise ArgumentError("dst", f"dst must be a folder; {str(dst)!r} {what}")
 
 
 def preprocess_folder(

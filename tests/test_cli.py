@@ -387,8 +387,7 @@ def test_a_negative_value_after_its_flag_is_the_flags_value(tmp_path, capsys):
 )
 def test_help_and_argument_errors_import_no_torch(argv, status):
     """Every help and every argument error answers before torch (or numba) is imported: the
-    parser builds the named command's options alone, from the torch-free task protocols and
-    family names."""
+    parser lists tasks and families from the torch-free task protocols and family names."""
     code = (
         "import sys\nfrom layoutwarp.cli import main\n"
         f"try:\n    main({argv!r})\nexcept SystemExit as exc:\n    print('status', exc.code)\n"
@@ -396,15 +395,6 @@ def test_help_and_argument_errors_import_no_torch(argv, status):
     )
     res = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert f"status {status}" in res.stdout and "heavy []" in res.stdout, res.stdout + res.stderr
-
-
-def test_the_parser_of_one_command_is_the_full_parsers_for_that_command():
-    """build_parser(command) gives that command the options the full parser gives it."""
-    full = dict(_subparsers(build_parser()))
-    for command in ("export", "demo", "doctor", "bench"):
-        one = dict(_subparsers(build_parser(command)))
-        assert one[command].format_help() == full[command].format_help()
-    assert "train mnist" in full and "train mnist" not in one  # no catalogue read for bench
 
 
 def test_save_layout_under_a_file_says_so_in_one_line(files):

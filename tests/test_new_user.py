@@ -124,7 +124,7 @@ def test_export_draws_progress_when_asked(tmp_path, capsys):
 
 
 def test_export_help_shows_every_default():
-    (export,) = [a.choices["export"] for a in build_parser("export")._actions if getattr(a, "choices", None)]
+    (export,) = [a.choices["export"] for a in build_parser()._actions if getattr(a, "choices", None)]
     text = " ".join(export.format_help().split())
     assert "GDSII datatype (default: 0)" in text
     assert "(default: no snapping; GDSII's 1 nm for *.gds)" in text
@@ -148,3 +148,18 @@ def test_output_cut_short_by_its_reader_ends_the_command_quietly(monkeypatch):
     assert ended.value.code == 141
     out.write("more")
     out.flush()  # stdout now leads nowhere: later writes are dropped, not errors
+
+
+def test_a_small_sensor_is_not_checked_against_the_free_memory(monkeypatch):
+    """simulate checks its size on every call: below checks.UNCHECKED_BYTES the system's memory
+    figures are not read (a small fixed-layout forward costs less than reading them)."""
+    import layoutwarp.checks as checks
+
+    def unreadable() -> int:
+        raise AssertionError("read the free memory for a small sensor")
+
+    monkeypatch.setattr(checks, "available_bytes", unreadable)
+    lw.simulate(torch.rand(1, 3, 16, 16), lw.CurvLayout((0.3, 0.1)), (4, 4))
+    side = int((checks.UNCHECKED_BYTES / checks.BYTES_PER_SENSOR_PIXEL) ** 0.5) + 1
+    with pytest.raises(AssertionError, match="read the free memory"):
+        checks.check_memory((side, side))
