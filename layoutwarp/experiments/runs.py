@@ -55,7 +55,8 @@ class RunOptions:
             from (networks with a ResNet backbone; ``None``: random initialisation).
         amp: mixed precision for the network (the sensor stays float32).
         progress: draw progress bars (on terminals).
-        task_options: the task's own options (see [`Task.add_arguments`][]).
+        task_options: the task's own options (its protocol's `options`, see
+            [`TaskSpec`][layoutwarp.experiments.protocols.TaskSpec]).
     """
 
     epochs: int
