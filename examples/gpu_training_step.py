@@ -6,7 +6,7 @@ backward of ``out.sum()`` (median of 20 after a warm-up):
 * the anchor: stratified Monte Carlo at 16 samples per pixel with ``grid_sample`` (φ of the
   jittered samples, bilinear look-up, mean per pixel), θ's gradient by autograd through it;
 * ``simulate`` at the data tolerance, which runs the compiled learnable path
-  (:mod:`layoutwarp.meshkernels`: mesh and vertex derivatives built on the device by
+  (:mod:`layoutwarp.kernels.mesh`: mesh and vertex derivatives built on the device by
   ``build_mesh_device``, integrals and Reynolds weights in the CUDA kernels);
 * the previous path, the mesh built by torch with θ's autograd graph (``pixel_mesh``) and the
   same CUDA kernels, and its θ-gradient, which the compiled one must equal.

@@ -30,10 +30,17 @@ from torch import Tensor
 from . import jit, kernels
 from .checks import check_choice, check_int, check_shape, check_size, floating_dtype
 from .coords import grid_lines, pixel_centers, sensor_to_pixels
+from .kernels.mesh import (
+    MeshSpec,
+    build_mesh_device,
+    edge_gradient,
+    mesh_integrals,
+    mesh_spec,
+    theta_gradient,
+)
 from .layouts import Layout
 from .maps import sample_points
 from .mesh import MeshTopology, PixelMesh, pixel_mesh
-from .meshkernels import MeshSpec, build_mesh_device, edge_gradient, mesh_integrals, mesh_spec, theta_gradient
 
 __all__ = [
     "BACKENDS",
@@ -322,7 +329,7 @@ class _ExactKernel(torch.autograd.Function):
     def forward(ctx, verts: Tensor, image: Tensor, mesh: PixelMesh) -> Tensor:
         ctx.save_for_backward(verts)
         ctx.mesh = mesh
-        if image.is_cuda:
+        if _on_device(image):
             out, ctx.tables = _cuda_forward(verts, image.detach().contiguous(), mesh)
             return out
         arrays = _kernel_arrays(verts, mesh)
@@ -334,7 +341,7 @@ class _ExactKernel(torch.autograd.Function):
     def backward(ctx, grad: Tensor):
         (verts,) = ctx.saved_tensors
         mesh = ctx.mesh
-        if verts.is_cuda:
+        if _on_device(verts):
             return _cuda_backward(verts, ctx.tables, mesh, grad), None, None
         g_edge = np.ascontiguousarray(grad.detach().double().cpu().numpy())
         v, seg_start, seg_end, _ = _kernel_arrays(verts, mesh)
@@ -390,7 +397,7 @@ def _cpu_weights(
 class _CompiledExact(torch.autograd.Function):
     """θ → the exact pixel means ``(N, h, w)`` and the pixels' areas ``(h, w)`` in sensor units
     (float64; an area is the boundary integral of 1 the means divide by) of a layout with a
-    compiled mesh ([`layoutwarp.meshkernels`][]): mesh, integrals and Reynolds weights in
+    compiled mesh ([`layoutwarp.kernels.mesh`][]): mesh, integrals and Reynolds weights in
     compiled kernels, and θ's gradient as one contraction with the vertices' θ-derivatives, so a
     training step runs a handful of torch operations instead of the thousands of the mesh's
     autograd graph (an output nobody uses costs its backward nothing). On the
@@ -407,7 +414,7 @@ class _CompiledExact(torch.autograd.Function):
         topo = MeshTopology(size)
         ctx.set_materialize_grads(False)  # an output nobody used gives None: no work for it
         ctx.unit = 4 / (hs * ws)  # a source pixel's area in sensor units ([-1, 1]² is 4)
-        if image.is_cuda:  # the mesh built where it is used: none of it crosses the bus
+        if _on_device(image):  # the mesh built where it is used: none of it crosses the bus
             dm = build_mesh_device(spec, size, theta.detach().to(image.device), tol, (hs, ws))
             out, ctx.tables = _cuda_forward(dm.pixel_vertices, image.detach().contiguous(), dm.mesh)
             pix = topo.combine(out)
@@ -428,7 +435,7 @@ class _CompiledExact(torch.autograd.Function):
         if grad is None and grad_areas is None:
             return None, None, None, None, None
         ref = grad if grad is not None else grad_areas
-        if ref.is_cuda:
+        if _on_device(ref):
             dm, topo = ctx.dm, ctx.topo
             means, areas = ctx.saved_tensors
             g = torch.zeros_like(means) if grad is None else grad.double()
@@ -448,6 +455,13 @@ class _CompiledExact(torch.autograd.Function):
         return torch.from_numpy(g_theta).to(ref.dtype), None, None, None, None
 
 
+def _on_device(t: Tensor) -> bool:
+    """Whether ``t``'s work takes the CUDA kernels: on a CUDA device, or on the CPU under numba's
+    CUDA simulator ([`simulated`][layoutwarp.kernels.device.simulated]: how the device path's
+    values and launches are checked without a GPU)."""
+    return t.is_cuda or (t.device.type == "cpu" and kernels.device.simulated())
+
+
 def _kernel_arrays(verts: Tensor, mesh: PixelMesh) -> list[np.ndarray]:
     """Vertices (float64) and the mesh's segment and edge indices as contiguous arrays."""
     tensors = (verts.detach().double(), mesh.seg_start, mesh.seg_end, mesh.edge_offsets)
@@ -458,7 +472,7 @@ def _cuda_forward(verts: Tensor, image: Tensor, mesh: PixelMesh) -> tuple[Tensor
     """[`_ExactKernel`][]'s forward on a CUDA device: ``(N + 1, E)`` and the prefix table
     ``incl`` (kept for the backward); the tables and a value per segment are the memory it takes."""
     n, h, w = image.shape
-    stream = torch.cuda.current_stream(image.device).cuda_stream
+    stream = kernels.device.stream_of(image)
     v = verts.detach().double().contiguous()
     seg_start, seg_end, edge_offsets = (
         t.to(image.device) for t in (mesh.seg_start, mesh.seg_end, mesh.edge_offsets)
@@ -478,7 +492,7 @@ def _cuda_forward(verts: Tensor, image: Tensor, mesh: PixelMesh) -> tuple[Tensor
 
 def _cuda_backward(verts: Tensor, incl: Tensor, mesh: PixelMesh, grad: Tensor) -> Tensor:
     """[`_ExactKernel`][]'s vertex gradient on a CUDA device."""
-    stream = torch.cuda.current_stream(verts.device).cuda_stream
+    stream = kernels.device.stream_of(verts)
     v = verts.detach().double().contiguous()
     seg_start, seg_end, seg_edge = (t.to(verts.device) for t in (mesh.seg_start, mesh.seg_end, mesh.seg_edge))
     wa, wb = v.new_zeros(mesh.num_segments), v.new_zeros(mesh.num_segments)

@@ -203,7 +203,8 @@ def test_the_cuda_kernels_compile_on_numpy_2_5_without_its_removed_aliases():
         if hasattr(numpy, "row_stack"):  # a numpy before 2.5 (on 2.5 itself this changes nothing)
             del numpy.row_stack
         numpy.__all__ = [n for n in numpy.__all__ if n != "row_stack"]
-        from layoutwarp import kernels, meshkernels as mk
+        from layoutwarp import kernels
+        from layoutwarp.kernels import mesh as mk
         assert ".entry" in kernels.cuda_ptx("edge_sums", "float32")
         fn, sig = mk.CUDA_KERNELS["amin"]
         assert ".entry" in kernels.cuda_ptx(fn, signature=sig)

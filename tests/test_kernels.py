@@ -382,8 +382,8 @@ def test_a_failing_cuda_target_warns_once_and_leaves_the_torch_path(monkeypatch)
     def broken(*args):
         raise RuntimeError("no kernel image is available")
 
-    monkeypatch.setattr(kernels, "_CUDA_OK", {})
-    monkeypatch.setattr(kernels, "cuda_launch", broken)
+    monkeypatch.setattr(kernels.device, "_CUDA_OK", {})
+    monkeypatch.setattr(kernels.device, "cuda_launch", broken)
     monkeypatch.setattr(numba_cuda, "is_available", lambda: True)
     with pytest.warns(RuntimeWarning, match="CUDA kernels do not run here.*torch path on CUDA"):
         assert not kernels.cuda_available("float32")

@@ -1,4 +1,4 @@
-"""The compiled learnable path (layoutwarp.meshkernels + integrators._CompiledExact) against the
+"""The compiled learnable path (layoutwarp.kernels.mesh + integrators._CompiledExact) against the
 torch reference: the same mesh, values and θ-gradients to rounding, on random and hard layouts."""
 
 from __future__ import annotations
@@ -10,9 +10,9 @@ import torch.autograd.forward_ad as fwad
 from conftest import grad_tol, ptx_or_skip
 
 import layoutwarp as lw
-from layoutwarp import meshkernels as mk
 from layoutwarp.experiments.bench import count_ops
 from layoutwarp.integrators import integrate_exact
+from layoutwarp.kernels import mesh as mk
 from layoutwarp.mesh import MeshTopology, pixel_mesh, smooth_pieces
 
 pytestmark = pytest.mark.skipif(not lw.kernels.available(), reason="needs numba")
@@ -243,7 +243,7 @@ def test_a_training_step_runs_few_torch_operations():
 
 @pytest.mark.slow  # a minute of PTX compiling
 def test_the_device_mesh_kernels_compile_for_the_device_without_one():
-    """Every kernel of :func:`~layoutwarp.meshkernels.build_mesh_device` compiles to PTX (no GPU
+    """Every kernel of :func:`~layoutwarp.kernels.mesh.build_mesh_device` compiles to PTX (no GPU
     needed: numba-cuda and the CUDA compilers), with every shared function it calls."""
     for name, (fn, signature) in mk.CUDA_KERNELS.items():
         ptx = ptx_or_skip(fn, signature=signature)
@@ -257,7 +257,7 @@ DEVICE_MESH = """
 import sys
 import numpy as np, torch
 import layoutwarp as lw
-from layoutwarp import meshkernels as mk
+from layoutwarp.kernels import mesh as mk
 case = dict(np.load(sys.argv[1]))
 spec = mk.MeshSpec(int(case["kind"]), tuple(case["center"]), bool(case["centred"]), int(case["theta"].size))
 dm = mk.build_mesh_device(spec, tuple(case["size"]), torch.from_numpy(case["theta"]), float(case["tol"]),
@@ -275,9 +275,9 @@ np.savez(sys.argv[2], verts=m.vertices.numpy(), pv=dm.pixel_vertices.numpy(), dv
     [("curv", False), ("curv-off", True), ("fovea", False), ("fovea", True), ("elliptic", True)],
 )
 def test_the_device_mesh_is_the_compiled_mesh_in_numbas_simulator(family: str, hard: bool, tmp_path):
-    """Without a GPU: :func:`~layoutwarp.meshkernels.build_mesh_device`'s kernels and launches
+    """Without a GPU: :func:`~layoutwarp.kernels.mesh.build_mesh_device`'s kernels and launches
     (one thread per corner, edge or vertex; the totals it allocates by) in numba's CUDA
-    simulator against :func:`~layoutwarp.meshkernels.build_mesh` on the CPU: the same segment
+    simulator against :func:`~layoutwarp.kernels.mesh.build_mesh` on the CPU: the same segment
     counts and indices, the same vertices and pixel vertices, θ-derivatives to rounding."""
     import os
     import subprocess

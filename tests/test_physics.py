@@ -311,14 +311,14 @@ def test_the_first_try_table_holds_each_edge_exactly_and_a_close_lower_bound_of_
     # edges must be the ziggurat's bit for bit (a draw is u·x[i]), the ratio bounds at most the
     # ratios (else a try the exact test rejects would be accepted) and close (each bound's
     # 1 − ratio at most 1/32 above the exact one, so few accepted tries are rerun)
-    from layoutwarp import kernels
+    from layoutwarp.kernels import noise
 
-    words = kernels._ZIG_P
+    words = noise._ZIG_P
     assert words.dtype == np.uint64 and words.shape == (1024,)
-    edge = ((words & kernels._X_MASK) + kernels._X_BASE).view(np.float64)
-    assert np.array_equal(edge, kernels._ZIG_X[:1024])
-    bound = 1.0 - (((words >> np.uint64(8)) & kernels._D_MASK) + kernels._D_BASE).view(np.float64)
-    x = kernels._ZIG_X
+    edge = ((words & noise._X_MASK) + noise._X_BASE).view(np.float64)
+    assert np.array_equal(edge, noise._ZIG_X[:1024])
+    bound = 1.0 - (((words >> np.uint64(8)) & noise._D_MASK) + noise._D_BASE).view(np.float64)
+    x = noise._ZIG_X
     ratio = x[1:] / x[:-1]  # recomputed from the edges
     assert (bound <= ratio).all() and bound[-1] == 0.0  # the top layer: every try to its wedge
     assert ((1.0 - bound) <= (1.0 - ratio) * (1 + 1 / 32)).all()
@@ -333,20 +333,20 @@ def test_the_kernels_first_tries_give_the_full_samplers_draws_bit_for_bit(noise,
     # reads them from a strided view (a signature of its own: each run's means copied into the
     # output, the cache hints stepping by the view's stride, which no result can show)
     numba = pytest.importorskip("numba")
-    from layoutwarp import kernels
+    from layoutwarp.kernels import noise as nk
 
     @numba.njit
     def reference(mu, seed, read, noise):
-        state0 = kernels._mix(np.uint64(seed) * kernels._GOLDEN + np.uint64(0x632BE59BD9B4E019))
+        state0 = nk._mix(np.uint64(seed) * nk._GOLDEN + np.uint64(0x632BE59BD9B4E019))
         out = np.empty(mu.size)
         for i in range(mu.size):
-            key = state0 + np.uint64(i) * kernels._ELEMENT_G
+            key = state0 + np.uint64(i) * nk._ELEMENT_G
             if noise == 1:
-                e, _ = kernels._poisson(mu[i], key)
+                e, _ = nk._poisson(mu[i], key)
             else:
-                z, _ = kernels._normal(key)
+                z, _ = nk._normal(key)
                 e = mu[i] + math.sqrt(mu[i]) * z
-            z, _ = kernels._normal(key + kernels._STREAM_G)
+            z, _ = nk._normal(key + nk._STREAM_G)
             out[i] = e + read * z
         return out
 
@@ -365,16 +365,16 @@ def test_the_kernels_poisson_sampler_keeps_large_counts_finite_in_its_rare_steps
     # could never be accepted there); numba's default error model raises on that division
     numba = pytest.importorskip("numba")
     stats = pytest.importorskip("scipy.stats")
-    from layoutwarp import kernels
+    from layoutwarp.kernels import noise
 
     @numba.njit  # error_model="python": x / 0 raises
     def draw(mu, seed, i):
-        state0 = kernels._mix(np.uint64(seed) * kernels._GOLDEN + np.uint64(0x632BE59BD9B4E019))
-        return kernels._poisson(mu, state0 + np.uint64(i) * kernels._ELEMENT_G)[0]
+        state0 = noise._mix(np.uint64(seed) * noise._GOLDEN + np.uint64(0x632BE59BD9B4E019))
+        return noise._poisson(mu, state0 + np.uint64(i) * noise._ELEMENT_G)[0]
 
     @numba.njit
     def log_p(mu, k):
-        return kernels._log_poisson(mu, k)
+        return noise._log_poisson(mu, k)
 
     k = draw(98946.46779494225, 515249225436444668, 131632)
     assert k == round(k) and abs(k - 98946.47) < 6 * math.sqrt(98946.47)

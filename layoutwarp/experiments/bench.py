@@ -18,6 +18,7 @@ import json
 import multiprocessing as mp
 import os
 import time
+from collections import Counter
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -34,11 +35,12 @@ from ..checks import check_size
 from ..coords import uniform_corners
 from ..files import atomic_write, run_info
 from ..integrators import data_tolerance, integrate_exact
+from ..kernels.device import LAUNCHES
+from ..kernels.mesh import build_mesh, mesh_spec
 from ..layoutfile import layout_from_spec
 from ..layouts import Layout, make_layout
 from ..maps import forward_maps, sample_points
 from ..mesh import pixel_mesh
-from ..meshkernels import build_mesh, mesh_spec
 from ..sensor import simulate
 from .scene import SineScene, blurred_noise, load_photo
 
@@ -596,9 +598,41 @@ def count_ops(fn: Callable[[], object]) -> int:
     return sum(1 for e in prof.events() if e.name.startswith("aten::") and e.cpu_parent is None)
 
 
+#: aten operators that launch no GPU kernel: allocations (views are told by their schema).
+NO_KERNEL_OPS = frozenset(
+    "empty empty_like empty_strided new_empty new_empty_strided detach alias lift_fresh _unsafe_view".split()
+)
+
+
+def count_launches(fn: Callable[[], object]) -> Counter[str]:
+    """The GPU launches ``fn`` makes, counted without a GPU: every launch of a numba CUDA kernel
+    ([`LAUNCHES`][layoutwarp.kernels.device.LAUNCHES], by kernel name, ``numba:NAME``) and every
+    torch operator that runs a kernel or a copy on a device (``aten:NAME``; views and bare
+    allocations run none), including those of the backward; ``aten:_local_scalar_dense`` is a
+    host wait (a value read back). Run it where the device path runs: on a CUDA device, or on the
+    CPU under numba's CUDA simulator. The total is what the torch profiler's count of GPU
+    activities approximates (it adds cuBLAS's and cuSPARSE's inner kernels)."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    counts: Counter[str] = Counter()
+
+    class Ops(TorchDispatchMode):
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            name = func.overloadpacket.__name__
+            if not func.is_view and name.rstrip("_") not in NO_KERNEL_OPS:
+                counts[f"aten:{name}"] += 1
+            return func(*args, **(kwargs or {}))
+
+    before = Counter(LAUNCHES)
+    with Ops():
+        fn()
+    counts.update({f"numba:{k}": v for k, v in (LAUNCHES - before).items()})
+    return counts
+
+
 def _learnable_mesh(layout: Layout, size: tuple[int, int]) -> object:
     """The mesh a training step of ``layout`` builds: compiled where the family has a compiled
-    form ([`layoutwarp.meshkernels`][]), else [`pixel_mesh`][] with θ's autograd graph."""
+    form ([`layoutwarp.kernels.mesh`][]), else [`pixel_mesh`][] with θ's autograd graph."""
     tol = data_tolerance(torch.float32)[0]
     spec = mesh_spec(layout)
     if spec is None:

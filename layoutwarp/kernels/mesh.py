@@ -33,14 +33,11 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-try:  # as in layoutwarp.kernels: without numba, mesh_spec says there is no compiled form
-    from numba import njit, prange
-except ImportError:  # pragma: no cover - depends on the environment
-    njit = prange = None
-
-from .kernels import BLOCK, CHUNK, available, cuda_launch, segment_moments, threads
-from .layouts import CurvLayout, EllipticLayout, FoveaLayout, Layout
-from .mesh import INNER, MeshTopology, PixelMesh
+from ..layouts import CurvLayout, EllipticLayout, FoveaLayout, Layout
+from ..mesh import INNER, MeshTopology, PixelMesh
+from .base import CHUNK, available, inline, parallel, prange, serial, threads
+from .device import cuda_launch, stream_of
+from .exact import BLOCK, segment_moments
 
 __all__ = [
     "CUDA_KERNELS",
@@ -117,31 +114,18 @@ class CompiledMesh:
         return PixelMesh(self.size, *(t(a) for a in arrays))
 
 
-def _inline(fn):  # inlined where called: the mesh builds in half the time of plain calls, and the
-    # first call in a new environment compiles for about a minute (then cached on disk)
-    return njit(inline="always", cache=True)(fn) if njit is not None else fn
-
-
-def _run(fn):  # called once a chunk: compiled once, not inlined into every kernel that calls it
-    return njit(cache=True, nogil=True, error_model="numpy")(fn) if njit is not None else fn
-
-
-def _jit(fn):  # numpy's error model: a division by zero gives inf, so loops of the maps vectorise
-    return njit(parallel=True, cache=True, nogil=True, error_model="numpy")(fn) if njit is not None else fn
-
-
 # ----------------------------------------------------------------------------------------
 # The maps, one point at a time (arithmetic as in layoutwarp.layouts), without a branch on the
 # point, so that a loop of them runs in SIMD lanes (4-5x the scalar code on AVX-512)
 # ----------------------------------------------------------------------------------------
-@_inline
+@inline
 def _den(t: float) -> tuple:
     """``(A, B, C)`` with ``A + B (1 − r) + C r = 1 + t − 2tr`` summed as
     [`layoutwarp.layouts._denom`][] sums it (two non-negative terms), for any ``r`` in [0, 1]."""
     return (1 - t, 2 * t, 0.0) if t >= 0 else (1 + t, 0.0, 2 * (-t))
 
 
-@_inline
+@inline
 def _curv0(x: float, y: float, tx: float, ty: float, kx: tuple, ky: tuple) -> tuple:
     """φ_curv about the origin at ``(x, y)``: ``(φ_x, φ_y, ∂φ_x/∂θ_x, ∂φ_y/∂θ_y, J_00, J_01,
     J_10, J_11)`` with ``J`` the spatial Jacobian (the identity on and outside the unit circle);
@@ -166,7 +150,7 @@ def _curv0(x: float, y: float, tx: float, ty: float, kx: tuple, ky: tuple) -> tu
     )
 
 
-@_inline
+@inline
 def _curv(
     x: float, y: float, tx: float, ty: float, cx: float, cy: float, kx: tuple, ky: tuple, centred: bool
 ) -> tuple:
@@ -203,23 +187,23 @@ def _curv(
     )
 
 
-@_inline
+@inline
 def _sqrt0(x: float) -> float:
     return math.sqrt(x) if x > 0 else 0.0
 
 
-@_inline
+@inline
 def _inv(x: float) -> float:
     return 1 / x if x > 0 else 0.0
 
 
-@_inline
+@inline
 def _centre(th: np.ndarray, c: np.ndarray) -> tuple:
     """``(c_x, c_y)``: the learned centre (θ's last two entries) or the fixed one."""
     return (th[2], th[3]) if th.shape[0] == 4 else (c[0], c[1])
 
 
-@_inline
+@inline
 def _phi(
     kind: int, centred: bool, x: float, y: float, th: np.ndarray, c: np.ndarray, q: np.ndarray, dq: np.ndarray
 ) -> None:
@@ -257,7 +241,7 @@ def _phi(
     dq[0, p], dq[0, p + 1], dq[1, p], dq[1, p + 1] = f[10], f[11], f[12], f[13]
 
 
-@_inline
+@inline
 def _store(out: np.ndarray, i: int, f: tuple, p: int) -> None:
     """[`_curv`][]'s point ``f`` into column ``i`` of [`_phi_run`][]'s rows (θ of ``p``)."""
     out[0, i], out[1, i] = f[0], f[1]
@@ -265,7 +249,7 @@ def _store(out: np.ndarray, i: int, f: tuple, p: int) -> None:
         out[2 + r, i], out[2 + p + r, i] = f[2 + r], f[6 + r]
 
 
-@_run
+@serial
 def _phi_run(
     kind: int, centred: bool, th: np.ndarray, c: np.ndarray, pts: np.ndarray, n: int, out: np.ndarray
 ) -> None:
@@ -295,7 +279,7 @@ def _phi_run(
             _store(out, i, _curv(pts[0, i], pts[1, i], tx, ty, cx, cy, kx, ky, False), 4)
 
 
-@_inline
+@inline
 def _unpack(out: np.ndarray, n: int, q: np.ndarray, dq: np.ndarray) -> None:
     """[`_phi_run`][]'s rows into points: ``q[i]`` (2,) and ``dq[i]`` (2, P) for ``i < n``."""
     p = dq.shape[2]
@@ -309,7 +293,7 @@ def _unpack(out: np.ndarray, n: int, q: np.ndarray, dq: np.ndarray) -> None:
 # Kinks of every uniform edge, with their θ-derivatives (as smooth_pieces and
 # CurvLayout.edge_breakpoints)
 # ----------------------------------------------------------------------------------------
-@_inline
+@inline
 def _circle(ax: float, ay: float, dx: float, dy: float, sx: float, sy: float, lo: float, hi: float) -> tuple:
     """``(k, t0, t1)``: the ``k`` (0–2) parameters in ``(lo, hi)`` where ``(a + t d) / s`` crosses
     the unit circle (``a`` relative to the centre)."""
@@ -332,7 +316,7 @@ def _circle(ax: float, ay: float, dx: float, dy: float, sx: float, sy: float, lo
     return 0, 0.0, 0.0
 
 
-@_inline
+@inline
 def _add_kink(
     t: float, draw: np.ndarray, n: int, cuts: np.ndarray, dcuts: np.ndarray, k: int, grad: bool
 ) -> int:
@@ -354,7 +338,7 @@ def _add_kink(
     return k + 1
 
 
-@_inline
+@inline
 def _edge_pieces(
     kind: int, centred: bool, e: int, ends: np.ndarray, th: np.ndarray, c: np.ndarray,
     scratch: np.ndarray, cuts: np.ndarray, dcuts: np.ndarray, lo: np.ndarray, dlo: np.ndarray, grad: bool,
@@ -425,7 +409,7 @@ def _edge_pieces(
 # The mesh: pieces, counts, vertices (threads take chunks of edges in turn, with their own
 # work space)
 # ----------------------------------------------------------------------------------------
-@_jit
+@parallel
 def _count_pieces(
     kind: int, centred: bool, ends: np.ndarray, th: np.ndarray, c: np.ndarray, threads: int
 ) -> np.ndarray:
@@ -441,7 +425,7 @@ def _count_pieces(
     return out
 
 
-@_inline
+@inline
 def _sample_point(
     ax: float, ay: float, dx: float, dy: float, a: float, b: float, s: int, inner: float
 ) -> tuple[float, float]:
@@ -457,7 +441,7 @@ def _sample_point(
     return x0 + inner * (x1 - x0), y0 + inner * (y1 - y0)
 
 
-@_inline
+@inline
 def _segment_counts(
     sag: np.ndarray, length: np.ndarray, j0: int, n: int, base: int, amin_e: float, tol: float,
     max_subdiv: int, counts: np.ndarray,
@@ -479,7 +463,7 @@ def _segment_counts(
     return total
 
 
-@_inline
+@inline
 def _edge_bounds(
     kind: int, centred: bool, e: int, ends: np.ndarray, th: np.ndarray, c: np.ndarray,
     piece_offsets: np.ndarray, scratch: np.ndarray, cuts: np.ndarray, dcuts: np.ndarray,
@@ -504,7 +488,7 @@ def _edge_bounds(
     return n
 
 
-@_inline
+@inline
 def _sagittas(
     out: np.ndarray, n: int, ns: int, grad: bool, p: int, sag: np.ndarray, length: np.ndarray
 ) -> None:  # fmt: skip
@@ -532,7 +516,7 @@ def _sagittas(
         sag[q], length[q] = sg / 8, ln
 
 
-@_jit
+@parallel
 def _pieces_and_counts(
     kind: int, centred: bool, ends: np.ndarray, th: np.ndarray, c: np.ndarray, piece_offsets: np.ndarray,
     amin: np.ndarray, tol: float, max_subdiv: int, with_grad: bool, inner: float, threads: int,
@@ -598,7 +582,7 @@ def _topology(size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray
     )
 
 
-@_inline
+@inline
 def _quad_area(q: np.ndarray, i: int, j: int, w: int) -> float:
     """The area of pixel ``(i, j)``'s corner quad (``q``: the ``(h + 1)(w + 1)`` corners)."""
     a, b = i * (w + 1) + j, i * (w + 1) + j + 1
@@ -610,7 +594,7 @@ def _quad_area(q: np.ndarray, i: int, j: int, w: int) -> float:
     return abs(s)
 
 
-@_inline
+@inline
 def _amin_across(area: np.ndarray, i: int, j: int) -> float:
     """The smaller area of the pixels above and below horizontal edge ``(i, j)`` (from the pixel
     areas ``area`` ``(h, w)``; the sensor's outside counts as infinite)."""
@@ -618,14 +602,14 @@ def _amin_across(area: np.ndarray, i: int, j: int) -> float:
     return min(up, area[i, j] if i < area.shape[0] else np.inf)
 
 
-@_inline
+@inline
 def _amin_beside(area: np.ndarray, i: int, j: int) -> float:
     """The smaller area of the pixels left and right of vertical edge ``(i, j)``."""
     left = area[i, j - 1] if j > 0 else np.inf
     return min(left, area[i, j] if j < area.shape[1] else np.inf)
 
 
-@_jit
+@parallel
 def _corners(
     kind: int, centred: bool, h: int, w: int, corners: np.ndarray, th: np.ndarray, c: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -655,7 +639,7 @@ def _corners(
     return q, dq, amin
 
 
-@_inline
+@inline
 def _edge_segments(
     e: int, ea: np.ndarray, eb: np.ndarray, edge_offsets: np.ndarray, ncorner: int,
     seg_start: np.ndarray, seg_end: np.ndarray, seg_edge: np.ndarray,
@@ -670,7 +654,7 @@ def _edge_segments(
         seg_end[s] = eb[e] if s == last else ncorner + s - e
 
 
-@_inline
+@inline
 def _piece_moves(dbounds: np.ndarray, pc: int, p: int) -> bool:
     """Whether piece ``pc``'s ends move with θ (a learned centre, ``P = 4``, moves the kinks)."""
     moves = False
@@ -680,7 +664,7 @@ def _piece_moves(dbounds: np.ndarray, pc: int, p: int) -> bool:
     return moves
 
 
-@_inline
+@inline
 def _add_moving(
     dverts: np.ndarray, v: int, dq: np.ndarray, p: int, dx: float, dy: float, dbounds: np.ndarray, pc: int,
     f: float,
@@ -694,13 +678,13 @@ def _add_moving(
             dverts[v, 1, r] += (dq[1, p] * dx + dq[1, p + 1] * dy) * dt
 
 
-@_inline
+@inline
 def _pixel_vertex(x: float, y: float, ws: float, hs: float) -> tuple[float, float]:
     """A vertex in pixel units of a ``ws`` x ``hs`` source, clamped to it."""
     return min(max((x + 1) * (ws / 2), 0.0), ws), min(max((y + 1) * (hs / 2), 0.0), hs)
 
 
-@_run
+@serial
 def _place_chunk(
     kind: int, centred: bool, ends: np.ndarray, th: np.ndarray, c: np.ndarray, piece_offsets: np.ndarray,
     bounds: np.ndarray, dbounds: np.ndarray, counts: np.ndarray, edge_offsets: np.ndarray, e0: int, e1: int,
@@ -747,7 +731,7 @@ def _place_chunk(
                 _add_moving(dverts, v, dq, p, dx, dy, dbounds, pc, f)
 
 
-@_jit
+@parallel
 def _place_vertices(
     kind: int, centred: bool, ends: np.ndarray, ea: np.ndarray, eb: np.ndarray, th: np.ndarray,
     c: np.ndarray, piece_offsets: np.ndarray, bounds: np.ndarray, dbounds: np.ndarray,
@@ -773,7 +757,7 @@ def _place_vertices(
             _place_chunk(*mesh, e0, e1, pts, out, moving, qi, dq, verts[v0:], dverts[v0:])
 
 
-@_inline
+@inline
 def _still(v: np.ndarray) -> bool:
     """Whether a vertex's θ-velocity ``v`` ``(2, P)`` is zero (φ the identity about it)."""
     for r in range(v.shape[1]):
@@ -782,7 +766,7 @@ def _still(v: np.ndarray) -> bool:
     return True
 
 
-@_jit
+@parallel
 def _integrate(
     kind: int, centred: bool, ends: np.ndarray, ea: np.ndarray, eb: np.ndarray, th: np.ndarray,
     c: np.ndarray, piece_offsets: np.ndarray, bounds: np.ndarray, dbounds: np.ndarray,
@@ -956,7 +940,7 @@ def mesh_integrals(
     )  # fmt: skip
 
 
-@_jit
+@parallel
 def _to_pixels(verts: np.ndarray, ws: float, hs: float) -> np.ndarray:
     out = np.empty_like(verts)
     for v in prange(verts.shape[0]):
@@ -971,7 +955,7 @@ def pixel_vertices(mesh: CompiledMesh, src_size: tuple[int, int]) -> np.ndarray:
     return _to_pixels(mesh.vertices, float(ws), float(hs))
 
 
-@_jit
+@parallel
 def _edge_gradient(
     grad: np.ndarray, means: np.ndarray, areas: np.ndarray, area_grad: np.ndarray
 ) -> np.ndarray:
@@ -1012,7 +996,7 @@ def edge_gradient(
     return _edge_gradient(*(np.ascontiguousarray(a, dtype=np.float64) for a in (grad, means, areas, own)))
 
 
-@_jit
+@parallel
 def _contract(g: np.ndarray, jac: np.ndarray) -> np.ndarray:
     rows, p = jac.shape
     n_chunks = (rows + 4095) // 4096
@@ -1048,7 +1032,7 @@ _DQ, _ROWS = P_MAX + 2, 2 + 2 * P_MAX  # local arrays' sizes must be constants o
 F8 = np.float64
 
 
-@_inline
+@inline
 def _phi_at(
     kind: int, centred: bool, x: float, y: float, th: np.ndarray, c: np.ndarray, q: np.ndarray, dq: np.ndarray
 ) -> None:
@@ -1058,7 +1042,7 @@ def _phi_at(
     _phi(kind, centred, x, y, th, c, q, dq[:, : th.shape[0] + 2])
 
 
-@_inline
+@inline
 def _edge_pieces_and_counts(
     kind: int, centred: bool, e: int, ends: np.ndarray, th: np.ndarray, c: np.ndarray,
     piece_offsets: np.ndarray, amin: np.ndarray, tol: float, max_subdiv: int, inner: float,
@@ -1090,7 +1074,7 @@ def _edge_pieces_and_counts(
     edge_counts[e + 1] = _segment_counts(sag, length, 0, n, base, amin[e], tol, max_subdiv, counts)
 
 
-@_inline
+@inline
 def _edge_vertices(
     kind: int, centred: bool, e: int, ends: np.ndarray, ea: np.ndarray, eb: np.ndarray, th: np.ndarray,
     c: np.ndarray, piece_offsets: np.ndarray, bounds: np.ndarray, dbounds: np.ndarray,
@@ -1280,7 +1264,7 @@ def build_mesh_device(
     ``theta`` on the CPU runs the same kernels in numba's CUDA simulator
     (``NUMBA_ENABLE_CUDASIM=1``), which is how they are tested without a GPU."""
     dev = theta.device
-    stream = torch.cuda.current_stream(dev).cuda_stream if dev.type == "cuda" else 0
+    stream = stream_of(theta)
     (h, w), (hs, ws) = size, src_size
     ends, ea, eb, uniform = _device_topology(size, str(dev))
     th = theta.detach().to(torch.float64).contiguous()
@@ -1289,8 +1273,7 @@ def build_mesh_device(
     f64, i64 = {"dtype": torch.float64, "device": dev}, {"dtype": torch.int64, "device": dev}
 
     def launch(name: str, count: int, *args: object) -> None:
-        host = [a.numpy() if isinstance(a, torch.Tensor) and dev.type == "cpu" else a for a in args]
-        cuda_launch(CUDA_KERNELS[name][0], count, stream, *host)
+        cuda_launch(CUDA_KERNELS[name][0], count, stream, *args)
 
     q, dq = torch.empty(nc, 2, **f64), torch.empty(nc, 2, p, **f64)
     launch("corners", nc, spec.kind, spec.centred, uniform, th, c, q, dq)

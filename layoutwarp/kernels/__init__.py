@@ -1,0 +1,60 @@
+"""Compiled kernels (numba; no compiler needed on the user's machine), one file per idea:
+
+- [`exact`][layoutwarp.kernels.exact]: the exact integrator, prefix tables, forward and
+  backward on the CPU, and the same per-segment functions as CUDA kernels;
+- [`mesh`][layoutwarp.kernels.mesh]: the pixel meshes of the built-in curved families with
+  every vertex's θ-derivative, on the CPU or built on a CUDA device;
+- [`csr`][layoutwarp.kernels.csr]: a fixed layout's product with its area weights;
+- [`noise`][layoutwarp.kernels.noise]: the sensor's measurement (noise, full well, ADC);
+- [`device`][layoutwarp.kernels.device]: numba's CUDA target, and every CUDA launch;
+- [`base`][layoutwarp.kernels.base]: what they share (numba, the decorators, threads, the lock).
+
+Compiled code is cached on disk (``cache=True``): a second process loads it instead of
+compiling again. numba invalidates a cache only when the function's own file changes, and the
+kernels inline functions of other files of this package (the mesh kernels the exact
+integrator's per-segment functions): after editing one, delete the package's ``*.nbi``/``*.nbc``
+caches. [`available`][layoutwarp.kernels.base.available] says whether numba is installed;
+without it the torch reference runs. This package's namespace holds the names the rest of
+layoutwarp calls; [`mesh`][layoutwarp.kernels.mesh] (which imports torch) is imported on its own.
+"""
+
+from __future__ import annotations
+
+from .base import CHUNK, LOCK, available, retain_freed_memory, threads
+from .csr import csr_apply, measured_csr_apply
+from .device import CUDA_THREADS, cuda_available, cuda_checked, cuda_launch, cuda_ptx
+from .exact import (
+    BLOCK,
+    WHOLE_TABLE_BYTES,
+    band_rows,
+    exact_backward,
+    exact_forward,
+    exact_forward_banded,
+    prefix_tables,
+    segment_moments,
+)
+from .noise import sensor_measure
+
+__all__ = [
+    "BLOCK",
+    "CHUNK",
+    "CUDA_THREADS",
+    "LOCK",
+    "WHOLE_TABLE_BYTES",
+    "available",
+    "band_rows",
+    "csr_apply",
+    "cuda_available",
+    "cuda_checked",
+    "cuda_launch",
+    "cuda_ptx",
+    "exact_backward",
+    "exact_forward",
+    "exact_forward_banded",
+    "measured_csr_apply",
+    "prefix_tables",
+    "retain_freed_memory",
+    "segment_moments",
+    "sensor_measure",
+    "threads",
+]

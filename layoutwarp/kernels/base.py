@@ -1,0 +1,108 @@
+"""What every compiled kernel of the package shares: numba (optional: without it the torch paths
+run), the decorators each kernel is compiled with, the thread count and the launch lock."""
+
+from __future__ import annotations
+
+import threading
+
+try:  # numba is a dependency, but the torch reference keeps working without it
+    from numba import config as numba_config
+    from numba import get_num_threads, njit, prange, set_num_threads
+except ImportError:  # pragma: no cover - depends on the environment
+    njit = prange = get_num_threads = set_num_threads = numba_config = None
+
+__all__ = [
+    "CHUNK",
+    "LOCK",
+    "available",
+    "inline",
+    "njit",
+    "parallel",
+    "prange",
+    "retain_freed_memory",
+    "serial",
+    "threads",
+]
+
+#: Segments per work chunk; chunks go to the threads in turn.
+CHUNK = 256
+#: Held around every launch of a parallel kernel: numba's ``workqueue`` threading layer (used
+#: where no OpenMP or TBB runtime is installed) aborts the process on concurrent launches from
+#: several Python threads. Each launch uses every core anyway.
+LOCK = threading.Lock()
+
+
+def available() -> bool:
+    """Whether the compiled kernels can run (numba is importable)."""
+    return njit is not None
+
+
+#: Per Python thread: torch's thread count at [`threads`][]' last call there, and what it set.
+_THREADS = threading.local()
+
+
+def threads() -> int:
+    """The number of threads the kernels share their work out to, and set for the calling thread's
+    launches: numba's, at most torch's current count, so that ``torch.set_num_threads`` and
+    ``OMP_NUM_THREADS`` bound both (jobs meant for one core each no longer fight over the cores:
+    two such jobs with numba on two threads each ran a small training step 60x slower). Numba's
+    count is set again only when torch's changed since the calling thread's last call (asking
+    numba costs microseconds a launch)."""
+    if get_num_threads is None:
+        return 1
+    import torch
+
+    wanted = torch.get_num_threads()
+    if getattr(_THREADS, "wanted", None) == wanted:
+        return _THREADS.n
+    current = get_num_threads()  # the first call starts numba's OpenMP layer, which resets torch's count
+    if torch.get_num_threads() != wanted:
+        torch.set_num_threads(wanted)
+    n = max(1, min(wanted, numba_config.NUMBA_NUM_THREADS))
+    if n != current:
+        set_num_threads(n)
+    _THREADS.wanted, _THREADS.n = wanted, n
+    return n
+
+
+def retain_freed_memory(trim_bytes: int = 1 << 30) -> bool:
+    """Let glibc's allocator keep freed memory for the next allocations of the process instead of
+    handing it back to the system (blocks up to 32 MiB from the heap, not from fresh mappings;
+    up to ``trim_bytes`` of free heap kept). A training step allocates about 100 MB of arrays
+    (mesh, tables, moments) and frees them again; fresh pages cost a page fault each, about
+    20 000 a step at 2048x1024 → 257x129, which took 37–41 % of the step on the (virtualised)
+    2-core machine of the figures in ``docs/speed.md``. The command line calls this once;
+    library users may. Returns whether it took effect (``False`` where the C library is not
+    glibc). The price: the process's resident memory stays near its peak."""
+    import ctypes
+    import platform
+
+    if platform.libc_ver()[0] != "glibc":
+        return False
+    try:
+        libc = ctypes.CDLL(None)
+        m_trim_threshold, m_mmap_threshold = -1, -3  # mallopt's parameter numbers (malloc.h)
+        return bool(
+            libc.mallopt(m_mmap_threshold, 32 << 20) and libc.mallopt(m_trim_threshold, int(trim_bytes))
+        )
+    except (OSError, AttributeError):  # pragma: no cover - a libc without mallopt
+        return False
+
+
+def parallel(fn):
+    """A kernel with ``prange`` loops, called from Python (numpy's error model: a division by zero
+    gives inf, unchecked, so loops with one vectorise)."""
+    return njit(parallel=True, cache=True, nogil=True, error_model="numpy")(fn) if njit is not None else fn
+
+
+def serial(fn):
+    """A serial kernel compiled once and called as a function: a driver of parallel kernels (one
+    call from Python), or a step called once a chunk that is not worth inlining everywhere."""
+    return njit(cache=True, nogil=True, error_model="numpy")(fn) if njit is not None else fn
+
+
+def inline(fn):
+    """A helper inlined into each kernel that calls it, at numba's IR level (``inline="always"``):
+    the mesh builds in half the time of plain calls; the price is compile time, which
+    [`layoutwarp.jit.quick`][] avoids where a first call cannot wait."""
+    return njit(inline="always", cache=True)(fn) if njit is not None else fn

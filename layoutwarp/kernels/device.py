@@ -1,0 +1,209 @@
+"""numba's CUDA target: importing it on any numpy, compiling the kernels (to PTX without a GPU),
+launching them on torch's stream, and checking once that they run.
+
+Every CUDA kernel of the package is launched by [`cuda_launch`][]: the exact integrator's by
+name ([`layoutwarp.kernels.exact.CUDA_SOURCES`][]), the device mesh's by their source function.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import importlib
+import warnings
+from collections import Counter
+from collections.abc import Callable
+
+import numpy as np
+
+from .base import njit
+from .exact import BLOCK, CUDA_SOURCES, cuda_signature
+
+__all__ = [
+    "CUDA_THREADS",
+    "LAUNCHES",
+    "REMOVED_NUMPY_ALIASES",
+    "cuda_available",
+    "cuda_checked",
+    "cuda_launch",
+    "cuda_ptx",
+    "simulated",
+    "stream_of",
+]
+
+#: Threads per block of the CUDA kernels.
+CUDA_THREADS = 128
+cuda = None  # numba.cuda, imported by the first CUDA call (it costs a tenth of a second)
+_CUDA_KERNELS: dict = {}
+_CUDA_OK: dict = {}
+#: Every launch [`cuda_launch`][] made in this process, by kernel name (a launch of no items
+#: launches nothing and is not counted): what a count of a step's GPU launches reads, also in
+#: numba's CUDA simulator, where no GPU is needed.
+LAUNCHES: Counter[str] = Counter()
+
+
+def simulated() -> bool:
+    """Whether numba's CUDA simulator stands in for a GPU (``NUMBA_ENABLE_CUDASIM=1``): the CUDA
+    kernels then run as Python on CPU arrays, and the device paths take CPU tensors, so their
+    launches and results can be checked where no GPU is."""
+    if njit is None:
+        return False
+    from numba import config
+
+    return bool(config.ENABLE_CUDASIM)
+
+
+def stream_of(tensor) -> int:
+    """The handle of torch's current CUDA stream on ``tensor``'s device (0, the default stream,
+    for a CPU tensor in the simulator): the stream [`cuda_launch`][] queues on, so the kernels run
+    in order with torch's own work."""
+    if tensor.device.type != "cuda":
+        return 0
+    import torch
+
+    return torch.cuda.current_stream(tensor.device).cuda_stream
+
+
+#: numpy's names that numpy removed and numba-cuda still registers overloads for when it first
+#: compiles (0.30.4: ``np.row_stack``, gone in numpy 2.5), each with the function it aliased.
+REMOVED_NUMPY_ALIASES = {"row_stack": "vstack"}
+
+
+def _import_cuda() -> None:
+    """Import numba's CUDA target, and its numpy overloads with numpy's removed aliases in place
+    for that moment only (numba-cuda 0.30.4 reads ``np.row_stack`` while it registers them, and
+    without it on numpy ≥ 2.5 no kernel compiles; numba's own CPU target checks the version)."""
+    global cuda
+    if cuda is None:
+        missing = [name for name in REMOVED_NUMPY_ALIASES if not hasattr(np, name)]
+        for name in missing:
+            setattr(np, name, getattr(np, REMOVED_NUMPY_ALIASES[name]))
+        try:
+            from numba import cuda as numba_cuda
+
+            with contextlib.suppress(ImportError):  # numba's own (older) CUDA target has no such module
+                importlib.import_module("numba.cuda.np.arrayobj")
+        finally:
+            for name in missing:
+                delattr(np, name)
+        cuda = numba_cuda
+
+
+def _kernel_source(kernel: str | Callable) -> Callable:
+    """The source of CUDA kernel ``kernel`` (a name of
+    [`CUDA_SOURCES`][layoutwarp.kernels.exact.CUDA_SOURCES], or a kernel function), its
+    module's ``cuda`` (a ``None`` placeholder there: importing numba.cuda costs a tenth of a
+    second) bound to numba.cuda."""
+    _import_cuda()
+    fn = CUDA_SOURCES[kernel] if isinstance(kernel, str) else kernel
+    if fn.__globals__.get("cuda", cuda) is None:
+        fn.__globals__["cuda"] = cuda
+    return fn
+
+
+def cuda_ptx(
+    kernel: str | Callable, dtype: str = "float32", cc: tuple[int, int] = (8, 0), signature: str | None = None
+) -> str:
+    """The PTX of CUDA kernel ``kernel`` for compute capability ``cc``, compiled without a GPU: a
+    check that the kernels compile for the device, where no device is at hand. ``kernel``: a name
+    of [`cuda_launch`][]'s (for images of ``dtype``, ``"float32"``/``"float64"``), or another
+    module's kernel function with its argument types ``signature`` (numba's notation, e.g.
+    ``"void(float64[:, ::1], int64)"``). Needs NVIDIA's numba-cuda target (``pip install
+    "layoutwarp[cuda]"``; numba 0.68's built-in CUDA target does not type ``min``/``max`` of two
+    floats in a kernel) with the CUDA toolkit's NVVM and NVRTC libraries."""
+    if isinstance(kernel, str):
+        if kernel not in CUDA_SOURCES:
+            raise ValueError(f"kernel must be one of {', '.join(CUDA_SOURCES)}, got {kernel!r}")
+        if dtype not in ("float32", "float64"):
+            raise ValueError(f"dtype must be 'float32' or 'float64', got {dtype!r}")
+        signature = cuda_signature(kernel, dtype)
+    elif signature is None:
+        raise ValueError("signature: a kernel function needs its argument types, e.g. 'void(float64[::1])'")
+    source = _kernel_source(kernel)
+    ptx, _ = cuda.compile_ptx(source, signature, cc=cc)
+    return ptx
+
+
+def cuda_launch(name: str | Callable, count: int, stream: int, *args) -> None:
+    """Launch CUDA kernel ``name`` with one thread per item, ``count`` items, on the CUDA
+    stream whose handle is ``stream`` (0: the default stream); ``name`` may also be another
+    module's kernel source (a function of a source file, compiled on first use). The kernels, by
+    name:
+    ``"prefix_blocks"`` (items: row × block × channel) and ``"prefix_offsets"`` (row ×
+    channel) build [`prefix_tables`][layoutwarp.kernels.exact.prefix_tables]; ``"forward"``
+    (segment) and ``"edge_sums"`` (pixel edge) do
+    [`exact_forward`][layoutwarp.kernels.exact.exact_forward]; ``"backward"`` (segment) does
+    [`exact_backward`][layoutwarp.kernels.exact.exact_backward], each step for step as on the
+    CPU. Array arguments are torch CUDA tensors or numba device arrays (anything with
+    ``__cuda_array_interface__``), read and written in place. Kernels compile on first use and
+    are cached on disk. Each launch is counted in [`LAUNCHES`][]."""
+    _import_cuda()
+    if name not in _CUDA_KERNELS:
+        _CUDA_KERNELS[name] = cuda.jit(cache=True)(_kernel_source(name))
+    if count == 0:
+        return
+    LAUNCHES[getattr(name, "__name__", name)] += 1
+    arrays = [_device_array(a) for a in args]
+    on = cuda.external_stream(stream) if stream else 0  # 0: the default stream, as numba takes it
+    with warnings.catch_warnings():  # numba warns of low occupancy on small meshes: not the user's concern
+        warnings.filterwarnings("ignore", message=".*GPU under-utilization")
+        _CUDA_KERNELS[name][(count + CUDA_THREADS - 1) // CUDA_THREADS, CUDA_THREADS, on](*arrays)
+
+
+def _device_array(a: object) -> object:
+    """A launch argument as numba takes it: a device array for anything with
+    ``__cuda_array_interface__``, a CPU tensor's numpy view (the simulator's arrays), else as is."""
+    if getattr(getattr(a, "device", None), "type", None) == "cpu":  # a torch tensor on the CPU
+        return a.numpy()
+    return cuda.as_cuda_array(a) if hasattr(type(a), "__cuda_array_interface__") else a
+
+
+def cuda_available(dtype: str = "float32") -> bool:
+    """Whether the CUDA kernels run here for images of ``dtype`` (``"float32"``/``"float64"``):
+    numba's CUDA target imports, sees a GPU, and compiles and runs all its kernels on a
+    one-pixel mesh (checked once per dtype; a failure warns once, and the caller falls back to
+    the torch reference)."""
+    if dtype not in _CUDA_OK:
+        _CUDA_OK[dtype] = _cuda_smoke_test(dtype)
+    return _CUDA_OK[dtype]
+
+
+def cuda_checked() -> dict[str, bool]:
+    """What [`cuda_available`][] found so far in this process, per dtype (nothing compiled)."""
+    return dict(_CUDA_OK)
+
+
+def _cuda_smoke_test(dtype: str) -> bool:
+    try:
+        _import_cuda()
+        if njit is None or not cuda.is_available():
+            return False
+        dev = cuda.to_device
+        image = dev(np.full((1, 2, 2), 0.25, dtype=dtype))
+        verts = dev(np.array([[0.5, 0.5], [1.5, 0.5], [1.5, 1.5], [0.5, 1.5]]))
+        seg_start, seg_end = dev(np.arange(4)), dev((np.arange(4) + 1) % 4)
+        seg_edge, edge_offsets = dev(np.zeros(4, dtype=np.int64)), dev(np.array([0, 4]))
+        incl = cuda.device_array((2, 2, 1), dtype=dtype)
+        offsets = cuda.device_array((2, 1, 1), dtype=np.float64)
+        per_seg = dev(np.zeros((4, 2)))
+        out, wa, wb = dev(np.zeros((2, 1))), dev(np.zeros(4)), dev(np.zeros(4))
+        cuda_launch("prefix_blocks", 2, 0, image, BLOCK, incl)
+        cuda_launch("prefix_offsets", 2, 0, BLOCK, incl, offsets)
+        cuda_launch("forward", 4, 0, verts, seg_start, seg_end, incl, offsets, BLOCK, per_seg)
+        cuda_launch("edge_sums", 1, 0, per_seg, edge_offsets, out)
+        cuda_launch("backward", 4, 0, verts, seg_start, seg_end, seg_edge, incl, BLOCK, out, wa, wb)
+        total = out.copy_to_host()
+        if not np.allclose(total[:, 0], [0.25, 1.0]):  # ∮ P dY = ∬ L, ∮ X dY = the area
+            raise RuntimeError(f"a one-pixel test integral came out {total[:, 0]}, not [0.25, 1]")
+        return True
+    except Exception as err:  # any failure of an optional accelerator means: use the fallback
+        hint = ""
+        if getattr(cuda, "implementation", "") == "Built-in":  # numba's own, deprecated target
+            hint = "; NVIDIA's numba-cuda compiles them: pip install 'layoutwarp[cuda]'"
+        warnings.warn(
+            f"layoutwarp: numba's CUDA kernels do not run here ({type(err).__name__}: "
+            f"{' '.join(str(err).split())}); "
+            f"the exact integrator uses its torch path on CUDA{hint}",
+            RuntimeWarning,
+            stacklevel=3,
+        )
+        return False

@@ -1,0 +1,491 @@
+"""The sensor's measurement in one fused pass over the sensor image: photon (shot) noise drawn
+from counter-based streams (Poisson, exact; a normal ziggurat), fixed-pattern noise, read
+noise, full well and the ADC ([`sensor_measure`][]), for [`layoutwarp.physics`][]."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .base import inline, parallel, prange, serial
+
+try:  # numba's own code generator, present wherever numba is
+    from llvmlite import ir as llvm_ir
+    from numba import types as numba_types
+    from numba.extending import intrinsic
+except ImportError:  # pragma: no cover - depends on the environment
+    llvm_ir = numba_types = intrinsic = None
+
+__all__ = ["MEASURE_CHUNK", "sensor_measure"]
+
+_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
+#: Element ``i``'s noise streams are disjoint blocks of one SplitMix64 sequence: its shot stream
+#: from the state ``state0 + i·2³³·G``, its read stream ``2³²·G`` on (2³² draws each, so up to
+#: 2³¹ elements a call never share a state).
+_STREAM_G = np.uint64((0x9E3779B97F4A7C15 << 32) % 2**64)
+_ELEMENT_G = np.uint64((0x9E3779B97F4A7C15 << 33) % 2**64)
+_U53 = 1.0 / 9007199254740992.0
+#: Pixels per work item of `sensor_measure` (a run of pixels through every plane).
+MEASURE_CHUNK = 512
+
+
+def _ziggurat_tables(layers: int = 1024) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The normal ziggurat's layer edges ``x`` (``layers + 1``; ``x[0]`` the base strip's
+    equivalent width, ``x[1]`` the tail's start ``R``, ``x[layers] = 0``), ratios
+    ``x[i+1] / x[i]`` and heights ``exp(−x²/2)``: Marsaglia and Tsang's construction for 1024
+    equal-area layers of area ``V`` (``R`` and ``V`` solved in 40-digit arithmetic so the top
+    layer closes; the same solve gives their published 128-layer and Doornik's 256-layer
+    values). A first try is accepted 99.6 % of the time."""
+    r, v = 4.038849846109505, 0.001226324646353088
+    x = np.zeros(layers + 1)
+    x[0], x[1] = v / math.exp(-0.5 * r * r), r
+    for i in range(1, layers - 1):
+        x[i + 1] = math.sqrt(-2.0 * math.log(v / x[i] + math.exp(-0.5 * x[i] * x[i])))
+    return x, x[1:] / x[:-1], np.exp(-0.5 * x * x)
+
+
+_ZIG_X, _ZIG_R, _ZIG_Y = _ziggurat_tables()
+#: The first try's table ([`_first_try_table`][]): its bases and masks.
+_X_BASE = np.float64(0.125).view(np.uint64)
+_X_MASK = np.uint64((1 << 55) - 1)
+_D_BASE = np.float64(2.0**-11).view(np.uint64)
+_D_MASK = np.uint64(0x1FF << 47)
+
+
+def _first_try_table() -> np.ndarray:
+    """Each layer's edge ``x[i]`` and a lower bound of its ratio ``x[i+1]/x[i]`` in one 64-bit
+    word, so a first try gathers one value instead of two: the edge's bits exactly, less those of
+    0.125 (its six binades, 0.135 to 4.27, need 55 bits), and in the top 9 bits ``c`` with
+    ``1 − d`` at most the ratio, ``d`` the double of bits ``bits(2⁻¹¹) + c·2⁴⁷`` (four exponent
+    and five mantissa bits: ``1 − ratio`` rounded up by at most 1/32 of itself). A try between the
+    bound and the ratio is flagged and rerun by the full sampler, which tests the exact ratio, so
+    every draw is unchanged; the bound costs four tries in 10⁵ such a rerun (the ziggurat rejects
+    430)."""
+    x, ratio = _ZIG_X[:1024], _ZIG_R[:1024]
+    edge = x.view(np.uint64) - _X_BASE
+    gap = np.maximum(1.0 - ratio, 2.0**-11).view(np.uint64) - _D_BASE
+    code = (gap + np.uint64((1 << 47) - 1)) >> np.uint64(47)  # rounded up
+    while True:  # and up again where 1 − d rounds above the ratio
+        over = 1.0 - ((code << np.uint64(47)) + _D_BASE).view(np.float64) > ratio
+        if not over.any():
+            break
+        code[over] += np.uint64(1)
+    assert (edge >> np.uint64(55) == 0).all() and (code < 512).all()
+    return edge | (code << np.uint64(55))
+
+
+_ZIG_P = _first_try_table()
+
+if intrinsic is not None:
+
+    @intrinsic
+    def _as_float(typingctx, bits):
+        """The float64 whose bits are the uint64 ``bits`` (a bit cast: free in a vector)."""
+
+        def codegen(context, builder, signature, args):
+            return builder.bitcast(args[0], context.get_value_type(numba_types.float64))
+
+        return numba_types.float64(numba_types.uint64), codegen
+
+    @intrinsic
+    def _prefetch(typingctx, array, index):
+        """A hint to fetch the cache line of ``array[index]`` (a 1-d array) ahead of its use:
+        LLVM's ``prefetch`` (a read, kept in every cache level), which loads nothing into a register
+        and never faults, so an index past the end is harmless."""
+        if not (isinstance(array, numba_types.Array) and array.ndim == 1):
+            return None
+
+        def codegen(context, builder, signature, args):
+            view = context.make_array(signature.args[0])(context, builder, args[0])
+            offset = builder.mul(args[1], builder.extract_value(view.strides, 0))  # in bytes
+            ptr = builder.gep(builder.bitcast(view.data, llvm_ir.IntType(8).as_pointer()), [offset])
+            i32 = llvm_ir.IntType(32)
+            fnty = llvm_ir.FunctionType(llvm_ir.VoidType(), [ptr.type, i32, i32, i32])
+            fn = builder.module.declare_intrinsic("llvm.prefetch", [ptr.type], fnty)
+            builder.call(fn, [ptr, i32(0), i32(3), i32(1)])  # read, all levels, data
+            return context.get_dummy_value()
+
+        return numba_types.void(array, numba_types.intp), codegen
+
+else:  # pragma: no cover - without numba the kernels are not compiled
+
+    def _as_float(bits: np.uint64) -> float:
+        return float(np.uint64(bits).view(np.float64))
+
+    def _prefetch(array: np.ndarray, index: int) -> None:
+        pass
+
+
+@inline
+def _prefetch_span(array: np.ndarray, lo: int, hi: int) -> None:
+    """[`_prefetch`][] of every 64-byte line of ``array[lo:hi]``."""
+    for i in range(lo, hi, max(1, 64 // array.itemsize)):
+        _prefetch(array, i)
+
+
+@inline
+def _first_try_layer(i: int) -> tuple[float, float]:
+    """Layer ``i``'s edge ``x[i]`` (exact) and a lower bound of its ratio, from one look-up of
+    [`_first_try_table`][]."""
+    word = _ZIG_P[i]
+    edge = _as_float((word & _X_MASK) + _X_BASE)
+    return edge, 1.0 - _as_float(((word >> np.uint64(8)) & _D_MASK) + _D_BASE)
+
+
+@inline
+def _mix(z: np.uint64) -> np.uint64:
+    """SplitMix64's finaliser: a counter to 64 well-mixed bits."""
+    z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return z ^ (z >> np.uint64(31))
+
+
+@inline
+def _uniform(state: np.uint64) -> tuple[float, np.uint64]:
+    """The next double in ``(0, 1)`` of a SplitMix64 stream, and the advanced state."""
+    state = state + _GOLDEN
+    return ((_mix(state) >> np.uint64(11)) + 0.5) * _U53, state
+
+
+@inline
+def _strip(bits: np.uint64) -> tuple[float, int]:
+    """A ziggurat try from 64 bits: a uniform in ``(-1, 1)`` (the top 53 bits) and a layer
+    (the lowest 10, which the uniform does not use)."""
+    return ((bits >> np.uint64(11)) + 0.5) * (2.0 * _U53) - 1.0, np.int64(bits & np.uint64(1023))
+
+
+@inline
+def _normal(state: np.uint64) -> tuple[float, np.uint64]:
+    """A standard normal draw (the ziggurat: one 64-bit draw and a table look-up 99.6 % of the
+    time; the wedges by rejection under the density, the tail beyond ``R`` by Marsaglia's
+    exponential method), and the advanced state."""
+    while True:
+        state = state + _GOLDEN
+        u, i = _strip(_mix(state))
+        if abs(u) < _ZIG_R[i]:
+            return u * _ZIG_X[i], state
+        if i == 0:  # the tail |z| > R
+            r = _ZIG_X[1]
+            while True:
+                a, state = _uniform(state)
+                b, state = _uniform(state)
+                t = -math.log(a) / r
+                if -2.0 * math.log(b) > t * t:
+                    return (r + t) if u > 0.0 else -(r + t), state
+        z = u * _ZIG_X[i]
+        v, state = _uniform(state)
+        if _ZIG_Y[i] + v * (_ZIG_Y[i + 1] - _ZIG_Y[i]) < math.exp(-0.5 * z * z):
+            return z, state
+
+
+@inline
+def _log_poisson(mu: float, k: float) -> float:
+    """``log p_k`` of a Poisson of mean ``mu`` (``k ≥ 0`` whole, a float: an integer's ``k⁵``
+    overflows int64 above 6208, and wraps to 0 at multiples of 8192): ``lgamma`` below 10, above the
+    cancellation-free Stirling form ``k·(log1p(v) − v) − δ(k) − ½·log(2πk)``, ``v = (mu − k)/k``,
+    with ``δ`` to its ``k⁻⁵`` term (relative error below 1e-12 at ``k = 10``)."""
+    if k < 10.0:
+        return -mu + k * math.log(mu) - math.lgamma(k + 1.0)
+    v = (mu - k) / k
+    d = 1.0 / (12.0 * k)
+    d = d - 4.8 * d * d * d + 1.0 / (1260.0 * k**5)
+    return k * (math.log1p(v) - v) - d - 0.5 * math.log(2.0 * math.pi * k)
+
+
+@inline
+def _modified_normal(mu: float, s: float, k: float) -> tuple[float, float]:
+    """Ahrens and Dieter's modified normal at ``k`` (their procedure F): its exponent ``fx`` and
+    factor ``fy`` (``fy·exp(fx)`` approximates ``p_k``)."""
+    b1 = 0.041666666666666664 / mu
+    b2 = 0.3 * b1 * b1
+    c3 = 0.14285714285714285 * b1 * b2
+    c2 = b2 - 15.0 * c3
+    c1 = b1 - 6.0 * b2 + 45.0 * c3
+    c0 = 1.0 - b1 + 3.0 * b2 - 15.0 * c3
+    x = (k - mu + 0.5) / s
+    x2 = x * x
+    return -0.5 * x2, 0.3989422804014327 / s * (((c3 * x2 + c2) * x2 + c1) * x2 + c0)
+
+
+@inline
+def _pd_step_i(mu: float, k: float) -> bool:
+    """PD's immediate acceptance of the normal's ``k = ⌊mu + √mu z⌋`` (step I)."""
+    return k >= np.floor(mu - 1.1484)
+
+
+@inline
+def _pd_step_s(mu: float, k: float, u: float) -> bool:
+    """PD's squeeze (step S) with the uniform ``u``: ``6 mu² u ≥ (mu − k)³``."""
+    dm = mu - k
+    return 6.0 * mu * mu * u >= dm * dm * dm
+
+
+@inline
+def _poisson(mu: float, state: np.uint64) -> tuple[float, np.uint64]:
+    """An exact Poisson draw, and the advanced state: multiplication of uniforms below 10, above
+    Ahrens and Dieter's algorithm PD (1982; a normal draw accepted outright or by a squeeze
+    about 99 % of the time at large means, else their exponential hat), its acceptance tests on
+    the exact ``p_k`` of [`_log_poisson`][]."""
+    if mu <= 0.0:
+        return 0.0, state
+    if not mu < math.inf:  # NaN or inf (allow_nonfinite): passed through, no count to draw
+        return mu, state
+    if mu < 10.0:
+        limit, k = math.exp(-mu), 0.0
+        prod, state = _uniform(state)
+        while prod > limit:
+            u, state = _uniform(state)
+            prod *= u
+            k += 1.0
+        return k, state
+    s = math.sqrt(mu)
+    z, state = _normal(state)
+    g = mu + s * z
+    if g >= 0.0:
+        k = np.floor(g)  # a float, as _log_poisson needs (numba's math.floor gives an integer)
+        if _pd_step_i(mu, k):
+            return k, state
+        u, state = _uniform(state)
+        if _pd_step_s(mu, k, u):
+            return k, state
+        fx, fy = _modified_normal(mu, s, k)
+        if fy * (1.0 - u) <= math.exp(_log_poisson(mu, k) - fx):  # step Q
+            return k, state
+    while True:  # steps E and H
+        u, state = _uniform(state)
+        e = -math.log(u)
+        u, state = _uniform(state)
+        u = 2.0 * u - 1.0
+        t = 1.8 + (e if u >= 0.0 else -e)
+        if t <= -0.6744:
+            continue
+        k = np.floor(mu + s * t)
+        fx, fy = _modified_normal(mu, s, k)
+        if 0.1069 / mu * abs(u) <= math.exp(_log_poisson(mu, k) + e) - fy * math.exp(fx + e):
+            return k, state
+
+
+@inline
+def _first_tries(mu: float, shot: np.uint64, read: np.uint64) -> tuple[float, float, float, bool, bool, bool]:
+    """What [`_poisson`][] and [`_normal`][] return when their first tries succeed, without a
+    branch (so whole runs of pixels vectorise), for a mean ``mu ≥ 0``: the Poisson draw
+    (steps N, I, S), the shot stream's normal draw scaled to ``mu + √mu·z``, the read stream's
+    normal, and whether each is valid (the normals', the Poisson's given its normal's; never for
+    an infinite mean, whose floor is no count; a normal's try tests a lower bound of its layer's
+    ratio, [`_first_try_layer`][]); where one is not, the caller runs the full algorithms,
+    which return exactly these values where they are."""
+    u1, i1 = _strip(_mix(shot + _GOLDEN))
+    x1, r1 = _first_try_layer(i1)
+    g = mu + math.sqrt(mu) * (u1 * x1)
+    k = np.floor(g)  # a float: no round trip through an integer
+    u2, _ = _uniform(shot + _GOLDEN)  # the draw after the normal's
+    ok_k = (mu >= 10.0) & (mu < math.inf) & (g >= 0.0) & (_pd_step_i(mu, k) | _pd_step_s(mu, k, u2))
+    u3, i3 = _strip(_mix(read + _GOLDEN))
+    x3, r3 = _first_try_layer(i3)
+    return k, g, u3 * x3, abs(u1) < r1, ok_k, abs(u3) < r3
+
+
+@inline
+def _recorded(e: float, full: float, zero: float, inv: float, params: np.ndarray, output: int) -> float:
+    """Electrons ``e`` of a pixel after its full well ``full``, as ``output`` asks (0: the ISP's
+    radiance ``(DN − zero)·inv``, 1: electrons, 2: DN), the ADC rounding half to even like
+    ``torch.round``."""
+    gain, black, top = params[7], params[8], params[9]
+    e = min(e, full)
+    dn = gain * e + black
+    dn = min(max(np.rint(dn), 0.0), top) if top < np.inf else dn
+    return e if output == 1 else (dn if output == 2 else (dn - zero) * inv)
+
+
+@inline
+def _pixel_constants(a: float, params: np.ndarray) -> tuple[float, float, float, float, float]:
+    """A pixel of ``a`` µm²'s electrons per unit mean, dark electrons and full well, and the ISP's
+    offset and reciprocal gain (before the fixed patterns): the one formula of the main loop and
+    the rescan of `sensor_measure`."""
+    light, eta, dark_um2 = params[0], params[1], params[4]
+    full_um2, gain, black = params[6], params[7], params[8]
+    zero = black + gain * dark_um2 * a  # the ISP subtracts the mean dark signal ...
+    inv = 1.0 / (gain * eta * light * a)  # ... and divides by the nominal response
+    return eta * light * a, dark_um2 * a, full_um2 * a, zero, inv
+
+
+@inline
+def _noisy_run(
+    row: np.ndarray,
+    flags: np.ndarray,
+    scale: np.ndarray,
+    dark: np.ndarray,
+    full: np.ndarray,
+    zero: np.ndarray,
+    inv: np.ndarray,
+    params: np.ndarray,
+    key: np.uint64,
+    poisson: bool,
+    read: float,
+    output: int,
+) -> None:
+    """[`_measure_run`][] with noise, Poisson or Gaussian: each draw's first try
+    ([`_first_tries`][]), ``flags[j]`` set where one was rejected and that element's mean left
+    in ``row`` for the rescan. Called with ``poisson`` a constant, so each kind of noise gets a
+    loop of its own with no test of it inside."""
+    for j in range(row.size):
+        mean = row[j]
+        e = mean * scale[j] + dark[j]
+        shot_key = key + np.uint64(j) * _ELEMENT_G
+        mu = max(e, 0.0)
+        k, g, z2, ok_z1, ok_k, ok_z2 = _first_tries(mu, shot_key, shot_key + _STREAM_G)
+        shot = k if poisson else g + (e - mu)  # Gaussian: e + √max(e, 0)·z, bit for bit
+        flag = (not (ok_z1 and (ok_k or not poisson))) | (not ok_z2 and read != 0.0)
+        flags[j] = flag
+        value = _recorded(shot + read * z2, full[j], zero[j], inv[j], params, output)
+        row[j] = mean if flag else value
+
+
+@inline
+def _measure_run(
+    row: np.ndarray,
+    flags: np.ndarray,
+    scale: np.ndarray,
+    dark: np.ndarray,
+    full: np.ndarray,
+    zero: np.ndarray,
+    inv: np.ndarray,
+    params: np.ndarray,
+    key: np.uint64,
+    noise: int,
+    read: float,
+    output: int,
+) -> None:
+    """One plane of a run of `sensor_measure`: the means ``row`` measured in place, the pixel
+    constants from [`_pixel_constants`][], ``key`` the first element's shot
+    stream. Without noise a loop with no draws; with noise [`_noisy_run`][]. Each loop is
+    branch-free and vectorises."""
+    if noise == 0:
+        for j in range(row.size):
+            e = row[j] * scale[j] + dark[j]
+            row[j] = _recorded(e, full[j], zero[j], inv[j], params, output)
+    elif noise == 1:
+        _noisy_run(row, flags, scale, dark, full, zero, inv, params, key, True, read, output)
+    else:
+        _noisy_run(row, flags, scale, dark, full, zero, inv, params, key, False, read, output)
+
+
+@serial
+def _prefetch_inputs(
+    mean: np.ndarray,
+    area_um2: np.ndarray,
+    prnu: np.ndarray,
+    dsnu: np.ndarray,
+    params: np.ndarray,
+    lo: int,
+    hi: int,
+) -> None:
+    """[`_prefetch_span`][] of `sensor_measure`'s inputs at the pixels ``[lo, hi)``: the
+    means of every plane, the areas and the fixed patterns it reads."""
+    _prefetch_span(area_um2, lo, hi)
+    if params[2] != 0.0:
+        _prefetch_span(prnu, lo, hi)
+    if params[3] != 0.0:
+        _prefetch_span(dsnu, lo, hi)
+    for r in range(mean.shape[0]):
+        _prefetch_span(mean[r], lo, hi)
+
+
+@parallel
+def sensor_measure(
+    mean: np.ndarray,
+    area_um2: np.ndarray,
+    prnu: np.ndarray,
+    dsnu: np.ndarray,
+    params: np.ndarray,
+    seed: int,
+    noise: int,
+    output: int,
+    out: np.ndarray,
+    threads: int,
+) -> None:
+    """[`layoutwarp.physics.measure`][] in one pass: means ``(N, P)`` to ``out`` ``(N, P)``, of
+    their dtype, which may be ``mean`` itself (measured in place, one buffer less; no other
+    overlap).
+
+    ``params``: photons per µm² × fill factor, η, PRNU, DSNU, dark e⁻/µm², read noise, full well
+    per µm² (``inf``: none), gain K, black level, ADC top (``inf``: no ADC); ``prnu``/``dsnu``
+    are read only where their gains are not 0 (empty arrays will do). ``noise``: 0 none,
+    1 Poisson, 2 Gaussian; ``output``: 0 radiance, 1 electrons, 2 DN. Element ``i`` (row-major)
+    draws its shot noise and its read noise from two streams of its own, disjoint blocks of one
+    SplitMix64 sequence seeded by ``seed`` ([`_ELEMENT_G`][]), so the result does not depend
+    on the thread count.
+
+    Thread ``t`` of ``threads`` (see [`threads`][layoutwarp.kernels.base.threads]) takes the
+    pixels ``[t·P/T, (t + 1)·P/T)``,
+    the share of a ``prange`` over them that the same thread had in the forward just before, in
+    runs of [`MEASURE_CHUNK`][] pixels through all ``N`` planes, with work space of its own. The
+    forward's streams (tens of MB) push most of its output out of the caches, so the thread first
+    hints its first two runs' inputs to the caches, and each run those of the run after next
+    ([`_prefetch_inputs`][]). A run then derives its pixels' constants
+    ([`_pixel_constants`][], then the fixed patterns). Per plane, its means copied to ``out``
+    first where that is another buffer (so every loop works in place, with no overlap to test), a
+    branch-free loop ([`_measure_run`][]) takes every draw's first try and flags the elements
+    where one was rejected (about 0.4 % of the normals, a few tenths of a percent of the Poisson
+    draws at large means, all of them below a mean of 10 electrons), which keep their means. After
+    its last run the thread rescans its flags, eight a word, and reruns a full sampler there from
+    the start of its stream: the rare slow path in one tight loop, whose code and branch history
+    stay warm (a rescan after every run made the kernel 5–25 % slower).
+    """
+    g_prnu, g_dsnu, read = params[2], params[3], params[5]
+    n, p = mean.shape
+    state0 = _mix(np.uint64(seed) * _GOLDEN + np.uint64(0x632BE59BD9B4E019))
+    poisson, in_place = noise == 1, out.ctypes.data == mean.ctypes.data
+    for thread in prange(threads):  # each thread its work space, and its share of the pixels
+        c = MEASURE_CHUNK
+        scale, dark, full, zero, inv = np.empty(c), np.empty(c), np.empty(c), np.empty(c), np.empty(c)
+        start, stop = thread * p // threads, (thread + 1) * p // threads
+        share = stop - start
+        words = np.zeros((n * share + 7) // 8 if noise != 0 else 0, dtype=np.uint64)
+        redo = words.view(np.uint8)  # element (r, start + j)'s flag at r·share + j: 1 to rerun
+        _prefetch_inputs(mean, area_um2, prnu, dsnu, params, start, min(stop, start + 2 * c))
+        for lo in range(start, stop, MEASURE_CHUNK):
+            m = min(stop, lo + MEASURE_CHUNK) - lo
+            _prefetch_inputs(mean, area_um2, prnu, dsnu, params, lo + 2 * c, min(stop, lo + 3 * c))
+            for j in range(m):  # the run's pixels' constants
+                scale[j], dark[j], full[j], zero[j], inv[j] = _pixel_constants(area_um2[lo + j], params)
+            if g_prnu != 0.0:  # the fixed patterns in loops of their own: the one above vectorises
+                for j in range(m):
+                    scale[j] = scale[j] * (1.0 + g_prnu * prnu[lo + j])
+            if g_dsnu != 0.0:
+                for j in range(m):
+                    dark[j] = dark[j] + g_dsnu * dsnu[lo + j]
+            for r in range(n):
+                row = out[r, lo : lo + m]  # 1-d: 1.5x the 2-d stores
+                if not in_place:  # measured where they are written: no overlap check, one loop
+                    row[:] = mean[r, lo : lo + m]
+                flags = redo[r * share + lo - start : r * share + lo - start + m]
+                key = state0 + np.uint64(r * p + lo) * _ELEMENT_G  # the run's first shot stream
+                _measure_run(row, flags, scale, dark, full, zero, inv, params, key, noise, read, output)
+        for b in range(words.size):  # the rescan
+            if words[b] == 0:
+                continue
+            for f in range(8 * b, min(n * share, 8 * b + 8)):
+                if redo[f] == 0:
+                    continue
+                r, i = f // share, start + f % share
+                sc, dk, fw, zr, iv = _pixel_constants(area_um2[i], params)
+                if g_prnu != 0.0:
+                    sc = sc * (1.0 + g_prnu * prnu[i])
+                if g_dsnu != 0.0:
+                    dk = dk + g_dsnu * dsnu[i]
+                e = mean[r, i] * sc + dk
+                key = state0 + np.uint64(r * p + i) * _ELEMENT_G
+                mu = max(e, 0.0)
+                k, g, z2, ok_z1, ok_k, ok_z2 = _first_tries(mu, key, key + _STREAM_G)
+                shot = k if poisson else g + (e - mu)
+                if not (ok_z1 and (ok_k or not poisson)):  # from the start of the shot stream
+                    if poisson:
+                        shot, _ = _poisson(mu, key)
+                    else:
+                        z, _ = _normal(key)
+                        shot = e + math.sqrt(mu) * z
+                if not ok_z2 and read != 0.0:
+                    z2, _ = _normal(key + _STREAM_G)
+                out[r, i] = _recorded(shot + read * z2, fw, zr, iv, params, output)
