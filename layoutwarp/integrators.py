@@ -33,6 +33,8 @@ from .coords import grid_lines, pixel_centers, sensor_to_pixels
 from .kernels.mesh import (
     MeshSpec,
     build_mesh_device,
+    device_means,
+    device_theta_gradient,
     edge_gradient,
     mesh_integrals,
     mesh_spec,
@@ -416,12 +418,11 @@ class _CompiledExact(torch.autograd.Function):
         ctx.unit = 4 / (hs * ws)  # a source pixel's area in sensor units ([-1, 1]² is 4)
         if _on_device(image):  # the mesh built where it is used: none of it crosses the bus
             dm = build_mesh_device(spec, size, theta.detach().to(image.device), tol, (hs, ws))
-            out, ctx.tables = _cuda_forward(dm.pixel_vertices, image.detach().contiguous(), dm.mesh)
-            pix = topo.combine(out)
-            means = pix[:-1] / pix[-1]
-            ctx.dm, ctx.src_size, ctx.topo = dm, (hs, ws), topo
-            ctx.save_for_backward(means, pix[-1])
-            return means, pix[-1] * ctx.unit
+            per_seg, ctx.tables = _cuda_segments(dm.pixel_vertices, image.detach().contiguous(), dm.mesh)
+            means, area, areas = device_means(dm, per_seg, ctx.unit)
+            ctx.dm, ctx.src_size = dm, (hs, ws)
+            ctx.save_for_backward(means, area)
+            return means, areas
         th = theta.detach().double().cpu().numpy()
         with kernels.LOCK:  # mesh, integrals and their θ-Jacobian, chunk by chunk
             tables = kernels.prefix_tables(image.detach().contiguous().numpy(), kernels.BLOCK)
@@ -436,17 +437,10 @@ class _CompiledExact(torch.autograd.Function):
             return None, None, None, None, None
         ref = grad if grad is not None else grad_areas
         if _on_device(ref):
-            dm, topo = ctx.dm, ctx.topo
-            means, areas = ctx.saved_tensors
-            g = torch.zeros_like(means) if grad is None else grad.double()
-            g_area = -(g * means).sum(0, keepdim=True) / areas
-            if grad_areas is not None:  # the areas' own gradient, per source pixel of area
-                g_area = g_area + grad_areas.double() * ctx.unit
-            g_pix = torch.cat([g / areas, g_area])
-            g_v = _cuda_backward(dm.pixel_vertices, ctx.tables, dm.mesh, topo.combine_adjoint(g_pix))
-            hs, ws = ctx.src_size
-            g_v = g_v * torch.tensor([ws / 2, hs / 2], dtype=g_v.dtype, device=g_v.device)
-            return torch.einsum("vi,vip->p", g_v, dm.dverts).to(ref.dtype), None, None, None, None
+            means, area = ctx.saved_tensors
+            g = torch.zeros_like(means) if grad is None else grad
+            args = (ctx.tables, means, area, g, grad_areas, ctx.unit, ctx.src_size)
+            return device_theta_gradient(ctx.dm, *args).to(ref.dtype), None, None, None, None
         g = np.zeros_like(ctx.means) if grad is None else grad.detach().double().cpu().numpy()
         own = None if grad_areas is None else grad_areas.detach().double().cpu().numpy() * ctx.unit
         with kernels.LOCK:
@@ -468,24 +462,31 @@ def _kernel_arrays(verts: Tensor, mesh: PixelMesh) -> list[np.ndarray]:
     return [np.ascontiguousarray(t.cpu().numpy()) for t in tensors]
 
 
-def _cuda_forward(verts: Tensor, image: Tensor, mesh: PixelMesh) -> tuple[Tensor, Tensor]:
-    """[`_ExactKernel`][]'s forward on a CUDA device: ``(N + 1, E)`` and the prefix table
-    ``incl`` (kept for the backward); the tables and a value per segment are the memory it takes."""
+def _cuda_segments(verts: Tensor, image: Tensor, mesh: PixelMesh) -> tuple[Tensor, Tensor]:
+    """The exact forward's values per segment ``(S, N + 1)`` on a CUDA device (or in the
+    simulator) and the prefix table ``incl`` (kept for the backward): three launches."""
     n, h, w = image.shape
     stream = kernels.device.stream_of(image)
     v = verts.detach().double().contiguous()
-    seg_start, seg_end, edge_offsets = (
-        t.to(image.device) for t in (mesh.seg_start, mesh.seg_end, mesh.edge_offsets)
-    )
+    seg_start, seg_end = (t.to(image.device) for t in (mesh.seg_start, mesh.seg_end))
     incl = image.new_empty(h, w, n)
     offsets = image.new_empty(h, -(-w // kernels.BLOCK), n, dtype=torch.float64)
     kernels.cuda_launch("prefix_blocks", h * offsets.shape[1] * n, stream, image, kernels.BLOCK, incl)
     kernels.cuda_launch("prefix_offsets", h * n, stream, kernels.BLOCK, incl, offsets)
-    per_seg = v.new_zeros(mesh.num_segments, n + 1)
+    per_seg = v.new_empty(mesh.num_segments, n + 1)  # each row written whole by its thread
     kernels.cuda_launch(
         "forward", mesh.num_segments, stream, v, seg_start, seg_end, incl, offsets, kernels.BLOCK, per_seg
     )
-    out = v.new_zeros(n + 1, edge_offsets.numel() - 1)
+    return per_seg, incl
+
+
+def _cuda_forward(verts: Tensor, image: Tensor, mesh: PixelMesh) -> tuple[Tensor, Tensor]:
+    """[`_ExactKernel`][]'s forward on a CUDA device: ``(N + 1, E)`` and the prefix table
+    ``incl`` (kept for the backward); the tables and a value per segment are the memory it takes."""
+    per_seg, incl = _cuda_segments(verts, image, mesh)
+    edge_offsets = mesh.edge_offsets.to(image.device)
+    out = per_seg.new_empty(per_seg.shape[1], edge_offsets.numel() - 1)  # each column written whole
+    stream = kernels.device.stream_of(image)
     kernels.cuda_launch("edge_sums", out.shape[1], stream, per_seg, edge_offsets, out)
     return out, incl
 

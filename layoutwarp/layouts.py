@@ -346,6 +346,7 @@ class Layout(nn.Module):
     ) -> None:
         super().__init__()
         self.bound = check_number(bound, "bound", 0, lo_open=True)
+        self._bounds_on: dict[tuple[torch.device, torch.dtype], Tensor] = {}  # _bounds() where ρ lives
         dtype = dtype or tensor_dtype(theta)
         rho = self._to_rho(self._validate_theta(theta, dtype))
         if learn and self.num_params:
@@ -362,7 +363,12 @@ class Layout(nn.Module):
     def _to_theta(self, rho: Tensor) -> Tensor:
         """θ from the stored unconstrained ``ρ``: ``bound · tanh(ρ)``, or ``ρ`` itself for
         families whose every θ is valid (``unbounded``)."""
-        return rho if self.unbounded else self._bounds().to(rho) * torch.tanh(rho)
+        if self.unbounded:
+            return rho
+        key = (rho.device, rho.dtype)
+        if key not in self._bounds_on:  # made once per device: no copy to it every step
+            self._bounds_on[key] = self._bounds().to(rho)
+        return self._bounds_on[key] * torch.tanh(rho)
 
     def _to_rho(self, theta: Tensor) -> Tensor:
         """Inverse of `_to_theta`."""

@@ -13,6 +13,7 @@ import layoutwarp as lw
 from layoutwarp.experiments.bench import count_ops
 from layoutwarp.integrators import integrate_exact
 from layoutwarp.kernels import mesh as mk
+from layoutwarp.layoutfile import layout_from_spec
 from layoutwarp.mesh import MeshTopology, pixel_mesh, smooth_pieces
 
 pytestmark = pytest.mark.skipif(not lw.kernels.available(), reason="needs numba")
@@ -306,6 +307,74 @@ def test_the_device_mesh_is_the_compiled_mesh_in_numbas_simulator(family: str, h
     scale = max(1.0, float(np.abs(cm.dverts).max()))
     assert got["dverts"].shape == cm.dverts.shape
     assert float(np.abs(got["dverts"] - cm.dverts).max()) <= 1e-14 * scale
+
+
+#: A learnable step through the device path in numba's CUDA simulator: means, areas, θ's gradient
+#: and the step's launches (numba kernels and torch operators), written for the test to compare.
+DEVICE_STEP = """
+import json, sys
+import numpy as np, torch
+import layoutwarp as lw
+from layoutwarp.experiments.bench import count_launches
+from layoutwarp.integrators import integrate_exact
+from layoutwarp.layoutfile import layout_from_spec
+case = dict(np.load(sys.argv[1]))
+spec = json.loads(str(case["spec"]))
+layout = layout_from_spec(spec, learn=True)
+image = torch.from_numpy(case["image"])
+size = tuple(int(v) for v in case["size"])
+out, areas = integrate_exact(image, layout, size, tol=float(case["tol"]), return_areas=True)
+(out * torch.from_numpy(case["g"])).sum().add((areas * torch.from_numpy(case["ga"])).sum()).backward()
+grad = layout.rho.grad.clone()
+def step():
+    layout.zero_grad()
+    lw.simulate(image[None], layout, size).sum().backward()
+launches = count_launches(step)
+kernels = sum(v for k, v in launches.items() if k.startswith("numba:"))
+np.savez(sys.argv[2], out=out.detach().numpy(), areas=areas.detach().numpy(), grad=grad.numpy(),
+         launches=sum(launches.values()), kernels=kernels)
+"""
+
+
+@pytest.mark.slow  # a process of its own, the kernels as plain Python
+@pytest.mark.parametrize("family", ["curv", "fovea"])
+def test_a_learnable_step_on_the_device_path_matches_the_cpu_in_numbas_simulator(family: str, tmp_path):
+    """Without a GPU: a learnable layout's whole device path (the mesh built there, the exact
+    forward, the pixels' means and areas in one kernel, the backward from the means' and the
+    areas' gradients to θ in two) in numba's CUDA simulator against the compiled CPU path: the
+    same means and areas to rounding, θ's gradient to float32's (θ's dtype); and a training
+    step's GPU launches, counted (numba kernels and torch operators, `count_launches`), at most
+    30 (83 before the device path's kernels were fused)."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    rng = np.random.default_rng(int(torch.randint(0, 2**31, ())))
+    th = (rng.uniform(0.1, 0.8, 2) * rng.choice([-1.0, 1.0], 2)).tolist()
+    spec = {"family": "curv", "theta": th}
+    if family == "fovea":
+        centre = rng.uniform(-0.5, 0.5, 2).tolist()
+        spec = {"family": "fovea", "theta": th, "center": centre, "learn_center": True}
+    size = (int(rng.integers(2, 6)), int(rng.integers(2, 6)))
+    src = (int(rng.integers(8, 30)), int(rng.integers(8, 30)))
+    image = rng.uniform(-1, 3, (2, *src)).astype(np.float64)
+    g, ga = rng.standard_normal((2, *size)), rng.standard_normal(size)
+    case = {"spec": json.dumps(spec), "image": image, "size": np.array(size), "tol": 1e-4, "g": g, "ga": ga}
+    np.savez(tmp_path / "case.npz", **case)
+    env = {**os.environ, "NUMBA_DISABLE_JIT": "1", "NUMBA_ENABLE_CUDASIM": "1", "LAYOUTWARP_JIT": "wait"}
+    args = [sys.executable, "-c", DEVICE_STEP, str(tmp_path / "case.npz"), str(tmp_path / "out.npz")]
+    run = subprocess.run(args, env=env, capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr[-3000:]
+    got = np.load(tmp_path / "out.npz")
+    layout = layout_from_spec(spec, learn=True)
+    out, areas = integrate_exact(torch.from_numpy(image), layout, size, tol=1e-4, return_areas=True)
+    (out * torch.from_numpy(g)).sum().add((areas * torch.from_numpy(ga)).sum()).backward()
+    assert np.abs(got["out"] - out.detach().numpy()).max() <= 1e-12 * np.abs(image).max()
+    assert np.abs(got["areas"] - areas.detach().numpy()).max() <= 1e-14
+    ref = layout.rho.grad.numpy()
+    assert np.abs(got["grad"] - ref).max() <= 1e-6 * max(1.0, np.abs(ref).max())  # θ in float32
+    assert int(got["launches"]) <= 30 and int(got["kernels"]) <= 14
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")

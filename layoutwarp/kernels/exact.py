@@ -39,6 +39,7 @@ __all__ = [
     "exact_forward_banded",
     "prefix_tables",
     "segment_moments",
+    "segment_weights",
 ]
 
 #: Columns per block of the prefix tables (see [`prefix_tables`][]).
@@ -413,7 +414,7 @@ def band_rows(image: np.ndarray, workers: int, cache_bytes: int = 1 << 20) -> in
 
 
 @inline
-def _segment_weights(
+def segment_weights(
     s: int,
     verts: np.ndarray,
     seg_start: np.ndarray,
@@ -422,16 +423,16 @@ def _segment_weights(
     incl: np.ndarray,
     block: int,
     grad: np.ndarray,
-    wa: np.ndarray,
-    wb: np.ndarray,
-) -> None:
-    """Segment ``s``'s Reynolds weights into ``wa[s]``/``wb[s]`` (see [`exact_backward`][])."""
+) -> tuple[float, float]:
+    """Segment ``s``'s Reynolds weights ``(wa, wb)`` (see [`exact_backward`][]): a per-segment
+    function for other kernels too (the device mesh's θ-gradient,
+    [`layoutwarp.kernels.mesh`][])."""
     h, w, n = incl.shape
     e = seg_edge[s]
     x0, y0 = verts[seg_start[s], 0], verts[seg_start[s], 1]
     x1, y1 = verts[seg_end[s], 0], verts[seg_end[s], 1]
     dxv, dyv = x1 - x0, y1 - y0
-    wa[s] = wb[s] = grad[n, e] / 2  # the area row: ∫ (1 − t) dt = ∫ t dt = 1/2
+    wa = wb = grad[n, e] / 2  # the area row: ∫ (1 − t) dt = ∫ t dt = 1/2
     flat, vertical = dyv == 0.0, dxv == 0.0
     inv_dy = 1.0 / dyv if not flat else 1.0
     ylo, yhi = min(y0, y1), max(y0, y1)
@@ -450,8 +451,9 @@ def _segment_weights(
                     lv = 0.5 * (_cell(incl, row, col, k, block) + _cell(incl, row2, col2, k, block))
                     gl += grad[k, e] * lv
             m1 = (t1 * t1 - t0 * t0) / 2
-            wa[s] += gl * ((t1 - t0) - m1)
-            wb[s] += gl * m1
+            wa += gl * ((t1 - t0) - m1)
+            wb += gl * m1
+    return wa, wb
 
 
 @inline
@@ -467,7 +469,7 @@ def _segment_moments(
 ) -> None:
     """Add segment ``(x0, y0) → (x1, y1)``'s Reynolds moments per channel, ``∫ (1 − t) L_k dt``
     and ``∫ t L_k dt`` over its pieces, to ``ma[0, k]`` and ``mb[0, k]``: the walk of
-    [`_segment_weights`][] before any gradient is known."""
+    [`segment_weights`][] before any gradient is known."""
     h, w, n = incl.shape
     dxv, dyv = x1 - x0, y1 - y0
     flat, vertical = dyv == 0.0, dxv == 0.0
@@ -518,7 +520,7 @@ def exact_backward(
     for thread in prange(threads):
         for chunk in range(thread, n_chunks, threads):
             for s in range(chunk * CHUNK, min((chunk + 1) * CHUNK, s_count)):
-                _segment_weights(s, verts, seg_start, seg_end, seg_edge, incl, block, grad, wa, wb)
+                wa[s], wb[s] = segment_weights(s, verts, seg_start, seg_end, seg_edge, incl, block, grad)
     return wa, wb
 
 
@@ -555,16 +557,21 @@ def _cuda_forward(
     block: int,
     per_seg: np.ndarray,
 ) -> None:
-    """One thread per segment: [`_segment_forward`][]."""
+    """One thread per segment: [`_segment_forward`][] (its row of ``per_seg`` zeroed first: no
+    zeroed buffer to launch for)."""
     s = cuda.grid(1)
     if s < seg_start.shape[0]:
+        for k in range(per_seg.shape[1]):
+            per_seg[s, k] = 0.0
         _segment_forward(s, verts, seg_start, seg_end, incl, offsets, block, per_seg)
 
 
 def _cuda_edge_sums(per_seg: np.ndarray, edge_offsets: np.ndarray, out: np.ndarray) -> None:
-    """One thread per pixel edge: [`_edge_sum`][]."""
+    """One thread per pixel edge: [`_edge_sum`][] (its column of ``out`` zeroed first)."""
     e = cuda.grid(1)
     if e < edge_offsets.shape[0] - 1:
+        for k in range(out.shape[0]):
+            out[k, e] = 0.0
         _edge_sum(e, per_seg, edge_offsets, out)
 
 
@@ -579,10 +586,10 @@ def _cuda_backward(
     wa: np.ndarray,
     wb: np.ndarray,
 ) -> None:
-    """One thread per segment: [`_segment_weights`][]."""
+    """One thread per segment: [`segment_weights`][]."""
     s = cuda.grid(1)
     if s < seg_start.shape[0]:
-        _segment_weights(s, verts, seg_start, seg_end, seg_edge, incl, block, grad, wa, wb)
+        wa[s], wb[s] = segment_weights(s, verts, seg_start, seg_end, seg_edge, incl, block, grad)
 
 
 #: The CUDA kernels' sources by the names [`layoutwarp.kernels.device.cuda_launch`][] takes.

@@ -36,8 +36,8 @@ import torch
 from ..layouts import CurvLayout, EllipticLayout, FoveaLayout, Layout
 from ..mesh import INNER, MeshTopology, PixelMesh
 from .base import CHUNK, available, inline, parallel, prange, serial, threads
-from .device import cuda_launch, stream_of
-from .exact import BLOCK, segment_moments
+from .device import CUDA_THREADS, cuda_launch, stream_of
+from .exact import BLOCK, segment_moments, segment_weights
 
 __all__ = [
     "CUDA_KERNELS",
@@ -48,6 +48,8 @@ __all__ = [
     "MeshSpec",
     "build_mesh",
     "build_mesh_device",
+    "device_means",
+    "device_theta_gradient",
     "edge_gradient",
     "mesh_integrals",
     "mesh_spec",
@@ -81,7 +83,7 @@ def mesh_spec(layout: Layout) -> MeshSpec | None:
     if not available():
         return None
     if type(layout) in (CurvLayout, FoveaLayout):
-        c = tuple(float(v) for v in layout.fixed_center.detach().double().cpu())
+        c = layout.fixed_center.detach().double().cpu().tolist()  # one copy from the device
         return MeshSpec(CURV, (c[0], c[1]), layout.centred, int(layout.num_params or 0))
     if type(layout) is EllipticLayout:
         return MeshSpec(ELLIPTIC, (0.0, 0.0), True, 2)
@@ -1148,13 +1150,16 @@ def _cuda_amin(area: np.ndarray, amin: np.ndarray) -> None:
 def _cuda_count_pieces(
     kind: int, centred: bool, ends: np.ndarray, th: np.ndarray, c: np.ndarray, out: np.ndarray
 ) -> None:
-    """One thread per edge: [`_edge_pieces`][]' count."""
+    """One thread per edge: [`_edge_pieces`][]' count into ``out[e + 1]``, and ``out[0] = 0``, so
+    that a cumulative sum of ``out`` in place gives the pieces' offsets."""
     e = cuda.grid(1)
+    if e == 0:
+        out[0] = 0
     if e < ends.shape[0]:
         scratch, cuts = cuda.local.array((8, P_MAX), F8), cuda.local.array(8, F8)
         dcuts = cuda.local.array((8, P_MAX), F8)
         lo, dlo = cuda.local.array(10, F8), cuda.local.array((10, P_MAX), F8)
-        out[e] = _edge_pieces(kind, centred, e, ends, th, c, scratch, cuts, dcuts, lo, dlo, False)
+        out[e + 1] = _edge_pieces(kind, centred, e, ends, th, c, scratch, cuts, dcuts, lo, dlo, False)
 
 
 def _cuda_pieces_and_counts(
@@ -1164,6 +1169,8 @@ def _cuda_pieces_and_counts(
 ) -> None:  # fmt: skip
     """One thread per edge: [`_edge_pieces_and_counts`][]."""
     e = cuda.grid(1)
+    if e == 0:
+        edge_counts[0] = 0  # the offsets' leading zero: no zeroed buffer to launch for
     if e < ends.shape[0]:
         scratch, cuts = cuda.local.array((8, P_MAX), F8), cuda.local.array(8, F8)
         dcuts = cuda.local.array((8, P_MAX), F8)
@@ -1198,11 +1205,154 @@ def _cuda_place(
         )  # fmt: skip
 
 
-def _cuda_to_pixels(verts: np.ndarray, ws: float, hs: float, out: np.ndarray) -> None:
-    """One thread per vertex: [`_pixel_vertex`][]."""
+def _cuda_to_pixels(
+    q: np.ndarray, dq: np.ndarray, verts: np.ndarray, dverts: np.ndarray, ws: float, hs: float,
+    out: np.ndarray,
+) -> None:  # fmt: skip
+    """One thread per vertex: [`_pixel_vertex`][]; the corners (the first ``len(q)`` vertices)
+    first copied in from ``q``/``dq``, where the corners' kernel left them."""
     v = cuda.grid(1)
+    if v < q.shape[0]:
+        verts[v, 0], verts[v, 1] = q[v, 0], q[v, 1]
+        for i in range(2):
+            for p in range(dq.shape[2]):
+                dverts[v, i, p] = dq[v, i, p]
     if v < verts.shape[0]:
         out[v, 0], out[v, 1] = _pixel_vertex(verts[v, 0], verts[v, 1], ws, hs)
+
+
+@inline
+def _edge_total(per_seg: np.ndarray, edge_offsets: np.ndarray, e: int, k: int) -> float:
+    """Edge ``e``'s integral ``k``: its segments' values summed in order, as
+    [`exact_forward`][layoutwarp.kernels.exact.exact_forward] sums them."""
+    acc = 0.0
+    for s in range(edge_offsets[e], edge_offsets[e + 1]):
+        acc += per_seg[s, k]
+    return acc
+
+
+@inline
+def _pixel_integral(
+    per_seg: np.ndarray, edge_offsets: np.ndarray, r: int, c: int, w: int, nh: int, k: int
+) -> float:
+    """Pixel ``(r, c)``'s boundary integral ``k`` from its edges (top, bottom, left, right in
+    [`MeshTopology`][]'s numbering; ``nh`` horizontal edges), combined as
+    [`MeshTopology.combine`][layoutwarp.mesh.MeshTopology.combine] does."""
+    top = _edge_total(per_seg, edge_offsets, r * w + c, k)
+    bottom = _edge_total(per_seg, edge_offsets, r * w + w + c, k)
+    left = _edge_total(per_seg, edge_offsets, nh + r * (w + 1) + c, k)
+    right = _edge_total(per_seg, edge_offsets, nh + r * (w + 1) + c + 1, k)
+    return (top - bottom) + (right - left)
+
+
+def _cuda_pixel_means(
+    per_seg: np.ndarray, edge_offsets: np.ndarray, unit: float, means: np.ndarray, area: np.ndarray,
+    area_units: np.ndarray,
+) -> None:  # fmt: skip
+    """One thread per pixel: its boundary integrals from its four edges' segments (each edge's
+    sum in order, combined as [`MeshTopology.combine`][layoutwarp.mesh.MeshTopology.combine]
+    does), its means ``(N, h, w)`` (the integrals over the last, the area) and the area, as it is
+    and in sensor units (times ``unit``): the edge sums, the combination and the division in one
+    pass."""
+    i = cuda.grid(1)
+    n, h, w = means.shape
+    if i < h * w:
+        r, c = i // w, i % w
+        a = _pixel_integral(per_seg, edge_offsets, r, c, w, (h + 1) * w, n)
+        area[r, c], area_units[r, c] = a, a * unit
+        for k in range(n):
+            means[k, r, c] = _pixel_integral(per_seg, edge_offsets, r, c, w, (h + 1) * w, k) / a
+
+
+@inline
+def _pixel_gradient(
+    g: np.ndarray, means: np.ndarray, area: np.ndarray, g_area: np.ndarray, unit: float, r: int, c: int,
+    k: int,
+) -> float:  # fmt: skip
+    """The gradient of pixel ``(r, c)``'s boundary integral ``k`` (the area for ``k = N``) from
+    those of its means ``g`` and of its area in sensor units ``g_area`` (empty: none): the quotient
+    rule of ``mean = integral / area``."""
+    n = means.shape[0]
+    if k < n:
+        return g[k, r, c] / area[r, c]
+    acc = 0.0
+    for j in range(n):
+        acc += g[j, r, c] * means[j, r, c]
+    out = -acc / area[r, c]
+    if g_area.shape[0] > 0:
+        out += g_area[r, c] * unit
+    return out
+
+
+def _cuda_edge_gradient(
+    g: np.ndarray, means: np.ndarray, area: np.ndarray, g_area: np.ndarray, unit: float, g_edge: np.ndarray,
+    g_theta: np.ndarray,
+) -> None:  # fmt: skip
+    """One thread per pixel edge: the gradient ``(N + 1, E)`` of the edge integrals from the
+    means' and the areas' (the adjoint of [`_cuda_pixel_means`][]: the quotient rule and
+    [`MeshTopology.combine_adjoint`][layoutwarp.mesh.MeshTopology.combine_adjoint] in one
+    pass). An edge adds to the pixel before it (above, or to its left) and takes from the one
+    after. Thread 0 also zeroes ``g_theta``, the sums [`_cuda_theta_gradient`][] adds to next."""
+    e = cuda.grid(1)
+    if e == 0:
+        for p in range(g_theta.shape[0]):
+            g_theta[p] = 0.0
+    n, h, w = means.shape
+    nh = (h + 1) * w
+    if e < g_edge.shape[1]:
+        for k in range(n + 1):
+            v = 0.0
+            if e < nh:  # horizontal: the top edge of pixel (r, c), the bottom of (r - 1, c)
+                r, c = e // w, e % w
+                if r < h:
+                    v = _pixel_gradient(g, means, area, g_area, unit, r, c, k)
+                if r > 0:
+                    v -= _pixel_gradient(g, means, area, g_area, unit, r - 1, c, k)
+            else:  # vertical: the right edge of pixel (r, c - 1), the left of (r, c)
+                r, c = (e - nh) // (w + 1), (e - nh) % (w + 1)
+                if c > 0:
+                    v = _pixel_gradient(g, means, area, g_area, unit, r, c - 1, k)
+                if c < w:
+                    v -= _pixel_gradient(g, means, area, g_area, unit, r, c, k)
+            g_edge[k, e] = v
+
+
+def _cuda_theta_gradient(
+    verts: np.ndarray, seg_start: np.ndarray, seg_end: np.ndarray, seg_edge: np.ndarray, incl: np.ndarray,
+    block: int, g_edge: np.ndarray, dverts: np.ndarray, sx: float, sy: float, g_theta: np.ndarray,
+) -> None:  # fmt: skip
+    """One thread per segment: its Reynolds weights ([`segment_weights`][]) times its normal line
+    element ``(ΔY, −ΔX)`` (pixel units, ``verts``) at its two vertices, carried to θ by their
+    derivatives ``dverts`` ``(V, 2, P)`` (sensor units, so scaled by ``(sx, sy)``, a pixel unit's
+    size in sensor units' reciprocal); the block's sums reduced in shared memory and added to
+    ``g_theta`` ``(P,)`` (zeroed by [`_cuda_edge_gradient`][]), one atomic addition per block and entry. The
+    vertex gradient, its scaling and the contraction with ``dverts`` in one pass: no value per
+    segment or vertex is written."""
+    s = cuda.grid(1)
+    t = cuda.threadIdx.x
+    p_count = dverts.shape[2]
+    part = cuda.shared.array((CUDA_THREADS, P_MAX), F8)
+    for p in range(P_MAX):
+        part[t, p] = 0.0
+    if s < seg_start.shape[0]:
+        wa, wb = segment_weights(s, verts, seg_start, seg_end, seg_edge, incl, block, g_edge)
+        a, b = seg_start[s], seg_end[s]
+        nx, ny = (verts[b, 1] - verts[a, 1]) * sx, (verts[a, 0] - verts[b, 0]) * sy
+        for p in range(p_count):
+            part[t, p] = wa * (nx * dverts[a, 0, p] + ny * dverts[a, 1, p]) + wb * (
+                nx * dverts[b, 0, p] + ny * dverts[b, 1, p]
+            )
+    cuda.syncthreads()
+    stride = CUDA_THREADS // 2
+    while stride > 0:
+        if t < stride:
+            for p in range(P_MAX):
+                part[t, p] += part[t + stride, p]
+        cuda.syncthreads()
+        stride //= 2
+    if t == 0:
+        for p in range(p_count):
+            cuda.atomic.add(g_theta, p, part[0, p])
 
 
 _A1, _A2, _A3, _I1 = "float64[::1]", "float64[:, ::1]", "float64[:, :, ::1]", "int64[::1]"
@@ -1223,7 +1373,13 @@ CUDA_KERNELS = {
         f"void(int64, boolean, {_A2}, {_I1}, {_I1}, {_A1}, {_A1}, {_I1}, {_A2}, {_A3}, {_I1}, {_I1}, int64, "
         f"{_A2}, {_A3}, {_I1}, {_I1}, {_I1})",
     ),
-    "to_pixels": (_cuda_to_pixels, f"void({_A2}, float64, float64, {_A2})"),
+    "to_pixels": (_cuda_to_pixels, f"void({_A2}, {_A3}, {_A2}, {_A3}, float64, float64, {_A2})"),
+    "pixel_means": (_cuda_pixel_means, f"void({_A2}, {_I1}, float64, {_A3}, {_A2}, {_A2})"),
+    "edge_gradient": (_cuda_edge_gradient, f"void({_A3}, {_A3}, {_A2}, {_A2}, float64, {_A2}, {_A1})"),
+    "theta_gradient": (
+        _cuda_theta_gradient,
+        f"void({_A2}, {_I1}, {_I1}, {_I1}, float32[:, :, ::1], int64, {_A2}, {_A3}, float64, float64, {_A1})",
+    ),
 }
 
 
@@ -1277,15 +1433,14 @@ def build_mesh_device(
 
     q, dq = torch.empty(nc, 2, **f64), torch.empty(nc, 2, p, **f64)
     launch("corners", nc, spec.kind, spec.centred, uniform, th, c, q, dq)
-    area, amin, npieces = torch.empty(h, w, **f64), torch.empty(ne, **f64), torch.empty(ne, **i64)
+    area, amin, piece_offsets = torch.empty(h, w, **f64), torch.empty(ne, **f64), torch.empty(ne + 1, **i64)
     launch("areas", h * w, q, area)
     launch("amin", ne, area, amin)
-    launch("count_pieces", ne, spec.kind, spec.centred, ends, th, c, npieces)
-    piece_offsets = torch.zeros(ne + 1, **i64)
-    torch.cumsum(npieces, 0, out=piece_offsets[1:])
+    launch("count_pieces", ne, spec.kind, spec.centred, ends, th, c, piece_offsets)  # counts after a 0
+    piece_offsets.cumsum_(0)
     total = int(piece_offsets[-1])
     bounds, dbounds = torch.empty(total, 2, **f64), torch.empty(total, 2, p, **f64)
-    counts, edge_counts = torch.empty(total, **i64), torch.zeros(ne + 1, **i64)
+    counts, edge_counts = torch.empty(total, **i64), torch.empty(ne + 1, **i64)
     launch(
         "pieces_and_counts", ne, spec.kind, spec.centred, ends, th, c, piece_offsets, amin, float(tol),
         int(max_subdiv), INNER, bounds, dbounds, counts, edge_counts,
@@ -1293,13 +1448,50 @@ def build_mesh_device(
     edge_offsets = torch.cumsum(edge_counts, 0)
     nseg = int(edge_offsets[-1])
     verts, dverts = torch.empty(nc + nseg - ne, 2, **f64), torch.empty(nc + nseg - ne, 2, p, **f64)
-    verts[:nc], dverts[:nc] = q, dq
     seg_start, seg_end, seg_edge = (torch.empty(nseg, **i64) for _ in range(3))
     launch(
         "place", ne, spec.kind, spec.centred, ends, ea, eb, th, c, piece_offsets, bounds, dbounds, counts,
         edge_offsets, nc, verts, dverts, seg_start, seg_end, seg_edge,
     )  # fmt: skip
     pv = torch.empty_like(verts)
-    launch("to_pixels", verts.shape[0], verts, float(ws), float(hs), pv)
+    launch("to_pixels", verts.shape[0], q, dq, verts, dverts, float(ws), float(hs), pv)  # corners copied in
     mesh = PixelMesh(size, verts, seg_start, seg_end, seg_edge, edge_offsets)
     return DeviceMesh(mesh, pv, dverts, counts)
+
+
+def device_means(dm: DeviceMesh, per_seg: torch.Tensor, unit: float) -> tuple[torch.Tensor, ...]:
+    """The pixels' means ``(N, h, w)``, areas ``(h, w)`` and areas in sensor units of the device
+    mesh ``dm`` from its segments' integrals ``per_seg`` ``(S, N + 1)`` (the exact forward's,
+    [`exact_forward`][layoutwarp.kernels.exact.exact_forward]'s per-segment values), in one
+    launch (``unit``: a source pixel's area in sensor units)."""
+    (h, w), n = dm.mesh.size, per_seg.shape[1] - 1
+    means, area, area_units = per_seg.new_empty(n, h, w), per_seg.new_empty(h, w), per_seg.new_empty(h, w)
+    args = (per_seg, dm.mesh.edge_offsets, float(unit), means, area, area_units)
+    cuda_launch(_cuda_pixel_means, h * w, stream_of(per_seg), *args)
+    return means, area, area_units
+
+
+def device_theta_gradient(
+    dm: DeviceMesh,
+    incl: torch.Tensor,
+    means: torch.Tensor,
+    area: torch.Tensor,
+    grad: torch.Tensor,
+    grad_area: torch.Tensor | None,
+    unit: float,
+    src_size: tuple[int, int],
+) -> torch.Tensor:
+    """θ's gradient ``(P,)`` (float64) from the gradients of [`device_means`][]' means ``grad``
+    and areas in sensor units ``grad_area`` (``None``: none), ``incl`` the image's prefix table:
+    two launches (the edge integrals' gradient, then every segment's Reynolds weights carried to
+    θ and summed)."""
+    stream, mesh = stream_of(means), dm.mesh
+    g_area = means.new_empty(0, 0) if grad_area is None else grad_area.detach().double().contiguous()
+    g_edge = means.new_empty(means.shape[0] + 1, mesh.edge_offsets.numel() - 1)
+    g_theta = means.new_empty(dm.dverts.shape[2])
+    args = (grad.detach().double().contiguous(), means, area, g_area, float(unit), g_edge, g_theta)
+    cuda_launch(_cuda_edge_gradient, g_edge.shape[1], stream, *args)
+    hs, ws = src_size
+    args = (dm.pixel_vertices, mesh.seg_start, mesh.seg_end, mesh.seg_edge, incl, BLOCK, g_edge, dm.dverts)
+    cuda_launch(_cuda_theta_gradient, mesh.num_segments, stream, *args, ws / 2, hs / 2, g_theta)
+    return g_theta
