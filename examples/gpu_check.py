@@ -2,7 +2,9 @@
 and written to ``examples/gpu/gpu_check.json`` (keys: ``device``, ``torch``, ``numpy``,
 ``step_over_gs16`` per family, ``step_over_reference_b1``/``_b4`` (``null``: the paper's reference
 layer is not part of this project; see docs/speed.md), ``fixed_over_pool``, ``physics_overhead``
-(a fraction), ``launches_per_step``, ``first_call_s``).
+(a fraction), ``launches_per_step`` (the profiler's GPU activities; ``launches_counted``:
+`count_launches`, as the tests count them without a GPU), ``first_call_s``,
+``physics_cuda_equals_cpu`` (the share of recorded values equal on both, same seed)).
 
     python examples/gpu_check.py [--no-tests] [--out examples/gpu/gpu_check.json]
 
@@ -27,7 +29,7 @@ import torch
 import torch.nn.functional as F
 
 import layoutwarp as lw
-from layoutwarp.experiments.bench import interleaved_times
+from layoutwarp.experiments.bench import count_launches, interleaved_times
 
 lw.jit.set_mode("wait")  # time the compiled kernels, never the torch path while they compile
 SIZE = (129, 257)
@@ -87,6 +89,7 @@ def main() -> int:
                 "tests/test_kernels.py",
                 "tests/test_meshkernels.py",
                 "tests/test_jit.py",
+                "tests/test_physics.py",
                 "-k",
                 "cuda or device or gpu or numpy",
             ],
@@ -134,7 +137,11 @@ def main() -> int:
         )
     res["step_over_reference_b1"] = res["step_over_reference_b4"] = None
     res["launches_per_step"] = launches(lambda: step(curv))
-    print(f"GPU activities per learnable curv step: {res['launches_per_step']:.0f}")
+    res["launches_counted"] = sum(count_launches(lambda: step(curv)).values())
+    print(
+        f"GPU activities per learnable curv step: {res['launches_per_step']:.0f} (profiler), "
+        f"{res['launches_counted']} (count_launches, as tests count them without a GPU)"
+    )
     fixed = lw.CurvLayout((0.3, -0.24)).cuda()
     phys = lw.SensorPhysics(
         (2800, 5600), photons_per_um2=50, read_noise_e=2.0, full_well_per_um2=1000.0, adc_bits=12
@@ -159,6 +166,12 @@ def main() -> int:
         b = lw.simulate(small.cpu(), lw.CurvLayout((0.3, -0.24)).double(), (33, 65))
     res["cuda_vs_cpu_f64_maxabs"] = float((a - b).abs().max())
     print("CUDA vs CPU, float64, max abs difference:", res["cuda_vs_cpu_f64_maxabs"])
+    seeded = lw.SensorPhysics((2800, 5600), photons_per_um2=5, read_noise_e=2.0, adc_bits=12, seed=1)
+    with torch.no_grad():  # the same noise draws on both: the same counter-based streams
+        on_gpu = lw.simulate(img, fixed, SIZE, physics=seeded).cpu()
+        on_cpu = lw.simulate(img.cpu(), lw.CurvLayout((0.3, -0.24)), SIZE, physics=seeded)
+    res["physics_cuda_equals_cpu"] = float((on_gpu == on_cpu).double().mean())
+    print(f"sensor physics, CUDA vs CPU, same seed: {res['physics_cuda_equals_cpu']:.4%} of values equal")
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(res, indent=1) + "\n")
     if os.environ.get("OUT"):

@@ -48,7 +48,9 @@ def cuda_backend(probe: bool = True) -> str:
         warnings.simplefilter("always")
         ok = kernels.cuda_available("float32")
     if ok:
-        return f"compiled (numba-cuda {_version('numba-cuda')}) on {torch.cuda.get_device_name()}"
+        line = f"compiled (numba-cuda {_version('numba-cuda')}) on {torch.cuda.get_device_name()}"
+        failed = kernels.device.FAILED  # kernels that failed since: their calls take torch's path
+        return line + "".join(f"; torch for {name} ({why})" for name, why in failed.items())
     reason = str(caught[-1].message).removeprefix("layoutwarp: ") if caught else "no numba CUDA target"
     return f"torch ({reason})"
 

@@ -30,6 +30,7 @@ from torch import Tensor
 from . import jit, kernels
 from .checks import check_choice, check_int, check_shape, check_size, floating_dtype
 from .coords import grid_lines, pixel_centers, sensor_to_pixels
+from .kernels.device import runs_on_device, stream_of
 from .kernels.mesh import (
     MeshSpec,
     build_mesh_device,
@@ -331,7 +332,7 @@ class _ExactKernel(torch.autograd.Function):
     def forward(ctx, verts: Tensor, image: Tensor, mesh: PixelMesh) -> Tensor:
         ctx.save_for_backward(verts)
         ctx.mesh = mesh
-        if _on_device(image):
+        if runs_on_device(image):
             out, ctx.tables = _cuda_forward(verts, image.detach().contiguous(), mesh)
             return out
         arrays = _kernel_arrays(verts, mesh)
@@ -343,7 +344,7 @@ class _ExactKernel(torch.autograd.Function):
     def backward(ctx, grad: Tensor):
         (verts,) = ctx.saved_tensors
         mesh = ctx.mesh
-        if _on_device(verts):
+        if runs_on_device(verts):
             return _cuda_backward(verts, ctx.tables, mesh, grad), None, None
         g_edge = np.ascontiguousarray(grad.detach().double().cpu().numpy())
         v, seg_start, seg_end, _ = _kernel_arrays(verts, mesh)
@@ -416,7 +417,7 @@ class _CompiledExact(torch.autograd.Function):
         topo = MeshTopology(size)
         ctx.set_materialize_grads(False)  # an output nobody used gives None: no work for it
         ctx.unit = 4 / (hs * ws)  # a source pixel's area in sensor units ([-1, 1]² is 4)
-        if _on_device(image):  # the mesh built where it is used: none of it crosses the bus
+        if runs_on_device(image):  # the mesh built where it is used: none of it crosses the bus
             dm = build_mesh_device(spec, size, theta.detach().to(image.device), tol, (hs, ws))
             per_seg, ctx.tables = _cuda_segments(dm.pixel_vertices, image.detach().contiguous(), dm.mesh)
             means, area, areas = device_means(dm, per_seg, ctx.unit)
@@ -436,7 +437,7 @@ class _CompiledExact(torch.autograd.Function):
         if grad is None and grad_areas is None:
             return None, None, None, None, None
         ref = grad if grad is not None else grad_areas
-        if _on_device(ref):
+        if runs_on_device(ref):
             means, area = ctx.saved_tensors
             g = torch.zeros_like(means) if grad is None else grad
             args = (ctx.tables, means, area, g, grad_areas, ctx.unit, ctx.src_size)
@@ -449,13 +450,6 @@ class _CompiledExact(torch.autograd.Function):
         return torch.from_numpy(g_theta).to(ref.dtype), None, None, None, None
 
 
-def _on_device(t: Tensor) -> bool:
-    """Whether ``t``'s work takes the CUDA kernels: on a CUDA device, or on the CPU under numba's
-    CUDA simulator ([`simulated`][layoutwarp.kernels.device.simulated]: how the device path's
-    values and launches are checked without a GPU)."""
-    return t.is_cuda or (t.device.type == "cpu" and kernels.device.simulated())
-
-
 def _kernel_arrays(verts: Tensor, mesh: PixelMesh) -> list[np.ndarray]:
     """Vertices (float64) and the mesh's segment and edge indices as contiguous arrays."""
     tensors = (verts.detach().double(), mesh.seg_start, mesh.seg_end, mesh.edge_offsets)
@@ -466,7 +460,7 @@ def _cuda_segments(verts: Tensor, image: Tensor, mesh: PixelMesh) -> tuple[Tenso
     """The exact forward's values per segment ``(S, N + 1)`` on a CUDA device (or in the
     simulator) and the prefix table ``incl`` (kept for the backward): three launches."""
     n, h, w = image.shape
-    stream = kernels.device.stream_of(image)
+    stream = stream_of(image)
     v = verts.detach().double().contiguous()
     seg_start, seg_end = (t.to(image.device) for t in (mesh.seg_start, mesh.seg_end))
     incl = image.new_empty(h, w, n)
@@ -486,14 +480,14 @@ def _cuda_forward(verts: Tensor, image: Tensor, mesh: PixelMesh) -> tuple[Tensor
     per_seg, incl = _cuda_segments(verts, image, mesh)
     edge_offsets = mesh.edge_offsets.to(image.device)
     out = per_seg.new_empty(per_seg.shape[1], edge_offsets.numel() - 1)  # each column written whole
-    stream = kernels.device.stream_of(image)
+    stream = stream_of(image)
     kernels.cuda_launch("edge_sums", out.shape[1], stream, per_seg, edge_offsets, out)
     return out, incl
 
 
 def _cuda_backward(verts: Tensor, incl: Tensor, mesh: PixelMesh, grad: Tensor) -> Tensor:
     """[`_ExactKernel`][]'s vertex gradient on a CUDA device."""
-    stream = kernels.device.stream_of(verts)
+    stream = stream_of(verts)
     v = verts.detach().double().contiguous()
     seg_start, seg_end, seg_edge = (t.to(verts.device) for t in (mesh.seg_start, mesh.seg_end, mesh.seg_edge))
     wa, wb = v.new_zeros(mesh.num_segments), v.new_zeros(mesh.num_segments)

@@ -38,7 +38,6 @@ import sys
 import tempfile
 import threading
 import time
-import types
 from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING, Any
 
@@ -84,7 +83,6 @@ ENV = "LAYOUTWARP_JIT"
 _LOCK = threading.RLock()
 _READY: set[str] = set()  # units loaded (or compiled) in this process
 _ANNOUNCED: set[tuple[str, str]] = set()
-_QUICK: dict[Any, Any] = {}  # each kernel's quick build
 _MODE: list[str] = []  # set_mode's choice, if any
 _WORKER: _Worker | None = None
 _CHECKING = threading.local()  # set while this thread checks the cache: numba may load, not compile
@@ -179,27 +177,9 @@ def quick(kernel: Any) -> Any:
     kernel's compile time (``sensor_measure``: 21 s, quick 6 s); without it LLVM still inlines
     small helpers, and the arithmetic is the same, so the results are the same to the bit (the
     kernels use no fast-math), at 1.5–6x the run time. Cached under a name of its own
-    (``NAME_quick``) beside the full build."""
-    with _LOCK:
-        if kernel not in _QUICK:
-            _QUICK[kernel] = _rebuild(kernel)
-        return _QUICK[kernel]
-
-
-def _rebuild(kernel: Any) -> Any:
-    from numba import njit
-    from numba.core.dispatcher import Dispatcher
-
-    func = kernel.py_func
-    scope = dict(func.__globals__)
-    for name in func.__code__.co_names:  # the compiled functions it calls, by their global names
-        if isinstance(scope.get(name), Dispatcher):
-            scope[name] = quick(scope[name])
-    rebuilt = types.FunctionType(func.__code__, scope, func.__name__, func.__defaults__, func.__closure__)
-    rebuilt.__qualname__ = f"{func.__qualname__}_quick"  # numba's cache files are named by it
-    rebuilt.__module__, rebuilt.__doc__ = func.__module__, func.__doc__
-    options = {k: v for k, v in kernel.targetoptions.items() if k not in ("inline", "nopython")}
-    return njit(cache=True, **options)(rebuilt)  # every kernel of the package is cached
+    (``NAME_quick``) beside the full build. (The CUDA kernels are always built this way:
+    `layoutwarp.kernels.base.quick_build`.)"""
+    return kernels.base.quick_build(kernel)
 
 
 def status() -> dict[str, str]:

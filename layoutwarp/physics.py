@@ -57,6 +57,8 @@ from torch import Tensor
 
 from . import jit, kernels
 from .checks import ArgumentError, check_choice, check_extent, check_int, check_number, check_size
+from .kernels.device import fall_back, runs_on_device, stream_of, usable
+from .kernels.noise import measure_on_device
 
 __all__ = [
     "NOISE",
@@ -67,6 +69,7 @@ __all__ = [
     "apply_psf",
     "as_physics",
     "check_output",
+    "device_arguments",
     "kernel_arguments",
     "measure",
     "pixel_snr",
@@ -394,6 +397,13 @@ def measure(
     """
     needs_grad = torch.is_grad_enabled() and (mean.requires_grad or areas.requires_grad)
     kernel_dtype = mean.dtype if mean.dtype == torch.float32 else torch.float64  # its two builds
+    on_device = not needs_grad and runs_on_device(mean) and kernels.cuda_available(str(kernel_dtype)[6:])
+    if on_device and usable("the sensor's measurement"):
+        args = device_arguments(physics, areas, mean.device, output, generator)
+        try:
+            return _measure_on_device(mean, args)
+        except Exception as err:  # numba-cuda could not compile or launch it: the torch path, said once
+            fall_back("the sensor's measurement", err)
     kernel = None
     if not needs_grad and mean.device.type == "cpu":
         kernel = jit.compiled("measure", kernel_dtype, kernels.sensor_measure)
@@ -575,8 +585,49 @@ def kernel_arguments(
     elif generator is None and physics.seed is not None:
         seed = _kernel_seed(physics.seed)
     else:
-        seed = int(torch.randint(0, 2**62, (), generator=generator))
+        device = generator.device if generator is not None else "cpu"
+        seed = int(torch.randint(0, 2**62, (), generator=generator, device=device))
     return (*_compiled_sensor(physics, areas), seed, NOISE_CODES[mode], OUTPUTS.index(output))
+
+
+#: The pixel inputs of [`kernel_arguments`][] copied to a device, per host array (kept as long
+#: as the host cache keeps it; the same bound).
+_ON_DEVICE: OrderedDict[tuple, tuple[np.ndarray, tuple[Tensor, ...]]] = OrderedDict()
+
+
+def device_arguments(
+    physics: SensorPhysics,
+    areas: Tensor,
+    device: torch.device,
+    output: str = "radiance",
+    generator: torch.Generator | None = None,
+) -> tuple:
+    """[`kernel_arguments`][] with the pixel inputs (areas in µm², fixed patterns, parameters) as
+    float64 tensors on ``device``, copied there once per camera and areas (a repeated call
+    copies nothing): what the CUDA kernels of the measurement take."""
+    area_um2, prnu, dsnu, params, seed, noise, out = kernel_arguments(physics, areas, output, generator)
+    key = (id(area_um2), str(device))
+    hit = _ON_DEVICE.get(key)
+    if hit is None or hit[0] is not area_um2:  # the host arrays live in their cache: their identity
+        hit = (area_um2, tuple(torch.from_numpy(a).to(device) for a in (area_um2, prnu, dsnu, params)))
+        _ON_DEVICE[key] = hit
+        while len(_ON_DEVICE) > SENSOR_CACHE_SIZE:
+            _ON_DEVICE.popitem(last=False)
+    return (*hit[1], seed, noise, out)
+
+
+def _measure_on_device(mean: Tensor, args: tuple) -> Tensor:
+    """[`measure`][] without gradient on a CUDA device (or in the simulator): one kernel, one
+    thread per element, the same draws as the CPU kernel's ([`measured_value`][
+    layoutwarp.kernels.noise.measured_value])."""
+    x = mean.detach()
+    if x.dtype not in (torch.float32, torch.float64) or not x.is_contiguous():
+        x = x.to(torch.float64).contiguous()
+    flat = x.view(-1, args[0].numel())
+    out = torch.empty_like(flat)
+    measure_on_device(flat, *args, out, stream_of(flat))
+    res = out.view(mean.shape)
+    return res if res.dtype == mean.dtype else res.to(mean.dtype)
 
 
 def _measure_compiled(mean: Tensor, args: tuple, kernel: Callable) -> Tensor:

@@ -23,11 +23,13 @@ import torch
 from . import jit, kernels
 from .checks import all_finite, check_size, raise_nonfinite
 from .integrators import data_tolerance, green_pieces
+from .kernels.csr import csr_apply_on_device
+from .kernels.device import fall_back, runs_on_device, stream_of, usable
 from .labels import labels_to_sensor
 from .layoutfile import layout_key
 from .layouts import Layout
 from .mesh import PixelMesh, pixel_mesh
-from .physics import SensorPhysics, kernel_arguments, measure
+from .physics import SensorPhysics, device_arguments, kernel_arguments, measure
 
 if TYPE_CHECKING:
     import scipy.sparse
@@ -268,6 +270,21 @@ class AreaResampler:
         means (as [`simulate`][layoutwarp.sensor.simulate] does by default); ``True`` passes them through."""
         n = images.shape[0]
         flat = images.reshape(n, -1)
+        on_device = not flat.requires_grad and runs_on_device(flat) and kernels.cuda_available("float32")
+        if on_device and usable("a fixed layout's product"):
+            if physics is None:
+                none = flat.new_empty(0, dtype=torch.float64)  # not read
+                measured = (none, none, none, none, 0, 0, 0)
+            else:  # the arguments checked before the launch: a bad one is the caller's error
+                measured = device_arguments(physics, self.areas, flat.device, output, generator)
+            try:
+                out = self._apply_on_device(flat, measured, physics is not None)
+            except Exception as err:  # numba-cuda could not compile or launch it: torch's, said once
+                fall_back("a fixed layout's product", err)
+            else:
+                if not (allow_nonfinite or all_finite(out)):
+                    raise_nonfinite(images)
+                return out.view(n, *self.size)
         # compiled unless its kernels are still compiling (the noise's draws take a quick build: jit)
         kernel = None
         if flat.device.type == "cpu" and not flat.requires_grad:
@@ -296,6 +313,16 @@ class AreaResampler:
         if physics is None:
             return mean
         return measure(mean, self.areas, physics, output=output, generator=generator)
+
+    def _apply_on_device(self, flat: torch.Tensor, measured: tuple, measure: bool) -> torch.Tensor:
+        """[`apply`][]'s product on a CUDA device (or in the simulator), the measurement fused
+        where ``measure`` (``measured``: its arguments, [`device_arguments`][]): one launch."""
+        w = self.sparse
+        csr = (w.crow_indices(), w.col_indices(), w.values())
+        out = flat.new_empty(flat.shape[0], csr[0].shape[0] - 1)
+        x = flat.contiguous()
+        csr_apply_on_device(*csr, x, out, measured, measure, stream_of(x))
+        return out
 
     def labels(self, label: np.ndarray, rule: str = "nearest") -> np.ndarray:
         """Move an integer label map ``(H, W)`` to the sensor grid by ``rule`` (``"nearest"`` or

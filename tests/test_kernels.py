@@ -285,6 +285,19 @@ def test_the_cuda_kernels_run_as_the_cpu_kernels_in_numbas_simulator(
         assert np.abs(got - ref).max() <= rel * max(np.abs(ref).max(), 1.0), name
 
 
+@pytest.mark.slow  # a minute of PTX compiling: the samplers are large
+def test_the_measurement_and_product_kernels_compile_for_the_device_without_one():
+    """The CUDA kernels of the measurement and of the fixed-layout product (with the measurement
+    fused) compile to PTX, the samplers' rounding (``np.floor``, ``np.rint``, which numba-cuda
+    types but has no loop for until layoutwarp adds it) as the device's instructions."""
+    from layoutwarp.kernels import csr, noise
+
+    for table in (noise.CUDA_KERNELS, csr.CUDA_KERNELS):
+        for name, (fn, signature) in table.items():
+            ptx = ptx_or_skip(fn, signature=signature)
+            assert ".entry" in ptx and "cvt.rmi" in ptx and "cvt.rni" in ptx, name
+
+
 CUDA_KERNEL_NAMES = ("prefix_blocks", "prefix_offsets", "forward", "edge_sums", "backward")
 
 

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -800,3 +801,100 @@ def test_nonfinite_input_passes_through_the_measurement_with_allow_nonfinite(gen
         mean = np.repeat([np.inf, np.nan, 50.0], 2000)
         e = _kernel_electrons(mean, noise, 2.0, int(torch.randint(0, 2**62, (), generator=gen)))
         assert not np.isfinite(e[:4000]).any() and np.isfinite(e[4000:]).all()  # inf - inf: NaN, as in torch
+
+
+#: The measurement and a fixed layout's forward through the device path in numba's CUDA simulator,
+#: written for the test to compare with the CPU kernels.
+DEVICE_MEASURE = """
+import json, sys
+import numpy as np, torch
+import layoutwarp as lw
+from layoutwarp.experiments.bench import count_launches
+case = dict(np.load(sys.argv[1]))
+cam = json.loads(str(case["camera"]))
+means, areas, img = (torch.from_numpy(case[k]) for k in ("means", "areas", "img"))
+layout = lw.CurvLayout(tuple(case["theta"]))
+out = {}
+with torch.no_grad():
+    for noise in ("poisson", "gaussian", "none"):
+        for output in ("radiance", "electrons", "dn"):
+            phys = lw.SensorPhysics(**cam, noise=noise)
+            out[f"{noise}-{output}"] = lw.physics.measure(means, areas, phys, output=output).numpy()
+    phys = lw.SensorPhysics(**cam)
+    out["fixed"] = lw.simulate(img, layout, (5, 6)).numpy()
+    out["fixed-physics"] = lw.simulate(img, layout, (5, 6), physics=phys).numpy()
+    launches = count_launches(lambda: lw.simulate(img, layout, (5, 6), physics=phys))
+np.savez(sys.argv[2], launches=sum(launches.values()), **out)
+"""
+
+
+@pytest.mark.slow  # a process of its own, the kernels as plain Python
+def test_the_measurement_on_the_device_path_draws_what_the_cpu_kernel_draws(gen, tmp_path):
+    """Without a GPU: the device path of the measurement (one thread per element, the full
+    samplers) and of a fixed layout's forward with physics (one launch: the product and the
+    measurement) in numba's CUDA simulator against the CPU kernels: the same noise draws, so the
+    same values to the bit, for every noise model and output, and for a fixed layout's forward
+    with and without the measurement."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    seed = int(torch.randint(0, 2**31, (), generator=gen))
+    camera = {
+        "sensor_um": (280.0, 560.0), "photons_per_um2": 5.0, "read_noise_e": 2.0, "full_well_per_um2": 400.0,
+        "adc_bits": 10, "prnu": 0.02, "dsnu": 0.5, "seed": seed,
+    }  # fmt: skip
+    means = torch.rand(2, 6, 7, generator=gen, dtype=torch.float64) * 3
+    means[0, 0, :3] = torch.tensor([0.0, 1e-9, 300.0])  # no light, a trickle, past the full well
+    areas = torch.rand(6, 7, generator=gen, dtype=torch.float64) * 0.2 + 0.05
+    img = torch.rand(1, 3, 20, 26, generator=gen)
+    theta = rand_theta(gen, 0.6)
+    case = {"camera": json.dumps(camera), "means": means, "areas": areas, "img": img, "theta": theta}
+    np.savez(tmp_path / "case.npz", **{k: np.asarray(v) for k, v in case.items()})
+    env = {**os.environ, "NUMBA_DISABLE_JIT": "1", "NUMBA_ENABLE_CUDASIM": "1", "LAYOUTWARP_JIT": "wait"}
+    args = [sys.executable, "-c", DEVICE_MEASURE, str(tmp_path / "case.npz"), str(tmp_path / "out.npz")]
+    run = subprocess.run(args, env=env, capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr[-3000:]
+    got = np.load(tmp_path / "out.npz")
+    layout = lw.CurvLayout(tuple(theta))
+    with torch.no_grad():
+        for noise in ("poisson", "gaussian", "none"):
+            for output in ("radiance", "electrons", "dn"):
+                phys = SensorPhysics(**camera, noise=noise)
+                ref = lw.physics.measure(means, areas, phys, output=output).numpy()
+                assert np.array_equal(got[f"{noise}-{output}"], ref), (noise, output)
+        assert np.array_equal(got["fixed"], lw.simulate(img, layout, (5, 6)).numpy())
+        recorded = lw.simulate(img, layout, (5, 6), physics=SensorPhysics(**camera)).numpy()
+        assert np.array_equal(got["fixed-physics"], recorded)
+    assert int(got["launches"]) <= 1  # the product and the measurement, one kernel (19 + 39 before)
+
+
+def test_a_device_kernel_that_fails_warns_once_and_leaves_the_torch_path(monkeypatch, gen):
+    """Where numba-cuda cannot compile or launch the measurement's kernel, the call warns once,
+    names the kernel and the reason, and returns the other path's result; later calls go there
+    without trying again."""
+    from layoutwarp import physics as ph
+    from layoutwarp.kernels import device
+
+    calls = []
+
+    def broken(*args):
+        calls.append(1)
+        raise RuntimeError("NVVM_ERROR_COMPILATION")
+
+    monkeypatch.setattr(device, "FAILED", {})
+    monkeypatch.setattr(ph, "runs_on_device", lambda t: True)
+    monkeypatch.setattr(ph.kernels, "cuda_available", lambda dtype="float32": True)
+    monkeypatch.setattr(ph, "measure_on_device", broken)
+    cam = SensorPhysics((100.0, 120.0), photons_per_um2=20.0, read_noise_e=1.0, seed=7)
+    means = torch.rand(1, 4, 5, generator=gen, dtype=torch.float64)
+    areas = torch.full((4, 5), 0.2, dtype=torch.float64)
+    with pytest.warns(RuntimeWarning, match="CUDA kernel of the sensor's measurement does not run.*NVVM"):
+        first = ph.measure(means, areas, cam)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        second = ph.measure(means, areas, cam)
+    assert calls == [1] and torch.equal(first, second)
+    monkeypatch.setattr(ph, "runs_on_device", lambda t: False)
+    assert torch.equal(first, ph.measure(means, areas, cam))  # the path it fell back to

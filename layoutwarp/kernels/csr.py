@@ -6,16 +6,17 @@ from __future__ import annotations
 import numpy as np
 
 from .base import inline, parallel, prange, serial
-from .noise import sensor_measure
+from .device import cuda_launch
+from .noise import measured_value, sensor_measure, stream_origin
 
-__all__ = ["csr_apply", "measured_csr_apply"]
+__all__ = ["CUDA_KERNELS", "csr_apply", "csr_apply_on_device", "measured_csr_apply"]
 
 
 @inline
 def _csr_row(lo: int, hi: int, indices: np.ndarray, data: np.ndarray, x: np.ndarray, k: int, m: int):
     """One CSR row's products with planes ``k .. k + m − 1`` (``m ≤ 4``) in one pass over the row,
     in float64 (a pixel's sum stays within an ulp or two of its values); unused sums are 0."""
-    a0 = a1 = a2 = a3 = 0.0
+    a0 = a1 = a2 = a3 = np.float64(0.0)  # float64 also as plain Python (numpy: 0.0 + float32 is float32)
     if m == 4:
         for j in range(lo, hi):
             w, c = data[j], indices[j]
@@ -78,3 +79,65 @@ def measured_csr_apply(
     bad = csr_apply(indptr, indices, data, x, mean)
     sensor_measure(mean, *measure)
     return bad
+
+
+# ----------------------------------------------------------------------------------------
+# CUDA: one thread per row, every plane, the measurement fused
+# ----------------------------------------------------------------------------------------
+cuda = None  # numba.cuda, bound by the first launch ([`layoutwarp.kernels.device.cuda_launch`][])
+
+
+def _cuda_csr_apply(
+    indptr: np.ndarray, indices: np.ndarray, data: np.ndarray, x: np.ndarray, out: np.ndarray,
+    area_um2: np.ndarray, prnu: np.ndarray, dsnu: np.ndarray, params: np.ndarray, seed: int, noise: int,
+    output: int, measure: bool,
+) -> None:  # fmt: skip
+    """One thread per row of ``W``: [`csr_apply`][]'s sums for every plane (read once per four
+    planes), written to ``out`` ``(N, R)``, and with ``measure`` then measured
+    ([`measured_value`][layoutwarp.kernels.noise.measured_value], from the value as ``out``'s
+    dtype holds it, as [`measured_csr_apply`][] measures its buffer): a fixed layout's forward,
+    with the sensor's measurement, in one launch on a CUDA device. ``area_um2``, ``prnu``,
+    ``dsnu``, ``params``, ``seed``, ``noise``, ``output``: as
+    [`sensor_measure`][layoutwarp.kernels.noise.sensor_measure] takes them (read only with
+    ``measure``)."""
+    r = cuda.grid(1)
+    rows = indptr.shape[0] - 1
+    if r < rows:
+        n = x.shape[0]
+        lo, hi = indptr[r], indptr[r + 1]
+        for k in range(0, n, 4):
+            m = min(4, n - k)
+            sums = _csr_row(lo, hi, indices, data, x, k, m)
+            for q in range(m):
+                out[k + q, r] = sums[q]
+                if measure:
+                    pr = prnu[r] if params[2] != 0.0 else 0.0
+                    ds = dsnu[r] if params[3] != 0.0 else 0.0
+                    i = (k + q) * rows + r
+                    origin = stream_origin(seed)
+                    out[k + q, r] = measured_value(
+                        out[k + q, r], i, area_um2[r], pr, ds, params, origin, noise, output
+                    )
+
+
+_F1, _I1, _F2 = "float64[::1]", "int64[::1]", "float32[:, ::1]"
+#: The CUDA kernels of this file with their argument types (for
+#: [`cuda_ptx`][layoutwarp.kernels.device.cuda_ptx]: float32 weights and images).
+CUDA_KERNELS = {
+    "csr_apply": (
+        _cuda_csr_apply,
+        f"void({_I1}, {_I1}, float32[::1], {_F2}, {_F2}, {_F1}, {_F1}, {_F1}, {_F1}, int64, int64, int64, "
+        "boolean)",
+    ),
+}
+
+
+def csr_apply_on_device(indptr, indices, data, x, out, measured: tuple, measure: bool, stream: int) -> None:
+    """[`csr_apply`][] on a CUDA device (or in the simulator), one launch on ``stream``: the CSR
+    arrays, the planes ``x`` ``(N, M)`` and ``out`` ``(N, R)`` as tensors there; with
+    ``measure``, the means then measured with ``measured`` ``(area_um2, prnu, dsnu, params, seed,
+    noise, output)`` as [`measure_on_device`][layoutwarp.kernels.noise.measure_on_device] takes
+    them (without, any arrays of float64 will do: they are not read)."""
+    area_um2, prnu, dsnu, params, seed, noise, output = measured
+    args = (indptr, indices, data, x, out, area_um2, prnu, dsnu, params, int(seed), int(noise), int(output))
+    cuda_launch(_cuda_csr_apply, indptr.shape[0] - 1, stream, *args, bool(measure))

@@ -9,25 +9,30 @@ from __future__ import annotations
 
 import contextlib
 import importlib
+import types
 import warnings
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 import numpy as np
 
-from .base import njit
+from .base import njit, without_ir_inlining
 from .exact import BLOCK, CUDA_SOURCES, cuda_signature
 
 __all__ = [
     "CUDA_THREADS",
+    "FAILED",
     "LAUNCHES",
     "REMOVED_NUMPY_ALIASES",
     "cuda_available",
     "cuda_checked",
     "cuda_launch",
     "cuda_ptx",
+    "fall_back",
+    "runs_on_device",
     "simulated",
     "stream_of",
+    "usable",
 ]
 
 #: Threads per block of the CUDA kernels.
@@ -35,10 +40,33 @@ CUDA_THREADS = 128
 cuda = None  # numba.cuda, imported by the first CUDA call (it costs a tenth of a second)
 _CUDA_KERNELS: dict = {}
 _CUDA_OK: dict = {}
+_SOURCES: dict[Callable, Callable] = {}  # each kernel's source as compiled (_kernel_source)
 #: Every launch [`cuda_launch`][] made in this process, by kernel name (a launch of no items
 #: launches nothing and is not counted): what a count of a step's GPU launches reads, also in
 #: numba's CUDA simulator, where no GPU is needed.
 LAUNCHES: Counter[str] = Counter()
+
+
+#: Device kernels that failed to compile or launch in this process, by name, with the reason:
+#: their callers take the torch path instead (see [`fall_back`][]).
+FAILED: dict[str, str] = {}
+
+
+def usable(name: str) -> bool:
+    """Whether the device kernel ``name`` has not failed in this process (see [`fall_back`][])."""
+    return name not in FAILED
+
+
+def fall_back(name: str, err: Exception) -> None:
+    """Record that the device kernel ``name`` failed (numba-cuda could not compile or launch it)
+    and say so once, in one warning; its caller then takes its torch path from now on."""
+    if name not in FAILED:
+        FAILED[name] = f"{type(err).__name__}: {' '.join(str(err).split())}"[:300]
+        warnings.warn(
+            f"layoutwarp: the CUDA kernel of {name} does not run here ({FAILED[name]}); its torch path runs",
+            RuntimeWarning,
+            stacklevel=3,
+        )
 
 
 def simulated() -> bool:
@@ -50,6 +78,13 @@ def simulated() -> bool:
     from numba import config
 
     return bool(config.ENABLE_CUDASIM)
+
+
+def runs_on_device(tensor) -> bool:
+    """Whether work on ``tensor`` takes the CUDA kernels: it is on a CUDA device, or on the CPU
+    under numba's CUDA simulator ([`simulated`][]: how the device paths' values and launches are
+    checked without a GPU)."""
+    return tensor.is_cuda or (tensor.device.type == "cpu" and simulated())
 
 
 def stream_of(tensor) -> int:
@@ -85,19 +120,46 @@ def _import_cuda() -> None:
         finally:
             for name in missing:
                 delattr(np, name)
+        _complete_ufuncs()
         cuda = numba_cuda
 
 
+def _complete_ufuncs() -> None:
+    """Give numba-cuda's ufunc table the loops it types but lacks (0.30: ``np.floor`` and
+    ``np.rint`` of float32 and float64, the device's ``floor`` and libdevice's ``rint``): so the
+    noise's samplers, which round with them as the CPU kernels do, compile for the device from
+    the same source. A numba-cuda with other internals is left as it is (its kernels then say so
+    when they compile)."""
+    try:
+        from numba.cuda import libdevice, ufuncs
+        from numba.cuda.np import npyfuncs
+    except ImportError:  # numba's own older target, or another layout
+        return
+
+    def rint(context, builder, sig, args):  # NVVM rejects LLVM's rint: libdevice's
+        fn = libdevice.rintf if str(sig.args[0]) == "float32" else libdevice.rint
+        return context.compile_internal(builder, lambda x: fn(x), sig, args)
+
+    table = ufuncs.ufunc_db()
+    for uf, impl in ((np.floor, getattr(npyfuncs, "np_real_floor_impl", None)), (np.rint, rint)):
+        if impl is not None and uf not in table:
+            table[uf] = {"f->f": impl, "d->d": impl}
+
+
 def _kernel_source(kernel: str | Callable) -> Callable:
-    """The source of CUDA kernel ``kernel`` (a name of
-    [`CUDA_SOURCES`][layoutwarp.kernels.exact.CUDA_SOURCES], or a kernel function), its
-    module's ``cuda`` (a ``None`` placeholder there: importing numba.cuda costs a tenth of a
-    second) bound to numba.cuda."""
+    """The source CUDA kernel ``kernel`` (a name of
+    [`CUDA_SOURCES`][layoutwarp.kernels.exact.CUDA_SOURCES], or a kernel function) compiles
+    from: its module's ``cuda`` (a ``None`` placeholder there: importing numba.cuda costs a tenth
+    of a second) bound to numba.cuda, and its compiled callees without numba's IR inlining
+    ([`without_ir_inlining`][layoutwarp.kernels.base.without_ir_inlining]: NVVM inlines them, in
+    a fifth of the compile time), made once per kernel."""
     _import_cuda()
     fn = CUDA_SOURCES[kernel] if isinstance(kernel, str) else kernel
-    if fn.__globals__.get("cuda", cuda) is None:
-        fn.__globals__["cuda"] = cuda
-    return fn
+    if fn not in _SOURCES:
+        if fn.__globals__.get("cuda", cuda) is None:
+            fn.__globals__["cuda"] = cuda
+        _SOURCES[fn] = fn if simulated() else without_ir_inlining(fn)
+    return _SOURCES[fn]
 
 
 def cuda_ptx(
@@ -119,8 +181,26 @@ def cuda_ptx(
     elif signature is None:
         raise ValueError("signature: a kernel function needs its argument types, e.g. 'void(float64[::1])'")
     source = _kernel_source(kernel)
-    ptx, _ = cuda.compile_ptx(source, signature, cc=cc)
+    with _compiling_for(cc):
+        ptx, _ = cuda.compile_ptx(source, signature, cc=cc)
     return ptx
+
+
+@contextlib.contextmanager
+def _compiling_for(cc: tuple[int, int]) -> Iterator[None]:
+    """While it lasts, numba-cuda compiles device functions for ``cc``: it asks the current
+    device for their compute capability (0.30, ``numba.cuda.dispatcher``), which a machine
+    without a GPU has not, and the kernel's own ``cc`` is the answer [`cuda_ptx`][] wants."""
+    module = importlib.import_module("numba.cuda.dispatcher") if cuda is not None else None
+    if module is None or not hasattr(module, "get_current_device"):
+        yield
+        return
+    asked = module.get_current_device
+    module.get_current_device = lambda: types.SimpleNamespace(compute_capability=cc)
+    try:
+        yield
+    finally:
+        module.get_current_device = asked
 
 
 def cuda_launch(name: str | Callable, count: int, stream: int, *args) -> None:

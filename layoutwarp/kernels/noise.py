@@ -9,6 +9,7 @@ import math
 import numpy as np
 
 from .base import inline, parallel, prange, serial
+from .device import cuda_launch
 
 try:  # numba's own code generator, present wherever numba is
     from llvmlite import ir as llvm_ir
@@ -17,7 +18,14 @@ try:  # numba's own code generator, present wherever numba is
 except ImportError:  # pragma: no cover - depends on the environment
     llvm_ir = numba_types = intrinsic = None
 
-__all__ = ["MEASURE_CHUNK", "sensor_measure"]
+__all__ = [
+    "CUDA_KERNELS",
+    "MEASURE_CHUNK",
+    "measure_on_device",
+    "measured_value",
+    "sensor_measure",
+    "stream_origin",
+]
 
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
 #: Element ``i``'s noise streams are disjoint blocks of one SplitMix64 sequence: its shot stream
@@ -371,6 +379,46 @@ def _measure_run(
         _noisy_run(row, flags, scale, dark, full, zero, inv, params, key, False, read, output)
 
 
+@inline
+def stream_origin(seed: int) -> np.uint64:
+    """The state the noise streams of a call seeded by ``seed`` start from: element ``i``'s shot
+    stream at ``origin + i·`` [`_ELEMENT_G`][], its read stream [`_STREAM_G`][] on."""
+    return _mix(np.uint64(seed) * _GOLDEN + np.uint64(0x632BE59BD9B4E019))
+
+
+@inline
+def measured_value(
+    mean: float, i: int, a_um2: float, prnu: float, dsnu: float, params: np.ndarray, origin: np.uint64,
+    noise: int, output: int,
+) -> float:  # fmt: skip
+    """Element ``i`` (row-major over planes × pixels) of [`sensor_measure`][], its pixel of
+    ``a_um2`` µm² with fixed patterns ``prnu``/``dsnu`` (read only where their gains are not 0),
+    by the full samplers alone, one element at a time: what the CUDA kernels compute for each
+    element, the same draws from the same streams as the CPU kernel's first tries and rescan (the
+    arithmetic is the same; the device's ``exp``/``log`` may round a rare rejection test's last
+    digit otherwise)."""
+    sc, dk, fw, zr, iv = _pixel_constants(a_um2, params)
+    if params[2] != 0.0:
+        sc = sc * (1.0 + params[2] * prnu)
+    if params[3] != 0.0:
+        dk = dk + params[3] * dsnu
+    e = mean * sc + dk
+    if noise == 0:
+        return _recorded(e, fw, zr, iv, params, output)
+    key = origin + np.uint64(i) * _ELEMENT_G
+    mu = max(e, 0.0)
+    if noise == 1:
+        shot, _ = _poisson(mu, key)
+    else:
+        z, _ = _normal(key)
+        shot = e + math.sqrt(mu) * z
+    read = params[5]
+    z2 = 0.0
+    if read != 0.0:
+        z2, _ = _normal(key + _STREAM_G)
+    return _recorded(shot + read * z2, fw, zr, iv, params, output)
+
+
 @serial
 def _prefetch_inputs(
     mean: np.ndarray,
@@ -435,7 +483,7 @@ def sensor_measure(
     """
     g_prnu, g_dsnu, read = params[2], params[3], params[5]
     n, p = mean.shape
-    state0 = _mix(np.uint64(seed) * _GOLDEN + np.uint64(0x632BE59BD9B4E019))
+    state0 = stream_origin(seed)
     poisson, in_place = noise == 1, out.ctypes.data == mean.ctypes.data
     for thread in prange(threads):  # each thread its work space, and its share of the pixels
         c = MEASURE_CHUNK
@@ -489,3 +537,45 @@ def sensor_measure(
                 if not ok_z2 and read != 0.0:
                     z2, _ = _normal(key + _STREAM_G)
                 out[r, i] = _recorded(shot + read * z2, fw, zr, iv, params, output)
+
+
+# ----------------------------------------------------------------------------------------
+# CUDA: one thread per element, the full samplers
+# ----------------------------------------------------------------------------------------
+cuda = None  # numba.cuda, bound by the first launch ([`layoutwarp.kernels.device.cuda_launch`][])
+
+
+def _cuda_measure(
+    mean: np.ndarray, area_um2: np.ndarray, prnu: np.ndarray, dsnu: np.ndarray, params: np.ndarray, seed: int,
+    noise: int, output: int, out: np.ndarray,
+) -> None:  # fmt: skip
+    """One thread per element of ``mean`` ``(N, P)``: [`measured_value`][] into ``out`` (which may
+    be ``mean``): [`sensor_measure`][] on a CUDA device, one launch."""
+    i = cuda.grid(1)
+    n, p = mean.shape
+    if i < n * p:
+        r, j = i // p, i % p
+        pr = prnu[j] if params[2] != 0.0 else 0.0
+        ds = dsnu[j] if params[3] != 0.0 else 0.0
+        out[r, j] = measured_value(
+            mean[r, j], i, area_um2[j], pr, ds, params, stream_origin(seed), noise, output
+        )
+
+
+_A1, _A2 = "float64[::1]", "float32[:, ::1]"
+#: The CUDA kernels of this file with their argument types (for
+#: [`cuda_ptx`][layoutwarp.kernels.device.cuda_ptx], float32 means).
+CUDA_KERNELS = {
+    "measure": (_cuda_measure, f"void({_A2}, {_A1}, {_A1}, {_A1}, {_A1}, int64, int64, int64, {_A2})"),
+}
+
+
+def measure_on_device(
+    mean: object, area_um2: object, prnu: object, dsnu: object, params: object, seed: int, noise: int,
+    output: int, out: object, stream: int,
+) -> None:  # fmt: skip
+    """[`sensor_measure`][] of ``mean`` ``(N, P)`` into ``out`` on a CUDA device (or in the
+    simulator): one launch on ``stream``, one thread per element; the pixel inputs as tensors
+    there (see [`layoutwarp.physics.device_arguments`][])."""
+    args = (mean, area_um2, prnu, dsnu, params, int(seed), int(noise), int(output), out)
+    cuda_launch(_cuda_measure, mean.shape[0] * mean.shape[1], stream, *args)
