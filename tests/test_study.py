@@ -228,3 +228,17 @@ def test_model_weights_precisions_round_trip(tmp_path, gen):
     assert sizes["int8"] < 0.3 * sizes["float32"] and sizes["float16"] < 0.55 * sizes["float32"]
     with pytest.raises(ValueError, match="weights must be one of 'float32', 'float16', 'int8'; got 'int4'"):
         save_model(tmp_path / "x.pt", "mnist", net, sensor={}, training={}, weights="int4")
+
+
+def test_a_study_runs_seed_by_seed_so_a_stopped_one_has_every_configurations_first_seeds():
+    from layoutwarp.experiments.protocols import StudyPlan
+    from layoutwarp.experiments.study import study_runs
+
+    plan = StudyPlan(uniform_sizes=((6, 8), (9, 12)), learned_sizes=((6, 8),), families=("rect", "curv"))
+    runs = study_runs(plan, 3)
+    expected = {("uniform", s, k) for s in plan.uniform_sizes for k in range(3)}
+    expected |= {(f, (6, 8), k) for f in plan.families for k in range(3)}
+    assert len(runs) == len(expected) and set(runs) == expected
+    assert [k for _, _, k in runs] == sorted(k for _, _, k in runs)  # every seed 0 before any seed 1
+    seed0 = [("uniform", (6, 8), 0), ("uniform", (9, 12), 0), ("rect", (6, 8), 0), ("curv", (6, 8), 0)]
+    assert runs[: len(runs) // 3] == seed0  # within a seed: the uniform curve, then the learned layouts

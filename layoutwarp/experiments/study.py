@@ -49,10 +49,12 @@ __all__ = [
 
 
 def study_runs(plan: StudyPlan, seeds: int) -> list[tuple[str, tuple[int, int], int]]:
-    """Every ``(family, size, seed)`` of a plan, uniform curve first."""
-    runs = [("uniform", s, k) for s in plan.uniform_sizes for k in range(seeds)]
-    runs += [(f, s, k) for s in plan.learned_sizes for f in plan.families for k in range(seeds)]
-    return runs
+    """Every ``(family, size, seed)`` of a plan, seed by seed (each seed: the uniform curve, then
+    the learned layouts), so a study stopped part way has every configuration's first seeds
+    rather than all of some configurations' and none of others'."""
+    runs = [("uniform", s, k) for k in range(seeds) for s in plan.uniform_sizes]
+    runs += [(f, s, k) for k in range(seeds) for s in plan.learned_sizes for f in plan.families]
+    return sorted(runs, key=lambda run: run[2])  # stable: within a seed, the order above
 
 
 def study_options(task: Task, plan: StudyPlan, **changes: Any) -> RunOptions:
