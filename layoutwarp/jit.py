@@ -131,6 +131,9 @@ def ready(group: str, dtype: str | torch.dtype = "float32", wait: bool = False) 
         return False
     if unit in _READY:
         return True
+    if kernels.base.plain_python():  # NUMBA_DISABLE_JIT: nothing to compile, nothing to warm
+        _READY.add(unit)
+        return True
     with _LOCK:
         worker = _WORKER
         if worker is not None and worker.has(unit) and not wait and current == "background":

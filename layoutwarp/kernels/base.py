@@ -21,6 +21,7 @@ __all__ = [
     "inline",
     "njit",
     "parallel",
+    "plain_python",
     "prange",
     "quick_build",
     "retain_freed_memory",
@@ -40,6 +41,12 @@ LOCK = threading.Lock()
 def available() -> bool:
     """Whether the compiled kernels can run (numba is importable)."""
     return njit is not None
+
+
+def plain_python() -> bool:
+    """Whether numba runs the kernels as plain Python (``NUMBA_DISABLE_JIT=1``: how the CUDA
+    simulator's tests run them): nothing is compiled, so nothing waits for a compile."""
+    return njit is not None and bool(numba_config.DISABLE_JIT)
 
 
 #: Per Python thread: torch's thread count at [`threads`][]' last call there, and what it set.
