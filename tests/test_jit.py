@@ -293,3 +293,29 @@ def test_a_look_at_the_cache_keeps_the_users_cached_weights():
     for group in ("fixed", "measure"):
         getattr(warmups, f"_warm_{group}")(torch.float32)
     assert list(resampler._CACHE) == before
+
+
+def test_the_first_cuda_compile_says_so_once(tmp_path):
+    """A CUDA kernel with no compiled copy in numba's cache announces the compile in one line,
+    once per process; a kernel whose copy is in the cache says nothing (no GPU needed: the
+    kernels are not launched)."""
+    pytest.importorskip("numba.cuda")
+    code = """
+        import pathlib
+        from numba import cuda
+        from layoutwarp.kernels import device
+        device._import_cuda()
+        kernels = [cuda.jit(cache=True)(device._kernel_source(n)) for n in ("edge_sums", "forward")]
+        for k in kernels:
+            device._announce_compile(k)
+        index = pathlib.Path(kernels[0]._cache._cache_file._index_path)
+        index.parent.mkdir(parents=True, exist_ok=True)
+        index.write_bytes(b"")
+        device._ANNOUNCED.clear()
+        device._announce_compile(kernels[0])  # in the cache now: nothing to say
+    """
+    res = run_python(code, {"NUMBA_CACHE_DIR": str(tmp_path / "cache")})
+    assert res.returncode == 0, res.stderr[-3000:]
+    lines = [line for line in res.stderr.splitlines() if line.startswith("layoutwarp:")]
+    assert lines == ["layoutwarp: compiling the CUDA kernels for this GPU (seconds; once per installation; "
+                     "see layoutwarp doctor)"]  # fmt: skip

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import contextlib
 import importlib
+import os
+import sys
 import types
 import warnings
 from collections import Counter
@@ -219,6 +221,7 @@ def cuda_launch(name: str | Callable, count: int, stream: int, *args) -> None:
     _import_cuda()
     if name not in _CUDA_KERNELS:
         _CUDA_KERNELS[name] = cuda.jit(cache=True)(_kernel_source(name))
+        _announce_compile(_CUDA_KERNELS[name])
     if count == 0:
         return
     LAUNCHES[getattr(name, "__name__", name)] += 1
@@ -235,6 +238,26 @@ def _device_array(a: object) -> object:
     if getattr(getattr(a, "device", None), "type", None) == "cpu":  # a torch tensor on the CPU
         return a.numpy()
     return cuda.as_cuda_array(a) if hasattr(type(a), "__cuda_array_interface__") else a
+
+
+_ANNOUNCED: list[bool] = []
+
+
+def _announce_compile(kernel: object) -> None:
+    """Say once per process, in one line, that the CUDA kernels compile, when the first kernel
+    without a compiled copy in numba's disk cache is about to (a learnable step's kernels compile
+    in about ten seconds, then load from the cache in any later process)."""
+    if _ANNOUNCED or simulated():
+        return
+    index = getattr(getattr(getattr(kernel, "_cache", None), "_cache_file", None), "_index_path", None)
+    if index is not None and not os.path.exists(index):
+        _ANNOUNCED.append(True)
+        print(
+            "layoutwarp: compiling the CUDA kernels for this GPU (seconds; once per installation; "
+            "see layoutwarp doctor)",
+            file=sys.stderr,
+            flush=True,
+        )
 
 
 def cuda_available(dtype: str = "float32") -> bool:
