@@ -390,8 +390,9 @@ def _cmd_study(args: argparse.Namespace) -> int:
             out,
             _out_dir(args.ship, "--ship"),
             scene=task.scene(task.load(folder)),
+            models=args.weights != "none",
             weights=args.weights,
-            samples=samples if samples.is_dir() else None,
+            samples=samples if samples.is_dir() and args.weights != "none" else None,
             planned=len(study_runs(plan, args.seeds or plan.seeds)),
         )
         print(study_table(summary), end="")
@@ -803,10 +804,10 @@ def _add_study_parser(sub: argparse._SubParsersAction, task: TaskSpec, families:
     )
     st.add_argument(
         "--weights",
-        choices=["float32", "float16", "int8"],
+        choices=["float32", "float16", "int8", "none"],
         default="float16",
         help="with --ship: the precision of the shipped models' weights (int8: conv and linear "
-        "weights at 255 levels per output channel)",
+        "weights at 255 levels per output channel; none: no models, e.g. PSPNet's 47 M parameters)",
     )
     st.set_defaults(func=_cmd_study, task=task.name)
 

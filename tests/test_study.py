@@ -127,6 +127,15 @@ def test_quick_study_resumes_and_its_models_evaluate(tmp_path, capsys):
     half = json.loads(capsys.readouterr().out)["accuracy"]
     full = json.loads((out / "runs" / "rect_3x3_seed0.json").read_text())["scores"]["accuracy"]
     assert half == pytest.approx(full, abs=0.5)  # float16 weights: at most a few of 1000 digits change
+    # without models (a network too large to commit): results, layouts and figures alone
+    bare = tmp_path / "bare"
+    assert main([*argv, "--ship", str(bare), "--weights", "none"]) == 0
+    assert sorted(p.name for p in bare.iterdir()) == sorted(
+        p.name for p in ship.iterdir() if p.name not in ("models", "samples_scores.json")
+    )
+    assert (bare / "layouts" / "rect_3x3_seed0.json").read_bytes() == (
+        ship / "layouts" / "rect_3x3_seed0.json"
+    ).read_bytes()
     assert main(["study", "mnist", "--quick", "--out", str(tmp_path / "none"), "--ship", str(ship)]) == 2
     assert "no study in" in capsys.readouterr().err
 
