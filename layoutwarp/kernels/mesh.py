@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import functools
 import math
+import weakref
 from dataclasses import dataclass
 
 import numpy as np
@@ -78,13 +79,32 @@ class MeshSpec:
     nparams: int
 
 
+#: Each fixed centre tensor's values as last read, by the tensor's id: a weak reference to it
+#: (a later tensor with the same id is another one), its version then, and the values.
+_CENTRES: dict[int, tuple[weakref.ref, int, tuple[float, float]]] = {}
+
+
+def _centre_values(centre: torch.Tensor) -> tuple[float, float]:
+    """A fixed centre's two values, read from its device once per tensor and version (a training
+    step on a GPU then waits for no copy of it; writing to the tensor in place bumps its
+    version)."""
+    hit = _CENTRES.get(id(centre))
+    if hit is None or hit[0]() is not centre or hit[1] != centre._version:
+        if len(_CENTRES) > 256:  # forget the dead
+            for key in [k for k, v in _CENTRES.items() if v[0]() is None]:
+                del _CENTRES[key]
+        x, y = centre.detach().double().cpu().tolist()
+        hit = _CENTRES[id(centre)] = (weakref.ref(centre), centre._version, (x, y))
+    return hit[2]
+
+
 def mesh_spec(layout: Layout) -> MeshSpec | None:
     """The compiled form of ``layout``, or ``None`` where it has none (or numba is missing)."""
     if not available():
         return None
     if type(layout) in (CurvLayout, FoveaLayout):
-        c = layout.fixed_center.detach().double().cpu().tolist()  # one copy from the device
-        return MeshSpec(CURV, (c[0], c[1]), layout.centred, int(layout.num_params or 0))
+        c = _centre_values(layout.fixed_center)
+        return MeshSpec(CURV, c, layout.centred, int(layout.num_params or 0))
     if type(layout) is EllipticLayout:
         return MeshSpec(ELLIPTIC, (0.0, 0.0), True, 2)
     return None
