@@ -807,7 +807,7 @@ def _add_study_parser(sub: argparse._SubParsersAction, task: TaskSpec, families:
         choices=["float32", "float16", "int8", "none"],
         default="float16",
         help="with --ship: the precision of the shipped models' weights (int8: conv and linear "
-        "weights at 255 levels per output channel; none: no models, e.g. PSPNet's 47 M parameters)",
+        "weights at 255 levels per output channel; none: no models, e.g. PSPNet's 49 M parameters)",
     )
     st.set_defaults(func=_cmd_study, task=task.name)
 
