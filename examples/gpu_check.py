@@ -91,7 +91,7 @@ def main() -> int:
                 "tests/test_jit.py",
                 "tests/test_physics.py",
                 "-k",
-                "cuda or device or gpu or numpy",
+                "(cuda or device or gpu or numpy) and not simulator",
             ],
             cwd=Path(__file__).resolve().parents[1],
             capture_output=True,

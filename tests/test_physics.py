@@ -829,7 +829,9 @@ np.savez(sys.argv[2], launches=sum(launches.values()), **out)
 
 
 @pytest.mark.slow  # a process of its own, the kernels as plain Python
-def test_the_measurement_on_the_device_path_draws_what_the_cpu_kernel_draws(gen, tmp_path):
+def test_the_measurement_on_the_device_path_draws_what_the_cpu_kernel_draws_in_numbas_simulator(
+    gen, tmp_path
+):
     """Without a GPU: the device path of the measurement (one thread per element, the full
     samplers) and of a fixed layout's forward with physics (one launch: the product and the
     measurement) in numba's CUDA simulator against the CPU kernels: the same noise draws, so the
@@ -898,3 +900,27 @@ def test_a_device_kernel_that_fails_warns_once_and_leaves_the_torch_path(monkeyp
     assert calls == [1] and torch.equal(first, second)
     monkeypatch.setattr(ph, "runs_on_device", lambda t: False)
     assert torch.equal(first, ph.measure(means, areas, cam))  # the path it fell back to
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_the_measurement_on_cuda_draws_the_cpus_noise(gen):
+    """On a GPU: a fixed layout's forward with physics, and `measure` alone, from the same seed on
+    CUDA and on the CPU: the same draws from the same streams, so nearly every value equal (the
+    device's exp/log and fused multiply-adds may round a rare rejection test or a mean's last bit
+    otherwise), and the rest within a few DN of the ADC."""
+    if not lw.kernels.cuda_available("float32"):
+        pytest.skip("numba's CUDA target does not run here")
+    cam = SensorPhysics((280.0, 560.0), photons_per_um2=5.0, read_noise_e=2.0, adc_bits=10, prnu=0.02, seed=3)
+    img = torch.rand(1, 3, 60, 80, generator=gen)
+    layout = lw.CurvLayout(tuple(rand_theta(gen, 0.6)))
+    with torch.no_grad():
+        gpu = lw.simulate(img.cuda(), layout.cuda(), (15, 20), physics=cam, output="dn").cpu()
+        cpu = lw.simulate(img, layout.cpu(), (15, 20), physics=cam, output="dn")
+        means = torch.rand(3, 15, 20, generator=gen, dtype=torch.float64) * 40
+        areas = torch.full((15, 20), 4 / 300, dtype=torch.float64)
+        alone = lw.physics.measure(means.cuda(), areas.cuda(), cam, output="electrons").cpu()
+        alone_cpu = lw.physics.measure(means, areas, cam, output="electrons")
+    assert not lw.kernels.device.FAILED
+    for a, b in ((gpu, cpu), (alone, alone_cpu)):
+        assert float((a == b).double().mean()) >= 0.99
+        assert float((a - b).abs().max()) <= 4.0
