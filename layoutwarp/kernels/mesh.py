@@ -1212,33 +1212,30 @@ def _cuda_pieces_and_counts(
 def _cuda_place(
     kind: int, centred: bool, ends: np.ndarray, ea: np.ndarray, eb: np.ndarray, th: np.ndarray,
     c: np.ndarray, piece_offsets: np.ndarray, bounds: np.ndarray, dbounds: np.ndarray,
-    counts: np.ndarray, edge_offsets: np.ndarray, ncorner: int, verts: np.ndarray,
-    dverts: np.ndarray, seg_start: np.ndarray, seg_end: np.ndarray, seg_edge: np.ndarray,
+    counts: np.ndarray, edge_offsets: np.ndarray, q: np.ndarray, dq: np.ndarray, ws: float, hs: float,
+    verts: np.ndarray, dverts: np.ndarray, seg_start: np.ndarray, seg_end: np.ndarray, seg_edge: np.ndarray,
+    pv: np.ndarray,
 ) -> None:  # fmt: skip
-    """One thread per edge: [`_edge_vertices`][]."""
+    """One thread per edge: [`_edge_vertices`][], then its new vertices in pixel units of a
+    ``ws`` x ``hs`` source ([`_pixel_vertex`][]) into ``pv``; thread ``e`` also copies corner
+    ``e`` in from ``q``/``dq`` (where the corners' kernel left them; a mesh has at least as many
+    edges as corners) with its pixel units. One launch where placing and converting took two."""
     e = cuda.grid(1)
-    if e < ends.shape[0]:
-        q, dq = cuda.local.array(2, F8), cuda.local.array((2, _DQ), F8)
-        _edge_vertices(
-            kind, centred, e, ends, ea, eb, th, c, piece_offsets, bounds, dbounds, counts, edge_offsets,
-            ncorner, q, dq, verts, dverts, seg_start, seg_end, seg_edge,
-        )  # fmt: skip
-
-
-def _cuda_to_pixels(
-    q: np.ndarray, dq: np.ndarray, verts: np.ndarray, dverts: np.ndarray, ws: float, hs: float,
-    out: np.ndarray,
-) -> None:  # fmt: skip
-    """One thread per vertex: [`_pixel_vertex`][]; the corners (the first ``len(q)`` vertices)
-    first copied in from ``q``/``dq``, where the corners' kernel left them."""
-    v = cuda.grid(1)
-    if v < q.shape[0]:
-        verts[v, 0], verts[v, 1] = q[v, 0], q[v, 1]
+    nc = q.shape[0]
+    if e < nc:
+        verts[e, 0], verts[e, 1] = q[e, 0], q[e, 1]
         for i in range(2):
             for p in range(dq.shape[2]):
-                dverts[v, i, p] = dq[v, i, p]
-    if v < verts.shape[0]:
-        out[v, 0], out[v, 1] = _pixel_vertex(verts[v, 0], verts[v, 1], ws, hs)
+                dverts[e, i, p] = dq[e, i, p]
+        pv[e, 0], pv[e, 1] = _pixel_vertex(q[e, 0], q[e, 1], ws, hs)
+    if e < ends.shape[0]:
+        qi, dqi = cuda.local.array(2, F8), cuda.local.array((2, _DQ), F8)
+        _edge_vertices(
+            kind, centred, e, ends, ea, eb, th, c, piece_offsets, bounds, dbounds, counts, edge_offsets,
+            nc, qi, dqi, verts, dverts, seg_start, seg_end, seg_edge,
+        )  # fmt: skip
+        for v in range(nc + edge_offsets[e] - e, nc + edge_offsets[e + 1] - e - 1):  # its new vertices
+            pv[v, 0], pv[v, 1] = _pixel_vertex(verts[v, 0], verts[v, 1], ws, hs)
 
 
 @inline
@@ -1390,10 +1387,9 @@ CUDA_KERNELS = {
     ),
     "place": (
         _cuda_place,
-        f"void(int64, boolean, {_A2}, {_I1}, {_I1}, {_A1}, {_A1}, {_I1}, {_A2}, {_A3}, {_I1}, {_I1}, int64, "
-        f"{_A2}, {_A3}, {_I1}, {_I1}, {_I1})",
+        f"void(int64, boolean, {_A2}, {_I1}, {_I1}, {_A1}, {_A1}, {_I1}, {_A2}, {_A3}, {_I1}, {_I1}, {_A2}, "
+        f"{_A3}, float64, float64, {_A2}, {_A3}, {_I1}, {_I1}, {_I1}, {_A2})",
     ),
-    "to_pixels": (_cuda_to_pixels, f"void({_A2}, {_A3}, {_A2}, {_A3}, float64, float64, {_A2})"),
     "pixel_means": (_cuda_pixel_means, f"void({_A2}, {_I1}, float64, {_A3}, {_A2}, {_A2})"),
     "edge_gradient": (_cuda_edge_gradient, f"void({_A3}, {_A3}, {_A2}, {_A2}, float64, {_A2}, {_A1})"),
     "theta_gradient": (
@@ -1432,8 +1428,8 @@ def build_mesh_device(
     max_subdiv: int = 4096,
 ) -> DeviceMesh:
     """[`build_mesh`][] (``with_grad``) and [`pixel_vertices`][] on the CUDA device that
-    holds ``theta`` ``(P,)``, in seven kernels (corners, pixel areas, edges' smaller areas,
-    pieces, counts, vertices, pixel units: one thread per corner, pixel, edge or vertex, each
+    holds ``theta`` ``(P,)``, in six kernels (corners, pixel areas, edges' smaller areas,
+    pieces, counts, vertices with their pixel units: one thread per corner, pixel or edge, each
     thread the CPU's steps for its item) and
     two cumulative sums, so no mesh crosses the bus: at 2048x1024 → 257x129 a fovea mesh is
     about 50 MB. The host waits twice, for the piece and segment totals it allocates by. A
@@ -1469,12 +1465,11 @@ def build_mesh_device(
     nseg = int(edge_offsets[-1])
     verts, dverts = torch.empty(nc + nseg - ne, 2, **f64), torch.empty(nc + nseg - ne, 2, p, **f64)
     seg_start, seg_end, seg_edge = (torch.empty(nseg, **i64) for _ in range(3))
+    pv = torch.empty_like(verts)
     launch(
         "place", ne, spec.kind, spec.centred, ends, ea, eb, th, c, piece_offsets, bounds, dbounds, counts,
-        edge_offsets, nc, verts, dverts, seg_start, seg_end, seg_edge,
+        edge_offsets, q, dq, float(ws), float(hs), verts, dverts, seg_start, seg_end, seg_edge, pv,
     )  # fmt: skip
-    pv = torch.empty_like(verts)
-    launch("to_pixels", verts.shape[0], q, dq, verts, dverts, float(ws), float(hs), pv)  # corners copied in
     mesh = PixelMesh(size, verts, seg_start, seg_end, seg_edge, edge_offsets)
     return DeviceMesh(mesh, pv, dverts, counts)
 
