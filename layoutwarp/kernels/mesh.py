@@ -1129,22 +1129,28 @@ def _edge_vertices(
 
 
 def _cuda_corners(
-    kind: int,
-    centred: bool,
-    corners: np.ndarray,
-    th: np.ndarray,
-    c: np.ndarray,
-    q: np.ndarray,
-    dq: np.ndarray,
-) -> None:
-    """One thread per uniform corner: φ and ``∂φ/∂θ``."""
-    v = cuda.grid(1)
-    if v < corners.shape[0]:
+    kind: int, centred: bool, corners: np.ndarray, ends: np.ndarray, th: np.ndarray, c: np.ndarray,
+    q: np.ndarray, dq: np.ndarray, npieces: np.ndarray,
+) -> None:  # fmt: skip
+    """Two independent steps in one launch: thread ``i`` maps uniform corner ``i`` (φ and
+    ``∂φ/∂θ`` into ``q``/``dq``) and counts edge ``i``'s smooth pieces ([`_edge_pieces`][]) into
+    ``npieces[i + 1]``, thread 0 setting ``npieces[0] = 0``, so that a cumulative sum of
+    ``npieces`` in place gives the pieces' offsets (a mesh has at least as many edges as
+    corners)."""
+    i = cuda.grid(1)
+    if i == 0:
+        npieces[0] = 0
+    if i < corners.shape[0]:
         qi, work = cuda.local.array(2, F8), cuda.local.array((2, _DQ), F8)
-        _phi_at(kind, centred, corners[v, 0], corners[v, 1], th, c, qi, work)
-        q[v, 0], q[v, 1] = qi[0], qi[1]
+        _phi_at(kind, centred, corners[i, 0], corners[i, 1], th, c, qi, work)
+        q[i, 0], q[i, 1] = qi[0], qi[1]
         for r in range(th.shape[0]):
-            dq[v, 0, r], dq[v, 1, r] = work[0, r], work[1, r]
+            dq[i, 0, r], dq[i, 1, r] = work[0, r], work[1, r]
+    if i < ends.shape[0]:
+        scratch, cuts = cuda.local.array((8, P_MAX), F8), cuda.local.array(8, F8)
+        dcuts = cuda.local.array((8, P_MAX), F8)
+        lo, dlo = cuda.local.array(10, F8), cuda.local.array((10, P_MAX), F8)
+        npieces[i + 1] = _edge_pieces(kind, centred, i, ends, th, c, scratch, cuts, dcuts, lo, dlo, False)
 
 
 def _cuda_areas(q: np.ndarray, area: np.ndarray) -> None:
@@ -1165,21 +1171,6 @@ def _cuda_amin(area: np.ndarray, amin: np.ndarray) -> None:
         amin[e] = _amin_across(area, e // w, e % w)
     elif e < amin.shape[0]:
         amin[e] = _amin_beside(area, (e - nh) // (w + 1), (e - nh) % (w + 1))
-
-
-def _cuda_count_pieces(
-    kind: int, centred: bool, ends: np.ndarray, th: np.ndarray, c: np.ndarray, out: np.ndarray
-) -> None:
-    """One thread per edge: [`_edge_pieces`][]' count into ``out[e + 1]``, and ``out[0] = 0``, so
-    that a cumulative sum of ``out`` in place gives the pieces' offsets."""
-    e = cuda.grid(1)
-    if e == 0:
-        out[0] = 0
-    if e < ends.shape[0]:
-        scratch, cuts = cuda.local.array((8, P_MAX), F8), cuda.local.array(8, F8)
-        dcuts = cuda.local.array((8, P_MAX), F8)
-        lo, dlo = cuda.local.array(10, F8), cuda.local.array((10, P_MAX), F8)
-        out[e + 1] = _edge_pieces(kind, centred, e, ends, th, c, scratch, cuts, dcuts, lo, dlo, False)
 
 
 def _cuda_pieces_and_counts(
@@ -1376,10 +1367,9 @@ _A1, _A2, _A3, _I1 = "float64[::1]", "float64[:, ::1]", "float64[:, :, ::1]", "i
 #: The device kernels of [`build_mesh_device`][], by name, with their argument types (what
 #: [`cuda_ptx`][layoutwarp.kernels.cuda_ptx] compiles them with, without a GPU).
 CUDA_KERNELS = {
-    "corners": (_cuda_corners, f"void(int64, boolean, {_A2}, {_A1}, {_A1}, {_A2}, {_A3})"),
+    "corners": (_cuda_corners, f"void(int64, boolean, {_A2}, {_A2}, {_A1}, {_A1}, {_A2}, {_A3}, {_I1})"),
     "areas": (_cuda_areas, f"void({_A2}, {_A2})"),
     "amin": (_cuda_amin, f"void({_A2}, {_A1})"),
-    "count_pieces": (_cuda_count_pieces, f"void(int64, boolean, {_A2}, {_A1}, {_A1}, {_I1})"),
     "pieces_and_counts": (
         _cuda_pieces_and_counts,
         f"void(int64, boolean, {_A2}, {_A1}, {_A1}, {_I1}, {_A1}, float64, int64, float64, {_A2}, {_A3}, "
@@ -1413,6 +1403,13 @@ class DeviceMesh:
 
 
 @functools.lru_cache(maxsize=16)
+def _device_centre(center: tuple[float, float], device: str) -> torch.Tensor:
+    """A centre as a float64 tensor on ``device`` (cached: no copy to the device every step; do
+    not modify)."""
+    return torch.tensor(center, dtype=torch.float64, device=device)
+
+
+@functools.lru_cache(maxsize=16)
 def _device_topology(size: tuple[int, int], device: str) -> tuple[torch.Tensor, ...]:
     """[`_topology`][] on ``device`` (cached per size and device; do not modify)."""
     return tuple(torch.from_numpy(np.ascontiguousarray(a)).to(device) for a in _topology(size))
@@ -1428,9 +1425,9 @@ def build_mesh_device(
     max_subdiv: int = 4096,
 ) -> DeviceMesh:
     """[`build_mesh`][] (``with_grad``) and [`pixel_vertices`][] on the CUDA device that
-    holds ``theta`` ``(P,)``, in six kernels (corners, pixel areas, edges' smaller areas,
-    pieces, counts, vertices with their pixel units: one thread per corner, pixel or edge, each
-    thread the CPU's steps for its item) and
+    holds ``theta`` ``(P,)``, in five kernels (corners and pieces, pixel areas, edges' smaller
+    areas, counts, vertices with their pixel units: one thread per corner and edge, pixel or
+    edge, each thread the CPU's steps for its item) and
     two cumulative sums, so no mesh crosses the bus: at 2048x1024 → 257x129 a fovea mesh is
     about 50 MB. The host waits twice, for the piece and segment totals it allocates by. A
     ``theta`` on the CPU runs the same kernels in numba's CUDA simulator
@@ -1440,19 +1437,20 @@ def build_mesh_device(
     (h, w), (hs, ws) = size, src_size
     ends, ea, eb, uniform = _device_topology(size, str(dev))
     th = theta.detach().to(torch.float64).contiguous()
-    c = torch.tensor(spec.center, dtype=torch.float64, device=dev)
+    c = _device_centre(spec.center, str(dev))
     p, ne, nc = th.numel(), ends.shape[0], uniform.shape[0]
     f64, i64 = {"dtype": torch.float64, "device": dev}, {"dtype": torch.int64, "device": dev}
 
     def launch(name: str, count: int, *args: object) -> None:
         cuda_launch(CUDA_KERNELS[name][0], count, stream, *args)
 
-    q, dq = torch.empty(nc, 2, **f64), torch.empty(nc, 2, p, **f64)
-    launch("corners", nc, spec.kind, spec.centred, uniform, th, c, q, dq)
-    area, amin, piece_offsets = torch.empty(h, w, **f64), torch.empty(ne, **f64), torch.empty(ne + 1, **i64)
+    q, dq, piece_offsets = torch.empty(nc, 2, **f64), torch.empty(nc, 2, p, **f64), torch.empty(ne + 1, **i64)
+    launch(
+        "corners", ne, spec.kind, spec.centred, uniform, ends, th, c, q, dq, piece_offsets
+    )  # counts after a 0
+    area, amin = torch.empty(h, w, **f64), torch.empty(ne, **f64)
     launch("areas", h * w, q, area)
     launch("amin", ne, area, amin)
-    launch("count_pieces", ne, spec.kind, spec.centred, ends, th, c, piece_offsets)  # counts after a 0
     piece_offsets.cumsum_(0)
     total = int(piece_offsets[-1])
     bounds, dbounds = torch.empty(total, 2, **f64), torch.empty(total, 2, p, **f64)
