@@ -59,7 +59,9 @@ def main() -> None:
     )
     parser.add_argument("--kernels", action="store_true", help="also time the compiled calls beneath")
     parser.add_argument(
-        "--against", metavar="COMMIT", help="with --kernels: also the fused call of COMMIT's kernels.py"
+        "--against",
+        metavar="COMMIT",
+        help="with --kernels: also the fused call of COMMIT's kernels.py (a commit before 2825e4c)",
     )
     args = parser.parse_args()
     if args.against and not args.kernels:
@@ -95,7 +97,8 @@ def main() -> None:
 def kernels_at(commit: str) -> ModuleType:
     """``layoutwarp/kernels.py`` as it was at ``commit``, imported as a module of its own from a
     temporary folder named after the commit, where numba caches its compiled code for the next run;
-    exits with git's message if there is no such file."""
+    exits with git's message if there is no such file (the kernels became the package
+    ``layoutwarp/kernels/`` at commit 2825e4c: compare against a commit before it)."""
 
     def git(*args: str) -> str:
         done = subprocess.run(["git", "-C", str(ROOT), *args], capture_output=True, text=True)
