@@ -110,13 +110,10 @@ def _cuda_csr_apply(
             sums = _csr_row(lo, hi, indices, data, x, k, m)
             for q in range(m):
                 out[k + q, r] = sums[q]
-                if measure:
-                    pr = prnu[r] if params[2] != 0.0 else 0.0
-                    ds = dsnu[r] if params[3] != 0.0 else 0.0
-                    i = (k + q) * rows + r
-                    origin = stream_origin(seed)
+                if measure:  # from the mean as the buffer holds it, as the CPU measures its buffer
+                    i, origin = (k + q) * rows + r, stream_origin(seed)
                     out[k + q, r] = measured_value(
-                        out[k + q, r], i, area_um2[r], pr, ds, params, origin, noise, output
+                        out[k + q, r], i, r, area_um2, prnu, dsnu, params, origin, noise, output
                     )
 
 

@@ -388,20 +388,20 @@ def stream_origin(seed: int) -> np.uint64:
 
 @inline
 def measured_value(
-    mean: float, i: int, a_um2: float, prnu: float, dsnu: float, params: np.ndarray, origin: np.uint64,
-    noise: int, output: int,
+    mean: float, i: int, j: int, area_um2: np.ndarray, prnu: np.ndarray, dsnu: np.ndarray, params: np.ndarray,
+    origin: np.uint64, noise: int, output: int,
 ) -> float:  # fmt: skip
-    """Element ``i`` (row-major over planes × pixels) of [`sensor_measure`][], its pixel of
-    ``a_um2`` µm² with fixed patterns ``prnu``/``dsnu`` (read only where their gains are not 0),
-    by the full samplers alone, one element at a time: what the CUDA kernels compute for each
-    element, the same draws from the same streams as the CPU kernel's first tries and rescan (the
-    arithmetic is the same; the device's ``exp``/``log`` may round a rare rejection test's last
-    digit otherwise)."""
-    sc, dk, fw, zr, iv = _pixel_constants(a_um2, params)
+    """Element ``i`` (row-major over planes × pixels) of [`sensor_measure`][], of mean ``mean``
+    at pixel ``j`` (its area ``area_um2[j]``, its fixed patterns ``prnu[j]``/``dsnu[j]``, read only
+    where their gains are not 0), by the full samplers alone: the CPU kernel's rescan of the
+    elements whose first tries were rejected (the first tries are the full samplers' first steps:
+    the same draws) and the CUDA kernels' every element (the arithmetic is the same; the device's
+    ``exp``/``log`` may round a rare rejection test's last digit otherwise)."""
+    sc, dk, fw, zr, iv = _pixel_constants(area_um2[j], params)
     if params[2] != 0.0:
-        sc = sc * (1.0 + params[2] * prnu)
+        sc = sc * (1.0 + params[2] * prnu[j])
     if params[3] != 0.0:
-        dk = dk + params[3] * dsnu
+        dk = dk + params[3] * dsnu[j]
     e = mean * sc + dk
     if noise == 0:
         return _recorded(e, fw, zr, iv, params, output)
@@ -477,14 +477,15 @@ def sensor_measure(
     branch-free loop ([`_measure_run`][]) takes every draw's first try and flags the elements
     where one was rejected (about 0.4 % of the normals, a few tenths of a percent of the Poisson
     draws at large means, all of them below a mean of 10 electrons), which keep their means. After
-    its last run the thread rescans its flags, eight a word, and reruns a full sampler there from
-    the start of its stream: the rare slow path in one tight loop, whose code and branch history
-    stay warm (a rescan after every run made the kernel 5–25 % slower).
+    its last run the thread rescans its flags, eight a word, and measures those elements again with
+    the full samplers from the start of their streams ([`measured_value`][]): the rare slow path
+    in one tight loop, whose code and branch history stay warm (a rescan after every run made the
+    kernel 5–25 % slower).
     """
     g_prnu, g_dsnu, read = params[2], params[3], params[5]
     n, p = mean.shape
     state0 = stream_origin(seed)
-    poisson, in_place = noise == 1, out.ctypes.data == mean.ctypes.data
+    in_place = out.ctypes.data == mean.ctypes.data
     for thread in prange(threads):  # each thread its work space, and its share of the pixels
         c = MEASURE_CHUNK
         scale, dark, full, zero, inv = np.empty(c), np.empty(c), np.empty(c), np.empty(c), np.empty(c)
@@ -517,26 +518,10 @@ def sensor_measure(
             for f in range(8 * b, min(n * share, 8 * b + 8)):
                 if redo[f] == 0:
                     continue
-                r, i = f // share, start + f % share
-                sc, dk, fw, zr, iv = _pixel_constants(area_um2[i], params)
-                if g_prnu != 0.0:
-                    sc = sc * (1.0 + g_prnu * prnu[i])
-                if g_dsnu != 0.0:
-                    dk = dk + g_dsnu * dsnu[i]
-                e = mean[r, i] * sc + dk
-                key = state0 + np.uint64(r * p + i) * _ELEMENT_G
-                mu = max(e, 0.0)
-                k, g, z2, ok_z1, ok_k, ok_z2 = _first_tries(mu, key, key + _STREAM_G)
-                shot = k if poisson else g + (e - mu)
-                if not (ok_z1 and (ok_k or not poisson)):  # from the start of the shot stream
-                    if poisson:
-                        shot, _ = _poisson(mu, key)
-                    else:
-                        z, _ = _normal(key)
-                        shot = e + math.sqrt(mu) * z
-                if not ok_z2 and read != 0.0:
-                    z2, _ = _normal(key + _STREAM_G)
-                out[r, i] = _recorded(shot + read * z2, fw, zr, iv, params, output)
+                r, i = f // share, start + f % share  # its mean was left where it was
+                out[r, i] = measured_value(
+                    mean[r, i], r * p + i, i, area_um2, prnu, dsnu, params, state0, noise, output
+                )
 
 
 # ----------------------------------------------------------------------------------------
@@ -555,11 +540,8 @@ def _cuda_measure(
     n, p = mean.shape
     if i < n * p:
         r, j = i // p, i % p
-        pr = prnu[j] if params[2] != 0.0 else 0.0
-        ds = dsnu[j] if params[3] != 0.0 else 0.0
-        out[r, j] = measured_value(
-            mean[r, j], i, area_um2[j], pr, ds, params, stream_origin(seed), noise, output
-        )
+        origin = stream_origin(seed)
+        out[r, j] = measured_value(mean[r, j], i, j, area_um2, prnu, dsnu, params, origin, noise, output)
 
 
 _A1, _A2 = "float64[::1]", "float32[:, ::1]"
