@@ -52,9 +52,9 @@ def study_runs(plan: StudyPlan, seeds: int) -> list[tuple[str, tuple[int, int], 
     """Every ``(family, size, seed)`` of a plan, seed by seed (each seed: the uniform curve, then
     the learned layouts), so a study stopped part way has every configuration's first seeds
     rather than all of some configurations' and none of others'."""
-    runs = [("uniform", s, k) for k in range(seeds) for s in plan.uniform_sizes]
-    runs += [(f, s, k) for k in range(seeds) for s in plan.learned_sizes for f in plan.families]
-    return sorted(runs, key=lambda run: run[2])  # stable: within a seed, the order above
+    uniform = [("uniform", s) for s in plan.uniform_sizes]
+    learned = [(f, s) for s in plan.learned_sizes for f in plan.families]
+    return [(family, size, k) for k in range(seeds) for family, size in uniform + learned]
 
 
 def study_options(task: Task, plan: StudyPlan, **changes: Any) -> RunOptions:
