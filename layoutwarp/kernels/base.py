@@ -20,6 +20,7 @@ __all__ = [
     "available",
     "inline",
     "njit",
+    "numba_config",
     "parallel",
     "plain_python",
     "prange",

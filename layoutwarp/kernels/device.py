@@ -15,11 +15,15 @@ import types
 import warnings
 from collections import Counter
 from collections.abc import Callable, Iterator
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .base import njit, without_ir_inlining
+from .base import njit, numba_config, without_ir_inlining
 from .exact import BLOCK, CUDA_SOURCES, cuda_signature
+
+if TYPE_CHECKING:
+    import torch
 
 __all__ = [
     "CUDA_THREADS",
@@ -75,21 +79,17 @@ def simulated() -> bool:
     """Whether numba's CUDA simulator stands in for a GPU (``NUMBA_ENABLE_CUDASIM=1``): the CUDA
     kernels then run as Python on CPU arrays, and the device paths take CPU tensors, so their
     launches and results can be checked where no GPU is."""
-    if njit is None:
-        return False
-    from numba import config
-
-    return bool(config.ENABLE_CUDASIM)
+    return njit is not None and bool(numba_config.ENABLE_CUDASIM)
 
 
-def runs_on_device(tensor) -> bool:
+def runs_on_device(tensor: torch.Tensor) -> bool:
     """Whether work on ``tensor`` takes the CUDA kernels: it is on a CUDA device, or on the CPU
     under numba's CUDA simulator ([`simulated`][]: how the device paths' values and launches are
     checked without a GPU)."""
     return tensor.is_cuda or (tensor.device.type == "cpu" and simulated())
 
 
-def stream_of(tensor) -> int:
+def stream_of(tensor: torch.Tensor) -> int:
     """The handle of torch's current CUDA stream on ``tensor``'s device (0, the default stream,
     for a CPU tensor in the simulator): the stream [`cuda_launch`][] queues on, so the kernels run
     in order with torch's own work."""
