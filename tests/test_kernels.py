@@ -219,70 +219,76 @@ def test_the_banded_path_matches_the_reference(gen, monkeypatch):
 # ----------------------------------------------------------------------------------------
 # CUDA: the same kernels on the GPU against the torch reference on the CPU
 # ----------------------------------------------------------------------------------------
-#: Runs in a process of its own: numba's CUDA simulator, with the device functions as plain Python.
+#: Runs in a process of its own: numba's CUDA simulator, with the device functions as plain Python;
+#: one case a file, each case's results to its own file.
 SIMULATED = """
 import sys
 import numpy as np
 from layoutwarp import kernels
-case = dict(np.load(sys.argv[1]))
-img, verts, ss, se, sedge, eo, grad = (case[k] for k in ("img", "verts", "ss", "se", "sedge", "eo", "grad"))
-n, h, w = img.shape
-assert kernels.cuda_available(str(img.dtype))  # the smoke test, through the simulator
-incl = np.full((h, w, n), np.nan, dtype=img.dtype)
-offsets = np.full((h, (w + kernels.BLOCK - 1) // kernels.BLOCK, n), np.nan)
-kernels.cuda_launch("prefix_blocks", h * offsets.shape[1] * n, 0, img, kernels.BLOCK, incl)
-kernels.cuda_launch("prefix_offsets", h * n, 0, kernels.BLOCK, incl, offsets)
-per_seg, out = np.zeros((ss.size, n + 1)), np.zeros((n + 1, eo.size - 1))  # added to, as on the GPU
-kernels.cuda_launch("forward", ss.size, 0, verts, ss, se, incl, offsets, kernels.BLOCK, per_seg)
-kernels.cuda_launch("edge_sums", eo.size - 1, 0, per_seg, eo, out)
-wa, wb = np.zeros(ss.size), np.zeros(ss.size)
-kernels.cuda_launch("backward", ss.size, 0, verts, ss, se, sedge, incl, kernels.BLOCK, grad, wa, wb)
-np.savez(sys.argv[2], incl=incl, offsets=offsets, out=out, wa=wa, wb=wb)
+for path in sys.argv[1:]:
+    case = dict(np.load(path))
+    img, verts, ss, se = case["img"], case["verts"], case["ss"], case["se"]
+    sedge, eo, grad = case["sedge"], case["eo"], case["grad"]
+    n, h, w = img.shape
+    assert kernels.cuda_available(str(img.dtype))  # the smoke test, through the simulator
+    incl = np.full((h, w, n), np.nan, dtype=img.dtype)
+    offsets = np.full((h, (w + kernels.BLOCK - 1) // kernels.BLOCK, n), np.nan)
+    kernels.cuda_launch("prefix_blocks", h * offsets.shape[1] * n, 0, img, kernels.BLOCK, incl)
+    kernels.cuda_launch("prefix_offsets", h * n, 0, kernels.BLOCK, incl, offsets)
+    per_seg, out = np.zeros((ss.size, n + 1)), np.zeros((n + 1, eo.size - 1))  # added to, as on the GPU
+    kernels.cuda_launch("forward", ss.size, 0, verts, ss, se, incl, offsets, kernels.BLOCK, per_seg)
+    kernels.cuda_launch("edge_sums", eo.size - 1, 0, per_seg, eo, out)
+    wa, wb = np.zeros(ss.size), np.zeros(ss.size)
+    kernels.cuda_launch("backward", ss.size, 0, verts, ss, se, sedge, incl, kernels.BLOCK, grad, wa, wb)
+    np.savez(path.replace("case", "sim"), incl=incl, offsets=offsets, out=out, wa=wa, wb=wb)
 """
 
 
-@pytest.mark.slow  # four processes of their own
-@pytest.mark.parametrize(
-    ("family", "theta", "size", "src", "dtype"),
-    [
-        ("rect", (0.0, 0.0), (4, 4), (28, 28), np.float64),  # segments on cell lines, flat and vertical
-        ("curv", None, None, None, np.float64),
-        ("curv", None, None, None, np.float32),
-        ("curv", (0.7, 0.2), (20, 23), (9, 70), np.float64),  # pixels narrower than source cells
-    ],
-)
-def test_the_cuda_kernels_run_as_the_cpu_kernels_in_numbas_simulator(
-    family, theta, size, src, dtype, gen, tmp_path
-):
+@pytest.mark.slow  # a process of its own, the kernels as plain Python
+def test_the_cuda_kernels_run_as_the_cpu_kernels_in_numbas_simulator(gen, tmp_path):
     """Without a GPU: the CUDA kernels' sources and launches (one thread per item, the grid
     guards, the prefix tables' and the edge sums' indexing) in numba's CUDA simulator against
-    the compiled CPU kernels, on the same mesh and image."""
+    the compiled CPU kernels, on the same mesh and image: segments on cell lines (θ = 0, flat
+    and vertical), random curved layouts in both dtypes, and pixels narrower than source cells."""
+    import os
     import subprocess
     import sys
 
-    theta = rand_theta(gen, 0.95) if theta is None else theta
-    size = size or (rint(gen, 1, 12), rint(gen, 1, 12))
-    src = src or (rint(gen, 5, 60), rint(gen, 5, 60))
-    img = (torch.rand(rint(gen, 1, 3), *src, generator=gen, dtype=F64) * 10 - 3).numpy().astype(dtype)
-    mesh = lw.pixel_mesh(lw.make_layout(family, theta, dtype=F64), size, tol=1e-4, dtype=F64)
-    arrays = (mesh.pixel_vertices(src), mesh.seg_start, mesh.seg_end, mesh.seg_edge, mesh.edge_offsets)
-    verts, ss, se, sedge, eo = (np.ascontiguousarray(t.detach().numpy()) for t in arrays)
-    grad = torch.randn(img.shape[0] + 1, eo.size - 1, generator=gen, dtype=F64).numpy()
-    np.savez(tmp_path / "case.npz", img=img, verts=verts, ss=ss, se=se, sedge=sedge, eo=eo, grad=grad)
-    env = {**__import__("os").environ, "NUMBA_DISABLE_JIT": "1", "NUMBA_ENABLE_CUDASIM": "1"}
-    args = [sys.executable, "-c", SIMULATED, str(tmp_path / "case.npz"), str(tmp_path / "sim.npz")]
+    cases = [
+        ("rect", (0.0, 0.0), (4, 4), (28, 28), np.float64),
+        ("curv", None, None, None, np.float64),
+        ("curv", None, None, None, np.float32),
+        ("curv", (0.7, 0.2), (12, 5), (5, 40), np.float64),
+    ]
+    refs = {}
+    for i, (family, theta, size, src, dtype) in enumerate(cases):
+        theta = rand_theta(gen, 0.95) if theta is None else theta
+        size = size or (rint(gen, 1, 8), rint(gen, 1, 8))
+        src = src or (rint(gen, 5, 60), rint(gen, 5, 60))
+        img = (torch.rand(rint(gen, 1, 3), *src, generator=gen, dtype=F64) * 10 - 3).numpy().astype(dtype)
+        # 1e-3: a thousand segments or so, each a Python thread in the simulator
+        mesh = lw.pixel_mesh(lw.make_layout(family, theta, dtype=F64), size, tol=1e-3, dtype=F64)
+        arrays = (mesh.pixel_vertices(src), mesh.seg_start, mesh.seg_end, mesh.seg_edge, mesh.edge_offsets)
+        verts, ss, se, sedge, eo = (np.ascontiguousarray(t.detach().numpy()) for t in arrays)
+        grad = torch.randn(img.shape[0] + 1, eo.size - 1, generator=gen, dtype=F64).numpy()
+        np.savez(tmp_path / f"case{i}.npz", img=img, verts=verts, ss=ss, se=se, sedge=sedge, eo=eo, grad=grad)
+        incl, offsets = kernels.prefix_tables(img, kernels.BLOCK)
+        out = kernels.exact_forward(verts, ss, se, eo, incl, offsets, kernels.BLOCK, 1)
+        wa, wb = kernels.exact_backward(verts, ss, se, sedge, incl, kernels.BLOCK, grad, 1)
+        expected = {"incl": incl, "offsets": offsets, "out": out, "wa": wa, "wb": wb}
+        refs[i] = (f"{family} θ={theta} {size} from {src} {np.dtype(dtype)}", dtype, expected)
+    env = {**os.environ, "NUMBA_DISABLE_JIT": "1", "NUMBA_ENABLE_CUDASIM": "1"}
+    args = [sys.executable, "-c", SIMULATED, *(str(tmp_path / f"case{i}.npz") for i in refs)]
     run = subprocess.run(args, env=env, capture_output=True, text=True, timeout=600)
     assert run.returncode == 0, run.stderr[-3000:]
-    sim = np.load(tmp_path / "sim.npz")
-    incl, offsets = kernels.prefix_tables(img, kernels.BLOCK)
-    out = kernels.exact_forward(verts, ss, se, eo, incl, offsets, kernels.BLOCK, 1)
-    wa, wb = kernels.exact_backward(verts, ss, se, sedge, incl, kernels.BLOCK, grad, 1)
-    # float32 tables: plain Python and numba round a float32 sum's intermediate steps differently
-    rel = 1e-13 if dtype == np.float64 else 1e-6
-    for name, ref in (("incl", incl), ("offsets", offsets), ("out", out), ("wa", wa), ("wb", wb)):
-        got = sim[name]
-        assert got.shape == ref.shape and np.isfinite(got).all(), name
-        assert np.abs(got - ref).max() <= rel * max(np.abs(ref).max(), 1.0), name
+    for i, (name, dtype, expected) in refs.items():
+        sim = np.load(tmp_path / f"sim{i}.npz")
+        # float32 tables: plain Python and numba round a float32 sum's intermediate steps differently
+        rel = 1e-13 if dtype == np.float64 else 1e-6
+        for key, ref in expected.items():
+            got = sim[key]
+            assert got.shape == ref.shape and np.isfinite(got).all(), (name, key)
+            assert np.abs(got - ref).max() <= rel * max(np.abs(ref).max(), 1.0), (name, key)
 
 
 @pytest.mark.slow  # a minute of PTX compiling: the samplers are large

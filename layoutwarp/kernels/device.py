@@ -41,8 +41,9 @@ __all__ = [
     "usable",
 ]
 
-#: Threads per block of the CUDA kernels.
-CUDA_THREADS = 128
+#: Threads per block of the CUDA kernels; 32 in numba's CUDA simulator ([`simulated`][]), where
+#: every thread of a block is a Python thread (the same code, four times fewer threads to start).
+CUDA_THREADS = 32 if njit is not None and numba_config.ENABLE_CUDASIM else 128
 cuda = None  # numba.cuda, imported by the first CUDA call (it costs a tenth of a second)
 _CUDA_KERNELS: dict = {}
 _CUDA_OK: dict = {}
