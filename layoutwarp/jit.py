@@ -17,8 +17,10 @@ cut from it without slowing every later call. So by default no call waits for it
   group to do, it runs a *quick build* of its kernel ([`quick`][]: the same code compiled
   without numba's IR inlining, in seconds rather than half a minute, the same values to the bit,
   1.5–6x slower), compiled in the process and kept in the cache beside the full build.
-- ``"wait"``: compile in this process at first use, as plain numba does: every call compiled, and
-  results the same to the bit from a process's first call on (the test suite runs this way).
+- ``"wait"``: compile in this process at first use: every call compiled, and results the same to
+  the bit from a process's first call on (the test suite runs this way). A group is compiled
+  whole, and processes on one cache (the ranks of a ``torchrun`` job, pytest's workers) take
+  each group in turn: the others wait for it and load it rather than compile it again.
 - ``"off"``: the torch path only.
 
 The mode comes from the environment variable ``LAYOUTWARP_JIT`` or [`set_mode`][]. Any group
@@ -153,7 +155,13 @@ def ready(group: str, dtype: str | torch.dtype = "float32", wait: bool = False) 
                 return True
         if worker is not None:
             worker.drop(unit)  # compiled here, beside the worker's current unit
-        _announce(unit, "compiling")  # numba compiles what the call uses, as it comes
+        if current == "wait":  # the whole unit, taken in turn with the other processes on this
+            with _unit_lock(unit):  # cache (the ranks of a torchrun job, pytest's workers): each
+                if not _loads(unit):  # after the first loads it
+                    _announce(unit, "compiling")
+                    _warm(unit)
+        else:
+            _announce(unit, "compiling")  # numba compiles what the call uses, as it comes
         _READY.add(unit)
         return True
 

@@ -7,6 +7,7 @@ import os
 import subprocess
 import sys
 import textwrap
+import time
 
 import numpy as np
 import pytest
@@ -278,6 +279,38 @@ def test_workers_on_one_cache_take_a_unit_in_turn():
     assert proc.stdout.readline().strip() == f"done {unit}"
     proc.stdin.close()
     assert proc.wait(timeout=60) == 0
+
+
+@pytest.mark.slow
+def test_wait_mode_processes_on_one_cache_compile_a_group_once(tmp_path):
+    """In wait mode, processes on one empty cache that need a group at the same moment (pytest's
+    workers, the ranks of a torchrun job) take it in turn: one compiles it, the others wait and
+    load it (one line says it compiled), and all compute the same values."""
+    code = """
+        import json, os, pathlib, sys, time, torch, layoutwarp as lw
+        pathlib.Path(sys.argv[1] + ".ready").touch()
+        while not os.path.exists(sys.argv[2]):  # all start together
+            time.sleep(0.01)
+        with torch.no_grad():
+            img = torch.arange(2 * 30 * 40.0).reshape(2, 30, 40)
+            out = lw.simulate(img, lw.CurvLayout((0.4, -0.3)), (5, 7))
+        print(json.dumps(out.flatten().tolist()))
+    """
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache"), jit.ENV: "wait"}
+    go = tmp_path / "go"
+    args = [sys.executable, "-c", textwrap.dedent(code)]
+    pipes = {"cwd": ROOT, "env": env, "stdout": subprocess.PIPE, "stderr": subprocess.PIPE, "text": True}
+    procs = [subprocess.Popen([*args, f"{tmp_path}/p{i}", str(go)], **pipes) for i in range(2)]
+    while not all((tmp_path / f"p{i}.ready").exists() for i in range(2)):
+        assert all(p.poll() is None for p in procs), procs[0].communicate()[1][-3000:]
+        time.sleep(0.05)
+    go.touch()
+    results = [p.communicate(timeout=600) for p in procs]
+    assert all(p.returncode == 0 for p in procs), [err[-3000:] for _, err in results]
+    lines = [line for _, err in results for line in err.splitlines()]
+    notices = [line for line in lines if line.startswith("layoutwarp: compiling")]
+    assert len(notices) == 1 and "fixed layout" in notices[0], notices
+    assert results[0][0] == results[1][0]
 
 
 def test_a_look_at_the_cache_keeps_the_users_cached_weights():
