@@ -3,11 +3,18 @@ and LAYOUTWARP_SEED=<seed> replays it."""
 
 from __future__ import annotations
 
+import ctypes
 import math
 import os
+import platform
 from pathlib import Path
 
-if os.environ.get("PYTEST_XDIST_WORKER"):  # workers share the cores: a thread waiting for work sleeps
+# pytest's workers (pytest-xdist, one a core: the README's command runs two on 2 cores) share the
+# cores, so a thread waiting for work sleeps; tests marked xdist_group("large") (PSPNet, torchrun,
+# Dask's processes, the installed wheel: 0.5-2 GB each) run on one worker one after another,
+# which keeps the suite under 3 GB; the kernels compile once for all workers (layoutwarp.jit's
+# wait mode takes turns)
+if os.environ.get("PYTEST_XDIST_WORKER"):
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import numpy as np
@@ -43,6 +50,16 @@ def seed(request) -> int:
 @pytest.fixture
 def gen(seed) -> torch.Generator:
     return torch.Generator().manual_seed(seed)
+
+
+_LIBC = ctypes.CDLL(None) if platform.libc_ver()[0] == "glibc" else None
+
+
+def pytest_runtest_teardown(item, nextitem) -> None:
+    """Hand the heap a test freed back to the system (glibc keeps it otherwise): two workers
+    side by side would each hold their largest test's peak to the end."""
+    if _LIBC is not None:
+        _LIBC.malloc_trim(0)
 
 
 @pytest.hookimpl(hookwrapper=True)
