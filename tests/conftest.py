@@ -7,13 +7,17 @@ import ctypes
 import math
 import os
 import platform
+from collections.abc import Iterator
 from pathlib import Path
 
+try:
+    import fcntl
+except ImportError:  # not POSIX: the large tests may overlap
+    fcntl = None
+
 # pytest's workers (pytest-xdist, one a core: the README's command runs two on 2 cores) share the
-# cores, so a thread waiting for work sleeps; tests marked xdist_group("large") (PSPNet, torchrun,
-# Dask's processes, the installed wheel: 0.5-2 GB each) run on one worker one after another,
-# which keeps the suite under 3 GB; the kernels compile once for all workers (layoutwarp.jit's
-# wait mode takes turns)
+# cores, so a thread waiting for work sleeps; the kernels compile once for all of them
+# (layoutwarp.jit's wait mode takes turns), and tests marked `large` run one at a time
 if os.environ.get("PYTEST_XDIST_WORKER"):
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
@@ -50,6 +54,19 @@ def seed(request) -> int:
 @pytest.fixture
 def gen(seed) -> torch.Generator:
     return torch.Generator().manual_seed(seed)
+
+
+@pytest.fixture(autouse=True)
+def one_large_test_at_a_time(request, tmp_path_factory) -> Iterator[None]:
+    """Tests marked ``large`` (PSPNet, torchrun, Dask's processes, the installed wheel: 0.5-2 GB
+    each) wait for one another across pytest's workers (a lock file in the run's shared temporary
+    folder), which keeps the suite under 3 GB."""
+    if request.node.get_closest_marker("large") is None or fcntl is None:
+        yield
+        return
+    with open(tmp_path_factory.getbasetemp().parent / "large-tests.lock", "w") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        yield
 
 
 _LIBC = ctypes.CDLL(None) if platform.libc_ver()[0] == "glibc" else None

@@ -22,7 +22,7 @@ def run(cmd: list, cwd: Path, env: dict | None = None, timeout: int = 600) -> su
     return res
 
 
-@pytest.mark.xdist_group("large")  # one at a time among pytest's workers: memory (see conftest)
+@pytest.mark.large
 @pytest.mark.slow
 def test_the_installed_wheel_runs_the_quick_job_and_the_demo_outside_the_source_tree(tmp_path):
     dist = tmp_path / "dist"

@@ -9,7 +9,7 @@ import torch
 from layoutwarp.experiments.resnets import AUX_WEIGHT, PSP_BINS, PSPNet, load_backbone, resnet18, resnet50
 
 #: PSPNet and its ResNet-50: one such test at a time among pytest's workers (memory; see conftest)
-pytestmark = pytest.mark.xdist_group("large")
+pytestmark = pytest.mark.large
 
 
 def n_params(net: torch.nn.Module) -> int:

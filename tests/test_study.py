@@ -140,7 +140,7 @@ def test_quick_study_resumes_and_its_models_evaluate(tmp_path, capsys):
     assert "no study in" in capsys.readouterr().err
 
 
-@pytest.mark.xdist_group("large")  # one at a time among pytest's workers: memory (see conftest)
+@pytest.mark.large
 @pytest.mark.slow
 def test_train_saves_camvid_models_that_evaluate_to_the_reported_scores(tmp_path, capsys):
     out = tmp_path / "c"
