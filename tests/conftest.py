@@ -3,7 +3,9 @@ and LAYOUTWARP_SEED=<seed> replays it."""
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
+import gc
 import math
 import os
 import platform
@@ -60,18 +62,22 @@ def gen(seed) -> torch.Generator:
 def one_large_test_at_a_time(request, tmp_path_factory) -> Iterator[None]:
     """Tests marked ``large`` (PSPNet, torchrun, Dask's processes, the installed wheel: 0.5-2 GB
     each) wait for one another across pytest's workers (a lock file in the run's shared temporary
-    folder), which keeps the suite under 3 GB."""
-    if request.node.get_closest_marker("large") is None or fcntl is None:
+    folder), and free what they held before the next: that keeps the suite under 3 GB."""
+    if request.node.get_closest_marker("large") is None:
         yield
         return
-    with open(tmp_path_factory.getbasetemp().parent / "large-tests.lock", "w") as handle:
-        fcntl.flock(handle, fcntl.LOCK_EX)
+    with contextlib.ExitStack() as held:
+        if fcntl is not None:
+            handle = held.enter_context(open(tmp_path_factory.getbasetemp().parent / "large-tests.lock", "w"))
+            fcntl.flock(handle, fcntl.LOCK_EX)
         yield
+        gc.collect()  # the network's cycles (modules, optimiser state): freed now, not at a later test
 
 
 _LIBC = ctypes.CDLL(None) if platform.libc_ver()[0] == "glibc" else None
 
 
+@pytest.hookimpl(trylast=True)  # after the fixtures' own teardown
 def pytest_runtest_teardown(item, nextitem) -> None:
     """Hand the heap a test freed back to the system (glibc keeps it otherwise): two workers
     side by side would each hold their largest test's peak to the end."""
