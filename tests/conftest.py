@@ -59,19 +59,23 @@ def gen(seed) -> torch.Generator:
 
 
 @pytest.fixture(autouse=True)
-def one_large_test_at_a_time(request, tmp_path_factory) -> Iterator[None]:
+def large_tests_alone(request, tmp_path_factory) -> Iterator[None]:
     """Tests marked ``large`` (PSPNet, torchrun, Dask's processes, the installed wheel: 0.5-2 GB
-    each) wait for one another across pytest's workers (a lock file in the run's shared temporary
-    folder), and free what they held before the next: that keeps the suite under 3 GB."""
-    if request.node.get_closest_marker("large") is None:
-        yield
-        return
+    each) run alone: the other pytest workers wait for them and they for the others' current
+    tests (a reader-writer lock on files in the run's shared temporary folder, with a turnstile
+    so that a large test is not starved), and what they held is freed before the next test. Two
+    workers side by side stay under 3 GB that way."""
+    large = request.node.get_closest_marker("large") is not None
     with contextlib.ExitStack() as held:
-        if fcntl is not None:
-            handle = held.enter_context(open(tmp_path_factory.getbasetemp().parent / "large-tests.lock", "w"))
-            fcntl.flock(handle, fcntl.LOCK_EX)
+        if fcntl is not None and os.environ.get("PYTEST_XDIST_WORKER"):
+            shared = tmp_path_factory.getbasetemp().parent
+            main = held.enter_context(open(shared / "large-tests.lock", "w"))
+            with open(shared / "large-tests.turnstile", "w") as turnstile:
+                fcntl.flock(turnstile, fcntl.LOCK_EX)  # a large test waiting holds it: no new test starts
+                fcntl.flock(main, fcntl.LOCK_EX if large else fcntl.LOCK_SH)
         yield
-        gc.collect()  # the network's cycles (modules, optimiser state): freed now, not at a later test
+        if large:
+            gc.collect()  # the network's cycles (modules, optimiser state): freed now, not at a later test
 
 
 _LIBC = ctypes.CDLL(None) if platform.libc_ver()[0] == "glibc" else None
