@@ -3,23 +3,14 @@ and LAYOUTWARP_SEED=<seed> replays it."""
 
 from __future__ import annotations
 
-import contextlib
 import ctypes
-import gc
 import math
 import os
 import platform
-from collections.abc import Iterator
 from pathlib import Path
 
-try:
-    import fcntl
-except ImportError:  # not POSIX: the large tests may overlap
-    fcntl = None
-
-# pytest's workers (pytest-xdist, one a core: the README's command runs two on 2 cores) share the
-# cores, so a thread waiting for work sleeps; the kernels compile once for all of them
-# (layoutwarp.jit's wait mode takes turns), and tests marked `large` run one at a time
+# pytest's workers (`pytest -n 2`, pytest-xdist) share the cores, so a thread waiting for work
+# sleeps; the kernels compile once for all of them (layoutwarp.jit's wait mode takes turns)
 if os.environ.get("PYTEST_XDIST_WORKER"):
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
@@ -58,33 +49,13 @@ def gen(seed) -> torch.Generator:
     return torch.Generator().manual_seed(seed)
 
 
-@pytest.fixture(autouse=True)
-def large_tests_alone(request, tmp_path_factory) -> Iterator[None]:
-    """Tests marked ``large`` (PSPNet, torchrun, Dask's processes, the installed wheel: 0.5-2 GB
-    each) run alone: the other pytest workers wait for them and they for the others' current
-    tests (a reader-writer lock on files in the run's shared temporary folder, with a turnstile
-    so that a large test is not starved), and what they held is freed before the next test. Two
-    workers side by side stay under 3 GB that way."""
-    large = request.node.get_closest_marker("large") is not None
-    with contextlib.ExitStack() as held:
-        if fcntl is not None and os.environ.get("PYTEST_XDIST_WORKER"):
-            shared = tmp_path_factory.getbasetemp().parent
-            main = held.enter_context(open(shared / "large-tests.lock", "w"))
-            with open(shared / "large-tests.turnstile", "w") as turnstile:
-                fcntl.flock(turnstile, fcntl.LOCK_EX)  # a large test waiting holds it: no new test starts
-                fcntl.flock(main, fcntl.LOCK_EX if large else fcntl.LOCK_SH)
-        yield
-        if large:
-            gc.collect()  # the network's cycles (modules, optimiser state): freed now, not at a later test
-
-
 _LIBC = ctypes.CDLL(None) if platform.libc_ver()[0] == "glibc" else None
 
 
 @pytest.hookimpl(trylast=True)  # after the fixtures' own teardown
 def pytest_runtest_teardown(item, nextitem) -> None:
-    """Hand the heap a test freed back to the system (glibc keeps it otherwise): two workers
-    side by side would each hold their largest test's peak to the end."""
+    """Hand the heap a test freed back to the system (glibc keeps it otherwise, and the process
+    would hold its largest test's peak to the end)."""
     if _LIBC is not None:
         _LIBC.malloc_trim(0)
 

@@ -121,7 +121,6 @@ def test_device_flag_errors_name_the_value(capsys):
         assert "no CUDA GPU is available here" in capsys.readouterr().err
 
 
-@pytest.mark.large
 @pytest.mark.slow
 def test_torchrun_with_two_gloo_processes_matches_one_process(tmp_path):
     # the same command under torchrun: 2 CPU ranks (gloo) split each global batch of 64 in two.

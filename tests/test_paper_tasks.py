@@ -112,7 +112,6 @@ def test_the_faces_resnet18_gives_each_attributes_logits():
     assert any(p.grad is not None and bool(p.grad.abs().sum() > 0) for p in net.sensor.parameters())
 
 
-@pytest.mark.large
 @pytest.mark.slow
 @pytest.mark.parametrize("task, metric", [("celeba", "mean"), ("cityscapes", "miou")])
 def test_quick_runs_of_the_paper_tasks_write_models_that_evaluate(task, metric, tmp_path, capsys):

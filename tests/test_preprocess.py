@@ -247,7 +247,6 @@ def _tree(root: Path) -> dict[str, bytes]:
     return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
 
 
-@pytest.mark.large
 @pytest.mark.slow
 def test_dask_engine_writes_the_same_bytes_and_reports_the_same_failures(tmp_path):
     pytest.importorskip("distributed")
@@ -269,7 +268,6 @@ def test_dask_engine_writes_the_same_bytes_and_reports_the_same_failures(tmp_pat
     )
 
 
-@pytest.mark.large
 @pytest.mark.slow
 def test_dask_engine_joins_a_cluster_builds_weights_once_per_worker_and_resumes(tmp_path):
     distributed = pytest.importorskip("distributed")

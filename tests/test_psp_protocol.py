@@ -20,9 +20,6 @@ from layoutwarp.experiments.segmentation import PSPSegNet, scale_jitter
 from layoutwarp.experiments.tasks import TASKS, get_task
 from layoutwarp.experiments.training import optimizer, schedule
 
-#: PSPNet and its ResNet-50: one such test at a time among pytest's workers (memory; see conftest)
-pytestmark = pytest.mark.large
-
 
 def test_a_tasks_network_variant_carries_its_protocol_and_leaves_the_task_as_it_was():
     camvid = get_task("camvid")

@@ -8,9 +8,6 @@ import torch
 
 from layoutwarp.experiments.resnets import AUX_WEIGHT, PSP_BINS, PSPNet, load_backbone, resnet18, resnet50
 
-#: PSPNet and its ResNet-50: one such test at a time among pytest's workers (memory; see conftest)
-pytestmark = pytest.mark.large
-
 
 def n_params(net: torch.nn.Module) -> int:
     return sum(p.numel() for p in net.parameters())

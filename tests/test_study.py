@@ -140,7 +140,6 @@ def test_quick_study_resumes_and_its_models_evaluate(tmp_path, capsys):
     assert "no study in" in capsys.readouterr().err
 
 
-@pytest.mark.large
 @pytest.mark.slow
 def test_train_saves_camvid_models_that_evaluate_to_the_reported_scores(tmp_path, capsys):
     out = tmp_path / "c"
