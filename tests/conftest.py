@@ -9,7 +9,7 @@ import os
 import platform
 from pathlib import Path
 
-# pytest's workers (`pytest -n 2`, pytest-xdist) share the cores, so a thread waiting for work
+# pytest's workers (pytest-xdist, one a core) share the cores, so a thread waiting for work
 # sleeps; the kernels compile once for all of them (layoutwarp.jit's wait mode takes turns)
 if os.environ.get("PYTEST_XDIST_WORKER"):
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
