@@ -301,11 +301,16 @@ def test_wait_mode_processes_on_one_cache_compile_a_group_once(tmp_path):
     args = [sys.executable, "-c", textwrap.dedent(code)]
     pipes = {"cwd": ROOT, "env": env, "stdout": subprocess.PIPE, "stderr": subprocess.PIPE, "text": True}
     procs = [subprocess.Popen([*args, f"{tmp_path}/p{i}", str(go)], **pipes) for i in range(2)]
-    while not all((tmp_path / f"p{i}.ready").exists() for i in range(2)):
-        assert all(p.poll() is None for p in procs), procs[0].communicate()[1][-3000:]
-        time.sleep(0.05)
-    go.touch()
-    results = [p.communicate(timeout=600) for p in procs]
+    try:
+        while not all((tmp_path / f"p{i}.ready").exists() for i in range(2)):
+            ended = [p for p in procs if p.poll() is not None]
+            assert not ended, ended[0].communicate()[1][-3000:]  # one died before the start
+            time.sleep(0.05)
+        go.touch()
+        results = [p.communicate(timeout=600) for p in procs]
+    finally:
+        for p in procs:  # none left waiting for the start
+            p.kill()
     assert all(p.returncode == 0 for p in procs), [err[-3000:] for _, err in results]
     lines = [line for _, err in results for line in err.splitlines()]
     notices = [line for line in lines if line.startswith("layoutwarp: compiling")]

@@ -255,10 +255,10 @@ def test_the_cuda_kernels_run_as_the_cpu_kernels_in_numbas_simulator(gen, tmp_pa
     import sys
 
     cases = [
-        ("rect", (0.0, 0.0), (4, 4), (28, 28), np.float64),
+        ("rect", (0.0, 0.0), (4, 4), (28, 28), np.float64),  # segments on cell lines, flat and vertical
         ("curv", None, None, None, np.float64),
         ("curv", None, None, None, np.float32),
-        ("curv", (0.7, 0.2), (12, 5), (5, 40), np.float64),
+        ("curv", (0.7, 0.2), (12, 5), (5, 40), np.float64),  # pixels narrower than source cells
     ]
     refs = {}
     for i, (family, theta, size, src, dtype) in enumerate(cases):

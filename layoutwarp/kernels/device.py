@@ -41,9 +41,6 @@ __all__ = [
     "usable",
 ]
 
-#: Threads per block of the CUDA kernels; 32 in numba's CUDA simulator ([`simulated`][]), where
-#: every thread of a block is a Python thread (the same code, four times fewer threads to start).
-CUDA_THREADS = 32 if njit is not None and numba_config.ENABLE_CUDASIM else 128
 cuda = None  # numba.cuda, imported by the first CUDA call (it costs a tenth of a second)
 _CUDA_KERNELS: dict = {}
 _CUDA_OK: dict = {}
@@ -81,6 +78,11 @@ def simulated() -> bool:
     kernels then run as Python on CPU arrays, and the device paths take CPU tensors, so their
     launches and results can be checked where no GPU is."""
     return njit is not None and bool(numba_config.ENABLE_CUDASIM)
+
+
+#: Threads per block of the CUDA kernels; 32 in numba's CUDA simulator ([`simulated`][]), where
+#: every thread of a block is a Python thread (the same code, four times fewer threads to start).
+CUDA_THREADS = 32 if simulated() else 128
 
 
 def runs_on_device(tensor: torch.Tensor) -> bool:
