@@ -223,6 +223,7 @@ def test_a_training_step_runs_few_torch_operations():
         lw.simulate(image, layout, (17, 23)).sum().backward()
         layout.rho.grad = None
 
+    step()  # a process's first step looks at the compiled code's cache (its warm-up's operators)
     assert count_ops(step) <= 50
     camera = lw.SensorPhysics((96.0, 128.0), photons_per_um2=20.0, read_noise_e=2.0, adc_bits=10)
 
@@ -230,6 +231,7 @@ def test_a_training_step_runs_few_torch_operations():
         lw.simulate(image, layout, (17, 23), physics=camera).sum().backward()
         layout.rho.grad = None
 
+    recorded_step()  # the measurement's group: the same first look
     assert count_ops(recorded_step) <= 90
     # and the step's gradient is the torch reference's (the same float32 tables)
     layout.rho.grad = None
