@@ -333,6 +333,10 @@ size = tuple(int(v) for v in case["size"])
 out, areas = integrate_exact(image, layout, size, tol=float(case["tol"]), return_areas=True)
 (out * torch.from_numpy(case["g"])).sum().add((areas * torch.from_numpy(case["ga"])).sum()).backward()
 grad = layout.rho.grad.clone()
+# the same with grad mode on in the backward (create_graph): tensors that require grad reach the kernels
+out, areas = integrate_exact(image, layout, size, tol=float(case["tol"]), return_areas=True)
+loss = (out * torch.from_numpy(case["g"])).sum().add((areas * torch.from_numpy(case["ga"])).sum())
+assert torch.equal(torch.autograd.grad(loss, layout.rho, create_graph=True)[0], grad)
 def step():
     layout.zero_grad()
     lw.simulate(image[None], layout, size, tol=float(case["tol"])).sum().backward()

@@ -237,9 +237,14 @@ def cuda_launch(name: str | Callable, count: int, stream: int, *args) -> None:
 
 def _device_array(a: object) -> object:
     """A launch argument as numba takes it: a device array for anything with
-    ``__cuda_array_interface__``, a CPU tensor's numpy view (the simulator's arrays), else as is."""
-    if getattr(getattr(a, "device", None), "type", None) == "cpu":  # a torch tensor on the CPU
-        return a.numpy()
+    ``__cuda_array_interface__``, a CPU tensor's numpy view (the simulator's arrays), else as is.
+    Tensors are detached first: a kernel reads and writes their memory, never their graph (torch
+    refuses ``__cuda_array_interface__`` on a tensor that requires grad, such as an output saved
+    for the backward)."""
+    if hasattr(a, "detach"):  # a torch tensor (torch is imported only where it is used)
+        a = a.detach()
+        if a.device.type == "cpu":
+            return a.numpy()
     return cuda.as_cuda_array(a) if hasattr(type(a), "__cuda_array_interface__") else a
 
 
