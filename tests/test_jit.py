@@ -196,7 +196,7 @@ def test_the_cuda_kernels_compile_on_numpy_2_5_without_its_removed_aliases():
     overloads: emulated here (the version string set, the alias deleted, before anything is
     imported), a CUDA kernel of each module compiles to PTX (the overloads register once, at the
     first compile; the other tests compile every kernel), and numpy is left without the alias.
-    (On an H200 with numpy 2.5.2 itself the CUDA tests pass: examples/gpu/gpu_check.json.)"""
+    (On an H100 with numpy 2.5.2 itself the CUDA tests pass: examples/gpu/gpu_check_h100.json.)"""
     ptx_or_skip("edge_sums")  # skips where numba-cuda or the CUDA compilers are missing
     code = """
         import numpy
