@@ -4,6 +4,7 @@ and LAYOUTWARP_SEED=<seed> replays it."""
 from __future__ import annotations
 
 import ctypes
+import gc
 import math
 import os
 import platform
@@ -57,6 +58,7 @@ def pytest_runtest_teardown(item, nextitem) -> None:
     """Hand the heap a test freed back to the system (glibc keeps it otherwise, and the process
     would hold its largest test's peak to the end)."""
     if _LIBC is not None:
+        gc.collect()  # torch modules sit in reference cycles: their tensors wait for the collector
         _LIBC.malloc_trim(0)
 
 
