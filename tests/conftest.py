@@ -4,10 +4,12 @@ and LAYOUTWARP_SEED=<seed> replays it."""
 from __future__ import annotations
 
 import ctypes
+import fcntl
 import gc
 import math
 import os
 import platform
+from collections.abc import Iterator
 from pathlib import Path
 
 # pytest's workers (pytest-xdist, one a core) share the cores, so a thread waiting for work
@@ -77,6 +79,18 @@ def pytest_runtest_teardown(item, nextitem) -> None:
         if _resident_mb() > item.stash.get(_RESIDENT, 0.0) + 64:
             gc.collect()
         _LIBC.malloc_trim(0)
+
+
+@pytest.fixture(autouse=True)
+def _one_heavy_test_at_a_time(request, tmp_path_factory) -> Iterator[None]:
+    """A test marked ``heavy`` waits until no other pytest worker of this run holds one (a lock
+    file in the run's shared temporary folder): two side by side take the suite past 3 GB."""
+    if request.node.get_closest_marker("heavy") and hasattr(request.config, "workerinput"):
+        with open(tmp_path_factory.getbasetemp().parent / "heavy.lock", "w") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            yield
+    else:
+        yield
 
 
 @pytest.hookimpl(hookwrapper=True)

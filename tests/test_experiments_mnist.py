@@ -122,6 +122,7 @@ def test_device_flag_errors_name_the_value(capsys):
 
 
 @pytest.mark.slow
+@pytest.mark.heavy
 def test_torchrun_with_two_gloo_processes_matches_one_process(tmp_path):
     # the same command under torchrun: 2 CPU ranks (gloo) split each global batch of 64 in two.
     # DistributedDataParallel averages their gradients, so each step is the one-process step up

@@ -191,6 +191,7 @@ def test_after_the_warm_ups_the_entry_points_compile_nothing():
     assert compiles == []
 
 
+@pytest.mark.heavy
 def test_the_cuda_kernels_compile_on_numpy_2_5_without_its_removed_aliases():
     """numpy 2.5 removed ``np.row_stack``, which numba-cuda 0.30.4 reads while registering its
     overloads: emulated here (the version string set, the alias deleted, before anything is
@@ -255,6 +256,7 @@ def test_a_cuda_fallback_is_named_with_its_reason(monkeypatch):
     assert "cuda: torch (numba's CUDA kernels do not run here" in lw.files.run_info()["backends"]
 
 
+@pytest.mark.heavy
 def test_workers_on_one_cache_take_a_unit_in_turn():
     """Several processes on one cache (the ranks of a torchrun job) each start a worker: a worker
     compiles a unit only while no other does (a lock beside the cache), then loads it."""

@@ -276,6 +276,7 @@ for path in sys.argv[1:]:
 
 
 @pytest.mark.slow  # a process of its own, the kernels as plain Python
+@pytest.mark.heavy
 def test_the_device_mesh_is_the_compiled_mesh_in_numbas_simulator(tmp_path):
     """Without a GPU: :func:`~layoutwarp.kernels.mesh.build_mesh_device`'s kernels and launches
     (one thread per corner, edge or vertex; the totals it allocates by) in numba's CUDA

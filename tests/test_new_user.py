@@ -47,6 +47,7 @@ def test_a_sensor_finer_than_its_image_is_warned_about_once():
     assert len(finer) == 1 and "(21, 7)" in str(finer[0].message) and "(20, 30)" in str(finer[0].message)
 
 
+@pytest.mark.heavy
 def test_preprocess_says_so_in_one_line_and_opencv_adds_no_line_of_its_own(tmp_path):
     src = tmp_path / "src"
     src.mkdir()

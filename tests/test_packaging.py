@@ -23,6 +23,7 @@ def run(cmd: list, cwd: Path, env: dict | None = None, timeout: int = 600) -> su
 
 
 @pytest.mark.slow
+@pytest.mark.heavy
 def test_the_installed_wheel_runs_the_quick_job_and_the_demo_outside_the_source_tree(tmp_path):
     dist = tmp_path / "dist"
     run(

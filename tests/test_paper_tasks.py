@@ -114,6 +114,7 @@ def test_the_faces_resnet18_gives_each_attributes_logits():
 
 @pytest.mark.slow
 @pytest.mark.parametrize("task, metric", [("celeba", "mean"), ("cityscapes", "miou")])
+@pytest.mark.heavy
 def test_quick_runs_of_the_paper_tasks_write_models_that_evaluate(task, metric, tmp_path, capsys):
     out = tmp_path / task
     argv = ["train", task, "--quick", "--family", "rect", "--no-progress", "--out", str(out)]

@@ -829,6 +829,7 @@ np.savez(sys.argv[2], launches=sum(launches.values()), **out)
 
 
 @pytest.mark.slow  # a process of its own, the kernels as plain Python
+@pytest.mark.heavy
 def test_the_measurement_on_the_device_path_draws_what_the_cpu_kernel_draws_in_numbas_simulator(
     gen, tmp_path
 ):

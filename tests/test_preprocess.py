@@ -248,6 +248,7 @@ def _tree(root: Path) -> dict[str, bytes]:
 
 
 @pytest.mark.slow
+@pytest.mark.heavy
 def test_dask_engine_writes_the_same_bytes_and_reports_the_same_failures(tmp_path):
     pytest.importorskip("distributed")
     src = tmp_path / "src"

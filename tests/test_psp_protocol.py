@@ -94,6 +94,7 @@ def test_a_scale_of_one_gives_the_images_back():
 
 
 @pytest.mark.slow
+@pytest.mark.heavy
 def test_train_camvid_psp_quick_writes_psp_models_that_evaluate_rebuilds(tmp_path, capsys):
     out = tmp_path / "psp"
     argv = [

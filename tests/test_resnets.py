@@ -45,6 +45,7 @@ def test_a_dilated_resnet50_keeps_output_stride_8_with_torchvisions_dilations():
         assert plain.features(torch.rand(1, 3, h, w))[1].shape[-2:] == (h // 32, w // 32)
 
 
+@pytest.mark.heavy
 def test_pspnet_gives_full_size_logits_and_an_auxiliary_output_in_training():
     net = PSPNet(classes=5)
     assert PSP_BINS == (1, 2, 3, 6) and AUX_WEIGHT == 0.4
