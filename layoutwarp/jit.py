@@ -17,10 +17,12 @@ cut from it without slowing every later call. So by default no call waits for it
   group to do, it runs a *quick build* of its kernel ([`quick`][]: the same code compiled
   without numba's IR inlining, in seconds rather than half a minute, the same values to the bit,
   1.5–6x slower), compiled in the process and kept in the cache beside the full build.
-- ``"wait"``: compile in this process at first use: every call compiled, and results the same to
+- ``"wait"``: compile at first use and wait for it: every call compiled, and results the same to
   the bit from a process's first call on (the test suite runs this way). A group is compiled
-  whole, and processes on one cache (the ranks of a ``torchrun`` job, pytest's workers) take
-  each group in turn: the others wait for it and load it rather than compile it again.
+  whole, in a child process (the compiler's ~300 MB of heap leave with it; the caller then
+  loads the group from the cache), and processes on one cache (the ranks of a ``torchrun`` job,
+  pytest's workers) take each group in turn: the others wait for it and load it rather than
+  compile it again.
 - ``"off"``: the torch path only.
 
 The mode comes from the environment variable ``LAYOUTWARP_JIT`` or [`set_mode`][]. Any group
@@ -159,7 +161,9 @@ def ready(group: str, dtype: str | torch.dtype = "float32", wait: bool = False) 
             with _unit_lock(unit):  # cache (the ranks of a torchrun job, pytest's workers): each
                 if not _loads(unit):  # after the first loads it
                     _announce(unit, "compiling")
-                    _warm(unit)
+                    _compile_in_child(unit)
+                    if not _loads(unit):  # the child could not fill the cache: compiled here
+                        _warm(unit)
         else:
             _announce(unit, "compiling")  # numba compiles what the call uses, as it comes
         _READY.add(unit)
@@ -210,15 +214,26 @@ def status() -> dict[str, str]:
     return out
 
 
-def compile_all(progress: Callable[[str, float], None] | None = None) -> None:
-    """Compile (or load) every group for both dtypes in this process, telling
-    ``progress(unit, seconds)`` after each: what ``layoutwarp doctor --compile`` runs."""
-    for unit in UNITS:
+def compile_all(progress: Callable[[str, float], None] | None = None, units: tuple[str, ...] = UNITS) -> None:
+    """Compile (or load) every group for both dtypes (or the [`UNITS`][] ``units``) in this
+    process, telling ``progress(unit, seconds)`` after each: what ``layoutwarp doctor
+    --compile`` runs."""
+    for unit in units:
         start = time.perf_counter()
         _warm(unit)
         _READY.add(unit)
         if progress is not None:
             progress(unit, time.perf_counter() - start)
+
+
+def _compile_in_child(unit: str) -> None:
+    """Compile ``unit`` into the disk cache in a child process and wait for it (wait mode): a
+    process that has compiled a group keeps about 300 MB more of heap than one that loaded it
+    (numba's and LLVM's), which leaves with the child. A child that fails leaves the unit to the
+    caller."""
+    code = f"from layoutwarp.jit import compile_all; compile_all(units=({unit!r},))"
+    quiet = {"stdin": subprocess.DEVNULL, "stdout": subprocess.DEVNULL}
+    subprocess.run([sys.executable, "-c", code], **quiet, check=False)
 
 
 def _unit(group: str, dtype: str | torch.dtype) -> str:
