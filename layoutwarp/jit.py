@@ -215,8 +215,8 @@ def status() -> dict[str, str]:
 
 
 def compile_all(progress: Callable[[str, float], None] | None = None, units: tuple[str, ...] = UNITS) -> None:
-    """Compile (or load) every group for both dtypes (or the units ``units``, names of ``UNITS``) in this
-    process, telling ``progress(unit, seconds)`` after each: what ``layoutwarp doctor
+    """Compile (or load) every group for both dtypes (or ``units``, names from ``UNITS``) in
+    this process, telling ``progress(unit, seconds)`` after each: what ``layoutwarp doctor
     --compile`` runs."""
     for unit in units:
         start = time.perf_counter()
