@@ -253,12 +253,13 @@ def test_theta_gradients_match_central_differences(name, size, gen):
         assert torch.allclose(g2, g, atol=1e-10)
 
 
-def test_learned_centre_gradient_is_as_accurate_as_values(gen):
+def test_learned_centre_gradient_converges_like_the_values(gen):
     # the kinks of an off-centre fovea (its centre lines and adapted circle) move with the
-    # centre, and the adaptive mesh's vertices follow them: its gradient converges with tol
-    # (tol 1e-6 against 1e-9: at most 2.5e-6 relative over 12 seeds, median 8e-7). With vertices
-    # left where the kinks were it converges only like the segment length (median 1.8e-5, up to
-    # 4.6e-5), and central differences are too noisy here (box-image crossings, tol jumps).
+    # centre, and the adaptive mesh's vertices follow them: its gradient converges like the
+    # values, in proportion to tol (its error falls 7-31x from tol 1e-6 to 1e-7 over 21 seeds,
+    # at 2e-7 to 1e-5 relative at 1e-6). With vertices left where the kinks were it converges
+    # only like the segment length, ∝ √tol (3.2x a decade), and central differences are too
+    # noisy here (box-image crossings, tol jumps).
     img = torch.rand(2, 60, 80, generator=gen, dtype=F64)
     size = (9, 13)
     w = torch.randn(2, *size, generator=gen, dtype=F64)
@@ -268,9 +269,11 @@ def test_learned_centre_gradient_is_as_accurate_as_values(gen):
         torch.autograd.grad(
             (lw.integrators.integrate_exact(img, layout, size, tol=tol, theta=th) * w).sum(), th
         )[0]
-        for tol in (1e-6, 1e-9)
+        for tol in (1e-6, 1e-7, 1e-10)
     ]
-    assert float((g[0] - g[1]).abs().max()) <= 1e-5 * float(g[1].abs().max())
+    scale = float(g[2].abs().max())
+    e6, e7 = (float((gt - g[2]).abs().max()) / scale for gt in g[:2])
+    assert e6 <= 5e-5 and e7 <= e6 / 5, (e6, e7)
 
 
 def test_montecarlo_and_point_gradients_reach_every_parameter(gen):
