@@ -162,7 +162,8 @@ def main() -> int:
     )
     with torch.no_grad():  # the device kernels against the CPU kernels, float64
         small = img[:, :, :256, :512].double()
-        a = lw.simulate(small, fixed.double(), (33, 65)).cpu()
+        a = lw.simulate(small, lw.CurvLayout((0.3, -0.24)).double().cuda(), (33, 65)).cpu()  # .double()
+        # converts in place: a layout of its own, so `fixed` stays float32 for the noise below
         b = lw.simulate(small.cpu(), lw.CurvLayout((0.3, -0.24)).double(), (33, 65))
     res["cuda_vs_cpu_f64_maxabs"] = float((a - b).abs().max())
     print("CUDA vs CPU, float64, max abs difference:", res["cuda_vs_cpu_f64_maxabs"])

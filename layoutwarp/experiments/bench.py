@@ -563,8 +563,9 @@ def reuse_row(cfg: BenchConfig, image_name: str, img: Tensor) -> Row:
     first = _time(fwd, 0)
     inter_area = _forward_fn(img, layout, cfg.size, "inter_area", {})
     area, repeat = _time_paired([inter_area, fwd], cfg.repeats * 2 + 1)
-    with torch.no_grad():
-        ref = integrate_exact(img.flatten(0, 1), layout.cpu(), cfg.size, tol=data_tolerance(torch.float32)[0])
+    cpu_layout = layout_from_spec(bench_layouts(cfg.theta)["curv"])  # Module.cpu() moves in place
+    with torch.no_grad():  # the reference on the CPU, the timed layout left on its device
+        ref = integrate_exact(img.flatten(0, 1), cpu_layout, cfg.size, tol=data_tolerance(torch.float32)[0])
     err = (fwd().cpu().double().flatten(0, 1) - ref).abs()
     kept, resampler.CACHE_SIZE = resampler.CACHE_SIZE, 0
     try:
