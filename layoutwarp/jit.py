@@ -229,10 +229,10 @@ def compile_all(progress: Callable[[str, float], None] | None = None, units: tup
 def _compile_in_child(unit: str) -> None:
     """Compile ``unit`` into the disk cache in a child process and wait for it (wait mode): a
     process that has compiled a group keeps about 300 MB more of heap than one that loaded it
-    (numba's and LLVM's), which leaves with the child. A child that fails leaves the unit to the
-    caller."""
+    (numba's and LLVM's), which leaves with the child. A child that fails (it cannot import the
+    package, say) leaves the unit to the caller, which then compiles it and reports any error."""
     code = f"from layoutwarp.jit import compile_all; compile_all(units=({unit!r},))"
-    quiet = {"stdin": subprocess.DEVNULL, "stdout": subprocess.DEVNULL}
+    quiet = dict.fromkeys(("stdin", "stdout", "stderr"), subprocess.DEVNULL)
     subprocess.run([sys.executable, "-c", code], **quiet, check=False)
 
 
