@@ -233,7 +233,8 @@ def _compile_in_child(unit: str) -> None:
     package, say) leaves the unit to the caller, which then compiles it and reports any error."""
     code = f"from layoutwarp.jit import compile_all; compile_all(units=({unit!r},))"
     quiet = dict.fromkeys(("stdin", "stdout", "stderr"), subprocess.DEVNULL)
-    subprocess.run([sys.executable, "-c", code], **quiet, check=False)
+    with contextlib.suppress(OSError):  # no Python to start (an embedded interpreter, say)
+        subprocess.run([sys.executable, "-c", code], **quiet, check=False)
 
 
 def _unit(group: str, dtype: str | torch.dtype) -> str:

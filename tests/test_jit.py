@@ -324,6 +324,32 @@ def test_wait_mode_processes_on_one_cache_compile_a_group_once(tmp_path):
     assert values[0] == values[1] and loaded == ("1", "1")
 
 
+@pytest.mark.slow
+def test_wait_mode_compiles_in_the_process_where_no_child_can(tmp_path):
+    """Where the child that compiles a group fails (here no Python to start), wait mode compiles
+    the group in the calling process: the same compiled values, the kernel compiled (not
+    loaded) there."""
+    code = """
+        import json, sys, torch, layoutwarp as lw
+        if sys.argv[1] == "no-child":
+            sys.executable = "/nonexistent/python"
+        with torch.no_grad():
+            img = torch.arange(2 * 30 * 40.0).reshape(2, 30, 40)
+            out = lw.simulate(img, lw.CurvLayout((0.4, -0.3)), (5, 7))
+        print(json.dumps(out.flatten().tolist()))
+        print(sum(lw.kernels.csr_apply.stats.cache_hits.values()))
+    """
+    outs = []
+    for case in ("no-child", "child"):
+        env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / case), jit.ENV: "wait"}
+        args = [sys.executable, "-c", textwrap.dedent(code), case]
+        run = subprocess.run(args, cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
+        assert run.returncode == 0, run.stderr[-3000:]
+        outs.append(run.stdout.splitlines()[-2:])
+    (values, hits), (values_child, hits_child) = outs
+    assert values == values_child and (hits, hits_child) == ("0", "1")
+
+
 def test_a_look_at_the_cache_keeps_the_users_cached_weights():
     """The warm-ups go through simulate's cached area weights on tiny layouts; a look at the cache
     (or a compile) in a user's process leaves that cache as it found it."""
