@@ -256,10 +256,11 @@ def test_theta_gradients_match_central_differences(name, size, gen):
 def test_learned_centre_gradient_converges_like_the_values(gen):
     # the kinks of an off-centre fovea (its centre lines and adapted circle) move with the
     # centre, and the adaptive mesh's vertices follow them: its gradient converges like the
-    # values, in proportion to tol (its error falls 7-31x from tol 1e-6 to 1e-7 over 21 seeds,
-    # at 2e-7 to 1e-5 relative at 1e-6). With vertices left where the kinks were it converges
-    # only like the segment length, ∝ √tol (3.2x a decade), and central differences are too
-    # noisy here (box-image crossings, tol jumps).
+    # values, in proportion to tol (over 95 seeds, relative errors up to 1.0e-5 at tol 1e-6 and
+    # 8e-8 at 1e-8; a decade's ratio jumps between 1 and 150 as the mesh changes, so no single
+    # decade is tested). With vertices left where the kinks were it converges only like the
+    # segment length, ∝ √tol (median 1.8e-5 at 1e-6, so about 2e-6 at 1e-8), and central
+    # differences are too noisy here (box-image crossings, tol jumps).
     img = torch.rand(2, 60, 80, generator=gen, dtype=F64)
     size = (9, 13)
     w = torch.randn(2, *size, generator=gen, dtype=F64)
@@ -269,11 +270,11 @@ def test_learned_centre_gradient_converges_like_the_values(gen):
         torch.autograd.grad(
             (lw.integrators.integrate_exact(img, layout, size, tol=tol, theta=th) * w).sum(), th
         )[0]
-        for tol in (1e-6, 1e-7, 1e-10)
+        for tol in (1e-6, 1e-8, 1e-10)
     ]
     scale = float(g[2].abs().max())
-    e6, e7 = (float((gt - g[2]).abs().max()) / scale for gt in g[:2])
-    assert e6 <= 5e-5 and e7 <= e6 / 5, (e6, e7)
+    e6, e8 = (float((gt - g[2]).abs().max()) / scale for gt in g[:2])
+    assert e6 <= 5e-5 and e8 <= 1e-6, (e6, e8)
 
 
 def test_montecarlo_and_point_gradients_reach_every_parameter(gen):

@@ -284,6 +284,7 @@ def test_workers_on_one_cache_take_a_unit_in_turn():
 
 
 @pytest.mark.slow
+@pytest.mark.heavy
 def test_wait_mode_processes_on_one_cache_compile_a_group_once(tmp_path):
     """In wait mode, processes on one empty cache that need a group at the same moment (pytest's
     workers, the ranks of a torchrun job) take it in turn: one compiles it, the others wait and
@@ -325,6 +326,7 @@ def test_wait_mode_processes_on_one_cache_compile_a_group_once(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.heavy
 def test_wait_mode_compiles_in_the_process_where_no_child_can(tmp_path):
     """Where the child that compiles a group fails (here no Python to start), wait mode compiles
     the group in the calling process: the same compiled values, the kernel compiled (not
@@ -365,6 +367,7 @@ def test_a_look_at_the_cache_keeps_the_users_cached_weights():
     assert list(resampler._CACHE) == before
 
 
+@pytest.mark.heavy
 def test_the_first_cuda_compile_says_so_once(tmp_path):
     """A CUDA kernel with no compiled copy in numba's cache announces the compile in one line,
     once per process; a kernel whose copy is in the cache says nothing (no GPU needed: the
