@@ -89,6 +89,9 @@ def _one_heavy_test_at_a_time(request, tmp_path_factory) -> Iterator[None]:
         with open(tmp_path_factory.getbasetemp().parent / "heavy.lock", "w") as lock:
             fcntl.flock(lock, fcntl.LOCK_EX)
             yield
+            if _LIBC is not None:  # its memory handed back before the next heavy test starts
+                gc.collect()
+                _LIBC.malloc_trim(0)
     else:
         yield
 
