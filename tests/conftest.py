@@ -69,29 +69,32 @@ def pytest_runtest_setup(item) -> None:
     item.stash[_RESIDENT] = _resident_mb() if _LIBC is not None else 0.0
 
 
-@pytest.hookimpl(trylast=True)  # after the fixtures' own teardown
-def pytest_runtest_teardown(item, nextitem) -> None:
+def _hand_back_memory(start_mb: float) -> None:
     """Hand the heap a test freed back to the system (glibc keeps it otherwise, and the process
-    would hold its largest test's peak to the end). A test that left the process 64 MB larger
+    would hold its largest test's peak to the end). A process 64 MB larger than at ``start_mb``
     is collected first: torch modules sit in reference cycles, their tensors wait for the
     collector (a full collection costs ~0.1-0.3 s, too much after every test)."""
     if _LIBC is not None:
-        if _resident_mb() > item.stash.get(_RESIDENT, 0.0) + 64:
+        if _resident_mb() > start_mb + 64:
             gc.collect()
         _LIBC.malloc_trim(0)
+
+
+@pytest.hookimpl(trylast=True)  # after the fixtures' own teardown
+def pytest_runtest_teardown(item, nextitem) -> None:
+    _hand_back_memory(item.stash.get(_RESIDENT, 0.0))
 
 
 @pytest.fixture(autouse=True)
 def _one_heavy_test_at_a_time(request, tmp_path_factory) -> Iterator[None]:
     """A test marked ``heavy`` waits until no other pytest worker of this run holds one (a lock
-    file in the run's shared temporary folder): two side by side take the suite past 3 GB."""
+    file in the run's shared temporary folder): two side by side take the suite past 3 GB. It
+    hands its memory back before it lets the next one start."""
     if request.node.get_closest_marker("heavy") and hasattr(request.config, "workerinput"):
         with open(tmp_path_factory.getbasetemp().parent / "heavy.lock", "w") as lock:
             fcntl.flock(lock, fcntl.LOCK_EX)
             yield
-            if _LIBC is not None:  # its memory handed back before the next heavy test starts
-                gc.collect()
-                _LIBC.malloc_trim(0)
+            _hand_back_memory(request.node.stash.get(_RESIDENT, 0.0))
     else:
         yield
 
