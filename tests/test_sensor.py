@@ -61,12 +61,14 @@ def test_tiny_and_upsampling_sensors(family, size, gen):
     # (80, 100) is larger than the 20x30 source: sensor pixels smaller than source pixels
     layout = lw.make_layout(family, rand_theta(gen, 0.9), dtype=F64)
     img = torch.rand(1, 2, 20, 30, generator=gen, dtype=F64)
-    out = lw.simulate(img, layout, size)
+    out = lw.simulate(img, layout, size, tol=1e-5)
     assert out.shape == (1, 2, *size)
+    # the areas of the mesh the integration used (another tol's polylines differ by up to tol
+    # in area, which moves the weighted sum by ~1e-6 at large curv θ on a 13-pixel sensor)
     areas = lw.pixel_mesh(layout, size, tol=1e-5).areas().detach()
     # area-weighted mean of the sensor image equals the image mean (flux is conserved)
     total = (out[0] * areas).sum((-2, -1)) / 4
-    assert torch.allclose(total, img[0].mean((-2, -1)), atol=1e-9)
+    assert torch.allclose(total, img[0].mean((-2, -1)), rtol=0, atol=1e-12)
 
 
 def test_upsampling_uniform_is_nearest_neighbour(gen):
@@ -189,17 +191,21 @@ def test_image_gradient_of_exact_is_adjoint(gen):
 
 @pytest.mark.parametrize("family", ["uniform", "rect", "curv"])
 def test_sensor_layer_saves_and_reloads_its_layout(family, gen, tmp_path):
-    layer = lw.SensorLayer((5, 7), family, method="exact", tol=1e-4)
+    tol = 1e-5
+    layer = lw.SensorLayer((5, 7), family, method="exact", tol=tol)
     if family != "uniform":
         with torch.no_grad():
             layer.layout.rho.copy_(torch.randn(2, generator=gen) * 0.5)
     path = layer.save_layout(tmp_path / "layer.json", note="test")
-    again = lw.SensorLayer.from_layout_file(path, tol=1e-4)
+    again = lw.SensorLayer.from_layout_file(path, tol=tol)
     assert again.size == (5, 7) and again.method == "exact" and again.layout.family == family
     assert list(again.parameters()) == []  # frozen unless learn=True
     assert torch.allclose(again.theta, layer.theta.detach(), rtol=0, atol=1e-6)
     img = torch.rand(2, 3, 31, 29, generator=gen)
-    assert torch.allclose(again(img), layer(img).detach(), rtol=0, atol=1e-5)
+    # θ travels as float32 text and ρ = atanh(θ) comes back within an ulp: the float64 mesh then
+    # differs at the 1e-8 level and may refine a curved edge differently, so the two outputs
+    # agree within twice the error bound each keeps (tol), plus float32 rounding
+    assert torch.allclose(again(img), layer(img).detach(), rtol=0, atol=2 * tol + 1e-6)
     if family != "uniform":
         assert len(list(lw.SensorLayer.from_layout_file(path, learn=True).parameters())) == 1
     assert lw.SensorLayer.from_layout_file(path, (3, 3)).size == (3, 3)
