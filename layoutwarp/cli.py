@@ -404,7 +404,8 @@ def _cmd_study(args: argparse.Namespace) -> int:
     options = _study_run_options(task, plan, args)
     summary = run_study(task, folder, out, plan=plan, seeds=args.seeds, options=options)
     print(study_table(summary), end="")
-    print(f"wrote {out}/study.json, study.md and study_{task.name}.png (scores in percent)")
+    theta = f", theta_{task.name}.png" if (out / f"theta_{task.name}.png").exists() else ""
+    print(f"wrote {out}/study.json, study.md, study_{task.name}.png{theta} (scores in percent)")
     return 0
 
 

@@ -12,7 +12,7 @@ from conftest import ROOT, SAMPLES
 from layoutwarp.cli import main
 from layoutwarp.experiments.mnist import MnistNet
 from layoutwarp.experiments.models import FORMAT, load_model, save_model
-from layoutwarp.experiments.study import equivalent_pixels, study_table, summarise_study
+from layoutwarp.experiments.study import equivalent_pixels, study_table, summarise_study, write_summary
 from layoutwarp.experiments.tasks import TASKS
 from layoutwarp.layoutfile import load_layout
 
@@ -182,6 +182,33 @@ def test_camvid_summary_has_per_class_iou_changes_and_counts_planned_runs(gen):
     assert "7 of 51 planned runs finished so far." in table
     sky = curv["iou"][0] - uni["iou"][0]
     assert f"| curv | 48x36 | {sky:+.1f} |" in table
+
+
+def test_a_one_size_study_keeps_each_seeds_score_and_draws_theta_over_the_epochs(tmp_path, gen):
+    runs = tmp_path / "runs"
+    runs.mkdir()
+    scores = {}
+    for f in ("uniform", "rect"):
+        for k in (2, 0, 1):  # written out of order: the summary lists the seeds in order
+            miou = float(torch.rand((), generator=gen)) * 100
+            scores[f, k] = miou
+            hist = torch.rand(6, 2, generator=gen).tolist() if f == "rect" else [[]] * 6
+            rec = {"family": f, "size_hw": [72, 96], "seed": k, "scores": {"miou": miou}}
+            rec |= {"theta": hist[-1], "theta_history": hist, "area_ratio_history": [1.0 + k] * 6}
+            (runs / f"{f}_96x72_seed{k}.json").write_text(json.dumps(rec))
+    summary = write_summary(TASKS["camvid"], tmp_path, planned=9)
+    for row in summary["rows"]:
+        assert row["values"] == [scores[row["family"], k] for k in range(3)]
+    assert json.loads((tmp_path / "study.json").read_text())["rows"] == summary["rows"]
+    assert (tmp_path / "study_camvid.png").stat().st_size > 5000
+    assert (tmp_path / "theta_camvid.png").stat().st_size > 5000
+    # no learned θ, no θ figure
+    (tmp_path / "uniform_only" / "runs").mkdir(parents=True)
+    for k in range(2):
+        name = f"uniform_96x72_seed{k}.json"
+        (tmp_path / "uniform_only" / "runs" / name).write_text((runs / name).read_text())
+    write_summary(TASKS["camvid"], tmp_path / "uniform_only")
+    assert not (tmp_path / "uniform_only" / "theta_camvid.png").exists()
 
 
 SHIPPED = sorted((ROOT / "examples" / "study").glob("*/models/*.pt"))

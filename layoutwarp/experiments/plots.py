@@ -7,6 +7,7 @@ pyplot, so no backend is chosen or switched: nothing here touches global state.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -24,6 +25,7 @@ __all__ = [
     "layout_figure",
     "pareto_figure",
     "save_figure",
+    "theta_figure",
     "training_figures",
 ]
 
@@ -123,9 +125,7 @@ def training_figures(task, data, models: dict, records: Sequence, out: str | Pat
 
     ``<task>_layouts.png``: every (family, size)'s first learned layout over the task's scene,
     its sensor image and, where the task has one (CamVid), its back-warped prediction with a
-    legend. ``<task>_theta.png``: over the epochs, the ratio of the largest to the smallest
-    pixel area of every run (meaningful for every family) and, for families with at most four
-    parameters, θ itself.
+    legend. ``<task>_theta.png``: [`theta_figure`][] of the runs.
 
     Args:
         task: the [`Task`][layoutwarp.experiments.tasks.Task].
@@ -175,17 +175,33 @@ def training_figures(task, data, models: dict, records: Sequence, out: str | Pat
     if legend:  # keep room for the legend below the panels
         fig.subplots_adjust(bottom=0.12)
         fig.savefig(paths[0], dpi=100)
-    learned = [r for r in records if len(r.theta_history) > 1 and len(r.theta) > 0]
+    runs = [asdict(r) for r in records]
+    paths.append(theta_figure(runs, out / f"{task.name}_theta.png"))
+    return paths
+
+
+def theta_figure(runs: Sequence[dict[str, Any]], path: str | Path) -> Path:
+    """Learning over the epochs, one line per run: the ratio of the largest to the smallest pixel
+    area (meaningful for every family) and, for families with at most four parameters, θ itself.
+
+    Args:
+        runs: run records as dicts (``family``, ``size_hw`` as ``[H, W]``, ``theta``,
+            ``theta_history``, ``area_ratio_history``; see
+            [`RunRecord`][layoutwarp.experiments.runs.RunRecord]); runs with no learned θ or a
+            single point of history are left out.
+        path: the PNG to write.
+    """
+    learned = [r for r in runs if len(r.get("theta_history", ())) > 1 and r.get("theta")]
     fig, axes = figure(1, 2, figsize=(11, 3.8), squeeze=False)
     seen: set[str] = set()
     for r in learned:
-        label = f"{r.family} {r.size_hw[1]}x{r.size_hw[0]}"
+        label = f"{r['family']} {r['size_hw'][1]}x{r['size_hw'][0]}"
         first = label not in seen
         seen.add(label)
-        color = family_color(r.family) if r.family != "density" else "tab:gray"
-        axes[0, 0].plot(r.area_ratio_history, color=color, label=label if first else None)
-        if len(r.theta) <= 4:
-            hist = np.asarray(r.theta_history)
+        color = family_color(r["family"]) if r["family"] != "density" else "tab:gray"
+        axes[0, 0].plot(r["area_ratio_history"], color=color, label=label if first else None)
+        if len(r["theta"]) <= 4:
+            hist = np.asarray(r["theta_history"])
             for j, ls in zip(range(hist.shape[1]), ("-", "--", ":", "-."), strict=False):
                 name = ("θx", "θy", "cx", "cy")[j]
                 axes[0, 1].plot(hist[:, j], ls, color=color, label=f"{label} {name}" if first else None)
@@ -198,8 +214,7 @@ def training_figures(task, data, models: dict, records: Sequence, out: str | Pat
         ax.set_xlabel("epoch")
         if ax.get_legend_handles_labels()[0]:
             ax.legend(fontsize=7)
-    paths.append(save_figure(fig, out / f"{task.name}_theta.png", dpi=100))
-    return paths
+    return save_figure(fig, path, dpi=100)
 
 
 _METHOD_MARKERS = {"separable": "s", "exact": "D", "montecarlo": "o", "point": "^"}

@@ -130,8 +130,9 @@ def run_study(
 def write_summary(
     task: Task, out: str | Path, plan: StudyPlan | None = None, planned: int | None = None
 ) -> dict:
-    """Summarise the runs a study folder holds so far into ``study.json``, ``study.md`` and
-    ``study_<task>.png``; returns the summary."""
+    """Summarise the runs a study folder holds so far into ``study.json``, ``study.md``,
+    ``study_<task>.png`` and, once a run has learned a layout, ``theta_<task>.png``
+    ([`theta_figure`][layoutwarp.experiments.plots.theta_figure]); returns the summary."""
     out = Path(out)
     records = [json.loads(p.read_text()) for p in sorted((out / "runs").glob("*.json"))]
     if not records:
@@ -140,6 +141,10 @@ def write_summary(
     atomic_write(out / "study.json", json.dumps(summary, indent=2))
     atomic_write(out / "study.md", study_table(summary))
     study_figure(summary, out / f"study_{task.name}.png")
+    if any(r.get("theta") and len(r.get("theta_history", ())) > 1 for r in records):
+        from .plots import theta_figure
+
+        theta_figure(records, out / f"theta_{task.name}.png")
     return summary
 
 
@@ -183,6 +188,7 @@ def summarise_study(task: Task, records: list[dict]) -> dict:
             "mean": float(v.mean()),
             "std": float(v.std(ddof=1)) if len(v) > 1 else 0.0,
             "n": len(v),
+            "values": v.tolist(),  # each seed's, in the order of the seeds
             "scores": {  # every scalar score, averaged over the seeds
                 k: float(np.mean([s[k] for s in scores]))
                 for k, x in scores[0].items()
@@ -261,11 +267,28 @@ def class_table(summary: dict) -> str:
 
 def study_figure(summary: dict, path: str | Path) -> Path:
     """Metric against sensor pixels (log scale): uniform as a line with error bars, the other
-    families as points."""
+    families as points; a study of one sensor size: each family's seeds side by side."""
     from .plots import family_color, figure, save_figure
 
     fig, ax = figure(figsize=(6.4, 4.4))
     rows = summary["rows"]
+    if len({r["pixels"] for r in rows}) == 1:
+        rows = sorted(rows, key=lambda r: r["family"] != "uniform")  # uniform first, the rest as they come
+        for k, r in enumerate(rows):
+            color = "black" if r["family"] == "uniform" else family_color(r["family"])
+            values = r.get("values", [r["mean"]])
+            label = "each seed" if k == 0 else None
+            ax.plot([k] * len(values), values, "o", color=color, alpha=0.6, label=label)
+            ax.errorbar(k + 0.15, r["mean"], r["std"], color=color, marker="s", capsize=3)
+        ax.errorbar([], [], [], color="gray", marker="s", ls="none", capsize=3, label="mean ± std")
+        ax.set_xticks(range(len(rows)), [f"{r['family']}\n(n={r['n']})" for r in rows])
+        ax.set_xlim(-0.6, len(rows) - 0.4)
+        h, w = rows[0]["size_hw"]
+        ax.set_ylabel(summary["label"])
+        name = " ".join(filter(None, (summary["task"], summary.get("net"))))
+        ax.set_title(f"{name} at {w}x{h}: each family's seeds")
+        ax.legend(fontsize=8)
+        return save_figure(fig, path)
     uni = [r for r in rows if r["family"] == "uniform"]
     ax.errorbar(
         [r["pixels"] for r in uni],
@@ -313,7 +336,8 @@ def ship_study(
 ) -> dict:
     """Copy what a study folder holds so far into a small folder to commit and share.
 
-    Writes ``dest/study.json``, ``study.md``, ``study_<task>.png``; ``layouts/<run>.json``, the
+    Writes ``dest/study.json``, ``study.md``, ``study_<task>.png``, ``theta_<task>.png`` (once a
+    run has learned a layout); ``layouts/<run>.json``, the
     layout file of every run with a non-uniform layout; with ``models``,
     ``models/<run>.pt`` (in ``weights`` precision, see [`save_model`][]) of each
     family's best seed at each learned size;
@@ -336,8 +360,9 @@ def ship_study(
     if planned is None and previous.exists():
         planned = json.loads(previous.read_text()).get("planned")
     summary = write_summary(task, out, planned=planned)
-    for name in ("study.json", "study.md", f"study_{task.name}.png"):
-        atomic_write(dest / name, (out / name).read_bytes())
+    for name in ("study.json", "study.md", f"study_{task.name}.png", f"theta_{task.name}.png"):
+        if (out / name).exists():
+            atomic_write(dest / name, (out / name).read_bytes())
     records = [json.loads(p.read_text()) for p in sorted((out / "runs").glob("*.json"))]
     learned = {tuple(s) for s in task.study.learned_sizes}
     best: dict[tuple[str, tuple[int, int]], dict] = {}
