@@ -88,7 +88,8 @@ def test_fit_visits_every_sample_once_per_epoch_and_freezes_theta(n, batch, size
         img = torch.rand(len(idx), 1, 12, 12, generator=gen) + torch.arange(12.0)  # θ moves pixel (0, 0)
         return model.head(model.sensor(img)[:, :, 0, 0]).pow(2).mean()
 
-    history = fit(model, indices, batch_loss, opt, gen, epochs=3, batch_size=batch, freeze_epochs=1)
+    history, seconds = fit(model, indices, batch_loss, opt, gen, epochs=3, batch_size=batch, freeze_epochs=1)
+    assert seconds > 0
     per_epoch = len(sizes)
     assert [len(s) for s in seen] == sizes * 3 and len(history) == 4
     for e in range(3):

@@ -158,11 +158,12 @@ def test_a_run_stopped_in_its_second_epoch_resumes_from_its_checkpoint_to_the_sa
     with pytest.raises(KeyboardInterrupt):
         train_run(task, data, "rect", (9, 12), 3, options, checkpoint=ckpt)
     state = torch.load(ckpt, weights_only=False)
-    assert state["epochs_done"] == 1 and len(state["history"]) == 2
+    assert state["epochs_done"] == 1 and len(state["history"]) == 2 and state["seconds"] > 0
     calls.clear()
     stop = False
     resumed, resumed_model = train_run(task, data, "rect", (9, 12), 3, options, checkpoint=ckpt)
     assert len(calls) == 2  # the second epoch's batches alone: the first came from the checkpoint
     assert resumed.theta_history == whole.theta_history and resumed.scores == whole.scores
+    assert resumed.seconds > state["seconds"]  # the first epoch's time counted too
     for (k, a), b in zip(whole_model.state_dict().items(), resumed_model.state_dict().values(), strict=True):
         assert torch.equal(a, b), k

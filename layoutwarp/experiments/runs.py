@@ -8,7 +8,6 @@ printed by ``train``, ``study`` or ``landscape`` means the same thing everywhere
 from __future__ import annotations
 
 import json
-import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -181,9 +180,8 @@ def train_run(
         model.load_backbone(options.backbone_weights)
     opt = optimizer(model, options.lr, options.theta_lr, options.optimizer, options.weight_decay)
     indices, batch_loss = task.batches(model, data.train, gen, options.task_options)
-    t0 = time.perf_counter()
     sched = schedule(opt, options.schedule, options.epochs)
-    history = fit(
+    history, seconds = fit(
         model,
         indices,
         batch_loss,
@@ -210,7 +208,7 @@ def train_run(
         history,
         [_area_ratio(fixed, size, th) for th in history],
         options.epochs,
-        time.perf_counter() - t0,
+        seconds,
     )
     return record, model
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import io
 import os
+import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -79,8 +80,9 @@ def fit(
     progress: bool = True,
     amp: bool = False,
     checkpoint: Path | None = None,
-) -> list[list[float]]:
-    """The training loop shared by every experiment; returns θ after each epoch (and at start).
+) -> tuple[list[list[float]], float]:
+    """The training loop shared by every experiment; returns θ after each epoch (and at start)
+    and the seconds spent training, over every stretch of a resumed run.
 
     Each epoch shuffles ``indices`` with ``gen`` and steps ``opt`` on ``batch_loss(idx, net)``
     (``net``: the module to call, ``model`` or its DistributedDataParallel wrapper) for
@@ -101,7 +103,8 @@ def fit(
     (every 20th step, only when the bar is drawn) and the θ check between epochs.
 
     ``checkpoint``: a file the loop writes after every epoch (the model, the optimiser, the
-    schedule, ``gen``'s and torch's random states and the history; rank 0, atomically) and
+    schedule, ``gen``'s and torch's random states, the history and the seconds so far; rank 0,
+    atomically) and
     resumes from when it exists, so that a stopped run loses at most an epoch and, resumed,
     trains as it would have without the stop (the same values on the CPU).
     """
@@ -110,9 +113,9 @@ def fit(
     device = model_device(model)
     # float16 (CUDA autocast) needs loss scaling; bfloat16 (CPU autocast) and float32 do not
     scaler = torch.amp.GradScaler(device.type, enabled=amp and device.type == "cuda")
-    first = 0
+    first, earlier, t0 = 0, 0.0, time.perf_counter()
     if checkpoint is not None and checkpoint.exists():
-        first, history = _resume(checkpoint, model, opt, sched, scaler, gen)
+        first, history, earlier = _resume(checkpoint, model, opt, sched, scaler, gen)
     n = len(indices)
     starts = list(range(0, n, batch_size))
     if len(starts) > 1 and n - starts[-1] == 1:  # no 1-sample batch: batch norm needs two
@@ -155,9 +158,10 @@ def fit(
             _check_same_theta(model.sensor.theta)
         history.append(model.sensor.theta.detach().tolist())
         if checkpoint is not None and rank == 0:
-            _save_checkpoint(checkpoint, epoch + 1, model, opt, sched, scaler, gen, history)
+            seconds = earlier + time.perf_counter() - t0
+            _save_checkpoint(checkpoint, epoch + 1, model, opt, sched, scaler, gen, history, seconds)
     bar.close()
-    return history
+    return history, earlier + time.perf_counter() - t0
 
 
 def _save_checkpoint(
@@ -169,6 +173,7 @@ def _save_checkpoint(
     scaler: torch.amp.GradScaler,
     gen: torch.Generator,
     history: list[list[float]],
+    seconds: float,
 ) -> None:
     state = {
         "epochs_done": epochs_done,
@@ -180,6 +185,7 @@ def _save_checkpoint(
         "rng": torch.get_rng_state(),
         "cuda_rng": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None,
         "history": history,
+        "seconds": seconds,
     }
     buf = io.BytesIO()
     torch.save(state, buf)
@@ -193,8 +199,9 @@ def _resume(
     sched: torch.optim.lr_scheduler.LRScheduler | None,
     scaler: torch.amp.GradScaler,
     gen: torch.Generator,
-) -> tuple[int, list[list[float]]]:
-    """Load a checkpoint of [`fit`][]'s into the run's objects: the epochs done and the history."""
+) -> tuple[int, list[list[float]], float]:
+    """Load a checkpoint of [`fit`][]'s into the run's objects: the epochs done, the history and
+    the seconds spent so far (0 in checkpoints written before they were kept)."""
     state = torch.load(path, map_location=model_device(model), weights_only=False)
     model.load_state_dict(state["model"])
     opt.load_state_dict(state["opt"])
@@ -205,7 +212,7 @@ def _resume(
     torch.set_rng_state(state["rng"])
     if state["cuda_rng"] is not None and torch.cuda.is_available():
         torch.cuda.set_rng_state_all(state["cuda_rng"])
-    return int(state["epochs_done"]), state["history"]
+    return int(state["epochs_done"]), state["history"], float(state.get("seconds", 0.0))
 
 
 def optimizer(
