@@ -199,6 +199,16 @@ def test_a_one_size_study_keeps_each_seeds_score_and_draws_theta_over_the_epochs
     summary = write_summary(TASKS["camvid"], tmp_path, planned=9)
     for row in summary["rows"]:
         assert row["values"] == [scores[row["family"], k] for k in range(3)]
+    # rect against uniform: the difference of the means and Welch's two-sided p, by its formula
+    from scipy.stats import t as student_t
+
+    (u,), (r,) = ([x for x in summary["rows"] if x["family"] == f] for f in ("uniform", "rect"))
+    vu, vr = u["std"] ** 2 / 3, r["std"] ** 2 / 3
+    t = (r["mean"] - u["mean"]) / math.sqrt(vu + vr)
+    df = (vu + vr) ** 2 / (vu**2 / 2 + vr**2 / 2)
+    assert r["vs_uniform"] == pytest.approx(r["mean"] - u["mean"], abs=1e-12)
+    assert r["welch_p"] == pytest.approx(2 * student_t.sf(abs(t), df), rel=1e-9)
+    assert f"| {r['vs_uniform']:+.2f} (p = {r['welch_p']:.2f}) |" in study_table(summary)
     assert json.loads((tmp_path / "study.json").read_text())["rows"] == summary["rows"]
     assert (tmp_path / "study_camvid.png").stat().st_size > 5000
     assert (tmp_path / "theta_camvid.png").stat().st_size > 5000

@@ -172,7 +172,9 @@ def equivalent_pixels(curve: Sequence[tuple[float, float]], metric: float) -> tu
 
 def summarise_study(task: Task, records: list[dict]) -> dict:
     """Mean ± std per family and size, the uniform curve, and every learned result's equivalent
-    uniform pixel count and saving factor (with the interval from the seed spread)."""
+    uniform pixel count and saving factor (with the interval from the seed spread); where both
+    have two seeds or more, its difference from uniform at the same size and Welch's t-test's
+    two-sided p-value (``vs_uniform``, ``welch_p``)."""
     groups: dict[tuple[str, tuple[int, int]], list[dict]] = {}
     for r in records:
         groups.setdefault((r["family"], tuple(r["size_hw"])), []).append(r["scores"])
@@ -200,6 +202,14 @@ def summarise_study(task: Task, records: list[dict]) -> dict:
             row["iou"] = [None if np.isnan(x) else float(x) for x in np.nanmean(iou, 0)] if iou.size else []
         rows.append(row)
     curve = [(r["pixels"], r["mean"]) for r in rows if r["family"] == "uniform"]
+    uniform = {tuple(r["size_hw"]): r for r in rows if r["family"] == "uniform"}
+    for r in rows:
+        u = uniform.get(tuple(r["size_hw"]))
+        if r["family"] != "uniform" and u is not None and min(r["n"], u["n"]) > 1:
+            from scipy.stats import ttest_ind
+
+            p = ttest_ind(r["values"], u["values"], equal_var=False).pvalue
+            r |= {"vs_uniform": r["mean"] - u["mean"], "welch_p": None if math.isnan(p) else float(p)}
     for r in rows:
         if r["family"] == "uniform" or len(curve) < 2:
             continue
@@ -222,8 +232,9 @@ def summarise_study(task: Task, records: list[dict]) -> dict:
 def study_table(summary: dict) -> str:
     """The study as a Markdown table."""
     lines = [
-        f"| family | sensor | pixels | {summary['label']} | equivalent uniform pixels | pixel saving |",
-        "|---|---|---|---|---|---|",
+        f"| family | sensor | pixels | {summary['label']} | vs uniform (Welch p) "
+        "| equivalent uniform pixels | pixel saving |",
+        "|---|---|---|---|---|---|---|",
     ]
     for r in summary["rows"]:
         h, w = r["size_hw"]
@@ -234,7 +245,10 @@ def study_table(summary: dict) -> str:
             lo, hi = r["saving_interval"]
             sav = f"{mark}{r['saving']:.2f}x [{lo:.2f}, {hi:.2f}]"
         score = f"{r['mean']:.2f} ± {r['std']:.2f} (n={r['n']})"
-        lines.append(f"| {r['family']} | {w}x{h} | {r['pixels']} | {score} | {eq} | {sav} |")
+        vs = "—"
+        if "vs_uniform" in r:
+            vs = f"{r['vs_uniform']:+.2f}" + ("" if r["welch_p"] is None else f" (p = {r['welch_p']:.2f})")
+        lines.append(f"| {r['family']} | {w}x{h} | {r['pixels']} | {score} | {vs} | {eq} | {sav} |")
     if summary.get("planned") and summary["runs"] < summary["planned"]:
         lines.append(f"\n{summary['runs']} of {summary['planned']} planned runs finished so far.")
     return "\n".join(lines) + "\n" + class_table(summary)
