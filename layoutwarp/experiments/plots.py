@@ -23,6 +23,7 @@ __all__ = [
     "family_color",
     "figure",
     "layout_figure",
+    "learned_runs",
     "pareto_figure",
     "save_figure",
     "theta_figure",
@@ -180,6 +181,12 @@ def training_figures(task, data, models: dict, records: Sequence, out: str | Pat
     return paths
 
 
+def learned_runs(runs: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The run records (as dicts) that learned θ: a non-empty ``theta`` and more than one point of
+    ``theta_history`` (what [`theta_figure`][] draws)."""
+    return [r for r in runs if r.get("theta") and len(r.get("theta_history", ())) > 1]
+
+
 def theta_figure(runs: Sequence[dict[str, Any]], path: str | Path) -> Path:
     """Learning over the epochs, one line per run: the ratio of the largest to the smallest pixel
     area (meaningful for every family) and, for families with at most four parameters, θ itself.
@@ -191,7 +198,7 @@ def theta_figure(runs: Sequence[dict[str, Any]], path: str | Path) -> Path:
             single point of history are left out.
         path: the PNG to write.
     """
-    learned = [r for r in runs if len(r.get("theta_history", ())) > 1 and r.get("theta")]
+    learned = learned_runs(runs)
     fig, axes = figure(1, 2, figsize=(11, 3.8), squeeze=False)
     seen: set[str] = set()
     for r in learned:

@@ -141,9 +141,9 @@ def write_summary(
     atomic_write(out / "study.json", json.dumps(summary, indent=2))
     atomic_write(out / "study.md", study_table(summary))
     study_figure(summary, out / f"study_{task.name}.png")
-    if any(r.get("theta") and len(r.get("theta_history", ())) > 1 for r in records):
-        from .plots import theta_figure
+    from .plots import learned_runs, theta_figure
 
+    if learned_runs(records):
         theta_figure(records, out / f"theta_{task.name}.png")
     return summary
 
@@ -290,9 +290,8 @@ def study_figure(summary: dict, path: str | Path) -> Path:
         rows = sorted(rows, key=lambda r: r["family"] != "uniform")  # uniform first, the rest as they come
         for k, r in enumerate(rows):
             color = "black" if r["family"] == "uniform" else family_color(r["family"])
-            values = r.get("values", [r["mean"]])
             label = "each seed" if k == 0 else None
-            ax.plot([k] * len(values), values, "o", color=color, alpha=0.6, label=label)
+            ax.plot([k] * r["n"], r["values"], "o", color=color, alpha=0.6, label=label)
             ax.errorbar(k + 0.15, r["mean"], r["std"], color=color, marker="s", capsize=3)
         ax.errorbar([], [], [], color="gray", marker="s", ls="none", capsize=3, label="mean ± std")
         ax.set_xticks(range(len(rows)), [f"{r['family']}\n(n={r['n']})" for r in rows])
