@@ -20,11 +20,13 @@ import torch
 from torch import Tensor
 
 __all__ = [
+    "ASPECT_TOLERANCE",
     "BYTES_PER_SENSOR_PIXEL",
     "UNCHECKED_BYTES",
     "ArgumentError",
     "all_finite",
     "available_bytes",
+    "check_available",
     "check_choice",
     "check_device",
     "check_extent",
@@ -38,6 +40,7 @@ __all__ = [
     "floating_dtype",
     "raise_nonfinite",
     "warn_if_finer",
+    "warn_if_stretched",
 ]
 
 
@@ -101,7 +104,7 @@ def available_bytes() -> int:
     return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
 
 
-_WARNED_FINER: set[tuple[tuple[int, int], tuple[int, int]]] = set()
+_WARNED: set[tuple[str, tuple[int, int], tuple[int, int]]] = set()  # (warning, size, source size)
 
 
 def warn_if_finer(size: tuple[int, int], src_size: tuple[int, int]) -> None:
@@ -111,11 +114,36 @@ def warn_if_finer(size: tuple[int, int], src_size: tuple[int, int]) -> None:
     likely the two sizes were swapped or mistyped)."""
     h, w = size
     src_h, src_w = src_size
-    if (h > src_h or w > src_w) and (tuple(size), tuple(src_size)) not in _WARNED_FINER:
-        _WARNED_FINER.add((tuple(size), tuple(src_size)))
+    key = ("finer", tuple(size), tuple(src_size))
+    if (h > src_h or w > src_w) and key not in _WARNED:
+        _WARNED.add(key)
         warnings.warn(
             f"the sensor ({h}, {w}) has more pixels along an axis than its source image "
             f"({src_h}, {src_w}): its pixels are smaller than the image's and add no detail",
+            UserWarning,
+            stacklevel=3,
+        )
+
+
+#: How far the sensor's aspect ratio may differ from its source's before [`warn_if_stretched`][] warns.
+ASPECT_TOLERANCE = 0.10
+
+
+def warn_if_stretched(size: tuple[int, int], src_size: tuple[int, int]) -> None:
+    """Warn (a ``UserWarning``, once a process for each pair of sizes) where the sensor ``(h, w)``
+    and its source image ``(H, W)`` differ in aspect ratio by more than `ASPECT_TOLERANCE`: the
+    sensor covers the whole image, so the scene is stretched (a portrait photo into a landscape
+    sensor, or the two sizes' width and height swapped)."""
+    h, w = size
+    src_h, src_w = src_size
+    ratio = (w / h) / (src_w / src_h)
+    key = ("aspect", tuple(size), tuple(src_size))
+    if abs(ratio - 1) > ASPECT_TOLERANCE and key not in _WARNED:
+        _WARNED.add(key)
+        warnings.warn(
+            f"the sensor ({h}, {w}) has another aspect ratio than its source image ({src_h}, {src_w}): "
+            f"{w / h:.3g} against {src_w / src_h:.3g} (width / height), so the scene is stretched "
+            f"{max(ratio, 1 / ratio):.2f}x along {'x' if ratio > 1 else 'y'}",
             UserWarning,
             stacklevel=3,
         )
@@ -137,16 +165,26 @@ def check_memory(size: tuple[int, int], name: str = "size", shown: str | None = 
         ArgumentError: naming ``name``, the size, what it needs and what is available.
     """
     h, w = size
-    need = h * w * BYTES_PER_SENSOR_PIXEL
+    what = f"{name} {shown or f'(H, W) = ({h}, {w})'} is {h * w:.3g} sensor pixels"
+    check_available(h * w * BYTES_PER_SENSOR_PIXEL, name, what, f"{BYTES_PER_SENSOR_PIXEL} bytes a pixel")
+
+
+def check_available(need: float, name: str, what: str, rate: str) -> None:
+    """Refuse work that needs ``need`` bytes, more than the memory available, before allocating
+    (needs under `UNCHECKED_BYTES` pass unread).
+
+    Raises:
+        ArgumentError: ``"{what} and needs at least N GiB of memory ({rate}), more than the M GiB
+            available"``, naming the argument ``name``.
+    """
     if need < UNCHECKED_BYTES:
         return
     have = available_bytes()
     if need > have:
         raise ArgumentError(
             _argument(name),
-            f"{name} {shown or f'(H, W) = ({h}, {w})'} is {h * w:.3g} sensor pixels and needs at least "
-            f"{_gib(need)} of memory ({BYTES_PER_SENSOR_PIXEL} bytes a pixel), more than the {_gib(have)} "
-            "available",
+            f"{what} and needs at least {_gib(need)} of memory ({rate}), "
+            f"more than the {_gib(have)} available",
         )
 
 

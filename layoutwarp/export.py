@@ -27,14 +27,23 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from .checks import ArgumentError, check_choice, check_extent, check_number, check_size
+from .checks import ArgumentError, check_available, check_choice, check_extent, check_number, check_size
 from .coords import sensor_to_pixels, uniform_corners
 from .files import atomic_write
 from .layouts import Layout
 from .mesh import MeshTopology, distance_subdivisions, pixel_mesh, polygon_area
 from .physics import SensorPhysics, pixel_snr
 
-__all__ = ["FORMATS", "ExportReport", "export_layout", "pixel_polygons_um", "report_json"]
+__all__ = [
+    "FORMATS",
+    "RASTER_BYTES",
+    "RASTER_MAX_SIDE",
+    "ExportReport",
+    "check_raster",
+    "export_layout",
+    "pixel_polygons_um",
+    "report_json",
+]
 
 FORMATS = ("gds", "dxf", "svg", "png")
 GDS_DBU_UM = 1e-3  # the GDSII database unit (precision 1e-9 m) in µm
@@ -310,8 +319,38 @@ def _imwrite(path: str, arr: np.ndarray) -> None:
         raise OSError(f"OpenCV could not write {path}")
 
 
+#: A raster mask's memory: the boundary lines (uint8), the pixel index (int32) and its uint16 copy.
+RASTER_BYTES = 7
+#: The raster's largest side: OpenCV draws in int32 fixed point with 4 fractional bits.
+RASTER_MAX_SIDE = 2**27 - 1
+
+
+def _raster_shape(px_per_um: float, extent_um: tuple[float, float]) -> tuple[int, int]:
+    return max(1, round(extent_um[0] * px_per_um)), max(1, round(extent_um[1] * px_per_um))
+
+
+def check_raster(px_per_um: float | None, extent_um: tuple[float, float]) -> float:
+    """The PNG mask's resolution (raster pixels per µm; ``None``: 4096 raster pixels on the longer
+    side), refused before any work when its raster cannot be drawn or held in memory.
+
+    Raises:
+        ArgumentError: naming ``px_per_um``, the raster size and what it needs, in one line.
+    """
+    if px_per_um is None:
+        return 4096 / max(extent_um)
+    ppu = check_number(px_per_um, "px_per_um", 0, lo_open=True)
+    h, w = _raster_shape(ppu, extent_um)
+    what = f"px_per_um {ppu:g} makes a {w}x{h} raster mask"
+    if max(h, w) > RASTER_MAX_SIDE:
+        raise ArgumentError(
+            "px_per_um", f"{what}, over the {RASTER_MAX_SIDE} raster pixels a side OpenCV draws"
+        )
+    check_available(h * w * RASTER_BYTES, "px_per_um", what, f"{RASTER_BYTES} bytes a raster pixel")
+    return ppu
+
+
 def _write_png(path: Path, polys, wu: float, hu: float, px_per_um: float, line_width: int) -> list[str]:
-    shape = (max(1, round(hu * px_per_um)), max(1, round(wu * px_per_um)))
+    shape = _raster_shape(px_per_um, (hu, wu))
     shift = 4
     pts = [np.round(p * px_per_um * (1 << shift) - (1 << (shift - 1))).astype(np.int32) for p in polys]
     lines = np.zeros(shape, np.uint8)
@@ -389,6 +428,8 @@ def export_layout(
         )
     size = check_size(size)
     hu, wu = check_extent(sensor_um)
+    if fmt == "png":
+        px_per_um = check_raster(px_per_um, (hu, wu))
     if fmt == "gds" and grid_um is None:
         grid_um = GDS_DBU_UM  # GDSII stores integers: snap here so the report matches the file
     polys, info = pixel_polygons_um(
@@ -449,8 +490,7 @@ def export_layout(
     elif fmt == "svg":
         _write_svg(path, polys, wu, hu, size, progress)
     else:
-        ppu = px_per_um or 4096 / max(wu, hu)
-        report.files += _write_png(path, polys, wu, hu, ppu, line_width)
+        report.files += _write_png(path, polys, wu, hu, px_per_um, line_width)
     return report
 
 

@@ -36,13 +36,14 @@ from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
 import torch
 
 from .backwarp import sensor_index_maps
-from .checks import ArgumentError, check_choice, check_int, check_size, warn_if_finer
+from .checks import ArgumentError, check_choice, check_int, check_size, warn_if_finer, warn_if_stretched
 from .files import atomic_write, file_in_the_way, run_info
 from .labels import LABEL_RULES as SENSOR_RULES
 from .layoutfile import layout_from_spec, layout_spec, load_layout, same_spec, save_layout
@@ -55,6 +56,7 @@ __all__ = [
     "LABEL_RULES",
     "PreprocessResult",
     "check_destination",
+    "check_no_overwrite",
     "file_seed",
     "list_images",
     "preprocess_folder",
@@ -98,18 +100,26 @@ def _to_dtype(values: np.ndarray, dtype: np.dtype) -> np.ndarray:
     return values.astype(dtype)
 
 
+_CV_SILENT = 0  # cv::utils::logging::LOG_LEVEL_SILENT in every release
+
+
+def _cv_log() -> Any:
+    """OpenCV's log-level functions: in ``cv2.utils.logging`` in newer releases, on ``cv2`` itself in
+    older ones (4.8, the oldest pyproject allows)."""
+    return getattr(cv2.utils, "logging", cv2)
 _QUIET_LOCK = threading.Lock()
 _QUIET = {"depth": 0, "level": 0}
 
 
 @contextlib.contextmanager
 def _opencv_quiet() -> Iterator[None]:
-    """Within: OpenCV logs errors only (its warnings off), and as it was after the last thread
-    leaves (the level is process-wide; the worker threads decode at once)."""
+    """Within: OpenCV logs nothing (a broken file is reported once, as the run's failure), and as
+    it was after the last thread leaves (the level is process-wide; the worker threads decode at
+    once)."""
     with _QUIET_LOCK:
         if _QUIET["depth"] == 0:
-            _QUIET["level"] = cv2.utils.logging.getLogLevel()
-            cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+            _QUIET["level"] = _cv_log().getLogLevel()
+            _cv_log().setLogLevel(_CV_SILENT)
         _QUIET["depth"] += 1
     try:
         yield
@@ -117,17 +127,36 @@ def _opencv_quiet() -> Iterator[None]:
         with _QUIET_LOCK:
             _QUIET["depth"] -= 1
             if _QUIET["depth"] == 0:
-                cv2.utils.logging.setLogLevel(_QUIET["level"])
+                _cv_log().setLogLevel(_QUIET["level"])
+
+
+def _truncation(data: np.ndarray) -> str | None:
+    """Why a PNG or JPEG file's bytes are cut short (its end marker missing), or ``None``. Such a
+    file is refused before decoding: OpenCV decodes a truncated JPEG into an image whose lower
+    part is grey, and libpng and libjpeg print their own lines about it."""
+    head = data[:8].tobytes()
+    if head.startswith(b"\x89PNG\r\n\x1a\n"):
+        if b"IEND" not in data[-32:].tobytes():
+            return "truncated PNG file (no IEND chunk at its end)"
+    elif head.startswith(b"\xff\xd8"):
+        tail = data[-4096:].tobytes().rstrip(b"\x00\r\n \t")  # padding some writers append
+        if not tail.endswith(b"\xff\xd9"):
+            return "truncated JPEG file (no end-of-image marker)"
+    return None
 
 
 def read_image(path: Path, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray:
-    """An image file as OpenCV decodes it (HW or HWC, its own dtype); ``ValueError`` if unreadable.
+    """An image file as OpenCV decodes it (HW or HWC, its own dtype); ``ValueError`` if unreadable
+    or cut short (a PNG or JPEG file without its end marker).
 
     Read as bytes first, so paths OpenCV's own reader cannot open (non-ASCII names) work too.
     """
     data = np.fromfile(str(path), dtype=np.uint8)
-    with _opencv_quiet():  # a broken file is reported once, as the run's failure, not also as
-        img = cv2.imdecode(data, flags) if data.size else None  # OpenCV's own [ WARN ] line
+    why = _truncation(data) if data.size else "empty file"
+    if why is not None:
+        raise ValueError(why)
+    with _opencv_quiet():
+        img = cv2.imdecode(data, flags)
     if img is None:
         raise ValueError("unreadable or not an image")
     return img
@@ -178,6 +207,7 @@ class _Job:
         with self._lock:
             if key not in self._cache:
                 warn_if_finer(self.size, src_size)  # once a source size (and once a calling line)
+                warn_if_stretched(self.size, src_size)
                 self._cache[key] = AreaResampler(
                     self.layout, self.size, src_size, tol=self.tol, dtype=dtype, device=self.device
                 )
@@ -296,12 +326,68 @@ def _find_label(labels: Path, rel: Path) -> Path | None:
     return None
 
 
-def check_destination(dst: Path) -> None:
-    """Refuse a destination that is a file or lies under one, before anything is written."""
+def check_destination(dst: Path, src: Path | None = None) -> None:
+    """Refuse a destination that is a file or lies under one, or that is the source folder
+    ``src`` itself, before anything is written."""
     blocker = file_in_the_way(dst)
     if blocker is not None:
         what = "is a file" if blocker == dst else f"lies under {str(blocker)!r}, which is a file"
         raise ArgumentError("dst", f"dst must be a folder; {str(dst)!r} {what}")
+    if src is not None and dst.exists() and dst.resolve() == src.resolve():
+        raise ArgumentError(
+            "dst", f"dst {str(dst)!r} is the source folder: its images would be overwritten; choose another"
+        )
+
+
+#: The records every run writes in its destination.
+RECORDS = ("layout.json", "done.jsonl", "manifest.json")
+
+
+def _label_paths(dst: Path, labels: Path | None, rel: Path, label_rule: str) -> tuple[Path | None, Path]:
+    """A source file's label map (``None`` if it has none) and where its sensor-grid label goes."""
+    label_src = _find_label(labels, rel) if labels is not None else None
+    keep = label_rule == "inverse" or label_src is None
+    return label_src, dst / "labels" / (rel if keep else rel.with_suffix(".png"))
+
+
+def check_no_overwrite(
+    src: Path, dst: Path, sources: Iterable[Path], labels: Path | None, label_rule: str
+) -> None:
+    """Refuse a run that would write over a file it reads: a sensor image, label map or record in
+    ``dst`` that is (the same file as, by device and inode, so links count) a source image under
+    ``src`` or a label map, before anything is written.
+
+    Raises:
+        ArgumentError: naming ``dst``, the file that would be overwritten and the output, in one line.
+    """
+
+    def identity(path: Path) -> tuple[int, int] | None:
+        try:
+            st = path.stat()
+        except OSError:
+            return None
+        return st.st_dev, st.st_ino
+
+    reads: dict[tuple[int, int], Path] = {}
+    writes = [dst / name for name in RECORDS]
+    for path in list_images(src, dst):  # every image under src, not only the files of this run
+        key = identity(path)
+        if key is not None:
+            reads[key] = path
+    for path in sources:
+        rel = path.relative_to(src)
+        label_src, label_dst = _label_paths(dst, labels, rel, label_rule)
+        writes += [dst / rel, label_dst]
+        if label_src is not None and (key := identity(label_src)) is not None:
+            reads[key] = label_src
+    for out in writes:
+        key = identity(out)
+        if key is not None and key in reads:
+            raise ArgumentError(
+                "dst",
+                f"dst {str(dst)!r} would overwrite the source file {str(reads[key])!r} "
+                f"(as {str(out)!r}); choose a folder that holds none of the inputs",
+            )
 
 
 def preprocess_folder(
@@ -325,7 +411,9 @@ def preprocess_folder(
 
     Args:
         src: source folder (walked recursively; ``dst`` is skipped if it lies inside).
-        dst: destination folder (created).
+        dst: destination folder (created); a folder where the run would write over any file it
+            reads (``src`` itself, or a folder whose outputs are source images or label maps) is
+            refused before anything is written ([`check_no_overwrite`][]).
         layout: the pixel layout (θ fixed).
         size: sensor size ``(h, w)``.
         labels: folder of class-index label maps with the same relative paths (a ``.png``
@@ -360,8 +448,9 @@ def preprocess_folder(
         a [`PreprocessResult`][]; failures (unreadable files) are listed, not raised.
 
     Raises:
-        ValueError: for a bad ``label_rule``, ``workers`` or sensor ``size``, or if ``dst``
-            already holds a dataset made with a different layout.
+        ValueError: for a bad ``label_rule``, ``workers`` or sensor ``size``, a ``labels`` that is
+            not a folder, a ``dst`` that would overwrite an input, or one that already holds a
+            dataset made with a different layout.
     """
     size = check_size(size)
     check_choice(label_rule, LABEL_RULES, "label_rule")
@@ -372,7 +461,12 @@ def preprocess_folder(
     src, dst = Path(src), Path(dst)
     if not src.is_dir():
         raise ArgumentError("src", f"src must be a folder, got {str(src)!r}")
-    check_destination(dst)
+    if labels is not None and not Path(labels).is_dir():
+        raise ArgumentError("labels", f"labels must be a folder of label maps, got {str(labels)!r}")
+    labels = Path(labels) if labels is not None else None
+    check_destination(dst, src)
+    sources = list(files) if files is not None else list_images(src, dst)
+    check_no_overwrite(src, dst, sources, labels, label_rule)  # nothing written before this
     dst.mkdir(parents=True, exist_ok=True)
     config = layout_spec(layout) | {"size_hw": list(size)}
     layout_file = dst / "layout.json"
@@ -403,17 +497,11 @@ def preprocess_folder(
     done_file = dst / "done.jsonl"
     done = _read_done(done_file)
     tasks, skipped = [], 0
-    exclude = dst.resolve()
-    for path in files if files is not None else list_images(src, exclude):
+    for path in sources:
         rel = path.relative_to(src)
         st = path.stat()
         out = dst / rel
-        label_src = _find_label(Path(labels), rel) if labels else None
-        label_dst = (
-            dst
-            / "labels"
-            / (rel if label_rule == "inverse" or label_src is None else rel.with_suffix(".png"))
-        )
+        label_src, label_dst = _label_paths(dst, labels, rel, label_rule)
         prev = done.get(str(rel))
         if (
             prev is not None

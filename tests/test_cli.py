@@ -38,6 +38,8 @@ def files(tmp_path):
     light = {"sensor_um": [60, 80], "photons_per_um2": 5}
     (tmp_path / "extra.json").write_text(json.dumps(light | {"exposure": 2}))
     (tmp_path / "fill.json").write_text(json.dumps(light | {"fill_factor": 1.5}))
+    (tmp_path / "photos").mkdir()
+    (tmp_path / "photos" / "a.png").write_bytes((SAMPLES / "photos" / "kodim20.png").read_bytes())
     return tmp_path
 
 
@@ -211,6 +213,62 @@ CASES |= {
     "mask onto a folder": (
         ["export", "--family", "uniform", *MASK, "--out", "{tmp}"],
         ["--out", "must be a file", "is a folder"],
+    ),
+}
+CASES |= {
+    "labels folder missing": (
+        [*PRE, "--labels", "{tmp}/nolabels", "--label-rule", "majority"],
+        ["argument --labels", "no such folder", "nolabels"],
+    ),
+    "label rule without labels": (
+        [*PRE, "--label-rule", "majority"],
+        ["--label-rule", "needs --labels", "majority"],
+    ),
+    "preprocess onto its own source": (
+        [
+            "preprocess",
+            "{tmp}/photos",
+            "{tmp}/photos",
+            "--family",
+            "curv",
+            "--theta",
+            "0.5,0.3",
+            "--size",
+            "32x24",
+        ],
+        ["argument DST", "is the source folder", "photos"],
+    ),
+    "bench results under a file": (
+        ["bench", "--quick", "--json", "{tmp}/afile/x.json"],
+        ["--json", "afile' is a file"],
+    ),
+    "bench table under a file": (
+        ["bench", "--quick", "--text", "{tmp}/afile/x.md"],
+        ["--text", "afile' is a file"],
+    ),
+    "bench plot onto a folder": (
+        ["bench", "--quick", "--plot", "{tmp}"],
+        ["--plot", "must be a file", "is a folder"],
+    ),
+    "raster mask too fine to hold": (
+        ["export", "--family", "uniform", *MASK, "--px-per-um", "100000", "--out", "{tmp}/x.png"],
+        ["--px-per-um", "100000", "raster mask", "of memory", "available"],
+    ),
+    "raster mask too fine to draw": (
+        [
+            "export",
+            "--family",
+            "uniform",
+            "--size",
+            "4x4",
+            "--sensor-um",
+            "4000x40",
+            "--px-per-um",
+            "1e5",
+            "--out",
+            "{tmp}/x.png",
+        ],
+        ["--px-per-um", "400000000x4000000 raster mask", "a side OpenCV draws"],
     ),
 }
 CASES |= {

@@ -101,12 +101,12 @@ def test_the_first_call_answers_from_torch_while_a_worker_compiles_then_runs_com
 
 @pytest.mark.slow
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
-def test_a_quick_build_gives_the_full_builds_values_to_the_bit(dtype):
+def test_a_quick_build_gives_the_full_builds_values_to_the_bit(dtype, seed):
     """jit.quick recompiles a kernel and its callees without IR inlining: the sensor's
     measurement (every noise model and output, fixed patterns, full well, ADC, negative means) and
     the fused product + measurement agree with the full build bit for bit, under a name of their
     own in numba's cache."""
-    rng = np.random.default_rng()
+    rng = np.random.default_rng(seed)
     p, seed = 3001, int(rng.integers(2**62))
     mean = rng.uniform(-0.2, 4.0, (3, p)).astype(dtype)
     area = rng.uniform(0.5, 1.5, p)

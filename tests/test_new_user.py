@@ -48,20 +48,39 @@ def test_a_sensor_finer_than_its_image_is_warned_about_once():
 
 
 @pytest.mark.heavy
-def test_preprocess_says_so_in_one_line_and_opencv_adds_no_line_of_its_own(tmp_path):
+def test_preprocess_says_so_in_one_line_and_the_decoders_add_no_line_of_their_own(tmp_path):
+    import cv2
+
     src = tmp_path / "src"
     src.mkdir()
-    (src / "bad.png").write_bytes((SAMPLES / "photos" / "kodim03.png").read_bytes()[:100])  # cut short
-    (src / "good.png").write_bytes((SAMPLES / "photos" / "kodim20.png").read_bytes())
+    png = (SAMPLES / "photos" / "kodim20.png").read_bytes()
+    jpg = cv2.imencode(".jpg", cv2.imread(str(SAMPLES / "photos" / "kodim20.png")))[1].tobytes()
+    (src / "cut.png").write_bytes(png[:100])  # cut short
+    (src / "crc.png").write_bytes(png[:100] + b"x" * 500 + png[600:])  # libpng: "IDAT: ..."
+    (src / "cut.jpg").write_bytes(jpg[: len(jpg) // 2])  # libjpeg: "Premature end of JPEG file"
+    (src / "gap.jpg").write_bytes(jpg[:300] + bytes(300) + jpg[600:])  # "Corrupt JPEG data", decodes
+    (src / "good.png").write_bytes(png)
     cmd = [sys.executable, "-m", "layoutwarp", "preprocess", str(src), str(tmp_path / "dst")]
     cmd += ["--family", "uniform", "--size", "640x600", "--no-progress"]
     res = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
-    assert res.returncode == 1, res.stderr  # one file failed
-    assert "[ WARN" not in res.stderr and "Traceback" not in res.stderr, res.stderr
+    assert res.returncode == 1, res.stderr  # files failed
+    for noise in ("[ WARN", "[ERROR", "libpng", "JPEG data", "Premature", "Traceback"):
+        assert noise not in res.stderr.replace("'libpng error", ""), (noise, res.stderr)
     warned = [line for line in res.stderr.splitlines() if line.startswith("layoutwarp: warning:")]
-    assert len(warned) == 1 and "(600, 640)" in warned[0] and "(500, 500)" in warned[0], res.stderr
-    assert "1 written" in res.stdout + res.stderr
-    assert "failed: bad.png: ValueError: unreadable or not an image" in res.stdout + res.stderr
+    assert len(warned) == 2 and "(600, 640)" in warned[0] and "(500, 500)" in warned[0], res.stderr
+    assert "decoders reported 2 problem(s), e.g. 'libpng error: " in warned[1], res.stderr
+    assert "2 written" in res.stdout and "3 failed" in res.stdout
+    failed = sorted(line.strip() for line in res.stderr.splitlines() if line.strip().startswith("failed:"))
+    assert failed == [
+        "failed: crc.png: ValueError: unreadable or not an image",
+        "failed: cut.jpg: ValueError: truncated JPEG file (no end-of-image marker)",
+        "failed: cut.png: ValueError: truncated PNG file (no IEND chunk at its end)",
+    ]
+    manifest = json.loads((tmp_path / "dst" / "manifest.json").read_text())
+    lines = manifest["decoder_messages"]
+    assert (
+        len(lines) == 2 and lines[0].startswith("libpng error: ") and lines[1].startswith("Corrupt JPEG data")
+    )
 
 
 def test_a_file_given_as_a_folder_is_named_as_a_file(tmp_path, capsys):

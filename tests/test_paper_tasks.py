@@ -31,7 +31,7 @@ OFFICIAL = [
 ]  # fmt: skip
 
 
-def test_label_ids_map_to_the_official_train_ids_and_everything_else_is_ignored():
+def test_label_ids_map_to_the_official_train_ids_and_everything_else_is_ignored(seed):
     expected = np.full(256, 255, np.uint8)
     for _, label_id, train_id in OFFICIAL:
         expected[label_id] = train_id
@@ -39,7 +39,7 @@ def test_label_ids_map_to_the_official_train_ids_and_everything_else_is_ignored(
     assert np.array_equal(train_ids(ids), expected) and IGNORE == 255
     names = {train_id: name for name, _, train_id in OFFICIAL if train_id != 255}
     assert CLASSES == tuple(names[k] for k in range(19))
-    rng = np.random.default_rng()
+    rng = np.random.default_rng(seed)
     img = rng.integers(0, 256, (5, 7), dtype=np.uint8)
     assert np.array_equal(train_ids(img), expected[img])  # any shape, elementwise
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import cv2
@@ -14,6 +15,7 @@ from conftest import SAMPLES, rand_theta
 
 import layoutwarp as lw
 from layoutwarp.backwarp import sensor_index_maps
+from layoutwarp.checks import ArgumentError
 from layoutwarp.cli import main
 from layoutwarp.preprocess import preprocess_folder
 from layoutwarp.resampler import AreaResampler, area_weights
@@ -295,3 +297,108 @@ def test_dask_engine_joins_a_cluster_builds_weights_once_per_worker_and_resumes(
     assert {k: v for k, v in _tree(tmp_path / "l").items() if k not in skip} == {
         k: v for k, v in _tree(tmp_path / "d").items() if k not in skip
     }
+
+
+def _snapshot(root: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def _photo(path: Path, seed: int, hw=(40, 60)) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(seed)
+    cv2.imwrite(str(path), rng.integers(0, 256, (*hw, 3), dtype=np.uint8))
+
+
+def test_preprocess_refuses_a_destination_that_would_overwrite_what_it_reads(tmp_path, seed):
+    layout, size = fixed("curv", (0.5, 0.3)), (6, 8)
+    src = tmp_path / "src"
+    _photo(src / "a.png", seed)
+    _photo(src / "b.png", seed + 1)
+    _photo(src / "src" / "b.png", seed + 2)  # rel src/b.png: into dst = tmp it goes over src/b.png
+    before = _snapshot(tmp_path)
+    cases = {
+        "the source folder": (src, "is the source folder"),
+        "a folder whose outputs are sources": (tmp_path, "would overwrite the source file '.*b.png'"),
+    }
+    for what, (dst, needle) in cases.items():
+        with pytest.raises(ArgumentError, match=needle) as info:
+            preprocess_folder(src, dst, layout, size, progress=False)
+        assert info.value.argument == "dst" and "\n" not in str(info.value), what
+        assert _snapshot(tmp_path) == before, what  # nothing written, nothing overwritten
+    # the labels' own case: with dst = tmp, labels must be tmp/labels to collide
+    (tmp_path / "labels").mkdir()
+    _photo(tmp_path / "labels" / "x.png", seed + 3)
+    _photo(tmp_path / "only" / "x.png", seed + 4)
+    before = _snapshot(tmp_path)
+    with pytest.raises(ArgumentError, match=re.escape("labels/x.png")):
+        preprocess_folder(
+            tmp_path / "only", tmp_path, layout, size, labels=tmp_path / "labels", progress=False
+        )
+    assert _snapshot(tmp_path) == before
+    # a hard link in the destination to a source file is the source file
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "a.png").hardlink_to(src / "a.png")
+    with pytest.raises(ArgumentError, match="would overwrite the source file"):
+        preprocess_folder(src, out, layout, size, progress=False, files=[src / "a.png"])
+    # a destination inside the source is fine: it is left out of the walk
+    res = preprocess_folder(src, src / "sensor", layout, size, progress=False)
+    assert res.processed == 3 and not res.failed
+    assert (src / "a.png").read_bytes() == before["src/a.png"]
+
+
+def test_preprocess_refuses_a_missing_labels_folder_before_writing(tmp_path, seed):
+    _photo(tmp_path / "src" / "a.png", seed)
+    with pytest.raises(ArgumentError, match=r"labels must be a folder of label maps, got '.*nowhere'"):
+        preprocess_folder(
+            tmp_path / "src", tmp_path / "dst", fixed("rect", (0.2, 0.1)), (4, 4), labels=tmp_path / "nowhere"
+        )
+    assert not (tmp_path / "dst").exists()
+
+
+def test_a_stretched_source_is_warned_about_once(tmp_path, seed):
+    for k in range(3):
+        _photo(tmp_path / "src" / f"{k}.png", seed + k, hw=(60, 30))  # portrait
+    with pytest.warns(
+        UserWarning, match=r"another aspect ratio .* \(60, 30\).*stretched 4.00x along x"
+    ) as rec:
+        preprocess_folder(
+            tmp_path / "src", tmp_path / "dst", fixed("rect", (0.2, 0.1)), (10, 20), progress=False
+        )
+    assert len([w for w in rec if "aspect ratio" in str(w.message)]) == 1
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # within 10 %: no warning
+        preprocess_folder(
+            tmp_path / "src", tmp_path / "dst2", fixed("rect", (0.2, 0.1)), (21, 10), progress=False
+        )
+
+
+def test_truncated_images_are_refused_in_our_words(tmp_path, seed):
+    from layoutwarp.preprocess import read_image
+
+    _photo(tmp_path / "a.png", seed)
+    _photo(tmp_path / "a.jpg", seed)
+    for name, why in [("a.png", "truncated PNG file"), ("a.jpg", "truncated JPEG file")]:
+        data = (tmp_path / name).read_bytes()
+        assert read_image(tmp_path / name).shape == (40, 60, 3)
+        cut = tmp_path / f"cut_{name}"
+        cut.write_bytes(data[: len(data) * 2 // 3])
+        with pytest.raises(ValueError, match=why):
+            read_image(cut)
+    (tmp_path / "padded.jpg").write_bytes((tmp_path / "a.jpg").read_bytes() + b"\0" * 100)
+    assert read_image(tmp_path / "padded.jpg").shape == (40, 60, 3)  # trailing padding is not a cut
+
+
+def test_reading_works_with_the_oldest_opencvs_log_functions(tmp_path, monkeypatch, seed):
+    # OpenCV 4.8 has setLogLevel/getLogLevel on cv2 itself and no cv2.utils.logging
+    from layoutwarp.preprocess import read_image
+
+    calls = []
+    monkeypatch.delattr(cv2.utils, "logging", raising=False)
+    monkeypatch.setattr(cv2, "getLogLevel", lambda: calls.append("get") or 3, raising=False)
+    monkeypatch.setattr(cv2, "setLogLevel", lambda level: calls.append(level), raising=False)
+    _photo(tmp_path / "a.png", seed)
+    assert read_image(tmp_path / "a.png").shape == (40, 60, 3)
+    assert calls == ["get", 0, 3]  # silent while decoding, then as it was

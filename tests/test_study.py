@@ -288,3 +288,27 @@ def test_a_study_runs_seed_by_seed_so_a_stopped_one_has_every_configurations_fir
     assert [k for _, _, k in runs] == sorted(k for _, _, k in runs)  # every seed 0 before any seed 1
     seed0 = [("uniform", (6, 8), 0), ("uniform", (9, 12), 0), ("rect", (6, 8), 0), ("curv", (6, 8), 0)]
     assert runs[: len(runs) // 3] == seed0  # within a seed: the uniform curve, then the learned layouts
+
+
+def test_study_takes_size_as_every_training_command_does(tmp_path, monkeypatch, capsys):
+    # --size sets where every family is trained; the uniform curve gains those sizes
+    import layoutwarp.experiments.study as study
+
+    plans = []
+
+    def fake_run_study(task, folder, out, *, plan, seeds, options):
+        plans.append(plan)
+        raise ValueError("stopped after the plan")  # the command ends in its one-line error
+
+    monkeypatch.setattr(study, "run_study", fake_run_study)
+    argv = ["study", "mnist", "--quick", "--out", str(tmp_path / "s"), "--no-progress"]
+    assert main([*argv, "--size", "5x5", "--size", "2x3"]) == 2
+    assert "stopped after the plan" in capsys.readouterr().err
+    (plan,) = plans
+    assert plan.learned_sizes == ((5, 5), (3, 2))
+    quick_uniform = MNIST.study.uniform_sizes[:2]
+    assert set(plan.uniform_sizes) == set(quick_uniform) | {(5, 5), (3, 2)}
+    assert [h * w for h, w in plan.uniform_sizes] == sorted(h * w for h, w in plan.uniform_sizes)
+    with pytest.raises(SystemExit) as info:  # argparse's own error
+        main([*argv, "--size", "0x3"])
+    assert info.value.code == 2 and "--size" in capsys.readouterr().err

@@ -1,0 +1,152 @@
+"""Command line: ``layoutwarp <command>`` (also ``python -m layoutwarp``).
+
+Sizes on the command line are ``WIDTHxHEIGHT`` like OpenCV's ``dsize`` ("257x129" is 257
+wide); the Python API uses ``(H, W)``. Every error ends in one line on stderr that names the
+flag, the value and what is allowed, with exit status 2. Each command lives in a module of
+this package (``tools``: demo, doctor, bench; ``training``: train, study, landscape, evaluate;
+``data``: preprocess, export), on the flags, types and checks of ``common``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import re
+import sys
+import warnings
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any
+
+from . import data, tools, training
+from .common import (
+    FLAGS,
+    NEW_FOLDERS,
+    Formatter,
+    Parser,
+    UsageError,
+    parse_theta,
+    parse_wxh,
+    positive_int,
+)
+
+if TYPE_CHECKING:
+    import argparse
+
+    from ..experiments.protocols import TaskSpec
+
+__all__ = ["build_parser", "join_negative_values", "main", "parse_theta", "parse_wxh", "positive_int", "run"]
+
+
+def _catalogues() -> tuple[dict[str, TaskSpec], list[str], list[str]]:
+    """The tasks' protocols, the families and the two-parameter families the parser lists: the
+    built-in ones from torch-free modules, and, in a process that has loaded the registries, any a
+    user registered there (without loading them)."""
+    from ..catalog import BUILTIN_FAMILIES, TWO_PARAMETER_FAMILIES
+    from ..experiments.protocols import SPECS
+
+    specs, families, two = dict(SPECS), list(BUILTIN_FAMILIES), list(TWO_PARAMETER_FAMILIES)
+    layouts = sys.modules.get(f"{__package__}.layouts")
+    if layouts is not None:
+        for name, cls in layouts.FAMILIES.items():
+            if name not in families:
+                families.append(name)
+                if cls.num_params == 2:
+                    two.append(name)
+    tasks = sys.modules.get(f"{__package__}.experiments.tasks")
+    if tasks is not None:
+        specs |= {name: task.spec for name, task in tasks.TASKS.items() if name not in specs}
+    return specs, families, two
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``layoutwarp`` argument parser. It imports nothing heavy (the tasks and families it
+    lists come from torch-free modules), so help and argument errors answer at once."""
+    from ..version import __version__
+
+    specs, families, two = _catalogues()
+    p = Parser(
+        prog="layoutwarp",
+        description="Differentiable sensor pixel layouts: simulate, learn and export task-specific sensors.",
+        formatter_class=Formatter,
+    )
+    p.add_argument("--version", action="version", version=f"layoutwarp {__version__}")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=Parser)
+    tools.add_commands(sub)
+    training.add_commands(sub, specs, families, two)
+    data.add_commands(sub, families)
+    return p
+
+
+def join_negative_values(argv: Sequence[str]) -> list[str]:
+    """``--flag -0.5,0.5`` as ``--flag=-0.5,0.5``: a value that starts with a minus and a digit is
+    the flag's value, not a flag (argparse takes only plain negative numbers so, and read
+    ``--theta -0.5,0.5`` or ``--size -4x4`` as a missing value)."""
+    out: list[str] = []
+    i = 0
+    while i < len(argv):
+        arg = argv[i]
+        if arg.startswith("--") and "=" not in arg and i + 1 < len(argv) and _NEGATIVE.match(argv[i + 1]):
+            out.append(f"{arg}={argv[i + 1]}")
+            i += 2
+        else:
+            out.append(arg)
+            i += 1
+    return out
+
+
+_NEGATIVE = re.compile(r"^-\.?\d")
+
+
+def main(argv: Sequence[str] | None = None, *, own_process: bool = False) -> int:
+    """Run the command line; returns the exit status. ``own_process``: the process is the
+    command's alone, and its allocator keeps freed memory for the next training step
+    ([`retain_freed_memory`][layoutwarp.kernels.retain_freed_memory])."""
+    argv = join_negative_values(sys.argv[1:] if argv is None else argv)
+    args = build_parser().parse_args(argv)
+    if own_process:
+        from ..kernels import retain_freed_memory
+
+        retain_freed_memory()
+        warnings.formatwarning = _one_line_warning
+    prog = f"layoutwarp {args.command}" + (
+        f" {args.task}" if args.command in ("train", "study", "landscape") else ""
+    )
+    NEW_FOLDERS.clear()
+    status = 1  # what an unexpected exception leaves
+    try:
+        status = int(args.func(args) or 0)
+    except (UsageError, ValueError, FileNotFoundError) as exc:
+        print(f"{prog}: error: {_name_the_flag(exc)}", file=sys.stderr)
+        status = 2
+    finally:
+        if status != 0:  # a failed command leaves no empty output folder of its own behind
+            for folder in reversed(NEW_FOLDERS):
+                with contextlib.suppress(OSError):  # kept if anything was written there
+                    folder.rmdir()
+    return status
+
+
+def _one_line_warning(message: Warning | str, category: type[Warning], *args: Any, **kwargs: Any) -> str:
+    """A warning on the command line: one line, no source location."""
+    return f"layoutwarp: warning: {message}\n"
+
+
+def run() -> None:
+    """The ``layoutwarp`` command (and ``python -m layoutwarp``): [`main`][] in a process of
+    its own. Output cut short by its reader (``| head``) ends the command quietly."""
+    try:
+        status = main(own_process=True)
+        sys.stdout.flush()
+    except BrokenPipeError:
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit
+        status = 141  # as a shell reports a command ended by SIGPIPE
+    sys.exit(status)
+
+
+def _name_the_flag(exc: Exception) -> str:
+    """A library error about an argument ([`ArgumentError`][layoutwarp.checks.ArgumentError]) prefixed
+    with the flag that sets it; any other error's message as it is."""
+    from ..checks import ArgumentError
+
+    flag = FLAGS.get(exc.argument) if isinstance(exc, ArgumentError) else None
+    return f"argument {flag}: {exc}" if flag else str(exc)

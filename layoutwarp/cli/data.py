@@ -1,0 +1,210 @@
+"""``layoutwarp preprocess`` and ``export``: a folder of images to sensor images, a layout to a mask."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+from collections.abc import Sequence
+from pathlib import Path
+
+from .common import (
+    UsageError,
+    add_command,
+    add_layout_args,
+    add_physics_args,
+    existing_folder,
+    layout_from_args,
+    non_negative_int,
+    parse_um,
+    physics_from_args,
+    pick_device,
+    positive_float,
+    positive_int,
+    quiet_decoders,
+)
+
+__all__ = ["add_commands"]
+
+
+def _cmd_preprocess(args: argparse.Namespace) -> int:
+    from ..experiments.bench import preprocess_baseline
+    from ..files import atomic_write
+    from ..preprocess import check_destination, list_images, preprocess_folder
+
+    existing_folder(args.src, "SRC")
+    check_destination(Path(args.dst), Path(args.src))
+    if args.labels is not None:
+        existing_folder(args.labels, "--labels")
+    elif args.label_rule is not None:
+        raise UsageError(
+            f"argument --label-rule: needs --labels DIR (the label maps), got {args.label_rule!r}"
+        )
+    layout, size = layout_from_args(args)
+    dst = Path(args.dst)
+    if args.benchmark and dst.exists() and any(dst.iterdir()):
+        raise UsageError(f"argument --benchmark: needs an empty DST, {str(dst)!r} is not empty")
+    base = None
+    if args.benchmark:  # the baseline first, both on a warm page cache
+        files = list_images(args.src, dst)
+        for path in files:
+            path.read_bytes()
+        with tempfile.TemporaryDirectory() as tmp:
+            base = preprocess_baseline(files, size, tmp)
+    physics, device = physics_from_args(args), pick_device(args.device)
+    with quiet_decoders() as decoder_lines:  # a broken file is reported once, as a failure
+        res = preprocess_folder(
+            args.src,
+            dst,
+            layout,
+            size,
+            labels=args.labels,
+            label_rule=args.label_rule or "nearest",
+            workers=args.workers,
+            tol=args.tol,
+            progress=False if args.no_progress else None,
+            engine=args.engine,
+            address=args.address,
+            device=device,
+            physics=physics,
+        )
+    print(
+        f"{res.processed} written, {res.skipped} already done, {len(res.failed)} failed "
+        f"in {res.seconds:.2f} s ({res.images_per_second:.1f} images/s, {args.workers} worker(s)); "
+        f"manifest {res.manifest}"
+    )
+    for f in res.failed:
+        print(f"  failed: {f['file']}: {f['error']}", file=sys.stderr)
+    manifest = json.loads(res.manifest.read_text())
+    if decoder_lines:
+        print(
+            f"layoutwarp: warning: the image decoders reported {len(decoder_lines)} problem(s), e.g. "
+            f"{decoder_lines[0]!r}; files that still decoded were processed (the lines are in the manifest)",
+            file=sys.stderr,
+        )
+        manifest["decoder_messages"] = decoder_lines
+    if base is not None:
+        ours = res.processed / res.seconds
+        ref = len(files) / base
+        print(
+            f"benchmark ({len(files)} files): layoutwarp {ours:.1f} images/s, "
+            f"imread + resize(INTER_AREA) + imwrite {ref:.1f} images/s, ratio {ours / ref:.2f}x"
+        )
+        manifest["benchmark"] = {"images_per_s": ours, "baseline_images_per_s": ref, "ratio": ours / ref}
+    if decoder_lines or base is not None:
+        atomic_write(res.manifest, json.dumps(manifest, indent=2))
+    return 1 if res.failed else 0
+
+
+def _cmd_export(args: argparse.Namespace) -> int:
+    from ..export import export_layout, report_json
+    from ..files import atomic_write, check_file_destination
+
+    check_file_destination(args.out, "out")  # both before any work: nothing written, then refused
+    if args.report:
+        check_file_destination(args.report, "report")
+    layout, size = layout_from_args(args)
+    report = export_layout(
+        layout,
+        size,
+        args.out,
+        args.sensor_um,
+        format=args.format,
+        tol_um=args.tol_um,
+        grid_um=args.grid_um,
+        manhattan=args.manhattan,
+        layer=args.gds_layer,
+        datatype=args.gds_datatype,
+        px_per_um=args.px_per_um,
+        line_width=args.line_width,
+        min_feature_um=args.min_feature_um,
+        physics=physics_from_args(args, args.sensor_um),
+        progress=False if args.no_progress else None,
+    )
+    print(report.summary())
+    if args.report:
+        atomic_write(args.report, report_json(report))
+    return 0
+
+
+def add_commands(sub: argparse._SubParsersAction, families: Sequence[str]) -> None:
+    """The ``preprocess`` and ``export`` commands' parsers."""
+    pp = add_command(
+        sub, "preprocess", "Write the sensor image of every image in a folder (and move its label maps)."
+    )
+    pp.add_argument("src", metavar="SRC", help="source folder (walked recursively)")
+    pp.add_argument("dst", metavar="DST", help="destination folder (same relative paths)")
+    add_layout_args(pp, families)
+    pp.add_argument("--labels", metavar="DIR", help="folder of class-index label maps (same relative paths)")
+    pp.add_argument(
+        "--label-rule",
+        choices=["nearest", "majority", "inverse"],
+        help="labels to the sensor grid by the label under each pixel centre (nearest) or the "
+        "largest area (majority), or kept full size with back-warp maps (inverse) (default: nearest)",
+    )
+    pp.add_argument(
+        "--workers",
+        type=positive_int,
+        default=1,
+        help="worker threads (local) or processes (new Dask cluster)",
+    )
+    pp.add_argument(
+        "--engine",
+        choices=["local", "dask"],
+        default="local",
+        help="threads here, or tasks on a Dask cluster (pip install 'layoutwarp[dask]')",
+    )
+    pp.add_argument(
+        "--address",
+        metavar="HOST:PORT",
+        help="with --engine dask: join this running scheduler (default: start one)",
+    )
+    pp.add_argument(
+        "--tol", type=positive_float, help="curved-edge tolerance (default: 1/4 level of the image dtype)"
+    )
+    pp.add_argument(
+        "--device",
+        help="where the sparse products run: cpu, cuda, ... (default: cuda when available, else cpu)",
+    )
+    pp.add_argument("--no-progress", action="store_true", help="no progress bar")
+    pp.add_argument(
+        "--benchmark", action="store_true", help="also time a plain OpenCV loop on the same files"
+    )
+    add_physics_args(pp)
+    pp.set_defaults(func=_cmd_preprocess)
+
+    ex = add_command(
+        sub, "export", "Write a layout's pixel boundaries as a fabrication mask (GDSII, DXF, SVG, PNG)."
+    )
+    add_layout_args(ex, families)
+    ex.add_argument("--sensor-um", type=parse_um, required=True, help="sensor extent WIDTHxHEIGHT in µm")
+    ex.add_argument("--out", required=True, help="output file (*.gds, *.dxf, *.svg or *.png)")
+    ex.add_argument(
+        "--format",
+        choices=["gds", "dxf", "svg", "png"],
+        help="must match --out's suffix (default: the suffix)",
+    )
+    ex.add_argument("--tol-um", type=positive_float, default=0.01, help="curved-edge tolerance in µm")
+    ex.add_argument(
+        "--grid-um",
+        type=positive_float,
+        help="snap vertices to this grid (µm), finer than a pixel "
+        "(default: no snapping; GDSII's 1 nm for *.gds)",
+    )
+    ex.add_argument("--manhattan", action="store_true", help="axis-aligned steps instead of slanted edges")
+    ex.add_argument(
+        "--gds-layer", type=non_negative_int, default=1, help="GDSII layer (DXF layer PIXELS_<n>)"
+    )
+    ex.add_argument("--gds-datatype", type=non_negative_int, default=0, help="GDSII datatype")
+    ex.add_argument(
+        "--px-per-um", type=positive_float, help="PNG resolution (default: 4096 px on the long side)"
+    )
+    ex.add_argument(
+        "--line-width", type=positive_int, default=1, help="PNG boundary line width in raster pixels"
+    )
+    ex.add_argument("--min-feature-um", type=positive_float, help="warn below this pitch (µm)")
+    ex.add_argument("--report", metavar="FILE", help="also write the report as JSON to this file")
+    ex.add_argument("--no-progress", action="store_true", help="no progress bars (drawn for large sensors)")
+    add_physics_args(ex, extent="--sensor-um")
+    ex.set_defaults(func=_cmd_export)
