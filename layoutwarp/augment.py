@@ -74,7 +74,7 @@ class SensorAugmentation(GeometricAugmentationBase2D):
         method: str = "exact",
         *,
         mask_rule: str = "nearest",
-        learn: bool = True,
+        learn: bool | None = None,
         theta: Sequence[float] | Tensor | None = None,
         **options: Any,
     ) -> None:

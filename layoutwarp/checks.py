@@ -39,6 +39,7 @@ __all__ = [
     "check_tensor",
     "floating_dtype",
     "raise_nonfinite",
+    "warn_if_elsewhere",
     "warn_if_finer",
     "warn_if_stretched",
 ]
@@ -104,7 +105,7 @@ def available_bytes() -> int:
     return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
 
 
-_WARNED: set[tuple[str, tuple[int, int], tuple[int, int]]] = set()  # (warning, size, source size)
+_WARNED: set[tuple[str, tuple, tuple]] = set()  # (warning, and what it was about)
 
 
 def warn_if_finer(size: tuple[int, int], src_size: tuple[int, int]) -> None:
@@ -120,6 +121,22 @@ def warn_if_finer(size: tuple[int, int], src_size: tuple[int, int]) -> None:
         warnings.warn(
             f"the sensor ({h}, {w}) has more pixels along an axis than its source image "
             f"({src_h}, {src_w}): its pixels are smaller than the image's and add no detail",
+            UserWarning,
+            stacklevel=3,
+        )
+
+
+def warn_if_elsewhere(layout_device: torch.device, image_device: torch.device) -> None:
+    """Warn (a ``UserWarning``, once a process for each pair of devices) where a layout's θ lives
+    on another device than the image it integrates: θ is then copied to the image's device on
+    every call, a wait for the copy each time."""
+    key = ("device", (str(layout_device),), (str(image_device),))
+    if layout_device != image_device and key not in _WARNED:
+        _WARNED.add(key)
+        warnings.warn(
+            f"the layout's θ is on {layout_device} and the image on {image_device}: θ is copied to "
+            f"{image_device} on every call; move the layout (or its SensorLayer) there with "
+            f".to({str(image_device)!r})",
             UserWarning,
             stacklevel=3,
         )

@@ -112,7 +112,7 @@ def _edge_polylines(
     counts, dev = distance_subdivisions(
         layout, size, tol_um, scale=sensor_um, manhattan=manhattan, min_counts=min_steps
     )
-    theta = layout.theta.detach().double().cpu()
+    theta = layout.theta_as(torch.float64).detach().cpu()
     mesh = pixel_mesh(layout, size, subdivisions=counts, dtype=torch.float64, theta=theta)
     out = mesh.edge_polylines(sensor_to_pixels(mesh.vertices, sensor_um))
     if manhattan:
@@ -262,7 +262,7 @@ def _smallest_chord_um(layout: Layout, size: tuple[int, int], sensor_um: tuple[f
     """The shortest distance between neighbouring pixel corners, in µm (a bound on the pitch)."""
     with torch.no_grad():
         c = sensor_to_pixels(
-            layout.phi(uniform_corners(size), layout.theta.detach().double().cpu()), sensor_um
+            layout.phi(uniform_corners(size), layout.theta_as(torch.float64).detach().cpu()), sensor_um
         )
     dx = (c[:, 1:] - c[:, :-1]).norm(dim=-1)
     dy = (c[1:] - c[:-1]).norm(dim=-1)

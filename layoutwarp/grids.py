@@ -161,7 +161,7 @@ class GridLayout(Layout):
         """
         gh, gw = check_size(grid, "grid")
         with torch.no_grad():
-            ctrl = layout.phi(uniform_corners((gh, gw)), layout.theta.detach().double())
+            ctrl = layout.phi(uniform_corners((gh, gw)), layout.theta_as(torch.float64).detach())
         return cls(ctrl, **kwargs)
 
     @classmethod

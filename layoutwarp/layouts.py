@@ -26,7 +26,7 @@ from typing import Any, ClassVar, TypeVar
 import torch
 from torch import Tensor, nn
 
-from .checks import check_number, check_points
+from .checks import ArgumentError, check_number, check_points
 
 __all__ = [
     "FAMILIES",
@@ -326,8 +326,16 @@ class Layout(nn.Module):
             without parameters accepts ``None``, ``()`` or zeros.
         bound: the open bound on ``|θ|`` (the paper uses 1).
         learn: make ``ρ`` a trainable parameter (default ``False``: a buffer, fixed layout).
-        dtype: dtype of ``ρ`` (default: a tensor ``theta``'s own floating dtype, else torch's
-            default); use ``torch.float64`` for exact round trips.
+        dtype: the layout's [`dtype`][]: that of θ and of what is computed from it (default: a
+            tensor ``theta``'s own floating dtype, else torch's default).
+
+    A fixed layout keeps ``ρ`` (and its other constants, e.g. a centre) in float64 whatever its
+    dtype: they are a few numbers, and a float64 computation then gets the θ that was written,
+    not its float32 rounding, also after ``.float()``/``.double()``; those change the layout's
+    [`dtype`][] and move the constants without rounding them. [`theta_as`][] gives θ in any
+    dtype; the methods that take points ([`forward`][], [`inverse`][], ...) compute at the
+    points' precision when it is the finer one. A learnable layout's ``ρ`` is a parameter of its
+    dtype, as every torch module's.
     """
 
     family: ClassVar[str] = "custom"
@@ -335,6 +343,8 @@ class Layout(nn.Module):
     separable: ClassVar[bool] = False
     straight_edges: ClassVar[bool] = False
     unbounded: ClassVar[bool] = False
+    #: Buffers of a fixed layout's constants, held in float64 whatever the layout's dtype.
+    exact_buffers: ClassVar[tuple[str, ...]] = ("rho",)
 
     def __init__(
         self,
@@ -347,12 +357,34 @@ class Layout(nn.Module):
         super().__init__()
         self.bound = check_number(bound, "bound", 0, lo_open=True)
         self._bounds_on: dict[tuple[torch.device, torch.dtype], Tensor] = {}  # _bounds() where ρ lives
-        dtype = dtype or tensor_dtype(theta)
-        rho = self._to_rho(self._validate_theta(theta, dtype))
+        self._dtype = dtype or tensor_dtype(theta)
+        rho = self._to_rho(self._validate_theta(theta, torch.float64))
         if learn and self.num_params:
-            self.rho = nn.Parameter(rho)
+            self.rho = nn.Parameter(rho.to(self._dtype))
         else:
             self.register_buffer("rho", rho)
+
+    @property
+    def dtype(self) -> torch.dtype:
+        """The dtype of [`theta`][] and of what is computed from it (``dtype`` at construction;
+        ``.to(dtype)``, ``.float()``, ``.double()`` change it)."""
+        return self._dtype
+
+    def _apply(self, fn: Callable[[Tensor], Tensor], recurse: bool = True) -> Layout:
+        """As `nn.Module`'s, except that a fixed layout's `exact_buffers` are moved, never rounded."""
+        dtype = fn(torch.empty(0, dtype=self._dtype)).dtype  # what the conversion does to a float
+        exact = {n: self._buffers[n] for n in self.exact_buffers if n in self._buffers}
+        super()._apply(fn, recurse)
+        for name, value in exact.items():
+            if value is not None:
+                self._buffers[name] = value.to(self._buffers[name].device)
+        self._dtype = dtype
+        return self
+
+    @property
+    def learnable_param(self) -> bool:
+        """Whether ``ρ`` is a parameter (``learn=True``), trainable or frozen."""
+        return isinstance(self.rho, nn.Parameter)
 
     # -- parameters ------------------------------------------------------------------
     def _bounds(self) -> Tensor:
@@ -386,7 +418,11 @@ class Layout(nn.Module):
         n = self.num_params or 0
         if theta is None:
             return torch.zeros(n, dtype=dtype)
-        t = torch.as_tensor(theta, dtype=torch.float64).detach().flatten().cpu()
+        try:
+            t = torch.as_tensor(theta, dtype=torch.float64).detach().flatten().cpu()
+        except (TypeError, ValueError, RuntimeError):
+            what = f"{n} numbers (θ_x, θ_y)" if n == 2 else f"{n} numbers" if n else "empty or zeros"
+            raise ArgumentError("theta", f"theta must be {what}, got {theta!r}") from None
         if n == 0 and bool((t == 0).all()):
             return torch.zeros(0, dtype=dtype)
         if n == 0:
@@ -401,24 +437,36 @@ class Layout(nn.Module):
 
     @property
     def theta(self) -> Tensor:
-        """The constrained parameters (``θ = bound · tanh(ρ)`` by default), shape ``(P,)``."""
-        return self._to_theta(self.rho)
+        """The constrained parameters (``θ = bound · tanh(ρ)`` by default), shape ``(P,)``, in the
+        layout's [`dtype`][]."""
+        return self.theta_as(self._dtype)
+
+    def theta_as(self, dtype: torch.dtype) -> Tensor:
+        """θ in ``dtype`` (differentiable in ``ρ``): a fixed layout's from its float64 ``ρ``, so
+        ``theta_as(torch.float64)`` is the θ that was set to the last bit or two."""
+        return self._to_theta(self.rho).to(dtype)
 
     @torch.no_grad()
     def set_theta(self, theta: Sequence[float] | Tensor) -> None:
         """Set ``θ`` in place (validated like the constructor)."""
-        t = self._validate_theta(theta, self.rho.dtype)
-        self.rho.copy_(self._to_rho(t).to(self.rho.device))
+        t = self._validate_theta(theta, torch.float64)
+        self.rho.copy_(self._to_rho(t).to(self.rho))
 
     @property
     def learnable(self) -> bool:
         """Whether ``ρ`` is a trainable parameter that currently requires grad."""
-        return isinstance(self.rho, nn.Parameter) and self.rho.requires_grad
+        return self.learnable_param and self.rho.requires_grad
 
     def resolve_theta(self, theta: Tensor | None = None) -> Tensor:
         """The θ a computation uses: ``theta`` when given (e.g. a tensor that
         ``torch.autograd.gradcheck`` varies), else the layout's own [`theta`][]."""
         return self.theta if theta is None else theta
+
+    def _theta_for(self, p: Tensor) -> Tensor:
+        """θ for a computation on points ``p``: at their precision when it is finer than the layout's."""
+        return self.theta_as(
+            torch.promote_types(p.dtype, self._dtype) if p.is_floating_point() else self._dtype
+        )
 
     def project_(self) -> bool:
         """Pull the parameters back into the valid set after an optimiser step.
@@ -435,7 +483,7 @@ class Layout(nn.Module):
     # -- files -----------------------------------------------------------------------
     def to_config(self) -> dict[str, Any]:
         """The JSON-able constructor arguments that rebuild this layout (see [`from_config`][])."""
-        return {"theta": [float(v) for v in self.theta.detach().double().cpu()], "bound": self.bound}
+        return {"theta": [float(v) for v in self.theta_as(torch.float64).detach().cpu()], "bound": self.bound}
 
     @classmethod
     def from_config(
@@ -510,24 +558,25 @@ class Layout(nn.Module):
         return a.new_zeros(a.shape[0], 0)
 
     def forward(self, p: Tensor) -> Tensor:
-        """``φ(p, θ)`` for points ``p`` of shape ``(..., 2)``; differentiable in ``p`` and ``θ``."""
+        """``φ(p, θ)`` for points ``p`` of shape ``(..., 2)``; differentiable in ``p`` and ``θ``.
+        Computed at the finer of the points' and the layout's precisions."""
         check_points(p)
-        return self.phi(p, self.theta)
+        return self.phi(p, self._theta_for(p))
 
     def inverse(self, q: Tensor) -> Tensor:
         """``φ⁻¹(q, θ)`` for points ``q`` of shape ``(..., 2)``."""
         check_points(q, "q")
-        return self.phi_inverse(q, self.theta)
+        return self.phi_inverse(q, self._theta_for(q))
 
     def jacobian(self, p: Tensor) -> Tensor:
         """Spatial Jacobian ``∂φ_i/∂p_j`` at ``p``, shape ``(..., 2, 2)``."""
         check_points(p)
-        return self.phi_jacobian(p, self.theta)
+        return self.phi_jacobian(p, self._theta_for(p))
 
     def dtheta(self, p: Tensor) -> Tensor:
         """Parameter derivative ``∂φ_i/∂θ_j`` at ``p``, shape ``(..., 2, P)``."""
         check_points(p)
-        return self.phi_dtheta(p, self.theta)
+        return self.phi_dtheta(p, self._theta_for(p))
 
     @torch.no_grad()
     def check_foldover(self, n: int = 401) -> FoldoverReport:
@@ -540,7 +589,7 @@ class Layout(nn.Module):
             raise ValueError(f"n must be >= 2, got {n}")
         t = torch.linspace(-1, 1, n, dtype=torch.float64)
         grid = torch.stack(torch.meshgrid(t, t, indexing="xy"), -1)
-        theta = self.theta.detach().double()
+        theta = self.theta_as(torch.float64).detach()
         with torch.enable_grad():
             jac = self.phi_jacobian(grid, theta).detach()
         det = torch.linalg.det(jac)
@@ -641,6 +690,7 @@ class CenteredLayout(Layout):
     """
 
     num_params: int | None = 2
+    exact_buffers: ClassVar[tuple[str, ...]] = ("rho", "fixed_center")
 
     def __init__(
         self,
@@ -665,7 +715,7 @@ class CenteredLayout(Layout):
                 raise ValueError(f"theta must have 2 values (θ_x, θ_y), got {t.numel()}: {theta!r}")
             theta = torch.cat([t.flatten().cpu(), c])
         super().__init__(theta, bound=bound, learn=learn, dtype=dtype)
-        self.register_buffer("fixed_center", c.to(dtype))
+        self.register_buffer("fixed_center", c)  # float64, as ρ (Layout.exact_buffers)
 
     def _bounds(self) -> Tensor:
         b = torch.full((self.num_params or 0,), self.bound, dtype=torch.float64)
@@ -676,7 +726,7 @@ class CenteredLayout(Layout):
     @property
     def center(self) -> Tensor:
         """The centre ``(c_x, c_y)`` the deformation is about."""
-        return self.theta[2:] if self.learn_center else self.fixed_center
+        return self.theta[2:] if self.learn_center else self.fixed_center.to(self._dtype)
 
     @property
     def centred(self) -> bool:
@@ -761,7 +811,7 @@ class CenteredLayout(Layout):
         return torch.where(self._fixed(p.to(u), u)[..., :, None], torch.zeros_like(d), d)
 
     def to_config(self) -> dict[str, Any]:
-        th = self.theta.detach().double().cpu()
+        th = self.theta_as(torch.float64).detach().cpu()
         c = self.center.detach().double().cpu()
         return {
             "theta": [float(v) for v in th[:2]],

@@ -90,7 +90,7 @@ def map_points(layout: Layout, points: Tensor, *, inverse: bool = False) -> Tens
     Returns:
         ``(..., 2)`` float64 sensor coordinates on θ's device.
     """
-    theta = layout.theta.detach().double()
+    theta = layout.theta_as(torch.float64).detach()
     p = points.detach().to(device=theta.device, dtype=torch.float64)
     with torch.no_grad():
         return layout.phi_inverse(p, theta) if inverse else layout.phi(p, theta)
@@ -193,7 +193,9 @@ def raster_index_map(
     if k % 2 == 0:
         raise ValueError(f"oversample must be an odd integer >= 1, got {oversample!r}")
     with torch.no_grad():
-        mesh = pixel_mesh(layout, (h, w), tol=tol, dtype=torch.float64, theta=layout.theta.detach().double())
+        mesh = pixel_mesh(
+            layout, (h, w), tol=tol, dtype=torch.float64, theta=layout.theta_as(torch.float64).detach()
+        )
     shift = 8
     canvas = np.full((ht * k, wt * k), -1, dtype=np.int32)
     for index, poly in enumerate(mesh.polygons()):

@@ -463,7 +463,7 @@ def distance_subdivisions(
         ``(counts, deviation)``: ``(pieces,)`` int64 counts for ``pixel_mesh(...,
         subdivisions=counts)`` and the largest deviation measured.
     """
-    theta = layout.theta.detach().double().cpu()
+    theta = layout.theta_as(torch.float64).detach().cpu()
     a, b = MeshTopology(check_size(size)).edge_ends()
     owner, t0, t1 = smooth_pieces(layout, a, b, theta=theta)
     pa = a[owner] + t0[:, None] * (b - a)[owner]  # smooth pieces in uniform coordinates
@@ -568,6 +568,8 @@ def pixel_mesh(
         4.0
     """
     h, w = check_size(size)
+    if theta is None and dtype is not None:  # a fixed layout's exact θ where the mesh is the finer
+        theta = layout.theta_as(torch.promote_types(dtype, layout.dtype))
     theta = layout.resolve_theta(theta)
     dtype = dtype or theta.dtype
     key = None if subdivisions is not None else _cache_key(layout, (h, w), tol, max_subdiv, dtype, theta)

@@ -107,6 +107,8 @@ def _cv_log() -> Any:
     """OpenCV's log-level functions: in ``cv2.utils.logging`` in newer releases, on ``cv2`` itself in
     older ones (4.8, the oldest pyproject allows)."""
     return getattr(cv2.utils, "logging", cv2)
+
+
 _QUIET_LOCK = threading.Lock()
 _QUIET = {"depth": 0, "level": 0}
 

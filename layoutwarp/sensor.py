@@ -11,6 +11,7 @@ import torch
 from torch import Tensor, nn
 
 from .checks import (
+    ArgumentError,
     all_finite,
     check_choice,
     check_int,
@@ -19,6 +20,7 @@ from .checks import (
     check_shape,
     check_size,
     raise_nonfinite,
+    warn_if_elsewhere,
     warn_if_finer,
 )
 from .integrators import (
@@ -243,6 +245,7 @@ def simulate(
         return (out, plan) if return_plan else out
     work, out_dtype, lead = _prepare(image)
     warn_if_finer(size, tuple(work.shape[-2:]))
+    warn_if_elsewhere(layout.rho.device, work.device)
     if work.shape[0] == 0:
         out = work.new_zeros(*lead, *size).to(out_dtype)
         # nothing to integrate, but the output stays in θ's and the image's graph, as a module's would
@@ -366,9 +369,10 @@ class SensorLayer(nn.Module):
         layout: a registered family name (``"rect"``, ``"curv"``, ``"uniform"``, ...) or a
             [`Layout`][] (used as it is, learnable or not).
         method: integrator (see [`simulate`][]).
-        learn: train θ (for a family name).
-        theta: initial θ (for a family name).
-        bound: bound on ``|θ|`` (for a family name).
+        learn: train θ (for a family name; default ``True``).
+        theta: initial θ (for a family name; default 0, the uniform layout).
+        bound: bound on ``|θ|`` (for a family name; default 1). With a [`Layout`][], these three
+            are refused: the layout brings its own.
         physics: a [`SensorPhysics`][] (or its dict, as files store it): the
             layer records what a real sensor would (see [`simulate`][]). With ``physics.seed``
             the layer's noise is a seeded sequence (new noise every call, the same sequence in
@@ -388,9 +392,9 @@ class SensorLayer(nn.Module):
         layout: str | Layout = "rect",
         method: str = "exact",
         *,
-        learn: bool = True,
+        learn: bool | None = None,
         theta: Sequence[float] | Tensor | None = None,
-        bound: float = 1.0,
+        bound: float | None = None,
         physics: SensorPhysics | dict | None = None,
         output: str = "radiance",
         **options: Any,
@@ -401,9 +405,19 @@ class SensorLayer(nn.Module):
         self.physics = as_physics(physics)
         self.output = check_output(output, self.physics)
         self._noise: torch.Generator | None = None
-        self.layout = (
-            layout if isinstance(layout, Layout) else make_layout(layout, theta, bound=bound, learn=learn)
-        )
+        if isinstance(layout, Layout):
+            given = {k: v for k, v in (("learn", learn), ("theta", theta), ("bound", bound)) if v is not None}
+            if given:
+                raise ArgumentError(
+                    next(iter(given)),
+                    f"{', '.join(f'{k}={v!r}' for k, v in given.items())} set up a layout made by name; "
+                    f"a {type(layout).__name__} brings its own (set θ with layout.set_theta, learning "
+                    "with learn= when making it)",
+                )
+            self.layout = layout
+        else:
+            learn = True if learn is None else learn
+            self.layout = make_layout(layout, theta, bound=1.0 if bound is None else bound, learn=learn)
         self.method = check_choice(method, METHODS, "method")
         unknown = sorted(set(options) - _OPTIONS)
         if unknown:

@@ -231,7 +231,7 @@ class SplineLayout(Layout):
         return torch.stack([dx, spline_1d_derivative(p[..., 1], yy, self.kind)], -1)
 
     def to_config(self) -> dict[str, Any]:
-        th = [float(v) for v in self.theta.detach().double().cpu()]
+        th = [float(v) for v in self.theta_as(torch.float64).detach().cpu()]
         return {"theta": th, "knots": list(self.knots), "kind": self.kind}
 
     @classmethod

@@ -11,6 +11,8 @@ import torch
 
 from layoutwarp.layouts import EllipticLayout
 
+F64 = torch.float64
+
 mp = pytest.importorskip("mpmath")
 
 
@@ -55,3 +57,62 @@ def test_elliptic_phi_is_within_a_few_ulps_of_a_700_digit_reference_over_the_squ
     back = layout.phi_inverse(torch.from_numpy(out), layout.theta.double()).numpy()
     near_corner = (np.abs(points) > 0.9).all(1)
     assert np.abs(back - points)[~near_corner].max() <= 1e-14  # and the inverse takes φ back
+
+
+def definition(p: np.ndarray, theta: np.ndarray, family: str) -> np.ndarray:
+    """φ as its definition reads, in plain float64 numpy (the elliptic family: the elliptical grid
+    mapping to the disk, φ_curv, and back by the difference of two roots)."""
+    x, y = p[:, 0], p[:, 1]
+    if family == "rect":
+        return np.stack(
+            [c * (t - 1) / (2 * t * np.abs(c) - t - 1) for c, t in zip((x, y), theta, strict=True)], 1
+        )
+    if family == "curv":
+        r = np.hypot(x, y)[:, None]
+        return np.where(r < 1, p * (theta - 1) / (2 * theta * r - theta - 1), p)
+    u, v = x * np.sqrt(1 - y * y / 2), y * np.sqrt(1 - x * x / 2)
+    r = np.hypot(u, v)
+    u, v = (c * (t - 1) / (2 * t * r - t - 1) for c, t in zip((u, v), theta, strict=True))
+    s, a, b = 2 * np.sqrt(2), 2 + u * u - v * v, 2 - u * u + v * v
+    return np.stack([np.sqrt(a + s * u) - np.sqrt(a - s * u), np.sqrt(b + s * v) - np.sqrt(b - s * v)], 1) / 2
+
+
+@pytest.mark.parametrize("family", ["elliptic", "curv", "rect"])
+def test_phi_in_float64_is_its_definition_whatever_dtype_the_layout_was_made_in(family, seed):
+    # a layout made in float32 (torch's default) used to evaluate φ at its θ's float32 rounding:
+    # 8e-9 off the definition at (0.72196, −0.00266) for θ = (0.45, 0.3)
+    from layoutwarp.layouts import make_layout
+
+    rng = np.random.default_rng(seed)
+    n = 2000
+    band = rng.uniform(-0.05, 0.05, n)
+    for theta in [
+        np.array([0.45, 0.3]),
+        np.array([0.2, 0.2]),
+        np.array([-0.5, 0.1]),
+        *rng.uniform(-0.9, 0.9, (12, 2)),
+    ]:
+        points = np.concatenate(
+            [rng.uniform(-0.999, 0.999, (n, 2)), np.stack([rng.uniform(-0.999, 0.999, n), band], 1)]
+        )
+        points = np.concatenate([points, points[n:, ::-1], [[0.72196, -0.00266], [-0.6003, -0.0041]]])
+        p, ref = torch.from_numpy(points), definition(points, theta, family)
+        made = {
+            "float32": make_layout(family, tuple(theta)),
+            "float64": make_layout(family, tuple(theta), dtype=torch.float64),
+            "float32 then .double()": make_layout(family, tuple(theta)).double(),
+            "float64 then .float()": make_layout(family, tuple(theta), dtype=torch.float64).float(),
+            "learnable float64": make_layout(family, tuple(theta), learn=True, dtype=torch.float64),
+        }
+        for what, layout in made.items():
+            got = {
+                "layout(p)": layout(p).detach(),
+                "phi at theta_as(float64)": layout.phi(p, layout.theta_as(F64)).detach(),
+            }
+            if layout.dtype == F64:
+                got["phi at theta"] = layout.phi(p, layout.theta).detach()
+            for how, out in got.items():
+                err = float((out - torch.from_numpy(ref)).abs().max())
+                assert err <= 5e-14, (what, how, theta.tolist(), err)
+        assert made["float32"].theta.dtype == torch.float32 and made["float32 then .double()"].dtype == F64
+        assert made["float64 then .float()"].theta.dtype == torch.float32

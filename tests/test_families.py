@@ -678,9 +678,9 @@ def test_constructors_keep_a_tensor_arguments_dtype(gen):
     ctrl = lw.coords.uniform_corners((2, 2)).clone()
     ctrl[1, 1] = (torch.rand(2, generator=gen, dtype=F64) - 0.5) * 0.5
     grid = lw.GridLayout(ctrl)  # float64 control: a float64 layout, φ bilinear to the last bit
-    assert grid.rho.dtype == F64 and torch.equal(grid(torch.zeros(1, 2, dtype=F64))[0], ctrl[1, 1])
-    assert lw.GridLayout(ctrl.tolist()).rho.dtype == torch.get_default_dtype()
-    assert lw.GridLayout(ctrl, dtype=torch.float32).rho.dtype == torch.float32  # dtype= still wins
+    assert grid.dtype == F64 and torch.equal(grid(torch.zeros(1, 2, dtype=F64))[0], ctrl[1, 1])
+    assert lw.GridLayout(ctrl.tolist()).dtype == torch.get_default_dtype()
+    assert lw.GridLayout(ctrl, dtype=torch.float32).dtype == torch.float32  # dtype= still wins
     theta = rand_theta(gen, 0.5)
     for layout in (
         lw.CurvLayout(theta),
@@ -688,11 +688,11 @@ def test_constructors_keep_a_tensor_arguments_dtype(gen):
         lw.FoveaLayout(theta),
         lw.SplineLayout(theta, knots=(1, 1)),
     ):
-        assert layout.rho.dtype == F64, type(layout).__name__
-    assert lw.FoveaLayout(tuple(theta.tolist())).rho.dtype == torch.get_default_dtype()
-    assert lw.CurvLayout(theta.float(), center=torch.zeros(2, dtype=F64)).rho.dtype == torch.float32
+        assert layout.dtype == F64, type(layout).__name__
+    assert lw.FoveaLayout(tuple(theta.tolist())).dtype == torch.get_default_dtype()
+    assert lw.CurvLayout(theta.float(), center=torch.zeros(2, dtype=F64)).dtype == torch.float32
     knots = torch.tensor([-1.0, -0.2, 1.0], dtype=F64)
-    assert lw.SplineLayout.from_knots(knots, knots).rho.dtype == F64
+    assert lw.SplineLayout.from_knots(knots, knots).dtype == F64
 
 
 # ----------------------------------------------------------------------------------------

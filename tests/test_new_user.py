@@ -183,3 +183,67 @@ def test_a_small_sensor_is_not_checked_against_the_free_memory(monkeypatch):
     side = int((checks.UNCHECKED_BYTES / checks.BYTES_PER_SENSOR_PIXEL) ** 0.5) + 1
     with pytest.raises(AssertionError, match="read the free memory"):
         checks.check_memory((side, side))
+
+
+def test_a_layout_object_with_theta_learn_or_bound_is_refused_not_ignored():
+    layout = lw.CurvLayout((0.3, 0.1))
+    for kwargs, first in [
+        ({"theta": (0.5, 0.5)}, "theta"),
+        ({"learn": False}, "learn"),
+        ({"bound": 0.5, "theta": (0, 0)}, "theta"),
+    ]:
+        with pytest.raises(
+            ArgumentError, match="set up a layout made by name; a CurvLayout brings its own"
+        ) as info:
+            lw.SensorLayer((4, 4), layout, **kwargs)
+        assert info.value.argument == first
+    layer = lw.SensorLayer((4, 4), layout)  # used as it is: fixed
+    assert layer.layout is layout and not layer.layout.learnable
+    named = lw.SensorLayer((4, 4), "curv", theta=(0.2, 0.1), bound=0.5)
+    assert named.layout.learnable and named.layout.bound == 0.5
+    assert torch.allclose(named.theta.double(), torch.tensor([0.2, 0.1], dtype=torch.float64))
+
+
+def test_a_theta_that_is_not_numbers_is_named_in_our_words():
+    for bad in ("ab", ["x", 1], {"a": 1}, object()):
+        with pytest.raises(ArgumentError, match=r"theta must be 2 numbers \(θ_x, θ_y\), got ") as info:
+            lw.CurvLayout(bad)
+        assert info.value.argument == "theta" and "new()" not in str(info.value)
+
+
+def test_a_layout_elsewhere_than_its_image_is_warned_about_once(monkeypatch):
+    from layoutwarp import checks
+
+    monkeypatch.setattr(checks, "_WARNED", set())
+    with pytest.warns(
+        UserWarning, match=r"θ is on cpu and the image on cuda:0: θ is copied to cuda:0"
+    ) as rec:
+        for _ in range(3):
+            checks.warn_if_elsewhere(torch.device("cpu"), torch.device("cuda:0"))
+    assert len(rec) == 1
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        checks.warn_if_elsewhere(torch.device("cpu"), torch.device("cpu"))
+        lw.simulate(torch.rand(1, 1, 8, 8), lw.CurvLayout((0.3, 0.1)), (4, 4))  # one device: quiet
+
+
+def test_a_fixed_layouts_constants_stay_float64_through_dtype_changes():
+    layout = lw.CurvLayout((0.45, 0.3), center=(0.1, -0.2))
+    assert layout.dtype == torch.float32 and layout.rho.dtype == torch.float64
+    for convert in (
+        lambda m: m.half(),
+        lambda m: m.to(torch.bfloat16),
+        lambda m: m.float(),
+        lambda m: m.double(),
+    ):
+        layout = convert(layout)
+        assert layout.rho.dtype == layout.fixed_center.dtype == torch.float64
+        assert layout.theta.dtype == layout.dtype == layout.center.dtype
+        assert layout.theta_as(torch.float64).tolist() == pytest.approx([0.45, 0.3], abs=1e-16)
+        assert layout.fixed_center.tolist() == [0.1, -0.2]
+    learn = lw.CurvLayout((0.45, 0.3), learn=True).double()  # a parameter: of the module's dtype
+    assert learn.rho.dtype == learn.dtype == torch.float64 and isinstance(learn.rho, torch.nn.Parameter)
+    state = lw.CurvLayout((0.45, 0.3)).state_dict()
+    again = lw.CurvLayout()
+    again.load_state_dict(state | {"rho": state["rho"].float()})  # an older float32 ρ loads too
+    assert again.rho.dtype == torch.float64 and float(again.theta[0]) == pytest.approx(0.45, rel=1e-7)

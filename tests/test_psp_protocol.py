@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import pytest
 import torch
@@ -157,7 +158,7 @@ def test_a_run_stopped_in_its_second_epoch_resumes_from_its_checkpoint_to_the_sa
     monkeypatch.setattr(task, "batches", stopping)
     with pytest.raises(KeyboardInterrupt):
         train_run(task, data, "rect", (9, 12), 3, options, checkpoint=ckpt)
-    state = torch.load(ckpt, weights_only=False)
+    state = torch.load(ckpt, weights_only=True)
     assert state["epochs_done"] == 1 and len(state["history"]) == 2 and state["seconds"] > 0
     calls.clear()
     stop = False
@@ -167,3 +168,28 @@ def test_a_run_stopped_in_its_second_epoch_resumes_from_its_checkpoint_to_the_sa
     assert resumed.seconds > state["seconds"]  # the first epoch's time counted too
     for (k, a), b in zip(whole_model.state_dict().items(), resumed_model.state_dict().values(), strict=True):
         assert torch.equal(a, b), k
+
+
+class _Payload:
+    """A pickled object whose loading would run code: it creates the file ``marker``."""
+
+    def __init__(self, marker):
+        self.marker = marker
+
+    def __reduce__(self):
+        return (Path.touch, (Path(self.marker),))
+
+
+def test_a_checkpoint_that_would_run_code_is_refused(tmp_path):
+    import pickle
+
+    from layoutwarp.experiments.runs import RunOptions, train_run
+
+    task = get_task("mnist")
+    data = task.load(SAMPLES / "mnist", limit=8)
+    options = RunOptions.of(task.quick_defaults(), epochs=1, batch_size=4, progress=False)
+    ckpt, marker = tmp_path / "run.pt", tmp_path / "ran"
+    torch.save({"epochs_done": 0, "model": _Payload(str(marker))}, ckpt)
+    with pytest.raises(pickle.UnpicklingError, match="Weights only load failed"):
+        train_run(task, data, "rect", (4, 4), 0, options, checkpoint=ckpt)
+    assert not marker.exists()

@@ -34,6 +34,8 @@ if TYPE_CHECKING:
 
     from ..experiments.protocols import TaskSpec
 
+_ROOT = __name__.rpartition(".")[0]  # the layoutwarp package, whose registries the parser lists
+
 __all__ = ["build_parser", "join_negative_values", "main", "parse_theta", "parse_wxh", "positive_int", "run"]
 
 
@@ -45,14 +47,14 @@ def _catalogues() -> tuple[dict[str, TaskSpec], list[str], list[str]]:
     from ..experiments.protocols import SPECS
 
     specs, families, two = dict(SPECS), list(BUILTIN_FAMILIES), list(TWO_PARAMETER_FAMILIES)
-    layouts = sys.modules.get(f"{__package__}.layouts")
+    layouts = sys.modules.get(f"{_ROOT}.layouts")
     if layouts is not None:
         for name, cls in layouts.FAMILIES.items():
             if name not in families:
                 families.append(name)
                 if cls.num_params == 2:
                     two.append(name)
-    tasks = sys.modules.get(f"{__package__}.experiments.tasks")
+    tasks = sys.modules.get(f"{_ROOT}.experiments.tasks")
     if tasks is not None:
         specs |= {name: task.spec for name, task in tasks.TASKS.items() if name not in specs}
     return specs, families, two

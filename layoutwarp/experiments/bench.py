@@ -638,7 +638,7 @@ def _learnable_mesh(layout: Layout, size: tuple[int, int]) -> object:
     spec = mesh_spec(layout)
     if spec is None:
         return pixel_mesh(layout, size, tol=tol)
-    return build_mesh(spec, size, layout.theta.detach().double().cpu().numpy(), tol)
+    return build_mesh(spec, size, layout.theta_as(torch.float64).detach().cpu().numpy(), tol)
 
 
 def training_rows(cfg: BenchConfig, image_name: str, img: Tensor) -> list[Row]:

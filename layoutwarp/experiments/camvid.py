@@ -76,7 +76,7 @@ class SegNet(nn.Module):
     logits on the sensor grid; back-warp them with `layoutwarp.backwarp`.
     """
 
-    def __init__(self, layout: str, size: tuple[int, int], classes: int = 11, learn: bool = True, **sensor):
+    def __init__(self, layout: str, size: tuple[int, int], classes: int = 11, learn: bool | None = True, **sensor):
         super().__init__()
         self.sensor = SensorLayer(size, layout, learn=learn, **sensor)
         self.enc1, self.enc2, self.enc3 = conv_block(3, 32), conv_block(32, 64), conv_block(64, 128)
@@ -163,7 +163,7 @@ class CamVidTask(Task):
         return data.report[0][0] / 255.0
 
     def network(
-        self, layout: str | Layout, size: tuple[int, int], learn: bool = True, **sensor: Any
+        self, layout: str | Layout, size: tuple[int, int], learn: bool | None = True, **sensor: Any
     ) -> nn.Module:
         net = PSPSegNet if self.net == "psp" else SegNet
         return net(layout, size, classes=len(CAMVID_CLASSES), learn=learn, **sensor)

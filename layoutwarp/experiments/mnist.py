@@ -31,7 +31,7 @@ class MnistNet(nn.Module):
     """Sensor layer + the paper's small CNN (conv 32, conv 64, max pool, fc 128, fc 10)."""
 
     def __init__(
-        self, layout: str | Layout = "curv", size: tuple[int, int] = (4, 4), learn: bool = True, **sensor: Any
+        self, layout: str | Layout = "curv", size: tuple[int, int] = (4, 4), learn: bool | None = True, **sensor: Any
     ):
         super().__init__()
         self.sensor = SensorLayer(size, layout, learn=learn, **sensor)
@@ -74,7 +74,7 @@ class MnistTask(Task):
         return data.report[0][4] / 255.0  # a "4", as in the paper's figure
 
     def network(
-        self, layout: str | Layout, size: tuple[int, int], learn: bool = True, **sensor: Any
+        self, layout: str | Layout, size: tuple[int, int], learn: bool | None = True, **sensor: Any
     ) -> nn.Module:
         return MnistNet(layout, size, learn=learn, **sensor)
 

@@ -126,7 +126,7 @@ def load_model(
         layout = layout_from_spec(data["layout"])
     except ValueError as exc:
         raise ValueError(f"{path}: {exc}") from None
-    net = network(layout, tuple(data["size_hw"]), learn=False, **data["sensor"])
+    net = network(layout, tuple(data["size_hw"]), learn=None, **data["sensor"])  # the layout: fixed
     scales = data.get("quantized", {})
     state = {}
     for k, v in data["state_dict"].items():

@@ -171,8 +171,10 @@ def train_run(
     gen = torch.Generator().manual_seed(seed)
     if layout is None:
         layout = task.density_layout(data, size) if family == "density" else None
-    learn = layout is None and family != "uniform"
-    model = task.network(layout if layout is not None else family, size, learn=learn, **options.sensor)
+    if layout is None:  # a family by name: learned, but for uniform; a layout object brings its own
+        model = task.network(family, size, learn=family != "uniform", **options.sensor)
+    else:
+        model = task.network(layout, size, learn=None, **options.sensor)
     model = model.to(options.device)
     if options.backbone_weights:
         if not hasattr(model, "load_backbone"):

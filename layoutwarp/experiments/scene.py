@@ -83,7 +83,7 @@ class SineScene:
 
     def pixel_means(self, layout: Layout, size: tuple[int, int], nodes: int = 16) -> Tensor:
         """Exact mean of ``f`` over every pixel of ``layout``, ``(C, H, W)`` float64."""
-        theta = layout.theta.detach().double().cpu()
+        theta = layout.theta_as(torch.float64).detach().cpu()
         topo = MeshTopology(size)
         a, b = topo.edge_ends()
         d = b - a

@@ -201,8 +201,9 @@ def _resume(
     gen: torch.Generator,
 ) -> tuple[int, list[list[float]], float]:
     """Load a checkpoint of [`fit`][]'s into the run's objects: the epochs done, the history and
-    the seconds spent so far (0 in checkpoints written before they were kept)."""
-    state = torch.load(path, map_location=model_device(model), weights_only=False)
+    the seconds spent so far (0 in checkpoints written before they were kept). Read with
+    ``weights_only=True``: tensors and plain containers only, so a checkpoint cannot run code."""
+    state = torch.load(path, map_location=model_device(model), weights_only=True)
     model.load_state_dict(state["model"])
     opt.load_state_dict(state["opt"])
     if sched is not None and state["sched"] is not None:
