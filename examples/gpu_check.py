@@ -29,7 +29,8 @@ import torch
 import torch.nn.functional as F
 
 import layoutwarp as lw
-from layoutwarp.experiments.bench import count_launches, interleaved_times
+from layoutwarp.experiments.bench import interleaved_times
+from layoutwarp.testing import count_launches
 
 lw.jit.set_mode("wait")  # time the compiled kernels, never the torch path while they compile
 SIZE = (129, 257)

@@ -30,7 +30,7 @@ def launches() -> None:
     import torch
 
     import layoutwarp as lw
-    from layoutwarp.experiments.bench import count_launches
+    from layoutwarp.testing import count_launches
 
     lw.jit.set_mode("wait")
     warnings.filterwarnings("ignore", "overflow encountered")  # the samplers' uint64 wrap, as Python

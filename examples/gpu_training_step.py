@@ -26,9 +26,9 @@ import torch
 import torch.nn.functional as F
 
 import layoutwarp as lw
-from layoutwarp.experiments.bench import count_ops
 from layoutwarp.experiments.scene import load_photo
 from layoutwarp.integrators import data_tolerance, integrate_exact
+from layoutwarp.testing import count_ops
 
 lw.jit.set_mode("wait")  # time the compiled kernels, never the torch path while they compile
 

@@ -20,89 +20,86 @@ benchmark live beside the library in `layoutwarp.experiments`.
 from __future__ import annotations
 
 import importlib
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from .version import __version__
 
-if TYPE_CHECKING:
-    from .augment import SensorAugmentation
-    from .backwarp import backwarp, backwarp_cross_entropy, backwarp_numpy
-    from .density import edge_density, layout_from_density
-    from .export import export_layout
-    from .grids import GridLayout
-    from .integrators import data_tolerance
-    from .layoutfile import load_layout, save_layout
-    from .layouts import (
-        FAMILIES,
-        CurvLayout,
-        EllipticLayout,
-        FoveaLayout,
-        Layout,
-        RectLayout,
-        UniformLayout,
-        make_layout,
-        register_family,
-    )
-    from .maps import Maps, forward_maps, inverse_maps
-    from .mesh import PixelMesh, pixel_mesh
-    from .physics import SensorPhysics
-    from .preprocess import preprocess_folder
-    from .resampler import AreaResampler
-    from .sensor import SensorLayer, SimulationPlan, plan_simulation, simulate
-    from .splines import SplineLayout
-
-#: The front door's core: loaded together at the first use of any of its names (torch, the
-#: families, which register themselves, and the compiled kernels' warm-ups), so that
-#: ``import layoutwarp`` and the command line's help cost no torch import.
-_CORE = {
-    "backwarp": ("backwarp", "backwarp_cross_entropy", "backwarp_numpy"),
-    "density": ("edge_density", "layout_from_density"),
-    "grids": ("GridLayout",),
-    "integrators": ("data_tolerance",),
-    "layoutfile": ("load_layout", "save_layout"),
-    "layouts": (
-        "FAMILIES",
-        "CurvLayout",
-        "EllipticLayout",
-        "FoveaLayout",
-        "Layout",
-        "RectLayout",
-        "UniformLayout",
-        "make_layout",
-        "register_family",
-    ),
-    "maps": ("Maps", "forward_maps", "inverse_maps"),
-    "mesh": ("PixelMesh", "pixel_mesh"),
-    "physics": ("SensorPhysics",),
-    "sensor": ("SensorLayer", "SimulationPlan", "plan_simulation", "simulate"),
-    "splines": ("SplineLayout",),
-    "warmups": (),  # registers the compiled kernels' warm-ups with layoutwarp.jit
-}
-#: Front-door names whose modules load on their own first use (Kornia, OpenCV file I/O, CAD writers).
-_LAZY = {
+#: The front door: every name and the module it comes from, listed once (``__all__`` and the
+#: lazy loading below read this). The modules of the core (`CORE`) load together at the first use
+#: of any of their names (torch, the families, which register themselves, and the compiled
+#: kernels' warm-ups); the others each on their own first use (Kornia, OpenCV file I/O, CAD
+#: writers). ``import layoutwarp`` and the command line's help so cost no torch import.
+FRONT_DOOR = {
+    "simulate": "sensor",
+    "SensorLayer": "sensor",
+    "SimulationPlan": "sensor",
+    "plan_simulation": "sensor",
+    "SensorPhysics": "physics",
+    "data_tolerance": "integrators",
+    "Layout": "layouts",
+    "UniformLayout": "layouts",
+    "RectLayout": "layouts",
+    "CurvLayout": "layouts",
+    "FoveaLayout": "layouts",
+    "EllipticLayout": "layouts",
+    "SplineLayout": "layouts",
+    "GridLayout": "layouts",
+    "FAMILIES": "layouts",
+    "make_layout": "layouts",
+    "register_family": "layouts",
+    "layout_from_density": "density",
+    "edge_density": "density",
+    "pixel_mesh": "mesh",
+    "PixelMesh": "mesh",
+    "forward_maps": "maps",
+    "inverse_maps": "maps",
+    "Maps": "maps",
+    "backwarp": "backwarp",
+    "backwarp_cross_entropy": "backwarp",
+    "backwarp_numpy": "backwarp",
+    "save_layout": "layoutfile",
+    "load_layout": "layoutfile",
     "SensorAugmentation": "augment",
-    "export_layout": "export",
     "AreaResampler": "resampler",
     "preprocess_folder": "preprocess",
+    "export_layout": "export",
 }
+#: The modules loaded together at the first use of any front-door name of theirs (``warmups``
+#: registers the compiled kernels' warm-ups with `layoutwarp.jit`).
+CORE = (
+    "backwarp",
+    "density",
+    "integrators",
+    "layoutfile",
+    "layouts",
+    "maps",
+    "mesh",
+    "physics",
+    "sensor",
+    "warmups",
+)
 #: Submodules that ``layoutwarp.<name>`` loads on first use.
-_LAZY_MODULES = ("augment", "doctor", "export", "jit", "labels", "preprocess", "resampler")
+LAZY_MODULES = ("augment", "doctor", "export", "jit", "labels", "preprocess", "resampler")
 
-
-def _load_core() -> None:
-    """Import the front door's core ([`_CORE`][]); what the first use of one of its names does."""
-    for module, names in _CORE.items():
-        mod = importlib.import_module(f".{module}", __name__)
-        globals().update({name: getattr(mod, name) for name in names})
+__all__ = ["__version__", *FRONT_DOOR]
 
 
 def __getattr__(name: str) -> Any:
-    if any(name in names for names in _CORE.values()):
-        _load_core()
+    module = FRONT_DOOR.get(name)
+    if module in CORE:  # the core at once: its names share their first use
+        for core in CORE:
+            importlib.import_module(f".{core}", __name__)
+        globals().update(
+            {
+                n: getattr(importlib.import_module(f".{m}", __name__), n)
+                for n, m in FRONT_DOOR.items()
+                if m in CORE
+            }
+        )
         return globals()[name]
-    if name in _LAZY:
-        value = getattr(importlib.import_module(f".{_LAZY[name]}", __name__), name)
-    elif name in _LAZY_MODULES:
+    if module is not None:
+        value = getattr(importlib.import_module(f".{module}", __name__), name)
+    elif name in LAZY_MODULES:
         value = importlib.import_module(f".{name}", __name__)
     else:
         raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
@@ -112,41 +109,3 @@ def __getattr__(name: str) -> Any:
 
 def __dir__() -> list[str]:
     return sorted(__all__)
-
-
-__all__ = [
-    "FAMILIES",
-    "AreaResampler",
-    "CurvLayout",
-    "EllipticLayout",
-    "FoveaLayout",
-    "GridLayout",
-    "Layout",
-    "Maps",
-    "PixelMesh",
-    "RectLayout",
-    "SensorAugmentation",
-    "SensorLayer",
-    "SensorPhysics",
-    "SimulationPlan",
-    "SplineLayout",
-    "UniformLayout",
-    "__version__",
-    "backwarp",
-    "backwarp_cross_entropy",
-    "backwarp_numpy",
-    "data_tolerance",
-    "edge_density",
-    "export_layout",
-    "forward_maps",
-    "inverse_maps",
-    "layout_from_density",
-    "load_layout",
-    "make_layout",
-    "pixel_mesh",
-    "plan_simulation",
-    "preprocess_folder",
-    "register_family",
-    "save_layout",
-    "simulate",
-]

@@ -5,7 +5,7 @@ to Kornia's own augmentations. Per data key:
 
 * ``input`` images go through a [`SensorLayer`][] (differentiable in θ, which is
   a parameter of the augmentation and therefore of the container; a learnable layout is
-  guarded as the layer guards it, e.g. a [`GridLayout`][layoutwarp.grids.GridLayout] against folding);
+  guarded as the layer guards it, e.g. a [`GridLayout`][layoutwarp.layouts.grid.GridLayout] against folding);
 * ``mask`` label maps go to the sensor grid by ``mask_rule``
   ([`labels_to_sensor`][]): ``"nearest"`` (the label at the deformed
   pixel centre) or ``"majority"`` (the label covering most of the pixel's area);

@@ -29,9 +29,7 @@ from torch import Tensor
 
 from .checks import check_choice, check_number, check_size
 from .coords import grid_lines
-from .grids import GridLayout
-from .layouts import Layout
-from .splines import SplineLayout
+from .layouts import GridLayout, Layout, SplineLayout
 
 __all__ = ["edge_density", "layout_from_density"]
 

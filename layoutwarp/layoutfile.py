@@ -16,12 +16,12 @@ families. A file of a later format is refused with a message saying so.
 from __future__ import annotations
 
 import json
-import weakref
 from pathlib import Path
 from typing import Any
 
 import torch
 
+from .caches import ObjectMemo
 from .files import atomic_write
 from .layouts import FAMILIES, Layout
 from .version import __version__
@@ -58,9 +58,8 @@ def layout_spec(layout: Layout) -> dict[str, Any]:
     return {"family": layout.family, **layout.to_config()}
 
 
-#: [`layout_key`][]'s texts, each with the layout's tensors, their versions and its settings
-#: when it was made (held, so that no new tensor can take a held one's ``id``).
-_KEYS: weakref.WeakKeyDictionary[Layout, tuple[tuple, str]] = weakref.WeakKeyDictionary()
+#: [`layout_key`][]'s texts, per layout ([`layoutwarp.caches`][]).
+LAYOUT_KEYS = ObjectMemo("layout keys")
 
 
 def layout_key(layout: Layout) -> str | None:
@@ -75,16 +74,8 @@ def layout_key(layout: Layout) -> str | None:
         return None
     tensors = (*layout.parameters(), *layout.buffers())
     settings = tuple(v for k, v in vars(layout).items() if k[0] != "_")
-    state = (tensors, tuple(t._version for t in tensors), settings)
-    hit = _KEYS.get(layout)
-    if hit is not None:
-        (held, versions, held_settings), key = hit
-        same = len(held) == len(tensors) and all(a is b for a, b in zip(held, tensors, strict=True))
-        if same and versions == state[1] and settings == held_settings:
-            return key
-    key = json.dumps(layout_spec(layout), sort_keys=True)
-    _KEYS[layout] = (state, key)
-    return key
+    state = (*tensors, *(t._version for t in tensors), settings)
+    return LAYOUT_KEYS.get(layout, state, lambda: json.dumps(layout_spec(layout), sort_keys=True))
 
 
 def layout_from_spec(

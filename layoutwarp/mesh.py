@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import functools
 import math
-from collections import OrderedDict
 from dataclasses import dataclass
 from typing import TypeVar
 
@@ -24,16 +23,16 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .caches import LRU
 from .checks import check_number, check_size
 from .coords import sensor_to_pixels, uniform_corners
 from .layoutfile import layout_key
 from .layouts import Layout
 
 __all__ = [
-    "CACHE_SIZE",
+    "MESHES",
     "MeshTopology",
     "PixelMesh",
-    "clear_mesh_cache",
     "distance_subdivisions",
     "pixel_mesh",
     "polygon_area",
@@ -497,9 +496,9 @@ INNER = 1e-6
 #: Segments per chunk when the mesh's vertices are mapped (bounds φ's temporaries and its input).
 PHI_CHUNK = 1 << 16
 
-#: Meshes of fixed layouts of registered families, most recently used last (see [`pixel_mesh`][]).
-_CACHE: OrderedDict[tuple, PixelMesh] = OrderedDict()
-CACHE_SIZE = 4
+#: Meshes of fixed layouts of registered families, the last four used (see [`pixel_mesh`][] and
+#: [`layoutwarp.caches`][]).
+MESHES: LRU[PixelMesh] = LRU("meshes", 4)
 
 
 def _cache_key(layout: Layout, size, tol, max_subdiv, dtype, theta: Tensor) -> tuple | None:
@@ -510,11 +509,6 @@ def _cache_key(layout: Layout, size, tol, max_subdiv, dtype, theta: Tensor) -> t
         return None
     values = tuple(theta.detach().double().cpu().tolist())
     return (identity, values, size, tol, max_subdiv, dtype, theta.device)
-
-
-def clear_mesh_cache() -> None:
-    """Forget the cached meshes of fixed layouts."""
-    _CACHE.clear()
 
 
 def pixel_mesh(
@@ -558,7 +552,7 @@ def pixel_mesh(
 
     Returns:
         a [`PixelMesh`][] on θ's device. The meshes of fixed layouts (θ without gradient)
-        of registered families are cached (the last `CACHE_SIZE`), so simulating many
+        of registered families are cached ([`MESHES`][]), so simulating many
         images with one fixed layout builds its mesh once; do not modify a returned mesh.
 
     Examples:
@@ -573,15 +567,8 @@ def pixel_mesh(
     theta = layout.resolve_theta(theta)
     dtype = dtype or theta.dtype
     key = None if subdivisions is not None else _cache_key(layout, (h, w), tol, max_subdiv, dtype, theta)
-    if key is not None and key in _CACHE:
-        _CACHE.move_to_end(key)
-        return _CACHE[key]
-    mesh = _build_mesh(layout, (h, w), theta, tol, max_subdiv, subdivisions, dtype)
-    if key is not None and cache:
-        _CACHE[key] = mesh
-        while len(_CACHE) > CACHE_SIZE:
-            _CACHE.popitem(last=False)
-    return mesh
+    build = lambda: _build_mesh(layout, (h, w), theta, tol, max_subdiv, subdivisions, dtype)  # noqa: E731
+    return build() if key is None else MESHES.get(key, build, keep=cache)
 
 
 def _build_mesh(

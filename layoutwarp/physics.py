@@ -45,7 +45,6 @@ from __future__ import annotations
 import functools
 import json
 import math
-from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, fields
 from typing import Any
@@ -56,6 +55,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from . import jit, kernels
+from .caches import LRU, tensor_token
 from .checks import ArgumentError, check_choice, check_extent, check_int, check_number, check_size
 from .kernels.device import fall_back, runs_on_device, stream_of, usable
 from .kernels.noise import measure_on_device
@@ -519,25 +519,21 @@ def _full_well(physics: SensorPhysics, a_um2: Tensor) -> Tensor | None:
     return full
 
 
-#: The compiled measurement's per-sensor inputs, most recently used last (see [`_compiled_sensor`][]).
-_SENSORS: OrderedDict[tuple, tuple[Tensor, SensorPhysics, int, tuple[np.ndarray, ...]]] = OrderedDict()
-SENSOR_CACHE_SIZE = 8
+#: The compiled measurement's per-sensor inputs, for the last eight (camera, pixel areas) pairs
+#: (see [`_compiled_sensor`][] and [`layoutwarp.caches`][]).
+SENSORS: LRU[tuple[np.ndarray, ...]] = LRU("sensors", 8)
 
 
 def _compiled_sensor(physics: SensorPhysics, areas: Tensor) -> tuple[np.ndarray, ...]:
     """The kernel's inputs that depend on the camera and the pixel areas alone: areas in µm²,
-    the PRNU and DSNU patterns (float64, flat) and the parameter vector. Kept for the last
-    [`SENSOR_CACHE_SIZE`][] (camera, areas) pairs, an areas tensor recognised by identity and
-    version (a fixed layout's cached mesh gives the same tensor every call), so a repeated call
-    costs no torch operation."""
-    last = _SENSORS[next(reversed(_SENSORS))] if _SENSORS else None
-    if last is not None and last[0] is areas and last[1] is physics and last[2] == areas._version:
-        return last[3]  # the same camera and tensor as last time: no hashing
-    key = (physics, id(areas), areas._version)
-    hit = _SENSORS.get(key)
-    if hit is not None and hit[0] is areas:
-        _SENSORS.move_to_end(key)
-        return hit[3]
+    the PRNU and DSNU patterns (float64, flat) and the parameter vector. Kept in [`SENSORS`][],
+    the areas tensor recognised by identity and version ([`tensor_token`][layoutwarp.caches.tensor_token]:
+    a fixed layout's cached mesh gives the same tensor every call), so a repeated call costs no
+    torch operation."""
+    return SENSORS.get((physics, tensor_token(areas)), lambda: _sensor_arrays(physics, areas))
+
+
+def _sensor_arrays(physics: SensorPhysics, areas: Tensor) -> tuple[np.ndarray, ...]:
     a = areas.detach().to("cpu", torch.float64).flatten() * physics.um2_per_unit()
     _full_well(physics, a)
     prnu, dsnu = _patterns(physics, tuple(areas.shape[-2:]), torch.float64, "cpu")
@@ -557,11 +553,7 @@ def _compiled_sensor(physics: SensorPhysics, areas: Tensor) -> tuple[np.ndarray,
             2**physics.adc_bits - 1 if physics.adc_bits is not None else math.inf,
         ]
     )
-    arrays = (a.numpy(), prnu, dsnu, params)
-    _SENSORS[key] = (areas, physics, key[2], arrays)  # holding the tensor keeps its id its own
-    while len(_SENSORS) > SENSOR_CACHE_SIZE:
-        _SENSORS.popitem(last=False)
-    return arrays
+    return a.numpy(), prnu, dsnu, params
 
 
 @functools.lru_cache(maxsize=64)
@@ -590,9 +582,9 @@ def kernel_arguments(
     return (*_compiled_sensor(physics, areas), seed, NOISE_CODES[mode], OUTPUTS.index(output))
 
 
-#: The pixel inputs of [`kernel_arguments`][] copied to a device, per host array (kept as long
-#: as the host cache keeps it; the same bound).
-_ON_DEVICE: OrderedDict[tuple, tuple[np.ndarray, tuple[Tensor, ...]]] = OrderedDict()
+#: The pixel inputs of [`kernel_arguments`][] copied to a device, for the last eight (camera,
+#: pixel areas, device) triples ([`layoutwarp.caches`][]).
+ON_DEVICE: LRU[tuple[Tensor, ...]] = LRU("sensors on devices", 8)
 
 
 def device_arguments(
@@ -605,15 +597,10 @@ def device_arguments(
     """[`kernel_arguments`][] with the pixel inputs (areas in µm², fixed patterns, parameters) as
     float64 tensors on ``device``, copied there once per camera and areas (a repeated call
     copies nothing): what the CUDA kernels of the measurement take."""
-    area_um2, prnu, dsnu, params, seed, noise, out = kernel_arguments(physics, areas, output, generator)
-    key = (id(area_um2), str(device))
-    hit = _ON_DEVICE.get(key)
-    if hit is None or hit[0] is not area_um2:  # the host arrays live in their cache: their identity
-        hit = (area_um2, tuple(torch.from_numpy(a).to(device) for a in (area_um2, prnu, dsnu, params)))
-        _ON_DEVICE[key] = hit
-        while len(_ON_DEVICE) > SENSOR_CACHE_SIZE:
-            _ON_DEVICE.popitem(last=False)
-    return (*hit[1], seed, noise, out)
+    host = kernel_arguments(physics, areas, output, generator)
+    key = (physics, tensor_token(areas), str(device))
+    pixels = ON_DEVICE.get(key, lambda: tuple(torch.from_numpy(a).to(device) for a in host[:4]))
+    return (*pixels, *host[4:])
 
 
 def _measure_on_device(mean: Tensor, args: tuple) -> Tensor:

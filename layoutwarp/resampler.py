@@ -10,17 +10,15 @@ simulation use it.
 
 from __future__ import annotations
 
-import contextlib
 import math
 import warnings
-from collections import OrderedDict
-from collections.abc import Iterator
 from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
 from . import jit, kernels
+from .caches import LRU
 from .checks import all_finite, check_size, raise_nonfinite
 from .integrators import data_tolerance, green_pieces
 from .kernels.csr import csr_apply_on_device
@@ -35,11 +33,9 @@ if TYPE_CHECKING:
     import scipy.sparse
 
 __all__ = [
-    "CACHE_SIZE",
+    "RESAMPLERS",
     "AreaResampler",
     "area_weights",
-    "cache_kept",
-    "clear_resampler_cache",
     "resampler_for",
 ]
 
@@ -340,52 +336,28 @@ class AreaResampler:
         return out.T.reshape(x.shape[0], *self.size).cpu()
 
 
-#: Resamplers of fixed layouts that [`simulate`][layoutwarp.sensor.simulate] keeps (see [`resampler_for`][]);
-#: 0 keeps none, and a fixed layout's every call then runs the compiled exact walk.
-CACHE_SIZE = 4
-_CACHE: OrderedDict[tuple, AreaResampler] = OrderedDict()
+#: Resamplers of fixed layouts that [`simulate`][layoutwarp.sensor.simulate] keeps, the last four used
+#: (see [`resampler_for`][] and [`layoutwarp.caches`][]); ``maxsize`` 0 keeps none, and a fixed
+#: layout's every call then runs the compiled exact walk.
+RESAMPLERS: LRU[AreaResampler] = LRU("resamplers", 4)
 
 
 def resampler_for(
     layout: Layout, size: tuple[int, int], src_size: tuple[int, int], tol: float, device: torch.device | str
 ) -> AreaResampler | None:
     """The [`AreaResampler`][] of a fixed layout of a registered family, built on first use
-    and kept (the last [`CACHE_SIZE`][], least recently used out first); ``None`` for a layout
-    whose state its description does not hold (an unregistered family).
+    and kept ([`RESAMPLERS`][]); ``None`` for a layout whose state its description does not hold
+    (an unregistered family), or when the cache keeps none.
 
     This is how [`simulate`][layoutwarp.sensor.simulate] runs the exact integrator for a fixed layout
     (θ needs no gradient) on float32 images: one sparse product per call after the first. An
     entry holds its weights, about 8 bytes per source pixel (0.87 copies of a float32 RGB image);
-    with [`CACHE_SIZE`][] 0 none is built (``None``), and every call runs the compiled walk
+    with ``RESAMPLERS.maxsize = 0`` none is built (``None``), and every call runs the compiled walk
     instead, slower (about 6x at 2048x1024 → 257x129: the bench's cached-weights line) but
     holding no weights.
     """
-    identity = layout_key(layout) if CACHE_SIZE > 0 else None
+    identity = layout_key(layout) if RESAMPLERS.maxsize > 0 else None
     if identity is None:
         return None
     key = (identity, tuple(size), tuple(src_size), float(tol), str(torch.device(device)))
-    if key in _CACHE:
-        _CACHE.move_to_end(key)
-        return _CACHE[key]
-    res = AreaResampler(layout, size, src_size, tol=tol, device=device)
-    _CACHE[key] = res
-    while len(_CACHE) > CACHE_SIZE:
-        _CACHE.popitem(last=False)
-    return res
-
-
-def clear_resampler_cache() -> None:
-    """Forget the resamplers [`resampler_for`][] keeps."""
-    _CACHE.clear()
-
-
-@contextlib.contextmanager
-def cache_kept() -> Iterator[None]:
-    """Within: [`resampler_for`][] as usual; after: its cache as it was before (what was built
-    within is forgotten, and nothing kept before was pushed out)."""
-    saved = _CACHE.copy()
-    try:
-        yield
-    finally:
-        _CACHE.clear()
-        _CACHE.update(saved)
+    return RESAMPLERS.get(key, lambda: AreaResampler(layout, size, src_size, tol=tol, device=device))

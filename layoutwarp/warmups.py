@@ -12,12 +12,12 @@ from . import jit, kernels
 from .integrators import integrate_exact
 from .layouts import CurvLayout, EllipticLayout, FoveaLayout, RectLayout
 from .physics import SensorPhysics
-from .resampler import cache_kept
+from .resampler import RESAMPLERS
 from .sensor import simulate
 
 
 def _warm_fixed(dtype: torch.dtype) -> None:
-    with torch.no_grad(), cache_kept():  # the user's cached weights stay
+    with torch.no_grad(), RESAMPLERS.kept():  # the user's cached weights stay
         for layout in (CurvLayout((0.3, -0.2)), RectLayout((0.3, -0.2))):
             simulate(torch.full((1, 3, 8, 8), 0.5, dtype=dtype), layout.to(dtype), (3, 3))
 
@@ -42,7 +42,7 @@ def _warm_learn(dtype: torch.dtype) -> None:
 
 def _warm_measure(dtype: torch.dtype) -> None:
     img = torch.full((1, 3, 8, 8), 0.5, dtype=dtype)
-    with torch.no_grad(), cache_kept():  # the user's cached weights stay
+    with torch.no_grad(), RESAMPLERS.kept():  # the user's cached weights stay
         for noise in ("poisson", "gaussian", "none"):
             for output in ("radiance", "dn"):
                 phys = SensorPhysics((30.0, 30.0), photons_per_um2=50, noise=noise, adc_bits=8, seed=0)

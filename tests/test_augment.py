@@ -134,7 +134,7 @@ def test_a_learnable_grid_in_a_kornia_pipeline_is_guarded_against_folding(gen):
     # the loss rewards pixel (0, 0) for reaching into the bright corner, which folds an unguarded
     # grid within 25 Adam steps (tests/test_families.py); through the augmentation the step is
     # guarded as in a SensorLayer, before every forward pass
-    from layoutwarp.grids import cell_corner_dets
+    from layoutwarp.layouts.grid import cell_corner_dets
 
     yy, xx = torch.meshgrid(torch.linspace(0, 1, 40), torch.linspace(0, 1, 40), indexing="ij")
     img = ((xx + yy)[None, None] ** 2).expand(2, 1, 40, 40).contiguous()

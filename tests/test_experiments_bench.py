@@ -204,13 +204,13 @@ def test_the_memory_child_measures_a_fixed_layouts_first_call_with_and_without_c
         def close(self) -> None:
             pass
 
-    monkeypatch.setattr(resampler, "CACHE_SIZE", resampler.CACHE_SIZE)  # restored afterwards
+    monkeypatch.setattr(resampler.RESAMPLERS, "maxsize", resampler.RESAMPLERS.maxsize)  # restored afterwards
     spec = {"layout": bench.bench_layouts((0.3, 0.2))["curv"], "method": "exact", "opts": {}}
     spec |= {"src": (64, 96), "size": (9, 13), "threads": torch.get_num_threads()}
     for size, built in ((0, False), (4, True)):
-        resampler.clear_resampler_cache()
+        resampler.RESAMPLERS.clear()
         bench._memory_child(spec | {"cache_size": size}, Conn())
-        assert resampler.CACHE_SIZE == size and bool(resampler._CACHE) == built
+        assert resampler.RESAMPLERS.maxsize == size and bool(len(resampler.RESAMPLERS)) == built
     assert len(sent) == 2 and all(v >= 0 for v in sent)
 
 

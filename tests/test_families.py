@@ -17,7 +17,7 @@ from conftest import clip_reference, rand_theta
 import layoutwarp as lw
 from layoutwarp.augment import SensorAugmentation
 from layoutwarp.export import export_layout
-from layoutwarp.grids import cell_corner_dets
+from layoutwarp.layouts.grid import cell_corner_dets
 from layoutwarp.resampler import area_weights
 
 F64 = torch.float64

@@ -58,15 +58,13 @@ def test_the_first_call_answers_from_torch_while_a_worker_compiles_then_runs_com
     groups, runs its kernel's quick build, so its draws are the compiled sampler's from the first
     call on (the same as in wait mode)."""
     code = """
-        import json, time, torch, layoutwarp as lw
+        import json, torch, layoutwarp as lw
         from layoutwarp import jit
         g = torch.Generator().manual_seed(5)
         img = torch.rand(2, 3, 40, 60, generator=g)
         layout = lw.CurvLayout((0.4, -0.3))
-        t = time.perf_counter()
-        with torch.no_grad():
+        with torch.no_grad():  # the torch path answers: the state says the worker is compiling
             first = lw.simulate(img, layout, (7, 9))
-        first_s = time.perf_counter() - t
         state = jit.status()["fixed/float32"]
         jit._WORKER.wait_for("fixed/float32")
         with torch.no_grad():
@@ -74,7 +72,7 @@ def test_the_first_call_answers_from_torch_while_a_worker_compiles_then_runs_com
         phys = lw.SensorPhysics((300.0, 400.0), photons_per_um2=20, seed=3)
         noisy = lw.simulate(img, layout, (7, 9), physics=phys)
         jit.stop_worker()  # the test's cache is thrown away: no need to finish it
-        print(json.dumps({"first_s": first_s, "state": state, "after": jit.status()["fixed/float32"],
+        print(json.dumps({"state": state, "after": jit.status()["fixed/float32"],
             "diff": float((first - later).abs().max()), "scale": float(later.abs().max()),
             "noisy": noisy.flatten().tolist()}))
     """
@@ -83,7 +81,6 @@ def test_the_first_call_answers_from_torch_while_a_worker_compiles_then_runs_com
     assert res.returncode == 0, res.stderr[-3000:]
     out = json.loads(res.stdout.strip().splitlines()[-1])
     assert out["state"] == "compiling" and out["after"] == "ready"
-    assert out["first_s"] < 5  # the torch path, not a compile
     assert 0 < out["diff"] <= 1e-6 * out["scale"]  # float32 sums in another order: rounding, no more
     notices = [line for line in res.stderr.splitlines() if line.startswith("layoutwarp:")]
     assert all("once per installation" in n for n in notices)
@@ -137,15 +134,14 @@ def test_a_look_at_the_cache_compiles_nothing(tmp_path):
     """:func:`jit.status` on an empty cache says 'not compiled' and compiles nothing (a look at
     the cache must not turn into the compile it was meant to avoid)."""
     code = """
-        import time, layoutwarp as lw
-        t = time.perf_counter()
-        print(lw.jit.status(), round(time.perf_counter() - t, 1))
+        import layoutwarp as lw
+        print(lw.jit.status())
     """
     res = run_python(code, {"NUMBA_CACHE_DIR": str(tmp_path / "cache")})
     assert res.returncode == 0, res.stderr[-3000:]
-    states, seconds = res.stdout.rsplit(" ", 1)
-    assert states.count("'not compiled'") == len(jit.UNITS)
-    assert float(seconds) < 5
+    assert res.stdout.count("'not compiled'") == len(jit.UNITS)
+    written = [p.name for p in (tmp_path / "cache").rglob("*") if p.is_file()]
+    assert not written, written  # no kernel was compiled into the cache (a timing said so, flakily)
 
 
 @pytest.mark.slow
@@ -360,11 +356,11 @@ def test_a_look_at_the_cache_keeps_the_users_cached_weights():
     img = torch.rand(1, 3, 40, 60)
     with torch.no_grad():
         lw.simulate(img, lw.CurvLayout((0.4, -0.3)), (7, 9))
-    before = list(resampler._CACHE)
+    before = resampler.RESAMPLERS.keys()
     assert before
     for group in ("fixed", "measure"):
         getattr(warmups, f"_warm_{group}")(torch.float32)
-    assert list(resampler._CACHE) == before
+    assert resampler.RESAMPLERS.keys() == before
 
 
 @pytest.mark.heavy

@@ -156,9 +156,9 @@ def test_smooth_pieces_cut_at_the_unit_circle(gen):
 
 
 def test_meshes_of_fixed_layouts_are_cached_and_learnable_ones_never(gen):
-    from layoutwarp.mesh import clear_mesh_cache
+    from layoutwarp.mesh import MESHES
 
-    clear_mesh_cache()
+    MESHES.clear()
     layout = lw.CurvLayout(rand_theta(gen), dtype=F64)
     mesh = lw.pixel_mesh(layout, (5, 6), tol=1e-4)
     assert lw.pixel_mesh(layout, (5, 6), tol=1e-4) is mesh  # same θ: built once
@@ -185,10 +185,10 @@ def test_meshes_of_fixed_layouts_are_cached_and_learnable_ones_never(gen):
 
 
 def test_an_area_resampler_keeps_no_mesh_and_its_areas_are_the_meshes(gen):
-    from layoutwarp.mesh import clear_mesh_cache
+    from layoutwarp.mesh import MESHES
     from layoutwarp.resampler import area_weights
 
-    clear_mesh_cache()
+    MESHES.clear()
     layout = lw.CurvLayout(rand_theta(gen), dtype=F64)
     res = lw.AreaResampler(layout, (5, 6), (40, 50), tol=1e-4)
     mesh = lw.pixel_mesh(layout, (5, 6), tol=1e-4, dtype=F64, cache=False)

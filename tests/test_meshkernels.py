@@ -10,11 +10,11 @@ import torch.autograd.forward_ad as fwad
 from conftest import grad_tol, ptx_or_skip
 
 import layoutwarp as lw
-from layoutwarp.experiments.bench import count_ops
 from layoutwarp.integrators import integrate_exact
 from layoutwarp.kernels import mesh as mk
 from layoutwarp.layoutfile import layout_from_spec
 from layoutwarp.mesh import MeshTopology, pixel_mesh, smooth_pieces
+from layoutwarp.testing import count_ops
 
 pytestmark = pytest.mark.skipif(not lw.kernels.available(), reason="needs numba")
 
@@ -323,7 +323,7 @@ DEVICE_STEP = """
 import json, sys
 import numpy as np, torch
 import layoutwarp as lw
-from layoutwarp.experiments.bench import count_launches
+from layoutwarp.testing import count_launches
 from layoutwarp.integrators import integrate_exact
 from layoutwarp.layoutfile import layout_from_spec
 case = dict(np.load(sys.argv[1]))

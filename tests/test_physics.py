@@ -809,7 +809,7 @@ DEVICE_MEASURE = """
 import json, sys
 import numpy as np, torch
 import layoutwarp as lw
-from layoutwarp.experiments.bench import count_launches
+from layoutwarp.testing import count_launches
 case = dict(np.load(sys.argv[1]))
 cam = json.loads(str(case["camera"]))
 means, areas, img = (torch.from_numpy(case[k]) for k in ("means", "areas", "img"))

@@ -284,13 +284,13 @@ def test_a_fixed_layout_reuses_its_area_weights_in_a_bounded_cache(gen):
     from layoutwarp import resampler
     from layoutwarp.integrators import integrate_exact
 
-    resampler.clear_resampler_cache()
+    resampler.RESAMPLERS.clear()
     img = torch.rand(2, 3, 60, 80, generator=gen)
     layout = lw.CurvLayout(rand_theta(gen, 0.8))
     out = lw.simulate(img, layout, (9, 11))
     ref = integrate_exact(img.flatten(0, 1).double(), layout, (9, 11), tol=2**-12).view(2, 3, 9, 11)
     assert float((out.double() - ref).abs().max()) < 1e-5  # float32 weights; the same geometry
-    assert len(resampler._CACHE) == 1 and torch.equal(lw.simulate(img, layout, (9, 11)), out)
+    assert len(resampler.RESAMPLERS) == 1 and torch.equal(lw.simulate(img, layout, (9, 11)), out)
     x = img.clone().requires_grad_(True)  # image gradients flow through the cached weights
     w = torch.rand(2, 3, 9, 11, generator=gen)
     (lw.simulate(x, layout, (9, 11)) * w).sum().backward()
@@ -299,24 +299,24 @@ def test_a_fixed_layout_reuses_its_area_weights_in_a_bounded_cache(gen):
         integrate_exact(x64, layout, (9, 11), tol=2**-12, backend="torch") * w.flatten(0, 1).double()
     ).sum().backward()
     assert torch.allclose(x.grad.double().flatten(0, 1), x64.grad, atol=1e-6)
-    for k in range(resampler.CACHE_SIZE + 2):  # bounded: least recently used out first
+    for k in range(resampler.RESAMPLERS.maxsize + 2):  # bounded: least recently used out first
         lw.simulate(img, lw.CurvLayout((0.1 * k, 0.2)), (9, 11))
-    assert len(resampler._CACHE) == resampler.CACHE_SIZE
+    assert len(resampler.RESAMPLERS) == resampler.RESAMPLERS.maxsize
     learn = lw.CurvLayout(rand_theta(gen, 0.5), learn=True)  # a learnable layout never uses it
-    before = dict(resampler._CACHE)
+    before = resampler.RESAMPLERS.keys()
     lw.simulate(img, learn, (9, 11)).sum().backward()
-    assert dict(resampler._CACHE) == before and learn.rho.grad is not None
+    assert resampler.RESAMPLERS.keys() == before and learn.rho.grad is not None
     with torch.no_grad():  # ... unless no gradient is wanted
         lw.simulate(img, learn, (9, 11))
-    assert len(set(resampler._CACHE) - set(before)) == 1
+    assert len(set(resampler.RESAMPLERS.keys()) - set(before)) == 1
 
 
 def test_a_cache_of_size_zero_keeps_no_weights_and_runs_the_compiled_walk(gen, monkeypatch):
     from layoutwarp import resampler
     from layoutwarp.integrators import integrate_exact
 
-    resampler.clear_resampler_cache()
-    monkeypatch.setattr(resampler, "CACHE_SIZE", 0)
+    resampler.RESAMPLERS.clear()
+    monkeypatch.setattr(resampler.RESAMPLERS, "maxsize", 0)
 
     def refuse(*args, **kwargs):
         raise AssertionError("no weights may be built")
@@ -326,4 +326,4 @@ def test_a_cache_of_size_zero_keeps_no_weights_and_runs_the_compiled_walk(gen, m
     layout = lw.CurvLayout(rand_theta(gen, 0.8))
     out = lw.simulate(img, layout, (8, 10))
     ref = integrate_exact(img.flatten(0, 1).double(), layout, (8, 10), tol=2**-12).view(1, 3, 8, 10)
-    assert float((out.double() - ref).abs().max()) < 1e-5 and not resampler._CACHE
+    assert float((out.double() - ref).abs().max()) < 1e-5 and not len(resampler.RESAMPLERS)

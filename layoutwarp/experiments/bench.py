@@ -18,7 +18,6 @@ import json
 import multiprocessing as mp
 import os
 import time
-from collections import Counter
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -35,13 +34,13 @@ from ..checks import check_size
 from ..coords import uniform_corners
 from ..files import atomic_write, run_info
 from ..integrators import data_tolerance, integrate_exact
-from ..kernels.device import LAUNCHES
 from ..kernels.mesh import build_mesh, mesh_spec
 from ..layoutfile import layout_from_spec
 from ..layouts import Layout, make_layout
 from ..maps import forward_maps, sample_points
 from ..mesh import pixel_mesh
 from ..sensor import simulate
+from ..testing import count_ops
 from .scene import SineScene, blurred_noise, load_photo
 
 __all__ = [
@@ -178,7 +177,7 @@ def _status_mb(key: str) -> float:
 def _memory_child(spec: dict, conn) -> None:  # pragma: no cover - runs in a spawned process
     torch.set_num_threads(spec["threads"])
     if "cache_size" in spec:  # how many fixed layouts' area weights simulate keeps
-        resampler.CACHE_SIZE = spec["cache_size"]
+        resampler.RESAMPLERS.maxsize = spec["cache_size"]
     img = blurred_noise(*spec["src"])
     npimg = np.ascontiguousarray(img[0].permute(1, 2, 0).numpy())
     layout = layout_from_spec(spec["layout"])
@@ -208,8 +207,9 @@ def peak_memory_mb(spec: dict) -> float | None:
 
     ``spec`` names the run: ``layout`` (a [`layout_from_spec`][] dict), ``method`` (a
     [`simulate`][] method, ``"inter_area"`` or ``"remap"``), ``opts``, ``src``, ``size``,
-    ``threads``, and optionally ``cache_size`` ([`CACHE_SIZE`][layoutwarp.resampler.CACHE_SIZE]). (A
-    forked child would deadlock in torch's thread pool.)
+    ``threads``, and optionally ``cache_size`` (the ``maxsize`` of
+    [`RESAMPLERS`][layoutwarp.resampler.RESAMPLERS]). (A forked child would deadlock in torch's
+    thread pool.)
     """
     if not os.path.exists("/proc/self/clear_refs"):
         return None
@@ -547,10 +547,9 @@ def reuse_row(cfg: BenchConfig, image_name: str, img: Tensor) -> Row:
     (``extra["first_call_ms"]``), at the data tolerance; ``extra["over_inter_area"]``: the
     repeated call over ``cv2.resize(INTER_AREA)`` timed with it in interleaved pairs (the CPU
     image, as the anchor). The error is against the compiled kernel's float64 result;
-    ``extra["walk_ms"]``: the same call with no weights kept (``resampler.CACHE_SIZE = 0``), the
+    ``extra["walk_ms"]``: the same call with no weights kept (``resampler.RESAMPLERS.maxsize = 0``), the
     compiled walk over the mesh."""
     from ..integrators import integrate_exact
-    from ..resampler import clear_resampler_cache
 
     layout = layout_from_spec(bench_layouts(cfg.theta)["curv"]).to(cfg.device)
     dev_img = img.to(cfg.device)
@@ -559,7 +558,7 @@ def reuse_row(cfg: BenchConfig, image_name: str, img: Tensor) -> Row:
         with torch.no_grad():
             return simulate(dev_img, layout, cfg.size)
 
-    clear_resampler_cache()
+    resampler.RESAMPLERS.clear()
     first = _time(fwd, 0)
     inter_area = _forward_fn(img, layout, cfg.size, "inter_area", {})
     area, repeat = _time_paired([inter_area, fwd], cfg.repeats * 2 + 1)
@@ -567,11 +566,11 @@ def reuse_row(cfg: BenchConfig, image_name: str, img: Tensor) -> Row:
     with torch.no_grad():  # the reference on the CPU, the timed layout left on its device
         ref = integrate_exact(img.flatten(0, 1), cpu_layout, cfg.size, tol=data_tolerance(torch.float32)[0])
     err = (fwd().cpu().double().flatten(0, 1) - ref).abs()
-    kept, resampler.CACHE_SIZE = resampler.CACHE_SIZE, 0
+    kept, resampler.RESAMPLERS.maxsize = resampler.RESAMPLERS.maxsize, 0
     try:
         walk = _time(fwd, cfg.repeats)
     finally:
-        resampler.CACHE_SIZE = kept
+        resampler.RESAMPLERS.maxsize = kept
     extra = {"first_call_ms": first, "over_inter_area": repeat / area, "walk_ms": walk}
     if cfg.memory and cfg.device == "cpu":  # the first call's memory without the weights
         spec = {"layout": bench_layouts(cfg.theta)["curv"], "method": "exact", "opts": {}, "src": cfg.src}
@@ -587,48 +586,6 @@ def reuse_row(cfg: BenchConfig, image_name: str, img: Tensor) -> Row:
         max_err=float(err.max()),
         extra=extra,
     )
-
-
-def count_ops(fn: Callable[[], object]) -> int:
-    """The number of torch operator calls (``aten::`` events at the top level of the profiler's
-    tree) ``fn`` makes: how many kernel launches it would cost on a GPU."""
-    from torch.profiler import ProfilerActivity, profile
-
-    with profile(activities=[ProfilerActivity.CPU]) as prof:
-        fn()
-    return sum(1 for e in prof.events() if e.name.startswith("aten::") and e.cpu_parent is None)
-
-
-#: aten operators that launch no GPU kernel: allocations (views are told by their schema).
-NO_KERNEL_OPS = frozenset(
-    "empty empty_like empty_strided new_empty new_empty_strided detach alias lift_fresh _unsafe_view".split()
-)
-
-
-def count_launches(fn: Callable[[], object]) -> Counter[str]:
-    """The GPU launches ``fn`` makes, counted without a GPU: every launch of a numba CUDA kernel
-    ([`LAUNCHES`][layoutwarp.kernels.device.LAUNCHES], by kernel name, ``numba:NAME``) and every
-    torch operator that runs a kernel or a copy on a device (``aten:NAME``; views and bare
-    allocations run none), including those of the backward; ``aten:_local_scalar_dense`` is a
-    host wait (a value read back). Run it where the device path runs: on a CUDA device, or on the
-    CPU under numba's CUDA simulator. The total is what the torch profiler's count of GPU
-    activities approximates (it adds cuBLAS's and cuSPARSE's inner kernels)."""
-    from torch.utils._python_dispatch import TorchDispatchMode
-
-    counts: Counter[str] = Counter()
-
-    class Ops(TorchDispatchMode):
-        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-            name = func.overloadpacket.__name__
-            if not func.is_view and name.rstrip("_") not in NO_KERNEL_OPS:
-                counts[f"aten:{name}"] += 1
-            return func(*args, **(kwargs or {}))
-
-    before = Counter(LAUNCHES)
-    with Ops():
-        fn()
-    counts.update({f"numba:{k}": v for k, v in (LAUNCHES - before).items()})
-    return counts
 
 
 def _learnable_mesh(layout: Layout, size: tuple[int, int]) -> object:
@@ -1080,7 +1037,7 @@ def report_text(result: dict) -> str:
                 f"a fixed layout's repeated exact forward: {r['forward_ms']:.2f} ms "
                 f"({r['extra']['over_inter_area']:.2f}x INTER_AREA, in pairs); its first call, "
                 f"which builds the area weights: {r['extra']['first_call_ms']:.1f} ms; with no weights "
-                f"kept (resampler.CACHE_SIZE = 0), the compiled walk: {r['extra']['walk_ms']:.2f} ms"
+                f"kept (resampler.RESAMPLERS.maxsize = 0), the compiled walk: {r['extra']['walk_ms']:.2f} ms"
                 + (
                     f", its first call {r['extra']['walk_peak_mb'] / result['input_mb']:.2f} input copies "
                     "of memory"

@@ -76,7 +76,9 @@ class SegNet(nn.Module):
     logits on the sensor grid; back-warp them with `layoutwarp.backwarp`.
     """
 
-    def __init__(self, layout: str, size: tuple[int, int], classes: int = 11, learn: bool | None = True, **sensor):
+    def __init__(
+        self, layout: str, size: tuple[int, int], classes: int = 11, learn: bool | None = True, **sensor
+    ):
         super().__init__()
         self.sensor = SensorLayer(size, layout, learn=learn, **sensor)
         self.enc1, self.enc2, self.enc3 = conv_block(3, 32), conv_block(32, 64), conv_block(64, 128)

@@ -66,7 +66,12 @@ class SensorResNet(nn.Module):
     logits."""
 
     def __init__(
-        self, layout: str | Layout, size: tuple[int, int], classes: int, learn: bool | None = True, **sensor: Any
+        self,
+        layout: str | Layout,
+        size: tuple[int, int],
+        classes: int,
+        learn: bool | None = True,
+        **sensor: Any,
     ):
         super().__init__()
         self.sensor = SensorLayer(size, layout, learn=learn, **sensor)

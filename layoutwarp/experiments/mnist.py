@@ -31,7 +31,11 @@ class MnistNet(nn.Module):
     """Sensor layer + the paper's small CNN (conv 32, conv 64, max pool, fc 128, fc 10)."""
 
     def __init__(
-        self, layout: str | Layout = "curv", size: tuple[int, int] = (4, 4), learn: bool | None = True, **sensor: Any
+        self,
+        layout: str | Layout = "curv",
+        size: tuple[int, int] = (4, 4),
+        learn: bool | None = True,
+        **sensor: Any,
     ):
         super().__init__()
         self.sensor = SensorLayer(size, layout, learn=learn, **sensor)

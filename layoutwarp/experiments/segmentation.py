@@ -38,7 +38,12 @@ class PSPSegNet(nn.Module):
     backbone expects ([`load_backbone`][])."""
 
     def __init__(
-        self, layout: str | Layout, size: tuple[int, int], classes: int = 11, learn: bool | None = True, **sensor
+        self,
+        layout: str | Layout,
+        size: tuple[int, int],
+        classes: int = 11,
+        learn: bool | None = True,
+        **sensor,
     ):
         super().__init__()
         self.sensor = SensorLayer(size, layout, learn=learn, **sensor)

@@ -28,12 +28,12 @@ from __future__ import annotations
 
 import functools
 import math
-import weakref
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
+from ..caches import ObjectMemo
 from ..layouts import CurvLayout, EllipticLayout, FoveaLayout, Layout
 from ..mesh import INNER, MeshTopology, PixelMesh
 from .base import CHUNK, available, inline, parallel, prange, serial, threads
@@ -79,23 +79,15 @@ class MeshSpec:
     nparams: int
 
 
-#: Each fixed centre tensor's values as last read, by the tensor's id: a weak reference to it
-#: (a later tensor with the same id is another one), its version then, and the values.
-_CENTRES: dict[int, tuple[weakref.ref, int, tuple[float, float]]] = {}
+#: Each fixed centre tensor's values as last read ([`layoutwarp.caches`][]).
+CENTRES = ObjectMemo("fixed centres")
 
 
 def _centre_values(centre: torch.Tensor) -> tuple[float, float]:
     """A fixed centre's two values, read from its device once per tensor and version (a training
     step on a GPU then waits for no copy of it; writing to the tensor in place bumps its
     version)."""
-    hit = _CENTRES.get(id(centre))
-    if hit is None or hit[0]() is not centre or hit[1] != centre._version:
-        if len(_CENTRES) > 256:  # forget the dead
-            for key in [k for k, v in _CENTRES.items() if v[0]() is None]:
-                del _CENTRES[key]
-        x, y = centre.detach().double().cpu().tolist()
-        hit = _CENTRES[id(centre)] = (weakref.ref(centre), centre._version, (x, y))
-    return hit[2]
+    return CENTRES.get(centre, (centre._version,), lambda: tuple(centre.detach().double().cpu().tolist()))
 
 
 def mesh_spec(layout: Layout) -> MeshSpec | None:

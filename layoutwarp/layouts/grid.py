@@ -22,9 +22,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .checks import check_choice, check_size
-from .coords import cell_index, pixels_to_sensor, uniform_corners
-from .layouts import FoldoverReport, Layout, register_family, tensor_dtype
+from ..checks import check_choice, check_size
+from ..coords import cell_index, pixels_to_sensor, uniform_corners
+from .base import FoldoverReport, Layout, register_family, tensor_dtype
 
 __all__ = ["GridLayout", "cell_corner_dets", "inverse_bilinear"]
 
@@ -80,7 +80,7 @@ def inverse_bilinear(a: Tensor, b: Tensor, c: Tensor, d: Tensor, q: Tensor) -> T
 
 @register_family
 class GridLayout(Layout):
-    """A layout given by control points, bilinear in each control cell (see `layoutwarp.grids`).
+    """A layout given by control points, bilinear in each control cell (see `layoutwarp.layouts.grid`).
 
     θ holds the free control coordinates: ``(x, y)`` of interior points and the coordinate
     along the border of border points (corners have none), in row-major order. Every pixel edge
@@ -156,7 +156,8 @@ class GridLayout(Layout):
         """Sample any layout at the ``(g_h + 1) × (g_w + 1)`` uniform control points.
 
         Exact (the same φ) for separable layouts that are affine between control lines, e.g. a
-        piecewise-linear [`SplineLayout`][layoutwarp.splines.SplineLayout] whose knots lie on the grid; for
+        piecewise-linear [`SplineLayout`][layoutwarp.layouts.spline.SplineLayout] whose knots lie
+        on the grid; for
         others the pixel corners on control points agree and the edges between are chords.
         """
         gh, gw = check_size(grid, "grid")

@@ -20,9 +20,9 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from .checks import check_choice, check_int
-from .coords import cell_index
-from .layouts import Layout, config_numbers, register_family, tensor_dtype
+from ..checks import check_choice, check_int
+from ..coords import cell_index
+from .base import Layout, config_numbers, register_family, tensor_dtype
 
 __all__ = ["KINDS", "SplineLayout", "knot_outputs", "spline_1d", "spline_1d_derivative", "spline_1d_inverse"]
 
@@ -124,7 +124,7 @@ class SplineLayout(Layout):
     """A separable layout with a monotone spline per axis (rectangular pixels).
 
     θ holds the ``k_x + k_y`` knot logits (x first); all zeros is the uniform layout, and every
-    θ is a bijection, so training needs no constraint. See `layoutwarp.splines`.
+    θ is a bijection, so training needs no constraint. See `layoutwarp.layouts.spline`.
 
     Args:
         theta: initial logits (``None``: zeros).

@@ -1,0 +1,535 @@
+"""The base of every layout family: [`Layout`][], the family registry, and what the families share.
+
+A layout is a bijection φ(·, θ) of the sensor square S = [-1, 1]² onto itself; sensor pixel ``k``
+is the image ``A_k = φ(U_k, θ)`` of the uniform cell ``U_k`` (Sommerhoff et al., "Differentiable
+Sensor Layouts for End-to-End Learning of Task-Specific Camera Parameters", §3.2).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any, ClassVar, TypeVar
+
+import torch
+from torch import Tensor, nn
+
+from ..checks import ArgumentError, check_number, check_points
+
+__all__ = [
+    "FAMILIES",
+    "FoldoverReport",
+    "Layout",
+    "config_numbers",
+    "denom",
+    "make_layout",
+    "newton_inverse",
+    "promote",
+    "register_family",
+    "safe_norm",
+    "tensor_dtype",
+]
+
+
+def denom(a: Tensor, t: Tensor) -> Tensor:
+    """``D(a, t) = 1 + t − 2ta`` (> 0 for ``|t| < 1``, ``0 <= a <= 1``), free of cancellation.
+
+    For ``t >= 0`` it is summed as ``(1 − t) + 2t(1 − a)`` and for ``t < 0`` as
+    ``(1 + t) + 2|t|a``: two non-negative terms either way, so the relative error stays at
+    a few ulp even when ``t → ±1`` and ``a → 1``. Written as ``(1 − |t|) + 2|t| g`` with
+    ``g = s + (1 − 2s) a`` (``s = [t >= 0]``, so ``g`` is ``1 − a`` or ``a``) to need only
+    two fused multiply-adds on the large tensor ``a``.
+    """
+    s = (t >= 0).to(a.dtype)
+    t_abs = t * (2 * s - 1)  # |t| whose derivative at t = 0 is the t >= 0 branch's, not 0
+    g = torch.addcmul(s, 1 - 2 * s, a)
+    return torch.addcmul(1 - t_abs, 2 * t_abs, g)
+
+
+def safe_norm(p: Tensor) -> Tensor:
+    """``‖p‖`` over the last axis (of size 2) with a zero (not NaN) gradient at the origin."""
+    x, y = p[..., 0], p[..., 1]
+    r2 = x * x + y * y
+    nonzero = r2 > 0
+    return torch.where(nonzero, torch.sqrt(torch.where(nonzero, r2, torch.ones_like(r2))), 0.0)
+
+
+def promote(p: Tensor, theta: Tensor) -> tuple[Tensor, Tensor]:
+    dtype = torch.promote_types(p.dtype, theta.dtype)
+    return p.to(dtype), theta.to(device=p.device, dtype=dtype)
+
+
+def tensor_dtype(*values: Any) -> torch.dtype:
+    """The dtype a layout built from ``values`` gets unless ``dtype=`` says otherwise: that of the
+    first floating-point tensor among them (as torch and Kornia keep an argument's dtype), else
+    torch's default dtype."""
+    for v in values:
+        if isinstance(v, Tensor) and v.is_floating_point():
+            return v.dtype
+    return torch.get_default_dtype()
+
+
+def config_numbers(
+    config: dict[str, Any], key: str, default: list[float] | None = None
+) -> list[float] | None:
+    """``config[key]`` as a list of numbers (``default`` when absent); ``ValueError`` otherwise.
+
+    Used by [`Layout.from_config`][] of every family to read layout files.
+    """
+    value = config.get(key, default)
+    if value is not None and (
+        not isinstance(value, list) or not all(isinstance(v, (int, float)) for v in value)
+    ):
+        raise ValueError(f"{key!r} must be a list of numbers, got {value!r}")
+    return value
+
+
+@dataclass(frozen=True)
+class FoldoverReport:
+    """Result of [`Layout.check_foldover`][] on an ``n × n`` grid of S.
+
+    Attributes:
+        min_det: smallest Jacobian determinant found.
+        num_nonpositive: number of grid points with ``det J <= 0`` (fold-overs).
+        worst_point: ``(x, y)`` where ``det J`` is smallest.
+        grid: the grid side ``n`` (0 for an exact check, e.g.
+            [`GridLayout`][layoutwarp.layouts.grid.GridLayout]'s).
+        cell: the first folded control cell ``(row, col)`` of an exact check, else ``None``.
+    """
+
+    min_det: float
+    num_nonpositive: int
+    worst_point: tuple[float, float]
+    grid: int
+    cell: tuple[int, int] | None = None
+
+    @property
+    def ok(self) -> bool:
+        """``True`` when no fold-over was found."""
+        return self.num_nonpositive == 0
+
+
+class Layout(nn.Module):
+    """Base class of pixel layouts.
+
+    A subclass writes [`phi`][] (``φ(p, θ)`` for points ``(..., 2)`` and parameters
+    ``(P,)``). Optional overrides, with generic fallbacks here:
+
+    * [`phi_inverse`][] — default: damped Newton iteration in float64;
+    * [`phi_jacobian`][] — default: autograd, ``(..., 2, 2)``;
+    * [`phi_dtheta`][] — default: autograd, ``(..., 2, P)``.
+
+    Class attributes tell the integrators what machinery a layout needs:
+
+    * ``separable``: ``φ_x`` depends on ``x`` only and ``φ_y`` on ``y`` only, so pixels are
+      axis-aligned rectangles (the fast separable integrator applies);
+    * ``straight_edges``: images of the uniform grid lines are straight between the cuts of
+      [`edge_breakpoints`][], so pixel edges are polylines with a vertex at each cut and are
+      never subdivided further (exact meshes at any tolerance);
+    * ``unbounded``: every finite θ is a valid layout, so θ is stored as it is (no ``tanh``).
+
+    The parameter is stored unconstrained as ``rho`` with ``θ = bound · tanh(ρ)`` (families
+    with unbounded parameters override `_to_theta` and `_to_rho`). A layout built
+    from θ is fixed (``rho`` is a buffer) unless ``learn=True``;
+    [`SensorLayer`][layoutwarp.sensor.SensorLayer] learns by default. ``num_params`` is the length of θ
+    (``None`` on the class for families whose instances choose it).
+
+    A new family subclasses this, sets ``family`` and is declared with
+    [`register_family`][]: layout files, [`make_layout`][] and the command line's
+    ``--family`` then know it. Families with more state than θ override [`to_config`][]
+    and [`from_config`][].
+
+    Args:
+        theta: initial ``θ`` (length ``num_params``), each in ``(-bound, bound)``; a family
+            without parameters accepts ``None``, ``()`` or zeros.
+        bound: the open bound on ``|θ|`` (the paper uses 1).
+        learn: make ``ρ`` a trainable parameter (default ``False``: a buffer, fixed layout).
+        dtype: the layout's [`dtype`][]: that of θ and of what is computed from it (default: a
+            tensor ``theta``'s own floating dtype, else torch's default).
+
+    A fixed layout keeps ``ρ`` (and its other constants, e.g. a centre) in float64 whatever its
+    dtype: they are a few numbers, and a float64 computation then gets the θ that was written,
+    not its float32 rounding, also after ``.float()``/``.double()``; those change the layout's
+    [`dtype`][] and move the constants without rounding them. [`theta_as`][] gives θ in any
+    dtype; the methods that take points ([`forward`][], [`inverse`][], ...) compute at the
+    points' precision when it is the finer one. A learnable layout's ``ρ`` is a parameter of its
+    dtype, as every torch module's.
+    """
+
+    family: ClassVar[str] = "custom"
+    num_params: int | None = 2
+    separable: ClassVar[bool] = False
+    straight_edges: ClassVar[bool] = False
+    unbounded: ClassVar[bool] = False
+    #: Buffers of a fixed layout's constants, held in float64 whatever the layout's dtype.
+    exact_buffers: ClassVar[tuple[str, ...]] = ("rho",)
+
+    def __init__(
+        self,
+        theta: Sequence[float] | Tensor | None = None,
+        *,
+        bound: float = 1.0,
+        learn: bool = False,
+        dtype: torch.dtype | None = None,
+    ) -> None:
+        super().__init__()
+        self.bound = check_number(bound, "bound", 0, lo_open=True)
+        self._bounds_on: dict[tuple[torch.device, torch.dtype], Tensor] = {}  # _bounds() where ρ lives
+        self._dtype = dtype or tensor_dtype(theta)
+        rho = self._to_rho(self._validate_theta(theta, torch.float64))
+        if learn and self.num_params:
+            self.rho = nn.Parameter(rho.to(self._dtype))
+        else:
+            self.register_buffer("rho", rho)
+
+    @property
+    def dtype(self) -> torch.dtype:
+        """The dtype of [`theta`][] and of what is computed from it (``dtype`` at construction;
+        ``.to(dtype)``, ``.float()``, ``.double()`` change it)."""
+        return self._dtype
+
+    def _apply(self, fn: Callable[[Tensor], Tensor], recurse: bool = True) -> Layout:
+        """As `nn.Module`'s, except that a fixed layout's `exact_buffers` are moved, never rounded."""
+        dtype = fn(torch.empty(0, dtype=self._dtype)).dtype  # what the conversion does to a float
+        exact = {n: self._buffers[n] for n in self.exact_buffers if n in self._buffers}
+        super()._apply(fn, recurse)
+        for name, value in exact.items():
+            if value is not None:
+                self._buffers[name] = value.to(self._buffers[name].device)
+        self._dtype = dtype
+        return self
+
+    @property
+    def learnable_param(self) -> bool:
+        """Whether ``ρ`` is a parameter (``learn=True``), trainable or frozen."""
+        return isinstance(self.rho, nn.Parameter)
+
+    # -- parameters ------------------------------------------------------------------
+    def _bounds(self) -> Tensor:
+        """The open bound on each entry of θ, ``(P,)`` float64 (infinite for unbounded families)."""
+        value = math.inf if self.unbounded else self.bound
+        return torch.full((self.num_params or 0,), value, dtype=torch.float64)
+
+    def _to_theta(self, rho: Tensor) -> Tensor:
+        """θ from the stored unconstrained ``ρ``: ``bound · tanh(ρ)``, or ``ρ`` itself for
+        families whose every θ is valid (``unbounded``)."""
+        if self.unbounded:
+            return rho
+        key = (rho.device, rho.dtype)
+        if key not in self._bounds_on:  # made once per device: no copy to it every step
+            self._bounds_on[key] = self._bounds().to(rho)
+        return self._bounds_on[key] * torch.tanh(rho)
+
+    def _to_rho(self, theta: Tensor) -> Tensor:
+        """Inverse of `_to_theta`."""
+        return theta.clone() if self.unbounded else torch.atanh(theta / self._bounds().to(theta))
+
+    def _check_theta(self, theta: Tensor) -> None:
+        """Raise ``ValueError`` naming the first entry of a (float64, CPU) θ that is not allowed."""
+        for i, (v, b) in enumerate(zip(theta.tolist(), self._bounds().tolist(), strict=True)):
+            if not math.isfinite(v) or abs(v) >= b:
+                raise ValueError(
+                    f"theta[{i}] = {v!r} is out of range: each θ must be finite with |θ| < bound = {b}"
+                )
+
+    def _validate_theta(self, theta: Sequence[float] | Tensor | None, dtype: torch.dtype) -> Tensor:
+        n = self.num_params or 0
+        if theta is None:
+            return torch.zeros(n, dtype=dtype)
+        try:
+            t = torch.as_tensor(theta, dtype=torch.float64).detach().flatten().cpu()
+        except (TypeError, ValueError, RuntimeError):
+            what = f"{n} numbers (θ_x, θ_y)" if n == 2 else f"{n} numbers" if n else "empty or zeros"
+            raise ArgumentError("theta", f"theta must be {what}, got {theta!r}") from None
+        if n == 0 and bool((t == 0).all()):
+            return torch.zeros(0, dtype=dtype)
+        if n == 0:
+            raise ValueError(
+                f"the {self.family} layout has no parameters; theta must be empty or zeros, got {theta!r}"
+            )
+        if t.numel() != n:
+            what = " (θ_x, θ_y)" if n == 2 else ""
+            raise ValueError(f"theta must have {n} values{what}, got {t.numel()}: {theta!r}")
+        self._check_theta(t)
+        return t.to(dtype)
+
+    @property
+    def theta(self) -> Tensor:
+        """The constrained parameters (``θ = bound · tanh(ρ)`` by default), shape ``(P,)``, in the
+        layout's [`dtype`][]."""
+        return self.theta_as(self._dtype)
+
+    def theta_as(self, dtype: torch.dtype) -> Tensor:
+        """θ in ``dtype`` (differentiable in ``ρ``): a fixed layout's from its float64 ``ρ``, so
+        ``theta_as(torch.float64)`` is the θ that was set to the last bit or two."""
+        return self._to_theta(self.rho).to(dtype)
+
+    @torch.no_grad()
+    def set_theta(self, theta: Sequence[float] | Tensor) -> None:
+        """Set ``θ`` in place (validated like the constructor)."""
+        t = self._validate_theta(theta, torch.float64)
+        self.rho.copy_(self._to_rho(t).to(self.rho))
+
+    @property
+    def learnable(self) -> bool:
+        """Whether ``ρ`` is a trainable parameter that currently requires grad."""
+        return self.learnable_param and self.rho.requires_grad
+
+    def resolve_theta(self, theta: Tensor | None = None) -> Tensor:
+        """The θ a computation uses: ``theta`` when given (e.g. a tensor that
+        ``torch.autograd.gradcheck`` varies), else the layout's own [`theta`][]."""
+        return self.theta if theta is None else theta
+
+    def _theta_for(self, p: Tensor) -> Tensor:
+        """θ for a computation on points ``p``: at their precision when it is finer than the layout's."""
+        return self.theta_as(
+            torch.promote_types(p.dtype, self._dtype) if p.is_floating_point() else self._dtype
+        )
+
+    def project_(self) -> bool:
+        """Pull the parameters back into the valid set after an optimiser step.
+
+        Families whose every θ is a bijection (the default) have nothing to do; others (e.g.
+        [`GridLayout`][layoutwarp.layouts.grid.GridLayout]) undo the part of a step that would
+        fold the layout.
+        [`SensorLayer`][layoutwarp.sensor.SensorLayer] calls this before each forward pass.
+
+        Returns:
+            whether the parameters were changed.
+        """
+        return False
+
+    # -- files -----------------------------------------------------------------------
+    def to_config(self) -> dict[str, Any]:
+        """The JSON-able constructor arguments that rebuild this layout (see [`from_config`][])."""
+        return {"theta": [float(v) for v in self.theta_as(torch.float64).detach().cpu()], "bound": self.bound}
+
+    @classmethod
+    def from_config(
+        cls, config: dict[str, Any], *, learn: bool = False, dtype: torch.dtype | None = None
+    ) -> Layout:
+        """Rebuild a layout from [`to_config`][]'s dict (raises ``ValueError`` on bad values)."""
+        theta = config_numbers(config, "theta")
+        return cls(theta, bound=config.get("bound", 1.0), learn=learn, dtype=dtype)
+
+    # -- the map ---------------------------------------------------------------------
+    def phi(self, p: Tensor, theta: Tensor) -> Tensor:
+        """``φ(p, θ)`` for points ``(..., 2)``. Subclasses must implement this."""
+        raise NotImplementedError(f"{type(self).__name__} must implement phi(p, theta)")
+
+    def phi_inverse(self, q: Tensor, theta: Tensor) -> Tensor:
+        """``φ⁻¹(q, θ)``; generic fallback: [`newton_inverse`][]."""
+        return newton_inverse(self.phi, q, theta)
+
+    def phi_jacobian(self, p: Tensor, theta: Tensor) -> Tensor:
+        """``∂φ_i/∂p_j``, shape ``(..., 2, 2)``; generic fallback by autograd."""
+        with torch.enable_grad():
+            pp = p if p.requires_grad else p.detach().requires_grad_(True)
+            q = self.phi(pp, theta)
+            rows = [
+                torch.autograd.grad(q[..., i].sum(), pp, create_graph=True, allow_unused=True)[0]
+                for i in range(2)
+            ]
+        rows = [torch.zeros_like(p) if g is None else g for g in rows]
+        return torch.stack(rows, dim=-2)
+
+    def phi_jacobian_det(self, p: Tensor, theta: Tensor) -> Tensor:
+        """``det ∂φ/∂p``, shape ``(...)``: the local area scale (Monte Carlo weights); generic
+        fallback from [`phi_jacobian`][] in closed 2x2 form."""
+        j = self.phi_jacobian(p, theta)
+        return j[..., 0, 0] * j[..., 1, 1] - j[..., 0, 1] * j[..., 1, 0]
+
+    def phi_dtheta(self, p: Tensor, theta: Tensor) -> Tensor:
+        """``∂φ_i/∂θ_j``, shape ``(..., 2, P)``; generic fallback by autograd.
+
+        Each column is a Jacobian-vector product, computed as the derivative of a
+        vector-Jacobian product with respect to its (dummy) cotangent.
+        """
+        if theta.numel() == 0:
+            return p.new_zeros(*p.shape, 0)
+        with torch.enable_grad():
+            th = theta.detach().requires_grad_(True)
+            out = self.phi(p.detach(), th)
+            u = torch.zeros_like(out, requires_grad=True)
+            (vjp,) = torch.autograd.grad(out, th, u, create_graph=True, allow_unused=True)
+            if vjp is None or not vjp.requires_grad:  # φ does not depend on θ here
+                return out.new_zeros(*out.shape, theta.numel())
+            eye = torch.eye(theta.numel(), dtype=vjp.dtype, device=vjp.device)
+            cols = [torch.autograd.grad(vjp, u, e, retain_graph=True, allow_unused=True)[0] for e in eye]
+        return torch.stack([torch.zeros_like(out) if c is None else c for c in cols], dim=-1)
+
+    def edge_breakpoints(self, a: Tensor, b: Tensor, theta: Tensor | None = None) -> Tensor:
+        """Parameters ``t ∈ (0, 1)`` where φ is not smooth along the segments ``a + t (b − a)``.
+
+        Where the kinks move with θ (e.g. a learned fovea centre), the parameters are
+        differentiable in ``theta``, so that mesh vertices follow the kinks and θ-gradients stay
+        as accurate as values.
+
+        Args:
+            a: ``(E, 2)`` segment starts in uniform sensor coordinates.
+            b: ``(E, 2)`` segment ends.
+            theta: the θ the mesh is built for (default: the layout's own, without gradient).
+
+        Returns:
+            ``(E, K)`` parameters (NaN where there are fewer than ``K``); the mesh puts a
+            polyline vertex on each. Default: none (``K = 0``).
+        """
+        return a.new_zeros(a.shape[0], 0)
+
+    def forward(self, p: Tensor) -> Tensor:
+        """``φ(p, θ)`` for points ``p`` of shape ``(..., 2)``; differentiable in ``p`` and ``θ``.
+        Computed at the finer of the points' and the layout's precisions."""
+        check_points(p)
+        return self.phi(p, self._theta_for(p))
+
+    def inverse(self, q: Tensor) -> Tensor:
+        """``φ⁻¹(q, θ)`` for points ``q`` of shape ``(..., 2)``."""
+        check_points(q, "q")
+        return self.phi_inverse(q, self._theta_for(q))
+
+    def jacobian(self, p: Tensor) -> Tensor:
+        """Spatial Jacobian ``∂φ_i/∂p_j`` at ``p``, shape ``(..., 2, 2)``."""
+        check_points(p)
+        return self.phi_jacobian(p, self._theta_for(p))
+
+    def dtheta(self, p: Tensor) -> Tensor:
+        """Parameter derivative ``∂φ_i/∂θ_j`` at ``p``, shape ``(..., 2, P)``."""
+        check_points(p)
+        return self.phi_dtheta(p, self._theta_for(p))
+
+    @torch.no_grad()
+    def check_foldover(self, n: int = 401) -> FoldoverReport:
+        """Look for fold-overs: ``det J <= 0`` on an ``n × n`` grid of S (float64).
+
+        A valid layout is a bijection, so ``det J > 0`` everywhere (almost everywhere for
+        layouts with kinks). Use this to vet a user-written φ.
+        """
+        if n < 2:
+            raise ValueError(f"n must be >= 2, got {n}")
+        t = torch.linspace(-1, 1, n, dtype=torch.float64)
+        grid = torch.stack(torch.meshgrid(t, t, indexing="xy"), -1)
+        theta = self.theta_as(torch.float64).detach()
+        with torch.enable_grad():
+            jac = self.phi_jacobian(grid, theta).detach()
+        det = torch.linalg.det(jac)
+        k = int(torch.argmin(det))
+        worst = grid.reshape(-1, 2)[k]
+        return FoldoverReport(
+            min_det=float(det.min()),
+            num_nonpositive=int((det <= 0).sum()),
+            worst_point=(float(worst[0]), float(worst[1])),
+            grid=n,
+        )
+
+    def extra_repr(self) -> str:
+        th = ", ".join(f"{v:.4g}" for v in self.theta.detach().tolist())
+        return f"theta=({th}), bound={self.bound:g}, learn={self.learnable}"
+
+
+FAMILIES: dict[str, type[Layout]] = {}
+"""Every registered layout family by name: ``uniform``, ``rect``, ``curv``, ``fovea`` and
+``elliptic`` (this module), ``spline`` and ``grid`` (their modules, loaded with this one), and any
+a user adds with [`register_family`][]. Each family registers itself when its module loads, so
+the dict is filled on import (the source reads ``{}``)."""
+_L = TypeVar("_L", bound=type[Layout])
+
+
+def register_family(cls: _L) -> _L:
+    """Class decorator declaring a layout family under ``cls.family``.
+
+    Registration is what layout files, [`make_layout`][] and the command line's ``--family``
+    read, so a new family is added in one place.
+    """
+    if not (isinstance(cls, type) and issubclass(cls, Layout)) or cls.family in ("", "custom"):
+        raise TypeError(f"register_family needs a Layout subclass with its own 'family' name, got {cls!r}")
+    FAMILIES[cls.family] = cls
+    return cls
+
+
+def make_layout(family: str | Layout, theta: Sequence[float] | Tensor | None = None, **kwargs: Any) -> Layout:
+    """Build a layout of a registered family (see [`FAMILIES`][]) or pass a layout through.
+
+    Args:
+        family: a family name (``"uniform"``, ``"rect"``, ``"curv"``, ...) or a [`Layout`][].
+        theta: initial θ (``None``: zeros; the uniform layout takes ``None``, ``()`` or zeros).
+        **kwargs: ``bound``, ``learn`` (default ``False``), ``dtype``.
+
+    Examples:
+        >>> make_layout("rect", (0.3, -0.2)).theta
+        tensor([ 0.3000, -0.2000])
+        >>> make_layout("uniform", ()).family
+        'uniform'
+    """
+    if isinstance(family, Layout):
+        return family
+    cls = FAMILIES.get(str(family).lower())
+    if cls is None:
+        raise ValueError(f"family must be one of {', '.join(map(repr, FAMILIES))}; got {family!r}")
+    return cls(theta, **kwargs)
+
+
+def newton_inverse(
+    phi: Callable[[Tensor, Tensor], Tensor],
+    q: Tensor,
+    theta: Tensor,
+    *,
+    max_iter: int = 100,
+    tol: float = 1e-13,
+) -> Tensor:
+    """Invert a bijection ``φ(·, θ)`` of S at points ``q`` by damped Newton iteration.
+
+    Solved in float64 from the start point ``p = q`` with a backtracking line search on the
+    residual ``‖φ(p) − q‖`` and iterates kept inside S, which converges for the bi-Lipschitz
+    maps layouts are required to be. The converged point is returned with one Newton step
+    re-attached to the autograd graph, so gradients w.r.t. ``q`` and ``θ`` follow the
+    implicit-function theorem (``dp = J⁻¹ (dq − ∂φ/∂θ dθ)``).
+
+    Raises:
+        RuntimeError: if some point does not converge within ``max_iter`` iterations.
+    """
+
+    def jac(p: Tensor, th: Tensor) -> Tensor:
+        with torch.enable_grad():
+            pp = p.detach().requires_grad_(True)
+            out = phi(pp, th)
+            rows = [torch.autograd.grad(out[..., i].sum(), pp, retain_graph=i == 0)[0] for i in range(2)]
+        return torch.stack(rows, -2)
+
+    th64 = theta.detach().double()
+    q64 = q.detach().double()
+    p = q64.clone()
+    with torch.no_grad():
+        res = phi(p, th64) - q64
+        err = res.norm(dim=-1)
+        for _ in range(max_iter):
+            if bool((err <= tol).all()):
+                break
+            j = jac(p, th64)
+            step = torch.linalg.solve(j, res.unsqueeze(-1)).squeeze(-1)
+            lam = torch.ones_like(err)
+            for _ in range(30):  # backtracking: accept the first step that reduces ‖res‖
+                cand = (p - lam[..., None] * step).clamp(-1, 1)
+                cres = phi(cand, th64) - q64
+                cerr = cres.norm(dim=-1)
+                better = (cerr < err) | (err <= tol)
+                if bool(better.all()):
+                    break
+                lam = torch.where(better, lam, lam / 2)
+            accept = (cerr < err)[..., None]
+            p = torch.where(accept, cand, p)
+            res = torch.where(accept, cres, res)
+            err = res.norm(dim=-1)
+        if not bool((err <= max(tol, 1e-9)).all()):
+            bad = int((err > max(tol, 1e-9)).sum())
+            raise RuntimeError(
+                f"newton_inverse: {bad} point(s) did not converge in {max_iter} iterations "
+                f"(largest residual {float(err.max()):.3g}); is φ a bijection of S?"
+            )
+    p = p.to(q.dtype)
+    if not (q.requires_grad or theta.requires_grad):
+        return p
+    # Re-attach: p* − J⁻¹(φ(p*, θ) − q) equals p* in value and has the implicit gradient.
+    j = jac(p, theta.detach()).to(q.dtype)
+    r = phi(p, theta) - q
+    return p - torch.linalg.solve(j, r.unsqueeze(-1)).squeeze(-1)

@@ -1,0 +1,57 @@
+"""Counting what a call costs, for tests and benchmarks: torch operator calls and GPU launches,
+counted without a GPU.
+
+Not imported by the library; the tests bound a training step's operators and launches with
+these, and `layoutwarp.experiments.bench` reports them.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Callable
+
+from .kernels.device import LAUNCHES
+
+__all__ = ["NO_KERNEL_OPS", "count_launches", "count_ops"]
+
+
+def count_ops(fn: Callable[[], object]) -> int:
+    """The number of torch operator calls (``aten::`` events at the top level of the profiler's
+    tree) ``fn`` makes: how many kernel launches it would cost on a GPU."""
+    from torch.profiler import ProfilerActivity, profile
+
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        fn()
+    return sum(1 for e in prof.events() if e.name.startswith("aten::") and e.cpu_parent is None)
+
+
+#: aten operators that launch no GPU kernel: allocations (views are told by their schema).
+NO_KERNEL_OPS = frozenset(
+    "empty empty_like empty_strided new_empty new_empty_strided detach alias lift_fresh _unsafe_view".split()
+)
+
+
+def count_launches(fn: Callable[[], object]) -> Counter[str]:
+    """The GPU launches ``fn`` makes, counted without a GPU: every launch of a numba CUDA kernel
+    ([`LAUNCHES`][layoutwarp.kernels.device.LAUNCHES], by kernel name, ``numba:NAME``) and every
+    torch operator that runs a kernel or a copy on a device (``aten:NAME``; views and bare
+    allocations run none), including those of the backward; ``aten:_local_scalar_dense`` is a
+    host wait (a value read back). Run it where the device path runs: on a CUDA device, or on the
+    CPU under numba's CUDA simulator. The total is what the torch profiler's count of GPU
+    activities approximates (it adds cuBLAS's and cuSPARSE's inner kernels)."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    counts: Counter[str] = Counter()
+
+    class Ops(TorchDispatchMode):
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            name = func.overloadpacket.__name__
+            if not func.is_view and name.rstrip("_") not in NO_KERNEL_OPS:
+                counts[f"aten:{name}"] += 1
+            return func(*args, **(kwargs or {}))
+
+    before = Counter(LAUNCHES)
+    with Ops():
+        fn()
+    counts.update({f"numba:{k}": v for k, v in (LAUNCHES - before).items()})
+    return counts
