@@ -71,7 +71,7 @@ def backwarp(
             contains its centre; any dtype) or ``"bilinear"`` (smooth display of continuous
             outputs, sampled at ``φ⁻¹(q)`` with border padding; floating dtypes).
         index_method: how ``"nearest"`` finds each target's sensor pixel (see
-            [`sensor_index_maps`][]).
+            `sensor_index_maps`).
 
     Returns:
         ``(B, C, H, W)`` (or ``(B, H, W)``) with ``pred``'s dtype, on ``pred``'s device.

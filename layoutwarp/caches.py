@@ -32,8 +32,8 @@ __all__ = ["CACHES", "LRU", "ObjectMemo", "clear_caches", "tensor_token"]
 
 V = TypeVar("V")
 
-#: Every cache by name: the [`LRU`][]s of results and the [`ObjectMemo`][]s of keys.
 CACHES: dict[str, LRU | ObjectMemo] = {}
+"""Every cache by name: the [`LRU`][]s of results and the [`ObjectMemo`][]s of keys."""
 
 
 class LRU(Generic[V]):

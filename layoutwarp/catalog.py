@@ -1,6 +1,6 @@
 """What the command line lists before it imports anything heavy: the built-in layout families by
 name, and the two-parameter ones (the axes of a θ-landscape). The classes are in
-[`FAMILIES`][layoutwarp.FAMILIES], which also holds any family a user registers; tests check that
+[`FAMILIES`][layoutwarp.layouts.base.FAMILIES], which also holds any family a user registers; tests check that
 the names here are its built-in ones."""
 
 from __future__ import annotations

@@ -167,7 +167,7 @@ def warn_if_stretched(size: tuple[int, int], src_size: tuple[int, int]) -> None:
 
 
 #: Sensors needing less than this are not checked against the free memory (every call of
-#: [`simulate`][layoutwarp.simulate] checks its size: reading the system's numbers costs more than
+#: [`simulate`][layoutwarp.sensor.simulate] checks its size: reading the system's numbers costs more than
 #: a small fixed-layout forward).
 UNCHECKED_BYTES = 64 << 20
 

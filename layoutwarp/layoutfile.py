@@ -2,7 +2,7 @@
 
 A file holds ``format`` (``"layoutwarp.layout/2"``), ``family`` (a registered family, see
 [`register_family`][layoutwarp.layouts.register_family]), the family's constructor arguments
-([`to_config`][layoutwarp.layouts.Layout.to_config]: for the paper's families ``theta``, ``bound``,
+([`to_config`][layoutwarp.layouts.base.Layout.to_config]: for the paper's families ``theta``, ``bound``,
 ``center`` and ``learn_center``; for splines ``theta``, ``knots`` and ``kind``; for grids
 ``grid`` and ``control``), ``size_hw`` (optional sensor size ``[H, W]``), ``version`` (the
 package version that wrote it) and ``extra`` (anything JSON-able the writer adds, e.g. the

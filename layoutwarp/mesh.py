@@ -191,7 +191,8 @@ def smooth_pieces(
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Cut the uniform segments ``a → b`` (``(E, 2)``) where φ is not smooth along them.
 
-    The cuts are [`Layout.edge_breakpoints`][] for ``theta`` (e.g. the unit circle of
+    The cuts are [`Layout.edge_breakpoints`][layoutwarp.layouts.base.Layout.edge_breakpoints] for
+    ``theta`` (e.g. the unit circle of
     φ_curv; differentiable where they move with θ) and any ``extra`` parameters ``(E, K)``
     (NaN for none); cuts within ``1e-6`` of an end are dropped.
 
@@ -496,9 +497,9 @@ INNER = 1e-6
 #: Segments per chunk when the mesh's vertices are mapped (bounds φ's temporaries and its input).
 PHI_CHUNK = 1 << 16
 
-#: Meshes of fixed layouts of registered families, the last four used (see [`pixel_mesh`][] and
-#: [`layoutwarp.caches`][]).
 MESHES: LRU[PixelMesh] = LRU("meshes", 4)
+"""Meshes of fixed layouts of registered families, the last four used (see [`pixel_mesh`][] and
+[`layoutwarp.caches`][])."""
 
 
 def _cache_key(layout: Layout, size, tol, max_subdiv, dtype, theta: Tensor) -> tuple | None:
@@ -536,7 +537,8 @@ def pixel_mesh(
             integrators pass what the data needs
             ([`data_tolerance`][layoutwarp.integrators.data_tolerance]). ``None``:
             one segment per edge. Ignored for straight-edged layouts, which always use one
-            segment per straight piece (between the cuts of [`Layout.edge_breakpoints`][]).
+            segment per straight piece (between the cuts of
+            [`Layout.edge_breakpoints`][layoutwarp.layouts.base.Layout.edge_breakpoints]).
         max_subdiv: cap on segments per smooth piece of an edge. Where the cap binds (very
             fine ``tol`` with long, strongly curved edges: few large pixels, θ near ±1) the
             error can exceed ``tol``; raise it for such references.
@@ -546,7 +548,8 @@ def pixel_mesh(
             [`smooth_pieces`][] (e.g. [`distance_subdivisions`][]). Used for references
             (smooth in θ, for finite differences) and fabrication masks.
         dtype: vertex dtype (default: θ's dtype).
-        theta: use this θ instead of the layout's own (see [`Layout.resolve_theta`][]).
+        theta: use this θ instead of the layout's own (see
+            [`Layout.resolve_theta`][layoutwarp.layouts.base.Layout.resolve_theta]).
         cache: ``False``: a mesh this call builds is not kept (a kept one is still returned):
             for a caller that keeps what it derives from the mesh instead.
 

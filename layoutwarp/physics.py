@@ -451,7 +451,8 @@ def measure(
 
 def as_physics(physics: SensorPhysics | dict | None) -> SensorPhysics | None:
     """A camera given as a [`SensorPhysics`][], its dict ([`SensorPhysics.to_dict`][]) or
-    ``None``: the one rule of [`simulate`][layoutwarp.simulate] and [`SensorLayer`][layoutwarp.SensorLayer].
+    ``None``: the one rule of [`simulate`][layoutwarp.sensor.simulate] and
+    [`SensorLayer`][layoutwarp.sensor.SensorLayer].
 
     Raises:
         TypeError: anything else.

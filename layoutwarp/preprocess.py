@@ -415,7 +415,7 @@ def preprocess_folder(
         src: source folder (walked recursively; ``dst`` is skipped if it lies inside).
         dst: destination folder (created); a folder where the run would write over any file it
             reads (``src`` itself, or a folder whose outputs are source images or label maps) is
-            refused before anything is written ([`check_no_overwrite`][]).
+            refused before anything is written (`check_no_overwrite`).
         layout: the pixel layout (θ fixed).
         size: sensor size ``(h, w)``.
         labels: folder of class-index label maps with the same relative paths (a ``.png``

@@ -433,7 +433,8 @@ class SensorLayer(nn.Module):
     def forward(self, image: Tensor) -> Tensor:
         """``(B, C, H, W)`` image to ``(B, C, h, w)`` sensor image.
 
-        A learnable layout is first pulled back into its valid set ([`Layout.project_`][]:
+        A learnable layout is first pulled back into its valid set
+        ([`Layout.project_`][layoutwarp.layouts.base.Layout.project_]:
         a no-op for the paper's families, the fold guard of a
         [`GridLayout`][layoutwarp.layouts.grid.GridLayout]),
         so any training loop gets the guarded step.

@@ -101,7 +101,7 @@ def test_the_layout_key_follows_every_change_of_the_layout(gen):
     assert layout_key(learn) == fresh(learn) != before
     fixed = lw.CurvLayout((0.3, 0.2))
     before = layout_key(fixed)
-    fixed.register_buffer("rho", fixed.rho.clone() * 0.5)  # a new tensor, its version 0
+    fixed.register_buffer("fixed_theta", fixed.fixed_theta.clone() * 0.5)  # a new tensor, its version 0
     assert layout_key(fixed) == fresh(fixed) != before
     before = layout_key(fixed)
     fixed.bound = 0.9

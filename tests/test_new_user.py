@@ -247,3 +247,21 @@ def test_a_fixed_layouts_constants_stay_float64_through_dtype_changes():
     again = lw.CurvLayout()
     again.load_state_dict(state | {"rho": state["rho"].float()})  # an older float32 ρ loads too
     assert again.rho.dtype == torch.float64 and float(again.theta[0]) == pytest.approx(0.45, rel=1e-7)
+
+
+def test_a_fixed_layouts_theta_comes_back_to_the_bit(tmp_path, seed):
+    rng = np.random.default_rng(seed)
+    for theta in rng.uniform(-0.9, 0.9, (50, 2)).tolist():
+        layout = lw.CurvLayout(theta)
+        assert layout.theta_as(torch.float64).tolist() == theta  # atanh and tanh do not round-trip
+        again = lw.CurvLayout()
+        again.load_state_dict(layout.state_dict())
+        assert again.theta_as(torch.float64).tolist() == theta
+        lw.save_layout(layout, tmp_path / "l.json", (4, 4))
+        assert lw.load_layout(tmp_path / "l.json")[0].theta_as(torch.float64).tolist() == theta
+    learn = lw.CurvLayout((0.25, -0.2), learn=True)  # a learnable layout's state: θ as it computed it
+    with torch.no_grad():
+        learn.rho.add_(0.01)
+    fixed = lw.CurvLayout()
+    fixed.load_state_dict(learn.state_dict())
+    assert torch.equal(fixed.theta, learn.theta.detach())

@@ -2,8 +2,9 @@
 
 A model file (``torch.save`` of a plain dict, read with ``weights_only=True``) holds
 ``format`` (``"layoutwarp.model/1"``), ``task``, ``version`` (the package version that wrote
-it), ``layout`` (the family and [`to_config`][layoutwarp.layouts.Layout.to_config]), ``size_hw``, ``sensor``
-(the [`SensorLayer`][layoutwarp.sensor.SensorLayer] options), ``training`` (seed, epochs and the like) and
+it), ``layout`` (the family and [`to_config`][layoutwarp.layouts.base.Layout.to_config]),
+``size_hw``, ``sensor`` (the [`SensorLayer`][layoutwarp.sensor.SensorLayer] options),
+``training`` (seed, epochs and the like) and
 ``state_dict`` (the network's weights, the sensor's θ included). [`load_model`][] rebuilds
 the network of the file's task ([`TASKS`][layoutwarp.experiments.tasks.TASKS]) with the layout
 fixed, so scoring never changes it.

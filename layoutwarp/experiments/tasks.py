@@ -5,7 +5,7 @@ data is read and split, its network, its loss on a batch, its scores, its defaul
 ``--quick`` changes, and the plan of its pixel-budget study. Everything else (the training
 loop, run records, results files, model files, figures, the study and the command line) is
 written once and looks tasks up by name in [`TASKS`][], as layout families are looked up in
-[`FAMILIES`][layoutwarp.FAMILIES].
+[`FAMILIES`][layoutwarp.layouts.base.FAMILIES].
 
 A new task is its protocol, a [`TaskSpec`][layoutwarp.experiments.protocols.TaskSpec] in
 [`layoutwarp.experiments.protocols`][] (torch-free: the command line reads it before anything

@@ -148,10 +148,11 @@ class Layout(nn.Module):
         dtype: the layout's [`dtype`][]: that of θ and of what is computed from it (default: a
             tensor ``theta``'s own floating dtype, else torch's default).
 
-    A fixed layout keeps ``ρ`` (and its other constants, e.g. a centre) in float64 whatever its
-    dtype: they are a few numbers, and a float64 computation then gets the θ that was written,
-    not its float32 rounding, also after ``.float()``/``.double()``; those change the layout's
-    [`dtype`][] and move the constants without rounding them. [`theta_as`][] gives θ in any
+    A fixed layout keeps θ as it was given (``fixed_theta``), ``ρ`` and its other constants (e.g.
+    a centre) in float64 whatever its dtype: they are a few numbers, and a float64 computation
+    then gets the θ that was written, not its float32 rounding, also after ``.float()`` or
+    ``.double()``; those change the layout's [`dtype`][] and move the constants without rounding
+    them. [`theta_as`][] gives θ in any
     dtype; the methods that take points ([`forward`][], [`inverse`][], ...) compute at the
     points' precision when it is the finer one. A learnable layout's ``ρ`` is a parameter of its
     dtype, as every torch module's.
@@ -163,7 +164,7 @@ class Layout(nn.Module):
     straight_edges: ClassVar[bool] = False
     unbounded: ClassVar[bool] = False
     #: Buffers of a fixed layout's constants, held in float64 whatever the layout's dtype.
-    exact_buffers: ClassVar[tuple[str, ...]] = ("rho",)
+    exact_buffers: ClassVar[tuple[str, ...]] = ("rho", "fixed_theta")
 
     def __init__(
         self,
@@ -177,11 +178,14 @@ class Layout(nn.Module):
         self.bound = check_number(bound, "bound", 0, lo_open=True)
         self._bounds_on: dict[tuple[torch.device, torch.dtype], Tensor] = {}  # _bounds() where ρ lives
         self._dtype = dtype or tensor_dtype(theta)
-        rho = self._to_rho(self._validate_theta(theta, torch.float64))
-        if learn and self.num_params:
-            self.rho = nn.Parameter(rho.to(self._dtype))
-        else:
+        exact = self._validate_theta(theta, torch.float64)
+        rho = self._to_rho(exact)
+        self._keeps_theta = not (learn and self.num_params)
+        if self._keeps_theta:  # θ as it was set (atanh and tanh do not round-trip every float), and ρ
             self.register_buffer("rho", rho)
+            self.register_buffer("fixed_theta", exact.clone())  # never the caller's tensor
+        else:
+            self.rho = nn.Parameter(rho.to(self._dtype))
 
     @property
     def dtype(self) -> torch.dtype:
@@ -261,15 +265,33 @@ class Layout(nn.Module):
         return self.theta_as(self._dtype)
 
     def theta_as(self, dtype: torch.dtype) -> Tensor:
-        """θ in ``dtype`` (differentiable in ``ρ``): a fixed layout's from its float64 ``ρ``, so
-        ``theta_as(torch.float64)`` is the θ that was set to the last bit or two."""
+        """θ in ``dtype``: a fixed layout's as it was set (held in float64, so
+        ``theta_as(torch.float64)`` is exactly the θ given, a layout file's or ``set_theta``'s);
+        a learnable layout's from ``ρ``, differentiable."""
+        if self._keeps_theta and not self.rho.requires_grad:
+            return self.fixed_theta.to(dtype)
         return self._to_theta(self.rho).to(dtype)
 
     @torch.no_grad()
     def set_theta(self, theta: Sequence[float] | Tensor) -> None:
-        """Set ``θ`` in place (validated like the constructor)."""
+        """Set ``θ`` in place (validated like the constructor). A fixed layout's θ is set this
+        way (or by loading a state dict), not by writing to ``rho``."""
         t = self._validate_theta(theta, torch.float64)
         self.rho.copy_(self._to_rho(t).to(self.rho))
+        if self._keeps_theta:
+            self.fixed_theta.copy_(t)
+
+    def _load_from_state_dict(self, state_dict: dict[str, Any], prefix: str, *args: Any) -> None:
+        """As `nn.Module`'s, and a state dict with ``rho`` alone (a learnable layout's, or one
+        written before fixed layouts kept θ) sets a fixed layout's θ from it, as the layout that
+        wrote it computed θ (in ``ρ``'s dtype); a fixed layout's ``fixed_theta`` is left out where
+        ``ρ`` is learned."""
+        rho, kept = state_dict.get(prefix + "rho"), prefix + "fixed_theta"
+        if self._keeps_theta and kept not in state_dict and rho is not None:
+            state_dict[kept] = self._to_theta(rho.detach().cpu()).to(torch.float64)
+        elif not self._keeps_theta:
+            state_dict.pop(kept, None)
+        super()._load_from_state_dict(state_dict, prefix, *args)
 
     @property
     def learnable(self) -> bool:

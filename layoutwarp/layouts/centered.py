@@ -45,7 +45,7 @@ class CenteredLayout(Layout):
     """
 
     num_params: int | None = 2
-    exact_buffers: ClassVar[tuple[str, ...]] = ("rho", "fixed_center")
+    exact_buffers: ClassVar[tuple[str, ...]] = ("rho", "fixed_theta", "fixed_center")
 
     def __init__(
         self,
