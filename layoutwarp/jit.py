@@ -12,7 +12,10 @@ cut from it without slowing every later call. So by default no call waits for it
   call after the worker has compiled its group loads it from the cache in milliseconds and runs
   compiled from then on. A call whose result would differ beyond rounding (the sensor's noise
   draws: the compiled sampler and torch's are different streams) takes [`compiled`][]. The
-  worker finishes the cache even after its parent has ended, so the next process finds it warm.
+  worker compiles the groups of the dtype asked for; after its parent has ended it finishes the
+  group it is on, so the next process finds it in the cache, and ends. One worker fills a
+  cache: a process that finds another process's worker at work starts none and looks at the
+  cache every few seconds (back-to-back commands share the first one's).
   The sensor's noise is the one such call, and it does not wait long: while the worker has its
   group to do, it runs a *quick build* of its kernel ([`quick`][]: the same code compiled
   without numba's IR inlining, in seconds rather than half a minute, the same values to the bit,
@@ -35,6 +38,7 @@ from __future__ import annotations
 
 import contextlib
 import importlib
+import math
 import os
 import signal
 import subprocess
@@ -142,12 +146,14 @@ def ready(group: str, dtype: str | torch.dtype = "float32", wait: bool = False) 
         worker = _WORKER
         if worker is not None and worker.has(unit) and not wait and current == "background":
             return False  # still to compile: no need to look at the cache
+        if not wait and current == "background" and _looked_recently(unit):
+            return False  # another process's worker has it: looked at the cache a moment ago
         if unit not in _READY and _loads(unit):
             _READY.add(unit)
         if unit in _READY:
             return True
         if current == "background" and not wait and worker is None:
-            _start_worker(unit)
+            _start_worker(unit)  # unless another process's worker fills this cache
             return False
         if worker is not None and worker.current == unit and worker.has(unit):
             _announce(unit, "waiting for the background compile of")
@@ -200,7 +206,8 @@ def quick(kernel: Any) -> Any:
 def status() -> dict[str, str]:
     """Each group's state per dtype in this process (``"learn/float32"``: ...): ``"ready"``
     (loaded), ``"in cache"`` (compiled, not yet loaded), ``"compiling"`` (the background worker
-    has it to do), ``"not compiled"`` or ``"no numba"``."""
+    has it to do), ``"compiling elsewhere"`` (another process's worker, which fills this cache),
+    ``"not compiled"`` or ``"no numba"``."""
     out = {}
     for unit in UNITS:
         if not kernels.available():
@@ -209,6 +216,8 @@ def status() -> dict[str, str]:
             out[unit] = "ready"
         elif _WORKER is not None and _WORKER.has(unit):
             out[unit] = "compiling"
+        elif _looked_recently(unit):
+            out[unit] = "compiling elsewhere"
         else:
             out[unit] = "in cache" if _loads(unit) else "not compiled"
     return out
@@ -326,12 +335,15 @@ def register_warmup(group: str, fn: Callable[[torch.dtype], None]) -> None:
 class _Worker:
     """A ``python -m layoutwarp.jit`` process compiling the units it is sent, one a line on its
     stdin, and answering each on stdout; the next unit goes out as the last comes back (the
-    first asked for first, then the other groups of its dtype), so a process that needs a unit
-    the worker has not begun compiles it itself beside it ([`drop`][])."""
+    first asked for first, then the other groups of its dtype: the other dtype's wait until a
+    call needs them), so a process that needs a unit the worker has not begun compiles it itself
+    beside it ([`drop`][]). One worker serves a cache: it holds the cache's worker lock
+    ([`_worker_lock`][]) while it lives, and a process that finds it held starts none of its own
+    ([`_elsewhere`][])."""
 
-    def __init__(self, first: str) -> None:
+    def __init__(self, first: str, lock: Any) -> None:
         dtype = first.split("/")[1]
-        self.queue = sorted((u for u in UNITS if u != first), key=lambda u: not u.endswith(dtype))
+        self.queue = [u for u in UNITS if u != first and u.endswith(dtype)]
         self.done: set[str] = set()
         self.current = first
         self.changed = threading.Condition(_LOCK)
@@ -345,7 +357,10 @@ class _Worker:
             env={**os.environ, ENV: "wait", "OMP_NUM_THREADS": "1"},
             # in the parent's session: a session of its own gets a CPU share of its own (Linux's
             # autogroups) whatever its priority, and a torch-path step on 2 cores ran 50x slower
+            pass_fds=() if lock is None else (lock.fileno(),),  # the worker holds the lock now
         )
+        if lock is not None:
+            lock.close()  # ... and alone: it is released when the worker ends
         self._send(first)
         threading.Thread(target=self._read, daemon=True, name="layoutwarp-jit").start()
 
@@ -385,9 +400,33 @@ class _Worker:
 
 
 def _start_worker(unit: str) -> None:
+    """Start this process's worker on ``unit``, handing it the cache's worker lock; where another
+    process's worker holds the lock, start none ([`_elsewhere`][])."""
     global _WORKER
+    lock = _take_worker_lock()
+    if lock is False:
+        _elsewhere(unit)
+        return
     _announce(unit, "compiling in the background (the torch path answers meanwhile):")
-    _WORKER = _Worker(unit)
+    _WORKER = _Worker(unit, lock)
+
+
+#: How often a process whose cache another process's worker fills looks at the cache again (s).
+ELSEWHERE_LOOK_S = 2.0
+_LOOKED: dict[str, float] = {}  # unit: when this process last found it compiling elsewhere
+
+
+def _looked_recently(unit: str) -> bool:
+    """Whether this process found ``unit`` compiling elsewhere less than `ELSEWHERE_LOOK_S` ago."""
+    return time.monotonic() - _LOOKED.get(unit, -math.inf) < ELSEWHERE_LOOK_S
+
+
+def _elsewhere(unit: str) -> None:
+    """Note that another process's background worker fills this cache: this process answers
+    from the torch path, and [`ready`][] looks at the cache again every `ELSEWHERE_LOOK_S`
+    seconds rather than on every call (or starts a worker of its own once that one has ended)."""
+    _announce(unit, "waiting, on the torch path, for another process's background compile of")
+    _LOOKED[unit] = time.monotonic()
 
 
 def stop_worker() -> None:
@@ -409,6 +448,29 @@ def cache_folder() -> str | None:
     return getattr(getattr(kernels.prefix_tables, "_cache", None), "_cache_path", None)
 
 
+def _lock_path(name: str) -> str:
+    folder = cache_folder() or tempfile.gettempdir()
+    os.makedirs(folder, exist_ok=True)
+    return os.path.join(folder, f"layoutwarp-{name}.lock")
+
+
+def _take_worker_lock() -> Any:
+    """The cache's background-worker lock, taken if free: an open file holding it (handed to the
+    worker, which holds it while it lives), ``False`` where another process's worker holds it,
+    ``None`` where there are no such locks (not POSIX: every process may start its own)."""
+    try:
+        import fcntl
+    except ImportError:
+        return None
+    handle = open(_lock_path("worker"), "w")  # handed on to the worker; closed here after
+    try:
+        fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        handle.close()
+        return False
+    return handle
+
+
 @contextlib.contextmanager
 def _unit_lock(unit: str) -> Iterator[None]:
     """Held while a worker compiles ``unit``: the workers of several processes on one cache (the
@@ -418,16 +480,16 @@ def _unit_lock(unit: str) -> Iterator[None]:
     except ImportError:  # not POSIX: no lock, at worst the same unit compiled twice
         yield
         return
-    folder = cache_folder() or tempfile.gettempdir()
-    os.makedirs(folder, exist_ok=True)
-    with open(os.path.join(folder, f"layoutwarp-{unit.replace('/', '-')}.lock"), "w") as handle:
+    with open(_lock_path(unit.replace("/", "-")), "w") as handle:
         fcntl.flock(handle, fcntl.LOCK_EX)
         yield
 
 
 def serve() -> None:
-    """The background worker's loop: compile each unit named on stdin, answer ``done UNIT``. It
-    ignores Ctrl-C (meant for its parent) and finishes the cache after its parent has ended."""
+    """The background worker's loop: compile each unit named on stdin, answer ``done UNIT``, and
+    end when stdin does (its parent sends no more, or has ended: the unit at hand is finished).
+    It holds the cache's worker lock its parent handed it, ignores Ctrl-C (meant for its parent)
+    and runs only on cores nobody else wants."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     with contextlib.suppress(OSError, AttributeError):  # the user's own work comes first: this
         os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))  # runs on cores nobody wants

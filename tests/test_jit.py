@@ -388,3 +388,34 @@ def test_the_first_cuda_compile_says_so_once(tmp_path):
     lines = [line for line in res.stderr.splitlines() if line.startswith("layoutwarp:")]
     assert lines == ["layoutwarp: compiling the CUDA kernels for this GPU (seconds; once per installation; "
                      "see layoutwarp doctor)"]  # fmt: skip
+
+
+def test_back_to_back_processes_share_one_background_worker(tmp_path):
+    """A process that finds another process's worker filling the cache starts none of its own
+    (three commands in a row once left three compiling side by side): it answers from the torch
+    path, says so once, and its status says where the compile runs."""
+    code = """
+        import sys, time, torch, layoutwarp as lw
+        from layoutwarp import jit
+        with torch.no_grad():
+            out = lw.simulate(torch.ones(1, 1, 20, 20), lw.CurvLayout((0.3, 0.1)), (4, 4))
+        print("worker" if jit._WORKER is not None else "none", jit.status()["fixed/float32"],
+              round(float(out.mean()), 6), flush=True)
+        sys.stdin.readline()  # the first process stays, its worker with it, until told
+        jit.stop_worker()
+    """
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache"), jit.ENV: "background"}
+    cmd = [sys.executable, "-c", textwrap.dedent(code)]
+    first = subprocess.Popen(
+        cmd, env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
+    try:
+        assert first.stdout.readline().split() == ["worker", "compiling", "1.0"]
+        second = subprocess.run(cmd, env=env, input="\n", capture_output=True, text=True, timeout=300)
+        assert second.returncode == 0, second.stderr[-3000:]
+        assert second.stdout.split() == ["none", "compiling", "elsewhere", "1.0"]
+        notices = [line for line in second.stderr.splitlines() if line.startswith("layoutwarp:")]
+        assert len(notices) == 1 and "another process's background compile" in notices[0], notices
+    finally:
+        first.communicate("\n", timeout=300)
+    assert first.returncode == 0
