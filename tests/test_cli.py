@@ -477,3 +477,23 @@ def test_the_torch_free_catalogues_are_the_registered_tasks_and_families():
     two = [n for n, cls in lw.FAMILIES.items() if cls.num_params == 2 and cls().num_params == 2]
     assert list(TWO_PARAMETER_FAMILIES) == two
     assert UINT8_TOLERANCE == data_tolerance(np.uint8)[0]
+
+
+def test_the_decoders_lines_are_kept_off_and_everything_else_passes_as_it_comes(capfd):
+    import os
+    import time
+
+    from layoutwarp.cli.common import quiet_decoders
+
+    with quiet_decoders() as dropped:
+        os.write(2, b"\rbar 1/3")  # a progress bar's partial line: shown after a moment
+        time.sleep(0.3)
+        os.write(2, b"\rbar 2/3]libpng error: IDAT: CRC error\n")  # a library's line after the bar
+        os.write(2, b"[ WARN:0@1.2] global loadsave.cpp (1) imread_ x\nour own line\n")
+        os.write(2, b"Corrupt JPEG data: 2 extraneous bytes before marker 0xd9\n\rbar 3/3]\n")
+    assert capfd.readouterr().err == "\rbar 1/3\rbar 2/3]our own line\n\rbar 3/3]\n"
+    assert dropped == [
+        "libpng error: IDAT: CRC error",
+        "[ WARN:0@1.2] global loadsave.cpp (1) imread_ x",
+        "Corrupt JPEG data: 2 extraneous bytes before marker 0xd9",
+    ]

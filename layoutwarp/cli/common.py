@@ -382,11 +382,13 @@ def physics_from_args(args: argparse.Namespace, extent: tuple[float, float] | No
 # ----------------------------------------------------------------------------------------
 # The image decoders' own lines
 # ----------------------------------------------------------------------------------------
-#: How the lines of the image libraries under OpenCV start (libpng, libjpeg, libtiff, OpenCV's log):
-#: they write to the process's stderr themselves, whatever Python does with ``sys.stderr``.
+#: A line of the image libraries under OpenCV (libpng, libjpeg, libtiff, OpenCV's log): they write
+#: to the process's stderr themselves, whatever Python does with ``sys.stderr``, and a message
+#: may follow a progress bar's text on its line.
 DECODER_LINE = re.compile(
-    rb"^(libpng (error|warning)|Corrupt JPEG data|Premature end of JPEG|Invalid SOS|Bogus |JPEG datastream|"
-    rb"Not a JPEG file|Unsupported JPEG|Warning: unknown JFIF|TIFF\w*: |\[ ?(WARN|ERROR|INFO|DEBUG):)"
+    rb"(libpng (error|warning)|Corrupt JPEG data|Premature end of JPEG|Invalid SOS|Bogus |"
+    rb"JPEG datastream|Not a JPEG file|Unsupported JPEG|Warning: unknown JFIF|TIFF\w*: |"
+    rb"\[ ?(WARN|ERROR|INFO|DEBUG):)[^\n]*\n?"
 )
 
 
@@ -409,8 +411,12 @@ def quiet_decoders() -> Iterator[list[str]]:
         yield []
         return
     dropped: list[str] = []
-    mark = b"\x00layoutwarp-stderr-mark\n"
+    mark = b"\x00layoutwarp-stderr-mark\n"  # a line no library writes
     marked = threading.Event()
+
+    def drop(match: re.Match) -> bytes:
+        dropped.append(match.group().decode(errors="replace").strip())
+        return b""
 
     def forward() -> None:
         pending = b""
@@ -420,17 +426,15 @@ def quiet_decoders() -> Iterator[list[str]]:
             if ready and not chunk:  # the last writer has gone
                 break
             *lines, pending = re.split(rb"(?<=[\n\r])", pending + chunk)
-            if pending and not chunk and not pending.startswith((b"lib", b"[", b"Corrupt", b"Premature")):
-                lines.append(pending)  # a partial line that waited 0.1 s (a prompt, a bar)
-                pending = b""
+            if pending and not chunk and not DECODER_LINE.search(pending):
+                lines.append(pending)  # a partial line that waited 0.1 s (a prompt, a bar); a
+                pending = b""  # library's message (one write, whole) waits for its line's end
             for line in lines:
                 if line == mark:
                     marked.set()
-                elif DECODER_LINE.match(line):
-                    dropped.append(line.decode(errors="replace").strip())
-                elif line:
+                elif line := DECODER_LINE.sub(drop, line):
                     os.write(terminal, line)
-        if pending and not DECODER_LINE.match(pending):
+        if pending := DECODER_LINE.sub(drop, pending):
             os.write(terminal, pending)
         os.close(read_end)
         os.close(terminal)

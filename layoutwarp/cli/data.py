@@ -53,6 +53,7 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
         with tempfile.TemporaryDirectory() as tmp:
             base = preprocess_baseline(files, size, tmp)
     physics, device = physics_from_args(args), pick_device(args.device)
+    progress = not args.no_progress and sys.stderr.isatty()  # asked now: stderr is a pipe within
     with quiet_decoders() as decoder_lines:  # a broken file is reported once, as a failure
         res = preprocess_folder(
             args.src,
@@ -63,7 +64,7 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
             label_rule=args.label_rule or "nearest",
             workers=args.workers,
             tol=args.tol,
-            progress=False if args.no_progress else None,
+            progress=progress,
             engine=args.engine,
             address=args.address,
             device=device,
