@@ -22,21 +22,27 @@ from torch import Tensor
 __all__ = [
     "ASPECT_TOLERANCE",
     "BYTES_PER_SENSOR_PIXEL",
+    "MAX_EXTENT_UM",
     "UNCHECKED_BYTES",
     "ArgumentError",
     "all_finite",
     "available_bytes",
     "check_available",
+    "check_bool",
     "check_choice",
     "check_device",
     "check_extent",
+    "check_float_dtype",
+    "check_generator",
     "check_int",
+    "check_layout",
     "check_memory",
     "check_number",
     "check_points",
     "check_shape",
     "check_size",
     "check_tensor",
+    "check_type",
     "floating_dtype",
     "raise_nonfinite",
     "warn_if_elsewhere",
@@ -210,7 +216,7 @@ def _gib(n: float) -> str:
 
 
 def check_extent(sensor_um: Any, name: str = "sensor_um") -> tuple[float, float]:
-    """A physical extent ``(H_um, W_um)``: two finite sizes > 0 in µm, as floats.
+    """A physical extent ``(H_um, W_um)``: two sizes in ``(0, MAX_EXTENT_UM]`` µm, as floats.
 
     Examples:
         >>> check_extent((4200, 5600))
@@ -222,9 +228,13 @@ def check_extent(sensor_um: Any, name: str = "sensor_um") -> tuple[float, float]
         raise ArgumentError(
             name, f"{name} must be (H_um, W_um), two positive sizes in µm, got {sensor_um!r}"
         ) from None
-    return check_number(hu, f"{name}[0] (height)", 0, lo_open=True), check_number(
-        wu, f"{name}[1] (width)", 0, lo_open=True
+    return check_number(hu, f"{name}[0] (height)", 0, MAX_EXTENT_UM, lo_open=True), check_number(
+        wu, f"{name}[1] (width)", 0, MAX_EXTENT_UM, lo_open=True
     )
+
+
+#: The largest extent [`check_extent`][] takes, in µm (a kilometre: areas stay finite in float64).
+MAX_EXTENT_UM = 1e9
 
 
 def check_choice(value: Any, choices: Iterable[Any], name: str) -> Any:
@@ -327,7 +337,58 @@ def check_device(device: Any, name: str = "device") -> torch.device:
         raise ArgumentError(
             _argument(name), f"{name} {str(dev)!r} asked for, but no CUDA GPU is available here"
         )
+    if dev.type == "meta":
+        raise ArgumentError(
+            _argument(name), f"{name} 'meta' holds no data to compute on; use cpu or cuda, got {device!r}"
+        )
     return dev
+
+
+def check_bool(value: Any, name: str) -> bool:
+    """``value`` if it is a bool (numpy's too); ``ArgumentError`` otherwise (a string such as
+    ``"no"`` would count as true)."""
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    raise ArgumentError(_argument(name), f"{name} must be True or False, got {value!r}")
+
+
+def check_float_dtype(dtype: Any, name: str = "dtype") -> torch.dtype:
+    """``dtype`` if it is a floating-point ``torch.dtype``; ``ArgumentError`` otherwise (an
+    integer dtype would truncate θ to zero)."""
+    if isinstance(dtype, torch.dtype) and dtype.is_floating_point:
+        return dtype
+    raise ArgumentError(
+        _argument(name), f"{name} must be a floating-point torch.dtype (e.g. torch.float64), got {dtype!r}"
+    )
+
+
+def check_type(value: Any, kind: type | tuple[type, ...], name: str, what: str) -> Any:
+    """``value`` if it is an instance of ``kind``; ``TypeError`` naming ``what`` was expected."""
+    if isinstance(value, kind):
+        return value
+    raise ArgumentError(_argument(name), f"{name} must be {what}, got {type(value).__name__}: {value!r:.60}")
+
+
+def check_layout(layout: Any, name: str = "layout") -> Any:
+    """``layout`` if it is a layoutwarp [`Layout`][layoutwarp.layouts.base.Layout] (a family name
+    or anything else is refused, naming what to pass)."""
+    from .layouts import Layout
+
+    if isinstance(layout, Layout):
+        return layout
+    hint = f" (make one with make_layout({layout!r}, theta))" if isinstance(layout, str) else ""
+    raise ArgumentError(
+        _argument(name), f"{name} must be a layoutwarp Layout{hint}, got {type(layout).__name__}"
+    )
+
+
+def check_generator(generator: Any, name: str = "generator") -> torch.Generator | None:
+    """``generator`` if it is a ``torch.Generator`` or ``None``."""
+    if generator is None or isinstance(generator, torch.Generator):
+        return generator
+    raise ArgumentError(
+        _argument(name), f"{name} must be a torch.Generator or None, got {type(generator).__name__}"
+    )
 
 
 def check_tensor(x: Any, name: str) -> Tensor:

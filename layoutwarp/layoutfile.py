@@ -22,6 +22,7 @@ from typing import Any
 import torch
 
 from .caches import ObjectMemo
+from .checks import ArgumentError, check_layout, check_size
 from .files import atomic_write
 from .layouts import FAMILIES, Layout
 from .version import __version__
@@ -94,6 +95,8 @@ def layout_from_spec(
             f"unknown layout family {family!r}; expected one of {', '.join(map(repr, FAMILIES))}"
         )
     config = {k: v for k, v in spec.items() if k not in _RESERVED}
+    if cls.num_params != 0 and "theta" not in config:  # absent, θ would be 0: the uniform layout
+        raise ValueError(f"a {family!r} layout needs its 'theta'; the description has none")
     try:
         return cls.from_config(config, learn=learn, dtype=dtype)
     except TypeError as exc:
@@ -123,11 +126,23 @@ def save_layout(layout: Layout, path: str | Path, size: tuple[int, int] | None =
     """Write ``layout`` (family, its parameters, optional sensor size ``(H, W)``) to a JSON file.
 
     The file is written atomically (a temporary file renamed into place). Extra keyword
-    values (JSON-serialisable) are stored under ``"extra"``.
+    values (JSON-serialisable, finite numbers) are stored under ``"extra"``.
+
+    Raises:
+        ValueError: a ``layout`` that is not a Layout, a bad ``size``, or ``extra`` values that
+            JSON cannot hold (NaN, infinities, objects), before anything is written.
     """
+    check_layout(layout)
+    size = check_size(size) if size is not None else None
     data: dict[str, Any] = {"format": FORMAT, **layout_spec(layout)}
     data |= {"size_hw": list(size) if size is not None else None, "version": __version__, "extra": extra}
-    return atomic_write(path, json.dumps(data, indent=2))
+    try:
+        text = json.dumps(data, indent=2, allow_nan=False)
+    except (TypeError, ValueError) as exc:
+        raise ArgumentError(
+            "extra", f"extra values must be JSON numbers, text, lists or dicts ({exc})"
+        ) from None
+    return atomic_write(path, text)
 
 
 def load_layout(

@@ -100,7 +100,7 @@ _RANGES = {
     "dark_e_per_um2": (0, None, False, False),
     "gain_dn_per_e": (0, None, True, False),
     "black_level_dn": (0, None, False, False),
-    "prnu": (0, None, False, False),
+    "prnu": (0, 1, False, False),
     "dsnu": (0, None, False, False),
     "f_number": (0, None, True, False),
     "wavelength_um": (0, None, True, False),
@@ -181,6 +181,7 @@ class SensorPhysics:
             object.__setattr__(self, name, check_int(getattr(self, name), name, lo, hi, optional=optional))
         if self.psf is not None:
             check_choice(self.psf, PSFS, "psf")
+            _check_psf_width(self)
         check_choice(self.noise, NOISE, "noise")
 
     # -- files ---------------------------------------------------------------------
@@ -214,7 +215,15 @@ class SensorPhysics:
     @classmethod
     def from_json(cls, text: str) -> SensorPhysics:
         """Rebuild from [`to_json`][]'s text (``ValueError`` for text that is not JSON)."""
-        return cls.from_dict(json.loads(text))
+        try:
+            values = json.loads(text)
+        except (TypeError, json.JSONDecodeError) as exc:
+            raise ArgumentError(
+                "text", f"sensor physics must be JSON text (SensorPhysics.to_json), {exc}"
+            ) from None
+        if not isinstance(values, dict):
+            raise ArgumentError("text", f"sensor physics must be a JSON object, got {type(values).__name__}")
+        return cls.from_dict(values)
 
     # -- derived -------------------------------------------------------------------
     def um2_per_unit(self) -> float:
@@ -285,16 +294,41 @@ def _psf_kernels(physics: SensorPhysics, src_size: tuple[int, int]) -> dict[str,
     return k
 
 
+def _airy_radius_um(physics: SensorPhysics) -> float:
+    """The radius (µm) that holds ``psf_energy`` of the Airy pattern's energy."""
+    return _airy_x(physics.psf_energy) * physics.wavelength_um * physics.f_number / math.pi
+
+
+@functools.lru_cache(maxsize=8)
+def _airy_x(energy: float) -> float:
+    """Where the Airy pattern's encircled energy ``1 − J0(x)² − J1(x)²`` reaches ``energy``."""
+    x = torch.linspace(1e-6, 400, 400_001, dtype=torch.float64)
+    enc = 1 - torch.special.bessel_j0(x) ** 2 - torch.special.bessel_j1(x) ** 2
+    reached = torch.nonzero(enc >= energy)
+    # beyond the grid, the rings' energy falls as 1 − E(x) ≈ 2 / (π x)
+    return float(x[int(reached[0])]) if len(reached) else 2 / (math.pi * (1 - energy))
+
+
+def _check_psf_width(physics: SensorPhysics) -> None:
+    """Refuse a PSF whose kernel reaches beyond the whole sensor (a point would blur over more
+    than the image: its kernel alone could need terabytes), naming the field that set it."""
+    if physics.psf == "gaussian":
+        radius, field = 4 * physics.psf_sigma(), "psf_sigma_um" if physics.psf_sigma_um else "f_number"
+    else:
+        radius, field = _airy_radius_um(physics), "f_number"
+    extent = max(physics.sensor_um)
+    if radius > extent:
+        raise ArgumentError(
+            field,
+            f"{field} {getattr(physics, field):g} makes the {physics.psf} PSF {radius:.4g} µm in radius, "
+            f"wider than the whole sensor ({extent:g} µm): a point would blur over more than the image",
+        )
+
+
 def _airy_kernel(physics: SensorPhysics, py: float, px: float) -> np.ndarray:
     """The Airy pattern averaged over source pixels of pitch ``(py, px)`` µm, truncated at the
     radius holding ``psf_energy`` of its energy, summing to 1."""
-    lam_n = physics.wavelength_um * physics.f_number
-    x = torch.linspace(1e-6, 400, 400_001, dtype=torch.float64)
-    enc = 1 - torch.special.bessel_j0(x) ** 2 - torch.special.bessel_j1(x) ** 2
-    reached = torch.nonzero(enc >= physics.psf_energy)
-    # beyond the grid, the rings' energy falls as 1 − E(x) ≈ 2 / (π x)
-    x_max = float(x[int(reached[0])]) if len(reached) else 2 / (math.pi * (1 - physics.psf_energy))
-    r_um = x_max * lam_n / math.pi
+    r_um = _airy_radius_um(physics)
     ry, rx = max(1, math.ceil(r_um / py)), max(1, math.ceil(r_um / px))
     sub = 8
     oy = (torch.arange(-ry * sub, (ry + 1) * sub, dtype=torch.float64) + 0.5) / sub - 0.5

@@ -13,7 +13,9 @@ from torch import Tensor, nn
 from .checks import (
     ArgumentError,
     all_finite,
+    check_bool,
     check_choice,
+    check_generator,
     check_int,
     check_memory,
     check_number,
@@ -214,6 +216,12 @@ def simulate(
     check_memory(size)
     if not isinstance(layout, Layout):
         raise TypeError(f"layout must be a layoutwarp Layout, got {type(layout).__name__}")
+    allow_nonfinite, return_plan = (
+        check_bool(allow_nonfinite, "allow_nonfinite"),
+        check_bool(return_plan, "return_plan"),
+    )
+    generator = check_generator(generator)
+    seed = check_int(seed, "seed", 0, optional=True)
     is_callable = callable(image) and not isinstance(image, Tensor)
     dtype = image.dtype if isinstance(image, Tensor) else torch.float32
     plan = plan_simulation(

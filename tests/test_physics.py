@@ -46,10 +46,16 @@ CAMERA = {
         ("fill_factor", 0.0, "fill_factor must be a finite number in (0, 1], got 0.0"),
         ("quantum_efficiency", 0.0, "quantum_efficiency must be a finite number in (0, 1]"),
         ("read_noise_e", -0.1, "read_noise_e must be a finite number >= 0"),
-        ("prnu", float("inf"), "prnu must be a finite number >= 0, got inf"),
+        ("prnu", float("inf"), "prnu must be a finite number in [0, 1], got inf"),
+        ("prnu", 5, "prnu must be a finite number in [0, 1], got 5"),
         ("psf", "bessel", "psf must be one of 'gaussian', 'airy'; got 'bessel'"),
         ("adc_bits", 0, "adc_bits must be an integer in [1, 32] or None, got 0"),
-        ("sensor_um", (10.0, -2.0), "sensor_um[1] (width) must be a finite number > 0, got -2.0"),
+        ("sensor_um", (10.0, -2.0), "sensor_um[1] (width) must be a finite number in (0, 1e+09], got -2.0"),
+        (
+            "sensor_um",
+            (1e300, 2.0),
+            "sensor_um[0] (height) must be a finite number in (0, 1e+09], got 1e+300",
+        ),
         ("noise", "shot", "noise must be one of 'auto', 'poisson', 'gaussian', 'none'; got 'shot'"),
         ("seed", -3, "seed must be an integer >= 0 or None, got -3"),
         ("seed", 2.0, "seed must be an integer >= 0 or None, got 2.0"),
@@ -925,3 +931,15 @@ def test_the_measurement_on_cuda_draws_the_cpus_noise(gen):
     for a, b in ((gpu, cpu), (alone, alone_cpu)):
         assert float((a == b).double().mean()) >= 0.99
         assert float((a - b).abs().max()) <= 4.0
+
+
+def test_a_psf_wider_than_the_sensor_is_refused_before_its_kernel_is_built():
+    # f/1e9 made an Airy kernel of 220 GB: refused at once, naming the field that set its width
+    for kwargs, field in (
+        ({"psf": "airy", "f_number": 1e9}, "f_number"),
+        ({"psf": "gaussian", "psf_sigma_um": 50.0}, "psf_sigma_um"),
+    ):
+        with pytest.raises(ArgumentError, match=f"^{field} .* wider than the whole sensor") as info:
+            physics(**kwargs)
+        assert info.value.argument == field
+    assert physics(psf="airy", f_number=5.6).psf == "airy"

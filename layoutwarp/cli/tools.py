@@ -16,6 +16,7 @@ from .common import (
     pick_device,
     positive_float,
     positive_int,
+    quiet_decoders,
 )
 
 __all__ = ["add_commands"]
@@ -28,6 +29,13 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     image = Path(args.image) if args.image else samples_dir() / "photos" / "kodim20.png"
     if not image.is_file():
         raise UsageError(f"argument --image: no such file {str(image)!r}")
+    from ..preprocess import read_image
+
+    try:
+        with quiet_decoders():  # a broken file is named once, in our words
+            read_image(image)
+    except ValueError as exc:
+        raise UsageError(f"argument --image: cannot read {str(image)!r}: {exc}") from None
     check_sensor_memory(args.size)
     out_dir(args.out)
     numbers = run_demo(image, args.out, args.size, args.theta, args.tol)
@@ -94,7 +102,7 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     """The ``demo``, ``doctor`` and ``bench`` commands' parsers."""
     d = add_command(sub, "demo", "Simulate the layout families on a photo and write figures and numbers.")
     d.add_argument("--image", help="an image file (default: the bundled kodim20 photo)")
-    d.add_argument("--size", type=parse_wxh, default="32x24", help="sensor WIDTHxHEIGHT")
+    d.add_argument("--size", type=parse_wxh, default="32x32", help="sensor WIDTHxHEIGHT")
     d.add_argument("--theta", type=parse_theta, default="0.5,0.5", help="θ as TX,TY")
     d.add_argument(
         "--tol",

@@ -10,14 +10,28 @@ import cv2
 import numpy as np
 import torch
 
+from ..checks import warn_if_stretched
 from ..density import edge_density, layout_from_density
 from ..files import atomic_write
 from ..layouts import CurvLayout, RectLayout, UniformLayout
 from ..mesh import pixel_mesh
+from ..preprocess import read_image
 from ..sensor import simulate
 from .plots import layout_figure
 
-__all__ = ["run_demo"]
+__all__ = ["photo_tensor", "run_demo"]
+
+
+def photo_tensor(arr: np.ndarray) -> torch.Tensor:
+    """An image as OpenCV decodes it (gray, BGR or BGRA; 8/16-bit or float) as ``(1, 3, H, W)``
+    RGB: uint8 as it is, other depths as float32 in [0, 1] (float images as they are)."""
+    if arr.ndim == 2:
+        arr = cv2.cvtColor(arr, cv2.COLOR_GRAY2BGR)
+    rgb = cv2.cvtColor(arr[..., :3], cv2.COLOR_BGR2RGB)
+    if rgb.dtype != np.uint8:
+        scale = np.iinfo(rgb.dtype).max if np.issubdtype(rgb.dtype, np.integer) else 1.0
+        rgb = rgb.astype(np.float32) / scale
+    return torch.from_numpy(np.ascontiguousarray(rgb)).permute(2, 0, 1)[None]
 
 
 def run_demo(
@@ -34,13 +48,10 @@ def run_demo(
         the numbers written to ``demo.json`` (per layout: method, error bound, seconds, the
         ratio of the largest to the smallest pixel area).
     """
+    img = photo_tensor(read_image(Path(image)))  # refuses a file cut short, in our words
+    warn_if_stretched(size, tuple(img.shape[-2:]))
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    bgr = cv2.imread(str(image), cv2.IMREAD_COLOR)
-    if bgr is None:
-        raise ValueError(f"cannot read image {image}")
-    rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
-    img = torch.from_numpy(rgb).permute(2, 0, 1)[None]
     tx, ty = theta
     layouts = {
         "uniform": UniformLayout(),
@@ -71,6 +82,11 @@ def run_demo(
             str(out / f"sensor_{name.split()[0]}.png"),
             cv2.cvtColor((np.clip(arr, 0, 1) * 255).round().astype(np.uint8), cv2.COLOR_RGB2BGR),
         )
-    layout_figure(rgb / 255.0, panels, size, out / "layouts.png")
+    layout_figure(
+        img[0].permute(1, 2, 0).float().numpy() / (255.0 if img.dtype == torch.uint8 else 1.0),
+        panels,
+        size,
+        out / "layouts.png",
+    )
     atomic_write(out / "demo.json", json.dumps(numbers, indent=2))
     return numbers

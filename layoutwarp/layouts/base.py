@@ -15,7 +15,7 @@ from typing import Any, ClassVar, TypeVar
 import torch
 from torch import Tensor, nn
 
-from ..checks import ArgumentError, check_number, check_points
+from ..checks import ArgumentError, check_bool, check_float_dtype, check_number, check_points
 
 __all__ = [
     "FAMILIES",
@@ -143,7 +143,7 @@ class Layout(nn.Module):
     Args:
         theta: initial ``θ`` (length ``num_params``), each in ``(-bound, bound)``; a family
             without parameters accepts ``None``, ``()`` or zeros.
-        bound: the open bound on ``|θ|`` (the paper uses 1).
+        bound: the open bound on ``|θ|``, in ``(0, 1]`` (the paper uses 1).
         learn: make ``ρ`` a trainable parameter (default ``False``: a buffer, fixed layout).
         dtype: the layout's [`dtype`][]: that of θ and of what is computed from it (default: a
             tensor ``theta``'s own floating dtype, else torch's default).
@@ -175,9 +175,11 @@ class Layout(nn.Module):
         dtype: torch.dtype | None = None,
     ) -> None:
         super().__init__()
-        self.bound = check_number(bound, "bound", 0, lo_open=True)
+        # |θ| < 1 keeps every built-in family a bijection (θ = ±1 folds the sensor onto a point)
+        self.bound = check_number(bound, "bound", 0, 1, lo_open=True)
         self._bounds_on: dict[tuple[torch.device, torch.dtype], Tensor] = {}  # _bounds() where ρ lives
-        self._dtype = dtype or tensor_dtype(theta)
+        self._dtype = check_float_dtype(dtype) if dtype is not None else tensor_dtype(theta)
+        learn = check_bool(learn, "learn")
         exact = self._validate_theta(theta, torch.float64)
         rho = self._to_rho(exact)
         self._keeps_theta = not (learn and self.num_params)
@@ -241,10 +243,13 @@ class Layout(nn.Module):
         n = self.num_params or 0
         if theta is None:
             return torch.zeros(n, dtype=dtype)
+        what = f"{n} numbers (θ_x, θ_y)" if n == 2 else f"{n} numbers" if n else "empty or zeros"
         try:
-            t = torch.as_tensor(theta, dtype=torch.float64).detach().flatten().cpu()
+            raw = torch.as_tensor(theta)
+            if raw.is_complex() or raw.dtype == torch.bool or raw.ndim > 1:
+                raise TypeError
+            t = raw.to(torch.float64).detach().flatten().cpu()
         except (TypeError, ValueError, RuntimeError):
-            what = f"{n} numbers (θ_x, θ_y)" if n == 2 else f"{n} numbers" if n else "empty or zeros"
             raise ArgumentError("theta", f"theta must be {what}, got {theta!r}") from None
         if n == 0 and bool((t == 0).all()):
             return torch.zeros(0, dtype=dtype)
