@@ -27,12 +27,21 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from .checks import ArgumentError, check_available, check_choice, check_extent, check_number, check_size
+from .checks import (
+    ArgumentError,
+    check_available,
+    check_choice,
+    check_extent,
+    check_int,
+    check_layout,
+    check_number,
+    check_size,
+)
 from .coords import sensor_to_pixels, uniform_corners
 from .files import atomic_write
 from .layouts import Layout
 from .mesh import MeshTopology, distance_subdivisions, pixel_mesh, polygon_area
-from .physics import SensorPhysics, pixel_snr
+from .physics import SensorPhysics, as_physics, pixel_snr
 
 __all__ = [
     "FORMATS",
@@ -47,6 +56,7 @@ __all__ = [
 
 FORMATS = ("gds", "dxf", "svg", "png")
 GDS_DBU_UM = 1e-3  # the GDSII database unit (precision 1e-9 m) in µm
+GDS_MAX_LAYER = 32767  # layers and datatypes are 2-byte signed integers in a GDSII file
 GDS_MAX_POINTS = 8190  # the most vertices one GDSII boundary record holds; longer ones are fractured
 
 
@@ -426,10 +436,22 @@ def export_layout(
         raise ArgumentError(
             "format", f"format {fmt!r} does not match the file name {path.name!r}; name it *.{fmt}"
         )
+    check_layout(layout)
     size = check_size(size)
     hu, wu = check_extent(sensor_um)
+    # GDSII writes layers and datatypes as 2-byte signed integers (0..32767 in practice)
+    layer, datatype = (
+        check_int(layer, "layer", 0, GDS_MAX_LAYER),
+        check_int(datatype, "datatype", 0, GDS_MAX_LAYER),
+    )
+    line_width = check_int(line_width, "line_width", 1)
+    if not (isinstance(cell, str) and cell.strip()):
+        raise ArgumentError("cell", f"cell must be a non-empty name, got {cell!r}")
+    physics = as_physics(physics)
     if fmt == "png":
         px_per_um = check_raster(px_per_um, (hu, wu))
+    elif px_per_um is not None:
+        raise ArgumentError("px_per_um", f"px_per_um sets a PNG mask's resolution; a {fmt} mask has none")
     if fmt == "gds" and grid_um is None:
         grid_um = GDS_DBU_UM  # GDSII stores integers: snap here so the report matches the file
     polys, info = pixel_polygons_um(
@@ -474,6 +496,13 @@ def export_layout(
         report.warnings.append(
             f"{info['self_touching']} Manhattan pixel outlines touch themselves near acute corners "
             f"at grid {grid_um:g} µm; use a finer grid"
+        )
+    if info["max_deviation_um"] > (tol_um + (grid_um or 0.0)) * (
+        1 + 1e-9
+    ):  # snapping moves edges by the grid
+        report.warnings.append(
+            f"edges are up to {info['max_deviation_um']:.4g} µm from the layout, more than tol_um "
+            f"{tol_um:g} µm: the subdivision cap binds (θ near ±1 bends edges sharply); check the mask"
         )
     if (areas <= 0).any():
         report.warnings.append(f"{int((areas <= 0).sum())} pixels collapsed to zero area (grid too coarse)")

@@ -95,8 +95,6 @@ def layout_from_spec(
             f"unknown layout family {family!r}; expected one of {', '.join(map(repr, FAMILIES))}"
         )
     config = {k: v for k, v in spec.items() if k not in _RESERVED}
-    if cls.num_params != 0 and "theta" not in config:  # absent, θ would be 0: the uniform layout
-        raise ValueError(f"a {family!r} layout needs its 'theta'; the description has none")
     try:
         return cls.from_config(config, learn=learn, dtype=dtype)
     except TypeError as exc:

@@ -166,6 +166,6 @@ def test_gds_keeps_a_many_vertex_pixel_in_one_polygon(tmp_path):
     assert max(len(p) for p in polys) > 199  # gdstk's default would fracture these
     rep = export_layout(layout, (3, 4), tmp_path / "m.gds", UM, tol_um=1e-4)
     back = gdstk.read_gds(str(tmp_path / "m.gds")).cells[0].polygons
-    assert len(back) == 12 and not rep.warnings
+    assert len(back) == 12 and not any("GDSII boundary" in w for w in rep.warnings)
     snapped, _ = pixel_polygons_um(layout, (3, 4), UM, tol_um=1e-4, grid_um=1e-3)  # what the file holds
     assert sorted(len(p.points) for p in back) == sorted(len(p) for p in snapped)

@@ -303,11 +303,17 @@ class TestLearn:
         assert lw.SensorLayer((5, 6), cls.family).layout.learnable  # the sensor layer learns by default
 
     def test_config_round_trip(self, gen):
-        layout = lw.CurvLayout(rand_theta(gen), bound=1 + float(torch.rand(1, generator=gen)), dtype=F64)
+        bound = 0.5 + 0.5 * float(torch.rand(1, generator=gen))
+        layout = lw.CurvLayout(rand_theta(gen, bound), bound=bound, dtype=F64)
         back = lw.CurvLayout.from_config(layout.to_config(), dtype=F64)
         assert back.bound == layout.bound and torch.allclose(back.theta, layout.theta, rtol=0, atol=1e-15)
         with pytest.raises(ValueError, match="'theta' must be a list of numbers"):
             lw.CurvLayout.from_config({"theta": "0.1,0.2"})
+        for family in ("rect", "curv", "fovea", "elliptic", "spline", "grid"):  # never the uniform layout
+            with pytest.raises(ValueError, match="is missing: the layout's description must give it"):
+                lw.FAMILIES[family].from_config({})
+        with pytest.raises(ValueError, match="bound must be a finite number in \\(0, 1\\], got 10"):
+            lw.CurvLayout.from_config({"theta": [5, 0.2], "bound": 10})
 
 
 @pytest.mark.parametrize("cls", [*FAMILIES, Cubic])

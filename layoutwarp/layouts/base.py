@@ -12,6 +12,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar, TypeVar
 
+import numpy as np
 import torch
 from torch import Tensor, nn
 
@@ -71,12 +72,15 @@ def tensor_dtype(*values: Any) -> torch.dtype:
 
 
 def config_numbers(
-    config: dict[str, Any], key: str, default: list[float] | None = None
+    config: dict[str, Any], key: str, default: list[float] | None = None, *, required: bool = False
 ) -> list[float] | None:
-    """``config[key]`` as a list of numbers (``default`` when absent); ``ValueError`` otherwise.
+    """``config[key]`` as a list of numbers (``default`` when absent, unless ``required``: a
+    layout file without its θ must not become the uniform layout); ``ValueError`` otherwise.
 
     Used by [`Layout.from_config`][] of every family to read layout files.
     """
+    if required and key not in config:
+        raise ValueError(f"{key!r} is missing: the layout's description must give it")
     value = config.get(key, default)
     if value is not None and (
         not isinstance(value, list) or not all(isinstance(v, (int, float)) for v in value)
@@ -244,11 +248,11 @@ class Layout(nn.Module):
         if theta is None:
             return torch.zeros(n, dtype=dtype)
         what = f"{n} numbers (θ_x, θ_y)" if n == 2 else f"{n} numbers" if n else "empty or zeros"
-        try:
-            raw = torch.as_tensor(theta)
+        try:  # numpy keeps Python floats in float64 (torch.as_tensor would round them to float32)
+            raw = theta.detach().cpu() if isinstance(theta, Tensor) else torch.as_tensor(np.asarray(theta))
             if raw.is_complex() or raw.dtype == torch.bool or raw.ndim > 1:
                 raise TypeError
-            t = raw.to(torch.float64).detach().flatten().cpu()
+            t = raw.to(torch.float64).flatten()
         except (TypeError, ValueError, RuntimeError):
             raise ArgumentError("theta", f"theta must be {what}, got {theta!r}") from None
         if n == 0 and bool((t == 0).all()):
@@ -336,8 +340,9 @@ class Layout(nn.Module):
     def from_config(
         cls, config: dict[str, Any], *, learn: bool = False, dtype: torch.dtype | None = None
     ) -> Layout:
-        """Rebuild a layout from [`to_config`][]'s dict (raises ``ValueError`` on bad values)."""
-        theta = config_numbers(config, "theta")
+        """Rebuild a layout from [`to_config`][]'s dict (raises ``ValueError`` on bad or missing
+        values)."""
+        theta = config_numbers(config, "theta", required=bool(cls.num_params))
         return cls(theta, bound=config.get("bound", 1.0), learn=learn, dtype=dtype)
 
     # -- the map ---------------------------------------------------------------------

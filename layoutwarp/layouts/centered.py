@@ -179,7 +179,7 @@ class CenteredLayout(Layout):
     def from_config(
         cls, config: dict[str, Any], *, learn: bool = False, dtype: torch.dtype | None = None
     ) -> Layout:
-        theta = config_numbers(config, "theta")
+        theta = config_numbers(config, "theta", required=True)
         center = config_numbers(config, "center", [0.0, 0.0])
         return cls(
             theta,

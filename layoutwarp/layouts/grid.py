@@ -415,7 +415,7 @@ class GridLayout(Layout):
     ) -> Layout:
         control = config.get("control")
         if control is None:
-            return cls(grid=tuple(config.get("grid", (4, 4))), learn=learn, dtype=dtype)
+            raise ValueError("'control' is missing: the layout's description must give it")
         try:
             ctrl = torch.tensor(control, dtype=torch.float64)
         except (TypeError, ValueError):

@@ -238,7 +238,7 @@ class SplineLayout(Layout):
     def from_config(
         cls, config: dict[str, Any], *, learn: bool = False, dtype: torch.dtype | None = None
     ) -> Layout:
-        theta, knots = config_numbers(config, "theta"), config_numbers(config, "knots", [8, 8])
+        theta, knots = config_numbers(config, "theta", required=True), config_numbers(config, "knots", [8, 8])
         if not isinstance(knots, list) or len(knots) != 2:
             raise ValueError(f"'knots' must be [k_x, k_y], got {knots!r}")
         return cls(theta, knots=tuple(knots), kind=config.get("kind", "linear"), learn=learn, dtype=dtype)
