@@ -14,7 +14,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .checks import check_choice, check_shape, check_size
+from .checks import check_choice, check_layout, check_shape, check_size
 from .coords import sensor_to_pixels
 from .layouts import Layout
 from .maps import inverse_coords, raster_index_map
@@ -45,6 +45,7 @@ def sensor_index_maps(
         ``row``, clamped to the sensor. Computed in float64; a centre exactly on a pixel
         boundary goes to the pixel on its right/below.
     """
+    check_layout(layout)
     (h, w), target_size = check_size(size), check_size(target_size, "target_size")
     check_choice(method, INDEX_METHODS, "method")
     if method == "raster":
@@ -82,6 +83,7 @@ def backwarp(
         >>> backwarp(torch.arange(3.0).view(1, 1, 1, 3), RectLayout((0.5, 0.0)), (1, 8))[0, 0]
         tensor([[0., 0., 0., 1., 1., 2., 2., 2.]])
     """
+    check_layout(layout)
     check_shape(pred, "B C h w|B h w", "pred")
     size = check_size(target_size, "target_size")
     check_choice(mode, ("nearest", "bilinear"), "mode")
@@ -117,6 +119,7 @@ def backwarp_numpy(
     same pixel.
     Supports the dtypes ``cv2.remap`` does (uint8, uint16, int16, float32, float64).
     """
+    check_layout(layout)
     if not isinstance(arr, np.ndarray) or arr.ndim not in (2, 3):
         raise ValueError(f"arr must be an HW or HWC numpy array, got {getattr(arr, 'shape', arr)!r}")
     col, row = sensor_index_maps(layout, arr.shape[:2], target_size, index_method)
@@ -144,6 +147,7 @@ def backwarp_cross_entropy(
     Returns:
         the mean loss over non-ignored pixels, differentiable in ``logits``.
     """
+    check_layout(layout)
     check_shape(labels, ["B", "H", "W"], "labels")
     check_shape(logits, ["B", "K", "h", "w"], "logits")
     if logits.shape[0] != labels.shape[0]:

@@ -372,11 +372,15 @@ def check_type(value: Any, kind: type | tuple[type, ...], name: str, what: str) 
 def check_layout(layout: Any, name: str = "layout") -> Any:
     """``layout`` if it is a layoutwarp [`Layout`][layoutwarp.layouts.base.Layout] (a family name
     or anything else is refused, naming what to pass)."""
-    from .layouts import Layout
+    from .layouts import FAMILIES, Layout
 
     if isinstance(layout, Layout):
         return layout
-    hint = f" (make one with make_layout({layout!r}, theta))" if isinstance(layout, str) else ""
+    hint = (
+        f" (make one with make_layout({layout!r}, theta))"
+        if isinstance(layout, str) and layout in FAMILIES
+        else ""
+    )
     raise ArgumentError(
         _argument(name), f"{name} must be a layoutwarp Layout{hint}, got {type(layout).__name__}"
     )

@@ -14,7 +14,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .checks import check_int, check_number, check_size
+from .checks import check_generator, check_int, check_layout, check_number, check_size
 from .coords import pixel_centers, sensor_to_pixels
 from .layouts import Layout
 from .mesh import pixel_mesh
@@ -66,6 +66,7 @@ def sample_points(
     """
     h, w = check_size(size)
     s = check_int(samples, "samples", 1)
+    generator = check_generator(generator)
     if jitter:
         at = generator.device if generator is not None else device  # drawn where the generator is
         off = torch.rand(h * s, w * s, 2, generator=generator, dtype=dtype, device=at).to(device)
@@ -90,6 +91,7 @@ def map_points(layout: Layout, points: Tensor, *, inverse: bool = False) -> Tens
     Returns:
         ``(..., 2)`` float64 sensor coordinates on θ's device.
     """
+    check_layout(layout)
     theta = layout.theta_as(torch.float64).detach()
     p = points.detach().to(device=theta.device, dtype=torch.float64)
     with torch.no_grad():
@@ -132,6 +134,7 @@ def forward_maps(
         >>> forward_maps(UniformLayout(), (1, 2), (4, 8)).map_x
         tensor([[1.5000, 5.5000]])
     """
+    check_layout(layout)
     size, src_size = check_size(size), check_size(src_size, "src_size")
     u = sample_points(size, samples, jitter=jitter, generator=generator, device=layout.theta.device)
     return _to_maps(map_points(layout, u), src_size)
@@ -150,6 +153,7 @@ def inverse_maps(layout: Layout, size: tuple[int, int], target_size: tuple[int, 
         centre ``q`` maps to ``sensor_to_pixels(φ⁻¹(q), (h, w), centered=True)``, so
         ``floor(map + 0.5)`` is the index of the sensor pixel that contains ``q``.
     """
+    check_layout(layout)
     size = check_size(size)
     return _to_maps(inverse_coords(layout, target_size), size)
 

@@ -56,7 +56,15 @@ from torch import Tensor
 
 from . import jit, kernels
 from .caches import LRU, tensor_token
-from .checks import ArgumentError, check_choice, check_extent, check_int, check_number, check_size
+from .checks import (
+    ArgumentError,
+    check_available,
+    check_choice,
+    check_extent,
+    check_int,
+    check_number,
+    check_size,
+)
 from .kernels.device import fall_back, runs_on_device, stream_of, usable
 from .kernels.noise import measure_on_device
 
@@ -309,19 +317,28 @@ def _airy_x(energy: float) -> float:
     return float(x[int(reached[0])]) if len(reached) else 2 / (math.pi * (1 - energy))
 
 
-def _check_psf_width(physics: SensorPhysics) -> None:
-    """Refuse a PSF whose kernel reaches beyond the whole sensor (a point would blur over more
-    than the image: its kernel alone could need terabytes), naming the field that set it."""
+#: How many sensor widths a PSF's kernel may reach (beyond, it blurs the image into its mean:
+#: a mistaken f-number or width, whose kernel alone could need terabytes).
+PSF_MAX_REACH = 4
+
+
+def _psf_radius(physics: SensorPhysics) -> tuple[float, str]:
+    """The PSF kernel's radius (µm) and the field that sets it."""
     if physics.psf == "gaussian":
-        radius, field = 4 * physics.psf_sigma(), "psf_sigma_um" if physics.psf_sigma_um else "f_number"
-    else:
-        radius, field = _airy_radius_um(physics), "f_number"
+        return 4 * physics.psf_sigma(), "psf_sigma_um" if physics.psf_sigma_um else "f_number"
+    return _airy_radius_um(physics), "f_number"
+
+
+def _check_psf_width(physics: SensorPhysics) -> None:
+    """Refuse a PSF whose kernel reaches over more than `PSF_MAX_REACH` sensor widths, naming
+    the field that set it."""
+    radius, field = _psf_radius(physics)
     extent = max(physics.sensor_um)
-    if radius > extent:
+    if radius > PSF_MAX_REACH * extent:
         raise ArgumentError(
             field,
             f"{field} {getattr(physics, field):g} makes the {physics.psf} PSF {radius:.4g} µm in radius, "
-            f"wider than the whole sensor ({extent:g} µm): a point would blur over more than the image",
+            f"over {PSF_MAX_REACH} times the sensor's {extent:g} µm: it would blur the image into its mean",
         )
 
 
@@ -331,6 +348,12 @@ def _airy_kernel(physics: SensorPhysics, py: float, px: float) -> np.ndarray:
     r_um = _airy_radius_um(physics)
     ry, rx = max(1, math.ceil(r_um / py)), max(1, math.ceil(r_um / px))
     sub = 8
+    check_available(  # 8 x 8 samples a kernel pixel, float64, a few temporaries
+        (2 * ry + 1) * (2 * rx + 1) * sub * sub * 8 * 6,
+        "f_number",
+        f"f_number {physics.f_number:g} makes an Airy kernel of {2 * rx + 1}x{2 * ry + 1} source pixels",
+        "8x8 float64 samples a kernel pixel",
+    )
     oy = (torch.arange(-ry * sub, (ry + 1) * sub, dtype=torch.float64) + 0.5) / sub - 0.5
     ox = (torch.arange(-rx * sub, (rx + 1) * sub, dtype=torch.float64) + 0.5) / sub - 0.5
     yy, xx = torch.meshgrid(oy * py, ox * px, indexing="ij")

@@ -43,12 +43,22 @@ import numpy as np
 import torch
 
 from .backwarp import sensor_index_maps
-from .checks import ArgumentError, check_choice, check_int, check_size, warn_if_finer, warn_if_stretched
+from .checks import (
+    ArgumentError,
+    check_choice,
+    check_device,
+    check_int,
+    check_layout,
+    check_number,
+    check_size,
+    warn_if_finer,
+    warn_if_stretched,
+)
 from .files import atomic_write, file_in_the_way, run_info
 from .labels import LABEL_RULES as SENSOR_RULES
 from .layoutfile import layout_from_spec, layout_spec, load_layout, same_spec, save_layout
 from .layouts import Layout
-from .physics import SensorPhysics, apply_psf, measure
+from .physics import SensorPhysics, apply_psf, as_physics, measure
 from .resampler import AreaResampler
 
 __all__ = [
@@ -64,6 +74,8 @@ __all__ = [
 ]
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
+#: The most worker threads (or Dask processes) a run takes.
+MAX_WORKERS = 256
 #: Label rules: the sensor-grid rules of [`layoutwarp.labels`][], or full-size copies with back-warp maps.
 LABEL_RULES = (*SENSOR_RULES, "inverse")
 
@@ -454,10 +466,14 @@ def preprocess_folder(
             not a folder, a ``dst`` that would overwrite an input, or one that already holds a
             dataset made with a different layout.
     """
+    check_layout(layout)
     size = check_size(size)
     check_choice(label_rule, LABEL_RULES, "label_rule")
-    check_int(workers, "workers", 1)
+    check_int(workers, "workers", 1, MAX_WORKERS)
     check_choice(engine, ENGINES, "engine")
+    tol = None if tol is None else check_number(tol, "tol", 0, lo_open=True)
+    device = check_device(device)
+    physics = as_physics(physics)
     if address is not None and engine != "dask":
         raise ArgumentError("address", f"address needs engine='dask', got engine={engine!r}")
     src, dst = Path(src), Path(dst)
@@ -467,7 +483,20 @@ def preprocess_folder(
         raise ArgumentError("labels", f"labels must be a folder of label maps, got {str(labels)!r}")
     labels = Path(labels) if labels is not None else None
     check_destination(dst, src)
-    sources = list(files) if files is not None else list_images(src, dst)
+    sources = [Path(f) for f in files] if files is not None else list_images(src, dst)
+    if not sources:
+        what = "files is empty" if files is not None else f"src {str(src)!r} holds no images"
+        raise ArgumentError("src", f"{what} ({', '.join(IMAGE_SUFFIXES)})")
+    for path in sources:
+        if not path.is_relative_to(src) or not path.is_file():
+            raise ArgumentError(
+                "files", f"files must be image files under src {str(src)!r}, got {str(path)!r}"
+            )
+    if labels is not None and not any(_find_label(labels, p.relative_to(src)) for p in sources):
+        raise ArgumentError(
+            "labels",
+            f"labels {str(labels)!r} holds no label map for any image (same relative paths, or .png)",
+        )
     check_no_overwrite(src, dst, sources, labels, label_rule)  # nothing written before this
     dst.mkdir(parents=True, exist_ok=True)
     config = layout_spec(layout) | {"size_hw": list(size)}

@@ -19,7 +19,15 @@ import torch
 
 from . import jit, kernels
 from .caches import LRU
-from .checks import all_finite, check_size, raise_nonfinite
+from .checks import (
+    ArgumentError,
+    all_finite,
+    check_device,
+    check_layout,
+    check_number,
+    check_size,
+    raise_nonfinite,
+)
 from .integrators import data_tolerance, green_pieces
 from .kernels.csr import csr_apply_on_device
 from .kernels.device import fall_back, runs_on_device, stream_of, usable
@@ -203,9 +211,13 @@ class AreaResampler:
         device: str | torch.device = "cpu",
     ):
         self.size, self.src_size = check_size(size), check_size(src_size, "src_size")
-        self.layout = layout
-        self.tol = data_tolerance(dtype)[0] if tol is None else tol
-        self.device = torch.device(device)
+        self.layout = check_layout(layout)
+        try:
+            tol_needed = data_tolerance(dtype)[0]
+        except TypeError:
+            raise ArgumentError("dtype", f"dtype must be a numpy or torch dtype, got {dtype!r}") from None
+        self.tol = tol_needed if tol is None else check_number(tol, "tol", 0, lo_open=True)
+        self.device = check_device(device)
         with torch.no_grad():  # the mesh the weights are built on, not kept: the weights and the
             # areas are all later calls need (a kept mesh is 0.5-0.8 copies of an RGB image)
             mesh = pixel_mesh(layout, self.size, tol=self.tol, dtype=torch.float64, cache=False)
@@ -235,8 +247,26 @@ class AreaResampler:
         return self._csr
 
     def __call__(self, image: np.ndarray) -> np.ndarray:
-        if image.shape[:2] != self.src_size:
-            raise ValueError(f"image has size {image.shape[:2]}, this resampler expects {self.src_size}")
+        if not isinstance(image, np.ndarray):
+            what = (
+                "a torch tensor: use apply() for (N, H, W) tensors"
+                if isinstance(image, torch.Tensor)
+                else type(image).__name__
+            )
+            raise ArgumentError("image", f"image must be a numpy (H, W) or (H, W, C) array, got {what}")
+        if not (np.issubdtype(image.dtype, np.integer) or np.issubdtype(image.dtype, np.floating)):
+            raise ArgumentError(
+                "image", f"image must hold real numbers (integers or floats), got {image.dtype}"
+            )
+        if image.ndim not in (2, 3) or image.shape[:2] != self.src_size:
+            raise ArgumentError(
+                "image",
+                f"image must be {self.src_size} (H, W), optionally with channels, got shape {image.shape}",
+            )
+        if np.issubdtype(image.dtype, np.floating) and not np.isfinite(image).all():
+            raise ArgumentError(
+                "image", "image has NaN or Inf values, which would spread into its sensor pixels"
+            )
         flat = np.ascontiguousarray(image.reshape(self.src_size[0] * self.src_size[1], -1), np.float32)
         # torch's CSR product: 2-3x scipy's for a few channels, and faster on these interleaved
         # (H·W, C) pixels than a transpose to planes for the compiled product (RGB, uint8 or float32)

@@ -40,6 +40,14 @@ def files(tmp_path):
     (tmp_path / "fill.json").write_text(json.dumps(light | {"fill_factor": 1.5}))
     (tmp_path / "photos").mkdir()
     (tmp_path / "photos" / "a.png").write_bytes((SAMPLES / "photos" / "kodim20.png").read_bytes())
+    (tmp_path / "noimages").mkdir()  # a folder with no images
+    (tmp_path / "noimages" / "notes.txt").write_text("not an image")
+    lay = {"format": "layoutwarp.layout/2", "family": "curv"}
+    (tmp_path / "notheta.json").write_text(json.dumps(lay))
+    (tmp_path / "bound10.json").write_text(json.dumps(lay | {"theta": [5, 0.2], "bound": 10}))
+    (tmp_path / "curv.json").write_text(json.dumps(lay | {"theta": [0.3, 0.2], "size_hw": [4, 4]}))
+    jpg = (SAMPLES / "photos" / "kodim20.png").read_bytes()
+    (tmp_path / "cut.png").write_bytes(jpg[: len(jpg) // 2])
     return tmp_path
 
 
@@ -213,6 +221,109 @@ CASES |= {
     "mask onto a folder": (
         ["export", "--family", "uniform", *MASK, "--out", "{tmp}"],
         ["--out", "must be a file", "is a folder"],
+    ),
+}
+EXPORT = ["export", "--family", "uniform", *MASK]
+CASES |= {  # what a reviewer's sweep of bad inputs found accepted, run, or ended in a traceback
+    "bench threads past the pool": (
+        ["bench", "--quick", "--threads", "100000"],
+        ["--threads", "[1, 256]", "100000"],
+    ),
+    "landscape grid too large": (
+        ["landscape", "mnist", "--quick", "--family", "curv", "--grid", "100000", "--out", "{tmp}/out"],
+        ["--grid", "[2, 25]", "100000"],
+    ),
+    "landscape grid of one point": (
+        ["landscape", "mnist", "--quick", "--family", "curv", "--grid", "1", "--out", "{tmp}/out"],
+        ["--grid", "[2, 25]"],
+    ),
+    "report over the mask": (
+        [*EXPORT, "--out", "{tmp}/x.svg", "--report", "{tmp}/x.svg"],
+        ["--report", "also --out"],
+    ),
+    "report over the layout file": (
+        [
+            "export",
+            "--layout",
+            "{tmp}/curv.json",
+            "--sensor-um",
+            "40x40",
+            "--out",
+            "{tmp}/x.svg",
+            "--report",
+            "{tmp}/curv.json",
+        ],
+        ["--report", "also --layout (an input)"],
+    ),
+    "bench results and tables in one file": (
+        ["bench", "--quick", "--json", "{tmp}/x.json", "--text", "{tmp}/x.json"],
+        ["--text", "also --json (another output)"],
+    ),
+    "bench plot of an unknown format": (
+        ["bench", "--quick", "--plot", "{tmp}/x.txt"],
+        ["--plot", ".png, .pdf, .svg"],
+    ),
+    "shipping a study onto itself": (
+        ["study", "mnist", "--quick", "--out", "{tmp}", "--ship", "{tmp}"],
+        ["--ship", "no study in"],
+    ),
+    "weights without ship": (
+        ["study", "mnist", "--quick", "--weights", "int8", "--out", "{tmp}/out"],
+        ["--weights", "needs --ship"],
+    ),
+    "theta frozen for every epoch": (
+        ["train", "mnist", "--quick", "--epochs", "1", "--freeze-epochs", "5", "--out", "{tmp}/out"],
+        ["--freeze-epochs", "5 would freeze θ for all 1 epochs"],
+    ),
+    "preprocess a folder without images": (
+        ["preprocess", "{tmp}/noimages", "{tmp}/out", "--family", "uniform", "--size", "8x6"],
+        ["argument SRC", "no images", "noimages"],
+    ),
+    "benchmark a folder without images": (
+        ["preprocess", "{tmp}/noimages", "{tmp}/out", "--family", "uniform", "--size", "8x6", "--benchmark"],
+        ["argument SRC", "no images"],
+    ),
+    "labels that match no image": (
+        [*PRE, "--labels", "{tmp}/noimages"],
+        ["argument --labels", "holds no label map for any image"],
+    ),
+    "dask address without a port": (
+        [*PRE, "--engine", "dask", "--address", "notanaddress"],
+        ["--address", "HOST:PORT"],
+    ),
+    "f-number without a psf": (
+        [*PRE, "--photons-per-um2", "5", "--sensor-um", "80x60", "--f-number", "2"],
+        ["--f-number", "needs --psf"],
+    ),
+    "a psf wider than the sensor": (
+        [*PRE, "--photons-per-um2", "5", "--sensor-um", "80x60", "--psf", "airy", "--f-number", "1e9"],
+        ["--f-number", "1e+09", "over 4 times the sensor"],
+    ),
+    "an extent past a kilometre": (
+        [*PRE, "--photons-per-um2", "5", "--sensor-um", "1e300x1e300"],
+        ["--sensor-um", "1e+09"],
+    ),
+    "px-per-um for an svg": ([*EXPORT, "--px-per-um", "10", "--out", "{tmp}/x.svg"], ["--px-per-um", "PNG"]),
+    "gds layer past 2 bytes": (
+        [*EXPORT, "--gds-layer", "70000", "--out", "{tmp}/x.gds"],
+        ["--gds-layer", "[0, 32767]"],
+    ),
+    "the meta device": ([*PRE, "--device", "meta"], ["--device", "'meta' holds no data"]),
+    "layout file without theta": (
+        ["export", "--layout", "{tmp}/notheta.json", *MASK, "--out", "{tmp}/x.svg"],
+        ["--layout", "'theta' is missing"],
+    ),
+    "layout file with a bound past 1": (
+        ["export", "--layout", "{tmp}/bound10.json", *MASK, "--out", "{tmp}/x.svg"],
+        ["--layout", "bound must be a finite number in (0, 1], got 10"],
+    ),
+    "a demo photo cut short": (
+        ["demo", "--image", "{tmp}/cut.png", "--out", "{tmp}/out"],
+        ["--image", "truncated PNG"],
+    ),
+    "an unknown flag of a command": (
+        ["doctor", "--bogus"],
+        ["layoutwarp doctor: error: unrecognized arguments: --bogus"],
     ),
 }
 CASES |= {

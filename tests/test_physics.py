@@ -937,9 +937,9 @@ def test_a_psf_wider_than_the_sensor_is_refused_before_its_kernel_is_built():
     # f/1e9 made an Airy kernel of 220 GB: refused at once, naming the field that set its width
     for kwargs, field in (
         ({"psf": "airy", "f_number": 1e9}, "f_number"),
-        ({"psf": "gaussian", "psf_sigma_um": 50.0}, "psf_sigma_um"),
+        ({"psf": "gaussian", "psf_sigma_um": 65.0}, "psf_sigma_um"),
     ):
-        with pytest.raises(ArgumentError, match=f"^{field} .* wider than the whole sensor") as info:
+        with pytest.raises(ArgumentError, match=f"^{field} .* over 4 times the sensor's 64 µm") as info:
             physics(**kwargs)
         assert info.value.argument == field
     assert physics(psf="airy", f_number=5.6).psf == "airy"

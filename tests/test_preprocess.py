@@ -242,7 +242,7 @@ def test_cli_preprocess_with_benchmark(tmp_path, capsys):
     lab = cv2.imread(str(next((dst / "labels").glob("*.png"))), cv2.IMREAD_UNCHANGED)
     assert lab.shape == (45, 60) and lab.max() <= 11
     assert main(["preprocess", str(SAMPLES / "camvid" / "val"), str(tmp_path / "x")]) == 2
-    assert "give --layout LAYOUT.json or --family" in capsys.readouterr().err
+    assert "argument --layout: give a layout file, or --family" in capsys.readouterr().err
 
 
 def _tree(root: Path) -> dict[str, bytes]:

@@ -9,6 +9,7 @@ this package (``tools``: demo, doctor, bench; ``training``: train, study, landsc
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import os
 import re
@@ -30,8 +31,6 @@ from .common import (
 )
 
 if TYPE_CHECKING:
-    import argparse
-
     from ..experiments.protocols import TaskSpec
 
 _ROOT = __name__.rpartition(".")[0]  # the layoutwarp package, whose registries the parser lists
@@ -104,7 +103,10 @@ def main(argv: Sequence[str] | None = None, *, own_process: bool = False) -> int
     command's alone, and its allocator keeps freed memory for the next training step
     ([`retain_freed_memory`][layoutwarp.kernels.retain_freed_memory])."""
     argv = join_negative_values(sys.argv[1:] if argv is None else argv)
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args, unknown = parser.parse_known_args(argv)
+    if unknown:  # said by the command's own parser: its name and usage, not the top level's
+        _leaf_parser(parser, args).error(f"unrecognized arguments: {' '.join(unknown)}")
     if own_process:
         from ..kernels import retain_freed_memory
 
@@ -126,6 +128,16 @@ def main(argv: Sequence[str] | None = None, *, own_process: bool = False) -> int
                 with contextlib.suppress(OSError):  # kept if anything was written there
                     folder.rmdir()
     return status
+
+
+def _leaf_parser(parser: argparse.ArgumentParser, args: argparse.Namespace) -> argparse.ArgumentParser:
+    """The parser of the command (and task) ``args`` were parsed for."""
+    for name in ("command", "task"):
+        sub = next((a for a in parser._actions if isinstance(a, argparse._SubParsersAction)), None)
+        if sub is None or getattr(args, name, None) not in sub.choices:
+            break
+        parser = sub.choices[getattr(args, name)]
+    return parser
 
 
 def _one_line_warning(message: Warning | str, category: type[Warning], *args: Any, **kwargs: Any) -> str:

@@ -32,7 +32,9 @@ __all__ = [
     "add_physics_args",
     "add_run_args",
     "check_sensor_memory",
+    "distinct_files",
     "existing_folder",
+    "int_range",
     "layout_from_args",
     "non_negative_float",
     "non_negative_int",
@@ -165,6 +167,23 @@ def number_type(lo: float, *, integer: bool = False, open_lo: bool = False) -> C
 
 
 positive_int = number_type(1, integer=True)
+
+
+def int_range(lo: int, hi: int) -> Callable[[str], int]:
+    """An argparse type: an integer in ``[lo, hi]``."""
+
+    def parse(text: str) -> int:
+        try:
+            v = int(text)
+        except ValueError:
+            v = None
+        if v is None or not lo <= v <= hi:
+            raise argparse.ArgumentTypeError(f"must be an integer in [{lo}, {hi}], got {text!r}")
+        return v
+
+    return parse
+
+
 non_negative_int = number_type(0, integer=True)
 positive_float = number_type(0, open_lo=True)
 non_negative_float = number_type(0)
@@ -211,6 +230,23 @@ def out_dir(path: str | Path, flag: str = "--out") -> Path:
     if not path.exists():
         NEW_FOLDERS.append(path)
     return path
+
+
+def distinct_files(outputs: dict[str, str | Path | None], inputs: dict[str, str | Path | None]) -> None:
+    """Refuse, in one line, an output file named twice or naming an input (one would overwrite
+    the other): ``outputs`` and ``inputs`` map flags to paths (``None``: not given)."""
+    seen: dict[Path, str] = {}
+    for flag, path in inputs.items():
+        if path is not None:
+            seen.setdefault(Path(path).resolve(), flag)
+    for flag, path in outputs.items():
+        if path is None:
+            continue
+        other = seen.get(Path(path).resolve())
+        if other is not None:
+            role = "an input" if other in inputs else "another output"
+            raise UsageError(f"argument {flag}: {str(path)!r} is also {other} ({role}); name another file")
+        seen[Path(path).resolve()] = flag
 
 
 def out_file(path: str | Path | None, flag: str) -> Path | None:
@@ -297,7 +333,7 @@ def layout_from_args(args: argparse.Namespace):
             )
         layout, size = cls(args.theta, dtype=torch.float64), args.size
     else:
-        raise UsageError("give --layout LAYOUT.json or --family (with --theta)")
+        raise UsageError("argument --layout: give a layout file, or --family (with --theta)")
     if size is None:
         raise UsageError("argument --size: needed (the layout file stores no sensor size)")
     check_sensor_memory(size)
@@ -371,6 +407,8 @@ def physics_from_args(args: argparse.Namespace, extent: tuple[float, float] | No
     for field, flag in (("photons_per_um2", "--photons-per-um2"), ("sensor_um", "--sensor-um")):
         if field not in values:
             raise UsageError(f"argument {flag}: needed for sensor physics (or give it in --physics FILE)")
+    if "f_number" in flags and values.get("psf") is None:  # it sets the PSF's width, and nothing else
+        raise UsageError(f"argument --f-number: needs --psf gaussian or airy, got {flags['f_number'][1]:g}")
     try:
         return SensorPhysics.from_dict(values)
     except ValueError as exc:

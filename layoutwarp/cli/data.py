@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 import tempfile
 from collections.abc import Sequence
@@ -14,9 +15,10 @@ from .common import (
     add_command,
     add_layout_args,
     add_physics_args,
+    distinct_files,
     existing_folder,
+    int_range,
     layout_from_args,
-    non_negative_int,
     parse_um,
     physics_from_args,
     pick_device,
@@ -27,11 +29,14 @@ from .common import (
 
 __all__ = ["add_commands"]
 
+#: A Dask scheduler's address: ``HOST:PORT``, optionally behind a protocol (``tcp://``, ``tls://``, ...).
+ADDRESS = re.compile(r"^([a-z]+://)?[^\s:/]+:\d{1,5}$")
+
 
 def _cmd_preprocess(args: argparse.Namespace) -> int:
     from ..experiments.bench import preprocess_baseline
     from ..files import atomic_write
-    from ..preprocess import check_destination, list_images, preprocess_folder
+    from ..preprocess import IMAGE_SUFFIXES, check_destination, list_images, preprocess_folder
 
     existing_folder(args.src, "SRC")
     check_destination(Path(args.dst), Path(args.src))
@@ -41,8 +46,14 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
         raise UsageError(
             f"argument --label-rule: needs --labels DIR (the label maps), got {args.label_rule!r}"
         )
+    if args.address is not None and not ADDRESS.match(args.address):
+        raise UsageError(
+            f"argument --address: must be a scheduler's HOST:PORT or tcp://HOST:PORT, got {args.address!r}"
+        )
     layout, size = layout_from_args(args)
     dst = Path(args.dst)
+    if not list_images(args.src, dst):
+        raise UsageError(f"argument SRC: no images ({', '.join(IMAGE_SUFFIXES)}) under {args.src!r}")
     if args.benchmark and dst.exists() and any(dst.iterdir()):
         raise UsageError(f"argument --benchmark: needs an empty DST, {str(dst)!r} is not empty")
     base = None
@@ -105,6 +116,9 @@ def _cmd_export(args: argparse.Namespace) -> int:
     check_file_destination(args.out, "out")  # both before any work: nothing written, then refused
     if args.report:
         check_file_destination(args.report, "report")
+    distinct_files(
+        {"--out": args.out, "--report": args.report}, {"--layout": args.layout, "--physics": args.physics}
+    )
     layout, size = layout_from_args(args)
     report = export_layout(
         layout,
@@ -146,7 +160,7 @@ def add_commands(sub: argparse._SubParsersAction, families: Sequence[str]) -> No
     )
     pp.add_argument(
         "--workers",
-        type=positive_int,
+        type=int_range(1, 256),
         default=1,
         help="worker threads (local) or processes (new Dask cluster)",
     )
@@ -195,9 +209,9 @@ def add_commands(sub: argparse._SubParsersAction, families: Sequence[str]) -> No
     )
     ex.add_argument("--manhattan", action="store_true", help="axis-aligned steps instead of slanted edges")
     ex.add_argument(
-        "--gds-layer", type=non_negative_int, default=1, help="GDSII layer (DXF layer PIXELS_<n>)"
+        "--gds-layer", type=int_range(0, 32767), default=1, help="GDSII layer (DXF layer PIXELS_<n>)"
     )
-    ex.add_argument("--gds-datatype", type=non_negative_int, default=0, help="GDSII datatype")
+    ex.add_argument("--gds-datatype", type=int_range(0, 32767), default=0, help="GDSII datatype")
     ex.add_argument(
         "--px-per-um", type=positive_float, help="PNG resolution (default: 4096 px on the long side)"
     )

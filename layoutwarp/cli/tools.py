@@ -9,17 +9,21 @@ from .common import (
     UsageError,
     add_command,
     check_sensor_memory,
+    distinct_files,
+    int_range,
     out_dir,
     out_file,
     parse_theta,
     parse_wxh,
     pick_device,
     positive_float,
-    positive_int,
     quiet_decoders,
 )
 
 __all__ = ["add_commands"]
+
+#: The figure formats ``bench --plot`` writes (matplotlib's, by the file's suffix).
+PLOT_SUFFIXES = (".png", ".pdf", ".svg")
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
@@ -67,6 +71,9 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         raise UsageError(f"argument --image: no such file {args.image!r}")
     for path, flag in ((args.json, "--json"), (args.text, "--text"), (args.plot, "--plot")):
         out_file(path, flag)  # all before the benchmark's minutes: nothing measured, then lost
+    distinct_files({"--json": args.json, "--text": args.text, "--plot": args.plot}, {"--image": args.image})
+    if args.plot and Path(args.plot).suffix.lower() not in PLOT_SUFFIXES:
+        raise UsageError(f"argument --plot: must end in {', '.join(PLOT_SUFFIXES)}, got {args.plot!r}")
     only = _bench_rows(args.layouts)
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -130,7 +137,7 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     b.add_argument("--text", metavar="FILE", help="also write the printed tables to this file (Markdown)")
     b.add_argument("--plot", metavar="FILE", help="also draw the speed-vs-error plot to this PNG")
     b.add_argument("--image", help="photo to measure on (default: the bundled kodim20)")
-    b.add_argument("--threads", type=positive_int, help="torch threads (default: torch's choice)")
+    b.add_argument("--threads", type=int_range(1, 256), help="torch threads (default: torch's choice)")
     b.add_argument(
         "--device", help="where the integrators run, e.g. cpu, cuda (default: cpu; anchors stay on the CPU)"
     )

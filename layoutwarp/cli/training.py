@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import sys
 import tempfile
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -20,6 +21,7 @@ from .common import (
     add_run_args,
     check_sensor_memory,
     existing_folder,
+    int_range,
     non_negative_int,
     out_dir,
     parse_range,
@@ -90,7 +92,26 @@ def _run_options(task: Task, args: argparse.Namespace, defaults: TaskDefaults) -
     from ..experiments.runs import RunOptions
 
     sensor = _sensor_options(args, defaults.tol) | _physics_option(task, args)
-    return RunOptions.of(defaults, epochs=args.epochs, sensor=sensor, **_training_flags(task, args))
+    return _checked(RunOptions.of(defaults, epochs=args.epochs, sensor=sensor, **_training_flags(task, args)))
+
+
+def _checked(options: RunOptions) -> RunOptions:
+    """Refuse options that would quietly train something else than asked."""
+    if options.freeze_epochs >= options.epochs > 0 and options.freeze_epochs > 0:
+        raise UsageError(
+            f"argument --freeze-epochs: {options.freeze_epochs} would freeze θ for all {options.epochs} "
+            "epochs; give fewer than --epochs"
+        )
+    return options
+
+
+@contextlib.contextmanager
+def _data_errors() -> Iterator[None]:
+    """Within: a data file the task cannot find is the ``--data`` folder's error, in one line."""
+    try:
+        yield
+    except FileNotFoundError as exc:
+        raise UsageError(f"argument --data: {exc}") from None
 
 
 def _physics_option(task: Task, args: argparse.Namespace) -> dict:
@@ -127,7 +148,10 @@ def _cmd_train(args: argparse.Namespace) -> int:
             f"  --quick: a smoke test on the few bundled {task.name} samples; its scores say that "
             "the pipeline runs, not what a layout is worth (train on the full data for that)"
         )
-    result = run_experiment(task, folder, out, families=families, sizes=sizes, seeds=seeds, options=options)
+    with _data_errors():
+        result = run_experiment(
+            task, folder, out, families=families, sizes=sizes, seeds=seeds, options=options
+        )
     print(format_summary(task, result["summary"]))
     print(
         f"wrote {out}/results.json (scores in percent), layout.json, layout_*.json, model_*.pt, "
@@ -159,20 +183,30 @@ def _cmd_study(args: argparse.Namespace) -> int:
         sizes = tuple(dict.fromkeys(args.size))
         uniform = sorted(set(plan.uniform_sizes) | set(sizes), key=lambda hw: (hw[0] * hw[1], hw))
         plan = replace(plan, learned_sizes=sizes, uniform_sizes=tuple(uniform))
+    if args.weights is not None and not args.ship:
+        raise UsageError(
+            f"argument --weights: the shipped models' precision needs --ship DIR, got {args.weights!r}"
+        )
     if args.ship:
         if not (out / "runs").is_dir():
             raise UsageError(
-                f"no study in {str(out)!r} to ship; run `layoutwarp study {task.name} --out DIR` first"
+                f"argument --ship: no study in {str(out)!r} to ship; "
+                f"run `layoutwarp study {task.name} --out DIR` first"
             )
+        if Path(args.ship).resolve() == out.resolve():
+            raise UsageError(
+                f"argument --ship: {args.ship!r} is the study's own folder (--out); ship to another"
+            )
+        weights = args.weights or "float16"
         samples = samples_dir() / task.folder
         summary = ship_study(
             task,
             out,
             out_dir(args.ship, "--ship"),
             scene=task.scene(task.load(folder)),
-            models=args.weights != "none",
-            weights=args.weights,
-            samples=samples if samples.is_dir() and args.weights != "none" else None,
+            models=weights != "none",
+            weights=weights,
+            samples=samples if samples.is_dir() and weights != "none" else None,
             planned=len(study_runs(plan, args.seeds or plan.seeds)),
         )
         print(study_table(summary), end="")
@@ -182,7 +216,8 @@ def _cmd_study(args: argparse.Namespace) -> int:
         check_sensor_memory(size)
     init_distributed()
     options = _study_run_options(task, plan, args)
-    summary = run_study(task, folder, out, plan=plan, seeds=args.seeds, options=options)
+    with _data_errors():
+        summary = run_study(task, folder, out, plan=plan, seeds=args.seeds, options=options)
     print(study_table(summary), end="")
     theta = f", theta_{task.name}.png" if (out / f"theta_{task.name}.png").exists() else ""
     print(f"wrote {out}/study.json, study.md, study_{task.name}.png{theta} (scores in percent)")
@@ -198,7 +233,7 @@ def _study_run_options(task: Task, plan: StudyPlan, args: argparse.Namespace) ->
 
     epochs = args.epochs or (1 if args.quick else None)
     options = study_options(task, plan, epochs=epochs, **_training_flags(task, args))
-    return replace(options, sensor=options.sensor | _physics_option(task, args))
+    return _checked(replace(options, sensor=options.sensor | _physics_option(task, args)))
 
 
 def _cmd_landscape(args: argparse.Namespace) -> int:
@@ -217,9 +252,19 @@ def _cmd_landscape(args: argparse.Namespace) -> int:
     init_distributed()
     options = _study_run_options(task, task.study, args)
     n = args.grid or (3 if args.quick else 7)
-    summary = run_landscape(
-        task, folder, out, family=args.family, size=size, n=n, lo=lo, hi=hi, options=options, study=args.study
-    )
+    with _data_errors():
+        summary = run_landscape(
+            task,
+            folder,
+            out,
+            family=args.family,
+            size=size,
+            n=n,
+            lo=lo,
+            hi=hi,
+            options=options,
+            study=args.study,
+        )
     from ..experiments.landscape import landscape_table
 
     print(landscape_table(summary), end="")
@@ -237,8 +282,9 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         raise UsageError(f"argument --model: {exc}") from None
     try:
         scores = evaluate_model(args.task, model, args.data, args.split)
-    except (FileNotFoundError, ValueError) as exc:
-        raise UsageError(f"argument --data: {exc}") from None
+    except (FileNotFoundError, ValueError) as exc:  # a bad split is named as such, else the data
+        flag = "--split" if args.split is not None and "split" in str(exc) else "--data"
+        raise UsageError(f"argument {flag}: {exc}") from None
     layout = {k: v for k, v in info["layout"].items() if k in ("family", "theta", "center", "knots", "grid")}
     from ..experiments.tasks import get_task
 
@@ -374,9 +420,8 @@ def _add_study_parser(sub: argparse._SubParsersAction, task: TaskSpec, families:
     st.add_argument(
         "--weights",
         choices=["float32", "float16", "int8", "none"],
-        default="float16",
-        help="with --ship: the precision of the shipped models' weights (int8: conv and linear "
-        "weights at 255 levels per output channel; none: no models, e.g. PSPNet's 49 M parameters)",
+        help="with --ship: the precision of the shipped models' weights (default: float16; int8: conv and "
+        "linear weights at 255 levels per output channel; none: no models, e.g. PSPNet's 49 M parameters)",
     )
     st.set_defaults(func=_cmd_study, task=task.name)
 
@@ -415,7 +460,9 @@ def add_commands(
         )
         _add_training_args(lt, task, "bundled samples, 1 epoch, a 3x3 grid")
         lt.add_argument("--family", choices=two, required=True, help="a two-parameter family")
-        lt.add_argument("--grid", type=positive_int, help="N: the grid is N x N (default: 7; 3 with --quick)")
+        lt.add_argument(
+            "--grid", type=int_range(2, 25), help="N: the grid is N x N, 2 to 25 (default: 7; 3 with --quick)"
+        )
         lt.add_argument(
             "--range",
             type=parse_range,

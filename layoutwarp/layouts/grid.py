@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..checks import check_choice, check_size
+from ..checks import ArgumentError, check_choice, check_number, check_size
 from ..coords import cell_index, pixels_to_sensor, uniform_corners
 from .base import FoldoverReport, Layout, register_family, tensor_dtype
 
@@ -95,7 +95,8 @@ class GridLayout(Layout):
         control: ``(g_h + 1, g_w + 1, 2)`` control points in sensor coordinates (``None``: the
             uniform grid of ``grid``). Border points must lie on the border (within 1e-9) and
             are snapped onto it; the corners must be the sensor's corners.
-        grid: ``(g_h, g_w)`` control cells when ``control`` is ``None``.
+        grid: ``(g_h, g_w)`` control cells when ``control`` is ``None`` (default 4 x 4); with
+            ``control``, its own (a different ``grid`` is refused).
         min_det: the smallest corner determinant (in units of the uniform cell) a learning step
             may produce; a grid given below it is kept but not made worse.
         bound: unused (accepted for [`make_layout`][layoutwarp.layouts.make_layout]).
@@ -122,14 +123,14 @@ class GridLayout(Layout):
         self,
         control: Tensor | Sequence | None = None,
         *,
-        grid: Sequence[int] = (4, 4),
+        grid: Sequence[int] | None = None,
         min_det: float = 0.05,
         bound: float = 1.0,
         learn: bool = False,
         dtype: torch.dtype | None = None,
     ) -> None:
         if control is None:
-            gh, gw = check_size(grid, "grid")
+            gh, gw = check_size((4, 4) if grid is None else grid, "grid")
             ctrl = uniform_corners((gh, gw))
         else:
             ctrl = torch.as_tensor(control, dtype=torch.float64).detach().cpu().clone()
@@ -138,9 +139,13 @@ class GridLayout(Layout):
                     f"control must have shape (gh + 1, gw + 1, 2) with gh, gw >= 1, got {tuple(ctrl.shape)}"
                 )
             gh, gw = ctrl.shape[0] - 1, ctrl.shape[1] - 1
+            if grid is not None and tuple(grid) != (gh, gw):
+                raise ArgumentError(
+                    "grid", f"grid {tuple(grid)} disagrees with the control points' grid {(gh, gw)}; give one"
+                )
             ctrl = _snap_border(ctrl)
         self.grid = (gh, gw)
-        self.min_det = float(min_det)
+        self.min_det = check_number(min_det, "min_det", 0, 1, lo_open=True, hi_open=True)
         mask = torch.ones(gh + 1, gw + 1, 2, dtype=torch.bool)
         mask[:, [0, -1], 0] = False  # left and right columns keep x
         mask[[0, -1], :, 1] = False  # top and bottom rows keep y

@@ -1,0 +1,190 @@
+"""Bad arguments to the Python API end in one line that names the argument, the value and what is
+allowed: never a raw torch, numpy or OpenCV message, never a silent wrong result (the cases a
+reviewer's sweep of bad inputs found)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+import layoutwarp as lw
+from layoutwarp.checks import ArgumentError
+
+L = lw.CurvLayout((0.3, 0.2))
+IMG = torch.rand(1, 3, 48, 64, generator=torch.Generator().manual_seed(0))
+PHYS = {"sensor_um": [60.0, 80.0], "photons_per_um2": 50.0}
+
+
+def _resampler(**kwargs):
+    return lw.AreaResampler(L, (6, 8), (48, 64), **kwargs)
+
+
+# name: (call, the argument named, a substring of the one-line message)
+CASES = {
+    "a bound past 1 folds the layout": (
+        lambda: lw.CurvLayout((5, 0.2), bound=10),
+        "bound",
+        "in (0, 1], got 10",
+    ),
+    "an integer dtype would truncate θ": (
+        lambda: lw.CurvLayout((0.1, 0.2), dtype=torch.int32),
+        "dtype",
+        "floating-point torch.dtype",
+    ),
+    "a dtype given as text": (lambda: lw.CurvLayout((0.1, 0.2), dtype="float32"), "dtype", "got 'float32'"),
+    "a complex θ": (lambda: lw.CurvLayout(torch.tensor([0.1 + 1j, 0])), "theta", "2 numbers"),
+    "a θ of shape (1, 2)": (lambda: lw.CurvLayout(np.array([[0.1, 0.2]])), "theta", "2 numbers"),
+    "learn as text": (lambda: lw.CurvLayout((0.1, 0.2), learn="yes"), "learn", "True or False, got 'yes'"),
+    "allow_nonfinite as text": (
+        lambda: lw.simulate(IMG, L, (6, 8), allow_nonfinite="no"),
+        "allow_nonfinite",
+        "True or False",
+    ),
+    "a generator that is not one": (
+        lambda: lw.simulate(IMG, L, (6, 8), "montecarlo", generator="x"),
+        "generator",
+        "torch.Generator",
+    ),
+    "a seed that is text": (
+        lambda: lw.simulate(IMG, L, (6, 8), "montecarlo", seed="a"),
+        "seed",
+        "integer >= 0",
+    ),
+    "a family name for a layout (maps)": (
+        lambda: lw.forward_maps("curv", (6, 8), (48, 64)),
+        "layout",
+        "make_layout('curv'",
+    ),
+    "a family name for a layout (back-warp)": (
+        lambda: lw.backwarp(torch.rand(1, 1, 6, 8), "curv", (48, 64)),
+        "layout",
+        "layoutwarp Layout",
+    ),
+    "a family name for a layout (export)": (
+        lambda: lw.export_layout("curv", (6, 8), "m.svg", (60, 80)),
+        "layout",
+        "Layout",
+    ),
+    "a family name for a layout (resampler)": (
+        lambda: lw.AreaResampler("curv", (6, 8), (48, 64)),
+        "layout",
+        "Layout",
+    ),
+    "save_layout with its arguments swapped": (
+        lambda: lw.save_layout("x.json", L),
+        "layout",
+        "Layout, got str",
+    ),
+    "a size given as text to save_layout": (lambda: lw.save_layout(L, "x.json", size="8x6"), "size", "size"),
+    "NaN in a layout file's extras": (
+        lambda: lw.save_layout(L, "x.json", acc=float("nan")),
+        "extra",
+        "JSON numbers",
+    ),
+    "a grid's min_det outside (0, 1)": (lambda: lw.GridLayout(min_det=5), "min_det", "in (0, 1), got 5"),
+    "a grid's min_det as text": (lambda: lw.GridLayout(min_det="a"), "min_det", "got 'a'"),
+    "a grid size against its control points": (
+        lambda: lw.GridLayout(lw.coords.uniform_corners((4, 4)), grid=(3, 3)),
+        "grid",
+        "disagrees with the control points' grid (4, 4)",
+    ),
+    "a resampler on a device torch does not know": (
+        lambda: _resampler(device="nonsense"),
+        "device",
+        "torch device",
+    ),
+    "a resampler for a dtype that is not one": (
+        lambda: _resampler(dtype="bogus"),
+        "dtype",
+        "numpy or torch dtype",
+    ),
+    "a resampler given a tensor": (lambda: _resampler()(IMG), "image", "use apply()"),
+    "a resampler given complex pixels": (
+        lambda: _resampler()(np.ones((48, 64, 3), np.complex64)),
+        "image",
+        "real numbers",
+    ),
+    "a resampler given NaN": (
+        lambda: _resampler()(np.full((48, 64, 3), np.nan, np.float32)),
+        "image",
+        "NaN or Inf",
+    ),
+    "a mask of fractional line width": (
+        lambda: lw.export_layout(L, (6, 8), "m.png", (60, 80), line_width=2.5),
+        "line_width",
+        "integer >= 1",
+    ),
+    "an empty GDSII cell name": (
+        lambda: lw.export_layout(L, (6, 8), "m.gds", (60, 80), cell=""),
+        "cell",
+        "non-empty",
+    ),
+    "a GDSII layer past 2 bytes": (
+        lambda: lw.export_layout(L, (6, 8), "m.gds", (60, 80), layer=70000),
+        "layer",
+        "[0, 32767]",
+    ),
+    "physics text that is not JSON": (
+        lambda: lw.SensorPhysics.from_json("not json"),
+        "text",
+        "must be JSON text",
+    ),
+    "a PRNU of 500 %": (lambda: lw.SensorPhysics(**PHYS, prnu=5), "prnu", "in [0, 1], got 5"),
+    "an extent past a kilometre": (
+        lambda: lw.SensorPhysics((1e300, 1e300), 50),
+        "sensor_um",
+        "in (0, 1e+09]",
+    ),
+    "an f-number that blurs everything": (
+        lambda: lw.SensorPhysics(**PHYS, psf="airy", f_number=1e9),
+        "f_number",
+        "over 4 times the sensor's 80 µm",
+    ),
+    "the meta device": (
+        lambda: lw.AreaResampler(L, (6, 8), (48, 64), device="meta"),
+        "device",
+        "'meta' holds no data",
+    ),
+}
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_a_bad_argument_is_named_in_one_line(case, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # nothing a case might write lands in the checkout
+    call, argument, needle = CASES[case]
+    with pytest.raises(ArgumentError) as info:
+        call()
+    message = str(info.value)
+    assert info.value.argument == argument and needle in message and "\n" not in message, message
+    assert not any(tmp_path.iterdir())  # refused before anything was written
+
+
+def test_preprocessing_refuses_what_it_cannot_do_before_writing(tmp_path):
+    import cv2
+
+    src = tmp_path / "src"
+    src.mkdir()
+    cv2.imwrite(str(src / "a.png"), np.zeros((48, 64, 3), np.uint8))
+    bad = {
+        "files": dict(files=["nothere.png"]),
+        "device": dict(device="nonsense"),
+        "tol": dict(tol=-1),
+        "workers": dict(workers=100000),
+    }
+    for argument, kwargs in bad.items():
+        with pytest.raises(ArgumentError) as info:
+            lw.preprocess_folder(src, tmp_path / "dst", L, (6, 8), progress=False, **kwargs)
+        assert info.value.argument == argument, (argument, str(info.value))
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(ArgumentError, match="holds no images"):
+        lw.preprocess_folder(tmp_path / "empty", tmp_path / "x", L, (6, 8))
+    assert not (tmp_path / "dst").exists() and not (tmp_path / "x").exists()
+    res = lw.preprocess_folder(
+        src, tmp_path / "dst", L, (6, 8), progress=False, physics=PHYS
+    )  # a dict, as files hold it
+    assert res.processed == 1 and not res.failed
+    nan = np.full((48, 64, 3), np.nan, np.float32)
+    cv2.imwrite(str(src / "nan.tiff"), nan)
+    res = lw.preprocess_folder(src, tmp_path / "dst2", L, (6, 8), progress=False)
+    assert [f["file"] for f in res.failed] == ["nan.tiff"] and "NaN or Inf" in res.failed[0]["error"]
