@@ -412,7 +412,15 @@ class _CompiledExact(torch.autograd.Function):
     weigh its vertices for the backward. No image gradient."""
 
     @staticmethod
-    def forward(ctx, theta: Tensor, image: Tensor, spec: MeshSpec, size: tuple[int, int], tol: float):
+    def forward(
+        ctx,
+        theta: Tensor,
+        image: Tensor,
+        spec: MeshSpec,
+        size: tuple[int, int],
+        tol: float,
+        dtype: torch.dtype,
+    ):
         hs, ws = image.shape[-2:]
         topo = MeshTopology(size)
         ctx.set_materialize_grads(False)  # an output nobody used gives None: no work for it
@@ -430,24 +438,27 @@ class _CompiledExact(torch.autograd.Function):
             out, ctx.jac = mesh_integrals(spec, size, th, tol, tables, (hs, ws))
         pix = topo.combine(out)
         ctx.means, ctx.areas = pix[:-1] / pix[-1], pix[-1]
-        return torch.from_numpy(ctx.means), torch.from_numpy(ctx.areas * ctx.unit)
+        # the means in the dtype asked for, rounded here (numpy, one thread): a torch copy of them
+        # would wake torch's thread pool, whose join waits for a busy machine's scheduler
+        means = ctx.means.astype(torch.empty(0, dtype=dtype).numpy().dtype, copy=False)
+        return torch.from_numpy(means), torch.from_numpy(ctx.areas * ctx.unit)
 
     @staticmethod
     def backward(ctx, grad: Tensor | None, grad_areas: Tensor | None):
         if grad is None and grad_areas is None:
-            return None, None, None, None, None
+            return None, None, None, None, None, None
         ref = grad if grad is not None else grad_areas
         if runs_on_device(ref):
             means, area = ctx.saved_tensors
             g = torch.zeros_like(means) if grad is None else grad
             args = (ctx.tables, means, area, g, grad_areas, ctx.unit, ctx.src_size)
-            return device_theta_gradient(ctx.dm, *args).to(ref.dtype), None, None, None, None
-        g = np.zeros_like(ctx.means) if grad is None else grad.detach().double().cpu().numpy()
-        own = None if grad_areas is None else grad_areas.detach().double().cpu().numpy() * ctx.unit
+            return device_theta_gradient(ctx.dm, *args).to(ref.dtype), None, None, None, None, None
+        g = np.zeros_like(ctx.means) if grad is None else grad.detach().cpu().numpy().astype(np.float64)
+        own = None if grad_areas is None else grad_areas.detach().cpu().numpy().astype(np.float64) * ctx.unit
         with kernels.LOCK:
             g_edge = edge_gradient(g, ctx.means, ctx.areas, own)
             g_theta = theta_gradient(g_edge, ctx.jac)
-        return torch.from_numpy(g_theta).to(ref.dtype), None, None, None, None
+        return torch.from_numpy(g_theta).to(ref.dtype), None, None, None, None, None
 
 
 def _kernel_arrays(verts: Tensor, mesh: PixelMesh) -> list[np.ndarray]:
@@ -508,6 +519,7 @@ def integrate_exact(
     theta: Tensor | None = None,
     backend: str = "auto",
     return_areas: bool = False,
+    dtype: torch.dtype = torch.float64,
 ) -> Tensor | tuple[Tensor, Tensor]:
     """Exact mean of a piecewise-constant (box) image over every polygonal pixel.
 
@@ -536,9 +548,11 @@ def integrate_exact(
         return_areas: also return the pixels' areas ``(h, w)`` (float64, sensor units: the square
             ``[-1, 1]²`` is 4), differentiable in θ like the means (what sensor physics needs: a
             learnable layout's compiled path has them as the boundary integral of 1 it divides by).
+        dtype: the means' dtype (computed in float64 and rounded once;
+            [`simulate`][layoutwarp.sensor.simulate] asks for the image's).
 
     Returns:
-        ``(N, h, w)`` in float64; with ``return_areas``, ``(means, areas)``.
+        ``(N, h, w)`` in ``dtype``; with ``return_areas``, ``(means, areas)``.
     """
     _check_image(image)
     check_choice(backend, BACKENDS, "backend")
@@ -560,10 +574,10 @@ def integrate_exact(
         th = layout.resolve_theta(theta)
         spec = mesh_spec(layout) if backend != "torch" and kernel_ok else None
         if spec is not None and th.requires_grad and torch.is_grad_enabled():  # a learnable layout
-            means, areas = _CompiledExact.apply(th, work, spec, check_size(size), tol)
+            means, areas = _CompiledExact.apply(th, work, spec, check_size(size), tol, dtype)
             return (means, areas) if return_areas else means
         mesh = pixel_mesh(layout, check_size(size), tol=tol, dtype=torch.float64, theta=theta)
-    means = _exact_on_mesh(work, mesh, backend != "torch" and kernel_ok)
+    means = _exact_on_mesh(work, mesh, backend != "torch" and kernel_ok).to(dtype)
     return (means, mesh.areas()) if return_areas else means
 
 

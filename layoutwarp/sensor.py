@@ -347,7 +347,8 @@ class _Integration:
             if plan.method == "separable":
                 out = integrate_separable(work, layout, size, return_areas=with_areas)
             else:
-                out = integrate_exact(work, layout, size, tol=self.tol, return_areas=with_areas)
+                dtype = work.dtype if self.physics is None else torch.float64  # the means the output keeps
+                out = integrate_exact(work, layout, size, tol=self.tol, return_areas=with_areas, dtype=dtype)
             mean = out[0] if with_areas else out
             if not (self.allow_nonfinite or all_finite(mean)):
                 raise_nonfinite(work)

@@ -623,7 +623,7 @@ def _amin_beside(area: np.ndarray, i: int, j: int) -> float:
     return min(left, area[i, j] if j < area.shape[1] else np.inf)
 
 
-@parallel
+@serial  # about a millisecond: on a busy machine a parallel region's join waited 10-80x that
 def _corners(
     kind: int, centred: bool, h: int, w: int, corners: np.ndarray, th: np.ndarray, c: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -954,7 +954,7 @@ def mesh_integrals(
     )  # fmt: skip
 
 
-@parallel
+@serial  # about a millisecond: on a busy machine a parallel region's join waited 10-80x that
 def _to_pixels(verts: np.ndarray, ws: float, hs: float) -> np.ndarray:
     out = np.empty_like(verts)
     for v in prange(verts.shape[0]):
@@ -969,7 +969,7 @@ def pixel_vertices(mesh: CompiledMesh, src_size: tuple[int, int]) -> np.ndarray:
     return _to_pixels(mesh.vertices, float(ws), float(hs))
 
 
-@parallel
+@serial  # about a millisecond: on a busy machine a parallel region's join waited 10-80x that
 def _edge_gradient(
     grad: np.ndarray, means: np.ndarray, areas: np.ndarray, area_grad: np.ndarray
 ) -> np.ndarray:
@@ -1010,7 +1010,7 @@ def edge_gradient(
     return _edge_gradient(*(np.ascontiguousarray(a, dtype=np.float64) for a in (grad, means, areas, own)))
 
 
-@parallel
+@serial  # about a millisecond: on a busy machine a parallel region's join waited 10-80x that
 def _contract(g: np.ndarray, jac: np.ndarray) -> np.ndarray:
     rows, p = jac.shape
     n_chunks = (rows + 4095) // 4096
