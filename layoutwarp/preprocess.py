@@ -369,7 +369,8 @@ def check_no_overwrite(
 ) -> None:
     """Refuse a run that would write over a file it reads: a sensor image, label map or record in
     ``dst`` that is (the same file as, by device and inode, so links count) a source image under
-    ``src`` or a label map, before anything is written.
+    ``src`` or a label map; or over any file already in a ``dst`` that no earlier run wrote (it
+    has no ``layout.json``). Before anything is written.
 
     Raises:
         ArgumentError: naming ``dst``, the file that would be overwritten and the output, in one line.
@@ -394,6 +395,7 @@ def check_no_overwrite(
         writes += [dst / rel, label_dst]
         if label_src is not None and (key := identity(label_src)) is not None:
             reads[key] = label_src
+    ours = (dst / "layout.json").is_file()  # a destination of an earlier run: its outputs are ours
     for out in writes:
         key = identity(out)
         if key is not None and key in reads:
@@ -401,6 +403,12 @@ def check_no_overwrite(
                 "dst",
                 f"dst {str(dst)!r} would overwrite the source file {str(reads[key])!r} "
                 f"(as {str(out)!r}); choose a folder that holds none of the inputs",
+            )
+        if key is not None and not ours:
+            raise ArgumentError(
+                "dst",
+                f"dst {str(dst)!r} holds files of its own that the run would overwrite ({str(out)!r}); "
+                "use an empty folder, or one an earlier run of this command wrote",
             )
 
 

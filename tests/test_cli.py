@@ -608,3 +608,12 @@ def test_the_decoders_lines_are_kept_off_and_everything_else_passes_as_it_comes(
         "[ WARN:0@1.2] global loadsave.cpp (1) imread_ x",
         "Corrupt JPEG data: 2 extraneous bytes before marker 0xd9",
     ]
+
+
+def test_a_size_is_ascii_digits_an_x_and_ascii_digits():
+    assert parse_wxh("257x129") == (129, 257) and parse_wxh("8X6") == (6, 8)
+    for text in ("8 x 6", "8_0x6", "８x６", "8x6x2", "0x1p-2", " 8x6"):
+        with pytest.raises(Exception, match="WIDTHxHEIGHT"):
+            parse_wxh(text)
+    with pytest.raises(Exception, match=">= 1"):
+        parse_wxh("-4x4")

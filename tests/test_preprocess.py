@@ -402,3 +402,17 @@ def test_reading_works_with_the_oldest_opencvs_log_functions(tmp_path, monkeypat
     _photo(tmp_path / "a.png", seed)
     assert read_image(tmp_path / "a.png").shape == (40, 60, 3)
     assert calls == ["get", 0, 3]  # silent while decoding, then as it was
+
+
+def test_preprocess_refuses_to_overwrite_a_folders_own_files(tmp_path, seed):
+    # a destination no earlier run wrote (no layout.json) keeps its files: a same-named output is refused
+    layout, size = fixed("rect", (0.2, 0.1)), (4, 4)
+    _photo(tmp_path / "src" / "a.png", seed)
+    _photo(tmp_path / "mine" / "a.png", seed + 1)
+    before = _snapshot(tmp_path / "mine")
+    with pytest.raises(ArgumentError, match="holds files of its own that the run would overwrite"):
+        preprocess_folder(tmp_path / "src", tmp_path / "mine", layout, size, progress=False)
+    assert _snapshot(tmp_path / "mine") == before
+    res = preprocess_folder(tmp_path / "src", tmp_path / "ours", layout, size, progress=False)
+    again = preprocess_folder(tmp_path / "src", tmp_path / "ours", layout, size, progress=False)
+    assert res.processed == 1 and again.skipped == 1  # a run's own destination resumes

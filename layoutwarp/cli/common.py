@@ -103,12 +103,16 @@ def add_command(sub: argparse._SubParsersAction, name: str, summary: str) -> arg
 # ----------------------------------------------------------------------------------------
 # Value types
 # ----------------------------------------------------------------------------------------
+_WXH = re.compile(r"(-?[0-9]+)[xX](-?[0-9]+)", re.ASCII)
+
+
 def parse_wxh(text: str) -> tuple[int, int]:
-    """``"257x129"`` (width x height) to ``(H, W) = (129, 257)``."""
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be WIDTHxHEIGHT, e.g. 257x129, got {text!r}") from None
+    """``"257x129"`` (width x height) to ``(H, W) = (129, 257)``: ASCII digits, no spaces or
+    underscores (``int`` would read ``8_0`` as 80)."""
+    match = _WXH.fullmatch(text)
+    if match is None:
+        raise argparse.ArgumentTypeError(f"must be WIDTHxHEIGHT, e.g. 257x129, got {text!r}")
+    w, h = int(match[1]), int(match[2])
     if w <= 0 or h <= 0:
         raise argparse.ArgumentTypeError(f"width and height must be >= 1, got {text!r}")
     return h, w
