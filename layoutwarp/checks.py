@@ -82,8 +82,10 @@ def check_size(size: Any, name: str = "size") -> tuple[int, int]:
         (129, 257)
     """
     try:
+        if isinstance(size, (str, bytes)):  # "34" would be (3, 4)
+            raise TypeError
         h, w = (int(v) for v in size)
-        whole = all(float(v) == int(v) and not isinstance(v, (bool, np.bool_)) for v in size)
+        whole = all(float(v) == int(v) and not isinstance(v, (bool, np.bool_, str, bytes)) for v in size)
     except (TypeError, ValueError):
         raise ArgumentError(
             _argument(name), f"{name} must be a pair (H, W) of positive integers, got {size!r}"

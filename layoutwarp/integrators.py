@@ -28,7 +28,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from . import jit, kernels
-from .checks import check_choice, check_int, check_shape, check_size, floating_dtype
+from .checks import check_choice, check_float_dtype, check_int, check_shape, check_size, floating_dtype
 from .coords import grid_lines, pixel_centers, sensor_to_pixels
 from .kernels.device import runs_on_device, stream_of
 from .kernels.mesh import (
@@ -440,8 +440,11 @@ class _CompiledExact(torch.autograd.Function):
         ctx.means, ctx.areas = pix[:-1] / pix[-1], pix[-1]
         # the means in the dtype asked for, rounded here (numpy, one thread): a torch copy of them
         # would wake torch's thread pool, whose join waits for a busy machine's scheduler
-        means = ctx.means.astype(torch.empty(0, dtype=dtype).numpy().dtype, copy=False)
-        return torch.from_numpy(means), torch.from_numpy(ctx.areas * ctx.unit)
+        if dtype in (torch.float32, torch.float64):
+            means = torch.from_numpy(ctx.means.astype(np.float32 if dtype == torch.float32 else np.float64))
+        else:  # half precisions: numpy has one of them only
+            means = torch.from_numpy(ctx.means).to(dtype)
+        return means, torch.from_numpy(ctx.areas * ctx.unit)
 
     @staticmethod
     def backward(ctx, grad: Tensor | None, grad_areas: Tensor | None):
@@ -556,6 +559,7 @@ def integrate_exact(
     """
     _check_image(image)
     check_choice(backend, BACKENDS, "backend")
+    dtype = check_float_dtype(dtype)
     if image.requires_grad or backend == "torch":
         kernel_ok = False
     elif image.device.type == "cpu":  # compiled, unless its kernels are still compiling (jit)

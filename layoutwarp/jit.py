@@ -7,7 +7,7 @@ compiling on 2 cores for the kernels a user meets first (``docs/speed.md``), and
 cut from it without slowing every later call. So by default no call waits for it:
 
 - ``"background"`` (the default): the first call that could use a group of kernels missing from
-  the cache starts one worker process (at idle priority) that compiles every group into the
+  the cache starts one worker process (at idle priority) that compiles the groups of its dtype into the
   cache, the one asked for first, and the call answers from the torch path (the same values to rounding). A
   call after the worker has compiled its group loads it from the cache in milliseconds and runs
   compiled from then on. A call whose result would differ beyond rounding (the sensor's noise
@@ -152,8 +152,9 @@ def ready(group: str, dtype: str | torch.dtype = "float32", wait: bool = False) 
             _READY.add(unit)
         if unit in _READY:
             return True
-        if current == "background" and not wait and worker is None:
-            _start_worker(unit)  # unless another process's worker fills this cache
+        if current == "background" and not wait:  # the worker takes it: queued, or a new worker
+            if worker is None or not worker.enqueue(unit):
+                _start_worker(unit)  # unless another process's worker fills this cache
             return False
         if worker is not None and worker.current == unit and worker.has(unit):
             _announce(unit, "waiting for the background compile of")
@@ -338,8 +339,9 @@ class _Worker:
     first asked for first, then the other groups of its dtype: the other dtype's wait until a
     call needs them), so a process that needs a unit the worker has not begun compiles it itself
     beside it ([`drop`][]). One worker serves a cache: it holds the cache's worker lock
-    ([`_worker_lock`][]) while it lives, and a process that finds it held starts none of its own
-    ([`_elsewhere`][])."""
+    ([`_take_worker_lock`][]) while it lives, and a process that finds it held starts none of its
+    own ([`_elsewhere`][]); a unit of the other dtype joins the queue of a worker at work
+    ([`enqueue`][])."""
 
     def __init__(self, first: str, lock: Any) -> None:
         dtype = first.split("/")[1]
@@ -367,6 +369,16 @@ class _Worker:
     def has(self, unit: str) -> bool:
         """Whether ``unit`` is still to come from the worker."""
         return (unit == self.current or unit in self.queue) and self.proc.poll() is None
+
+    def enqueue(self, unit: str) -> bool:
+        """Add ``unit`` to the queue of a worker still at work; ``False`` where it has ended (or
+        is ending: its queue ran out, and it finishes the unit it is on)."""
+        with self.changed:
+            if self.proc.poll() is not None or self.current is None:
+                return False
+            if unit != self.current and unit not in self.queue:
+                self.queue.append(unit)
+            return True
 
     def drop(self, unit: str) -> None:
         with self.changed:
@@ -408,7 +420,12 @@ def _start_worker(unit: str) -> None:
         _elsewhere(unit)
         return
     _announce(unit, "compiling in the background (the torch path answers meanwhile):")
-    _WORKER = _Worker(unit, lock)
+    try:
+        _WORKER = _Worker(unit, lock)
+    except BaseException:
+        if lock is not None:
+            lock.close()  # no worker holds it: another process may start one
+        raise
 
 
 #: How often a process whose cache another process's worker fills looks at the cache again (s).
@@ -450,7 +467,8 @@ def cache_folder() -> str | None:
 
 def _lock_path(name: str) -> str:
     folder = cache_folder() or tempfile.gettempdir()
-    os.makedirs(folder, exist_ok=True)
+    with contextlib.suppress(OSError):  # a read-only cache: the lock file may exist, or not open
+        os.makedirs(folder, exist_ok=True)
     return os.path.join(folder, f"layoutwarp-{name}.lock")
 
 
@@ -462,7 +480,11 @@ def _take_worker_lock() -> Any:
         import fcntl
     except ImportError:
         return None
-    handle = open(_lock_path("worker"), "w")  # handed on to the worker; closed here after
+    try:  # read-only and shared: flock works on it, whoever created the file, on a read-only cache too
+        fd = os.open(_lock_path("worker"), os.O_RDONLY | os.O_CREAT, 0o666)
+    except OSError:  # a cache folder this user cannot write: no lock, a worker of its own
+        return None
+    handle = os.fdopen(fd, "rb")  # handed on to the worker; closed here after
     try:
         fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except OSError:

@@ -148,14 +148,14 @@ def _truncation(data: np.ndarray) -> str | None:
     """Why a PNG or JPEG file's bytes are cut short (its end marker missing), or ``None``. Such a
     file is refused before decoding: OpenCV decodes a truncated JPEG into an image whose lower
     part is grey, and libpng and libjpeg print their own lines about it."""
-    head = data[:8].tobytes()
-    if head.startswith(b"\x89PNG\r\n\x1a\n"):
-        if b"IEND" not in data[-32:].tobytes():
-            return "truncated PNG file (no IEND chunk at its end)"
-    elif head.startswith(b"\xff\xd8"):
-        tail = data[-4096:].tobytes().rstrip(b"\x00\r\n \t")  # padding some writers append
-        if not tail.endswith(b"\xff\xd9"):
-            return "truncated JPEG file (no end-of-image marker)"
+    raw = data.tobytes()
+    if raw.startswith(b"\x89PNG\r\n\x1a\n"):
+        if raw.rfind(b"IEND") < raw.rfind(b"IDAT"):  # data may follow IEND (metadata, a trailer)
+            return "truncated PNG file (no IEND chunk after its image data)"
+    elif raw.startswith(b"\xff\xd8"):
+        scan = raw.find(b"\xff\xda")  # the first scan (an EXIF thumbnail's end comes before it)
+        if scan < 0 or raw.find(b"\xff\xd9", scan) < 0:  # a video may follow (motion photos)
+            return "truncated JPEG file (no end-of-image marker after its scan)"
     return None
 
 
@@ -368,22 +368,21 @@ def check_no_overwrite(
     src: Path, dst: Path, sources: Iterable[Path], labels: Path | None, label_rule: str
 ) -> None:
     """Refuse a run that would write over a file it reads: a sensor image, label map or record in
-    ``dst`` that is (the same file as, by device and inode, so links count) a source image under
-    ``src`` or a label map; or over any file already in a ``dst`` that no earlier run wrote (it
-    has no ``layout.json``). Before anything is written.
+    ``dst`` whose path is a source image's under ``src`` or a label map's (folders resolved, so
+    a folder link into the source counts; a file link or hard link does not: every output is
+    written to a new file renamed over the name, which replaces the link, not what it points to);
+    or over any file already in a ``dst`` that no earlier run wrote (it has no ``layout.json``).
+    Before anything is written.
 
     Raises:
         ArgumentError: naming ``dst``, the file that would be overwritten and the output, in one line.
     """
 
-    def identity(path: Path) -> tuple[int, int] | None:
-        try:
-            st = path.stat()
-        except OSError:
-            return None
-        return st.st_dev, st.st_ino
+    def identity(path: Path) -> Path | None:
+        """The directory entry ``path`` names (its folder resolved), where it exists."""
+        return path.parent.resolve() / path.name if os.path.lexists(path) else None
 
-    reads: dict[tuple[int, int], Path] = {}
+    reads: dict[Path, Path] = {}
     writes = [dst / name for name in RECORDS]
     for path in list_images(src, dst):  # every image under src, not only the files of this run
         key = identity(path)
@@ -392,7 +391,7 @@ def check_no_overwrite(
     for path in sources:
         rel = path.relative_to(src)
         label_src, label_dst = _label_paths(dst, labels, rel, label_rule)
-        writes += [dst / rel, label_dst]
+        writes += [dst / rel] + ([label_dst] if label_src is not None else [])
         if label_src is not None and (key := identity(label_src)) is not None:
             reads[key] = label_src
     ours = (dst / "layout.json").is_file()  # a destination of an earlier run: its outputs are ours

@@ -254,7 +254,8 @@ class AreaResampler:
                 else type(image).__name__
             )
             raise ArgumentError("image", f"image must be a numpy (H, W) or (H, W, C) array, got {what}")
-        if not (np.issubdtype(image.dtype, np.integer) or np.issubdtype(image.dtype, np.floating)):
+        kinds = (np.integer, np.floating, np.bool_)
+        if not any(np.issubdtype(image.dtype, k) for k in kinds):
             raise ArgumentError(
                 "image", f"image must hold real numbers (integers or floats), got {image.dtype}"
             )
@@ -263,7 +264,9 @@ class AreaResampler:
                 "image",
                 f"image must be {self.src_size} (H, W), optionally with channels, got shape {image.shape}",
             )
-        if np.issubdtype(image.dtype, np.floating) and not np.isfinite(image).all():
+        if np.issubdtype(image.dtype, np.floating) and not all_finite(
+            torch.from_numpy(np.ascontiguousarray(image))
+        ):
             raise ArgumentError(
                 "image", "image has NaN or Inf values, which would spread into its sensor pixels"
             )

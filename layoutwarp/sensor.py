@@ -253,7 +253,8 @@ def simulate(
         return (out, plan) if return_plan else out
     work, out_dtype, lead = _prepare(image)
     warn_if_finer(size, tuple(work.shape[-2:]))
-    warn_if_elsewhere(layout.rho.device, work.device)
+    if layout.rho.numel():  # a layout with a θ to copy
+        warn_if_elsewhere(layout.rho.device, work.device)
     if work.shape[0] == 0:
         out = work.new_zeros(*lead, *size).to(out_dtype)
         # nothing to integrate, but the output stays in θ's and the image's graph, as a module's would

@@ -46,7 +46,7 @@ def seed_for(nodeid: str, setting: str | None = None) -> int:
     if setting.strip().lower() == "random":
         return int.from_bytes(os.urandom(4), "little")
     try:
-        return int(setting)
+        return int(setting) % 2**32  # NumPy's legacy seeding takes 0 .. 2**32 - 1
     except ValueError:
         raise pytest.UsageError(f"LAYOUTWARP_SEED must be a number or 'random', got {setting!r}") from None
 

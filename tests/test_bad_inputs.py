@@ -82,6 +82,12 @@ CASES = {
         "extra",
         "JSON numbers",
     ),
+    "a size given as text": (
+        lambda: lw.simulate(IMG, L, "34"),
+        "size",
+        "pair (H, W) of positive integers, got '34'",
+    ),
+    "a size of text numbers": (lambda: lw.simulate(IMG, L, ("3", "4")), "size", "positive integers"),
     "a grid's min_det outside (0, 1)": (lambda: lw.GridLayout(min_det=5), "min_det", "in (0, 1), got 5"),
     "a grid's min_det as text": (lambda: lw.GridLayout(min_det="a"), "min_det", "got 'a'"),
     "a grid size against its control points": (
@@ -160,7 +166,7 @@ def test_a_bad_argument_is_named_in_one_line(case, tmp_path, monkeypatch):
     assert not any(tmp_path.iterdir())  # refused before anything was written
 
 
-def test_preprocessing_refuses_what_it_cannot_do_before_writing(tmp_path):
+def test_preprocessing_refuses_what_it_cannot_do_before_writing(tmp_path, monkeypatch):
     import cv2
 
     src = tmp_path / "src"
@@ -184,7 +190,16 @@ def test_preprocessing_refuses_what_it_cannot_do_before_writing(tmp_path):
         src, tmp_path / "dst", L, (6, 8), progress=False, physics=PHYS
     )  # a dict, as files hold it
     assert res.processed == 1 and not res.failed
-    nan = np.full((48, 64, 3), np.nan, np.float32)
-    cv2.imwrite(str(src / "nan.tiff"), nan)
+    # a float image holding NaN (as a float TIFF decodes; older OpenCVs write float TIFFs otherwise)
+    import layoutwarp.preprocess as pre
+
+    cv2.imwrite(str(src / "nan.png"), np.zeros((48, 64, 3), np.uint8))
+    read = pre.read_image
+
+    def nan_for_nan_png(path, *args):
+        img = read(path, *args)
+        return np.full(img.shape, np.nan, np.float32) if path.name == "nan.png" else img
+
+    monkeypatch.setattr(pre, "read_image", nan_for_nan_png)
     res = lw.preprocess_folder(src, tmp_path / "dst2", L, (6, 8), progress=False)
-    assert [f["file"] for f in res.failed] == ["nan.tiff"] and "NaN or Inf" in res.failed[0]["error"]
+    assert [f["file"] for f in res.failed] == ["nan.png"] and "NaN or Inf" in res.failed[0]["error"]

@@ -287,9 +287,9 @@ CASES |= {  # what a reviewer's sweep of bad inputs found accepted, run, or ende
         [*PRE, "--labels", "{tmp}/noimages"],
         ["argument --labels", "holds no label map for any image"],
     ),
-    "dask address without a port": (
-        [*PRE, "--engine", "dask", "--address", "notanaddress"],
-        ["--address", "HOST:PORT"],
+    "dask address that is not one": (
+        [*PRE, "--engine", "dask", "--address", "tcp://h:port"],
+        ["--address", "HOST[:PORT]"],
     ),
     "f-number without a psf": (
         [*PRE, "--photons-per-um2", "5", "--sensor-um", "80x60", "--f-number", "2"],
@@ -617,3 +617,25 @@ def test_a_size_is_ascii_digits_an_x_and_ascii_digits():
             parse_wxh(text)
     with pytest.raises(Exception, match=">= 1"):
         parse_wxh("-4x4")
+
+
+def test_the_decoders_filter_ends_at_once_and_loses_nothing(capfd):
+    import os
+    import time
+
+    from layoutwarp.cli.common import quiet_decoders
+
+    t = time.perf_counter()
+    with quiet_decoders():
+        os.write(2, b"a partial line")  # still waiting for its end when the context closes
+    assert capfd.readouterr().err == "a partial line" and time.perf_counter() - t < 5
+    held = [os.open(os.devnull, os.O_RDONLY) for _ in range(1100)]  # the pipe's descriptors past 1023
+    try:
+        with quiet_decoders() as dropped:
+            os.write(2, b"libpng warning: iCCP: known incorrect sRGB profile\nkept\n")
+    finally:
+        for fd in held:
+            os.close(fd)
+    assert capfd.readouterr().err == "kept\n" and dropped == [
+        "libpng warning: iCCP: known incorrect sRGB profile"
+    ]

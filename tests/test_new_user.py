@@ -73,8 +73,8 @@ def test_preprocess_says_so_in_one_line_and_the_decoders_add_no_line_of_their_ow
     failed = sorted(line.strip() for line in res.stderr.splitlines() if line.strip().startswith("failed:"))
     assert failed == [
         "failed: crc.png: ValueError: unreadable or not an image",
-        "failed: cut.jpg: ValueError: truncated JPEG file (no end-of-image marker)",
-        "failed: cut.png: ValueError: truncated PNG file (no IEND chunk at its end)",
+        "failed: cut.jpg: ValueError: truncated JPEG file (no end-of-image marker after its scan)",
+        "failed: cut.png: ValueError: truncated PNG file (no IEND chunk after its image data)",
     ]
     manifest = json.loads((tmp_path / "dst" / "manifest.json").read_text())
     lines = manifest["decoder_messages"]
@@ -265,3 +265,39 @@ def test_a_fixed_layouts_theta_comes_back_to_the_bit(tmp_path, seed):
     fixed = lw.CurvLayout()
     fixed.load_state_dict(learn.state_dict())
     assert torch.equal(fixed.theta, learn.theta.detach())
+
+
+def test_a_layouts_description_holds_its_numbers_to_the_bit():
+    # θ, a centre and a grid's control points, given as Python floats, are written as given
+    fovea = lw.FoveaLayout((0.5, 0.2), center=(0.3, -0.1))
+    assert fovea.to_config()["theta"] == [0.5, 0.2] and fovea.to_config()["center"] == [0.3, -0.1]
+    assert lw.CurvLayout((0.5, 0.2), center=(0.3, -0.1)).to_config()["center"] == [0.3, -0.1]
+    ctrl = lw.coords.uniform_corners((2, 2)).tolist()
+    ctrl[1][1] = [0.1, -0.2]
+    assert lw.GridLayout(ctrl).to_config()["control"][1][1] == [0.1, -0.2]
+    # a fixed layout whose ρ was trained anyway saves the θ it trained to
+    layout = lw.RectLayout((0.3, 0.2))
+    layout.rho.requires_grad_(True)
+    opt = torch.optim.SGD([layout.rho], lr=1.0)
+    layout.theta.sum().backward()
+    opt.step()
+    again = lw.RectLayout()
+    again.load_state_dict(layout.state_dict())
+    assert torch.allclose(again.theta.double(), layout.theta.detach().double(), atol=1e-7)
+
+
+def test_a_tasks_own_freeze_epochs_is_its_protocol_not_an_error(monkeypatch, tmp_path, capsys):
+    import layoutwarp.experiments.runs as runs
+
+    seen = []
+
+    def stop(task, folder, out, *, families, sizes, seeds, options):
+        seen.append(options)
+        raise ValueError("stopped")
+
+    monkeypatch.setattr(runs, "run_experiment", stop)
+    assert (
+        main(["train", "camvid", "--quick", "--epochs", "1", "--out", str(tmp_path / "o"), "--no-progress"])
+        == 2
+    )
+    assert "stopped" in capsys.readouterr().err and seen[0].epochs == 1

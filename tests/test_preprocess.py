@@ -335,12 +335,21 @@ def test_preprocess_refuses_a_destination_that_would_overwrite_what_it_reads(tmp
             tmp_path / "only", tmp_path, layout, size, labels=tmp_path / "labels", progress=False
         )
     assert _snapshot(tmp_path) == before
-    # a hard link in the destination to a source file is the source file
+    # a link in the destination to a source file is replaced by the output, never written through
     out = tmp_path / "out"
     out.mkdir()
     (out / "a.png").hardlink_to(src / "a.png")
-    with pytest.raises(ArgumentError, match="would overwrite the source file"):
+    (out / "b.png").symlink_to(src / "b.png")
+    (out / "layout.json").write_text("{}")  # as an earlier run left it, so its outputs are ours
+    (out / "layout.json").unlink()
+    with pytest.raises(ArgumentError, match="holds files of its own"):  # not a run's: refused
         preprocess_folder(src, out, layout, size, progress=False, files=[src / "a.png"])
+    lw.save_layout(layout, out / "layout.json", size)
+    preprocess_folder(src, out, layout, size, progress=False, files=[src / "a.png", src / "b.png"])
+    assert (src / "a.png").read_bytes() == before["src/a.png"] and (src / "b.png").read_bytes() == before[
+        "src/b.png"
+    ]
+    assert not (out / "b.png").is_symlink() and cv2.imread(str(out / "a.png")).shape == (6, 8, 3)
     # a destination inside the source is fine: it is left out of the walk
     res = preprocess_folder(src, src / "sensor", layout, size, progress=False)
     assert res.processed == 3 and not res.failed
@@ -389,6 +398,11 @@ def test_truncated_images_are_refused_in_our_words(tmp_path, seed):
             read_image(cut)
     (tmp_path / "padded.jpg").write_bytes((tmp_path / "a.jpg").read_bytes() + b"\0" * 100)
     assert read_image(tmp_path / "padded.jpg").shape == (40, 60, 3)  # trailing padding is not a cut
+    trailer = b"\x00\x00\x00\x18ftypmp42" + bytes(range(256)) * 40  # a motion photo's video after it
+    (tmp_path / "motion.jpg").write_bytes((tmp_path / "a.jpg").read_bytes() + trailer)
+    assert read_image(tmp_path / "motion.jpg").shape == (40, 60, 3)
+    (tmp_path / "tail.png").write_bytes((tmp_path / "a.png").read_bytes() + trailer)
+    assert read_image(tmp_path / "tail.png").shape == (40, 60, 3)
 
 
 def test_reading_works_with_the_oldest_opencvs_log_functions(tmp_path, monkeypatch, seed):

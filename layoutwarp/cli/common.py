@@ -13,7 +13,7 @@ import json
 import math
 import os
 import re
-import select
+import selectors
 import sys
 import threading
 from collections.abc import Callable, Iterator, Sequence
@@ -453,31 +453,46 @@ def quiet_decoders() -> Iterator[list[str]]:
         yield []
         return
     dropped: list[str] = []
-    mark = b"\x00layoutwarp-stderr-mark\n"  # a line no library writes
+    mark = b"\x00layoutwarp-stderr-mark\x00"  # bytes no library writes
     marked = threading.Event()
 
     def drop(match: re.Match) -> bytes:
         dropped.append(match.group().decode(errors="replace").strip())
         return b""
 
+    def show(data: bytes) -> None:
+        with contextlib.suppress(OSError):  # a reader gone (| head): the output goes nowhere
+            os.write(terminal, data)
+
     def forward() -> None:
         pending = b""
-        while True:
-            ready, _, _ = select.select([read_end], [], [], 0.1)
-            chunk = os.read(read_end, 65536) if ready else b""
-            if ready and not chunk:  # the last writer has gone
-                break
-            *lines, pending = re.split(rb"(?<=[\n\r])", pending + chunk)
-            if pending and not chunk and not DECODER_LINE.search(pending):
-                lines.append(pending)  # a partial line that waited 0.1 s (a prompt, a bar); a
-                pending = b""  # library's message (one write, whole) waits for its line's end
-            for line in lines:
-                if line == mark:
-                    marked.set()
-                elif line := DECODER_LINE.sub(drop, line):
-                    os.write(terminal, line)
-        if pending := DECODER_LINE.sub(drop, pending):
-            os.write(terminal, pending)
+        try:
+            with selectors.DefaultSelector() as sel:  # (select.select fails past fd 1023)
+                sel.register(read_end, selectors.EVENT_READ)
+                while True:
+                    chunk = os.read(read_end, 65536) if sel.select(0.1) else None
+                    if chunk == b"":  # the last writer has gone
+                        break
+                    pending += chunk or b""
+                    if mark in pending:  # everything before it is sorted: the caller goes on
+                        before, pending = pending.split(mark, 1)
+                        show(DECODER_LINE.sub(drop, before))
+                        marked.set()
+                    *lines, pending = re.split(rb"(?<=[\n\r])", pending)
+                    if pending and chunk is None and not DECODER_LINE.search(pending):
+                        lines.append(pending)  # a partial line that waited 0.1 s (a prompt, a bar); a
+                        pending = b""  # library's message (one write, whole) waits for its line's end
+                    for line in lines:
+                        if line := DECODER_LINE.sub(drop, line):
+                            show(line)
+        except Exception:  # never lose the output: pass the rest through as it is
+            show(pending)
+            pending = b""
+            marked.set()
+            while chunk := os.read(read_end, 65536):
+                show(chunk.replace(mark, b""))
+        show(DECODER_LINE.sub(drop, pending))
+        marked.set()
         os.close(read_end)
         os.close(terminal)
 

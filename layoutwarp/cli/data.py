@@ -30,7 +30,7 @@ from .common import (
 __all__ = ["add_commands"]
 
 #: A Dask scheduler's address: ``HOST:PORT``, optionally behind a protocol (``tcp://``, ``tls://``, ...).
-ADDRESS = re.compile(r"^([a-z]+://)?[^\s:/]+:\d{1,5}$")
+ADDRESS = re.compile(r"([A-Za-z][A-Za-z0-9+.-]*://)?(\[[0-9A-Fa-f:.]+\]|[^\s:/\[\]]+)(:\d{1,5})?")
 
 
 def _cmd_preprocess(args: argparse.Namespace) -> int:
@@ -46,9 +46,9 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
         raise UsageError(
             f"argument --label-rule: needs --labels DIR (the label maps), got {args.label_rule!r}"
         )
-    if args.address is not None and not ADDRESS.match(args.address):
+    if args.address is not None and not ADDRESS.fullmatch(args.address):
         raise UsageError(
-            f"argument --address: must be a scheduler's HOST:PORT or tcp://HOST:PORT, got {args.address!r}"
+            f"argument --address: must be a scheduler's HOST[:PORT], tcp://HOST[:PORT], got {args.address!r}"
         )
     layout, size = layout_from_args(args)
     dst = Path(args.dst)

@@ -42,7 +42,8 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         raise UsageError(f"argument --image: cannot read {str(image)!r}: {exc}") from None
     check_sensor_memory(args.size)
     out_dir(args.out)
-    numbers = run_demo(image, args.out, args.size, args.theta, args.tol)
+    with quiet_decoders():  # the demo decodes the photo again
+        numbers = run_demo(image, args.out, args.size, args.theta, args.tol)
     print(f"wrote {args.out}/layouts.png, demo.json and sensor_*.png")
     for name, d in numbers["layouts"].items():
         print(

@@ -92,12 +92,15 @@ def _run_options(task: Task, args: argparse.Namespace, defaults: TaskDefaults) -
     from ..experiments.runs import RunOptions
 
     sensor = _sensor_options(args, defaults.tol) | _physics_option(task, args)
-    return _checked(RunOptions.of(defaults, epochs=args.epochs, sensor=sensor, **_training_flags(task, args)))
+    return _checked(
+        RunOptions.of(defaults, epochs=args.epochs, sensor=sensor, **_training_flags(task, args)), args
+    )
 
 
-def _checked(options: RunOptions) -> RunOptions:
-    """Refuse options that would quietly train something else than asked."""
-    if options.freeze_epochs >= options.epochs > 0 and options.freeze_epochs > 0:
+def _checked(options: RunOptions, args: argparse.Namespace) -> RunOptions:
+    """Refuse flags that would quietly train something else than asked (a task's own defaults
+    are its protocol's: a short run freezes θ for what it has)."""
+    if args.freeze_epochs is not None and 0 < options.epochs <= options.freeze_epochs:
         raise UsageError(
             f"argument --freeze-epochs: {options.freeze_epochs} would freeze θ for all {options.epochs} "
             "epochs; give fewer than --epochs"
@@ -233,7 +236,7 @@ def _study_run_options(task: Task, plan: StudyPlan, args: argparse.Namespace) ->
 
     epochs = args.epochs or (1 if args.quick else None)
     options = study_options(task, plan, epochs=epochs, **_training_flags(task, args))
-    return _checked(replace(options, sensor=options.sensor | _physics_option(task, args)))
+    return _checked(replace(options, sensor=options.sensor | _physics_option(task, args)), args)
 
 
 def _cmd_landscape(args: argparse.Namespace) -> int:

@@ -509,6 +509,7 @@ def _layout_rows(
             gen = torch.Generator(cfg.device).manual_seed(0)
             rows[-1].peak_mb = _cuda_peak_mb(lambda: _grid_sample_mc(dev_img, dev_curv, size, 4, gen))
     dev_layout, dev_img = layout_from_spec(spec).to(cfg.device), img.to(cfg.device)  # the timed copies
+    dev_learn = layout_from_spec(spec, learn=True).to(cfg.device)  # the same layout, learnable
     for method, opts, setting in _settings(dev_layout, name, cfg.tols, cfg.mc_samples):
         say(f"{image_name} {name}: {method} {setting}")
 
@@ -520,23 +521,22 @@ def _layout_rows(
         if method == "exact" and dev_layout.separable:
             row.method = "separable"
         if g_ref is not None:
-            dev_layout.rho.requires_grad_(True)
 
             def fwd_grad(method=method, opts=opts):
-                return simulate(dev_img, dev_layout, size, method, **opts)
+                return simulate(dev_img, dev_learn, size, method, **opts)
 
             row.extra["forward_with_grad_ms"] = _time(fwd_grad, repeats)  # learnable: mesh rebuilt every call
-            row.backward_ms = _time_backward(fwd_grad, dev_layout, repeats)
+            row.backward_ms = _time_backward(fwd_grad, dev_learn, repeats)
             (fwd_grad().double().cpu() * gw).sum().backward()
-            g = _theta_grad(dev_layout).cpu()
-            dev_layout.rho.grad = None
+            g = _theta_grad(dev_learn).cpu()
+            dev_learn.rho.grad = None
             row.grad_rel_err = float((g - g_ref).norm() / g_ref.norm())
             row.extra["grad"], row.extra["grad_ref"] = g.tolist(), g_ref.tolist()
         if photo:
             row.peak_mb = _cuda_peak_mb(fwd) if on_cuda else mem(method, opts)
             if on_cuda and g_ref is not None:
                 row.extra["train_peak_mb"] = _cuda_peak_mb(lambda f=fwd_grad: f().sum().backward())
-                dev_layout.rho.grad = None
+                dev_learn.rho.grad = None
         rows.append(row)
     return rows
 

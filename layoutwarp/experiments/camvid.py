@@ -77,7 +77,7 @@ class SegNet(nn.Module):
     """
 
     def __init__(
-        self, layout: str, size: tuple[int, int], classes: int = 11, learn: bool | None = True, **sensor
+        self, layout: str, size: tuple[int, int], classes: int = 11, learn: bool | None = None, **sensor
     ):
         super().__init__()
         self.sensor = SensorLayer(size, layout, learn=learn, **sensor)
@@ -165,7 +165,7 @@ class CamVidTask(Task):
         return data.report[0][0] / 255.0
 
     def network(
-        self, layout: str | Layout, size: tuple[int, int], learn: bool | None = True, **sensor: Any
+        self, layout: str | Layout, size: tuple[int, int], learn: bool | None = None, **sensor: Any
     ) -> nn.Module:
         net = PSPSegNet if self.net == "psp" else SegNet
         return net(layout, size, classes=len(CAMVID_CLASSES), learn=learn, **sensor)

@@ -142,7 +142,7 @@ class CelebATask(Task):
         return data.train.images(slice(0, 200)).float().mean(0).permute(1, 2, 0).numpy() / 255.0
 
     def network(
-        self, layout: str | Layout, size: tuple[int, int], learn: bool | None = True, **sensor: Any
+        self, layout: str | Layout, size: tuple[int, int], learn: bool | None = None, **sensor: Any
     ) -> nn.Module:
         return SensorResNet(layout, size, 40, learn=learn, **sensor)
 

@@ -170,7 +170,7 @@ class CityscapesTask(Task):
         return images[0].permute(1, 2, 0).numpy() / 255.0
 
     def network(
-        self, layout: str | Layout, size: tuple[int, int], learn: bool | None = True, **sensor: Any
+        self, layout: str | Layout, size: tuple[int, int], learn: bool | None = None, **sensor: Any
     ) -> nn.Module:
         return PSPSegNet(layout, size, classes=len(CLASSES), learn=learn, **sensor)
 

@@ -25,12 +25,12 @@ __all__ = ["photo_tensor", "run_demo"]
 def photo_tensor(arr: np.ndarray) -> torch.Tensor:
     """An image as OpenCV decodes it (gray, BGR or BGRA; 8/16-bit or float) as ``(1, 3, H, W)``
     RGB: uint8 as it is, other depths as float32 in [0, 1] (float images as they are)."""
+    if arr.dtype != np.uint8:  # other depths to float32 in [0, 1] first (cvtColor takes few)
+        scale = np.iinfo(arr.dtype).max if np.issubdtype(arr.dtype, np.integer) else 1.0
+        arr = arr.astype(np.float32) / scale
     if arr.ndim == 2:
         arr = cv2.cvtColor(arr, cv2.COLOR_GRAY2BGR)
-    rgb = cv2.cvtColor(arr[..., :3], cv2.COLOR_BGR2RGB)
-    if rgb.dtype != np.uint8:
-        scale = np.iinfo(rgb.dtype).max if np.issubdtype(rgb.dtype, np.integer) else 1.0
-        rgb = rgb.astype(np.float32) / scale
+    rgb = cv2.cvtColor(np.ascontiguousarray(arr[..., :3]), cv2.COLOR_BGR2RGB)
     return torch.from_numpy(np.ascontiguousarray(rgb)).permute(2, 0, 1)[None]
 
 

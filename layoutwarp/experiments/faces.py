@@ -45,7 +45,7 @@ class FaceNet(nn.Module):
 
     HEADS: ClassVar[dict[str, int]] = {"gender": 2, "age_group": len(AGE_GROUPS), "race": 5}
 
-    def __init__(self, layout: str | Layout, size: tuple[int, int], learn: bool | None = True, **sensor: Any):
+    def __init__(self, layout: str | Layout, size: tuple[int, int], learn: bool | None = None, **sensor: Any):
         super().__init__()
         self.sensor = SensorLayer(size, layout, learn=learn, **sensor)
         self.body = nn.Sequential(conv_block(3, 32), nn.MaxPool2d(2, ceil_mode=True), conv_block(32, 64))
@@ -70,7 +70,7 @@ class SensorResNet(nn.Module):
         layout: str | Layout,
         size: tuple[int, int],
         classes: int,
-        learn: bool | None = True,
+        learn: bool | None = None,
         **sensor: Any,
     ):
         super().__init__()
@@ -91,7 +91,7 @@ class FaceResNet(SensorResNet):
     """[`SensorResNet`][] with one head per attribute (gender, age group, race): its ``fc``
     gives all the heads' logits, split into [`FaceNet`][]'s dict."""
 
-    def __init__(self, layout: str | Layout, size: tuple[int, int], learn: bool | None = True, **sensor: Any):
+    def __init__(self, layout: str | Layout, size: tuple[int, int], learn: bool | None = None, **sensor: Any):
         super().__init__(layout, size, sum(FaceNet.HEADS.values()), learn, **sensor)
 
     def forward(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
@@ -135,7 +135,7 @@ class FacesTask(Task):
         return data.train["images"][:500].mean(0) / 255.0  # the mean face
 
     def network(
-        self, layout: str | Layout, size: tuple[int, int], learn: bool | None = True, **sensor: Any
+        self, layout: str | Layout, size: tuple[int, int], learn: bool | None = None, **sensor: Any
     ) -> nn.Module:
         return (FaceResNet if self.net == "resnet18" else FaceNet)(layout, size, learn=learn, **sensor)
 

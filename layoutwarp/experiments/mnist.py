@@ -34,7 +34,7 @@ class MnistNet(nn.Module):
         self,
         layout: str | Layout = "curv",
         size: tuple[int, int] = (4, 4),
-        learn: bool | None = True,
+        learn: bool | None = None,
         **sensor: Any,
     ):
         super().__init__()
@@ -78,7 +78,7 @@ class MnistTask(Task):
         return data.report[0][4] / 255.0  # a "4", as in the paper's figure
 
     def network(
-        self, layout: str | Layout, size: tuple[int, int], learn: bool | None = True, **sensor: Any
+        self, layout: str | Layout, size: tuple[int, int], learn: bool | None = None, **sensor: Any
     ) -> nn.Module:
         return MnistNet(layout, size, learn=learn, **sensor)
 

@@ -42,7 +42,7 @@ class PSPSegNet(nn.Module):
         layout: str | Layout,
         size: tuple[int, int],
         classes: int = 11,
-        learn: bool | None = True,
+        learn: bool | None = None,
         **sensor,
     ):
         super().__init__()

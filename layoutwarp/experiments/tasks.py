@@ -108,7 +108,7 @@ class Task:
 
     # -- model -----------------------------------------------------------------------
     def network(
-        self, layout: str | Layout, size: tuple[int, int], learn: bool | None = True, **sensor: Any
+        self, layout: str | Layout, size: tuple[int, int], learn: bool | None = None, **sensor: Any
     ) -> nn.Module:
         """The task's network with a [`SensorLayer`][layoutwarp.sensor.SensorLayer] in front, as
         ``.sensor``."""

@@ -3,9 +3,10 @@ run), the decorators each kernel is compiled with, the thread count and the laun
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import types
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
 try:  # numba is a dependency, but the torch reference keeps working without it
@@ -17,10 +18,12 @@ except ImportError:  # pragma: no cover - depends on the environment
 __all__ = [
     "CHUNK",
     "LOCK",
+    "SMALL_WORK",
     "available",
     "inline",
     "njit",
     "numba_config",
+    "one_thread_below",
     "parallel",
     "plain_python",
     "prange",
@@ -76,6 +79,28 @@ def threads() -> int:
         set_num_threads(n)
     _THREADS.wanted, _THREADS.n = wanted, n
     return n
+
+
+#: Work (elements) below which a parallel kernel runs on one thread ([`one_thread_below`][]).
+SMALL_WORK = 1 << 20
+
+
+@contextlib.contextmanager
+def one_thread_below(work: int, limit: int = SMALL_WORK) -> Iterator[None]:
+    """Within: numba's parallel kernels run on one thread where ``work`` (elements) is under
+    ``limit``. Such a kernel takes about a millisecond; a parallel region's fork and join cost a
+    good part of that on a quiet machine, and on a busy one the join waits for a descheduled
+    thread, 10-80x the work (a learnable step's edge gradient: 0.4 ms quiet, 56 ms beside one
+    busy process). Larger work keeps every thread."""
+    if set_num_threads is None or work >= limit:
+        yield
+        return
+    n = get_num_threads()
+    set_num_threads(1)
+    try:
+        yield
+    finally:
+        set_num_threads(n)
 
 
 def retain_freed_memory(trim_bytes: int = 1 << 30) -> bool:

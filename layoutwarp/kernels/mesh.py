@@ -36,7 +36,7 @@ import torch
 from ..caches import ObjectMemo
 from ..layouts import CurvLayout, EllipticLayout, FoveaLayout, Layout
 from ..mesh import INNER, MeshTopology, PixelMesh
-from .base import CHUNK, available, inline, parallel, prange, serial, threads
+from .base import CHUNK, available, inline, one_thread_below, parallel, prange, serial, threads
 from .device import CUDA_THREADS, cuda_launch, stream_of
 from .exact import BLOCK, segment_moments, segment_weights
 
@@ -623,7 +623,7 @@ def _amin_beside(area: np.ndarray, i: int, j: int) -> float:
     return min(left, area[i, j] if j < area.shape[1] else np.inf)
 
 
-@serial  # about a millisecond: on a busy machine a parallel region's join waited 10-80x that
+@parallel
 def _corners(
     kind: int, centred: bool, h: int, w: int, corners: np.ndarray, th: np.ndarray, c: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -870,7 +870,8 @@ def _count_stage(
     c = np.array(spec.center, dtype=np.float64)
     args = (spec.kind, spec.centred)
     nt = threads()
-    cq, cdq, amin = _corners(*args, h, w, uniform, th, c)
+    with one_thread_below((h + 1) * (w + 1)):
+        cq, cdq, amin = _corners(*args, h, w, uniform, th, c)
     npieces = _count_pieces(*args, ends, th, c, nt)
     ne = len(npieces)
     piece_offsets = np.zeros(ne + 1, dtype=np.int64)
@@ -947,14 +948,15 @@ def mesh_integrals(
     hs, ws = src_size
     ends, ea, eb, _ = _topology(size)
     k = _count_stage(spec, size, theta, tol, max_subdiv, True)
-    corners = _to_pixels(k.corners, float(ws), float(hs))
+    with one_thread_below(len(k.corners)):
+        corners = _to_pixels(k.corners, float(ws), float(hs))
     return _integrate(
         spec.kind, spec.centred, ends, ea, eb, k.th, k.c, k.piece_offsets, k.bounds, k.dbounds, k.counts,
         k.edge_offsets, corners, k.dcorners, *tables, BLOCK, float(ws), float(hs), threads(), k.span,
     )  # fmt: skip
 
 
-@serial  # about a millisecond: on a busy machine a parallel region's join waited 10-80x that
+@parallel
 def _to_pixels(verts: np.ndarray, ws: float, hs: float) -> np.ndarray:
     out = np.empty_like(verts)
     for v in prange(verts.shape[0]):
@@ -966,10 +968,11 @@ def pixel_vertices(mesh: CompiledMesh, src_size: tuple[int, int]) -> np.ndarray:
     """The mesh's vertices in pixel units of an ``(H, W)`` source, clamped to it, as
     [`pixel_vertices`][layoutwarp.mesh.PixelMesh.pixel_vertices] gives them."""
     hs, ws = src_size
-    return _to_pixels(mesh.vertices, float(ws), float(hs))
+    with one_thread_below(len(mesh.vertices)):
+        return _to_pixels(mesh.vertices, float(ws), float(hs))
 
 
-@serial  # about a millisecond: on a busy machine a parallel region's join waited 10-80x that
+@parallel
 def _edge_gradient(
     grad: np.ndarray, means: np.ndarray, areas: np.ndarray, area_grad: np.ndarray
 ) -> np.ndarray:
@@ -1007,10 +1010,11 @@ def edge_gradient(
     quotient rule, then [`combine_adjoint`][layoutwarp.mesh.MeshTopology.combine_adjoint], in one
     compiled pass."""
     own = np.zeros((0, 0)) if area_grad is None else area_grad
-    return _edge_gradient(*(np.ascontiguousarray(a, dtype=np.float64) for a in (grad, means, areas, own)))
+    with one_thread_below(grad.size + means.size):
+        return _edge_gradient(*(np.ascontiguousarray(a, dtype=np.float64) for a in (grad, means, areas, own)))
 
 
-@serial  # about a millisecond: on a busy machine a parallel region's join waited 10-80x that
+@parallel
 def _contract(g: np.ndarray, jac: np.ndarray) -> np.ndarray:
     rows, p = jac.shape
     n_chunks = (rows + 4095) // 4096
@@ -1033,7 +1037,8 @@ def theta_gradient(g_edge: np.ndarray, jac: np.ndarray) -> np.ndarray:
     whose worker threads would keep spinning on the cores into the next step's kernels (a
     2048x1024 → 257x129 fovea step ran 2.5x slower with numpy's ``@`` here)."""
     p = jac.shape[-1]
-    return _contract(np.ascontiguousarray(g_edge).reshape(-1), np.ascontiguousarray(jac).reshape(-1, p))
+    with one_thread_below(jac.size):
+        return _contract(np.ascontiguousarray(g_edge).reshape(-1), np.ascontiguousarray(jac).reshape(-1, p))
 
 
 # ----------------------------------------------------------------------------------------

@@ -180,7 +180,7 @@ class Layout(nn.Module):
     ) -> None:
         super().__init__()
         # |θ| < 1 keeps every built-in family a bijection (θ = ±1 folds the sensor onto a point)
-        self.bound = check_number(bound, "bound", 0, 1, lo_open=True)
+        self.bound = check_number(bound, "bound", 0, None if self.unbounded else 1, lo_open=True)
         self._bounds_on: dict[tuple[torch.device, torch.dtype], Tensor] = {}  # _bounds() where ρ lives
         self._dtype = check_float_dtype(dtype) if dtype is not None else tensor_dtype(theta)
         learn = check_bool(learn, "learn")
@@ -290,13 +290,20 @@ class Layout(nn.Module):
         if self._keeps_theta:
             self.fixed_theta.copy_(t)
 
+    def _save_to_state_dict(self, destination: dict[str, Any], prefix: str, keep_vars: bool) -> None:
+        """As `nn.Module`'s; a fixed layout whose ``rho`` was made to require grad (and trained)
+        saves the θ of its ``rho``."""
+        super()._save_to_state_dict(destination, prefix, keep_vars)
+        if self._keeps_theta and self.rho.requires_grad:
+            destination[prefix + "fixed_theta"] = self._to_theta(self.rho.detach()).to(torch.float64)
+
     def _load_from_state_dict(self, state_dict: dict[str, Any], prefix: str, *args: Any) -> None:
         """As `nn.Module`'s, and a state dict with ``rho`` alone (a learnable layout's, or one
         written before fixed layouts kept θ) sets a fixed layout's θ from it, as the layout that
         wrote it computed θ (in ``ρ``'s dtype); a fixed layout's ``fixed_theta`` is left out where
         ``ρ`` is learned."""
         rho, kept = state_dict.get(prefix + "rho"), prefix + "fixed_theta"
-        if self._keeps_theta and kept not in state_dict and rho is not None:
+        if self._keeps_theta and kept not in state_dict and rho is not None and rho.shape == self.rho.shape:
             state_dict[kept] = self._to_theta(rho.detach().cpu()).to(torch.float64)
         elif not self._keeps_theta:
             state_dict.pop(kept, None)

@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any, ClassVar
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -65,7 +66,12 @@ class CenteredLayout(Layout):
         self.num_params = 4 if learn_center else 2
         self._centred = not learn_center and bool((c == 0).all())
         if learn_center:
-            t = torch.zeros(2, dtype=torch.float64) if theta is None else torch.as_tensor(theta).double()
+            # numpy keeps Python floats in float64 (torch.as_tensor would round them to float32)
+            t = (
+                torch.zeros(2, dtype=torch.float64)
+                if theta is None
+                else torch.as_tensor(np.asarray(theta)).double()
+            )
             if t.numel() != 2:
                 raise ValueError(f"theta must have 2 values (θ_x, θ_y), got {t.numel()}: {theta!r}")
             theta = torch.cat([t.flatten().cpu(), c])
@@ -167,7 +173,7 @@ class CenteredLayout(Layout):
 
     def to_config(self) -> dict[str, Any]:
         th = self.theta_as(torch.float64).detach().cpu()
-        c = self.center.detach().double().cpu()
+        c = th[2:] if self.learn_center else self.fixed_center.cpu()  # float64, never rounded
         return {
             "theta": [float(v) for v in th[:2]],
             "bound": self.bound,

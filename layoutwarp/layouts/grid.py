@@ -227,7 +227,7 @@ class GridLayout(Layout):
         folded cell ``(row, col)`` in row-major order (``None`` when none folds).
         """
         with torch.no_grad():
-            ctrl = self.control_points().detach().double().cpu()
+            ctrl = self.control_points(self.theta_as(torch.float64)).detach().cpu()
         return _foldover_report(ctrl)
 
     @torch.no_grad()
@@ -411,7 +411,7 @@ class GridLayout(Layout):
 
     # -- files -----------------------------------------------------------------------
     def to_config(self) -> dict[str, Any]:
-        ctrl = self.control_points().detach().double().cpu()
+        ctrl = self.control_points(self.theta_as(torch.float64)).detach().cpu()
         return {"grid": list(self.grid), "control": ctrl.tolist(), "min_det": self.min_det}
 
     @classmethod
