@@ -17,18 +17,28 @@ to the sensor square by ``X = (x + 1) · W / 2``, ``Y = (y + 1) · H / 2``.
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import warnings
 from collections.abc import Callable, Iterator
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from . import jit, kernels
-from .checks import check_choice, check_float_dtype, check_int, check_shape, check_size, floating_dtype
+from . import kernels, ops
+from .checks import (
+    all_finite,
+    check_choice,
+    check_float_dtype,
+    check_int,
+    check_shape,
+    check_size,
+    floating_dtype,
+    raise_nonfinite,
+)
 from .coords import grid_lines, pixel_centers, sensor_to_pixels
 from .kernels.device import runs_on_device, stream_of
 from .kernels.mesh import (
@@ -44,6 +54,7 @@ from .kernels.mesh import (
 from .layouts import Layout
 from .maps import sample_points
 from .mesh import MeshTopology, PixelMesh, pixel_mesh
+from .ops import layout_token
 
 __all__ = [
     "BACKENDS",
@@ -397,71 +408,209 @@ def _cpu_weights(
         return kernels.exact_backward(verts, seg_start, seg_end, seg_edge, incl, kernels.BLOCK, grad, nt)
 
 
-class _CompiledExact(torch.autograd.Function):
-    """θ → the exact pixel means ``(N, h, w)`` and the pixels' areas ``(h, w)`` in sensor units
-    (float64; an area is the boundary integral of 1 the means divide by) of a layout with a
-    compiled mesh ([`layoutwarp.kernels.mesh`][]): mesh, integrals and Reynolds weights in
-    compiled kernels, and θ's gradient as one contraction with the vertices' θ-derivatives, so a
-    training step runs a handful of torch operations instead of the thousands of the mesh's
-    autograd graph (an output nobody uses costs its backward nothing). On the
-    CPU the mesh is never held: [`mesh_integrals`][] places each chunk
-    of edges' vertices and integrates them while they are in cache, carrying their θ-derivatives
-    to the θ-Jacobian of every edge integral, so the backward is the quotient rule and one
-    contraction. On a CUDA device the mesh is built there
-    ([`build_mesh_device`][]) and the CUDA kernels integrate it and
-    weigh its vertices for the backward. No image gradient."""
+# ----------------------------------------------------------------------------------------
+# The exact integrator as a torch operator: θ and an image in, the pixels' means and areas out
+# ----------------------------------------------------------------------------------------
+def _unit(image: Tensor) -> float:
+    """A source pixel's area in sensor units (the square ``[-1, 1]²`` is 4)."""
+    return 4 / (image.shape[-2] * image.shape[-1])
 
-    @staticmethod
-    def forward(
-        ctx,
-        theta: Tensor,
-        image: Tensor,
-        spec: MeshSpec,
-        size: tuple[int, int],
-        tol: float,
-        dtype: torch.dtype,
-    ):
-        hs, ws = image.shape[-2:]
-        topo = MeshTopology(size)
-        ctx.set_materialize_grads(False)  # an output nobody used gives None: no work for it
-        ctx.unit = 4 / (hs * ws)  # a source pixel's area in sensor units ([-1, 1]² is 4)
-        if runs_on_device(image):  # the mesh built where it is used: none of it crosses the bus
-            dm = build_mesh_device(spec, size, theta.detach().to(image.device), tol, (hs, ws))
-            per_seg, ctx.tables = _cuda_segments(dm.pixel_vertices, image.detach().contiguous(), dm.mesh)
-            means, area, areas = device_means(dm, per_seg, ctx.unit)
-            ctx.dm, ctx.src_size = dm, (hs, ws)
-            ctx.save_for_backward(means, area)
-            return means, areas
+
+def _jacobian_shape(theta: Tensor, image: Tensor, height: int, width: int) -> tuple[int, int, int]:
+    """The θ-Jacobian of the edge integrals a learnable step keeps: ``(N + 1, E, P)``."""
+    return image.shape[0] + 1, MeshTopology((height, width)).num_edges, theta.shape[0]
+
+
+@torch.library.custom_op("layoutwarp::exact", mutates_args=())
+def _exact(
+    theta: Tensor,
+    image: Tensor,
+    layout: str,
+    height: int,
+    width: int,
+    tol: float,
+    backend: str,
+    jacobian: bool,
+    check: bool,
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The exact means ``(N, h, w)`` and areas ``(h, w)`` (sensor units) of the pixels of
+    ``layout`` (a [`layout_token`][layoutwarp.ops.layout_token]) at ``theta``, float64, over the box
+    image ``image`` ``(N, H, W)``; with ``jacobian`` (θ is learned) also the θ-Jacobian of the edge
+    integrals ``(N + 1, E, P)`` where the compiled mesh gives it (the backward is then one
+    contraction), and a 0-d flag, 1 where it holds it (0: the backward computes again).
+    ``backend``: ``"auto"``, ``"numba"`` or ``"torch"`` (see [`integrate_exact`][]); ``check``:
+    raise ``ValueError`` where NaN/Inf reach the means (every source pixel reaches some sensor
+    pixel with positive weight, so a bad input value always reaches its output)."""
+    means, areas, jac, held = _exact_means(theta, image, layout, height, width, tol, backend, jacobian)
+    if check and not all_finite(means):
+        raise_nonfinite(image)
+    return means, areas, jac, held
+
+
+def _exact_means(
+    theta: Tensor,
+    image: Tensor,
+    layout: str,
+    height: int,
+    width: int,
+    tol: float,
+    backend: str,
+    jacobian: bool,
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """[`_exact`][]'s work."""
+    size, (hs, ws) = (height, width), image.shape[-2:]
+    which = "torch" if backend == "torch" else ops.backend(image, "learn", wait=backend == "numba")
+    if backend == "numba" and which == "torch":
+        raise ValueError(
+            "backend='numba' needs numba installed, a CPU image or a CUDA image where numba's CUDA "
+            "target runs, and no image gradient; use backend='torch'"
+        )
+    template = ops.layout_of(layout)
+    spec = mesh_spec(template) if which != "torch" else None
+    jac = image.new_empty(_jacobian_shape(theta, image, *size) if jacobian else (0,), dtype=torch.float64)
+    held = torch.zeros((), dtype=torch.int8, device=image.device)
+    image = image.contiguous()
+    if spec is not None and which == "cuda":  # the mesh built where it is used: none crosses the bus
+        means, _, areas = _device_exact(spec, theta, image, size, tol)
+        return means, areas, jac, held
+    if spec is not None and jacobian:  # mesh, integrals and their θ-Jacobian, chunk by chunk
         th = theta.detach().double().cpu().numpy()
-        with kernels.LOCK:  # mesh, integrals and their θ-Jacobian, chunk by chunk
-            tables = kernels.prefix_tables(image.detach().contiguous().numpy(), kernels.BLOCK)
-            out, ctx.jac = mesh_integrals(spec, size, th, tol, tables, (hs, ws))
-        pix = topo.combine(out)
-        ctx.means, ctx.areas = pix[:-1] / pix[-1], pix[-1]
-        # the means in the dtype asked for, rounded here (numpy, one thread): a torch copy of them
-        # would wake torch's thread pool, whose join waits for a busy machine's scheduler
-        if dtype in (torch.float32, torch.float64):
-            means = torch.from_numpy(ctx.means.astype(np.float32 if dtype == torch.float32 else np.float64))
-        else:  # half precisions: numpy has one of them only
-            means = torch.from_numpy(ctx.means).to(dtype)
-        return means, torch.from_numpy(ctx.areas * ctx.unit)
-
-    @staticmethod
-    def backward(ctx, grad: Tensor | None, grad_areas: Tensor | None):
-        if grad is None and grad_areas is None:
-            return None, None, None, None, None, None
-        ref = grad if grad is not None else grad_areas
-        if runs_on_device(ref):
-            means, area = ctx.saved_tensors
-            g = torch.zeros_like(means) if grad is None else grad
-            args = (ctx.tables, means, area, g, grad_areas, ctx.unit, ctx.src_size)
-            return device_theta_gradient(ctx.dm, *args).to(ref.dtype), None, None, None, None, None
-        g = np.zeros_like(ctx.means) if grad is None else grad.detach().cpu().numpy().astype(np.float64)
-        own = None if grad_areas is None else grad_areas.detach().cpu().numpy().astype(np.float64) * ctx.unit
         with kernels.LOCK:
-            g_edge = edge_gradient(g, ctx.means, ctx.areas, own)
-            g_theta = theta_gradient(g_edge, ctx.jac)
-        return torch.from_numpy(g_theta).to(ref.dtype), None, None, None, None, None
+            tables = kernels.prefix_tables(image.numpy(), kernels.BLOCK)
+            out, j = mesh_integrals(spec, size, th, tol, tables, (hs, ws))
+        pix = MeshTopology(size).combine(out)
+        jac.copy_(torch.from_numpy(j))
+        held.fill_(1)
+        return torch.from_numpy(pix[:-1] / pix[-1]), torch.from_numpy(pix[-1] * _unit(image)), jac, held
+    with ops.autograd_inside() if jacobian else contextlib.nullcontext():  # the mesh a gradient needs
+        th = theta.detach().requires_grad_(jacobian)
+        means, areas = _mesh_exact(th, image, template, size, tol, which != "torch", cache=not jacobian)
+    return means.detach(), areas.detach().clone(), jac, held
+
+
+@_exact.register_fake
+def _(theta, image, layout, height, width, tol, backend, jacobian, check):
+    n = image.shape[0]
+    jac = _jacobian_shape(theta, image, height, width) if jacobian else (0,)
+    return (
+        image.new_empty(n, height, width, dtype=torch.float64),
+        image.new_empty(height, width, dtype=torch.float64),
+        image.new_empty(jac, dtype=torch.float64),
+        image.new_empty((), dtype=torch.int8),
+    )
+
+
+def _device_exact(spec: MeshSpec, theta: Tensor, image: Tensor, size: tuple[int, int], tol: float) -> tuple:
+    """The device mesh of ``spec`` at ``theta``, its integrals over ``image`` and the prefix
+    table: ``(means, areas in source pixels, areas in sensor units, mesh, table)``."""
+    dm = build_mesh_device(spec, size, theta.detach().to(image.device), tol, tuple(image.shape[-2:]))
+    per_seg, incl = _cuda_segments(dm.pixel_vertices, image, dm.mesh)
+    means, area, areas = device_means(dm, per_seg, _unit(image))
+    return means, area, areas, dm, incl
+
+
+def _mesh_exact(
+    theta: Tensor,
+    image: Tensor,
+    layout: Layout,
+    size: tuple[int, int],
+    tol: float,
+    compiled: bool,
+    cache: bool = True,
+) -> tuple[Tensor, Tensor]:
+    """Means and areas (sensor units) of ``layout``'s polygon mesh at ``theta``: the compiled
+    kernels on the mesh, or the torch reference (differentiable in θ and, on the torch path, in
+    the image, where autograd is on)."""
+    mesh = pixel_mesh(layout, size, tol=tol, dtype=torch.float64, theta=theta, cache=cache)
+    return _exact_on_mesh(image, mesh, compiled), mesh.areas()
+
+
+@torch.library.custom_op("layoutwarp::exact_backward", mutates_args=())
+def _exact_backward(
+    grad_means: Tensor,
+    grad_areas: Tensor,
+    theta: Tensor,
+    image: Tensor,
+    means: Tensor,
+    areas: Tensor,
+    jac: Tensor,
+    held: Tensor,
+    layout: str,
+    height: int,
+    width: int,
+    tol: float,
+    backend: str,
+    theta_grad: bool,
+    image_grad: bool,
+) -> tuple[Tensor, Tensor]:
+    """θ's and the image's gradients of ``layoutwarp::exact`` (the image's: zeros unless
+    ``image_grad``; θ's, zeros unless ``theta_grad``): the exact Reynolds transport gradient, by
+    one contraction with the kept Jacobian, by the device kernels, or by the mesh again with
+    autograd."""
+    size = (height, width)
+    if jac.numel() and bool(held):  # the compiled CPU step: the quotient rule and one contraction
+        g = grad_means.detach().double().cpu().numpy()
+        own = grad_areas.detach().double().cpu().numpy() * _unit(image)
+        with kernels.LOCK:
+            g_edge = edge_gradient(g, means.cpu().numpy(), areas.cpu().numpy() / _unit(image), own)
+            g_theta = theta_gradient(g_edge, jac.cpu().numpy())
+        return torch.from_numpy(g_theta).to(theta), torch.zeros_like(image)
+    which = "torch" if backend == "torch" or image_grad else ops.backend(image, "learn")
+    template = ops.layout_of(layout)
+    spec = mesh_spec(template) if which == "cuda" else None
+    if spec is not None:  # the device mesh built again (its sizes live on the device)
+        _, area, _, dm, incl = _device_exact(spec, theta, image.contiguous(), size, tol)
+        args = (incl, means, area, grad_means, grad_areas, _unit(image), tuple(image.shape[-2:]))
+        return device_theta_gradient(dm, *args).to(theta), torch.zeros_like(image)
+    with ops.autograd_inside():
+        th = theta.detach().requires_grad_(theta_grad)  # the forward's mesh: built as it was
+        img = image.detach().requires_grad_(image_grad)
+        m, a = _mesh_exact(th, img, template, size, tol, which != "torch", cache=False)
+        inputs = [t for t in (th, img) if t.requires_grad]
+        outs = [(o, g) for o, g in ((m, grad_means), (a, grad_areas)) if o.requires_grad]
+        grads = iter(
+            torch.autograd.grad([o for o, _ in outs], inputs, [g for _, g in outs], allow_unused=True)
+            if outs
+            else ()
+        )
+    g_theta, g_image = (next(grads, None) if t.requires_grad else None for t in (th, img))
+    return (
+        torch.zeros_like(theta) if g_theta is None else g_theta.to(theta),
+        torch.zeros_like(image) if g_image is None else g_image.to(image),
+    )
+
+
+@_exact_backward.register_fake
+def _(grad_means, grad_areas, theta, image, *rest):
+    return torch.empty_like(theta), torch.empty_like(image)
+
+
+def _exact_setup(ctx: Any, inputs: tuple, output: tuple) -> None:
+    theta, image, layout, height, width, tol, backend, _, _ = inputs
+    means, areas, jac, held = output
+    ctx.save_for_backward(theta, image, means, areas, jac, held)
+    ctx.args = (layout, height, width, tol, backend)
+
+
+def _exact_grad(ctx: Any, grad_means: Tensor, grad_areas: Tensor, *_: Tensor) -> tuple:
+    theta, image, means, areas, jac, held = ctx.saved_tensors
+    theta_grad, image_grad = ctx.needs_input_grad[:2]
+    g_means = torch.zeros_like(means) if grad_means is None else grad_means
+    g_areas = torch.zeros_like(areas) if grad_areas is None else grad_areas
+    g_theta, g_image = _exact_backward(
+        g_means, g_areas, theta, image, means, areas, jac, held, *ctx.args, theta_grad, image_grad
+    )
+    return (
+        (g_theta if theta_grad else None),
+        (g_image if image_grad else None),
+        *[None] * 7,
+    )
+
+
+_exact.register_autograd(_exact_grad, setup_context=_exact_setup)
+ops.first_order_only(_exact_backward, "exact")
+ops.register(_exact)
+ops.register(_exact_backward)
 
 
 def _kernel_arrays(verts: Tensor, mesh: PixelMesh) -> list[np.ndarray]:
@@ -523,6 +672,7 @@ def integrate_exact(
     backend: str = "auto",
     return_areas: bool = False,
     dtype: torch.dtype = torch.float64,
+    allow_nonfinite: bool = True,
 ) -> Tensor | tuple[Tensor, Tensor]:
     """Exact mean of a piecewise-constant (box) image over every polygonal pixel.
 
@@ -553,6 +703,7 @@ def integrate_exact(
             learnable layout's compiled path has them as the boundary integral of 1 it divides by).
         dtype: the means' dtype (computed in float64 and rounded once;
             [`simulate`][layoutwarp.sensor.simulate] asks for the image's).
+        allow_nonfinite: ``False`` raises ``ValueError`` where NaN/Inf in the image reach the means.
 
     Returns:
         ``(N, h, w)`` in ``dtype``; with ``return_areas``, ``(means, areas)``.
@@ -560,29 +711,32 @@ def integrate_exact(
     _check_image(image)
     check_choice(backend, BACKENDS, "backend")
     dtype = check_float_dtype(dtype)
-    if image.requires_grad or backend == "torch":
-        kernel_ok = False
-    elif image.device.type == "cpu":  # compiled, unless its kernels are still compiling (jit)
-        kernel_ok = jit.ready("learn", floating_dtype(image.dtype), wait=backend == "numba")
-    else:
-        kernel_ok = image.is_cuda and kernels.available()
-        kernel_ok = kernel_ok and kernels.cuda_available(str(floating_dtype(image.dtype)).split(".")[1])
-    if backend == "numba" and not kernel_ok:
+    work = image.to(floating_dtype(image.dtype))
+    if mesh is not None:  # a mesh given: its geometry, as it is (eager)
+        kernel_ok = backend != "torch" and not image.requires_grad
+        kernel_ok = kernel_ok and ops.backend(work, "learn", wait=backend == "numba") != "torch"
+        means = _exact_on_mesh(work, mesh, kernel_ok).to(dtype)
+        return (means, mesh.areas()) if return_areas else means
+    tol = data_tolerance(image.dtype)[0] if tol is None else tol
+    # a fixed layout's θ as it was set: the mesh is float64
+    th = (
+        layout.theta_as(torch.float64)
+        if theta is None and not layout.learnable
+        else layout.resolve_theta(theta)
+    )
+    if image.requires_grad and backend == "numba":
         raise ValueError(
             "backend='numba' needs numba installed, a CPU image or a CUDA image where numba's CUDA "
             "target runs, and no image gradient; use backend='torch'"
         )
-    work = image.to(floating_dtype(image.dtype))
-    if mesh is None:
-        tol = data_tolerance(image.dtype)[0] if tol is None else tol
-        th = layout.resolve_theta(theta)
-        spec = mesh_spec(layout) if backend != "torch" and kernel_ok else None
-        if spec is not None and th.requires_grad and torch.is_grad_enabled():  # a learnable layout
-            means, areas = _CompiledExact.apply(th, work, spec, check_size(size), tol, dtype)
-            return (means, areas) if return_areas else means
-        mesh = pixel_mesh(layout, check_size(size), tol=tol, dtype=torch.float64, theta=theta)
-    means = _exact_on_mesh(work, mesh, backend != "torch" and kernel_ok).to(dtype)
-    return (means, mesh.areas()) if return_areas else means
+    which = "torch" if image.requires_grad else backend
+    jacobian = th.requires_grad and torch.is_grad_enabled()
+    h, w = check_size(size)
+    token = layout_token(layout)
+    check = not allow_nonfinite
+    means, areas, _, _ = torch.ops.layoutwarp.exact(th, work, token, h, w, float(tol), which, jacobian, check)
+    means = means.to(dtype)
+    return (means, areas) if return_areas else means
 
 
 def _exact_on_mesh(work: Tensor, mesh: PixelMesh, compiled: bool) -> Tensor:
@@ -684,45 +838,77 @@ def _edge_values(profile: Tensor, edges: Tensor) -> Tensor:
     return 0.5 * (profile[..., left] + profile[..., right])
 
 
-class _SeparableArea(torch.autograd.Function):
-    """``out = W_y · image · W_xᵀ`` with overlap weights from the interval edges.
+@torch.library.custom_op("layoutwarp::separable", mutates_args=())
+def _separable(image: Tensor, ex: Tensor, ey: Tensor, check: bool) -> Tensor:
+    """``W_y · image · W_xᵀ`` ``(N, h, w)`` with the overlap weights of the interval edges ``ex``
+    ``(w + 1,)`` and ``ey`` ``(h + 1,)`` (source pixel units); ``check``: raise ``ValueError``
+    where NaN/Inf reach the output."""
+    _, hs, ws = image.shape
+    wy = _axis_csr(ey, hs, image.dtype)[0]
+    wx_t = _axis_csr(ex, ws, image.dtype)[1]
+    out = _cols(_rows(wy, image), wx_t)
+    if check and not all_finite(out):
+        raise_nonfinite(image)
+    return out
 
-    The gradient w.r.t. an interval edge is the boundary (Reynolds) term of the box
-    integral: for interval ``i`` with length ``Δ_i`` and mean ``I_i``, moving its right edge
-    ``e_{i+1}`` changes ``I_i`` by ``(L(e_{i+1}) − I_i) / Δ_i``, where ``L`` is the image
-    already averaged over the other axis.
-    """
 
-    @staticmethod
-    def forward(ctx, image: Tensor, ex: Tensor, ey: Tensor) -> Tensor:
-        _, hs, ws = image.shape
-        wy, wy_t = _axis_csr(ey, hs, image.dtype)
-        wx, wx_t = _axis_csr(ex, ws, image.dtype)
+@_separable.register_fake
+def _(image, ex, ey, check):
+    return image.new_empty(image.shape[0], ey.shape[0] - 1, ex.shape[0] - 1)
+
+
+@torch.library.custom_op("layoutwarp::separable_backward", mutates_args=())
+def _separable_backward(
+    grad: Tensor, image: Tensor, ex: Tensor, ey: Tensor, out: Tensor, needs: list[bool]
+) -> tuple[Tensor, Tensor, Tensor]:
+    """The gradients of ``layoutwarp::separable`` in the image, ``ex`` and ``ey`` (zeros where
+    ``needs`` says none is needed).
+
+    The gradient w.r.t. an interval edge is the boundary (Reynolds) term of the box integral:
+    for interval ``i`` with length ``Δ_i`` and mean ``I_i``, moving its right edge ``e_{i+1}``
+    changes ``I_i`` by ``(L(e_{i+1}) − I_i) / Δ_i``, where ``L`` is the image already averaged
+    over the other axis."""
+    _, hs, ws = image.shape
+    grad = grad.contiguous()
+    wy, wy_t = _axis_csr(ey, hs, image.dtype)
+    wx, wx_t = _axis_csr(ex, ws, image.dtype)
+    g_img, g_ex, g_ey = torch.zeros_like(image), torch.zeros_like(ex), torch.zeros_like(ey)
+    if needs[0]:
+        g_img = _rows(wy_t, _cols(grad, wx))
+    if needs[1]:
         y1 = _rows(wy, image)  # (N, h, W)
-        out = _cols(y1, wx_t)  # (N, h, w)
-        ctx.mats = (wy_t, wx, wx_t)
-        ctx.save_for_backward(image, ex, ey, y1, out)
-        return out
+        g_ex = _edge_grad(grad, out, _edge_values(y1, ex), ex, -1).to(ex)
+    if needs[2]:
+        # the image averaged over each column interval, needed only on the boundary rows
+        y = ey.detach()
+        rows = torch.cat([(y.ceil().long() - 1).clamp(0, hs - 1), y.floor().long().clamp(0, hs - 1)])
+        x1 = _cols(image.index_select(1, rows).contiguous(), wx_t)  # (N, 2(h + 1), w)
+        vals = 0.5 * (x1[:, : y.numel()] + x1[:, y.numel() :])  # symmetric at cell boundaries
+        g_ey = _edge_grad(grad, out, vals, ey, -2).to(ey)
+    return g_img, g_ex, g_ey
 
-    @staticmethod
-    def backward(ctx, grad: Tensor):
-        image, ex, ey, y1, out = ctx.saved_tensors
-        wy_t, wx, wx_t = ctx.mats
-        grad = grad.contiguous()
-        g_img = g_ex = g_ey = None
-        if ctx.needs_input_grad[0]:
-            g_img = _rows(wy_t, _cols(grad, wx))
-        if ctx.needs_input_grad[1]:
-            g_ex = _edge_grad(grad, out, _edge_values(y1, ex), ex, -1)
-        if ctx.needs_input_grad[2]:
-            # the image averaged over each column interval, needed only on the boundary rows
-            hs = image.shape[1]
-            y = ey.detach()
-            rows = torch.cat([(y.ceil().long() - 1).clamp(0, hs - 1), y.floor().long().clamp(0, hs - 1)])
-            x1 = _cols(image.index_select(1, rows).contiguous(), wx_t)  # (N, 2(h + 1), w)
-            vals = 0.5 * (x1[:, : y.numel()] + x1[:, y.numel() :])  # symmetric at cell boundaries
-            g_ey = _edge_grad(grad, out, vals, ey, -2)
-        return g_img, g_ex, g_ey
+
+@_separable_backward.register_fake
+def _(grad, image, ex, ey, out, needs):
+    return torch.empty_like(image), torch.empty_like(ex), torch.empty_like(ey)
+
+
+def _separable_setup(ctx: Any, inputs: tuple, output: Tensor) -> None:
+    image, ex, ey, _ = inputs
+    ctx.save_for_backward(image, ex, ey, output)
+
+
+def _separable_grad(ctx: Any, grad: Tensor) -> tuple:
+    image, ex, ey, out = ctx.saved_tensors
+    needs = list(ctx.needs_input_grad[:3])
+    grads = _separable_backward(grad, image, ex, ey, out, needs)
+    return (*(g if n else None for g, n in zip(grads, needs, strict=True)), None)
+
+
+_separable.register_autograd(_separable_grad, setup_context=_separable_setup)
+ops.first_order_only(_separable_backward, "separable")
+ops.register(_separable)
+ops.register(_separable_backward)
 
 
 def _edge_grad(grad: Tensor, out: Tensor, vals: Tensor, edges: Tensor, dim: int) -> Tensor:
@@ -744,6 +930,7 @@ def integrate_separable(
     *,
     theta: Tensor | None = None,
     return_areas: bool = False,
+    allow_nonfinite: bool = True,
 ) -> Tensor | tuple[Tensor, Tensor]:
     """Exact box-radiance mean over the rectangular pixels of a separable layout.
 
@@ -759,6 +946,7 @@ def integrate_separable(
         theta: use this θ instead of the layout's own (e.g. for ``gradcheck``).
         return_areas: also return the pixels' areas ``(h, w)`` (float64, sensor units: the square
             ``[-1, 1]²`` is 4), differentiable in θ: products of the rows' and columns' widths.
+        allow_nonfinite: ``False`` raises ``ValueError`` where NaN/Inf in the image reach the means.
 
     Returns:
         ``(N, h, w)`` in float64 for float64 input, else float32; with ``return_areas``,
@@ -768,7 +956,8 @@ def integrate_separable(
     if not layout.separable:
         raise ValueError(f"integrate_separable needs a separable layout, got {type(layout).__name__}")
     ex, ey = _separable_edges(layout, check_size(size), (hs, ws), layout.resolve_theta(theta))
-    means = _SeparableArea.apply(image.to(floating_dtype(image.dtype)).contiguous(), ex, ey)
+    work = image.to(floating_dtype(image.dtype)).contiguous()
+    means = torch.ops.layoutwarp.separable(work, ex, ey, not allow_nonfinite)
     if not return_areas:
         return means
     return means, torch.outer(ey.diff() * (2 / hs), ex.diff() * (2 / ws))
@@ -826,30 +1015,81 @@ def integrate_point(
     return _sample(image, layout.phi(c, theta), radiance)
 
 
-class _FluxGrad(torch.autograd.Function):
+@torch.library.custom_op("layoutwarp::flux", mutates_args=())
+def _flux(
+    value: Tensor,
+    theta: Tensor,
+    vol: Tensor,
+    image: Tensor,
+    seed: Tensor,
+    layout: str,
+    radiance_fn: str,
+    height: int,
+    width: int,
+    samples: int,
+    radiance: str,
+) -> Tensor:
     """Identity on ``value``; its θ-gradient is the Reynolds boundary flux (paper eq. 16).
 
     ``∂I_k/∂θ = (1/|A_k|) ∮_∂A_k (L − I_k) ⟨∂r/∂θ, n⟩ ds`` (constant sensitivity ``W``, so
     the interior term vanishes), estimated with stratified jittered samples along every
-    edge; each shared edge is sampled once and used with opposite signs by its two pixels.
-    Needs no gradient of ``L``. The work is done in the backward pass only.
-    """
+    edge (drawn from ``seed``); each shared edge is sampled once and used with opposite signs by
+    its two pixels. Needs no gradient of ``L`` (the image, or the callable of ``radiance_fn``).
+    The work is done in the backward pass only."""
+    return value.clone()
 
-    @staticmethod
-    def forward(ctx, value, theta, vol, image, layout, size, samples, radiance, generator):
-        ctx.args = (image, layout, size, samples, radiance, generator)
-        ctx.save_for_backward(value, theta, vol)
-        return value.clone()
 
-    @staticmethod
-    def backward(ctx, grad_out):
-        value, theta, vol = ctx.saved_tensors
-        image, layout, size, samples, radiance, generator = ctx.args
-        weight = grad_out / vol  # ∂loss/∂I_k over |A_k|
-        grad_theta = _flux_gradient(
-            image, layout, theta.detach(), size, samples, radiance, generator, weight, value
-        )
-        return grad_out, grad_theta.to(theta.dtype), None, None, None, None, None, None, None
+@_flux.register_fake
+def _(value, *rest):
+    return torch.empty_like(value)
+
+
+@torch.library.custom_op("layoutwarp::flux_backward", mutates_args=())
+def _flux_backward(
+    grad: Tensor,
+    value: Tensor,
+    theta: Tensor,
+    vol: Tensor,
+    image: Tensor,
+    seed: Tensor,
+    layout: str,
+    radiance_fn: str,
+    height: int,
+    width: int,
+    samples: int,
+    radiance: str,
+) -> Tensor:
+    """θ's gradient of ``layoutwarp::flux``: [`_flux_gradient`][] with the weights ``grad / vol``."""
+    source = ops.object_of(radiance_fn) if radiance_fn else image
+    generator = ops.generator_of(seed, theta.device)
+    with ops.autograd_inside():
+        g = _flux_gradient(
+            source, ops.layout_of(layout), theta.detach(), (height, width), samples, radiance, generator,
+            grad / vol, value,
+        )  # fmt: skip
+    return g.to(theta.dtype)
+
+
+@_flux_backward.register_fake
+def _(grad, value, theta, *rest):
+    return torch.empty_like(theta)
+
+
+def _flux_setup(ctx: Any, inputs: tuple, output: Tensor) -> None:
+    value, theta, vol, image, seed, *args = inputs
+    ctx.save_for_backward(value, theta, vol, image, seed)
+    ctx.args = args
+
+
+def _flux_grad(ctx: Any, grad: Tensor) -> tuple:
+    g_theta = _flux_backward(grad, *ctx.saved_tensors, *ctx.args) if ctx.needs_input_grad[1] else None
+    return grad, g_theta, *[None] * 9
+
+
+_flux.register_autograd(_flux_grad, setup_context=_flux_setup)
+ops.first_order_only(_flux_backward, "flux")
+ops.register(_flux)
+ops.register(_flux_backward)
 
 
 def _flux_gradient(
@@ -899,6 +1139,7 @@ def integrate_montecarlo(
     radiance: str = "bilinear",
     grad: str = "reynolds",
     generator: torch.Generator | None = None,
+    seed: int | None = None,
     theta: Tensor | None = None,
 ) -> Tensor:
     """Stratified Monte Carlo estimate of every pixel's mean radiance (the paper's method).
@@ -917,6 +1158,9 @@ def integrate_montecarlo(
             of ``L`` needed) or ``"autograd"`` (reparameterised samples; needs a
             differentiable ``L``, so not ``"box"``).
         generator: random generator for the jitter (reproducibility).
+        seed: instead of ``generator``, the seed of the jitter's draws (on θ's device); the
+            boundary flux draws from ``seed + 1``. What ``torch.compile`` and ``torch.export``
+            take (a generator object cannot enter a compiled graph).
         theta: use this θ instead of the layout's own (e.g. for ``gradcheck``).
 
     Returns:
@@ -928,7 +1172,7 @@ def integrate_montecarlo(
     s = check_int(samples, "samples", 1)
     theta = layout.resolve_theta(theta)
     dtype = theta.dtype if not isinstance(image, Tensor) else torch.promote_types(theta.dtype, image.dtype)
-    u = sample_points(size, s, jitter=True, generator=generator, dtype=dtype, device=theta.device)
+    u = sample_points(size, s, jitter=True, generator=generator, seed=seed, dtype=dtype, device=theta.device)
     if grad == "autograd":
         if radiance == "box" and isinstance(image, Tensor):
             raise ValueError(
@@ -947,5 +1191,9 @@ def integrate_montecarlo(
     out = num / den
     if grad == "reynolds" and theta.requires_grad and theta.numel() > 0:
         vol = den * (4 / (h * w * s * s))  # Monte Carlo pixel areas, consistent with ``out``
-        out = _FluxGrad.apply(out, theta, vol.detach(), image, layout, size, s, radiance, generator)
+        is_fn = callable(image) and not isinstance(image, Tensor)
+        source, fn = (theta.new_empty(0), ops.object_token(image)) if is_fn else (image, "")
+        edge_seed = ops.random_seed(generator, None if seed is None else seed + 1)
+        args = (layout_token(layout), fn, h, w, s, radiance)
+        out = torch.ops.layoutwarp.flux(out, theta, vol.detach(), source, edge_seed, *args)
     return out

@@ -18,6 +18,7 @@ from .checks import check_generator, check_int, check_layout, check_number, chec
 from .coords import pixel_centers, sensor_to_pixels
 from .layouts import Layout
 from .mesh import pixel_mesh
+from .ops import random_seed
 
 __all__ = [
     "Maps",
@@ -55,19 +56,27 @@ def sample_points(
     *,
     jitter: bool = False,
     generator: torch.Generator | None = None,
+    seed: int | None = None,
     dtype: torch.dtype = torch.float64,
     device: torch.device | str | None = None,
 ) -> Tensor:
     """Stratified sample points in the uniform cells, shape ``(H·s, W·s, 2)``.
 
     Cell ``(i, j)`` gets an ``s × s`` grid of strata; the sample of stratum ``(a, b)`` sits at
-    its centre, or uniformly at random inside it with ``jitter=True``. Row ``i·s + a``,
-    column ``j·s + b`` of the result belongs to pixel ``(i, j)``.
+    its centre, or uniformly at random inside it with ``jitter=True``, drawn from ``generator``,
+    or, with ``seed``, from a generator seeded with it on ``device`` (the same draws; the form a
+    compiled graph takes). Row ``i·s + a``, column ``j·s + b`` of the result belongs to pixel
+    ``(i, j)``.
     """
     h, w = check_size(size)
     s = check_int(samples, "samples", 1)
     generator = check_generator(generator)
-    if jitter:
+    if jitter and seed is not None:
+        like = torch.empty(0, dtype=dtype, device=device)
+        off = torch.ops.layoutwarp.uniform(
+            random_seed(None, check_int(seed, "seed", 0)), [h * s, w * s, 2], like
+        )
+    elif jitter:
         at = generator.device if generator is not None else device  # drawn where the generator is
         off = torch.rand(h * s, w * s, 2, generator=generator, dtype=dtype, device=at).to(device)
     else:

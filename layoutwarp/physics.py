@@ -54,7 +54,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from . import jit, kernels
+from . import jit, kernels, ops
 from .caches import LRU, tensor_token
 from .checks import (
     ArgumentError,
@@ -67,6 +67,7 @@ from .checks import (
 )
 from .kernels.device import fall_back, runs_on_device, stream_of, usable
 from .kernels.noise import measure_on_device
+from .ops import random_seed
 
 __all__ = [
     "NOISE",
@@ -80,6 +81,7 @@ __all__ = [
     "device_arguments",
     "kernel_arguments",
     "measure",
+    "noise_seed",
     "pixel_snr",
     "psf_kernels",
 ]
@@ -191,6 +193,14 @@ class SensorPhysics:
             check_choice(self.psf, PSFS, "psf")
             _check_psf_width(self)
         check_choice(self.noise, NOISE, "noise")
+        # what an operator takes of the camera, made once (a compiled graph reads them as constants)
+        object.__setattr__(self, "_token", json.dumps(self.to_dict(), sort_keys=True))
+        object.__setattr__(self, "_noise_seed", None if self.seed is None else _kernel_seed(self.seed))
+
+    @property
+    def token(self) -> str:
+        """The camera as compact JSON text: how it enters layoutwarp's operators."""
+        return self._token
 
     # -- files ---------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
@@ -412,18 +422,23 @@ def apply_psf(image: Tensor, physics: SensorPhysics) -> Tensor:
 # ----------------------------------------------------------------------------------------
 # Photons to numbers
 # ----------------------------------------------------------------------------------------
-def _patterns(
-    physics: SensorPhysics, size: tuple[int, int], dtype: torch.dtype, device
-) -> tuple[Tensor, Tensor]:
-    """The fixed PRNU and DSNU patterns ``(h, w)`` (standard normal, from ``pattern_seed``)."""
-    z = _standard_patterns(physics.pattern_seed, size)
-    return z[0].to(device=device, dtype=dtype), z[1].to(device=device, dtype=dtype)
-
-
 @functools.lru_cache(maxsize=8)
 def _standard_patterns(seed: int, size: tuple[int, int]) -> Tensor:
     """``(2, h, w)`` float64 standard normals from ``seed``, drawn once per sensor (do not modify)."""
     return torch.randn(2, *size, generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
+
+
+def noise_seed(
+    physics: SensorPhysics, generator: torch.Generator | None = None, seed: Tensor | None = None
+) -> Tensor:
+    """The 0-d int64 tensor the measurement's temporal noise is drawn from: ``seed`` (e.g. a
+    [`SensorLayer`][layoutwarp.sensor.SensorLayer]'s seeded sequence), else a draw of
+    ``generator``, else ``physics.seed``'s (the same noise every call), else a fresh draw."""
+    if seed is not None:
+        return seed
+    if generator is None and physics.seed is not None:
+        return torch.tensor(physics._noise_seed, dtype=torch.int64)
+    return random_seed(generator)
 
 
 def measure(
@@ -433,6 +448,7 @@ def measure(
     *,
     output: str = "radiance",
     generator: torch.Generator | None = None,
+    seed: Tensor | None = None,
 ) -> Tensor:
     """Steps 3–8 of the module docstring: pixel means ``(N, h, w)`` to a recorded sensor image.
 
@@ -443,8 +459,9 @@ def measure(
         physics: the camera.
         output: ``"radiance"`` (the ISP's estimate of ``mean``), ``"electrons"`` (after the full
             well, before the ADC) or ``"dn"`` (the ADC's digital numbers).
-        generator: the noise's random generator (default: one seeded with ``physics.seed``, or
-            torch's global one when that is ``None``).
+        generator: the noise's random generator (default: ``physics.seed``'s draws, or torch's
+            global generator when that is ``None``).
+        seed: instead, a 0-d int64 tensor the noise is drawn from ([`noise_seed`][]).
 
     Returns:
         ``(N, h, w)`` in ``mean``'s dtype.
@@ -452,49 +469,77 @@ def measure(
     Raises:
         ValueError: a full well below the read noise in the smallest pixel.
     """
-    needs_grad = torch.is_grad_enabled() and (mean.requires_grad or areas.requires_grad)
+    check_choice(output, OUTPUTS, "output")
+    seed = noise_seed(physics, generator, seed)
+    if torch.is_grad_enabled() and (mean.requires_grad or areas.requires_grad):
+        return _measure_torch(mean, areas, physics, output, seed)
+    return torch.ops.layoutwarp.measure(mean, areas, physics.token, output, seed)
+
+
+@torch.library.custom_op("layoutwarp::measure", mutates_args=())
+def _measure(mean: Tensor, areas: Tensor, physics: str, output: str, seed: Tensor) -> Tensor:
+    """[`measure`][] without gradient: one compiled pass on the CPU (`sensor_measure`), one kernel
+    on a CUDA device, or the torch path; the camera as its [`token`][SensorPhysics.token]."""
+    camera = ops.physics_of(physics)
     kernel_dtype = mean.dtype if mean.dtype == torch.float32 else torch.float64  # its two builds
-    on_device = not needs_grad and runs_on_device(mean) and kernels.cuda_available(str(kernel_dtype)[6:])
-    if on_device and usable("the sensor's measurement"):
-        args = device_arguments(physics, areas, mean.device, output, generator)
+    if runs_on_device(mean) and kernels.cuda_available(str(kernel_dtype)[6:]) and usable(_DEVICE_MEASURE):
+        args = device_arguments(camera, areas, mean.device, output, ops.seed_value(seed))
         try:
             return _measure_on_device(mean, args)
         except Exception as err:  # numba-cuda could not compile or launch it: the torch path, said once
-            fall_back("the sensor's measurement", err)
-    kernel = None
-    if not needs_grad and mean.device.type == "cpu":
-        kernel = jit.compiled("measure", kernel_dtype, kernels.sensor_measure)
+            fall_back(_DEVICE_MEASURE, err)
+    kernel = (
+        jit.compiled("measure", kernel_dtype, kernels.sensor_measure) if mean.device.type == "cpu" else None
+    )
     if kernel is not None:
-        args = kernel_arguments(physics, areas, output, generator)  # checks output
-        return _measure_compiled(mean, args, kernel)
-    check_choice(output, OUTPUTS, "output")
+        return _measure_compiled(mean, kernel_arguments(camera, areas, output, ops.seed_value(seed)), kernel)
+    return _measure_torch(mean, areas, camera, output, seed)
+
+
+@_measure.register_fake
+def _(mean, areas, physics, output, seed):
+    return torch.empty_like(mean)
+
+
+ops.register(_measure)
+_DEVICE_MEASURE = "the sensor's measurement"
+
+
+def _measure_torch(mean: Tensor, areas: Tensor, physics: SensorPhysics, output: str, seed: Tensor) -> Tensor:
+    """[`measure`][] in torch operations, differentiable in the means and the areas (the noise
+    reparameterised, the ADC's rounding straight through); the draws from ``seed``."""
+    needs_grad = torch.is_grad_enabled() and (mean.requires_grad or areas.requires_grad)
     mode = physics.noise
     if mode == "auto":
         mode = "gaussian" if needs_grad else "poisson"
-    if generator is None and physics.seed is not None:
-        generator = torch.Generator(mean.device).manual_seed(physics.seed)
     a_um2 = areas.to(mean) * physics.um2_per_unit()
-    full = _full_well(physics, a_um2)
+    full = None
+    if physics.full_well_per_um2 is not None:
+        full = torch.ops.layoutwarp.full_well(physics.full_well_per_um2 * a_um2, physics.token)
     eta = physics.quantum_efficiency
     photons = physics.photons_per_um2 * physics.fill_factor * mean * a_um2
-    prnu, dsnu = _patterns(physics, tuple(mean.shape[-2:]), mean.dtype, mean.device)
-    signal = eta * photons * (1 + physics.prnu * prnu)  # prnu = dsnu = 0: exactly the plain terms
-    dark = physics.dark_e_per_um2 * a_um2 + physics.dsnu * dsnu
+    signal, dark = eta * photons, physics.dark_e_per_um2 * a_um2
+    if physics.prnu or physics.dsnu:
+        prnu, dsnu = torch.ops.layoutwarp.patterns(
+            physics.pattern_seed, *mean.shape[-2:], mean.detach()
+        ).unbind(0)
+        signal = signal * (1 + physics.prnu * prnu)
+        dark = dark + physics.dsnu * dsnu
     electrons = signal + dark
     rate = electrons.clamp_min(0)
-    if mode == "poisson":
-        electrons = torch.poisson(rate.detach(), generator=generator) + (electrons - electrons.detach())
-    elif mode == "gaussian":
-        eps = torch.randn(rate.shape, generator=generator, dtype=rate.dtype, device=rate.device)
-        electrons = electrons + torch.sqrt(rate.clamp_min(1e-12)) * eps * (rate > 0)
-    if physics.read_noise_e and mode != "none":
-        eps = torch.randn(rate.shape, generator=generator, dtype=rate.dtype, device=rate.device)
-        electrons = electrons + physics.read_noise_e * eps
+    if mode != "none":
+        shot, read = torch.ops.layoutwarp.draws(rate.detach(), seed, mode, bool(physics.read_noise_e))
+        if mode == "poisson":
+            electrons = shot + (electrons - electrons.detach())
+        else:
+            electrons = electrons + torch.sqrt(rate.clamp_min(1e-12)) * shot * (rate > 0)
+        if physics.read_noise_e:
+            electrons = electrons + physics.read_noise_e * read
     if full is not None:
         electrons = torch.minimum(electrons, full)
     if output == "electrons":
         return electrons
-    k = physics.gain(float(a_um2.detach().max()))
+    k = _gain(physics, a_um2)
     dn = k * electrons + physics.black_level_dn
     if physics.adc_bits is not None:
         top = 2**physics.adc_bits - 1
@@ -504,6 +549,81 @@ def measure(
         return dn
     recovered = (dn - physics.black_level_dn) / k - physics.dark_e_per_um2 * a_um2
     return recovered / (eta * physics.photons_per_um2 * physics.fill_factor * a_um2)
+
+
+def _gain(physics: SensorPhysics, a_um2: Tensor) -> float | Tensor:
+    """[`SensorPhysics.gain`][] for pixels of areas ``a_um2`` (µm²): a tensor where it depends on
+    the largest (read in the graph, not on the host)."""
+    if (
+        physics.gain_dn_per_e is None
+        and physics.adc_bits is not None
+        and physics.full_well_per_um2 is not None
+    ):
+        return (2**physics.adc_bits - 1 - physics.black_level_dn) / (
+            physics.full_well_per_um2 * a_um2.detach().max()
+        )
+    return physics.gain(1.0)
+
+
+@torch.library.custom_op("layoutwarp::full_well", mutates_args=())
+def _full_well_op(full: Tensor, physics: str) -> Tensor:
+    """Each pixel's full well in electrons ``full`` (a copy), after the check of [`_full_well`][]:
+    a full well not above the read noise is refused. Its gradient passes through."""
+    camera = ops.physics_of(physics)
+    _full_well(camera, full.detach() / camera.full_well_per_um2)
+    return full.clone()
+
+
+@_full_well_op.register_fake
+def _(full, physics):
+    return torch.empty_like(full)
+
+
+def _full_well_grad(ctx: Any, grad: Tensor) -> tuple:
+    return grad, None
+
+
+_full_well_op.register_autograd(_full_well_grad, setup_context=ops.no_context)
+ops.register(_full_well_op)
+
+
+@torch.library.custom_op("layoutwarp::patterns", mutates_args=())
+def _patterns_op(pattern_seed: int, height: int, width: int, like: Tensor) -> Tensor:
+    """The fixed PRNU and DSNU patterns ``(2, h, w)`` (standard normal, from ``pattern_seed``) in
+    ``like``'s dtype and on its device."""
+    return _standard_patterns(pattern_seed, (height, width)).to(like, copy=True)
+
+
+@_patterns_op.register_fake
+def _(pattern_seed, height, width, like):
+    return like.new_empty(2, height, width)
+
+
+ops.register(_patterns_op)
+
+
+@torch.library.custom_op("layoutwarp::draws", mutates_args=())
+def _draws(rate: Tensor, seed: Tensor, mode: str, read: bool) -> tuple[Tensor, Tensor]:
+    """The temporal noise's draws for electron rates ``rate``, from a generator on its device
+    seeded with ``seed``: Poisson counts (``mode="poisson"``) or standard normals
+    (``"gaussian"``) for the shot noise, then standard normals for the read noise (``read``;
+    else zeros)."""
+    generator = ops.generator_of(seed, rate.device)
+    if mode == "poisson":
+        shot = torch.poisson(rate, generator=generator)
+    else:
+        shot = torch.randn(rate.shape, generator=generator, dtype=rate.dtype, device=rate.device)
+    if not read:
+        return shot, torch.zeros_like(rate)
+    return shot, torch.randn(rate.shape, generator=generator, dtype=rate.dtype, device=rate.device)
+
+
+@_draws.register_fake
+def _(rate, seed, mode, read):
+    return torch.empty_like(rate), torch.empty_like(rate)
+
+
+ops.register(_draws)
 
 
 def as_physics(physics: SensorPhysics | dict | None) -> SensorPhysics | None:
@@ -594,7 +714,7 @@ def _compiled_sensor(physics: SensorPhysics, areas: Tensor) -> tuple[np.ndarray,
 def _sensor_arrays(physics: SensorPhysics, areas: Tensor) -> tuple[np.ndarray, ...]:
     a = areas.detach().to("cpu", torch.float64).flatten() * physics.um2_per_unit()
     _full_well(physics, a)
-    prnu, dsnu = _patterns(physics, tuple(areas.shape[-2:]), torch.float64, "cpu")
+    prnu, dsnu = _standard_patterns(physics.pattern_seed, tuple(areas.shape[-2:]))
     none = np.zeros(0)  # a pattern of gain 0 is not read: one cold array less per call
     prnu, dsnu = (z.flatten().numpy() if g else none for z, g in ((prnu, physics.prnu), (dsnu, physics.dsnu)))
     params = np.array(
@@ -621,23 +741,14 @@ def _kernel_seed(seed: int) -> int:
     return int(torch.randint(0, 2**62, (), generator=torch.Generator().manual_seed(seed)))
 
 
-def kernel_arguments(
-    physics: SensorPhysics, areas: Tensor, output: str = "radiance", generator: torch.Generator | None = None
-) -> tuple:
+def kernel_arguments(physics: SensorPhysics, areas: Tensor, output: str = "radiance", seed: int = 0) -> tuple:
     """The arguments of `sensor_measure` after the means, for
     [`measure`][] without gradient on the CPU (``noise="auto"``: exact Poisson draws): the
-    pixels' inputs (kept per camera and areas), the noise's seed (from ``generator``, else
-    ``physics.seed``, else torch's global generator), the noise model's and ``output``'s codes."""
+    pixels' inputs (kept per camera and areas), the noise's ``seed`` ([`noise_seed`][]'s value),
+    the noise model's and ``output``'s codes."""
     check_choice(output, OUTPUTS, "output")
     mode = "poisson" if physics.noise == "auto" else physics.noise
-    if mode == "none":
-        seed = 0
-    elif generator is None and physics.seed is not None:
-        seed = _kernel_seed(physics.seed)
-    else:
-        device = generator.device if generator is not None else "cpu"
-        seed = int(torch.randint(0, 2**62, (), generator=generator, device=device))
-    return (*_compiled_sensor(physics, areas), seed, NOISE_CODES[mode], OUTPUTS.index(output))
+    return (*_compiled_sensor(physics, areas), int(seed), NOISE_CODES[mode], OUTPUTS.index(output))
 
 
 #: The pixel inputs of [`kernel_arguments`][] copied to a device, for the last eight (camera,
@@ -650,12 +761,12 @@ def device_arguments(
     areas: Tensor,
     device: torch.device,
     output: str = "radiance",
-    generator: torch.Generator | None = None,
+    seed: int = 0,
 ) -> tuple:
     """[`kernel_arguments`][] with the pixel inputs (areas in µm², fixed patterns, parameters) as
     float64 tensors on ``device``, copied there once per camera and areas (a repeated call
     copies nothing): what the CUDA kernels of the measurement take."""
-    host = kernel_arguments(physics, areas, output, generator)
+    host = kernel_arguments(physics, areas, output, seed)
     key = (physics, tensor_token(areas), str(device))
     pixels = ON_DEVICE.get(key, lambda: tuple(torch.from_numpy(a).to(device) for a in host[:4]))
     return (*pixels, *host[4:])

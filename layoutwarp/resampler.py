@@ -12,12 +12,12 @@ from __future__ import annotations
 
 import math
 import warnings
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
 
-from . import jit, kernels
+from . import jit, kernels, ops
 from .caches import LRU
 from .checks import (
     ArgumentError,
@@ -35,7 +35,7 @@ from .labels import labels_to_sensor
 from .layoutfile import layout_key
 from .layouts import Layout
 from .mesh import PixelMesh, pixel_mesh
-from .physics import SensorPhysics, device_arguments, kernel_arguments, measure
+from .physics import SensorPhysics, device_arguments, kernel_arguments, measure, noise_seed
 
 if TYPE_CHECKING:
     import scipy.sparse
@@ -227,6 +227,7 @@ class AreaResampler:
             layout, self.size, self.src_size, tol=self.tol, weights_dtype=np.float32, mesh=mesh
         )
         self._csr: torch.Tensor | None = None
+        self._csr_t: torch.Tensor | None = None
 
     @property
     def sparse(self) -> torch.Tensor:
@@ -234,17 +235,16 @@ class AreaResampler:
         compiled product reads `weights` itself, so a CPU resampler that needs no image
         gradient never holds this second copy)."""
         if self._csr is None:
-            w = self.weights
-            with warnings.catch_warnings():  # "sparse CSR support is in beta"
-                warnings.simplefilter("ignore", UserWarning)
-                self._csr = torch.sparse_csr_tensor(
-                    torch.from_numpy(w.indptr.astype(np.int64)),
-                    torch.from_numpy(w.indices.astype(np.int64)),
-                    torch.from_numpy(w.data),
-                    size=w.shape,
-                    check_invariants=False,
-                ).to(self.device)
+            self._csr = _torch_csr(self.weights, self.device)
         return self._csr
+
+    @property
+    def sparse_t(self) -> torch.Tensor:
+        """The transposed weights ``(H · W, h · w)`` as a torch sparse CSR tensor on `device`
+        (built on the first image gradient)."""
+        if self._csr_t is None:
+            self._csr_t = _torch_csr(self.weights.transpose().tocsr(), self.device)
+        return self._csr_t
 
     def __call__(self, image: np.ndarray) -> np.ndarray:
         if not isinstance(image, np.ndarray):
@@ -284,6 +284,7 @@ class AreaResampler:
         *,
         output: str = "radiance",
         generator: torch.Generator | None = None,
+        seed: torch.Tensor | None = None,
         allow_nonfinite: bool = True,
     ) -> torch.Tensor:
         """The weights applied to ``(N, H, W)`` float32 images on this resampler's device:
@@ -291,21 +292,39 @@ class AreaResampler:
         CPU without gradient; torch's sparse product, plane by plane, otherwise).
 
         With ``physics``: what that sensor records of the pixel means
-        ([`measure`][] with `areas`, ``output`` and ``generator``);
+        ([`measure`][] with `areas`, ``output``, and ``generator`` or ``seed``);
         on the CPU without gradient, the product and the measurement are one compiled call
         (`measured_csr_apply`).
 
         ``allow_nonfinite=False`` raises ``ValueError`` where NaN/Inf in the images reach the
         means (as [`simulate`][layoutwarp.sensor.simulate] does by default); ``True`` passes them through."""
+        needs_grad = torch.is_grad_enabled() and images.requires_grad
+        if physics is not None and needs_grad:  # the means with their gradient, then the measurement
+            mean = self.apply(images, allow_nonfinite=allow_nonfinite)
+            return measure(mean, self.areas, physics, output=output, generator=generator, seed=seed)
+        seed = None if physics is None else noise_seed(physics, generator, seed)
+        return self.product(images, physics, output, seed, allow_nonfinite)
+
+    def product(
+        self,
+        images: torch.Tensor,
+        physics: SensorPhysics | None,
+        output: str,
+        seed: torch.Tensor | None,
+        allow_nonfinite: bool,
+    ) -> torch.Tensor:
+        """[`apply`][]'s product (and, with ``physics``, the measurement fused into it, its
+        noise drawn from ``seed``), eagerly: the work of ``layoutwarp::area``."""
         n = images.shape[0]
         flat = images.reshape(n, -1)
+        seed_value = 0 if seed is None else ops.seed_value(seed)
         on_device = not flat.requires_grad and runs_on_device(flat) and kernels.cuda_available("float32")
         if on_device and usable("a fixed layout's product"):
             if physics is None:
                 none = flat.new_empty(0, dtype=torch.float64)  # not read
                 measured = (none, none, none, none, 0, 0, 0)
             else:  # the arguments checked before the launch: a bad one is the caller's error
-                measured = device_arguments(physics, self.areas, flat.device, output, generator)
+                measured = device_arguments(physics, self.areas, flat.device, output, seed_value)
             try:
                 out = self._apply_on_device(flat, measured, physics is not None)
             except Exception as err:  # numba-cuda could not compile or launch it: torch's, said once
@@ -318,14 +337,14 @@ class AreaResampler:
         kernel = None
         if flat.device.type == "cpu" and not flat.requires_grad:
             if physics is None:
-                kernel = kernels.csr_apply if jit.ready("fixed", flat.dtype) else None
+                kernel = kernels.csr_apply if ops.backend(flat, "fixed") == "numba" else None
             else:
                 kernel = jit.compiled("measure", flat.dtype, kernels.measured_csr_apply)
         if kernel is not None:
             w = self.weights
             out = np.empty((n, w.shape[0]), dtype=np.float32)
             x = np.ascontiguousarray(flat.numpy())  # needs no gradient: no detach
-            measured = None if physics is None else kernel_arguments(physics, self.areas, output, generator)
+            measured = None if physics is None else kernel_arguments(physics, self.areas, output, seed_value)
             with kernels.LOCK:
                 nt = kernels.threads()  # numba's threads for this launch, bounded by torch's
                 if measured is None:
@@ -341,7 +360,15 @@ class AreaResampler:
             raise_nonfinite(images)
         if physics is None:
             return mean
-        return measure(mean, self.areas, physics, output=output, generator=generator)
+        return measure(mean, self.areas, physics, output=output, seed=seed)
+
+    def adjoint(self, grad: torch.Tensor) -> torch.Tensor:
+        """The transposed weights applied to ``(N, h, w)``: ``(N, H, W)``, the images' gradient
+        of [`apply`][] without physics."""
+        n = grad.shape[0]
+        flat = grad.reshape(n, -1).to(torch.float32)
+        cols = [self.sparse_t @ flat[k].unsqueeze(1) for k in range(n)]
+        return torch.cat(cols, 1).T.reshape(n, *self.src_size).to(grad.dtype)
 
     def _apply_on_device(self, flat: torch.Tensor, measured: tuple, measure: bool) -> torch.Tensor:
         """[`apply`][]'s product on a CUDA device (or in the simulator), the measurement fused
@@ -369,6 +396,19 @@ class AreaResampler:
         return out.T.reshape(x.shape[0], *self.size).cpu()
 
 
+def _torch_csr(w: Any, device: torch.device) -> torch.Tensor:
+    """A scipy CSR matrix as a torch sparse CSR tensor on ``device``."""
+    with warnings.catch_warnings():  # "sparse CSR support is in beta"
+        warnings.simplefilter("ignore", UserWarning)
+        return torch.sparse_csr_tensor(
+            torch.from_numpy(w.indptr.astype(np.int64)),
+            torch.from_numpy(w.indices.astype(np.int64)),
+            torch.from_numpy(w.data),
+            size=w.shape,
+            check_invariants=False,
+        ).to(device)
+
+
 #: Resamplers of fixed layouts that [`simulate`][layoutwarp.sensor.simulate] keeps, the last four used
 #: (see [`resampler_for`][] and [`layoutwarp.caches`][]); ``maxsize`` 0 keeps none, and a fixed
 #: layout's every call then runs the compiled exact walk.
@@ -394,3 +434,111 @@ def resampler_for(
         return None
     key = (identity, tuple(size), tuple(src_size), float(tol), str(torch.device(device)))
     return RESAMPLERS.get(key, lambda: AreaResampler(layout, size, src_size, tol=tol, device=device))
+
+
+# ----------------------------------------------------------------------------------------
+# A fixed layout's product as a torch operator
+# ----------------------------------------------------------------------------------------
+@torch.library.custom_op("layoutwarp::area", mutates_args=())
+def _area(
+    image: torch.Tensor,
+    theta: torch.Tensor,
+    layout: str,
+    height: int,
+    width: int,
+    tol: float,
+    physics: str,
+    output: str,
+    seed: torch.Tensor,
+    check: bool,
+    with_areas: bool,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The exact means ``(N, h, w)`` of the fixed layout ``layout`` (a
+    [`layout_token`][layoutwarp.ops.layout_token]) at ``theta`` over float32 images ``(N, H, W)``
+    by its cached area weights ([`resampler_for`][]), and, ``with_areas``, the pixels' areas
+    ``(h, w)`` (float64, sensor units; else an empty tensor); with ``physics`` (a camera's
+    [`token`][layoutwarp.physics.SensorPhysics.token], ``""``: none) what that sensor records,
+    fused, its noise drawn from ``seed``. ``check``:
+    raise ``ValueError`` where NaN/Inf reach the output. Differentiable in the images (without
+    physics: the transposed weights), twice (the product is linear)."""
+    size, src = (height, width), tuple(image.shape[-2:])
+    camera = ops.physics_of(physics)
+    res = resampler_for(ops.layout_of(layout, theta), size, src, tol, image.device)
+    if res is None:  # the cache keeps none: the exact walk (and the measurement)
+        means, areas, _, _ = torch.ops.layoutwarp.exact(
+            theta, image, layout, height, width, tol, "auto", False, check
+        )
+        means = means.to(image.dtype)
+        out = means if camera is None else measure(means, areas, camera, output=output, seed=seed)
+    else:
+        out, areas = res.product(image, camera, output, seed, not check), res.areas
+    return out, (areas.clone() if with_areas else areas.new_empty(0))
+
+
+@_area.register_fake
+def _(image, theta, layout, height, width, tol, physics, output, seed, check, with_areas):
+    areas = (height, width) if with_areas else (0,)
+    return image.new_empty(image.shape[0], height, width), image.new_empty(areas, dtype=torch.float64)
+
+
+@torch.library.custom_op("layoutwarp::area_backward", mutates_args=())
+def _area_backward(
+    grad: torch.Tensor,
+    theta: torch.Tensor,
+    layout: str,
+    height: int,
+    width: int,
+    tol: float,
+    src_height: int,
+    src_width: int,
+) -> torch.Tensor:
+    """The images' gradient of ``layoutwarp::area`` (without physics): the transposed weights
+    applied to ``grad`` ``(N, h, w)``, ``(N, H, W)``."""
+    src = (src_height, src_width)
+    res = resampler_for(ops.layout_of(layout, theta), (height, width), src, tol, grad.device)
+    if res is None:
+        raise RuntimeError(
+            "layoutwarp::area: the area weights' cache was emptied between forward and backward"
+        )
+    return res.adjoint(grad)
+
+
+@_area_backward.register_fake
+def _(grad, theta, layout, height, width, tol, src_height, src_width):
+    return grad.new_empty(grad.shape[0], src_height, src_width)
+
+
+def _area_setup(ctx: Any, inputs: tuple, output: tuple) -> None:
+    image, theta, layout, height, width, tol, physics, *_ = inputs
+    if physics:
+        ctx.refused = True
+        return
+    ctx.refused = False
+    ctx.save_for_backward(theta)
+    ctx.args = (layout, height, width, tol, image.shape[-2], image.shape[-1])
+
+
+def _area_grad(ctx: Any, grad: torch.Tensor, grad_areas: torch.Tensor) -> tuple:
+    if ctx.refused:
+        raise RuntimeError("layoutwarp::area with physics has no gradient; measure(apply(images)) has")
+    (theta,) = ctx.saved_tensors
+    return _area_backward(grad, theta, *ctx.args), *[None] * 10
+
+
+def _area_backward_setup(ctx: Any, inputs: tuple, output: torch.Tensor) -> None:
+    _, theta, layout, height, width, tol, *_ = inputs
+    ctx.save_for_backward(theta)
+    ctx.args = (layout, height, width, tol)
+
+
+def _area_backward_grad(ctx: Any, grad: torch.Tensor) -> tuple:
+    (theta,) = ctx.saved_tensors
+    seed = torch.zeros((), dtype=torch.int64)
+    forward, _ = torch.ops.layoutwarp.area(grad, theta, *ctx.args, "", "radiance", seed, False, False)
+    return forward, *[None] * 7
+
+
+_area.register_autograd(_area_grad, setup_context=_area_setup)
+_area_backward.register_autograd(_area_backward_grad, setup_context=_area_backward_setup)
+ops.register(_area)
+ops.register(_area_backward)

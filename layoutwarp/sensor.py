@@ -12,7 +12,6 @@ from torch import Tensor, nn
 
 from .checks import (
     ArgumentError,
-    all_finite,
     check_bool,
     check_choice,
     check_generator,
@@ -21,7 +20,6 @@ from .checks import (
     check_number,
     check_shape,
     check_size,
-    raise_nonfinite,
     warn_if_elsewhere,
     warn_if_finer,
 )
@@ -36,9 +34,9 @@ from .integrators import (
 )
 from .layoutfile import load_layout, save_layout
 from .layouts import Layout, make_layout
-from .mesh import pixel_mesh
-from .physics import SensorPhysics, apply_psf, as_physics, check_output, measure
-from .resampler import AreaResampler, resampler_for
+from .ops import layout_token, random_seed
+from .physics import SensorPhysics, apply_psf, as_physics, check_output, measure, noise_seed
+from .resampler import RESAMPLERS
 
 __all__ = ["METHODS", "SensorLayer", "SimulationPlan", "plan_simulation", "simulate"]
 
@@ -170,6 +168,7 @@ def simulate(
     physics: SensorPhysics | dict | None = None,
     output: str = "radiance",
     return_plan: bool = False,
+    noise: Tensor | None = None,
 ) -> Tensor | tuple[Tensor, SimulationPlan]:
     """Simulate a sensor with pixel layout ``layout``: the mean radiance over every pixel, or,
     with ``physics``, what a real sensor records of it (optics, photons, noise, full well, ADC).
@@ -193,10 +192,13 @@ def simulate(
             uint8, 2⁻¹² for float32). The plan states the bound and why.
         samples: ``s`` for Monte Carlo (``s²`` samples per pixel).
         grad: Monte Carlo θ-gradient estimator, ``"reynolds"`` or ``"autograd"``.
-        seed: the Monte Carlo jitter's seed (it makes a generator on the image's device).
-        generator: randomness of the Monte Carlo jitter (``seed`` makes a generator on
-            the image's device, so one seed gives other samples on another device); a
-            ``generator`` also draws the physics' noise (else ``physics.seed`` does).
+        seed: the call's randomness: the Monte Carlo jitter's draws (those of a generator seeded
+            with it on the image's device, so one seed gives other samples on another device) and,
+            with ``physics`` and no ``physics.seed``, the noise's. The same seed, the same output,
+            eager or under ``torch.compile``.
+        generator: instead of ``seed``, a generator the Monte Carlo jitter and the physics' noise
+            draw from (eager only: a generator object cannot enter a compiled graph; pass
+            ``seed``).
         allow_nonfinite: let NaN/Inf through instead of raising ``ValueError``.
         physics: a [`SensorPhysics`][] or its dict (see [`layoutwarp.physics`][]): the PSF
             blurs the image, the pixel means become photons in proportion to each pixel's area,
@@ -206,6 +208,8 @@ def simulate(
             units, whose expectation is the noise-free mean), ``"electrons"`` or ``"dn"``
             (these two need ``physics``).
         return_plan: also return the [`SimulationPlan`][] that ran.
+        noise: with ``physics``, a 0-d int64 tensor the noise is drawn from (what a
+            [`SensorLayer`][]'s seeded sequence passes; see [`noise_seed`][layoutwarp.physics.noise_seed]).
 
     Returns:
         ``(B, C, h, w)`` (or ``(C, h, w)``) in the image's floating dtype (float32 for uint8);
@@ -242,12 +246,9 @@ def simulate(
     if physics is not None:
         if is_callable and physics.psf is not None:
             raise ValueError("physics.psf blurs a source image; a callable radiance must include its optics")
-    if generator is None and seed is not None:
-        # on the image's device: drawing there is what keeps Monte Carlo fast on a GPU (a seed
-        # gives the same samples on every call on one device, not across devices)
-        at = image.device if isinstance(image, Tensor) else None
-        generator = torch.Generator(at).manual_seed(int(seed))
-    run = _Integration(plan, layout, size, tol, samples, grad, generator, physics, output, allow_nonfinite)
+    run = _Integration(
+        plan, layout, size, tol, samples, grad, generator, seed, noise, physics, output, allow_nonfinite
+    )
     if is_callable:
         out = run(image)[None]
         return (out, plan) if return_plan else out
@@ -262,9 +263,9 @@ def simulate(
         if ties:
             out = out + (sum(ties) * 0).to(out_dtype)
     else:
-        if not (allow_nonfinite or plan.method in ("exact", "separable")):
-            raise_nonfinite(work)  # samples may miss a bad pixel: look at the input
         out = run(work)  # exact methods check their means
+        if not (allow_nonfinite or plan.method in ("exact", "separable")):  # samples may miss a bad
+            out = torch.ops.layoutwarp.guard_finite(out, work, "image")  # pixel: look at the input
         out = (out if out.dtype == out_dtype else out.to(out_dtype)).reshape(*lead, *size)
     return (out, plan) if return_plan else out
 
@@ -280,6 +281,8 @@ class _Integration:
     samples: int
     grad: str
     generator: torch.Generator | None
+    seed: int | None
+    noise: Tensor | None = None
     physics: SensorPhysics | None = None
     output: str = "radiance"
     allow_nonfinite: bool = True
@@ -299,61 +302,70 @@ class _Integration:
             return self._dispatch(work)
         if not (isinstance(work, Tensor) and self.physics.psf is not None):
             return self._recorded(work)
-        # the blur spreads a bad value over its neighbours: check the record, count the source's
+        # the blur spreads a bad value over its neighbours: the record checked against the source
         out = replace(self, allow_nonfinite=True)._recorded(apply_psf(work, self.physics))
-        if not (self.allow_nonfinite or all_finite(out)):
-            raise_nonfinite(work)
-        return out
+        return out if self.allow_nonfinite else torch.ops.layoutwarp.guard_finite(out, work, "image")
+
+    def _noise_seed(self) -> Tensor:
+        """The 0-d tensor the physics' noise is drawn from (see [`simulate`][]'s ``seed``)."""
+        seed = self.noise
+        if seed is None and self.generator is None and self.seed is not None and self.physics.seed is None:
+            seed = random_seed(None, self.seed + 2)  # the jitter and its boundary flux take seed, seed + 1
+        return noise_seed(self.physics, self.generator, seed)
 
     def _recorded(self, work: Tensor | Radiance) -> Tensor:
         """What the sensor records of ``work`` (after the optics)."""
-        weights = self._weights(work)
-        if weights is not None:  # a fixed layout: its cached weights know their pixels' areas
-            return weights.apply(
-                work,
-                self.physics,
-                output=self.output,
-                generator=self.generator,
-                allow_nonfinite=self.allow_nonfinite,
-            )
+        seed = self._noise_seed()
+        grad = torch.is_grad_enabled() and isinstance(work, Tensor) and work.requires_grad
+        if self._fixed_weights(work) and not grad:  # the cached weights and the measurement, fused
+            out, _ = self._area(work, self.physics.token, seed, False)
+            return out
         if self.plan.method in ("exact", "separable"):  # the integrator's own areas (a learnable
             mean, areas = self._dispatch(work, with_areas=True)  # layout's compiled path: no torch mesh)
         else:  # the sampling integrators: the areas of the polygons the pixels are
             mean = self._dispatch(work)
-            areas = pixel_mesh(self.layout, self.size, tol=self.tol, dtype=torch.float64).areas()
-        return measure(mean, areas, self.physics, output=self.output, generator=self.generator)
+            areas = torch.ops.layoutwarp.pixel_areas(
+                self._theta(), layout_token(self.layout), *self.size, self.tol
+            )
+        return measure(mean, areas, self.physics, output=self.output, seed=seed)
 
-    def _weights(self, work: Tensor | Radiance) -> AreaResampler | None:
-        """The cached sparse area weights that integrate ``work`` exactly, where they apply: the
-        exact method, a fixed layout (θ needs no gradient) of a registered family, float32
-        images."""
+    def _theta(self) -> Tensor:
+        """θ as the geometry takes it: a fixed layout's as it was set (float64), a learned one's."""
+        return self.layout.theta if self.layout.learnable else self.layout.theta_as(torch.float64)
+
+    def _fixed_weights(self, work: Tensor | Radiance) -> bool:
+        """Whether ``work`` is integrated by cached sparse area weights ([`resampler_for`][]): the
+        exact method, a fixed layout (θ needs no gradient) of a registered family, float32 images,
+        and a cache that keeps weights."""
         fixed = not (torch.is_grad_enabled() and self.layout.rho.requires_grad)
-        if self.plan.method != "exact" or not fixed:
-            return None
+        if self.plan.method != "exact" or not fixed or RESAMPLERS.maxsize == 0:
+            return False
         if not (isinstance(work, Tensor) and work.dtype == torch.float32):
-            return None
-        return resampler_for(self.layout, self.size, tuple(work.shape[-2:]), self.tol, work.device)
+            return False
+        return not layout_token(self.layout).startswith("object:")
+
+    def _area(self, work: Tensor, physics: str, seed: Tensor, with_areas: bool) -> tuple[Tensor, Tensor]:
+        """``layoutwarp::area`` on ``work``: the means (or, with ``physics``, the record) and areas."""
+        args = (layout_token(self.layout), *self.size, float(self.tol), physics, self.output)
+        return torch.ops.layoutwarp.area(
+            work, self._theta(), *args, seed, not self.allow_nonfinite, with_areas
+        )
 
     def _dispatch(self, work: Tensor | Radiance, with_areas: bool = False) -> Tensor | tuple[Tensor, Tensor]:
         """The pixel means (and, for the exact and separable methods ``with_areas``, the pixels'
-        areas in sensor units, from the integrator). An exact method's are checked for NaN/Inf (unless
-        ``allow_nonfinite``): every source pixel reaches some sensor pixel with positive weight,
-        so a bad input value always reaches its (small) output; the fixed layout's compiled
-        product counts them as it writes them."""
+        areas in sensor units, from the integrator). An exact method's are checked for NaN/Inf
+        inside its operator (unless ``allow_nonfinite``): every source pixel reaches some sensor
+        pixel with positive weight, so a bad input value always reaches its (small) output."""
         plan, layout, size = self.plan, self.layout, self.size
         if plan.method in ("separable", "exact"):
-            weights = self._weights(work)  # None but for an exact fixed layout
-            if weights is not None:  # one sparse product: the exact integral of a fixed layout
-                return weights.apply(work, allow_nonfinite=self.allow_nonfinite)
+            if self._fixed_weights(work):  # one sparse product: the exact integral of a fixed layout
+                means, areas = self._area(work, "", torch.zeros((), dtype=torch.int64), with_areas)
+                return (means, areas) if with_areas else means
+            check = {"allow_nonfinite": self.allow_nonfinite, "return_areas": with_areas}
             if plan.method == "separable":
-                out = integrate_separable(work, layout, size, return_areas=with_areas)
-            else:
-                dtype = work.dtype if self.physics is None else torch.float64  # the means the output keeps
-                out = integrate_exact(work, layout, size, tol=self.tol, return_areas=with_areas, dtype=dtype)
-            mean = out[0] if with_areas else out
-            if not (self.allow_nonfinite or all_finite(mean)):
-                raise_nonfinite(work)
-            return out if with_areas else mean
+                return integrate_separable(work, layout, size, **check)
+            dtype = work.dtype if self.physics is None else torch.float64  # the means the output keeps
+            return integrate_exact(work, layout, size, tol=self.tol, dtype=dtype, **check)
         radiance = "bilinear" if plan.radiance == "callable" else plan.radiance  # ignored for callables
         if plan.method == "montecarlo":
             return integrate_montecarlo(
@@ -364,6 +376,7 @@ class _Integration:
                 radiance=radiance,
                 grad=self.grad,
                 generator=self.generator,
+                seed=self.seed,
             )
         return integrate_point(work, layout, size, radiance=radiance)
 
@@ -414,7 +427,8 @@ class SensorLayer(nn.Module):
         check_memory(self.size)
         self.physics = as_physics(physics)
         self.output = check_output(output, self.physics)
-        self._noise: torch.Generator | None = None
+        # the seeded noise's place in its sequence (a tensor: a compiled graph counts it in place)
+        self.register_buffer("noise_calls", torch.zeros((), dtype=torch.int64), persistent=False)
         if isinstance(layout, Layout):
             given = {k: v for k, v in (("learn", learn), ("theta", theta), ("bound", bound)) if v is not None}
             if given:
@@ -444,20 +458,20 @@ class SensorLayer(nn.Module):
         """``(B, C, H, W)`` image to ``(B, C, h, w)`` sensor image.
 
         A learnable layout is first pulled back into its valid set
-        ([`Layout.project_`][layoutwarp.layouts.base.Layout.project_]:
+        ([`Layout.guard_`][layoutwarp.layouts.base.Layout.guard_]:
         a no-op for the paper's families, the fold guard of a
         [`GridLayout`][layoutwarp.layouts.grid.GridLayout]),
         so any training loop gets the guarded step.
         """
         if self.layout.learnable:
-            self.layout.project_()
+            self.layout.guard_()
         if self.physics is None:
             return simulate(image, self.layout, self.size, self.method, **self.options)
         options = dict(self.options)
         if self.physics.seed is not None and "generator" not in options and "seed" not in options:
-            if self._noise is None or self._noise.device != image.device:  # a seeded sequence
-                self._noise = torch.Generator(image.device).manual_seed(self.physics.seed)
-            options["generator"] = self._noise
+            options["noise"] = torch.ops.layoutwarp.seed_sequence(self.noise_calls, self.physics.seed)
+            with torch.no_grad():
+                self.noise_calls.add_(1)  # a seeded sequence: new noise every call, the same every run
         return simulate(
             image, self.layout, self.size, self.method, physics=self.physics, output=self.output, **options
         )

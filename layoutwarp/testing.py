@@ -17,12 +17,19 @@ __all__ = ["NO_KERNEL_OPS", "count_launches", "count_ops"]
 
 def count_ops(fn: Callable[[], object]) -> int:
     """The number of torch operator calls (``aten::`` events at the top level of the profiler's
-    tree) ``fn`` makes: how many kernel launches it would cost on a GPU."""
+    tree, or inside layoutwarp's operators) ``fn`` makes: how many kernel launches it would cost
+    on a GPU."""
     from torch.profiler import ProfilerActivity, profile
+
+    def top(event: object) -> bool:  # no parent but layoutwarp's operators
+        parent = event.cpu_parent  # type: ignore[attr-defined]
+        while parent is not None and parent.name.startswith("layoutwarp::"):
+            parent = parent.cpu_parent
+        return parent is None
 
     with profile(activities=[ProfilerActivity.CPU]) as prof:
         fn()
-    return sum(1 for e in prof.events() if e.name.startswith("aten::") and e.cpu_parent is None)
+    return sum(1 for e in prof.events() if e.name.startswith("aten::") and top(e))
 
 
 #: aten operators that launch no GPU kernel: allocations (views are told by their schema).
@@ -38,14 +45,20 @@ def count_launches(fn: Callable[[], object]) -> Counter[str]:
     allocations run none), including those of the backward; ``aten:_local_scalar_dense`` is a
     host wait (a value read back). Run it where the device path runs: on a CUDA device, or on the
     CPU under numba's CUDA simulator. The total is what the torch profiler's count of GPU
-    activities approximates (it adds cuBLAS's and cuSPARSE's inner kernels)."""
+    activities approximates (it adds cuBLAS's and cuSPARSE's inner kernels). layoutwarp's own
+    operators launch nothing themselves: what runs inside them is counted."""
     from torch.utils._python_dispatch import TorchDispatchMode
 
     counts: Counter[str] = Counter()
 
+    from .ops import OPERATORS
+
     class Ops(TorchDispatchMode):
         def __torch_dispatch__(self, func, types, args=(), kwargs=None):
             name = func.overloadpacket.__name__
+            if func.namespace == "layoutwarp":  # an operator of ours: what its work launches
+                with Ops():
+                    return OPERATORS[name]._init_fn(*args, **(kwargs or {}))
             if not func.is_view and name.rstrip("_") not in NO_KERNEL_OPS:
                 counts[f"aten:{name}"] += 1
             return func(*args, **(kwargs or {}))

@@ -129,7 +129,7 @@ def test_run_small_reports_every_method_and_plots(tmp_path):
     assert {(r["layout"], r["extra"]["batch"]) for r in steps} == {
         (n, b) for n in ("curv ±", "fovea") for b in (1, 4)
     }
-    assert all(r["extra"]["ops"] > 10 and r["forward_ms"] > 0 for r in steps)
+    assert all(r["extra"]["ops"] >= 5 and r["forward_ms"] > 0 for r in steps)
     exact_steps = [r for r in steps if r["method"] == "train step, exact"]
     assert all(r["extra"]["in_a_row_ms"] > 0 for r in exact_steps) and "ms in a row" in report_text(res)
     reuse = next(r for r in rows if r["method"] == "exact, cached weights")

@@ -272,9 +272,11 @@ def test_reynolds_gradient_is_the_boundary_flux_formula_with_the_same_draws(name
     )
     params = [p for p in layout.parameters() if p.requires_grad]
     got = torch.autograd.grad((out * wts).sum(), params)
-    # the reference, its draws in the same order: the forward's jitter, then the edges' samples
+    # the reference, its draws in the same order: the forward's jitter, then the seed of the
+    # edges' samples (drawn in the forward, used in the backward)
     g2 = torch.Generator().manual_seed(seed)
     sample_points(size, m, jitter=True, generator=g2, dtype=F64)
+    g2 = torch.Generator().manual_seed(int(torch.randint(0, 2**62, (), generator=g2)))
     theta_graph = layout.resolve_theta(None)  # θ from the parameters (bounded, or control points)
     with torch.no_grad():
         theta = theta_graph.detach()

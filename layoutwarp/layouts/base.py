@@ -7,7 +7,9 @@ Sensor Layouts for End-to-End Learning of Task-Specific Camera Parameters", §3.
 
 from __future__ import annotations
 
+import functools
 import math
+import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar, TypeVar
@@ -170,6 +172,13 @@ class Layout(nn.Module):
     #: Buffers of a fixed layout's constants, held in float64 whatever the layout's dtype.
     exact_buffers: ClassVar[tuple[str, ...]] = ("rho", "fixed_theta")
 
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        """Each family's constructor, once the outermost one returns, makes the layout's token
+        ([`layout_token`][layoutwarp.ops.layout_token]: how it enters layoutwarp's operators)."""
+        super().__init_subclass__(**kwargs)
+        if "__init__" in cls.__dict__:
+            cls.__init__ = _then_token(cls.__dict__["__init__"])  # type: ignore[method-assign]
+
     def __init__(
         self,
         theta: Sequence[float] | Tensor | None = None,
@@ -179,6 +188,7 @@ class Layout(nn.Module):
         dtype: torch.dtype | None = None,
     ) -> None:
         super().__init__()
+        self._token: str | None = None
         # |θ| < 1 keeps every built-in family a bijection (θ = ±1 folds the sensor onto a point)
         self.bound = check_number(bound, "bound", 0, None if self.unbounded else 1, lo_open=True)
         self._bounds_on: dict[tuple[torch.device, torch.dtype], Tensor] = {}  # _bounds() where ρ lives
@@ -308,6 +318,9 @@ class Layout(nn.Module):
         elif not self._keeps_theta:
             state_dict.pop(kept, None)
         super()._load_from_state_dict(state_dict, prefix, *args)
+        from ..ops import make_token
+
+        self._token = make_token(self)  # its constants may have changed
 
     @property
     def learnable(self) -> bool:
@@ -330,13 +343,20 @@ class Layout(nn.Module):
 
         Families whose every θ is a bijection (the default) have nothing to do; others (e.g.
         [`GridLayout`][layoutwarp.layouts.grid.GridLayout]) undo the part of a step that would
-        fold the layout.
-        [`SensorLayer`][layoutwarp.sensor.SensorLayer] calls this before each forward pass.
+        fold the layout ([`guard_`][]).
 
         Returns:
             whether the parameters were changed.
         """
-        return False
+        changed = self.guard_()
+        return changed is not None and bool(changed)
+
+    def guard_(self) -> Tensor | None:
+        """[`project_`][] in torch operations only, reading no value on the host (what a compiled
+        graph runs; [`SensorLayer`][layoutwarp.sensor.SensorLayer] calls it before each forward
+        pass, so any training loop gets the guarded step): whether the parameters changed as a
+        0-d tensor, or ``None`` for a family with nothing to pull back (the default)."""
+        return None
 
     # -- files -----------------------------------------------------------------------
     def to_config(self) -> dict[str, Any]:
@@ -471,6 +491,28 @@ FAMILIES: dict[str, type[Layout]] = {}
 ``elliptic`` (this module), ``spline`` and ``grid`` (their modules, loaded with this one), and any
 a user adds with [`register_family`][]. Each family registers itself when its module loads, so
 the dict is filled on import (the source reads ``{}``)."""
+_BUILDING = threading.local()
+
+
+def _then_token(init: Callable[..., None]) -> Callable[..., None]:
+    """``init`` followed, where it is the outermost constructor running, by the layout's token."""
+
+    @functools.wraps(init)
+    def wrapped(self: Layout, *args: Any, **kwargs: Any) -> None:
+        depth = getattr(_BUILDING, "depth", 0)
+        _BUILDING.depth = depth + 1
+        try:
+            init(self, *args, **kwargs)
+        finally:
+            _BUILDING.depth = depth
+        if depth == 0:
+            from ..ops import make_token
+
+            self._token = make_token(self)
+
+    return wrapped
+
+
 _L = TypeVar("_L", bound=type[Layout])
 
 

@@ -34,14 +34,15 @@ def _cross(a: Tensor, b: Tensor) -> Tensor:
 
 
 def cell_corner_dets(control: Tensor) -> Tensor:
-    """``det J`` of the bilinear map at the four corners of every control cell, ``(g_h, g_w, 4)``.
+    """``det J`` of the bilinear map at the four corners of every control cell, ``(g_h, g_w, 4)``
+    (control points ``(..., g_h + 1, g_w + 1, 2)`` give ``(..., g_h, g_w, 4)``).
 
     In units of the uniform cell (1 for the uniform grid); the order is top-left, top-right,
     bottom-right, bottom-left. All positive exactly when no cell folds.
     """
-    gh, gw = control.shape[0] - 1, control.shape[1] - 1
-    a, b = control[:-1, :-1], control[:-1, 1:]
-    c, d = control[1:, 1:], control[1:, :-1]
+    gh, gw = control.shape[-3] - 1, control.shape[-2] - 1
+    a, b = control[..., :-1, :-1, :], control[..., :-1, 1:, :]
+    c, d = control[..., 1:, 1:, :], control[..., 1:, :-1, :]
     dets = torch.stack(
         [_cross(b - a, d - a), _cross(c - b, a - b), _cross(d - c, b - c), _cross(a - d, c - d)], -1
     )
@@ -231,28 +232,34 @@ class GridLayout(Layout):
         return _foldover_report(ctrl)
 
     @torch.no_grad()
-    def project_(self) -> bool:
-        """Undo the part of the last step that folds the grid (see [`Layout.project_`][]).
+    @torch.no_grad()
+    def guard_(self) -> Tensor:
+        """Undo the part of the last step that folds the grid (see [`Layout.guard_`][]).
 
         The current control points are kept if every corner determinant is at least
         ``min(min_det, the last valid grid's)``; otherwise the step from the last valid points is
-        halved until it is (at most 39 times; then the last valid points are restored).
+        halved until it is (at most 39 times; then the last valid points are restored). All 40
+        trials are weighed at once, in torch operations: no value is read on the host.
         """
-        cur = self.rho.detach()
-        level = min(self.min_det, _min_det(self.control_points(self.last_valid)))
-        if _min_det(self.control_points(cur)) >= level:
-            self.last_valid.copy_(cur)
-            return False
-        start, step = self.last_valid.clone(), cur - self.last_valid
-        cand = start
-        for k in range(1, 40):
-            trial = start + step * 0.5**k
-            if _min_det(self.control_points(trial)) >= level:
-                cand = trial
-                break
-        self.rho.copy_(cand)
-        self.last_valid.copy_(cand)
-        return True
+        cur, last = self.rho.detach(), self.last_valid
+        halves = 0.5 ** torch.arange(40, dtype=cur.dtype, device=cur.device)  # the step itself first
+        trials = torch.cat([last + (cur - last) * halves[:, None], last[None]])  # the last: restore
+        dets = cell_corner_dets(self._batch_control_points(trials).double()).flatten(1).amin(1)
+        level = torch.clamp(dets[-1], max=self.min_det)  # min(min_det, the last valid grid's)
+        ok = dets >= level
+        ok[-1] = True
+        first = torch.argmax(ok.to(torch.int8))  # the first trial that does not fold
+        self.rho.copy_(trials[first])
+        self.last_valid.copy_(trials[first])
+        return first != 0
+
+    def _batch_control_points(self, thetas: Tensor) -> Tensor:
+        """[`control_points`][] of each θ of ``thetas`` ``(K, P)``: ``(K, g_h + 1, g_w + 1, 2)``."""
+        gh, gw = self.grid
+        base = uniform_corners((gh, gw), dtype=thetas.dtype, device=thetas.device)
+        k = thetas.shape[0]
+        mask = self.free.to(thetas.device).expand(k, *self.free.shape)
+        return base.expand(k, *base.shape).masked_scatter(mask, thetas)
 
     # -- the map ---------------------------------------------------------------------
     def _corners(self, p: Tensor, theta: Tensor) -> tuple[Tensor, ...]:
