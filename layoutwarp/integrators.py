@@ -467,25 +467,29 @@ def _exact_means(
         )
     template = ops.layout_of(layout)
     spec = mesh_spec(template) if which != "torch" else None
-    jac = image.new_empty(_jacobian_shape(theta, image, *size) if jacobian else (0,), dtype=torch.float64)
+    no_jac = image.new_empty(_jacobian_shape(theta, image, *size) if jacobian else (0,), dtype=torch.float64)
     held = torch.zeros((), dtype=torch.int8, device=image.device)
     image = image.contiguous()
     if spec is not None and which == "cuda":  # the mesh built where it is used: none crosses the bus
-        means, _, areas = _device_exact(spec, theta, image, size, tol)
-        return means, areas, jac, held
+        means, _, areas = _device_exact(spec, theta, image, size, tol)[:3]
+        return means, areas, no_jac, held
     if spec is not None and jacobian:  # mesh, integrals and their θ-Jacobian, chunk by chunk
         th = theta.detach().double().cpu().numpy()
         with kernels.LOCK:
             tables = kernels.prefix_tables(image.numpy(), kernels.BLOCK)
             out, j = mesh_integrals(spec, size, th, tol, tables, (hs, ws))
         pix = MeshTopology(size).combine(out)
-        jac.copy_(torch.from_numpy(j))
         held.fill_(1)
-        return torch.from_numpy(pix[:-1] / pix[-1]), torch.from_numpy(pix[-1] * _unit(image)), jac, held
+        return (
+            torch.from_numpy(pix[:-1] / pix[-1]),
+            torch.from_numpy(pix[-1] * _unit(image)),
+            torch.from_numpy(j),
+            held,
+        )
     with ops.autograd_inside() if jacobian else contextlib.nullcontext():  # the mesh a gradient needs
         th = theta.detach().requires_grad_(jacobian)
         means, areas = _mesh_exact(th, image, template, size, tol, which != "torch", cache=not jacobian)
-    return means.detach(), areas.detach().clone(), jac, held
+    return means.detach(), areas.detach().clone(), no_jac, held
 
 
 @_exact.register_fake
@@ -543,7 +547,7 @@ def _exact_backward(
     theta_grad: bool,
     image_grad: bool,
 ) -> tuple[Tensor, Tensor]:
-    """θ's and the image's gradients of ``layoutwarp::exact`` (the image's: zeros unless
+    """θ's and the image's gradients of ``layoutwarp::exact`` (the image's: an empty tensor unless
     ``image_grad``; θ's, zeros unless ``theta_grad``): the exact Reynolds transport gradient, by
     one contraction with the kept Jacobian, by the device kernels, or by the mesh again with
     autograd."""
@@ -554,14 +558,14 @@ def _exact_backward(
         with kernels.LOCK:
             g_edge = edge_gradient(g, means.cpu().numpy(), areas.cpu().numpy() / _unit(image), own)
             g_theta = theta_gradient(g_edge, jac.cpu().numpy())
-        return torch.from_numpy(g_theta).to(theta), torch.zeros_like(image)
+        return torch.from_numpy(g_theta).to(theta), image.new_empty(0)
     which = "torch" if backend == "torch" or image_grad else ops.backend(image, "learn")
     template = ops.layout_of(layout)
     spec = mesh_spec(template) if which == "cuda" else None
     if spec is not None:  # the device mesh built again (its sizes live on the device)
         _, area, _, dm, incl = _device_exact(spec, theta, image.contiguous(), size, tol)
         args = (incl, means, area, grad_means, grad_areas, _unit(image), tuple(image.shape[-2:]))
-        return device_theta_gradient(dm, *args).to(theta), torch.zeros_like(image)
+        return device_theta_gradient(dm, *args).to(theta), image.new_empty(0)
     with ops.autograd_inside():
         th = theta.detach().requires_grad_(theta_grad)  # the forward's mesh: built as it was
         img = image.detach().requires_grad_(image_grad)
@@ -576,13 +580,17 @@ def _exact_backward(
     g_theta, g_image = (next(grads, None) if t.requires_grad else None for t in (th, img))
     return (
         torch.zeros_like(theta) if g_theta is None else g_theta.to(theta),
-        torch.zeros_like(image) if g_image is None else g_image.to(image),
+        image.new_empty(0)
+        if not image_grad
+        else torch.zeros_like(image)
+        if g_image is None
+        else g_image.to(image),
     )
 
 
 @_exact_backward.register_fake
 def _(grad_means, grad_areas, theta, image, *rest):
-    return torch.empty_like(theta), torch.empty_like(image)
+    return torch.empty_like(theta), torch.empty_like(image) if rest[-1] else image.new_empty(0)
 
 
 def _exact_setup(ctx: Any, inputs: tuple, output: tuple) -> None:
@@ -609,7 +617,7 @@ def _exact_grad(ctx: Any, grad_means: Tensor, grad_areas: Tensor, *_: Tensor) ->
 
 _exact.register_autograd(_exact_grad, setup_context=_exact_setup)
 ops.first_order_only(_exact_backward, "exact")
-ops.register(_exact)
+ops.register(_exact, fold=1)
 ops.register(_exact_backward)
 
 
@@ -861,8 +869,8 @@ def _(image, ex, ey, check):
 def _separable_backward(
     grad: Tensor, image: Tensor, ex: Tensor, ey: Tensor, out: Tensor, needs: list[bool]
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """The gradients of ``layoutwarp::separable`` in the image, ``ex`` and ``ey`` (zeros where
-    ``needs`` says none is needed).
+    """The gradients of ``layoutwarp::separable`` in the image, ``ex`` and ``ey`` (empty tensors
+    where ``needs`` says none is needed).
 
     The gradient w.r.t. an interval edge is the boundary (Reynolds) term of the box integral:
     for interval ``i`` with length ``Δ_i`` and mean ``I_i``, moving its right edge ``e_{i+1}``
@@ -872,7 +880,7 @@ def _separable_backward(
     grad = grad.contiguous()
     wy, wy_t = _axis_csr(ey, hs, image.dtype)
     wx, wx_t = _axis_csr(ex, ws, image.dtype)
-    g_img, g_ex, g_ey = torch.zeros_like(image), torch.zeros_like(ex), torch.zeros_like(ey)
+    g_img, g_ex, g_ey = image.new_empty(0), ex.new_empty(0), ey.new_empty(0)
     if needs[0]:
         g_img = _rows(wy_t, _cols(grad, wx))
     if needs[1]:
@@ -890,7 +898,9 @@ def _separable_backward(
 
 @_separable_backward.register_fake
 def _(grad, image, ex, ey, out, needs):
-    return torch.empty_like(image), torch.empty_like(ex), torch.empty_like(ey)
+    return tuple(
+        torch.empty_like(t) if n else t.new_empty(0) for t, n in zip((image, ex, ey), needs, strict=True)
+    )
 
 
 def _separable_setup(ctx: Any, inputs: tuple, output: Tensor) -> None:
@@ -907,7 +917,7 @@ def _separable_grad(ctx: Any, grad: Tensor) -> tuple:
 
 _separable.register_autograd(_separable_grad, setup_context=_separable_setup)
 ops.first_order_only(_separable_backward, "separable")
-ops.register(_separable)
+ops.register(_separable, fold=0)
 ops.register(_separable_backward)
 
 

@@ -302,10 +302,12 @@ def _warm(unit: str) -> None:
     group, dtype = unit.split("/")
     if group not in _WARMUPS:  # registered when the warm-ups' module loads (with the package's core)
         importlib.import_module(f"{__package__}.warmups")
+    from .ops import autograd_inside
+
     _WARMING.on = True
     try:
-        with torch.enable_grad():  # whatever the caller's grad mode: the learnable paths need it
-            _WARMUPS[group](getattr(torch, dtype))
+        with autograd_inside():  # whatever the caller's grad mode, inside an operator too: the
+            _WARMUPS[group](getattr(torch, dtype))  # learnable paths train a step
     finally:
         _WARMING.on = False
 

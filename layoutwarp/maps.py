@@ -14,11 +14,12 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from . import ops
 from .checks import check_generator, check_int, check_layout, check_number, check_size
 from .coords import pixel_centers, sensor_to_pixels
 from .layouts import Layout
 from .mesh import pixel_mesh
-from .ops import random_seed
+from .ops import layout_token, random_seed
 
 __all__ = [
     "Maps",
@@ -103,8 +104,26 @@ def map_points(layout: Layout, points: Tensor, *, inverse: bool = False) -> Tens
     check_layout(layout)
     theta = layout.theta_as(torch.float64).detach()
     p = points.detach().to(device=theta.device, dtype=torch.float64)
+    return torch.ops.layoutwarp.map_points(p, theta, layout_token(layout), inverse)
+
+
+@torch.library.custom_op("layoutwarp::map_points", mutates_args=())
+def _map_points(points: Tensor, theta: Tensor, layout: str, inverse: bool) -> Tensor:
+    """``φ(points)`` or ``φ⁻¹(points)`` ``(..., 2)`` in float64 for the layout of a
+    [`layout_token`][layoutwarp.ops.layout_token] at ``theta`` (an inverse may iterate until it
+    converges: inside an operator, no compiled graph sees its loop). No gradient."""
+    layout_ = ops.layout_of(layout)
     with torch.no_grad():
-        return layout.phi_inverse(p, theta) if inverse else layout.phi(p, theta)
+        out = layout_.phi_inverse(points, theta) if inverse else layout_.phi(points, theta)
+    return out.clone() if out is points else out
+
+
+@_map_points.register_fake
+def _(points, theta, layout, inverse):
+    return torch.empty_like(points)
+
+
+ops.register(_map_points)
 
 
 def inverse_coords(layout: Layout, target_size: tuple[int, int]) -> Tensor:
@@ -205,10 +224,26 @@ def raster_index_map(
     k = check_int(oversample, "oversample", 1)
     if k % 2 == 0:
         raise ValueError(f"oversample must be an odd integer >= 1, got {oversample!r}")
+    theta = layout.theta_as(torch.float64).detach()
+    return torch.ops.layoutwarp.raster_index_map(theta, layout_token(layout), h, w, ht, wt, tol, k)
+
+
+@torch.library.custom_op("layoutwarp::raster_index_map", mutates_args=())
+def _raster_index_map(
+    theta: Tensor,
+    layout: str,
+    height: int,
+    width: int,
+    target_height: int,
+    target_width: int,
+    tol: float,
+    oversample: int,
+) -> Tensor:
+    """[`raster_index_map`][] of the layout of a [`layout_token`][layoutwarp.ops.layout_token] at
+    ``theta``: ``(H, W)`` int64 on the CPU."""
+    (h, w), (ht, wt), k = (height, width), (target_height, target_width), oversample
     with torch.no_grad():
-        mesh = pixel_mesh(
-            layout, (h, w), tol=tol, dtype=torch.float64, theta=layout.theta_as(torch.float64).detach()
-        )
+        mesh = pixel_mesh(ops.layout_of(layout), (h, w), tol=tol, dtype=torch.float64, theta=theta.cpu())
     shift = 8
     canvas = np.full((ht * k, wt * k), -1, dtype=np.int32)
     for index, poly in enumerate(mesh.polygons()):
@@ -223,3 +258,11 @@ def raster_index_map(
         claimed = canvas.ravel()[np.flatnonzero(~missing.ravel())]
         canvas[missing] = claimed[labels[missing] - 1]
     return torch.from_numpy(canvas.astype(np.int64))
+
+
+@_raster_index_map.register_fake
+def _(theta, layout, height, width, target_height, target_width, tol, oversample):
+    return torch.empty(target_height, target_width, dtype=torch.int64)
+
+
+ops.register(_raster_index_map)

@@ -20,7 +20,7 @@ from __future__ import annotations
 import contextlib
 import json
 import weakref
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING, Any
 
 import torch
@@ -35,10 +35,13 @@ if TYPE_CHECKING:
 
 __all__ = [
     "OPERATORS",
+    "RANDOM",
     "SECOND_ORDER",
     "TEMPLATES",
+    "TRANSFORMS",
     "autograd_inside",
     "backend",
+    "batch_rule",
     "first_order_only",
     "generator_of",
     "layout_of",
@@ -48,6 +51,7 @@ __all__ = [
     "object_token",
     "physics_of",
     "random_seed",
+    "refuse_grad_transforms",
     "seed_value",
 ]
 
@@ -160,10 +164,8 @@ def backend(x: Tensor, group: str, *, name: str | None = None, wait: bool = Fals
     if runs_on_device(x):
         ok = kernels.available() and kernels.cuda_available(str(dtype).split(".")[1])
         return "cuda" if ok and (name is None or usable(name)) else "torch"
-    if x.device.type == "cpu":
-        with autograd_inside():  # a first call's warm-up trains a step
-            if jit.ready(group, dtype, wait=wait):
-                return "numba"
+    if x.device.type == "cpu" and jit.ready(group, dtype, wait=wait):
+        return "numba"
     return "torch"
 
 
@@ -210,10 +212,97 @@ def random_seed(generator: torch.Generator | None, seed: int | None = None) -> T
     return torch.randint(0, 2**62, (), generator=generator, dtype=torch.int64, device=generator.device).cpu()
 
 
-def register(op: Any) -> Any:
-    """Add ``op`` to [`OPERATORS`][] (its name without the namespace) and return it."""
+def register(op: Any, fold: int | None = None) -> Any:
+    """Add ``op`` to [`OPERATORS`][] (by its name without the namespace), give it a ``torch.vmap``
+    rule ([`batch_rule`][]: the batch folded into the images of argument ``fold``, else one call
+    per sample) and return it."""
     OPERATORS[op._name] = op
+    op.register_vmap(batch_rule(op, fold))
     return op
+
+
+#: The message of a refused ``torch.func`` gradient transform.
+TRANSFORMS = (
+    "layoutwarp's operators take torch.func.vmap, not torch.func.{what} (their gradients are "
+    "registered with autograd): use torch.autograd.grad, or loss.backward()"
+)
+
+
+def refuse_grad_transforms() -> None:
+    """Raise, in one line, inside ``torch.func.grad``, ``jacrev``, ``vjp`` or ``jvp``, whose
+    autograd layers cannot enter layoutwarp's operators (``torch.func.vmap`` can)."""
+    if torch.compiler.is_compiling():
+        return
+    from torch._C._functorch import TransformType
+    from torch._functorch.pyfunctorch import retrieve_all_functorch_interpreters
+
+    for interpreter in retrieve_all_functorch_interpreters():
+        if interpreter.key() in (TransformType.Grad, TransformType.Jvp):
+            what = "grad, jacrev or vjp" if interpreter.key() == TransformType.Grad else "jvp or jacfwd"
+            raise RuntimeError(TRANSFORMS.format(what=what))
+
+
+def batch_rule(op: Any, fold: int | None) -> Callable[..., tuple[Any, Any]]:
+    """A ``torch.vmap`` rule for ``op``: where only argument ``fold`` (images ``(N, H, W)``) is
+    batched, the batch joins ``N`` and the operator runs once (outputs ``(N, ...)`` split back,
+    a θ-Jacobian's shared area row repeated); otherwise one call per sample, stacked. Operators
+    that draw noise follow ``vmap``'s ``randomness``: ``"error"`` refuses, ``"same"`` gives every
+    sample the same draws, ``"different"`` draws for each."""
+    name = op._name
+
+    def rule(info: Any, in_dims: tuple, *args: Any) -> tuple[Any, Any]:
+        batched = [i for i, d in enumerate(in_dims) if d is not None]
+        random = name in RANDOM and (name != "area" or bool(args[6]))  # area draws with a camera
+        if random and info.randomness == "error":
+            raise RuntimeError(
+                f"layoutwarp::{name} draws random numbers: pass randomness='same' or 'different' to vmap"
+            )
+        if fold is not None and batched == [fold] and not (random and info.randomness == "same"):
+            return _folded(op, info, in_dims, args, fold)
+        outs = []
+        for b in range(info.batch_size):
+            sample = [a.select(d, b) if d is not None else a for a, d in zip(args, in_dims, strict=True)]
+            if random and info.randomness == "different":
+                sample = [
+                    _next_seed(a, b) if isinstance(a, Tensor) and a.dtype == torch.int64 else a
+                    for a in sample
+                ]
+            outs.append(op(*sample))
+        if isinstance(outs[0], tuple):
+            return tuple(torch.stack(o) for o in zip(*outs, strict=True)), (0,) * len(outs[0])
+        return torch.stack(outs), 0
+
+    return rule
+
+
+#: Operators that draw random numbers (their 0-d int64 argument is a seed; ``area`` with a camera).
+RANDOM = frozenset({"measure", "draws", "uniform", "seed_sequence", "area"})
+
+
+def _next_seed(seed: Tensor, b: int) -> Tensor:
+    """Sample ``b``'s seed of a batch drawn ``"different"``."""
+    return seed + 7919 * (b + 1) if seed.ndim == 0 else seed
+
+
+def _folded(op: Any, info: Any, in_dims: tuple, args: tuple, fold: int) -> tuple[Any, Any]:
+    """``op`` once on images whose batch joined their first axis ``N``; outputs split back."""
+    x = args[fold].movedim(in_dims[fold], 0)
+    b, n = x.shape[:2]
+    out = op(*args[:fold], x.reshape(b * n, *x.shape[2:]), *args[fold + 1 :])
+    outs = out if isinstance(out, tuple) else (out,)
+    split, dims = [], []
+    for o in outs:
+        if o.ndim and o.shape[0] == b * n:  # per image: split back
+            split.append(o.reshape(b, n, *o.shape[1:]))
+            dims.append(0)
+        elif o.ndim and o.shape[0] == b * n + 1:  # a Jacobian's rows and its shared area row
+            rows = o[:-1].reshape(b, n, *o.shape[1:])
+            split.append(torch.cat([rows, o[-1:].expand(b, 1, *o.shape[1:])], 1))
+            dims.append(0)
+        else:  # shared by the batch
+            split.append(o)
+            dims.append(None)
+    return (tuple(split), tuple(dims)) if isinstance(out, tuple) else (split[0], dims[0])
 
 
 def seed_value(seed: Tensor) -> int:

@@ -355,7 +355,7 @@ class AreaResampler:
                 raise_nonfinite(images)
             return torch.from_numpy(out).view(n, *self.size)
         cols = [self.sparse @ flat[k].unsqueeze(1) for k in range(n)]  # contiguous planes: no transpose
-        mean = torch.cat(cols, 1).T.reshape(n, *self.size)
+        mean = torch.cat(cols, 1).T.reshape(n, *self.size).contiguous()
         if not (allow_nonfinite or all_finite(mean)):
             raise_nonfinite(images)
         if physics is None:
@@ -368,7 +368,7 @@ class AreaResampler:
         n = grad.shape[0]
         flat = grad.reshape(n, -1).to(torch.float32)
         cols = [self.sparse_t @ flat[k].unsqueeze(1) for k in range(n)]
-        return torch.cat(cols, 1).T.reshape(n, *self.src_size).to(grad.dtype)
+        return torch.cat(cols, 1).T.reshape(n, *self.src_size).to(grad.dtype).contiguous()
 
     def _apply_on_device(self, flat: torch.Tensor, measured: tuple, measure: bool) -> torch.Tensor:
         """[`apply`][]'s product on a CUDA device (or in the simulator), the measurement fused
@@ -439,6 +439,25 @@ def resampler_for(
 # ----------------------------------------------------------------------------------------
 # A fixed layout's product as a torch operator
 # ----------------------------------------------------------------------------------------
+def _resampler(
+    token: str,
+    theta: torch.Tensor,
+    size: tuple[int, int],
+    src: tuple[int, int],
+    tol: float,
+    device: torch.device,
+) -> AreaResampler | None:
+    """[`resampler_for`][] the layout of a [`layout_token`][layoutwarp.ops.layout_token] at ``theta``,
+    kept under the token and θ's values (no layout is made for a resampler already kept)."""
+    if RESAMPLERS.maxsize == 0 or token.startswith("object:"):
+        return resampler_for(ops.layout_of(token, theta), size, src, tol, device)
+    values = tuple(theta.detach().to("cpu", torch.float64).numpy().tolist())
+    key = ((token, values), tuple(size), tuple(src), float(tol), str(torch.device(device)))
+    return RESAMPLERS.get(
+        key, lambda: AreaResampler(ops.layout_of(token, theta), size, src, tol=tol, device=device)
+    )
+
+
 @torch.library.custom_op("layoutwarp::area", mutates_args=())
 def _area(
     image: torch.Tensor,
@@ -463,7 +482,7 @@ def _area(
     physics: the transposed weights), twice (the product is linear)."""
     size, src = (height, width), tuple(image.shape[-2:])
     camera = ops.physics_of(physics)
-    res = resampler_for(ops.layout_of(layout, theta), size, src, tol, image.device)
+    res = _resampler(layout, theta, size, src, tol, image.device)
     if res is None:  # the cache keeps none: the exact walk (and the measurement)
         means, areas, _, _ = torch.ops.layoutwarp.exact(
             theta, image, layout, height, width, tol, "auto", False, check
@@ -495,7 +514,7 @@ def _area_backward(
     """The images' gradient of ``layoutwarp::area`` (without physics): the transposed weights
     applied to ``grad`` ``(N, h, w)``, ``(N, H, W)``."""
     src = (src_height, src_width)
-    res = resampler_for(ops.layout_of(layout, theta), (height, width), src, tol, grad.device)
+    res = _resampler(layout, theta, (height, width), src, tol, grad.device)
     if res is None:
         raise RuntimeError(
             "layoutwarp::area: the area weights' cache was emptied between forward and backward"
@@ -540,5 +559,5 @@ def _area_backward_grad(ctx: Any, grad: torch.Tensor) -> tuple:
 
 _area.register_autograd(_area_grad, setup_context=_area_setup)
 _area_backward.register_autograd(_area_backward_grad, setup_context=_area_backward_setup)
-ops.register(_area)
+ops.register(_area, fold=0)
 ops.register(_area_backward)

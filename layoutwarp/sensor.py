@@ -34,12 +34,13 @@ from .integrators import (
 )
 from .layoutfile import load_layout, save_layout
 from .layouts import Layout, make_layout
-from .ops import layout_token, random_seed
+from .ops import layout_token, random_seed, refuse_grad_transforms
 from .physics import SensorPhysics, apply_psf, as_physics, check_output, measure, noise_seed
 from .resampler import RESAMPLERS
 
 __all__ = ["METHODS", "SensorLayer", "SimulationPlan", "plan_simulation", "simulate"]
 
+_NO_SEED = torch.zeros((), dtype=torch.int64)  # the seed of an operator that draws nothing
 #: The integrators [`simulate`][] runs.
 METHODS = ("exact", "separable", "montecarlo", "point")
 _OPTIONS = {"radiance", "tol", "samples", "grad", "seed", "generator", "allow_nonfinite"}
@@ -218,6 +219,7 @@ def simulate(
     """
     size = check_size(size)
     check_memory(size)
+    refuse_grad_transforms()
     if not isinstance(layout, Layout):
         raise TypeError(f"layout must be a layoutwarp Layout, got {type(layout).__name__}")
     allow_nonfinite, return_plan = (
@@ -359,7 +361,7 @@ class _Integration:
         plan, layout, size = self.plan, self.layout, self.size
         if plan.method in ("separable", "exact"):
             if self._fixed_weights(work):  # one sparse product: the exact integral of a fixed layout
-                means, areas = self._area(work, "", torch.zeros((), dtype=torch.int64), with_areas)
+                means, areas = self._area(work, "", _NO_SEED, with_areas)
                 return (means, areas) if with_areas else means
             check = {"allow_nonfinite": self.allow_nonfinite, "return_areas": with_areas}
             if plan.method == "separable":

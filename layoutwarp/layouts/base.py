@@ -176,8 +176,7 @@ class Layout(nn.Module):
         """Each family's constructor, once the outermost one returns, makes the layout's token
         ([`layout_token`][layoutwarp.ops.layout_token]: how it enters layoutwarp's operators)."""
         super().__init_subclass__(**kwargs)
-        if "__init__" in cls.__dict__:
-            cls.__init__ = _then_token(cls.__dict__["__init__"])  # type: ignore[method-assign]
+        cls.__init__ = _then_token(cls.__init__)  # type: ignore[method-assign]
 
     def __init__(
         self,
@@ -382,16 +381,10 @@ class Layout(nn.Module):
         return newton_inverse(self.phi, q, theta)
 
     def phi_jacobian(self, p: Tensor, theta: Tensor) -> Tensor:
-        """``∂φ_i/∂p_j``, shape ``(..., 2, 2)``; generic fallback by autograd."""
-        with torch.enable_grad():
-            pp = p if p.requires_grad else p.detach().requires_grad_(True)
-            q = self.phi(pp, theta)
-            rows = [
-                torch.autograd.grad(q[..., i].sum(), pp, create_graph=True, allow_unused=True)[0]
-                for i in range(2)
-            ]
-        rows = [torch.zeros_like(p) if g is None else g for g in rows]
-        return torch.stack(rows, dim=-2)
+        """``∂φ_i/∂p_j``, shape ``(..., 2, 2)``; generic fallback by forward-mode autodiff (one
+        Jacobian-vector product per axis, differentiable in θ; it runs inside operators and
+        compiled graphs, where reverse-mode calls cannot)."""
+        return _forward_jacobian(lambda q: self.phi(q, theta), p, 2)
 
     def phi_jacobian_det(self, p: Tensor, theta: Tensor) -> Tensor:
         """``det ∂φ/∂p``, shape ``(...)``: the local area scale (Monte Carlo weights); generic
@@ -400,23 +393,11 @@ class Layout(nn.Module):
         return j[..., 0, 0] * j[..., 1, 1] - j[..., 0, 1] * j[..., 1, 0]
 
     def phi_dtheta(self, p: Tensor, theta: Tensor) -> Tensor:
-        """``∂φ_i/∂θ_j``, shape ``(..., 2, P)``; generic fallback by autograd.
-
-        Each column is a Jacobian-vector product, computed as the derivative of a
-        vector-Jacobian product with respect to its (dummy) cotangent.
-        """
+        """``∂φ_i/∂θ_j``, shape ``(..., 2, P)``; generic fallback by forward-mode autodiff (one
+        Jacobian-vector product per entry of θ)."""
         if theta.numel() == 0:
             return p.new_zeros(*p.shape, 0)
-        with torch.enable_grad():
-            th = theta.detach().requires_grad_(True)
-            out = self.phi(p.detach(), th)
-            u = torch.zeros_like(out, requires_grad=True)
-            (vjp,) = torch.autograd.grad(out, th, u, create_graph=True, allow_unused=True)
-            if vjp is None or not vjp.requires_grad:  # φ does not depend on θ here
-                return out.new_zeros(*out.shape, theta.numel())
-            eye = torch.eye(theta.numel(), dtype=vjp.dtype, device=vjp.device)
-            cols = [torch.autograd.grad(vjp, u, e, retain_graph=True, allow_unused=True)[0] for e in eye]
-        return torch.stack([torch.zeros_like(out) if c is None else c for c in cols], dim=-1)
+        return _forward_jacobian(lambda th: self.phi(p, th), theta, theta.numel())
 
     def edge_breakpoints(self, a: Tensor, b: Tensor, theta: Tensor | None = None) -> Tensor:
         """Parameters ``t ∈ (0, 1)`` where φ is not smooth along the segments ``a + t (b − a)``.
@@ -491,6 +472,16 @@ FAMILIES: dict[str, type[Layout]] = {}
 ``elliptic`` (this module), ``spline`` and ``grid`` (their modules, loaded with this one), and any
 a user adds with [`register_family`][]. Each family registers itself when its module loads, so
 the dict is filled on import (the source reads ``{}``)."""
+
+
+def _forward_jacobian(f: Callable[[Tensor], Tensor], x: Tensor, n: int) -> Tensor:
+    """The derivatives of ``f`` along each of the ``n`` entries of ``x``'s last axis, stacked last:
+    ``(..., n)`` for outputs ``(...)``, by ``torch.func.jvp``."""
+    eye = torch.eye(n, dtype=x.dtype, device=x.device)
+    cols = [torch.func.jvp(f, (x,), (eye[k].expand_as(x),))[1] for k in range(n)]
+    return torch.stack(cols, -1)
+
+
 _BUILDING = threading.local()
 
 

@@ -248,10 +248,11 @@ class GridLayout(Layout):
         level = torch.clamp(dets[-1], max=self.min_det)  # min(min_det, the last valid grid's)
         ok = dets >= level
         ok[-1] = True
-        first = torch.argmax(ok.to(torch.int8))  # the first trial that does not fold
-        self.rho.copy_(trials[first])
-        self.last_valid.copy_(trials[first])
-        return first != 0
+        first = torch.argmax(ok.to(torch.int8)).reshape(1)  # the first trial that does not fold
+        chosen = trials.index_select(0, first)[0]
+        self.rho.copy_(chosen)
+        self.last_valid.copy_(chosen)
+        return first[0] != 0
 
     def _batch_control_points(self, thetas: Tensor) -> Tensor:
         """[`control_points`][] of each θ of ``thetas`` ``(K, P)``: ``(K, g_h + 1, g_w + 1, 2)``."""

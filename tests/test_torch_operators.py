@@ -1,0 +1,348 @@
+"""layoutwarp inside PyTorch 2: every kernel a registered operator (``torch.library.opcheck``),
+one graph under ``torch.compile(fullgraph=True)`` for every family, integrator and physics,
+``torch.export``, second derivatives exact or refused, and ``torch.func``."""
+
+from __future__ import annotations
+
+import copy
+import warnings
+
+import pytest
+import torch
+
+import layoutwarp as lw
+from layoutwarp.layouts import FAMILIES
+from layoutwarp.ops import OPERATORS, SECOND_ORDER, TRANSFORMS, layout_token
+
+F64 = torch.float64
+CAMERA = lw.SensorPhysics(
+    (200.0, 200.0), photons_per_um2=50.0, read_noise_e=1.0, adc_bits=10, full_well_per_um2=1000.0, seed=3
+)
+
+
+def _learnable(family: str, gen: torch.Generator, dtype: torch.dtype = torch.float32) -> lw.Layout:
+    """A learnable layout of ``family`` away from the uniform one (θ random, |θ| ≲ 0.5; a grid's
+    control points moved by a few hundredths)."""
+    layout = lw.make_layout(family, learn=True, dtype=dtype)
+    scale = 0.04 if family == "grid" else 0.25  # a grid's control points: a fold is near
+    with torch.no_grad():
+        if layout.rho.numel():
+            layout.rho.add_(scale * torch.randn(layout.rho.shape, generator=gen, dtype=layout.rho.dtype))
+    return layout
+
+
+def _fixed(family: str, gen: torch.Generator) -> lw.Layout:
+    """A fixed layout of ``family`` (θ random, |θ| < 0.4; a grid's control points moved a little)."""
+    from layoutwarp.layoutfile import layout_from_spec, layout_spec
+
+    return layout_from_spec(layout_spec(_learnable(family, gen)))
+
+
+# ----------------------------------------------------------------------------------------
+# Every operator: opcheck (schema, fake kernel, autograd registration, AOT dispatch)
+# ----------------------------------------------------------------------------------------
+def _cases(gen: torch.Generator) -> dict[str, tuple]:
+    """Sample arguments of every operator, from a run of the forward where a backward needs it."""
+    from layoutwarp.mesh import MeshTopology
+
+    img64 = torch.rand(2, 12, 14, generator=gen, dtype=F64)
+    img32 = img64.float()
+    curv = _learnable("curv", gen, F64)
+    grid = _fixed("grid", gen)
+    th = curv.theta.detach().clone().requires_grad_(True)
+    seed = torch.tensor(5, dtype=torch.int64)
+    size = (4, 5)
+    fixed = lw.CurvLayout((0.3, -0.2))
+    ftheta = fixed.theta_as(F64)
+    exact = (th, img64, layout_token(curv), *size, 1e-4, "auto", True, True)
+    means, areas, jac, held = torch.ops.layoutwarp.exact(*[a.detach() if torch.is_tensor(a) else a for a in exact])
+    grad_means, grad_areas = torch.rand_like(means), torch.rand_like(areas)
+    tail = (layout_token(curv), *size, 1e-4, "auto")
+    ex = torch.tensor([0.0, 3.5, 7.2, 11.0, 14.0], dtype=F64, requires_grad=True)
+    ey = torch.tensor([0.0, 2.5, 6.0, 9.5, 12.0], dtype=F64, requires_grad=True)
+    sep = torch.ops.layoutwarp.separable(img64, ex.detach(), ey.detach(), True)
+    value = torch.rand(2, *size, generator=gen, dtype=F64, requires_grad=True)
+    vol = torch.full(size, 4 / 20, dtype=F64)
+    flux = (th, vol, img64, seed, layout_token(curv), "", *size, 2, "bilinear")
+    ne = MeshTopology(size).num_edges
+    assert jac.shape == (3, ne, 2)
+    return {
+        "exact": exact,
+        "exact_backward": (grad_means, grad_areas, th.detach(), img64, means, areas, jac, held, *tail, True, False),
+        "separable": (img64.clone().requires_grad_(True), ex, ey, True),
+        "separable_backward": (torch.rand_like(sep), img64, ex.detach(), ey.detach(), sep, [True, True, True]),
+        "area": (img32.clone().requires_grad_(True), ftheta, layout_token(fixed), *size, 2**-12, "", "radiance", seed, True, True),
+        "area_backward": (torch.rand(2, *size, generator=gen), ftheta, layout_token(fixed), *size, 2**-12, 12, 14),
+        "measure": (means, areas, CAMERA.token, "dn", seed),
+        "full_well": ((areas * 1000).requires_grad_(True), CAMERA.token),
+        "patterns": (CAMERA.pattern_seed, *size, means),
+        "draws": (torch.rand(2, *size, generator=gen, dtype=F64) * 20, seed, "poisson", True),
+        "flux": (value, *flux),
+        "flux_backward": (torch.rand_like(value), value.detach(), th.detach(), *flux[1:]),
+        "pixel_areas": (grid.theta_as(F64).clone().requires_grad_(True), layout_token(grid), *size, 1e-4),
+        "pixel_areas_backward": (torch.rand_like(areas), grid.theta_as(F64), layout_token(grid), *size, 1e-4),
+        "guard_finite": (value, img64, "image"),
+        "uniform": (seed, [3, 4, 2], torch.empty(0, dtype=F64)),
+        "seed_sequence": (torch.tensor(3, dtype=torch.int64), 11),
+        "map_points": (torch.rand(5, 2, generator=gen, dtype=F64) * 2 - 1, th.detach(), layout_token(curv), True),
+        "raster_index_map": (ftheta, layout_token(fixed), *size, 9, 11, 1e-4, 3),
+    }
+
+
+def test_every_operator_passes_opcheck(gen):
+    """``torch.library.opcheck`` on every operator layoutwarp registers (its schema, its fake
+    kernel against the real one, its autograd registration and AOT dispatch with dynamic shapes),
+    on arguments from real runs; every operator has a case (a new one must add its own)."""
+    import layoutwarp.backwarp  # noqa: F401  (registers every operator)
+    import layoutwarp.sensor  # noqa: F401
+
+    cases = _cases(gen)
+    assert set(cases) == set(OPERATORS), set(OPERATORS) ^ set(cases)
+    for name, args in cases.items():
+        result = torch.library.opcheck(OPERATORS[name], args)
+        assert all(v == "SUCCESS" for v in result.values()), (name, result)
+
+
+# ----------------------------------------------------------------------------------------
+# torch.compile: one graph, the eager values and gradients, nothing printed
+# ----------------------------------------------------------------------------------------
+def _configurations() -> list:
+    configs = []
+    for family in FAMILIES:
+        for learn in (True, False):
+            methods = ["exact", "montecarlo", "point"]
+            if family in ("uniform", "rect", "spline"):
+                methods.insert(1, "separable")
+            for method in methods:
+                for physics in (False, True):
+                    name = f"{family}-{'learn' if learn else 'fixed'}-{method}{'-physics' if physics else ''}"
+                    marks = [pytest.mark.slow] if physics else []  # the fast subset: half the matrix
+                    configs.append(pytest.param(family, learn, method, physics, id=name, marks=marks))
+    return configs
+
+
+def _layer(family: str, learn: bool, method: str, physics: bool, gen: torch.Generator) -> lw.SensorLayer:
+    layout = _learnable(family, gen) if learn else _fixed(family, gen)
+    options = {"seed": 1} if method == "montecarlo" else {}
+    return lw.SensorLayer((6, 5), layout, method, physics=CAMERA if physics else None, **options)
+
+
+def _eager_and_compiled(layer: lw.SensorLayer, img: torch.Tensor, **compile_options) -> list:
+    """Output and θ-gradient of ``layer`` on ``img``, eagerly and compiled in one graph."""
+    results = []
+    for run in (layer, torch.compile(layer, fullgraph=True, **compile_options)):
+        layer.noise_calls.zero_()  # the same noise sequence for both
+        out = run(img)
+        grad = None
+        if layer.layout.learnable:
+            (grad,) = torch.autograd.grad(out.square().sum(), layer.layout.rho)
+        results.append((out.detach(), grad))
+    return results
+
+
+@pytest.mark.parametrize(("family", "learn", "method", "physics"), _configurations())
+def test_the_layer_compiles_to_one_graph_with_the_eager_values_and_gradients(family, learn, method, physics, gen):
+    """``torch.compile(layer, fullgraph=True)`` (AOT autograd's eager backend: the graph capture and
+    autograd of the compiler, without generating code) for every family, learnable and fixed,
+    every integrator the layer accepts, with and without sensor physics (a seeded noise
+    sequence): it captures one graph (fullgraph raises at a graph break) whose output and
+    θ-gradient are eager's, to the last bit but for the graph's own float32 rounding order."""
+    torch._dynamo.reset()
+    layer = _layer(family, learn, method, physics, gen)
+    img = torch.rand(2, 1, 24, 20, generator=gen)
+    (ref, g_ref), (out, g_out) = _eager_and_compiled(layer, img, backend="aot_eager")
+    torch.testing.assert_close(out, ref, rtol=1e-6, atol=1e-6)
+    if learn and g_ref is not None:
+        torch.testing.assert_close(g_out, g_ref, rtol=1e-5, atol=1e-7)
+
+
+def test_compiling_prints_nothing_and_simulate_backwarp_compile(gen, capfd):
+    """Compiling a learnable layer, ``simulate`` of a fixed layout and ``backwarp`` (both index
+    methods and bilinear) prints nothing and warns nothing; the compiled functions give eager's
+    values."""
+    torch._dynamo.reset()
+    fixed = _fixed("fovea", gen)
+    img = torch.rand(1, 3, 30, 26, generator=gen)
+    pred = torch.rand(1, 3, 6, 5, generator=gen)
+    layer = lw.SensorLayer((6, 5), "elliptic")
+    functions = {
+        "layer": (layer, (img,)),
+        "simulate": (lambda x: lw.simulate(x, fixed, (6, 5)), (img,)),
+        "backwarp": (lambda p: lw.backwarp(p, fixed, (12, 10)), (pred,)),
+        "backwarp-raster": (lambda p: lw.backwarp(p, fixed, (12, 10), index_method="raster"), (pred,)),
+        "backwarp-bilinear": (lambda p: lw.backwarp(p, fixed, (12, 10), mode="bilinear"), (pred,)),
+    }
+    for fn, args in functions.values():  # eagerly first: the kernels' first compile may speak
+        fn(*args)
+    capfd.readouterr()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        for name, (fn, args) in functions.items():
+            got = torch.compile(fn, fullgraph=True, backend="aot_eager")(*args)
+            torch.testing.assert_close(got, fn(*args), msg=name)
+    out, err = capfd.readouterr()
+    assert not caught and not out and not err, ([str(w.message) for w in caught], out, err)
+
+
+def test_a_model_trains_under_compile_as_it_does_eagerly(gen):
+    """A learnable curved sensor and a linear head trained five SGD steps eagerly and compiled
+    (one graph, forward and backward): the same losses, θ and weights after every step."""
+    torch._dynamo.reset()
+    x = torch.rand(4, 1, 28, 28, generator=gen)
+    y = torch.randint(0, 3, (4,), generator=gen)
+
+    def model() -> torch.nn.Module:
+        torch.manual_seed(0)
+        return torch.nn.Sequential(lw.SensorLayer((6, 6), "curv"), torch.nn.Flatten(), torch.nn.Linear(36, 3))
+
+    runs = []
+    for compiled in (False, True):
+        net = model()
+        step_net = torch.compile(net, fullgraph=True, backend="aot_eager") if compiled else net
+        opt = torch.optim.SGD(net.parameters(), lr=0.5)
+        history = []
+        for _ in range(5):
+            opt.zero_grad()
+            loss = torch.nn.functional.cross_entropy(step_net(x), y)
+            loss.backward()
+            opt.step()
+            history.append((float(loss), [p.detach().clone() for p in net.parameters()]))
+        runs.append(history)
+    for (loss_e, params_e), (loss_c, params_c) in zip(*runs, strict=True):
+        assert loss_c == pytest.approx(loss_e, rel=1e-6)
+        for a, b in zip(params_e, params_c, strict=True):
+            torch.testing.assert_close(b, a, rtol=1e-5, atol=1e-6)
+    assert not torch.equal(runs[0][0][1][0], runs[0][-1][1][0])  # θ moved
+
+
+@pytest.mark.slow  # inductor generates and compiles C++ (tens of seconds)
+def test_inductor_compiles_a_learnable_step_with_eager_values(gen):
+    """The default backend (inductor, code generated and compiled) on a learnable fovea step and a
+    fixed layout with physics: eager's outputs and θ-gradient."""
+    torch._dynamo.reset()
+    img = torch.rand(2, 1, 24, 20, generator=gen)
+    for layer in (_layer("fovea", True, "exact", False, gen), _layer("curv", False, "exact", True, gen)):
+        (ref, g_ref), (out, g_out) = _eager_and_compiled(layer, img)
+        torch.testing.assert_close(out, ref, rtol=1e-6, atol=1e-6)
+        if g_ref is not None:
+            torch.testing.assert_close(g_out, g_ref, rtol=1e-5, atol=1e-7)
+
+
+# ----------------------------------------------------------------------------------------
+# torch.export
+# ----------------------------------------------------------------------------------------
+@pytest.mark.parametrize(
+    ("family", "method", "physics"),
+    [("curv", "exact", False), ("curv", "exact", True), ("rect", "exact", False), ("elliptic", "point", True)],
+)
+def test_export_of_a_fixed_layer_reproduces_eager(family, method, physics, gen):
+    """``torch.export.export`` of a layer with a fixed layout, with and without physics (a seeded
+    noise sequence, whose count the program carries as a mutated buffer): the exported program
+    gives eager's output, call after call."""
+    layer = _layer(family, False, method, physics, gen)
+    img = torch.rand(2, 3, 24, 20, generator=gen)
+    program = torch.export.export(copy.deepcopy(layer), (img,))  # a program with its own count
+    exported = program.module()
+    for _ in range(2):
+        torch.testing.assert_close(exported(img), layer(img), rtol=0, atol=0)
+    assert any(node.target.namespace == "layoutwarp" for node in program.graph.nodes if node.op == "call_function")
+
+
+# ----------------------------------------------------------------------------------------
+# Second derivatives: exact or refused
+# ----------------------------------------------------------------------------------------
+@pytest.mark.parametrize(
+    ("family", "method", "options"),
+    [
+        ("curv", "exact", {}),
+        ("grid", "exact", {}),
+        ("rect", "exact", {}),
+        ("fovea", "montecarlo", {"seed": 2}),
+    ],
+    ids=["exact-compiled", "exact-mesh", "separable", "montecarlo-reynolds"],
+)
+def test_a_second_derivative_through_a_compiled_gradient_is_refused(family, method, options, gen):
+    """The exact, separable and Monte Carlo (Reynolds) θ-gradients are compiled formulas: the
+    derivative of such a gradient raises in one line naming the operator, never a value that
+    leaves out the second-order terms (curv's gave 2.05 against −17.44 from finite differences)."""
+    layout = _learnable(family, gen, F64)
+    img = torch.rand(1, 1, 24, 20, generator=gen, dtype=F64)
+    out = lw.simulate(img, layout, (6, 5), method, **options)
+    (g,) = torch.autograd.grad(out.square().sum(), layout.rho, create_graph=True)
+    with pytest.raises(RuntimeError, match=SECOND_ORDER.format(op=".*")[:40]):
+        torch.autograd.grad(g.sum(), layout.rho)
+
+
+@pytest.mark.parametrize("method", ["point", "montecarlo"])
+def test_second_derivatives_of_the_sampling_integrators_pass_gradgradcheck(method, gen):
+    """Where the integrator is torch operations all the way (one sample at the deformed centre;
+    Monte Carlo with the reparameterised gradient), second derivatives in θ and the image are exact:
+    ``gradgradcheck`` in float64."""
+    layout = lw.CurvLayout((0.3, -0.2), dtype=F64)
+    img = torch.rand(1, 9, 11, generator=gen, dtype=F64, requires_grad=True)
+    theta = torch.tensor([0.3, -0.2], dtype=F64, requires_grad=True)
+    options = {"samples": 2, "grad": "autograd", "seed": 4} if method == "montecarlo" else {}
+    integrate = lw.integrators.integrate_montecarlo if method == "montecarlo" else lw.integrators.integrate_point
+
+    def f(th: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        return integrate(x, layout, (3, 4), theta=th, **options)
+
+    assert torch.autograd.gradgradcheck(f, (theta, img))
+
+
+def test_a_fixed_layouts_product_has_its_exact_second_derivative(gen):
+    """A fixed layout's area weights ``W``: ``∂/∂u ⟨v, ∂⟨u, W x⟩/∂x⟩ = W v`` through the registered
+    derivative of the backward (the product is linear, so this is exact)."""
+    layout = lw.CurvLayout((0.4, 0.1))
+    x = torch.rand(1, 2, 30, 26, generator=gen, requires_grad=True)
+    u = torch.rand(1, 2, 6, 5, generator=gen, requires_grad=True)
+    v = torch.rand(1, 2, 30, 26, generator=gen)
+    (g,) = torch.autograd.grad((lw.simulate(x, layout, (6, 5)) * u).sum(), x, create_graph=True)
+    (gg,) = torch.autograd.grad((g * v).sum(), u)
+    torch.testing.assert_close(gg, lw.simulate(v, layout, (6, 5)), rtol=1e-6, atol=1e-7)
+
+
+# ----------------------------------------------------------------------------------------
+# torch.func
+# ----------------------------------------------------------------------------------------
+@pytest.mark.parametrize(("family", "learn"), [("curv", True), ("rect", True), ("fovea", False)])
+def test_vmap_over_simulate_is_the_loop_over_its_samples(family, learn, gen, capfd):
+    """``torch.func.vmap`` over ``simulate`` (the image batched; the operators fold the batch into
+    their images, or run once per sample) gives the per-sample loop's values, without a word of
+    the batching fallback."""
+    layout = _learnable(family, gen) if learn else _fixed(family, gen)
+    imgs = torch.rand(3, 2, 24, 20, generator=gen)
+    got = torch.func.vmap(lambda x: lw.simulate(x, layout, (6, 5)))(imgs)
+    want = torch.stack([lw.simulate(x, layout, (6, 5)) for x in imgs])
+    torch.testing.assert_close(got, want, rtol=1e-6, atol=1e-7)
+    assert "batching rule" not in capfd.readouterr().err
+
+
+def test_vmap_refuses_noise_unless_told_its_randomness(gen):
+    """A noisy camera under ``vmap``: refused in one line with ``randomness="error"`` (vmap's
+    default), the same draws per sample with ``"same"``."""
+    layout, img = _fixed("curv", gen), torch.rand(2, 1, 24, 20, generator=gen)
+    camera = lw.SensorPhysics((200.0, 200.0), photons_per_um2=50.0)
+
+    def record(x: torch.Tensor) -> torch.Tensor:
+        return lw.simulate(x, layout, (6, 5), physics=camera, seed=7)
+
+    with pytest.raises(RuntimeError, match="draws random numbers: pass randomness='same' or 'different'"):
+        torch.func.vmap(record)(img)
+    same = torch.func.vmap(record, randomness="same")(img)
+    torch.testing.assert_close(same, torch.stack([record(x) for x in img]))
+
+
+@pytest.mark.parametrize("transform", ["grad", "jacrev"])
+def test_grad_transforms_are_refused_in_one_line(transform, gen):
+    """``torch.func.grad`` and ``jacrev`` cannot enter an operator whose gradient is registered
+    with autograd: one line says so and what to use."""
+    layer = lw.SensorLayer((5, 6), "curv")
+    img = torch.rand(1, 1, 20, 24, generator=gen)
+    params = dict(layer.named_parameters())
+
+    def loss(p: dict) -> torch.Tensor:
+        return torch.func.functional_call(layer, p, (img,)).sum()
+
+    with pytest.raises(RuntimeError, match=TRANSFORMS.format(what="grad, jacrev or vjp")[:60]):
+        getattr(torch.func, transform)(loss)(params)
