@@ -46,8 +46,9 @@ def main() -> None:
 
     # 3. autocast: the sensor integrates in float32 inside it, the network runs in bfloat16
     with torch.autocast("cpu", dtype=torch.bfloat16):
-        logits = net(images)
-    print(f"under autocast: the logits are {logits.dtype}, the sensor's output float32")
+        sensed = net[0](images)
+        logits = net[2](net[1](sensed))
+    print(f"under autocast: the sensor's output is {sensed.dtype}, the logits {logits.dtype}")
 
     # 4. torch.func.vmap over simulate: the batch folded into the operators' images
     layout = lw.FoveaLayout((0.5, 0.3), center=(0.2, -0.1))

@@ -20,6 +20,7 @@ from __future__ import annotations
 import contextlib
 import itertools
 import warnings
+from collections import OrderedDict
 from collections.abc import Callable, Iterator
 from typing import Any, NamedTuple
 
@@ -467,11 +468,18 @@ def _exact_means(
         )
     template = ops.layout_of(layout)
     spec = mesh_spec(template) if which != "torch" else None
-    no_jac = image.new_empty(_jacobian_shape(theta, image, *size) if jacobian else (0,), dtype=torch.float64)
-    held = torch.zeros((), dtype=torch.int8, device=image.device)
+    no_jac = image.new_empty(
+        _jacobian_shape(theta, image, *size) if _keeps_jacobian(image, jacobian) else (0,),
+        dtype=torch.float64,
+    )
+    held = torch.zeros((), dtype=torch.int8)  # on the host: read without waiting for a device
     image = image.contiguous()
     if spec is not None and which == "cuda":  # the mesh built where it is used: none crosses the bus
-        means, _, areas = _device_exact(spec, theta, image, size, tol)[:3]
+        means, area, areas, dm, incl = _device_exact(spec, theta, image, size, tol)
+        if jacobian:  # the device mesh kept for the backward (the entry holds the means: their
+            DEVICE_MESHES[means.data_ptr()] = (means, dm, incl, area)  # memory is not reused meanwhile)
+            while len(DEVICE_MESHES) > 4:
+                DEVICE_MESHES.popitem(last=False)
         return means, areas, no_jac, held
     if spec is not None and jacobian:  # mesh, integrals and their θ-Jacobian, chunk by chunk
         th = theta.detach().double().cpu().numpy()
@@ -495,13 +503,25 @@ def _exact_means(
 @_exact.register_fake
 def _(theta, image, layout, height, width, tol, backend, jacobian, check):
     n = image.shape[0]
-    jac = _jacobian_shape(theta, image, height, width) if jacobian else (0,)
+    jac = _jacobian_shape(theta, image, height, width) if _keeps_jacobian(image, jacobian) else (0,)
     return (
         image.new_empty(n, height, width, dtype=torch.float64),
         image.new_empty(height, width, dtype=torch.float64),
         image.new_empty(jac, dtype=torch.float64),
-        image.new_empty((), dtype=torch.int8),
+        torch.empty((), dtype=torch.int8),
     )
+
+
+def _keeps_jacobian(image: Tensor, jacobian: bool) -> bool:
+    """Whether ``layoutwarp::exact`` returns a θ-Jacobian's room: a learnable step on the CPU (a
+    device keeps its mesh instead)."""
+    return jacobian and not runs_on_device(image)
+
+
+#: The device meshes of the last four learnable forwards on a CUDA device, with their means,
+#: prefix tables and areas, by the address of their means: the backward takes its forward's
+#: rather than building the mesh again (where a compiled graph copied the means, it builds it).
+DEVICE_MESHES: OrderedDict[int, tuple] = OrderedDict()
 
 
 def _device_exact(spec: MeshSpec, theta: Tensor, image: Tensor, size: tuple[int, int], tol: float) -> tuple:
@@ -531,8 +551,8 @@ def _mesh_exact(
 
 @torch.library.custom_op("layoutwarp::exact_backward", mutates_args=())
 def _exact_backward(
-    grad_means: Tensor,
-    grad_areas: Tensor,
+    grad_means: Tensor | None,
+    grad_areas: Tensor | None,
     theta: Tensor,
     image: Tensor,
     means: Tensor,
@@ -547,14 +567,14 @@ def _exact_backward(
     theta_grad: bool,
     image_grad: bool,
 ) -> tuple[Tensor, Tensor]:
-    """θ's and the image's gradients of ``layoutwarp::exact`` (the image's: an empty tensor unless
-    ``image_grad``; θ's, zeros unless ``theta_grad``): the exact Reynolds transport gradient, by
-    one contraction with the kept Jacobian, by the device kernels, or by the mesh again with
-    autograd."""
+    """θ's and the image's gradients of ``layoutwarp::exact`` from those of its means and areas
+    (``None``: unused) (the image's: an empty tensor unless ``image_grad``; θ's, zeros unless
+    ``theta_grad``): the exact Reynolds transport gradient, by one contraction with the kept
+    Jacobian, by the device kernels, or by the mesh again with autograd."""
     size = (height, width)
     if jac.numel() and bool(held):  # the compiled CPU step: the quotient rule and one contraction
-        g = grad_means.detach().double().cpu().numpy()
-        own = grad_areas.detach().double().cpu().numpy() * _unit(image)
+        g = np.zeros(means.shape) if grad_means is None else grad_means.detach().double().cpu().numpy()
+        own = None if grad_areas is None else grad_areas.detach().double().cpu().numpy() * _unit(image)
         with kernels.LOCK:
             g_edge = edge_gradient(g, means.cpu().numpy(), areas.cpu().numpy() / _unit(image), own)
             g_theta = theta_gradient(g_edge, jac.cpu().numpy())
@@ -562,16 +582,21 @@ def _exact_backward(
     which = "torch" if backend == "torch" or image_grad else ops.backend(image, "learn")
     template = ops.layout_of(layout)
     spec = mesh_spec(template) if which == "cuda" else None
-    if spec is not None:  # the device mesh built again (its sizes live on the device)
-        _, area, _, dm, incl = _device_exact(spec, theta, image.contiguous(), size, tol)
-        args = (incl, means, area, grad_means, grad_areas, _unit(image), tuple(image.shape[-2:]))
+    if spec is not None:  # the forward's device mesh, else built again (its sizes live on the device)
+        kept = DEVICE_MESHES.pop(means.data_ptr(), None)
+        if kept is None:
+            _, area, _, dm, incl = _device_exact(spec, theta, image.contiguous(), size, tol)
+        else:
+            _, dm, incl, area = kept
+        g_means = torch.zeros_like(means) if grad_means is None else grad_means
+        args = (incl, means, area, g_means, grad_areas, _unit(image), tuple(image.shape[-2:]))
         return device_theta_gradient(dm, *args).to(theta), image.new_empty(0)
     with ops.autograd_inside():
         th = theta.detach().requires_grad_(theta_grad)  # the forward's mesh: built as it was
         img = image.detach().requires_grad_(image_grad)
         m, a = _mesh_exact(th, img, template, size, tol, which != "torch", cache=False)
         inputs = [t for t in (th, img) if t.requires_grad]
-        outs = [(o, g) for o, g in ((m, grad_means), (a, grad_areas)) if o.requires_grad]
+        outs = [(o, g) for o, g in ((m, grad_means), (a, grad_areas)) if o.requires_grad and g is not None]
         grads = iter(
             torch.autograd.grad([o for o, _ in outs], inputs, [g for _, g in outs], allow_unused=True)
             if outs
@@ -598,15 +623,16 @@ def _exact_setup(ctx: Any, inputs: tuple, output: tuple) -> None:
     means, areas, jac, held = output
     ctx.save_for_backward(theta, image, means, areas, jac, held)
     ctx.args = (layout, height, width, tol, backend)
+    ctx.set_materialize_grads(False)  # an output nobody used costs its backward nothing
 
 
 def _exact_grad(ctx: Any, grad_means: Tensor, grad_areas: Tensor, *_: Tensor) -> tuple:
     theta, image, means, areas, jac, held = ctx.saved_tensors
     theta_grad, image_grad = ctx.needs_input_grad[:2]
-    g_means = torch.zeros_like(means) if grad_means is None else grad_means
-    g_areas = torch.zeros_like(areas) if grad_areas is None else grad_areas
+    if grad_means is None and grad_areas is None:
+        return (None,) * 9
     g_theta, g_image = _exact_backward(
-        g_means, g_areas, theta, image, means, areas, jac, held, *ctx.args, theta_grad, image_grad
+        grad_means, grad_areas, theta, image, means, areas, jac, held, *ctx.args, theta_grad, image_grad
     )
     return (
         (g_theta if theta_grad else None),

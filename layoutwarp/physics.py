@@ -65,7 +65,7 @@ from .checks import (
     check_number,
     check_size,
 )
-from .kernels.device import fall_back, runs_on_device, stream_of, usable
+from .kernels.device import fall_back, stream_of
 from .kernels.noise import measure_on_device
 from .ops import random_seed
 
@@ -482,15 +482,15 @@ def _measure(mean: Tensor, areas: Tensor, physics: str, output: str, seed: Tenso
     on a CUDA device, or the torch path; the camera as its [`token`][SensorPhysics.token]."""
     camera = ops.physics_of(physics)
     kernel_dtype = mean.dtype if mean.dtype == torch.float32 else torch.float64  # its two builds
-    if runs_on_device(mean) and kernels.cuda_available(str(kernel_dtype)[6:]) and usable(_DEVICE_MEASURE):
+    if ops.backend(mean, "measure", name=_DEVICE_MEASURE) == "cuda":
         args = device_arguments(camera, areas, mean.device, output, ops.seed_value(seed))
         try:
             return _measure_on_device(mean, args)
         except Exception as err:  # numba-cuda could not compile or launch it: the torch path, said once
             fall_back(_DEVICE_MEASURE, err)
-    kernel = (
-        jit.compiled("measure", kernel_dtype, kernels.sensor_measure) if mean.device.type == "cpu" else None
-    )
+    kernel = None  # on the CPU the noise's draws come from compiled code (a quick build at first)
+    if mean.device.type == "cpu":
+        kernel = jit.compiled("measure", kernel_dtype, kernels.sensor_measure)
     if kernel is not None:
         return _measure_compiled(mean, kernel_arguments(camera, areas, output, ops.seed_value(seed)), kernel)
     return _measure_torch(mean, areas, camera, output, seed)

@@ -30,7 +30,7 @@ from .checks import (
 )
 from .integrators import data_tolerance, green_pieces
 from .kernels.csr import csr_apply_on_device
-from .kernels.device import fall_back, runs_on_device, stream_of, usable
+from .kernels.device import fall_back, stream_of
 from .labels import labels_to_sensor
 from .layoutfile import layout_key
 from .layouts import Layout
@@ -318,8 +318,8 @@ class AreaResampler:
         n = images.shape[0]
         flat = images.reshape(n, -1)
         seed_value = 0 if seed is None else ops.seed_value(seed)
-        on_device = not flat.requires_grad and runs_on_device(flat) and kernels.cuda_available("float32")
-        if on_device and usable("a fixed layout's product"):
+        which = ops.backend(flat, "fixed", name=_DEVICE_PRODUCT)
+        if which == "cuda" and not flat.requires_grad:
             if physics is None:
                 none = flat.new_empty(0, dtype=torch.float64)  # not read
                 measured = (none, none, none, none, 0, 0, 0)
@@ -328,7 +328,7 @@ class AreaResampler:
             try:
                 out = self._apply_on_device(flat, measured, physics is not None)
             except Exception as err:  # numba-cuda could not compile or launch it: torch's, said once
-                fall_back("a fixed layout's product", err)
+                fall_back(_DEVICE_PRODUCT, err)
             else:
                 if not (allow_nonfinite or all_finite(out)):
                     raise_nonfinite(images)
@@ -337,8 +337,8 @@ class AreaResampler:
         kernel = None
         if flat.device.type == "cpu" and not flat.requires_grad:
             if physics is None:
-                kernel = kernels.csr_apply if ops.backend(flat, "fixed") == "numba" else None
-            else:
+                kernel = kernels.csr_apply if which == "numba" else None
+            else:  # the noise's draws come from compiled code (a quick build at first)
                 kernel = jit.compiled("measure", flat.dtype, kernels.measured_csr_apply)
         if kernel is not None:
             w = self.weights
@@ -409,6 +409,7 @@ def _torch_csr(w: Any, device: torch.device) -> torch.Tensor:
         ).to(device)
 
 
+_DEVICE_PRODUCT = "a fixed layout's product"
 #: Resamplers of fixed layouts that [`simulate`][layoutwarp.sensor.simulate] keeps, the last four used
 #: (see [`resampler_for`][] and [`layoutwarp.caches`][]); ``maxsize`` 0 keeps none, and a fixed
 #: layout's every call then runs the compiled exact walk.

@@ -472,8 +472,7 @@ class SensorLayer(nn.Module):
         options = dict(self.options)
         if self.physics.seed is not None and "generator" not in options and "seed" not in options:
             options["noise"] = torch.ops.layoutwarp.seed_sequence(self.noise_calls, self.physics.seed)
-            with torch.no_grad():
-                self.noise_calls.add_(1)  # a seeded sequence: new noise every call, the same every run
+            self.noise_calls.add_(1)  # a seeded sequence: new noise every call, the same every run
         return simulate(
             image, self.layout, self.size, self.method, physics=self.physics, output=self.output, **options
         )

@@ -157,16 +157,18 @@ def test_the_layer_compiles_to_one_graph_with_the_eager_values_and_gradients(fam
 
 
 def test_compiling_prints_nothing_and_simulate_backwarp_compile(gen, capfd):
-    """Compiling a learnable layer, ``simulate`` of a fixed layout and ``backwarp`` (both index
-    methods and bilinear) prints nothing and warns nothing; the compiled functions give eager's
-    values."""
+    """Compiling a learnable layer, a Kornia augmentation's sensor, ``simulate`` of a fixed layout
+    and ``backwarp`` (both index methods and bilinear) prints nothing and warns nothing; the
+    compiled functions give eager's values."""
     torch._dynamo.reset()
     fixed = _fixed("fovea", gen)
     img = torch.rand(1, 3, 30, 26, generator=gen)
     pred = torch.rand(1, 3, 6, 5, generator=gen)
     layer = lw.SensorLayer((6, 5), "elliptic")
+    augmentation = lw.SensorAugmentation((6, 5), "curv", learn=True)
     functions = {
         "layer": (layer, (img,)),
+        "augmentation's sensor": (augmentation.sensor, (img,)),
         "simulate": (lambda x: lw.simulate(x, fixed, (6, 5)), (img,)),
         "backwarp": (lambda p: lw.backwarp(p, fixed, (12, 10)), (pred,)),
         "backwarp-raster": (lambda p: lw.backwarp(p, fixed, (12, 10), index_method="raster"), (pred,)),
@@ -246,6 +248,30 @@ def test_export_of_a_fixed_layer_reproduces_eager(family, method, physics, gen):
     for _ in range(2):
         torch.testing.assert_close(exported(img), layer(img), rtol=0, atol=0)
     assert any(node.target.namespace == "layoutwarp" for node in program.graph.nodes if node.op == "call_function")
+
+
+def test_an_exported_program_loads_and_runs_in_another_process(gen, tmp_path):
+    """``torch.export.save`` of a fixed fovea layer with a seeded camera; a fresh process that
+    imports ``layoutwarp.sensor`` (registering the operators) loads it and records, call after
+    call, what the layer records here: the program carries the layout and the camera as text."""
+    import subprocess
+    import sys
+
+    camera = lw.SensorPhysics((200.0, 200.0), photons_per_um2=50.0, read_noise_e=2.0, seed=5)
+    layer = lw.SensorLayer((8, 8), _fixed("fovea", gen), physics=camera)
+    img = torch.rand(1, 3, 40, 50, generator=gen)
+    torch.export.save(torch.export.export(copy.deepcopy(layer), (img,)), tmp_path / "sensor.pt2")
+    torch.save({"img": img, "want": torch.stack([layer(img), layer(img)])}, tmp_path / "case.pt")
+    code = (
+        "import sys, torch\nimport layoutwarp.sensor\n"
+        "m = torch.export.load(sys.argv[1]).module()\ncase = torch.load(sys.argv[2])\n"
+        "got = torch.stack([m(case['img']), m(case['img'])])\nassert torch.equal(got, case['want'])\n"
+    )
+    run = subprocess.run(
+        [sys.executable, "-c", code, str(tmp_path / "sensor.pt2"), str(tmp_path / "case.pt")],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert run.returncode == 0, run.stderr[-2000:]
 
 
 # ----------------------------------------------------------------------------------------
