@@ -87,7 +87,7 @@ class GridLayout(Layout):
     along the border of border points (corners have none), in row-major order. Every pixel edge
     is straight between control lines, so the exact integrator is exact at any tolerance.
 
-    A learnable grid could fold under a large optimiser step; [`project_`][] (called by
+    A learnable grid could fold under a large optimiser step; [`guard_`][] (called by
     [`SensorLayer`][layoutwarp.sensor.SensorLayer] before every forward pass) undoes the part of a step that
     would bring any cell's corner determinant below ``min_det``, by halving the step from the
     last valid control points.
