@@ -58,7 +58,9 @@ def main() -> None:
 
     # 5. a second derivative through a compiled gradient: refused, in one line
     learnable = lw.CurvLayout((0.3, -0.2), learn=True)
-    (g,) = torch.autograd.grad(lw.simulate(images, learnable, (8, 8)).square().sum(), learnable.rho, create_graph=True)
+    (g,) = torch.autograd.grad(
+        lw.simulate(images, learnable, (8, 8)).square().sum(), learnable.rho, create_graph=True
+    )
     try:
         torch.autograd.grad(g.sum(), learnable.rho)
     except RuntimeError as err:

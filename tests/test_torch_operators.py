@@ -55,7 +55,9 @@ def _cases(gen: torch.Generator) -> dict[str, tuple]:
     fixed = lw.CurvLayout((0.3, -0.2))
     ftheta = fixed.theta_as(F64)
     exact = (th, img64, layout_token(curv), *size, 1e-4, "auto", True, True)
-    means, areas, jac, held = torch.ops.layoutwarp.exact(*[a.detach() if torch.is_tensor(a) else a for a in exact])
+    means, areas, jac, held = torch.ops.layoutwarp.exact(
+        *[a.detach() if torch.is_tensor(a) else a for a in exact]
+    )
     grad_means, grad_areas = torch.rand_like(means), torch.rand_like(areas)
     tail = (layout_token(curv), *size, 1e-4, "auto")
     ex = torch.tensor([0.0, 3.5, 7.2, 11.0, 14.0], dtype=F64, requires_grad=True)
@@ -68,11 +70,49 @@ def _cases(gen: torch.Generator) -> dict[str, tuple]:
     assert jac.shape == (3, ne, 2)
     return {
         "exact": exact,
-        "exact_backward": (grad_means, grad_areas, th.detach(), img64, means, areas, jac, held, *tail, True, False),
+        "exact_backward": (
+            grad_means,
+            grad_areas,
+            th.detach(),
+            img64,
+            means,
+            areas,
+            jac,
+            held,
+            *tail,
+            True,
+            False,
+        ),
         "separable": (img64.clone().requires_grad_(True), ex, ey, True),
-        "separable_backward": (torch.rand_like(sep), img64, ex.detach(), ey.detach(), sep, [True, True, True]),
-        "area": (img32.clone().requires_grad_(True), ftheta, layout_token(fixed), *size, 2**-12, "", "radiance", seed, True, True),
-        "area_backward": (torch.rand(2, *size, generator=gen), ftheta, layout_token(fixed), *size, 2**-12, 12, 14),
+        "separable_backward": (
+            torch.rand_like(sep),
+            img64,
+            ex.detach(),
+            ey.detach(),
+            sep,
+            [True, True, True],
+        ),
+        "area": (
+            img32.clone().requires_grad_(True),
+            ftheta,
+            layout_token(fixed),
+            *size,
+            2**-12,
+            "",
+            "radiance",
+            seed,
+            True,
+            True,
+        ),
+        "area_backward": (
+            torch.rand(2, *size, generator=gen),
+            ftheta,
+            layout_token(fixed),
+            *size,
+            2**-12,
+            12,
+            14,
+        ),
         "measure": (means, areas, CAMERA.token, "dn", seed),
         "full_well": ((areas * 1000).requires_grad_(True), CAMERA.token),
         "patterns": (CAMERA.pattern_seed, *size, means),
@@ -84,7 +124,12 @@ def _cases(gen: torch.Generator) -> dict[str, tuple]:
         "guard_finite": (value, img64, "image"),
         "uniform": (seed, [3, 4, 2], torch.empty(0, dtype=F64)),
         "seed_sequence": (torch.tensor(3, dtype=torch.int64), 11),
-        "map_points": (torch.rand(5, 2, generator=gen, dtype=F64) * 2 - 1, th.detach(), layout_token(curv), True),
+        "map_points": (
+            torch.rand(5, 2, generator=gen, dtype=F64) * 2 - 1,
+            th.detach(),
+            layout_token(curv),
+            True,
+        ),
         "raster_index_map": (ftheta, layout_token(fixed), *size, 9, 11, 1e-4, 3),
     }
 
@@ -141,7 +186,9 @@ def _eager_and_compiled(layer: lw.SensorLayer, img: torch.Tensor, **compile_opti
 
 
 @pytest.mark.parametrize(("family", "learn", "method", "physics"), _configurations())
-def test_the_layer_compiles_to_one_graph_with_the_eager_values_and_gradients(family, learn, method, physics, gen):
+def test_the_layer_compiles_to_one_graph_with_the_eager_values_and_gradients(
+    family, learn, method, physics, gen
+):
     """``torch.compile(layer, fullgraph=True)`` (AOT autograd's eager backend: the graph capture and
     autograd of the compiler, without generating code) for every family, learnable and fixed,
     every integrator the layer accepts, with and without sensor physics (a seeded noise
@@ -235,7 +282,12 @@ def test_inductor_compiles_a_learnable_step_with_eager_values(gen):
 # ----------------------------------------------------------------------------------------
 @pytest.mark.parametrize(
     ("family", "method", "physics"),
-    [("curv", "exact", False), ("curv", "exact", True), ("rect", "exact", False), ("elliptic", "point", True)],
+    [
+        ("curv", "exact", False),
+        ("curv", "exact", True),
+        ("rect", "exact", False),
+        ("elliptic", "point", True),
+    ],
 )
 def test_export_of_a_fixed_layer_reproduces_eager(family, method, physics, gen):
     """``torch.export.export`` of a layer with a fixed layout, with and without physics (a seeded
@@ -247,7 +299,9 @@ def test_export_of_a_fixed_layer_reproduces_eager(family, method, physics, gen):
     exported = program.module()
     for _ in range(2):
         torch.testing.assert_close(exported(img), layer(img), rtol=0, atol=0)
-    assert any(node.target.namespace == "layoutwarp" for node in program.graph.nodes if node.op == "call_function")
+    assert any(
+        node.target.namespace == "layoutwarp" for node in program.graph.nodes if node.op == "call_function"
+    )
 
 
 def test_an_exported_program_loads_and_runs_in_another_process(gen, tmp_path):
@@ -308,7 +362,9 @@ def test_second_derivatives_of_the_sampling_integrators_pass_gradgradcheck(metho
     img = torch.rand(1, 9, 11, generator=gen, dtype=F64, requires_grad=True)
     theta = torch.tensor([0.3, -0.2], dtype=F64, requires_grad=True)
     options = {"samples": 2, "grad": "autograd", "seed": 4} if method == "montecarlo" else {}
-    integrate = lw.integrators.integrate_montecarlo if method == "montecarlo" else lw.integrators.integrate_point
+    integrate = (
+        lw.integrators.integrate_montecarlo if method == "montecarlo" else lw.integrators.integrate_point
+    )
 
     def f(th: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
         return integrate(x, layout, (3, 4), theta=th, **options)
