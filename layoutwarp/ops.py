@@ -25,9 +25,13 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 from torch import Tensor
+from torch._C._functorch import TransformType
+from torch._functorch.pyfunctorch import retrieve_all_functorch_interpreters
 
-from .caches import LRU
+from . import jit, kernels
+from .caches import LRU, ObjectMemo
 from .checks import all_finite, raise_nonfinite
+from .kernels.device import runs_on_device, usable
 
 if TYPE_CHECKING:
     from .layouts import Layout
@@ -53,6 +57,7 @@ __all__ = [
     "random_seed",
     "refuse_grad_transforms",
     "seed_value",
+    "theta_values",
 ]
 
 #: Every operator layoutwarp registers, by name in the ``layoutwarp`` namespace (filled as their
@@ -108,7 +113,7 @@ def layout_of(token: str, theta: Tensor | None = None) -> Layout:
 
     if theta is None:
         return TEMPLATES.get(token, lambda: layout_from_spec(json.loads(token)))
-    values = tuple(theta.detach().to("cpu", torch.float64).tolist())
+    values = theta_values(theta)
 
     def build() -> Layout:
         layout = layout_from_spec(json.loads(token))
@@ -138,6 +143,18 @@ def _gone(token: str) -> Any:
     raise RuntimeError(f"layoutwarp: the object {token} is no longer held by this process")
 
 
+#: The values of the θ tensors that operators were handed, per tensor and version (a fixed
+#: layout's θ is the same buffer every call: read once).
+THETA_VALUES = ObjectMemo("θ values of operators")
+
+
+def theta_values(theta: Tensor) -> tuple[float, ...]:
+    """θ's values as float64 numbers, read once per tensor and version."""
+    return THETA_VALUES.get(
+        theta, (theta._version,), lambda: tuple(theta.detach().to("cpu", torch.float64).tolist())
+    )
+
+
 def physics_of(text: str) -> SensorPhysics | None:
     """The camera of a [`SensorPhysics.to_json`][layoutwarp.physics.SensorPhysics.to_json] text
     (``""``: none)."""
@@ -157,9 +174,6 @@ def backend(x: Tensor, group: str, *, name: str | None = None, wait: bool = Fals
     ``"numba"`` (the compiled CPU kernels of ``group``, when [`layoutwarp.jit`][] has them ready,
     or at once with ``wait``) or ``"torch"`` (the reference, any device). The one place that
     decides; callers that need autograd through the work ask for ``"torch"`` themselves."""
-    from . import jit, kernels
-    from .kernels.device import runs_on_device, usable
-
     dtype = torch.float32 if x.dtype == torch.float32 else torch.float64
     if runs_on_device(x):
         ok = kernels.available() and kernels.cuda_available(str(dtype).split(".")[1])
@@ -231,11 +245,8 @@ TRANSFORMS = (
 def refuse_grad_transforms() -> None:
     """Raise, in one line, inside ``torch.func.grad``, ``jacrev``, ``vjp`` or ``jvp``, whose
     autograd layers cannot enter layoutwarp's operators (``torch.func.vmap`` can)."""
-    if torch.compiler.is_compiling():
-        return
-    from torch._C._functorch import TransformType
-    from torch._functorch.pyfunctorch import retrieve_all_functorch_interpreters
-
+    if torch._C._functorch.maybe_current_level() is None or torch.compiler.is_compiling():
+        return  # no transform around the call
     for interpreter in retrieve_all_functorch_interpreters():
         if interpreter.key() in (TransformType.Grad, TransformType.Jvp):
             what = "grad, jacrev or vjp" if interpreter.key() == TransformType.Grad else "jvp or jacfwd"

@@ -317,7 +317,7 @@ class AreaResampler:
         noise drawn from ``seed``), eagerly: the work of ``layoutwarp::area``."""
         n = images.shape[0]
         flat = images.reshape(n, -1)
-        seed_value = 0 if seed is None else ops.seed_value(seed)
+        seed_value = 0 if seed is None or physics is None else ops.seed_value(seed)
         which = ops.backend(flat, "fixed", name=_DEVICE_PRODUCT)
         if which == "cuda" and not flat.requires_grad:
             if physics is None:
@@ -452,8 +452,7 @@ def _resampler(
     kept under the token and θ's values (no layout is made for a resampler already kept)."""
     if RESAMPLERS.maxsize == 0 or token.startswith("object:"):
         return resampler_for(ops.layout_of(token, theta), size, src, tol, device)
-    values = tuple(theta.detach().to("cpu", torch.float64).numpy().tolist())
-    key = ((token, values), tuple(size), tuple(src), float(tol), str(torch.device(device)))
+    key = ((token, ops.theta_values(theta)), size, src, tol, device)
     return RESAMPLERS.get(
         key, lambda: AreaResampler(ops.layout_of(token, theta), size, src, tol=tol, device=device)
     )

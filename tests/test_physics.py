@@ -883,6 +883,7 @@ def test_a_device_kernel_that_fails_warns_once_and_leaves_the_torch_path(monkeyp
     """Where numba-cuda cannot compile or launch the measurement's kernel, the call warns once,
     names the kernel and the reason, and returns the other path's result; later calls go there
     without trying again."""
+    from layoutwarp import ops
     from layoutwarp import physics as ph
     from layoutwarp.kernels import device
 
@@ -894,7 +895,7 @@ def test_a_device_kernel_that_fails_warns_once_and_leaves_the_torch_path(monkeyp
 
     lw.jit.ready("measure", torch.float64, wait=True)  # its warm-up done before the device is faked
     monkeypatch.setattr(device, "FAILED", {})
-    monkeypatch.setattr(device, "runs_on_device", lambda t: True)
+    monkeypatch.setattr(ops, "runs_on_device", lambda t: True)  # the one backend decision
     monkeypatch.setattr(ph.kernels, "cuda_available", lambda dtype="float32": True)
     monkeypatch.setattr(ph, "measure_on_device", broken)
     cam = SensorPhysics((100.0, 120.0), photons_per_um2=20.0, read_noise_e=1.0, seed=7)
@@ -906,7 +907,7 @@ def test_a_device_kernel_that_fails_warns_once_and_leaves_the_torch_path(monkeyp
         warnings.simplefilter("error")
         second = ph.measure(means, areas, cam)
     assert calls == [1] and torch.equal(first, second)
-    monkeypatch.setattr(device, "runs_on_device", lambda t: False)
+    monkeypatch.setattr(ops, "runs_on_device", lambda t: False)
     assert torch.equal(first, ph.measure(means, areas, cam))  # the path it fell back to
 
 
