@@ -7,8 +7,11 @@ these, and `layoutwarp.experiments.bench` reports them.
 
 from __future__ import annotations
 
+import contextlib
+import os
+import sys
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 from .kernels.device import LAUNCHES
 
@@ -27,9 +30,29 @@ def count_ops(fn: Callable[[], object]) -> int:
             parent = parent.cpu_parent
         return parent is None
 
-    with profile(activities=[ProfilerActivity.CPU]) as prof:
+    prof = profile(activities=[ProfilerActivity.CPU])
+    with _without_stderr():  # the profiler's own start line (its C++ logging, not ours)
+        prof.__enter__()
+    try:
         fn()
+    finally:
+        with _without_stderr():  # and its stop line
+            prof.__exit__(None, None, None)
     return sum(1 for e in prof.events() if e.name.startswith("aten::") and top(e))
+
+
+@contextlib.contextmanager
+def _without_stderr() -> Iterator[None]:
+    """The process's standard error (file descriptor 2, where C++ logs) sent nowhere meanwhile."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 2)
+            yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
 
 
 #: aten operators that launch no GPU kernel: allocations (views are told by their schema).

@@ -46,7 +46,7 @@ def save_figure(fig, path: str | Path, dpi: int = 110) -> Path:
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=dpi)
+    fig.savefig(path, dpi=dpi, bbox_inches="tight")  # a legend outside the axes stays in
     return path
 
 
@@ -54,6 +54,15 @@ def family_color(family: str) -> str:
     """A colour per layout family, from matplotlib's default cycle in registration order."""
     names = list(FAMILIES)
     return f"C{names.index(family) % 10}" if family in names else "black"
+
+
+def layout_color(row: str) -> str:
+    """A bench row's colour: its family's, and a colour of its own for a mixed-sign θ row
+    (``"curv ±"``), which is drawn beside the family's own row."""
+    family = row.split()[0]
+    if "±" in row:
+        return "C8" if family_color(family) != "C8" else "C9"
+    return family_color(family)
 
 
 def draw_layout(
@@ -212,13 +221,19 @@ def theta_figure(runs: Sequence[dict[str, Any]], path: str | Path) -> Path:
             for j, ls in zip(range(hist.shape[1]), ("-", "--", ":", "-."), strict=False):
                 name = ("θx", "θy", "cx", "cy")[j]
                 axes[0, 1].plot(hist[:, j], ls, color=color, label=f"{label} {name}" if first else None)
+    from matplotlib.ticker import FuncFormatter, MaxNLocator, NullFormatter
+
     axes[0, 0].set_yscale("log")
+    plain = FuncFormatter(lambda v, _: f"{v:g}")  # 2, 1.5, 1: not 2×10⁰
+    axes[0, 0].yaxis.set_major_formatter(plain)
+    axes[0, 0].yaxis.set_minor_formatter(plain if axes[0, 0].get_ylim()[1] < 10 else NullFormatter())
     axes[0, 0].set_ylabel("largest / smallest pixel area")
     axes[0, 0].set_title("pixel-size range during training (each seed)", fontsize=10)
     axes[0, 1].set_ylabel("θ")
     axes[0, 1].set_title("θ during training (families with ≤ 4 parameters)", fontsize=10)
     for ax in axes[0]:
         ax.set_xlabel("epoch")
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))  # θ is recorded after each epoch
         if ax.get_legend_handles_labels()[0]:
             ax.legend(fontsize=7)
     return save_figure(fig, path, dpi=100)
@@ -242,7 +257,7 @@ def pareto_figure(result: dict, path: str | Path) -> Path:
     floor = 1e-12
     for ax, image in zip(axes, images, strict=False):
         for layout in dict.fromkeys(r["layout"] for r in rows):
-            color = family_color(layout.split()[0])  # "curv ±" (mixed-sign θ): curv's colour, dashed
+            color = layout_color(layout)
             ls = "--" if "±" in layout else "-"
             sel = [r for r in rows if r["image"] == image and r["layout"] == layout]
             for method, marker in _METHOD_MARKERS.items():
@@ -276,7 +291,7 @@ def pareto_figure(result: dict, path: str | Path) -> Path:
             t,
             max(r["grad_rel_err"], floor),
             marker=_METHOD_MARKERS.get(r["method"], "x"),
-            color=family_color(r["layout"].split()[0]),
+            color=layout_color(r["layout"]),
             ms=5,
         )
     ax.set_xscale("log")
@@ -285,5 +300,8 @@ def pareto_figure(result: dict, path: str | Path) -> Path:
     ax.set_ylabel("relative error of dL/dθ vs finite differences")
     ax.set_title(f"θ-gradient ({images[0]})", fontsize=10)
     ax.grid(True, which="both", alpha=0.3)
-    axes[0].legend(fontsize=6, loc="best")
-    return save_figure(fig, path)
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.legend(
+        handles, labels, fontsize=6, loc="upper center", bbox_to_anchor=(0.5, 0.0), ncol=6, frameon=False
+    )
+    return save_figure(fig, path)  # the legend below the panels: it covers no point
