@@ -173,8 +173,8 @@ class Layout(nn.Module):
     exact_buffers: ClassVar[tuple[str, ...]] = ("rho", "fixed_theta")
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
-        """Each family's constructor, once the outermost one returns, makes the layout's token
-        ([`layout_token`][layoutwarp.ops.layout_token]: how it enters layoutwarp's operators)."""
+        # each family's constructor, once the outermost one returns, makes the layout's token
+        # (layoutwarp.ops.layout_token: how it enters layoutwarp's operators)
         super().__init_subclass__(**kwargs)
         cls.__init__ = _then_token(cls.__init__)  # type: ignore[method-assign]
 
