@@ -9,12 +9,15 @@ written except a temporary folder for the mask):
   it records and that image back-warped to the scene's 360x480 grid;
 * ``fabrication_mask.png``: the PNG fabrication mask ``lw.export_layout`` writes for one
   layout, whole and a zoomed crop;
-* ``backwarp.png``: the scene's CamVid labels moved to the sensor and back-warped (nearest).
+* ``backwarp.png``: the scene's CamVid labels moved to the sensor and back-warped (nearest);
+* ``landscape.png``: the committed MNIST θ-landscape (``examples/study/landscape-mnist-curv/``,
+  from ``layoutwarp landscape``) drawn again.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import re
 import tempfile
 import time
@@ -155,6 +158,16 @@ def backwarp(rgb: np.ndarray, out: Path) -> None:
     plt.close(fig)
 
 
+def landscape(out: Path) -> None:
+    """The committed MNIST 4x4 curv θ-landscape, drawn as ``layoutwarp landscape`` draws it."""
+    from layoutwarp.experiments.landscape import landscape_figure
+
+    summary = json.loads(
+        (ROOT / "examples" / "study" / "landscape-mnist-curv" / "landscape.json").read_text()
+    )
+    landscape_figure(summary, out / "landscape.png")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=ROOT / "examples" / "figures" / "gallery")
@@ -166,8 +179,9 @@ def main() -> None:
     families(rgb, image, out)
     fabrication_mask(out)
     backwarp(rgb, out)
+    landscape(out)
     print(
-        f"wrote families.png, fabrication_mask.png, backwarp.png to {out} "
+        f"wrote families.png, fabrication_mask.png, backwarp.png, landscape.png to {out} "
         f"in {time.perf_counter() - start:.1f} s"
     )
 
