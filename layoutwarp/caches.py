@@ -110,7 +110,10 @@ class ObjectMemo:
         CACHES[name] = self
 
     def get(self, obj: Any, state: tuple, compute: Callable[[], V]) -> V:
-        """The value remembered for ``obj`` in ``state``, else ``compute()`` remembered."""
+        """The value remembered for ``obj`` in ``state``, else ``compute()`` remembered (a state
+        holding ``None``, a [`version_of`][] that cannot be told, is computed and not kept)."""
+        if any(v is None for v in state):
+            return compute()
         key = id(obj)
         hit = self._entries.get(key)
         if hit is not None and hit[0]() is obj and _same(hit[1], state):
@@ -139,7 +142,13 @@ def tensor_token(t: Tensor) -> object:
     """A token for ``t`` as it is now, for value keys of results computed from it: the same
     token while it is the same tensor, unchanged in place; a new one after an in-place change.
     (A token held in a key never matches another tensor, whatever its ``id``.)"""
-    return _TOKENS.get(t, (t._version,), object)
+    return _TOKENS.get(t, (version_of(t),), object)
+
+
+def version_of(t: Tensor) -> int | None:
+    """``t``'s version counter (it grows with every in-place change), or ``None`` for a tensor
+    made under ``torch.inference_mode``, which keeps none (what is keyed by it is not kept)."""
+    return None if t.is_inference() else t._version
 
 
 def clear_caches() -> None:

@@ -468,7 +468,7 @@ def _exact_means(
         )
     template = ops.layout_of(layout)
     spec = mesh_spec(template) if which != "torch" else None
-    no_jac = image.new_empty(
+    no_jac = image.new_zeros(
         _jacobian_shape(theta, image, *size) if _keeps_jacobian(image, jacobian) else (0,),
         dtype=torch.float64,
     )
@@ -572,7 +572,9 @@ def _exact_backward(
     ``theta_grad``): the exact Reynolds transport gradient, by one contraction with the kept
     Jacobian, by the device kernels, or by the mesh again with autograd."""
     size = (height, width)
-    if jac.numel() and bool(held):  # the compiled CPU step: the quotient rule and one contraction
+    if (
+        jac.numel() and bool(held) and not image_grad
+    ):  # the compiled CPU step: the quotient rule and one contraction
         g = np.zeros(means.shape) if grad_means is None else grad_means.detach().double().cpu().numpy()
         own = None if grad_areas is None else grad_areas.detach().double().cpu().numpy() * _unit(image)
         with kernels.LOCK:
@@ -609,13 +611,13 @@ def _exact_backward(
         if not image_grad
         else torch.zeros_like(image)
         if g_image is None
-        else g_image.to(image),
+        else g_image.to(image).contiguous(),
     )
 
 
 @_exact_backward.register_fake
 def _(grad_means, grad_areas, theta, image, *rest):
-    return torch.empty_like(theta), torch.empty_like(image) if rest[-1] else image.new_empty(0)
+    return torch.empty_like(theta), image.new_empty(image.shape) if rest[-1] else image.new_empty(0)
 
 
 def _exact_setup(ctx: Any, inputs: tuple, output: tuple) -> None:
@@ -643,7 +645,7 @@ def _exact_grad(ctx: Any, grad_means: Tensor, grad_areas: Tensor, *_: Tensor) ->
 
 _exact.register_autograd(_exact_grad, setup_context=_exact_setup)
 ops.first_order_only(_exact_backward, "exact")
-ops.register(_exact, fold=1)
+ops.register(_exact, fold=1, outputs=("image", "shared", "jacobian", "shared"))
 ops.register(_exact_backward)
 
 
@@ -745,7 +747,7 @@ def integrate_exact(
     _check_image(image)
     check_choice(backend, BACKENDS, "backend")
     dtype = check_float_dtype(dtype)
-    work = image.to(floating_dtype(image.dtype))
+    work = image.to(floating_dtype(image.dtype)).contiguous()
     if mesh is not None:  # a mesh given: its geometry, as it is (eager)
         kernel_ok = backend != "torch" and not image.requires_grad
         kernel_ok = kernel_ok and ops.backend(work, "learn", wait=backend == "numba") != "torch"
@@ -919,13 +921,13 @@ def _separable_backward(
         x1 = _cols(image.index_select(1, rows).contiguous(), wx_t)  # (N, 2(h + 1), w)
         vals = 0.5 * (x1[:, : y.numel()] + x1[:, y.numel() :])  # symmetric at cell boundaries
         g_ey = _edge_grad(grad, out, vals, ey, -2).to(ey)
-    return g_img, g_ex, g_ey
+    return g_img.contiguous(), g_ex.contiguous(), g_ey.contiguous()
 
 
 @_separable_backward.register_fake
 def _(grad, image, ex, ey, out, needs):
     return tuple(
-        torch.empty_like(t) if n else t.new_empty(0) for t, n in zip((image, ex, ey), needs, strict=True)
+        t.new_empty(t.shape) if n else t.new_empty(0) for t, n in zip((image, ex, ey), needs, strict=True)
     )
 
 

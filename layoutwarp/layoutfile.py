@@ -21,7 +21,7 @@ from typing import Any
 
 import torch
 
-from .caches import ObjectMemo
+from .caches import ObjectMemo, version_of
 from .checks import ArgumentError, check_layout, check_size
 from .files import atomic_write
 from .layouts import FAMILIES, Layout
@@ -75,7 +75,7 @@ def layout_key(layout: Layout) -> str | None:
         return None
     tensors = (*layout.parameters(), *layout.buffers())
     settings = tuple(v for k, v in vars(layout).items() if k[0] != "_")
-    state = (*tensors, *(t._version for t in tensors), settings)
+    state = (*tensors, *(version_of(t) for t in tensors), settings)
     return LAYOUT_KEYS.get(layout, state, lambda: json.dumps(layout_spec(layout), sort_keys=True))
 
 

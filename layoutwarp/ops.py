@@ -29,7 +29,7 @@ from torch._C._functorch import TransformType
 from torch._functorch.pyfunctorch import retrieve_all_functorch_interpreters
 
 from . import jit, kernels
-from .caches import LRU, ObjectMemo
+from .caches import LRU, ObjectMemo, version_of
 from .checks import all_finite, raise_nonfinite
 from .kernels.device import runs_on_device, usable
 
@@ -96,8 +96,8 @@ def layout_token(layout: Layout) -> str:
     process. Made when the layout is constructed (and again when a state dict is loaded into
     it), so that reading it costs a compiled graph nothing; θ travels beside it as a tensor."""
     token = getattr(layout, "_token", None)
-    if token is None:  # a subclass that skipped Layout's constructor: made now (eagerly)
-        token = layout._token = make_token(layout)
+    if token is None or (token.startswith("object:") and token != f"object:{id(layout)}"):
+        token = layout._token = make_token(layout)  # a constructor skipped, or a copy's handle
     return token
 
 
@@ -111,8 +111,8 @@ def layout_of(token: str, theta: Tensor | None = None) -> Layout:
         return layout
     from .layoutfile import layout_from_spec
 
-    if theta is None:
-        return TEMPLATES.get(token, lambda: layout_from_spec(json.loads(token)))
+    if theta is None:  # kept: never made of inference-mode tensors, which autograd refuses later
+        return TEMPLATES.get(token, lambda: _outside_inference(lambda: layout_from_spec(json.loads(token))))
     values = theta_values(theta)
 
     def build() -> Layout:
@@ -120,7 +120,13 @@ def layout_of(token: str, theta: Tensor | None = None) -> Layout:
         layout.set_theta(torch.tensor(values, dtype=torch.float64))
         return layout
 
-    return TEMPLATES.get((token, values), build)
+    return TEMPLATES.get((token, values), lambda: _outside_inference(build))
+
+
+def _outside_inference(make: Callable[[], Any]) -> Any:
+    """``make()`` with inference mode off: what the caches keep must serve autograd later."""
+    with torch.inference_mode(False):
+        return make()
 
 
 _CALLABLES: LRU[Any] = LRU("callables of operators", 32)
@@ -151,7 +157,7 @@ THETA_VALUES = ObjectMemo("θ values of operators")
 def theta_values(theta: Tensor) -> tuple[float, ...]:
     """θ's values as float64 numbers, read once per tensor and version."""
     return THETA_VALUES.get(
-        theta, (theta._version,), lambda: tuple(theta.detach().to("cpu", torch.float64).tolist())
+        theta, (version_of(theta),), lambda: tuple(theta.detach().to("cpu", torch.float64).tolist())
     )
 
 
@@ -185,7 +191,8 @@ def backend(x: Tensor, group: str, *, name: str | None = None, wait: bool = Fals
 
 #: The dispatcher's keys turned off outside any operator (autocast's): inside an operator's
 #: implementation it turns autograd off too.
-_OUTSIDE = torch._C._dispatch_tls_local_exclude_set()
+with torch.inference_mode(False):  # as outside inference mode, wherever the package is imported
+    _OUTSIDE = torch._C._dispatch_tls_local_exclude_set()
 
 
 @contextlib.contextmanager
@@ -226,12 +233,12 @@ def random_seed(generator: torch.Generator | None, seed: int | None = None) -> T
     return torch.randint(0, 2**62, (), generator=generator, dtype=torch.int64, device=generator.device).cpu()
 
 
-def register(op: Any, fold: int | None = None) -> Any:
+def register(op: Any, fold: int | None = None, outputs: tuple[str, ...] = ("image",)) -> Any:
     """Add ``op`` to [`OPERATORS`][] (by its name without the namespace), give it a ``torch.vmap``
-    rule ([`batch_rule`][]: the batch folded into the images of argument ``fold``, else one call
-    per sample) and return it."""
+    rule ([`batch_rule`][]: the batch folded into the images of argument ``fold``, each output
+    split back by its role in ``outputs``, else one call per sample) and return it."""
     OPERATORS[op._name] = op
-    op.register_vmap(batch_rule(op, fold))
+    op.register_vmap(batch_rule(op, fold, outputs))
     return op
 
 
@@ -253,10 +260,14 @@ def refuse_grad_transforms() -> None:
             raise RuntimeError(TRANSFORMS.format(what=what))
 
 
-def batch_rule(op: Any, fold: int | None) -> Callable[..., tuple[Any, Any]]:
+def batch_rule(
+    op: Any, fold: int | None, outputs: tuple[str, ...] = ("image",)
+) -> Callable[..., tuple[Any, Any]]:
     """A ``torch.vmap`` rule for ``op``: where only argument ``fold`` (images ``(N, H, W)``) is
-    batched, the batch joins ``N`` and the operator runs once (outputs ``(N, ...)`` split back,
-    a θ-Jacobian's shared area row repeated); otherwise one call per sample, stacked. Operators
+    batched, the batch joins ``N`` and the operator runs once, its outputs split back by their
+    role in ``outputs``: ``"image"`` (``(N, ...)``), ``"jacobian"`` (``(N + 1, ...)``, the shared
+    area row repeated) or ``"shared"`` (the same for the batch); otherwise one call per sample,
+    stacked. Operators
     that draw noise follow ``vmap``'s ``randomness``: ``"error"`` refuses, ``"same"`` gives every
     sample the same draws, ``"different"`` draws for each."""
     name = op._name
@@ -269,7 +280,7 @@ def batch_rule(op: Any, fold: int | None) -> Callable[..., tuple[Any, Any]]:
                 f"layoutwarp::{name} draws random numbers: pass randomness='same' or 'different' to vmap"
             )
         if fold is not None and batched == [fold] and not (random and info.randomness == "same"):
-            return _folded(op, info, in_dims, args, fold)
+            return _folded(op, in_dims, args, fold, outputs)
         outs = []
         for b in range(info.batch_size):
             sample = [a.select(d, b) if d is not None else a for a, d in zip(args, in_dims, strict=True)]
@@ -295,18 +306,18 @@ def _next_seed(seed: Tensor, b: int) -> Tensor:
     return seed + 7919 * (b + 1) if seed.ndim == 0 else seed
 
 
-def _folded(op: Any, info: Any, in_dims: tuple, args: tuple, fold: int) -> tuple[Any, Any]:
-    """``op`` once on images whose batch joined their first axis ``N``; outputs split back."""
+def _folded(op: Any, in_dims: tuple, args: tuple, fold: int, roles: tuple[str, ...]) -> tuple[Any, Any]:
+    """``op`` once on images whose batch joined their first axis ``N``; outputs split back by role."""
     x = args[fold].movedim(in_dims[fold], 0)
     b, n = x.shape[:2]
     out = op(*args[:fold], x.reshape(b * n, *x.shape[2:]), *args[fold + 1 :])
     outs = out if isinstance(out, tuple) else (out,)
     split, dims = [], []
-    for o in outs:
-        if o.ndim and o.shape[0] == b * n:  # per image: split back
+    for o, role in zip(outs, roles, strict=True):
+        if role == "image":  # per image: split back
             split.append(o.reshape(b, n, *o.shape[1:]))
             dims.append(0)
-        elif o.ndim and o.shape[0] == b * n + 1:  # a Jacobian's rows and its shared area row
+        elif role == "jacobian" and o.numel():  # a Jacobian's rows and its shared area row
             rows = o[:-1].reshape(b, n, *o.shape[1:])
             split.append(torch.cat([rows, o[-1:].expand(b, 1, *o.shape[1:])], 1))
             dims.append(0)

@@ -493,12 +493,12 @@ def _measure(mean: Tensor, areas: Tensor, physics: str, output: str, seed: Tenso
         kernel = jit.compiled("measure", kernel_dtype, kernels.sensor_measure)
     if kernel is not None:
         return _measure_compiled(mean, kernel_arguments(camera, areas, output, ops.seed_value(seed)), kernel)
-    return _measure_torch(mean, areas, camera, output, seed)
+    return _measure_torch(mean, areas, camera, output, seed).contiguous()
 
 
 @_measure.register_fake
 def _(mean, areas, physics, output, seed):
-    return torch.empty_like(mean)
+    return mean.new_empty(mean.shape)
 
 
 ops.register(_measure)
@@ -614,13 +614,15 @@ def _draws(rate: Tensor, seed: Tensor, mode: str, read: bool) -> tuple[Tensor, T
     else:
         shot = torch.randn(rate.shape, generator=generator, dtype=rate.dtype, device=rate.device)
     if not read:
-        return shot, torch.zeros_like(rate)
-    return shot, torch.randn(rate.shape, generator=generator, dtype=rate.dtype, device=rate.device)
+        return shot.contiguous(), rate.new_zeros(rate.shape)
+    return shot.contiguous(), torch.randn(
+        rate.shape, generator=generator, dtype=rate.dtype, device=rate.device
+    )
 
 
 @_draws.register_fake
 def _(rate, seed, mode, read):
-    return torch.empty_like(rate), torch.empty_like(rate)
+    return rate.new_empty(rate.shape), rate.new_empty(rate.shape)
 
 
 ops.register(_draws)

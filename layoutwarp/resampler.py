@@ -559,5 +559,5 @@ def _area_backward_grad(ctx: Any, grad: torch.Tensor) -> tuple:
 
 _area.register_autograd(_area_grad, setup_context=_area_setup)
 _area_backward.register_autograd(_area_backward_grad, setup_context=_area_backward_setup)
-ops.register(_area, fold=0)
+ops.register(_area, fold=0, outputs=("image", "shared"))
 ops.register(_area_backward)

@@ -217,6 +217,9 @@ def simulate(
         with ``return_plan``, ``(output, plan)``. Empty batches or channel counts give empty
         outputs of the right shape.
     """
+    if not torch.compiler.is_compiling() and torch.is_inference_mode_enabled():  # the caches' tensors
+        with torch.inference_mode(False), torch.no_grad():  # must serve autograd later: made outside it
+            return simulate(**{k: v for k, v in locals().items()})
     size = check_size(size)
     check_memory(size)
     refuse_grad_transforms()

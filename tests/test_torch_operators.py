@@ -255,7 +255,7 @@ def test_a_model_trains_under_compile_as_it_does_eagerly(gen):
             loss = torch.nn.functional.cross_entropy(step_net(x), y)
             loss.backward()
             opt.step()
-            history.append((float(loss), [p.detach().clone() for p in net.parameters()]))
+            history.append((loss.item(), [p.detach().clone() for p in net.parameters()]))
         runs.append(history)
     for (loss_e, params_e), (loss_c, params_c) in zip(*runs, strict=True):
         assert loss_c == pytest.approx(loss_e, rel=1e-6)
@@ -428,3 +428,82 @@ def test_grad_transforms_are_refused_in_one_line(transform, gen):
 
     with pytest.raises(RuntimeError, match=TRANSFORMS.format(what="grad, jacrev or vjp")[:60]):
         getattr(torch.func, transform)(loss)(params)
+
+
+# ----------------------------------------------------------------------------------------
+# What a reviewer found: inference mode, vmap's roles, copies, strides
+# ----------------------------------------------------------------------------------------
+def test_inference_mode_runs_and_leaves_the_caches_fit_for_autograd(gen):
+    """A layer called under ``torch.inference_mode`` (learnable or fixed) gives the eager values,
+    and a learnable step afterwards still gets its θ-gradient (the caches hold no inference
+    tensors); a package first imported inside inference mode still turns autograd on inside its
+    operators (a fresh process)."""
+    import subprocess
+    import sys
+
+    img = torch.rand(2, 1, 24, 20, generator=gen)
+    for layer in (_layer("grid", True, "exact", False, gen), _layer("curv", False, "exact", True, gen)):
+        layer.noise_calls.zero_()
+        want = layer(img).detach()
+        layer.noise_calls.zero_()
+        with torch.inference_mode():
+            got = layer(img)
+        torch.testing.assert_close(got, want)
+    learn = _layer("grid", True, "exact", False, gen)
+    (g,) = torch.autograd.grad(learn(img).square().sum(), learn.layout.rho)
+    assert torch.isfinite(g).all() and g.abs().sum() > 0
+    code = (
+        "import torch\nwith torch.inference_mode():\n    import layoutwarp as lw\n"
+        "layer = lw.SensorLayer((6, 5), 'curv', 'montecarlo', seed=1)\n"
+        "with torch.no_grad():\n    layer.layout.rho.add_(0.05)\n"
+        "(g,) = torch.autograd.grad(layer(torch.rand(2, 1, 24, 20)).square().sum(), layer.layout.rho)\n"
+        "assert g.abs().sum() > 0, g\n"
+    )
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr[-2000:]
+
+
+@pytest.mark.parametrize("size", [(6, 5), (7, 5)], ids=["h=B·N", "h=B·N+1"])
+def test_vmap_splits_outputs_by_their_role_not_their_size(size, gen):
+    """A sensor whose height is the batch times the channels (or one more) under ``vmap``: the
+    pixels' areas are shared by the batch, not split as if they were per image."""
+    camera = lw.SensorPhysics((200.0, 200.0), photons_per_um2=50.0, read_noise_e=1.0)
+    layout = _learnable("curv", gen)
+    imgs = torch.rand(2, 3, 24, 20, generator=gen)
+
+    def record(x: torch.Tensor) -> torch.Tensor:
+        return lw.simulate(x, layout, size, physics=camera, seed=7)
+
+    got = torch.func.vmap(record, randomness="same")(imgs)
+    torch.testing.assert_close(got, torch.stack([record(x) for x in imgs]))
+
+
+def test_a_copy_of_a_layout_of_an_unregistered_family_is_its_own(gen):
+    """``copy.deepcopy`` of a layer whose layout's family is not registered (its token a handle of
+    the object): the copy runs after the original is gone, with its own state."""
+    import gc
+
+    class MyCurv(lw.CurvLayout):
+        pass
+
+    layer = lw.SensorLayer((4, 5), MyCurv((0.3, -0.2)))
+    clone = copy.deepcopy(layer)
+    img = torch.rand(1, 1, 24, 20, generator=gen)
+    want = layer(img)
+    del layer
+    gc.collect()
+    torch.testing.assert_close(clone(img), want)
+
+
+def test_compiled_gradients_of_a_strided_image_have_the_fake_kernels_strides(gen):
+    """A transposed (non-contiguous) image through ``torch.compile(fullgraph=True)``: the image's
+    gradient is eager's (the operators' outputs and their fake kernels agree on strides)."""
+    layout = lw.CurvLayout((0.3, -0.2))
+    x = torch.rand(1, 1, 20, 24, generator=gen, dtype=F64).transpose(-1, -2).detach().requires_grad_(True)
+
+    def loss(image: torch.Tensor) -> torch.Tensor:
+        return lw.simulate(image, layout, (4, 5)).square().sum()
+
+    (want,) = torch.autograd.grad(loss(x), x)
+    (got,) = torch.autograd.grad(torch.compile(loss, fullgraph=True, backend="aot_eager")(x), x)
+    torch.testing.assert_close(got, want)

@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from ..caches import ObjectMemo
+from ..caches import ObjectMemo, version_of
 from ..layouts import CurvLayout, EllipticLayout, FoveaLayout, Layout
 from ..mesh import INNER, MeshTopology, PixelMesh
 from .base import CHUNK, available, inline, one_thread_below, parallel, prange, serial, threads
@@ -87,7 +87,7 @@ def _centre_values(centre: torch.Tensor) -> tuple[float, float]:
     """A fixed centre's two values, read from its device once per tensor and version (a training
     step on a GPU then waits for no copy of it; writing to the tensor in place bumps its
     version)."""
-    return CENTRES.get(centre, (centre._version,), lambda: tuple(centre.detach().double().cpu().tolist()))
+    return CENTRES.get(centre, (version_of(centre),), lambda: tuple(centre.detach().double().cpu().tolist()))
 
 
 def mesh_spec(layout: Layout) -> MeshSpec | None:
