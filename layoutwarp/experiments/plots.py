@@ -228,7 +228,7 @@ def theta_figure(runs: Sequence[dict[str, Any]], path: str | Path) -> Path:
     axes[0, 0].yaxis.set_major_formatter(plain)
     axes[0, 0].yaxis.set_minor_formatter(plain if axes[0, 0].get_ylim()[1] < 10 else NullFormatter())
     axes[0, 0].set_ylabel("largest / smallest pixel area")
-    axes[0, 0].set_title("pixel-size range during training (each seed)", fontsize=10)
+    axes[0, 0].set_title("pixel-size range during training (a line per run)", fontsize=10)
     axes[0, 1].set_ylabel("θ")
     axes[0, 1].set_title("θ during training (families with ≤ 4 parameters)", fontsize=10)
     for ax in axes[0]:
