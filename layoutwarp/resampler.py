@@ -458,6 +458,14 @@ def _resampler(
     )
 
 
+def _check_float32(image: torch.Tensor) -> None:
+    """The area weights are float32: ``layoutwarp::area`` takes float32 images (as
+    [`simulate`][layoutwarp.sensor.simulate] sends them)."""
+    torch._check(
+        image.dtype == torch.float32, lambda: f"layoutwarp::area takes float32 images, got {image.dtype}"
+    )
+
+
 @torch.library.custom_op("layoutwarp::area", mutates_args=())
 def _area(
     image: torch.Tensor,
@@ -480,6 +488,7 @@ def _area(
     fused, its noise drawn from ``seed``. ``check``:
     raise ``ValueError`` where NaN/Inf reach the output. Differentiable in the images (without
     physics: the transposed weights), twice (the product is linear)."""
+    _check_float32(image)
     size, src = (height, width), tuple(image.shape[-2:])
     camera = ops.physics_of(physics)
     res = _resampler(layout, theta, size, src, tol, image.device)
@@ -496,6 +505,7 @@ def _area(
 
 @_area.register_fake
 def _(image, theta, layout, height, width, tol, physics, output, seed, check, with_areas):
+    _check_float32(image)
     areas = (height, width) if with_areas else (0,)
     return image.new_empty(image.shape[0], height, width), image.new_empty(areas, dtype=torch.float64)
 
