@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -32,9 +33,9 @@ from .integrators import data_tolerance, green_pieces
 from .kernels.csr import csr_apply_on_device
 from .kernels.device import fall_back, stream_of
 from .labels import labels_to_sensor
-from .layoutfile import layout_key
 from .layouts import Layout
 from .mesh import PixelMesh, pixel_mesh
+from .ops import layout_token
 from .physics import SensorPhysics, device_arguments, kernel_arguments, measure, noise_seed
 
 if TYPE_CHECKING:
@@ -430,34 +431,32 @@ def resampler_for(
     instead, slower (about 6x at 2048x1024 → 257x129: the bench's cached-weights line) but
     holding no weights.
     """
-    identity = layout_key(layout) if RESAMPLERS.maxsize > 0 else None
-    if identity is None:
-        return None
-    key = (identity, tuple(size), tuple(src_size), float(tol), str(torch.device(device)))
-    return RESAMPLERS.get(key, lambda: AreaResampler(layout, size, src_size, tol=tol, device=device))
+    theta = layout.theta_as(torch.float64)
+    return _kept(layout_token(layout), theta, size, src_size, tol, device, lambda: layout)
 
 
-# ----------------------------------------------------------------------------------------
-# A fixed layout's product as a torch operator
-# ----------------------------------------------------------------------------------------
-def _resampler(
+def _kept(
     token: str,
     theta: torch.Tensor,
     size: tuple[int, int],
     src: tuple[int, int],
     tol: float,
-    device: torch.device,
+    device: torch.device | str,
+    layout: Callable[[], Layout],
 ) -> AreaResampler | None:
-    """[`resampler_for`][] the layout of a [`layout_token`][layoutwarp.ops.layout_token] at ``theta``,
-    kept under the token and θ's values (no layout is made for a resampler already kept)."""
+    """The [`AreaResampler`][] kept in [`RESAMPLERS`][] for the layout of a
+    [`layout_token`][layoutwarp.ops.layout_token] at ``theta`` (keyed by the token and θ's
+    values: no layout is made, ``layout()``, for a resampler already kept); ``None`` for an
+    unregistered family, or when the cache keeps none."""
     if RESAMPLERS.maxsize == 0 or token.startswith("object:"):
-        return resampler_for(ops.layout_of(token, theta), size, src, tol, device)
-    key = ((token, ops.theta_values(theta)), size, src, tol, device)
-    return RESAMPLERS.get(
-        key, lambda: AreaResampler(ops.layout_of(token, theta), size, src, tol=tol, device=device)
-    )
+        return None
+    key = ((token, ops.theta_values(theta)), tuple(size), tuple(src), float(tol), torch.device(device))
+    return RESAMPLERS.get(key, lambda: AreaResampler(layout(), size, src, tol=tol, device=device))
 
 
+# ----------------------------------------------------------------------------------------
+# A fixed layout's product as a torch operator
+# ----------------------------------------------------------------------------------------
 def _check_float32(image: torch.Tensor) -> None:
     """The area weights are float32: ``layoutwarp::area`` takes float32 images (as
     [`simulate`][layoutwarp.sensor.simulate] sends them)."""
@@ -491,7 +490,7 @@ def _area(
     _check_float32(image)
     size, src = (height, width), tuple(image.shape[-2:])
     camera = ops.physics_of(physics)
-    res = _resampler(layout, theta, size, src, tol, image.device)
+    res = _kept(layout, theta, size, src, tol, image.device, lambda: ops.layout_of(layout, theta))
     if res is None:  # the cache keeps none: the exact walk (and the measurement)
         means, areas, _, _ = torch.ops.layoutwarp.exact(
             theta, image, layout, height, width, tol, "auto", False, check
@@ -524,7 +523,7 @@ def _area_backward(
     """The images' gradient of ``layoutwarp::area`` (without physics): the transposed weights
     applied to ``grad`` ``(N, h, w)``, ``(N, H, W)``."""
     src = (src_height, src_width)
-    res = _resampler(layout, theta, (height, width), src, tol, grad.device)
+    res = _kept(layout, theta, (height, width), src, tol, grad.device, lambda: ops.layout_of(layout, theta))
     if res is None:
         raise RuntimeError(
             "layoutwarp::area: the area weights' cache was emptied between forward and backward"
