@@ -219,7 +219,7 @@ def simulate(
     """
     if not torch.compiler.is_compiling() and torch.is_inference_mode_enabled():  # the caches' tensors
         with torch.inference_mode(False), torch.no_grad():  # must serve autograd later: made outside it
-            return simulate(**{k: v for k, v in locals().items()})
+            return simulate(**locals())
     size = check_size(size)
     check_memory(size)
     refuse_grad_transforms()
