@@ -8,8 +8,10 @@ Launches: the device paths run on the CPU in numba's CUDA simulator (``NUMBA_ENA
 the script sets it and runs itself again), and `count_launches` counts every numba kernel launch
 and every torch operator that would run a kernel or a copy on a GPU, for a learnable curv ± and
 fovea training step (``simulate(...).sum().backward()``), a fixed layout's forward and the same
-with sensor physics. On a GPU the finiteness check adds a sum and a read of it to each call (the
-simulator's CPU tensors take numpy's sum); the torch profiler also counts cuBLAS's inner kernels.
+with sensor physics, and the values each reads back to the host (``count_host_reads``: on a GPU,
+a wait). A learnable step checks its means for NaN on the device; a fixed layout's forward adds a
+sum and a read of it on a GPU (the simulator's CPU tensors take numpy's sum). The torch profiler
+also counts cuBLAS's inner kernels.
 
 Compile time: every CUDA kernel of a learnable float32 step compiled to PTX for compute
 capability 8.0, in a fresh process (what a first CUDA call compiles before it runs; the driver's
@@ -30,7 +32,7 @@ def launches() -> None:
     import torch
 
     import layoutwarp as lw
-    from layoutwarp.testing import count_launches
+    from layoutwarp.testing import count_host_reads, count_launches
 
     lw.jit.set_mode("wait")
     warnings.filterwarnings("ignore", "overflow encountered")  # the samplers' uint64 wrap, as Python
@@ -57,7 +59,8 @@ def launches() -> None:
             call()  # compiles (here: nothing) and fills the caches
             counts = count_launches(call)
         kernels = sum(v for k, v in counts.items() if k.startswith("numba:"))
-        print(f"{name:26s} {sum(counts.values()):3d} launches ({kernels} numba kernels)")
+        reads = sum(count_host_reads(call).values())
+        print(f"{name:26s} {sum(counts.values()):3d} launches ({kernels} numba kernels), {reads} host reads")
         print("    " + ", ".join(f"{k} {v}" for k, v in sorted(counts.items(), key=lambda kv: -kv[1])))
 
 
@@ -66,14 +69,12 @@ def compile_time() -> None:
     from layoutwarp.kernels import mesh
 
     start = time.perf_counter()
-    kernels.cuda_ptx("prefix_blocks")  # imports numba-cuda, then the first kernel
-    for name in ("prefix_offsets", "forward"):
-        kernels.cuda_ptx(name, "float32")
-    for name in ("corners", "areas", "amin", "pieces_and_counts", "place"):
+    kernels.cuda_ptx("forward", "float32")  # imports numba-cuda, then the first kernel
+    for name in ("corners", "amin", "pieces_and_counts", "place"):
         kernels.cuda_ptx(mesh.CUDA_KERNELS[name][0], signature=mesh.CUDA_KERNELS[name][1])
     for name in ("pixel_means", "edge_gradient", "theta_gradient"):
         kernels.cuda_ptx(mesh.CUDA_KERNELS[name][0], signature=mesh.CUDA_KERNELS[name][1])
-    print(f"a learnable step's 11 CUDA kernels compiled to PTX in {time.perf_counter() - start:.1f} s")
+    print(f"a learnable step's 8 CUDA kernels compiled to PTX in {time.perf_counter() - start:.1f} s")
 
 
 if __name__ == "__main__":

@@ -441,24 +441,10 @@ def _exact(
     contraction), and a 0-d flag, 1 where it holds it (0: the backward computes again).
     ``backend``: ``"auto"``, ``"numba"`` or ``"torch"`` (see [`integrate_exact`][]); ``check``:
     raise ``ValueError`` where NaN/Inf reach the means (every source pixel reaches some sensor
-    pixel with positive weight, so a bad input value always reaches its output)."""
-    means, areas, jac, held = _exact_means(theta, image, layout, height, width, tol, backend, jacobian)
-    if check and not all_finite(means):
-        raise_nonfinite(image)
-    return means, areas, jac, held
-
-
-def _exact_means(
-    theta: Tensor,
-    image: Tensor,
-    layout: str,
-    height: int,
-    width: int,
-    tol: float,
-    backend: str,
-    jacobian: bool,
-) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """[`_exact`][]'s work."""
+    pixel with positive weight, so a bad input value always reaches its output); a device mesh
+    checks on the device, and the error comes when its status reaches the host, in a later step
+    ([`device_status`][layoutwarp.kernels.mesh.device_status] reads it at once): the step waits
+    for nothing."""
     size, (hs, ws) = (height, width), image.shape[-2:]
     which = "torch" if backend == "torch" else ops.backend(image, "learn", wait=backend == "numba")
     if backend == "numba" and which == "torch":
@@ -468,19 +454,20 @@ def _exact_means(
         )
     template = ops.layout_of(layout)
     spec = mesh_spec(template) if which != "torch" else None
-    no_jac = image.new_zeros(
-        _jacobian_shape(theta, image, *size) if _keeps_jacobian(image, jacobian) else (0,),
-        dtype=torch.float64,
+    no_jac = (  # zeros: the torch path's room for a Jacobian it does not fill
+        image.new_zeros(_jacobian_shape(theta, image, *size), dtype=torch.float64)
+        if _keeps_jacobian(image, jacobian)
+        else image.new_empty(0, dtype=torch.float64)
     )
     held = torch.zeros((), dtype=torch.int8)  # on the host: read without waiting for a device
     image = image.contiguous()
     if spec is not None and which == "cuda":  # the mesh built where it is used: none crosses the bus
-        means, area, areas, dm, incl = _device_exact(spec, theta, image, size, tol)
+        means, area, areas, dm, incl = _device_exact(spec, theta, image, size, tol, check)
         if jacobian:  # the device mesh kept for the backward (the entry holds the means: their
             DEVICE_MESHES[means.data_ptr()] = (means, dm, incl, area)  # memory is not reused meanwhile)
             while len(DEVICE_MESHES) > 4:
                 DEVICE_MESHES.popitem(last=False)
-        return means, areas, no_jac, held
+        return means, areas, no_jac, held  # checked on the device: no wait here
     if spec is not None and jacobian:  # mesh, integrals and their θ-Jacobian, chunk by chunk
         th = theta.detach().double().cpu().numpy()
         with kernels.LOCK:
@@ -488,16 +475,15 @@ def _exact_means(
             out, j = mesh_integrals(spec, size, th, tol, tables, (hs, ws))
         pix = MeshTopology(size).combine(out)
         held.fill_(1)
-        return (
-            torch.from_numpy(pix[:-1] / pix[-1]),
-            torch.from_numpy(pix[-1] * _unit(image)),
-            torch.from_numpy(j),
-            held,
-        )
-    with ops.autograd_inside() if jacobian else contextlib.nullcontext():  # the mesh a gradient needs
-        th = theta.detach().requires_grad_(jacobian)
-        means, areas = _mesh_exact(th, image, template, size, tol, which != "torch", cache=not jacobian)
-    return means.detach(), areas.detach().clone(), no_jac, held
+        means, areas, jac = (torch.from_numpy(a) for a in (pix[:-1] / pix[-1], pix[-1] * _unit(image), j))
+    else:
+        with ops.autograd_inside() if jacobian else contextlib.nullcontext():  # the mesh a gradient needs
+            th = theta.detach().requires_grad_(jacobian)
+            means, areas = _mesh_exact(th, image, template, size, tol, which != "torch", cache=not jacobian)
+        means, areas, jac = means.detach(), areas.detach().clone(), no_jac
+    if check and not all_finite(means):
+        raise_nonfinite(image)
+    return means, areas, jac, held
 
 
 @_exact.register_fake
@@ -524,13 +510,17 @@ def _keeps_jacobian(image: Tensor, jacobian: bool) -> bool:
 DEVICE_MESHES: OrderedDict[int, tuple] = OrderedDict()
 
 
-def _device_exact(spec: MeshSpec, theta: Tensor, image: Tensor, size: tuple[int, int], tol: float) -> tuple:
+def _device_exact(
+    spec: MeshSpec, theta: Tensor, image: Tensor, size: tuple[int, int], tol: float, check: bool = False
+) -> tuple:
     """The device mesh of ``spec`` at ``theta``, its integrals over ``image`` and the prefix
     table: ``(means, areas in source pixels, areas in sensor units, mesh, table)``."""
-    dm = build_mesh_device(spec, size, theta.detach().to(image.device), tol, tuple(image.shape[-2:]))
-    per_seg, incl = _cuda_segments(dm.pixel_vertices, image, dm.mesh)
-    means, area, areas = device_means(dm, per_seg, _unit(image))
-    return means, area, areas, dm, incl
+    dm = build_mesh_device(
+        spec, size, theta.detach().to(image.device), tol, tuple(image.shape[-2:]), image=image
+    )
+    per_seg = _cuda_per_segment(dm.pixel_vertices, dm.mesh, dm.incl, dm.offsets)
+    means, area, areas = device_means(dm, per_seg, _unit(image), check)
+    return means, area, areas, dm, dm.incl
 
 
 def _mesh_exact(
@@ -660,17 +650,32 @@ def _cuda_segments(verts: Tensor, image: Tensor, mesh: PixelMesh) -> tuple[Tenso
     simulator) and the prefix table ``incl`` (kept for the backward): three launches."""
     n, h, w = image.shape
     stream = stream_of(image)
-    v = verts.detach().double().contiguous()
-    seg_start, seg_end = (t.to(image.device) for t in (mesh.seg_start, mesh.seg_end))
     incl = image.new_empty(h, w, n)
     offsets = image.new_empty(h, -(-w // kernels.BLOCK), n, dtype=torch.float64)
     kernels.cuda_launch("prefix_blocks", h * offsets.shape[1] * n, stream, image, kernels.BLOCK, incl)
     kernels.cuda_launch("prefix_offsets", h * n, stream, kernels.BLOCK, incl, offsets)
-    per_seg = v.new_empty(mesh.num_segments, n + 1)  # each row written whole by its thread
+    return _cuda_per_segment(verts, mesh, incl, offsets), incl
+
+
+def _cuda_per_segment(verts: Tensor, mesh: PixelMesh, incl: Tensor, offsets: Tensor) -> Tensor:
+    """The exact forward's values per segment ``(S, N + 1)`` from the prefix table ``incl`` and
+    its block ``offsets``: one launch."""
+    v = verts.detach().double().contiguous()
+    seg_start, seg_end = (t.to(incl.device) for t in (mesh.seg_start, mesh.seg_end))
+    per_seg = v.new_empty(mesh.num_segments, incl.shape[2] + 1)  # each row written whole by its thread
     kernels.cuda_launch(
-        "forward", mesh.num_segments, stream, v, seg_start, seg_end, incl, offsets, kernels.BLOCK, per_seg
+        "forward",
+        mesh.num_segments,
+        stream_of(incl),
+        v,
+        seg_start,
+        seg_end,
+        incl,
+        offsets,
+        kernels.BLOCK,
+        per_seg,
     )
-    return per_seg, incl
+    return per_seg
 
 
 def _cuda_forward(verts: Tensor, image: Tensor, mesh: PixelMesh) -> tuple[Tensor, Tensor]:

@@ -15,7 +15,7 @@ from collections.abc import Callable, Iterator
 
 from .kernels.device import LAUNCHES
 
-__all__ = ["NO_KERNEL_OPS", "count_launches", "count_ops"]
+__all__ = ["HOST_READS", "NO_KERNEL_OPS", "count_host_reads", "count_launches", "count_ops"]
 
 
 def count_ops(fn: Callable[[], object]) -> int:
@@ -59,6 +59,35 @@ def _without_stderr() -> Iterator[None]:
 NO_KERNEL_OPS = frozenset(
     "empty empty_like empty_strided new_empty new_empty_strided detach alias lift_fresh _unsafe_view".split()
 )
+
+
+#: The tensor methods that read a value back to the host (on a GPU: wait for the device).
+HOST_READS = ("item", "tolist", "numpy", "cpu", "__bool__", "__int__", "__float__", "__index__")
+
+
+def count_host_reads(fn: Callable[[], object]) -> Counter[str]:
+    """The values ``fn`` reads back from tensors to the host, by method (``item``, ``__int__``,
+    ``numpy`` ...; see [`HOST_READS`][]): on a GPU each is a wait for the device. Counted without
+    a GPU where the device path runs on the CPU (numba's CUDA simulator), so a CPU tensor's read
+    counts as a device tensor's would; not counted: the arrays a kernel launch hands to the
+    simulator, and reads of host memory the kernels write directly
+    ([`host_mapped`][layoutwarp.kernels.device.host_mapped]: no wait)."""
+    import sys
+
+    from torch.overrides import TorchFunctionMode
+
+    counts: Counter[str] = Counter()
+
+    class Reads(TorchFunctionMode):
+        def __torch_function__(self, func, types, args=(), kwargs=None):
+            name = getattr(func, "__name__", "")
+            if name in HOST_READS and sys._getframe(1).f_code.co_name != "_device_array":
+                counts[name] += 1
+            return func(*args, **(kwargs or {}))
+
+    with Reads():
+        fn()
+    return counts
 
 
 def count_launches(fn: Callable[[], object]) -> Counter[str]:

@@ -268,10 +268,15 @@ for path in sys.argv[1:]:
     spec = mk.MeshSpec(kind, tuple(case["center"]), centred, nparams)
     dm = mk.build_mesh_device(spec, tuple(case["size"]), torch.from_numpy(case["theta"]), float(case["tol"]),
                               tuple(case["src"]))
-    m = dm.mesh
-    np.savez(path.replace("case", "out"), verts=m.vertices.numpy(), pv=dm.pixel_vertices.numpy(),
-             dverts=dm.dverts.numpy(), ss=m.seg_start.numpy(), se=m.seg_end.numpy(), sedge=m.seg_edge.numpy(),
-             eo=m.edge_offsets.numpy(), counts=dm.counts.numpy())
+    m, status = dm.mesh, dm.room.look()
+    nseg, nv = int(m.edge_offsets[-1]), m.vertices.shape[0] - m.seg_start.shape[0] + int(m.edge_offsets[-1])
+    assert status["segments"] == nseg and not status["overflowed"], status
+    # the room left over: segments of no length at vertex 0
+    assert not m.seg_start[nseg:].any() and not m.seg_end[nseg:].any() and not m.seg_edge[nseg:].any()
+    used = {"verts": m.vertices[:nv], "pv": dm.pixel_vertices[:nv], "dverts": dm.dverts[:nv],
+            "ss": m.seg_start[:nseg], "se": m.seg_end[:nseg], "sedge": m.seg_edge[:nseg],
+            "eo": m.edge_offsets, "counts": dm.counts[:status["pieces"]]}
+    np.savez(path.replace("case", "out"), **{k: v.numpy() for k, v in used.items()})
 """
 
 
@@ -279,10 +284,11 @@ for path in sys.argv[1:]:
 @pytest.mark.heavy
 def test_the_device_mesh_is_the_compiled_mesh_in_numbas_simulator(tmp_path):
     """Without a GPU: :func:`~layoutwarp.kernels.mesh.build_mesh_device`'s kernels and launches
-    (one thread per corner, edge or vertex; the totals it allocates by) in numba's CUDA
+    (one thread per corner, edge or vertex, in buffers with room to spare) in numba's CUDA
     simulator against :func:`~layoutwarp.kernels.mesh.build_mesh` on the CPU, for each family
     (θ near ±1 and the centre near the border for the hard ones): the same segment counts and
-    indices, the same vertices and pixel vertices, θ-derivatives to rounding."""
+    indices, the same vertices and pixel vertices, θ-derivatives to rounding; the totals the
+    status reports; the room left over holding segments of no length."""
     import os
     import subprocess
     import sys
@@ -323,7 +329,7 @@ DEVICE_STEP = """
 import json, sys
 import numpy as np, torch
 import layoutwarp as lw
-from layoutwarp.testing import count_launches
+from layoutwarp.testing import count_host_reads, count_launches
 from layoutwarp.integrators import integrate_exact
 from layoutwarp.layoutfile import layout_from_spec
 case = dict(np.load(sys.argv[1]))
@@ -341,10 +347,15 @@ assert torch.equal(torch.autograd.grad(loss, layout.rho, create_graph=True)[0], 
 def step():
     layout.zero_grad()
     lw.simulate(image[None], layout, size, tol=float(case["tol"])).sum().backward()
+def training_step():  # as an optimizer moves θ in place between steps
+    with torch.no_grad():
+        layout.rho.mul_(0.999)
+    step()
 launches = count_launches(step)
 kernels = sum(v for k, v in launches.items() if k.startswith("numba:"))
+reads = count_host_reads(training_step)
 np.savez(sys.argv[2], out=out.detach().numpy(), areas=areas.detach().numpy(), grad=grad.numpy(),
-         launches=sum(launches.values()), kernels=kernels)
+         launches=sum(launches.values()), kernels=kernels, reads=sum(reads.values()))
 """
 
 
@@ -354,9 +365,10 @@ def test_a_learnable_step_on_the_device_path_matches_the_cpu_in_numbas_simulator
     """Without a GPU: a learnable layout's whole device path (the mesh built there, the exact
     forward, the pixels' means and areas in one kernel, the backward from the means' and the
     areas' gradients to θ in two) in numba's CUDA simulator against the compiled CPU path: the
-    same means and areas to rounding, θ's gradient to float32's (θ's dtype); and a training
-    step's GPU launches, counted (numba kernels and torch operators, `count_launches`), at most
-    27 (83 before the device path's kernels were fused)."""
+    same means and areas to rounding, θ's gradient to float32's (θ's dtype); a training step's
+    GPU launches, counted (numba kernels and torch operators, `count_launches`: at most 19, 8 of
+    them numba kernels, the loss's two and the layout's ρ → θ four included), and its reads of a
+    device value back to the host (`count_host_reads`): none."""
     import json
     import os
     import subprocess
@@ -387,7 +399,108 @@ def test_a_learnable_step_on_the_device_path_matches_the_cpu_in_numbas_simulator
     assert np.abs(got["areas"] - areas.detach().numpy()).max() <= 1e-14
     ref = layout.rho.grad.numpy()
     assert np.abs(got["grad"] - ref).max() <= 1e-6 * max(1.0, np.abs(ref).max())  # θ in float32
-    assert int(got["launches"]) <= 27 and int(got["kernels"]) <= 11
+    assert int(got["launches"]) <= 19 and int(got["kernels"]) <= 8
+    assert int(got["reads"]) == 0
+
+
+#: A learnable layout's device meshes in numba's CUDA simulator when they outgrow their room, and
+#: when an image holds NaN: written for the test to compare.
+DEVICE_ROOM = """
+import json, sys, warnings
+import numpy as np, torch
+import layoutwarp as lw
+from layoutwarp.kernels import mesh as mk
+from layoutwarp.integrators import integrate_exact
+from layoutwarp.testing import count_host_reads
+case = dict(np.load(sys.argv[1]))
+image, size, tol = torch.from_numpy(case["image"]), tuple(int(v) for v in case["size"]), float(case["tol"])
+layout = lw.FoveaLayout((0.02, -0.02), center=tuple(case["center"]), learn=True, learn_center=True)
+def step():
+    return integrate_exact(image, layout, size, tol=tol)
+def means():
+    return step().detach().numpy()
+means()  # a nearly straight mesh: a small room
+room = mk.MESH_ROOMS.values()[-1]
+layout.set_theta(case["theta"])
+out = {}
+with warnings.catch_warnings(record=True) as caught:
+    warnings.simplefilter("always")
+    reads = count_host_reads(lambda: out.update(chords=step().detach()))  # outgrows its room: a chord a piece
+    out["chords"] = out["chords"].numpy()
+    out["next"] = means()  # warned: the room grew before this one
+    out["warned"] = sum("outgrew its room" in str(w.message) for w in caught)
+out["reads"] = sum(reads.values())
+out["status_chords"] = mk.device_status()["overflowed"]  # reported since the last call
+out["exact"] = means()
+out["status_clean"] = mk.device_status()["overflowed"]
+room.pieces = room.segments = 2 * size[0] * size[1] + size[0] + size[1]  # as many as edges
+room.status[mk.PIECES] = room.status[mk.SEGMENTS] = 0  # nothing for the room to grow by
+with warnings.catch_warnings():
+    warnings.simplefilter("ignore", RuntimeWarning)
+    out["quads"] = means()  # outgrows its pieces' room: one chord an edge
+status = mk.device_status()
+out["status_over"], out["status_nan"] = status["overflowed"], status["nonfinite"]
+bad = image.clone()
+bad[0, 2, 3] = float("nan")
+lw.simulate(bad[None], layout, size, tol=tol, allow_nonfinite=False)  # checked on the device: no wait
+out["nan_seen"] = mk.device_status()["nonfinite"]
+lw.simulate(bad[None], layout, size, tol=tol, allow_nonfinite=False)
+try:
+    means()
+    out["raised"] = ""
+except ValueError as err:
+    out["raised"] = str(err)
+np.savez(sys.argv[2], **out)
+"""
+
+
+@pytest.mark.slow  # a process of its own, the kernels as plain Python
+def test_a_device_mesh_that_outgrows_its_room_integrates_chords_and_says_so_in_numbas_simulator(tmp_path):
+    """Without a GPU: a learnable fovea layout whose θ jumps from nearly straight to strongly
+    curved outgrows the room its device meshes were sized for. That step waits for nothing (no
+    host read), integrates one straight chord per smooth piece (the means of
+    ``pixel_mesh(..., subdivisions=1)`` to rounding), and the next step warns, has grown the
+    room, and gives the compiled CPU path's means. Pieces that outgrow theirs give one chord per
+    edge (the quads of the deformed corners). `device_status` reports the overflow, and a NaN a
+    checked step met on the device; a later step raises for it."""
+    import os
+    import subprocess
+    import sys
+
+    rng = np.random.default_rng(int(torch.randint(0, 2**31, ())))
+    theta = [float(rng.uniform(0.6, 0.85)), -float(rng.uniform(0.6, 0.85))]
+    center = rng.uniform(-0.4, 0.4, 2)
+    size, src = (3, 4), (int(rng.integers(10, 16)), int(rng.integers(10, 16)))
+    image = rng.uniform(-1, 3, (2, *src))
+    case = {"image": image, "size": np.array(size), "tol": 1e-2, "center": center, "theta": [*theta, *center]}
+    np.savez(tmp_path / "case.npz", **case)
+    env = {**os.environ, "NUMBA_DISABLE_JIT": "1", "NUMBA_ENABLE_CUDASIM": "1", "LAYOUTWARP_JIT": "wait"}
+    args = [sys.executable, "-c", DEVICE_ROOM, str(tmp_path / "case.npz"), str(tmp_path / "out.npz")]
+    run = subprocess.run(args, env=env, capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr[-3000:]
+    got = np.load(tmp_path / "out.npz")
+    layout = lw.FoveaLayout(theta, center=tuple(center), learn=True, learn_center=True)
+    img, scale = torch.from_numpy(image), np.abs(image).max()
+    exact = integrate_exact(img, layout, size, tol=1e-2).detach().numpy()
+    chords = lw.pixel_mesh(layout, size, subdivisions=1, dtype=torch.float64)
+    by_chords = integrate_exact(img, layout, size, mesh=chords).detach().numpy()
+    ne = MeshTopology(size).num_edges
+    ea, eb = MeshTopology(size).edge_corners()
+    quads = lw.PixelMesh(
+        size, chords.vertices[: (size[0] + 1) * (size[1] + 1)], ea, eb, torch.arange(ne), torch.arange(ne + 1)
+    )
+    by_quads = integrate_exact(img, layout, size, mesh=quads).detach().numpy()
+    assert int(got["reads"]) == 0
+    assert np.abs(got["chords"] - by_chords).max() <= 1e-12 * scale
+    assert np.abs(by_chords - exact).max() > 1e-4 * scale  # the chords are coarser: a real difference
+    assert int(got["warned"]) == 1
+    assert np.abs(got["next"] - exact).max() <= 1e-12 * scale
+    assert np.abs(got["exact"] - exact).max() <= 1e-12 * scale
+    assert bool(got["status_chords"]) and not bool(got["status_clean"])
+    assert np.abs(got["quads"] - by_quads).max() <= 1e-12 * scale
+    assert bool(got["status_over"]) and not bool(got["status_nan"])
+    assert bool(got["nan_seen"])
+    assert "held NaN or Inf" in str(got["raised"])
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")

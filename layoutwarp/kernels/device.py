@@ -235,6 +235,21 @@ def cuda_launch(name: str | Callable, count: int, stream: int, *args) -> None:
         _CUDA_KERNELS[name][(count + CUDA_THREADS - 1) // CUDA_THREADS, CUDA_THREADS, on](*arrays)
 
 
+def host_mapped(n: int, device: torch.device) -> np.ndarray:
+    """``n`` int64 zeros in page-locked host memory mapped into ``device``'s address space: a
+    kernel there writes them directly (no copy launched; a CUDA graph's replays write them too),
+    and the host reads them whenever it likes, without waiting (numba's simulator: a plain
+    array)."""
+    _import_cuda()
+    if device.type == "cuda" and not simulated():
+        with cuda.gpus[device.index or 0]:
+            out = cuda.mapped_array(n, dtype=np.int64, portable=True)
+    else:
+        out = cuda.mapped_array(n, dtype=np.int64)
+    out[:] = 0
+    return out
+
+
 def _device_array(a: object) -> object:
     """A launch argument as numba takes it: a device array for anything with
     ``__cuda_array_interface__``, a CPU tensor's numpy view (the simulator's arrays), else as is.

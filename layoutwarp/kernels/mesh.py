@@ -28,17 +28,18 @@ from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass
+import warnings
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 
-from ..caches import ObjectMemo, version_of
+from ..caches import LRU, ObjectMemo, version_of
 from ..layouts import CurvLayout, EllipticLayout, FoveaLayout, Layout
 from ..mesh import INNER, MeshTopology, PixelMesh
 from .base import CHUNK, available, inline, one_thread_below, parallel, prange, serial, threads
-from .device import CUDA_THREADS, cuda_launch, stream_of
-from .exact import BLOCK, segment_moments, segment_weights
+from .device import CUDA_THREADS, cuda_launch, host_mapped, stream_of
+from .exact import BLOCK, block_prefix, row_offsets, segment_moments, segment_weights
 
 __all__ = [
     "CUDA_KERNELS",
@@ -655,13 +656,13 @@ def _corners(
 
 @inline
 def _edge_segments(
-    e: int, ea: np.ndarray, eb: np.ndarray, edge_offsets: np.ndarray, ncorner: int,
+    e: int, first: int, end: int, ea: np.ndarray, eb: np.ndarray, ncorner: int,
     seg_start: np.ndarray, seg_end: np.ndarray, seg_edge: np.ndarray,
 ) -> None:  # fmt: skip
-    """Edge ``e``'s segments: segment ``s`` starts at the new vertex ``V0 + s − e − 1`` unless it
-    is the edge's first (then at its corner ``ea[e]``), and ends at the next unless it is the
-    last (then at ``eb[e]``)."""
-    first, last = edge_offsets[e], edge_offsets[e + 1] - 1
+    """Edge ``e``'s segments ``first .. end − 1``: segment ``s`` starts at the new vertex
+    ``V0 + s − e − 1`` unless it is the edge's first (then at its corner ``ea[e]``), and ends at
+    the next unless it is the last (then at ``eb[e]``)."""
+    last = end - 1
     for s in range(first, last + 1):
         seg_edge[s] = e
         seg_start[s] = ea[e] if s == first else ncorner + s - e - 1
@@ -766,7 +767,9 @@ def _place_vertices(
         for chunk in range(thread, n_chunks, threads):
             e0, e1 = chunk * CHUNK, min((chunk + 1) * CHUNK, ne)
             for e in range(e0, e1):
-                _edge_segments(e, ea, eb, edge_offsets, ncorner, seg_start, seg_end, seg_edge)
+                _edge_segments(
+                    e, edge_offsets[e], edge_offsets[e + 1], ea, eb, ncorner, seg_start, seg_end, seg_edge
+                )
             v0 = ncorner + edge_offsets[e0] - e0
             _place_chunk(*mesh, e0, e1, pts, out, moving, qi, dq, verts[v0:], dverts[v0:])
 
@@ -1097,19 +1100,19 @@ def _edge_pieces_and_counts(
 def _edge_vertices(
     kind: int, centred: bool, e: int, ends: np.ndarray, ea: np.ndarray, eb: np.ndarray, th: np.ndarray,
     c: np.ndarray, piece_offsets: np.ndarray, bounds: np.ndarray, dbounds: np.ndarray,
-    counts: np.ndarray, edge_offsets: np.ndarray, ncorner: int, q: np.ndarray, dq: np.ndarray,
+    counts: np.ndarray, first: int, chords: bool, ncorner: int, q: np.ndarray, dq: np.ndarray,
     verts: np.ndarray, dverts: np.ndarray, seg_start: np.ndarray, seg_end: np.ndarray, seg_edge: np.ndarray,
-) -> None:  # fmt: skip
-    """Edge ``e``'s part of [`_place_vertices`][]: its segments and new vertices, numbered as
-    there, each vertex's ``∂v/∂θ`` with the term of a piece whose ends move with θ."""
+) -> int:  # fmt: skip
+    """Edge ``e``'s part of [`_place_vertices`][]: its segments from ``first`` on and its new
+    vertices, numbered as there, each vertex's ``∂v/∂θ`` with the term of a piece whose ends move
+    with θ; with ``chords``, one segment a piece (its chord) whatever ``counts`` says. Returns
+    the end of its segments."""
     p = th.shape[0]
-    _edge_segments(e, ea, eb, edge_offsets, ncorner, seg_start, seg_end, seg_edge)
-    first = edge_offsets[e]
     ax, ay = ends[e, 0], ends[e, 1]
     dx, dy = ends[e, 2] - ax, ends[e, 3] - ay
     s = first
     for pc in range(piece_offsets[e], piece_offsets[e + 1]):
-        m, lo, hi = counts[pc], bounds[pc, 0], bounds[pc, 1]
+        m, lo, hi = 1 if chords else counts[pc], bounds[pc, 0], bounds[pc, 1]
         moves = _piece_moves(dbounds, pc, p)
         for k in range(m):
             if s != first:
@@ -1123,18 +1126,26 @@ def _edge_vertices(
                 if moves:  # the piece's ends move with a learned centre: its vertices too
                     _add_moving(dverts, v, dq, p, dx, dy, dbounds, pc, f)
             s += 1
+    _edge_segments(e, first, s, ea, eb, ncorner, seg_start, seg_end, seg_edge)
+    return s
 
 
 def _cuda_corners(
     kind: int, centred: bool, corners: np.ndarray, ends: np.ndarray, th: np.ndarray, c: np.ndarray,
-    q: np.ndarray, dq: np.ndarray, npieces: np.ndarray,
+    q: np.ndarray, dq: np.ndarray, npieces: np.ndarray, image: np.ndarray, block: int, incl: np.ndarray,
 ) -> None:  # fmt: skip
-    """Two independent steps in one launch: thread ``i`` maps uniform corner ``i`` (φ and
-    ``∂φ/∂θ`` into ``q``/``dq``) and counts edge ``i``'s smooth pieces ([`_edge_pieces`][]) into
+    """Three independent steps in one launch: thread ``i`` maps uniform corner ``i`` (φ and
+    ``∂φ/∂θ`` into ``q``/``dq``), counts edge ``i``'s smooth pieces ([`_edge_pieces`][]) into
     ``npieces[i + 1]``, thread 0 setting ``npieces[0] = 0``, so that a cumulative sum of
     ``npieces`` in place gives the pieces' offsets (a mesh has at least as many edges as
-    corners)."""
+    corners), and sums block ``i`` (row × block × channel) of the source ``image`` ``(N, H, W)``
+    into the prefix table ``incl`` ([`block_prefix`][layoutwarp.kernels.exact.block_prefix])."""
     i = cuda.grid(1)
+    n, h, w = image.shape
+    nb = (w + block - 1) // block
+    if i < h * nb * n:
+        r = i // (nb * n)
+        block_prefix(image, r, r, (i // n) % nb, i % n, block, incl)
     if i == 0:
         npieces[0] = 0
     if i < corners.shape[0]:
@@ -1150,36 +1161,56 @@ def _cuda_corners(
         npieces[i + 1] = _edge_pieces(kind, centred, i, ends, th, c, scratch, cuts, dcuts, lo, dlo, False)
 
 
-def _cuda_areas(q: np.ndarray, area: np.ndarray) -> None:
-    """One thread per pixel: [`_quad_area`][] of its deformed corners."""
-    i = cuda.grid(1)
-    h, w = area.shape
-    if i < h * w:
-        area[i // w, i % w] = _quad_area(q, i // w, i % w, w)
-
-
-def _cuda_amin(area: np.ndarray, amin: np.ndarray) -> None:
-    """One thread per edge (horizontal, then vertical): [`_amin_across`][],
-    [`_amin_beside`][]."""
+def _cuda_amin(
+    q: np.ndarray, h: int, w: int, amin: np.ndarray, block: int, incl: np.ndarray, offsets: np.ndarray
+) -> None:
+    """Two independent steps in one launch: thread ``e`` takes the smaller of edge ``e``'s two
+    pixels' areas (horizontal edges, then vertical; [`_amin_across`][], [`_amin_beside`][]),
+    each [`_quad_area`][] of the deformed corners ``q`` (the areas and the minima at once), and
+    the block offsets of row × channel ``e`` of the prefix table ``incl``
+    ([`row_offsets`][layoutwarp.kernels.exact.row_offsets])."""
     e = cuda.grid(1)
-    h, w = area.shape
+    if e < incl.shape[0] * incl.shape[2]:
+        row_offsets(e // incl.shape[2], e % incl.shape[2], block, incl, offsets)
     nh = (h + 1) * w
     if e < nh:
-        amin[e] = _amin_across(area, e // w, e % w)
+        i, j = e // w, e % w
+        up = _quad_area(q, i - 1, j, w) if i > 0 else np.inf
+        amin[e] = min(up, _quad_area(q, i, j, w) if i < h else np.inf)
     elif e < amin.shape[0]:
-        amin[e] = _amin_beside(area, (e - nh) // (w + 1), (e - nh) % (w + 1))
+        i, j = (e - nh) // (w + 1), (e - nh) % (w + 1)
+        left = _quad_area(q, i, j - 1, w) if j > 0 else np.inf
+        amin[e] = min(left, _quad_area(q, i, j, w) if j < w else np.inf)
+
+
+#: The slots of a [`MeshRoom`][]'s status, in page-locked host memory its kernels write directly:
+#: the pieces and the segments the newest mesh needed, and the stamp of the last mesh that
+#: outgrew its room and of the last checked one whose means held NaN or ±inf (0: none since the
+#: host looked).
+PIECES, SEGMENTS, OVERFLOW, NONFINITE = range(4)
 
 
 def _cuda_pieces_and_counts(
     kind: int, centred: bool, ends: np.ndarray, th: np.ndarray, c: np.ndarray,
     piece_offsets: np.ndarray, amin: np.ndarray, tol: float, max_subdiv: int, inner: float,
     bounds: np.ndarray, dbounds: np.ndarray, counts: np.ndarray, edge_counts: np.ndarray,
+    status: np.ndarray, stamp: int,
 ) -> None:  # fmt: skip
-    """One thread per edge: [`_edge_pieces_and_counts`][]."""
+    """One thread per edge: [`_edge_pieces_and_counts`][], into room for ``bounds.shape[0]``
+    pieces. Where the mesh has more (``piece_offsets[-1]``, read by every thread alike), every
+    edge is one straight segment instead (its chord); thread 0 writes the pieces needed to the
+    ``status`` and, where they outgrew their room, the mesh's ``stamp``."""
     e = cuda.grid(1)
+    ne = ends.shape[0]
+    over = piece_offsets[ne] > bounds.shape[0]
     if e == 0:
         edge_counts[0] = 0  # the offsets' leading zero: no zeroed buffer to launch for
-    if e < ends.shape[0]:
+        status[PIECES] = piece_offsets[ne]
+        if over:
+            status[OVERFLOW] = stamp
+    if e < ne and over:
+        edge_counts[e + 1] = 1
+    elif e < ne:
         scratch, cuts = cuda.local.array((8, P_MAX), F8), cuda.local.array(8, F8)
         dcuts = cuda.local.array((8, P_MAX), F8)
         lo, dlo = cuda.local.array(10, F8), cuda.local.array((10, P_MAX), F8)
@@ -1202,28 +1233,52 @@ def _cuda_place(
     c: np.ndarray, piece_offsets: np.ndarray, bounds: np.ndarray, dbounds: np.ndarray,
     counts: np.ndarray, edge_offsets: np.ndarray, q: np.ndarray, dq: np.ndarray, ws: float, hs: float,
     verts: np.ndarray, dverts: np.ndarray, seg_start: np.ndarray, seg_end: np.ndarray, seg_edge: np.ndarray,
-    pv: np.ndarray,
+    pv: np.ndarray, seg_offsets: np.ndarray, status: np.ndarray, stamp: int,
 ) -> None:  # fmt: skip
     """One thread per edge: [`_edge_vertices`][], then its new vertices in pixel units of a
     ``ws`` x ``hs`` source ([`_pixel_vertex`][]) into ``pv``; thread ``e`` also copies corner
     ``e`` in from ``q``/``dq`` (where the corners' kernel left them; a mesh has at least as many
-    edges as corners) with its pixel units. One launch where placing and converting took two."""
+    edges as corners) with its pixel units. One launch where placing and converting took two.
+
+    The mesh is built in room for ``seg_start.shape[0]`` segments (at least as many as edges):
+    where it needs more (``edge_offsets[-1]``), each piece is one segment, its chord; where its
+    pieces outgrew their room ([`_cuda_pieces_and_counts`][]) or this one, each edge is.
+    Either way the ``status`` gets the mesh's ``stamp``, and ``seg_offsets`` ``(E + 1,)`` holds
+    the segments' offsets the mesh has. The room left over holds segments of no length (at vertex 0, which add
+    nothing), so a kernel may run over all of it."""
     e = cuda.grid(1)
-    nc = q.shape[0]
+    nc, ne, room = q.shape[0], ends.shape[0], seg_start.shape[0]
+    counted = piece_offsets[ne] <= bounds.shape[0]  # the pieces' kernel counted the segments
+    pieces_over = not counted or piece_offsets[ne] > room
+    over = not pieces_over and edge_offsets[ne] > room
+    used = ne if pieces_over else piece_offsets[ne] if over else edge_offsets[ne]
+    if e == 0:
+        seg_offsets[0] = 0
+        if counted:
+            status[SEGMENTS] = edge_offsets[ne]
+            if over or pieces_over:
+                status[OVERFLOW] = stamp
     if e < nc:
         verts[e, 0], verts[e, 1] = q[e, 0], q[e, 1]
         for i in range(2):
             for p in range(dq.shape[2]):
                 dverts[e, i, p] = dq[e, i, p]
         pv[e, 0], pv[e, 1] = _pixel_vertex(q[e, 0], q[e, 1], ws, hs)
-    if e < ends.shape[0]:
-        qi, dqi = cuda.local.array(2, F8), cuda.local.array((2, _DQ), F8)
-        _edge_vertices(
-            kind, centred, e, ends, ea, eb, th, c, piece_offsets, bounds, dbounds, counts, edge_offsets,
-            nc, qi, dqi, verts, dverts, seg_start, seg_end, seg_edge,
-        )  # fmt: skip
-        for v in range(nc + edge_offsets[e] - e, nc + edge_offsets[e + 1] - e - 1):  # its new vertices
-            pv[v, 0], pv[v, 1] = _pixel_vertex(verts[v, 0], verts[v, 1], ws, hs)
+    if e < ne:
+        if pieces_over:  # the edge's chord, from corner to corner
+            _edge_segments(e, e, e + 1, ea, eb, nc, seg_start, seg_end, seg_edge)
+            seg_offsets[e + 1] = e + 1
+        else:
+            qi, dqi = cuda.local.array(2, F8), cuda.local.array((2, _DQ), F8)
+            first = piece_offsets[e] if over else edge_offsets[e]
+            seg_offsets[e + 1] = _edge_vertices(
+                kind, centred, e, ends, ea, eb, th, c, piece_offsets, bounds, dbounds, counts, first, over,
+                nc, qi, dqi, verts, dverts, seg_start, seg_end, seg_edge,
+            )  # fmt: skip
+            for v in range(nc + first - e, nc + seg_offsets[e + 1] - e - 1):  # its new vertices
+                pv[v, 0], pv[v, 1] = _pixel_vertex(verts[v, 0], verts[v, 1], ws, hs)
+        for s in range(used + e, room, ne):  # the room left over: segments of no length
+            seg_start[s], seg_end[s], seg_edge[s] = 0, 0, 0
 
 
 @inline
@@ -1252,13 +1307,14 @@ def _pixel_integral(
 
 def _cuda_pixel_means(
     per_seg: np.ndarray, edge_offsets: np.ndarray, unit: float, means: np.ndarray, area: np.ndarray,
-    area_units: np.ndarray,
+    area_units: np.ndarray, status: np.ndarray, stamp: int,
 ) -> None:  # fmt: skip
     """One thread per pixel: its boundary integrals from its four edges' segments (each edge's
     sum in order, combined as [`MeshTopology.combine`][layoutwarp.mesh.MeshTopology.combine]
     does), its means ``(N, h, w)`` (the integrals over the last, the area) and the area, as it is
     and in sensor units (times ``unit``): the edge sums, the combination and the division in one
-    pass."""
+    pass. A mean that is NaN or ±inf writes ``stamp`` to the ``status``'s ``NONFINITE`` slot
+    (the finiteness check, on the device; a ``stamp`` of 0 checks nothing)."""
     i = cuda.grid(1)
     n, h, w = means.shape
     if i < h * w:
@@ -1266,7 +1322,10 @@ def _cuda_pixel_means(
         a = _pixel_integral(per_seg, edge_offsets, r, c, w, (h + 1) * w, n)
         area[r, c], area_units[r, c] = a, a * unit
         for k in range(n):
-            means[k, r, c] = _pixel_integral(per_seg, edge_offsets, r, c, w, (h + 1) * w, k) / a
+            m = _pixel_integral(per_seg, edge_offsets, r, c, w, (h + 1) * w, k) / a
+            means[k, r, c] = m
+            if stamp and not math.isfinite(m):
+                status[NONFINITE] = stamp
 
 
 @inline
@@ -1361,23 +1420,27 @@ def _cuda_theta_gradient(
 
 
 _A1, _A2, _A3, _I1 = "float64[::1]", "float64[:, ::1]", "float64[:, :, ::1]", "int64[::1]"
-#: The device kernels of [`build_mesh_device`][], by name, with their argument types (what
-#: [`cuda_ptx`][layoutwarp.kernels.cuda_ptx] compiles them with, without a GPU).
+_F3 = "float32[:, :, ::1]"  # a float32 image and its prefix table
+#: The device kernels of [`build_mesh_device`][], by name, with their argument types for a
+#: float32 image (what [`cuda_ptx`][layoutwarp.kernels.cuda_ptx] compiles them with, without a
+#: GPU; a float64 image compiles its own on first use).
 CUDA_KERNELS = {
-    "corners": (_cuda_corners, f"void(int64, boolean, {_A2}, {_A2}, {_A1}, {_A1}, {_A2}, {_A3}, {_I1})"),
-    "areas": (_cuda_areas, f"void({_A2}, {_A2})"),
-    "amin": (_cuda_amin, f"void({_A2}, {_A1})"),
+    "corners": (
+        _cuda_corners,
+        f"void(int64, boolean, {_A2}, {_A2}, {_A1}, {_A1}, {_A2}, {_A3}, {_I1}, {_F3}, int64, {_F3})",
+    ),
+    "amin": (_cuda_amin, f"void({_A2}, int64, int64, {_A1}, int64, {_F3}, {_A3})"),
     "pieces_and_counts": (
         _cuda_pieces_and_counts,
         f"void(int64, boolean, {_A2}, {_A1}, {_A1}, {_I1}, {_A1}, float64, int64, float64, {_A2}, {_A3}, "
-        f"{_I1}, {_I1})",
+        f"{_I1}, {_I1}, {_I1}, int64)",
     ),
     "place": (
         _cuda_place,
         f"void(int64, boolean, {_A2}, {_I1}, {_I1}, {_A1}, {_A1}, {_I1}, {_A2}, {_A3}, {_I1}, {_I1}, {_A2}, "
-        f"{_A3}, float64, float64, {_A2}, {_A3}, {_I1}, {_I1}, {_I1}, {_A2})",
+        f"{_A3}, float64, float64, {_A2}, {_A3}, {_I1}, {_I1}, {_I1}, {_A2}, {_I1}, {_I1}, int64)",
     ),
-    "pixel_means": (_cuda_pixel_means, f"void({_A2}, {_I1}, float64, {_A3}, {_A2}, {_A2})"),
+    "pixel_means": (_cuda_pixel_means, f"void({_A2}, {_I1}, float64, {_A3}, {_A2}, {_A2}, {_I1}, int64)"),
     "edge_gradient": (_cuda_edge_gradient, f"void({_A3}, {_A3}, {_A2}, {_A2}, float64, {_A2}, {_A1})"),
     "theta_gradient": (
         _cuda_theta_gradient,
@@ -1386,17 +1449,94 @@ CUDA_KERNELS = {
 }
 
 
+#: How much more room than it needed a device mesh's kind gets (see [`MeshRoom`][]).
+HEADROOM = 1.25
+
+
+@dataclass
+class MeshRoom:
+    """The room the device meshes of one learnable layout, size, tolerance and source are built
+    in ([`build_mesh_device`][]): their pieces and segments, sized by the first mesh (the one
+    time the host reads how many it needs) with [`HEADROOM`][], and grown when a later mesh came
+    within ``1 / HEADROOM`` of them. The kernels write what a mesh needed straight into
+    ``status``, page-locked host memory mapped into the device's address space (no copy
+    launched, nothing waited for; a CUDA graph's replays write it too), which the host reads
+    whenever it builds the next mesh. So a step allocates without waiting for the device, and a
+    captured step keeps its buffers. A mesh that outgrows its room is built with straight chords
+    instead (valid, but coarser than the tolerance) and stamps the status:
+    [`device_status`][] reads it at once."""
+
+    status: np.ndarray  # the slots PIECES .. NONFINITE, int64, written by the kernels
+    pieces: int = 0
+    segments: int = 0
+    stamps: int = 0  # the meshes built: the next one's stamp
+    seen: list = field(default_factory=lambda: [0, 0])  # the overflow and NaN stamps taken in
+
+    def ahead(self, need: int, least: int) -> int:
+        """Room for ``need`` items with headroom, at least ``least``."""
+        return max(least, math.ceil(need * HEADROOM) + 64)
+
+    def stamp(self) -> int:
+        """The next mesh's stamp (what its kernels write where it outgrew its room)."""
+        self.stamps += 1
+        return self.stamps
+
+    def look(self, tell: bool = True) -> dict[str, int | bool]:
+        """Take in what the kernels wrote so far, without waiting for them: grow the room a mesh
+        came close to and, with ``tell``, warn where one outgrew it and raise where a checked
+        step's means held NaN or ±inf (its input held some). Returns the status' values and
+        whether each stamp is news."""
+        pieces, segments, over, bad = (int(v) for v in self.status[:4])
+        news = over > self.seen[0], bad > self.seen[1]
+        self.seen = [max(over, self.seen[0]), max(bad, self.seen[1])]
+        if news[0] and tell:
+            warnings.warn(
+                f"a learnable step's pixel mesh outgrew its room ({pieces} pieces, {segments} segments for "
+                f"{self.pieces} and {self.segments}): that step integrated straight chords, coarser than its "
+                "tolerance; the room has grown (layoutwarp.device_status() tells at once)",
+                RuntimeWarning,
+                stacklevel=5,
+            )
+        if pieces * HEADROOM > self.pieces:
+            self.pieces = self.ahead(pieces, self.pieces)
+        if segments * HEADROOM > self.segments:
+            self.segments = self.ahead(segments, self.segments)
+        self.segments = max(self.segments, self.pieces)  # room for a chord a piece
+        if news[1] and tell:
+            raise ValueError(
+                "the image of an earlier learnable step on the device held NaN or Inf (found there, read "
+                "back now); clean it or pass allow_nonfinite=True"
+            )
+        return {"pieces": pieces, "segments": segments, "overflowed": news[0], "nonfinite": news[1]}
+
+    def forget(self) -> None:
+        """Clear the stamps (once the device is idle: nothing writes them meanwhile)."""
+        self.status[OVERFLOW] = self.status[NONFINITE] = 0
+        self.seen = [0, 0]
+
+
+#: Every [`MeshRoom`][], by layout kind and centre, sizes, tolerance, θ's length and device.
+MESH_ROOMS: LRU[MeshRoom] = LRU("device mesh rooms", 32)
+
+
 @dataclass
 class DeviceMesh:
     """A compiled mesh built where its θ lives ([`build_mesh_device`][]), as torch tensors
-    there: the [`PixelMesh`][], its vertices in pixel units of the source
-    (clamped to it), every vertex's θ-derivative ``(V, 2, P)`` and every smooth piece's segment
-    count (as [`CompiledMesh`][] has them)."""
+    there: the [`PixelMesh`][] (its segment arrays as long as its room, the room left over holding
+    segments of no length), its vertices in pixel units of the source (clamped to it), every
+    vertex's θ-derivative ``(V, 2, P)``, every smooth piece's segment count (as
+    [`CompiledMesh`][] has them), the room it was built in and its stamp there, and the source
+    image's prefix table and block offsets
+    ([`prefix_tables`][layoutwarp.kernels.exact.prefix_tables], built in the same launches)."""
 
     mesh: PixelMesh
     pixel_vertices: torch.Tensor
     dverts: torch.Tensor
     counts: torch.Tensor
+    room: MeshRoom
+    stamp: int
+    incl: torch.Tensor
+    offsets: torch.Tensor
 
 
 @functools.lru_cache(maxsize=16)
@@ -1419,14 +1559,17 @@ def build_mesh_device(
     tol: float,
     src_size: tuple[int, int],
     *,
+    image: torch.Tensor | None = None,
     max_subdiv: int = 4096,
 ) -> DeviceMesh:
     """[`build_mesh`][] (``with_grad``) and [`pixel_vertices`][] on the CUDA device that
-    holds ``theta`` ``(P,)``, in five kernels (corners and pieces, pixel areas, edges' smaller
-    areas, counts, vertices with their pixel units: one thread per corner and edge, pixel or
-    edge, each thread the CPU's steps for its item) and
-    two cumulative sums, so no mesh crosses the bus: at 2048x1024 → 257x129 a fovea mesh is
-    about 50 MB. The host waits twice, for the piece and segment totals it allocates by. A
+    holds ``theta`` ``(P,)``, in four kernels (corners and pieces, edges' smaller areas, counts,
+    vertices with their pixel units: one thread per corner and edge, each thread the CPU's steps
+    for its item) and two cumulative sums, so no mesh crosses the bus: at 2048x1024 → 257x129 a
+    fovea mesh is about 50 MB. The first two kernels also build the prefix table of the source
+    ``image`` ``(N, H, W)`` (contiguous, on the same device; ``None``: none). The buffers are
+    its [`MeshRoom`][]'s: the host reads the mesh's totals only for the first mesh of its kind,
+    and never waits for the device after that. A
     ``theta`` on the CPU runs the same kernels in numba's CUDA simulator
     (``NUMBA_ENABLE_CUDASIM=1``), which is how they are tested without a GPU."""
     dev = theta.device
@@ -1437,48 +1580,88 @@ def build_mesh_device(
     c = _device_centre(spec.center, str(dev))
     p, ne, nc = th.numel(), ends.shape[0], uniform.shape[0]
     f64, i64 = {"dtype": torch.float64, "device": dev}, {"dtype": torch.int64, "device": dev}
+    key = (spec, size, float(tol), src_size, p, str(dev), max_subdiv)
+    room = MESH_ROOMS.get(key, lambda: MeshRoom(host_mapped(4, dev)))
+    room.look()
+    stamp = room.stamp()
 
     def launch(name: str, count: int, *args: object) -> None:
         cuda_launch(CUDA_KERNELS[name][0], count, stream, *args)
 
     q, dq, piece_offsets = torch.empty(nc, 2, **f64), torch.empty(nc, 2, p, **f64), torch.empty(ne + 1, **i64)
+    if image is None:
+        image = torch.empty(0, hs, ws, **f64)
+    n = image.shape[0]
+    incl = image.new_empty(hs, ws, n)
+    offsets = image.new_empty(hs, -(-ws // BLOCK), n, dtype=torch.float64)
     launch(
-        "corners", ne, spec.kind, spec.centred, uniform, ends, th, c, q, dq, piece_offsets
-    )  # counts after a 0
-    area, amin = torch.empty(h, w, **f64), torch.empty(ne, **f64)
-    launch("areas", h * w, q, area)
-    launch("amin", ne, area, amin)
+        "corners", max(ne, hs * offsets.shape[1] * n), spec.kind, spec.centred, uniform, ends, th, c, q, dq,
+        piece_offsets, image, BLOCK, incl,
+    )  # fmt: skip
+    amin = torch.empty(ne, **f64)
+    launch("amin", max(ne, hs * n), q, h, w, amin, BLOCK, incl, offsets)
     piece_offsets.cumsum_(0)
-    total = int(piece_offsets[-1])
-    bounds, dbounds = torch.empty(total, 2, **f64), torch.empty(total, 2, p, **f64)
-    counts, edge_counts = torch.empty(total, **i64), torch.empty(ne + 1, **i64)
+    if not room.pieces:  # the first mesh of its kind: its totals read, once
+        room.pieces = room.ahead(int(piece_offsets[-1]), ne)
+    bounds, dbounds = torch.empty(room.pieces, 2, **f64), torch.empty(room.pieces, 2, p, **f64)
+    counts, edge_counts = torch.empty(room.pieces, **i64), torch.empty(ne + 1, **i64)
     launch(
         "pieces_and_counts", ne, spec.kind, spec.centred, ends, th, c, piece_offsets, amin, float(tol),
-        int(max_subdiv), INNER, bounds, dbounds, counts, edge_counts,
+        int(max_subdiv), INNER, bounds, dbounds, counts, edge_counts, room.status, stamp,
     )  # fmt: skip
     edge_offsets = torch.cumsum(edge_counts, 0)
-    nseg = int(edge_offsets[-1])
-    verts, dverts = torch.empty(nc + nseg - ne, 2, **f64), torch.empty(nc + nseg - ne, 2, p, **f64)
-    seg_start, seg_end, seg_edge = (torch.empty(nseg, **i64) for _ in range(3))
-    pv = torch.empty_like(verts)
+    if not room.segments:
+        room.segments = room.ahead(int(edge_offsets[-1]), room.pieces)
+    nv = nc + room.segments - ne
+    verts, dverts = torch.empty(nv, 2, **f64), torch.empty(nv, 2, p, **f64)
+    seg_start, seg_end, seg_edge = (torch.empty(room.segments, **i64) for _ in range(3))
+    pv, seg_offsets = torch.empty_like(verts), torch.empty(ne + 1, **i64)
     launch(
         "place", ne, spec.kind, spec.centred, ends, ea, eb, th, c, piece_offsets, bounds, dbounds, counts,
         edge_offsets, q, dq, float(ws), float(hs), verts, dverts, seg_start, seg_end, seg_edge, pv,
+        seg_offsets, room.status, stamp,
     )  # fmt: skip
-    mesh = PixelMesh(size, verts, seg_start, seg_end, seg_edge, edge_offsets)
-    return DeviceMesh(mesh, pv, dverts, counts)
+    mesh = PixelMesh(size, verts, seg_start, seg_end, seg_edge, seg_offsets)
+    return DeviceMesh(mesh, pv, dverts, counts, room, stamp, incl, offsets)
 
 
-def device_means(dm: DeviceMesh, per_seg: torch.Tensor, unit: float) -> tuple[torch.Tensor, ...]:
+def device_means(dm: DeviceMesh, per_seg: torch.Tensor, unit: float, check: bool) -> tuple[torch.Tensor, ...]:
     """The pixels' means ``(N, h, w)``, areas ``(h, w)`` and areas in sensor units of the device
     mesh ``dm`` from its segments' integrals ``per_seg`` ``(S, N + 1)`` (the exact forward's,
     [`exact_forward`][layoutwarp.kernels.exact.exact_forward]'s per-segment values), in one
-    launch (``unit``: a source pixel's area in sensor units)."""
+    launch (``unit``: a source pixel's area in sensor units; ``check``: a NaN or ±inf mean
+    stamps the room's status, and raises when the host reads it,
+    [`MeshRoom.look`][layoutwarp.kernels.mesh.MeshRoom.look])."""
     (h, w), n = dm.mesh.size, per_seg.shape[1] - 1
     means, area, area_units = per_seg.new_empty(n, h, w), per_seg.new_empty(h, w), per_seg.new_empty(h, w)
-    args = (per_seg, dm.mesh.edge_offsets, float(unit), means, area, area_units)
-    cuda_launch(_cuda_pixel_means, h * w, stream_of(per_seg), *args)
+    args = (per_seg, dm.mesh.edge_offsets, float(unit), means, area, area_units, dm.room.status)
+    cuda_launch(_cuda_pixel_means, h * w, stream_of(per_seg), *args, dm.stamp if check else 0)
     return means, area, area_units
+
+
+def device_status() -> dict[str, object]:
+    """What the device meshes of learnable steps reported since the last call, read now: every
+    device is synchronised first (so call it where the loop waits anyway, e.g. beside
+    ``loss.item()``; a captured CUDA graph's replays report too). Returns ``{"overflowed":
+    bool, "nonfinite": bool, "meshes": [...]}``, a dict per kind of mesh with the pieces and
+    segments the newest needed and its room. ``overflowed``: some mesh outgrew its room and
+    integrated straight chords, coarser than its tolerance: run that step again outside the graph
+    (the room has grown; a graph captured before keeps its buffers, so capture it again).
+    ``nonfinite``: a checked step's input held NaN or Inf. Nothing is raised or warned."""
+    if torch.cuda.is_available() and torch.cuda.is_initialized():
+        torch.cuda.synchronize()
+    meshes = []
+    for room in MESH_ROOMS.values():
+        before = (room.pieces, room.segments)
+        room.seen = [0, 0]  # every stamp is news here
+        values = room.look(tell=False)
+        room.forget()
+        meshes.append({**values, "room": before})
+    return {
+        "overflowed": any(m["overflowed"] for m in meshes),
+        "nonfinite": any(m["nonfinite"] for m in meshes),
+        "meshes": meshes,
+    }
 
 
 def device_theta_gradient(
