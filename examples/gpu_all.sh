@@ -1,6 +1,8 @@
 #!/usr/bin/env bash
 # Every GPU check and figure the docs quote, in one go on a GPU machine that already has torch,
-# numba and numba-cuda (the rest can come as wheels in .whl/, installed to /tmp/site):
+# numba and numba-cuda (the rest can come as wheels in .whl/, installed to /tmp/site; the paper's
+# reference layer needs einops and jaxtyping: `pip download --no-deps -d .whl einops jaxtyping
+# wadler-lindig`):
 #
 #     bash examples/gpu_all.sh [OUTDIR]      # OUTDIR defaults to $OUT, else examples/gpu
 #

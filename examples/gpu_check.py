@@ -1,9 +1,11 @@
 """One command on a fresh GPU machine: the CUDA tests, then every GPU figure the docs quote, printed
 and written to ``examples/gpu/gpu_check.json`` (keys: ``device``, ``torch``, ``numpy``,
-``step_over_gs16`` per family, ``step_over_reference_b1``/``_b4`` (``null``: the paper's reference
-layer is not part of this project; see docs/speed.md), ``fixed_over_pool``, ``physics_overhead``
-(a fraction), ``launches_per_step`` (the profiler's GPU activities; ``launches_counted``:
-`count_launches`, as the tests count them without a GPU), ``first_call_s``,
+``step_over_gs16`` per family, ``captured_step_over_gs16`` (the step captured in a CUDA graph and
+replayed), ``step_over_reference_b1``/``_b4`` (against the paper's reference layer, a 16-sample
+step, where ``../shared/refcode`` is there and imports; ``null`` and ``reference_missing`` where
+not), ``fixed_over_pool``, ``physics_overhead`` (a fraction), ``launches_per_step`` (the
+profiler's GPU activities; ``launches_counted``: `count_launches`, as the tests count them
+without a GPU), ``host_reads`` (`count_host_reads` of a learnable step), ``first_call_s``,
 ``physics_cuda_equals_cpu`` (the share of recorded values equal on both, same seed)).
 
     python examples/gpu_check.py [--no-tests] [--out examples/gpu/gpu_check.json]
@@ -30,7 +32,7 @@ import torch.nn.functional as F
 
 import layoutwarp as lw
 from layoutwarp.experiments.bench import interleaved_times
-from layoutwarp.testing import count_launches
+from layoutwarp.testing import count_host_reads, count_launches
 
 lw.jit.set_mode("wait")  # time the compiled kernels, never the torch path while they compile
 SIZE = (129, 257)
@@ -52,6 +54,36 @@ def paired_ms(fn, anchor, rounds: int = 15) -> tuple[float, float, float]:
     t_fn, t_anchor = interleaved_times([fn, anchor], rounds)
     ratio = float(np.median(np.divide(t_fn, t_anchor)))
     return float(np.median(t_fn)), float(np.median(t_anchor)), ratio
+
+
+def captured(fn):
+    """``fn`` (a step: forward and backward) captured in a CUDA graph after three warm-up calls
+    on a side stream; returns the graph's replay (gradients accumulate in place)."""
+    side = torch.cuda.Stream()
+    side.wait_stream(torch.cuda.current_stream())
+    with torch.cuda.stream(side):
+        for _ in range(3):
+            fn()
+    torch.cuda.current_stream().wait_stream(side)
+    graph = torch.cuda.CUDAGraph()
+    with torch.cuda.graph(graph):
+        fn()
+    return graph.replay
+
+
+def reference_layer() -> tuple[object, str | None]:
+    """The paper's reference layer (``FoveatedSensor`` with its curvilinear deformation, from
+    ``../shared/refcode`` beside the checkout) and ``None``, or ``None`` and why not."""
+    root = Path(__file__).resolve().parents[2] / "shared" / "refcode"
+    if not (root / "sensor").is_dir():
+        return None, f"no reference layer at {root}"
+    sys.path.insert(0, str(root))
+    try:
+        from sensor.deformations import CurvilinearDeformation
+        from sensor.sensor import FoveatedSensor
+    except ImportError as err:  # it needs einops and jaxtyping
+        return None, f"the reference layer does not import: {err}"
+    return (lambda: FoveatedSensor(SIZE, t_init=[0.3, -0.24], spp=16, deform=CurvilinearDeformation())), None
 
 
 def launches(fn, calls: int = 5) -> float:
@@ -136,12 +168,45 @@ def main() -> int:
             f"learnable {name} step {ms:.2f} ms = {ratio:.2f}x a bare grid_sample 16-sample step "
             f"({gs16:.2f} ms)"
         )
-    res["step_over_reference_b1"] = res["step_over_reference_b4"] = None
+
+    def accumulate(layout):  # a step whose gradient accumulates in place: what a graph replays
+        lw.simulate(img, layout, SIZE).sum().backward()
+
+    for name, layout in learnable.items():
+        ms, gs16, ratio = paired_ms(captured(lambda layout=layout: accumulate(layout)), gs16_step)
+        res.setdefault("captured_step_ms", {})[name] = ms
+        res.setdefault("captured_step_over_gs16", {})[name] = ratio
+        print(
+            f"learnable {name} step captured in a CUDA graph {ms:.2f} ms = {ratio:.2f}x the grid_sample step"
+        )
+    make_reference, res["reference_missing"] = reference_layer()
+    for batch in (1, 4):
+        key = f"step_over_reference_b{batch}"
+        res[key] = None
+        if make_reference is None:
+            continue
+        ref, images = make_reference().cuda(), img.expand(batch, -1, -1, -1).contiguous()
+
+        def ref_step(ref=ref, images=images):
+            ref.zero_grad()
+            ref(images).sum().backward()
+
+        def our_step(images=images):
+            curv.zero_grad()
+            lw.simulate(images, curv, SIZE).sum().backward()
+
+        ms, ref_ms, res[key] = paired_ms(our_step, ref_step)
+        res[f"reference_ms_b{batch}"] = ref_ms
+        print(f"curv ± step, batch {batch}: {ms:.2f} ms = {res[key]:.2f}x the reference ({ref_ms:.2f} ms)")
+    if res["reference_missing"]:
+        print("reference layer:", res["reference_missing"])
+    res["host_reads"] = sum(count_host_reads(lambda: step(curv)).values())
     res["launches_per_step"] = launches(lambda: step(curv))
     res["launches_counted"] = sum(count_launches(lambda: step(curv)).values())
     print(
         f"GPU activities per learnable curv step: {res['launches_per_step']:.0f} (profiler), "
-        f"{res['launches_counted']} (count_launches, as tests count them without a GPU)"
+        f"{res['launches_counted']} (count_launches, as tests count them without a GPU); "
+        f"{res['host_reads']} values read back"
     )
     fixed = lw.CurvLayout((0.3, -0.24)).cuda()
     phys = lw.SensorPhysics(

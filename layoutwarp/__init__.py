@@ -63,6 +63,7 @@ FRONT_DOOR = {
     "AreaResampler": "resampler",
     "preprocess_folder": "preprocess",
     "export_layout": "export",
+    "device_status": "kernels.mesh",
 }
 #: The modules loaded together at the first use of any front-door name of theirs (``warmups``
 #: registers the compiled kernels' warm-ups with `layoutwarp.jit`).

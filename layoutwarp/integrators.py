@@ -438,7 +438,8 @@ def _exact(
     ``layout`` (a [`layout_token`][layoutwarp.ops.layout_token]) at ``theta``, float64, over the box
     image ``image`` ``(N, H, W)``; with ``jacobian`` (θ is learned) also the θ-Jacobian of the edge
     integrals ``(N + 1, E, P)`` where the compiled mesh gives it (the backward is then one
-    contraction), and a 0-d flag, 1 where it holds it (0: the backward computes again).
+    contraction), and a 0-d flag on the image's device, 1 where it holds it (0: the backward
+    computes again; only a CPU step holds one, so reading it never waits for a device).
     ``backend``: ``"auto"``, ``"numba"`` or ``"torch"`` (see [`integrate_exact`][]); ``check``:
     raise ``ValueError`` where NaN/Inf reach the means (every source pixel reaches some sensor
     pixel with positive weight, so a bad input value always reaches its output); a device mesh
@@ -459,7 +460,7 @@ def _exact(
         if _keeps_jacobian(image, jacobian)
         else image.new_empty(0, dtype=torch.float64)
     )
-    held = torch.zeros((), dtype=torch.int8)  # on the host: read without waiting for a device
+    held = image.new_zeros((), dtype=torch.int8)  # where the image is: a CUDA graph holds no CPU tensor
     image = image.contiguous()
     if spec is not None and which == "cuda":  # the mesh built where it is used: none crosses the bus
         means, area, areas, dm, incl = _device_exact(spec, theta, image, size, tol, check)
@@ -494,7 +495,7 @@ def _(theta, image, layout, height, width, tol, backend, jacobian, check):
         image.new_empty(n, height, width, dtype=torch.float64),
         image.new_empty(height, width, dtype=torch.float64),
         image.new_empty(jac, dtype=torch.float64),
-        torch.empty((), dtype=torch.int8),
+        image.new_empty((), dtype=torch.int8),
     )
 
 

@@ -31,7 +31,7 @@ from .checks import (
 )
 from .integrators import data_tolerance, green_pieces
 from .kernels.csr import csr_apply_on_device
-from .kernels.device import fall_back, stream_of
+from .kernels.device import device_checks, fall_back, stream_of
 from .labels import labels_to_sensor
 from .layouts import Layout
 from .mesh import PixelMesh, pixel_mesh
@@ -326,14 +326,13 @@ class AreaResampler:
                 measured = (none, none, none, none, 0, 0, 0)
             else:  # the arguments checked before the launch: a bad one is the caller's error
                 measured = device_arguments(physics, self.areas, flat.device, output, seed_value)
+            device_checks(flat.device).look()  # an earlier call's NaN, found on the device, raises
             try:
-                out = self._apply_on_device(flat, measured, physics is not None)
+                out = self._apply_on_device(flat, measured, physics is not None, not allow_nonfinite)
             except Exception as err:  # numba-cuda could not compile or launch it: torch's, said once
                 fall_back(_DEVICE_PRODUCT, err)
             else:
-                if not (allow_nonfinite or all_finite(out)):
-                    raise_nonfinite(images)
-                return out.view(n, *self.size)
+                return out.view(n, *self.size)  # checked on the device: no wait here
         # compiled unless its kernels are still compiling (the noise's draws take a quick build: jit)
         kernel = None
         if flat.device.type == "cpu" and not flat.requires_grad:
@@ -371,14 +370,17 @@ class AreaResampler:
         cols = [self.sparse_t @ flat[k].unsqueeze(1) for k in range(n)]
         return torch.cat(cols, 1).T.reshape(n, *self.src_size).to(grad.dtype).contiguous()
 
-    def _apply_on_device(self, flat: torch.Tensor, measured: tuple, measure: bool) -> torch.Tensor:
+    def _apply_on_device(
+        self, flat: torch.Tensor, measured: tuple, measure: bool, check: bool
+    ) -> torch.Tensor:
         """[`apply`][]'s product on a CUDA device (or in the simulator), the measurement fused
-        where ``measure`` (``measured``: its arguments, [`device_arguments`][]): one launch."""
+        where ``measure`` (``measured``: its arguments, [`device_arguments`][]), NaN and Inf
+        checked there with ``check``: one launch."""
         w = self.sparse
         csr = (w.crow_indices(), w.col_indices(), w.values())
         out = flat.new_empty(flat.shape[0], csr[0].shape[0] - 1)
         x = flat.contiguous()
-        csr_apply_on_device(*csr, x, out, measured, measure, stream_of(x))
+        csr_apply_on_device(*csr, x, out, measured, measure, stream_of(x), check)
         return out
 
     def labels(self, label: np.ndarray, rule: str = "nearest") -> np.ndarray:

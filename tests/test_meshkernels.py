@@ -8,6 +8,7 @@ import pytest
 import torch
 import torch.autograd.forward_ad as fwad
 from conftest import grad_tol, ptx_or_skip
+from torch import Tensor
 
 import layoutwarp as lw
 from layoutwarp.integrators import integrate_exact
@@ -450,6 +451,16 @@ try:
     out["raised"] = ""
 except ValueError as err:
     out["raised"] = str(err)
+fixed = lw.CurvLayout((0.3, -0.2))  # a fixed layout's forward: one kernel, checked there too
+lw.simulate(image[None], fixed, size)
+out["fixed_reads"] = sum(count_host_reads(lambda: lw.simulate(bad[None], fixed, size)).values())
+out["fixed_nan_seen"] = mk.device_status()["nonfinite"]
+lw.simulate(bad[None], fixed, size)
+try:
+    lw.simulate(image[None], fixed, size)
+    out["fixed_raised"] = ""
+except ValueError as err:
+    out["fixed_raised"] = str(err)
 np.savez(sys.argv[2], **out)
 """
 
@@ -462,7 +473,8 @@ def test_a_device_mesh_that_outgrows_its_room_integrates_chords_and_says_so_in_n
     ``pixel_mesh(..., subdivisions=1)`` to rounding), and the next step warns, has grown the
     room, and gives the compiled CPU path's means. Pieces that outgrow theirs give one chord per
     edge (the quads of the deformed corners). `device_status` reports the overflow, and a NaN a
-    checked step met on the device; a later step raises for it."""
+    checked step met on the device; a later step raises for it. A fixed layout's forward checks
+    on the device too, reading nothing back."""
     import os
     import subprocess
     import sys
@@ -501,6 +513,8 @@ def test_a_device_mesh_that_outgrows_its_room_integrates_chords_and_says_so_in_n
     assert bool(got["status_over"]) and not bool(got["status_nan"])
     assert bool(got["nan_seen"])
     assert "held NaN or Inf" in str(got["raised"])
+    assert int(got["fixed_reads"]) == 0 and bool(got["fixed_nan_seen"])
+    assert "held NaN or Inf" in str(got["fixed_raised"])
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
@@ -521,6 +535,86 @@ def test_compiled_path_on_cuda_matches_cpu(family: str):
         grads.append(theta.grad.cpu())
     assert torch.allclose(outs[0], outs[1], rtol=0, atol=1e-6)
     assert torch.allclose(grads[0], grads[1], rtol=1e-6, atol=1e-8)
+
+
+def _cuda_learnable_layer(family: str, rng: np.random.Generator) -> lw.SensorLayer:
+    """A learnable curv ± or fovea layer (learned centre) on the GPU, θ of mixed sign."""
+    th = [float(rng.uniform(0.2, 0.6)), -float(rng.uniform(0.2, 0.6))]
+    if family == "fovea":
+        layout = lw.FoveaLayout(th, center=(0.2, -0.1), learn=True, learn_center=True)
+    else:
+        layout = lw.CurvLayout(th, learn=True)
+    return lw.SensorLayer((33, 47), layout).cuda()
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@pytest.mark.parametrize("family", ["curv", "fovea"])
+def test_a_learnable_step_captured_in_a_cuda_graph_matches_the_uncaptured_step(family: str):
+    """On a GPU: a learnable layer's forward and backward captured in one CUDA graph
+    (``torch.cuda.graph``: capture fails on any wait for the device) and replayed with a new
+    image and a θ moved in place, as an optimizer moves it, give the uncaptured step's values and
+    θ-gradient; `device_status` then reports no overflow."""
+    if not lw.kernels.cuda_available("float32"):
+        pytest.skip("numba's CUDA target does not run here")
+    rng = np.random.default_rng(int(torch.randint(0, 2**31, ())))
+    layer = _cuda_learnable_layer(family, rng)
+    rho = layer.layout.rho
+    images = [torch.rand(2, 3, 150, 200, device="cuda") for _ in range(2)]
+    static = images[0].clone()
+
+    def step() -> tuple[Tensor, Tensor]:
+        out = layer(static)
+        (out * out).mean().backward()
+        return out
+
+    side = torch.cuda.Stream()
+    side.wait_stream(torch.cuda.current_stream())
+    with torch.cuda.stream(side):  # warm-up: the caches, the room, the kernels compiled
+        for _ in range(3):
+            rho.grad = None
+            step()
+    torch.cuda.current_stream().wait_stream(side)
+    graph = torch.cuda.CUDAGraph()
+    rho.grad = None
+    with torch.cuda.graph(graph):
+        static_out = step()
+    for image, scale in zip(images, (1.0, 0.97), strict=True):
+        static.copy_(image)
+        with torch.no_grad():
+            rho.mul_(scale)  # θ moves between steps
+        rho.grad.zero_()
+        graph.replay()
+        captured, captured_grad = static_out.clone(), rho.grad.clone()
+        rho.grad = None
+        eager = step().detach()
+        assert torch.allclose(captured, eager, rtol=0, atol=1e-6)
+        assert torch.allclose(captured_grad, rho.grad, rtol=1e-5, atol=1e-8)
+    assert not lw.device_status()["overflowed"]
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_a_model_holding_a_learnable_layer_compiles_with_reduce_overhead_on_cuda():
+    """On a GPU: ``torch.compile(mode="reduce-overhead")`` (CUDA graphs) over a model holding a
+    learnable `SensorLayer` gives eager's outputs and θ-gradients, step after step."""
+    if not lw.kernels.cuda_available("float32"):
+        pytest.skip("numba's CUDA target does not run here")
+    rng = np.random.default_rng(int(torch.randint(0, 2**31, ())))
+    model = torch.nn.Sequential(_cuda_learnable_layer("curv", rng), torch.nn.Conv2d(3, 4, 3)).cuda()
+    compiled = torch.compile(model, mode="reduce-overhead", fullgraph=True)
+    rho = model[0].layout.rho
+    for _ in range(4):
+        image = torch.rand(2, 3, 150, 200, device="cuda")
+        rho.grad = None
+        out = compiled(image)
+        out.square().mean().backward()
+        got, got_grad = out.detach().clone(), rho.grad.clone()
+        rho.grad = None
+        ref = model(image)
+        ref.square().mean().backward()
+        assert torch.allclose(got, ref.detach(), rtol=0, atol=1e-5)
+        assert torch.allclose(got_grad, rho.grad, rtol=1e-5, atol=1e-8)
+        with torch.no_grad():
+            rho.mul_(0.98)
 
 
 def test_the_compiled_form_reads_a_fixed_centre_again_after_it_changes():

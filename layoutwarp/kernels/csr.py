@@ -3,10 +3,12 @@ the sensor's measurement fused after it."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from .base import inline, parallel, prange, serial
-from .device import cuda_launch
+from .device import cuda_launch, device_checks
 from .noise import measured_value, sensor_measure, stream_origin
 
 __all__ = ["CUDA_KERNELS", "csr_apply", "csr_apply_on_device", "measured_csr_apply"]
@@ -90,7 +92,7 @@ cuda = None  # numba.cuda, bound by the first launch ([`layoutwarp.kernels.devic
 def _cuda_csr_apply(
     indptr: np.ndarray, indices: np.ndarray, data: np.ndarray, x: np.ndarray, out: np.ndarray,
     area_um2: np.ndarray, prnu: np.ndarray, dsnu: np.ndarray, params: np.ndarray, seed: int, noise: int,
-    output: int, measure: bool,
+    output: int, measure: bool, checks: np.ndarray, stamp: int,
 ) -> None:  # fmt: skip
     """One thread per row of ``W``: [`csr_apply`][]'s sums for every plane (read once per four
     planes), written to ``out`` ``(N, R)``, and with ``measure`` then measured
@@ -99,7 +101,8 @@ def _cuda_csr_apply(
     with the sensor's measurement, in one launch on a CUDA device. ``area_um2``, ``prnu``,
     ``dsnu``, ``params``, ``seed``, ``noise``, ``output``: as
     [`sensor_measure`][layoutwarp.kernels.noise.sensor_measure] takes them (read only with
-    ``measure``)."""
+    ``measure``). A sum that is NaN or ±inf writes ``stamp`` to ``checks[0]`` (0: no check;
+    [`DeviceChecks`][layoutwarp.kernels.device.DeviceChecks])."""
     r = cuda.grid(1)
     rows = indptr.shape[0] - 1
     if r < rows:
@@ -110,6 +113,8 @@ def _cuda_csr_apply(
             sums = _csr_row(lo, hi, indices, data, x, k, m)
             for q in range(m):
                 out[k + q, r] = sums[q]
+                if stamp and not math.isfinite(sums[q]):
+                    checks[0] = stamp
                 if measure:  # from the mean as the buffer holds it, as the CPU measures its buffer
                     i, origin = (k + q) * rows + r, stream_origin(seed)
                     out[k + q, r] = measured_value(
@@ -124,17 +129,23 @@ CUDA_KERNELS = {
     "csr_apply": (
         _cuda_csr_apply,
         f"void({_I1}, {_I1}, float32[::1], {_F2}, {_F2}, {_F1}, {_F1}, {_F1}, {_F1}, int64, int64, int64, "
-        "boolean)",
+        f"boolean, {_I1}, int64)",
     ),
 }
 
 
-def csr_apply_on_device(indptr, indices, data, x, out, measured: tuple, measure: bool, stream: int) -> None:
+def csr_apply_on_device(
+    indptr, indices, data, x, out, measured: tuple, measure: bool, stream: int, check: bool = False
+) -> None:
     """[`csr_apply`][] on a CUDA device (or in the simulator), one launch on ``stream``: the CSR
     arrays, the planes ``x`` ``(N, M)`` and ``out`` ``(N, R)`` as tensors there; with
     ``measure``, the means then measured with ``measured`` ``(area_um2, prnu, dsnu, params, seed,
     noise, output)`` as [`measure_on_device`][layoutwarp.kernels.noise.measure_on_device] takes
-    them (without, any arrays of float64 will do: they are not read)."""
+    them (without, any arrays of float64 will do: they are not read). With ``check``, a sum that
+    is NaN or ±inf raises when the host next looks
+    ([`DeviceChecks`][layoutwarp.kernels.device.DeviceChecks]; look before the call)."""
     area_um2, prnu, dsnu, params, seed, noise, output = measured
     args = (indptr, indices, data, x, out, area_um2, prnu, dsnu, params, int(seed), int(noise), int(output))
-    cuda_launch(_cuda_csr_apply, indptr.shape[0] - 1, stream, *args, bool(measure))
+    checks = device_checks(x.device)
+    cuda_launch(_cuda_csr_apply, indptr.shape[0] - 1, stream, *args, bool(measure), checks.status,
+                checks.stamp() if check else 0)  # fmt: skip

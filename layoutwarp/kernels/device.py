@@ -250,6 +250,52 @@ def host_mapped(n: int, device: torch.device) -> np.ndarray:
     return out
 
 
+class DeviceChecks:
+    """The NaN and Inf checks of one device's kernels, answered on the device: a checked launch
+    takes a stamp ([`stamp`][layoutwarp.kernels.device.DeviceChecks.stamp]) and a kernel that
+    meets a value that is not finite writes it to ``status`` (page-locked host memory the device
+    writes directly, [`host_mapped`][]); the host raises when it next looks, without waiting
+    (the next checked call, or [`device_status`][layoutwarp.kernels.mesh.device_status] at once)."""
+
+    def __init__(self, device: torch.device) -> None:
+        self.status = host_mapped(1, device)  # the stamp of the last checked call that met NaN/Inf
+        self.stamps = self.seen = 0
+
+    def stamp(self) -> int:
+        """A checked call's stamp (0 is no check)."""
+        self.stamps += 1
+        return self.stamps
+
+    def look(self, tell: bool = True) -> bool:
+        """Whether a checked call met NaN or Inf since the host last looked; with ``tell``, raise a
+        one-line ``ValueError`` then."""
+        news = int(self.status[0]) > self.seen
+        self.seen = max(self.seen, int(self.status[0]))
+        if news and tell:
+            raise ValueError(
+                "the input of an earlier call on the device held NaN or Inf (found there, read back now); "
+                "clean it or pass allow_nonfinite=True"
+            )
+        return news
+
+    def forget(self) -> None:
+        """Clear the stamp (once the device is idle: nothing writes it meanwhile)."""
+        self.status[0] = 0
+        self.seen = 0
+
+
+#: Every device's [`DeviceChecks`][], by device.
+CHECKS: dict[str, DeviceChecks] = {}
+
+
+def device_checks(device: torch.device) -> DeviceChecks:
+    """``device``'s [`DeviceChecks`][] (made at its first checked call)."""
+    key = str(device)
+    if key not in CHECKS:
+        CHECKS[key] = DeviceChecks(device)
+    return CHECKS[key]
+
+
 def _device_array(a: object) -> object:
     """A launch argument as numba takes it: a device array for anything with
     ``__cuda_array_interface__``, a CPU tensor's numpy view (the simulator's arrays), else as is.

@@ -29,7 +29,7 @@ from __future__ import annotations
 import functools
 import math
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -38,7 +38,7 @@ from ..caches import LRU, ObjectMemo, version_of
 from ..layouts import CurvLayout, EllipticLayout, FoveaLayout, Layout
 from ..mesh import INNER, MeshTopology, PixelMesh
 from .base import CHUNK, available, inline, one_thread_below, parallel, prange, serial, threads
-from .device import CUDA_THREADS, cuda_launch, host_mapped, stream_of
+from .device import CHECKS, CUDA_THREADS, cuda_launch, device_checks, host_mapped, stream_of
 from .exact import BLOCK, block_prefix, row_offsets, segment_moments, segment_weights
 
 __all__ = [
@@ -1185,9 +1185,8 @@ def _cuda_amin(
 
 #: The slots of a [`MeshRoom`][]'s status, in page-locked host memory its kernels write directly:
 #: the pieces and the segments the newest mesh needed, and the stamp of the last mesh that
-#: outgrew its room and of the last checked one whose means held NaN or ±inf (0: none since the
-#: host looked).
-PIECES, SEGMENTS, OVERFLOW, NONFINITE = range(4)
+#: outgrew its room (0: none since the host looked).
+PIECES, SEGMENTS, OVERFLOW = range(3)
 
 
 def _cuda_pieces_and_counts(
@@ -1307,14 +1306,15 @@ def _pixel_integral(
 
 def _cuda_pixel_means(
     per_seg: np.ndarray, edge_offsets: np.ndarray, unit: float, means: np.ndarray, area: np.ndarray,
-    area_units: np.ndarray, status: np.ndarray, stamp: int,
+    area_units: np.ndarray, checks: np.ndarray, stamp: int,
 ) -> None:  # fmt: skip
     """One thread per pixel: its boundary integrals from its four edges' segments (each edge's
     sum in order, combined as [`MeshTopology.combine`][layoutwarp.mesh.MeshTopology.combine]
     does), its means ``(N, h, w)`` (the integrals over the last, the area) and the area, as it is
     and in sensor units (times ``unit``): the edge sums, the combination and the division in one
-    pass. A mean that is NaN or ±inf writes ``stamp`` to the ``status``'s ``NONFINITE`` slot
-    (the finiteness check, on the device; a ``stamp`` of 0 checks nothing)."""
+    pass. A mean that is NaN or ±inf writes ``stamp`` to ``checks[0]`` (the finiteness check,
+    on the device, [`DeviceChecks`][layoutwarp.kernels.device.DeviceChecks]; a ``stamp`` of 0
+    checks nothing)."""
     i = cuda.grid(1)
     n, h, w = means.shape
     if i < h * w:
@@ -1325,7 +1325,7 @@ def _cuda_pixel_means(
             m = _pixel_integral(per_seg, edge_offsets, r, c, w, (h + 1) * w, k) / a
             means[k, r, c] = m
             if stamp and not math.isfinite(m):
-                status[NONFINITE] = stamp
+                checks[0] = stamp
 
 
 @inline
@@ -1459,18 +1459,18 @@ class MeshRoom:
     in ([`build_mesh_device`][]): their pieces and segments, sized by the first mesh (the one
     time the host reads how many it needs) with [`HEADROOM`][], and grown when a later mesh came
     within ``1 / HEADROOM`` of them. The kernels write what a mesh needed straight into
-    ``status``, page-locked host memory mapped into the device's address space (no copy
-    launched, nothing waited for; a CUDA graph's replays write it too), which the host reads
-    whenever it builds the next mesh. So a step allocates without waiting for the device, and a
-    captured step keeps its buffers. A mesh that outgrows its room is built with straight chords
-    instead (valid, but coarser than the tolerance) and stamps the status:
-    [`device_status`][] reads it at once."""
+    ``status``, page-locked host memory mapped into the device's address space
+    ([`host_mapped`][layoutwarp.kernels.device.host_mapped]: no copy launched, nothing waited
+    for; a CUDA graph's replays write it too), which the host reads whenever it builds the next
+    mesh. So a step allocates without waiting for the device, and a captured step keeps its
+    buffers. A mesh that outgrows its room is built with straight chords instead (valid, but
+    coarser than the tolerance) and stamps the status: [`device_status`][] reads it at once."""
 
-    status: np.ndarray  # the slots PIECES .. NONFINITE, int64, written by the kernels
+    status: np.ndarray  # the slots PIECES, SEGMENTS, OVERFLOW, int64, written by the kernels
     pieces: int = 0
     segments: int = 0
     stamps: int = 0  # the meshes built: the next one's stamp
-    seen: list = field(default_factory=lambda: [0, 0])  # the overflow and NaN stamps taken in
+    seen: int = 0  # the overflow stamps taken in
 
     def ahead(self, need: int, least: int) -> int:
         """Room for ``need`` items with headroom, at least ``least``."""
@@ -1483,13 +1483,11 @@ class MeshRoom:
 
     def look(self, tell: bool = True) -> dict[str, int | bool]:
         """Take in what the kernels wrote so far, without waiting for them: grow the room a mesh
-        came close to and, with ``tell``, warn where one outgrew it and raise where a checked
-        step's means held NaN or ±inf (its input held some). Returns the status' values and
-        whether each stamp is news."""
-        pieces, segments, over, bad = (int(v) for v in self.status[:4])
-        news = over > self.seen[0], bad > self.seen[1]
-        self.seen = [max(over, self.seen[0]), max(bad, self.seen[1])]
-        if news[0] and tell:
+        came close to and, with ``tell``, warn where one outgrew it. Returns the status' values
+        and whether an overflow is news."""
+        pieces, segments, over = (int(v) for v in self.status[:3])
+        news, self.seen = over > self.seen, max(over, self.seen)
+        if news and tell:
             warnings.warn(
                 f"a learnable step's pixel mesh outgrew its room ({pieces} pieces, {segments} segments for "
                 f"{self.pieces} and {self.segments}): that step integrated straight chords, coarser than its "
@@ -1502,17 +1500,12 @@ class MeshRoom:
         if segments * HEADROOM > self.segments:
             self.segments = self.ahead(segments, self.segments)
         self.segments = max(self.segments, self.pieces)  # room for a chord a piece
-        if news[1] and tell:
-            raise ValueError(
-                "the image of an earlier learnable step on the device held NaN or Inf (found there, read "
-                "back now); clean it or pass allow_nonfinite=True"
-            )
-        return {"pieces": pieces, "segments": segments, "overflowed": news[0], "nonfinite": news[1]}
+        return {"pieces": pieces, "segments": segments, "overflowed": news}
 
     def forget(self) -> None:
-        """Clear the stamps (once the device is idle: nothing writes them meanwhile)."""
-        self.status[OVERFLOW] = self.status[NONFINITE] = 0
-        self.seen = [0, 0]
+        """Clear the stamp (once the device is idle: nothing writes it meanwhile)."""
+        self.status[OVERFLOW] = 0
+        self.seen = 0
 
 
 #: Every [`MeshRoom`][], by layout kind and centre, sizes, tolerance, θ's length and device.
@@ -1581,7 +1574,7 @@ def build_mesh_device(
     p, ne, nc = th.numel(), ends.shape[0], uniform.shape[0]
     f64, i64 = {"dtype": torch.float64, "device": dev}, {"dtype": torch.int64, "device": dev}
     key = (spec, size, float(tol), src_size, p, str(dev), max_subdiv)
-    room = MESH_ROOMS.get(key, lambda: MeshRoom(host_mapped(4, dev)))
+    room = MESH_ROOMS.get(key, lambda: MeshRoom(host_mapped(3, dev)))
     room.look()
     stamp = room.stamp()
 
@@ -1630,38 +1623,39 @@ def device_means(dm: DeviceMesh, per_seg: torch.Tensor, unit: float, check: bool
     mesh ``dm`` from its segments' integrals ``per_seg`` ``(S, N + 1)`` (the exact forward's,
     [`exact_forward`][layoutwarp.kernels.exact.exact_forward]'s per-segment values), in one
     launch (``unit``: a source pixel's area in sensor units; ``check``: a NaN or ±inf mean
-    stamps the room's status, and raises when the host reads it,
-    [`MeshRoom.look`][layoutwarp.kernels.mesh.MeshRoom.look])."""
+    raises when the host next looks, [`DeviceChecks`][layoutwarp.kernels.device.DeviceChecks];
+    an earlier call's raises now)."""
     (h, w), n = dm.mesh.size, per_seg.shape[1] - 1
     means, area, area_units = per_seg.new_empty(n, h, w), per_seg.new_empty(h, w), per_seg.new_empty(h, w)
-    args = (per_seg, dm.mesh.edge_offsets, float(unit), means, area, area_units, dm.room.status)
-    cuda_launch(_cuda_pixel_means, h * w, stream_of(per_seg), *args, dm.stamp if check else 0)
+    checks = device_checks(per_seg.device)
+    checks.look()
+    args = (per_seg, dm.mesh.edge_offsets, float(unit), means, area, area_units, checks.status)
+    cuda_launch(_cuda_pixel_means, h * w, stream_of(per_seg), *args, checks.stamp() if check else 0)
     return means, area, area_units
 
 
 def device_status() -> dict[str, object]:
-    """What the device meshes of learnable steps reported since the last call, read now: every
-    device is synchronised first (so call it where the loop waits anyway, e.g. beside
-    ``loss.item()``; a captured CUDA graph's replays report too). Returns ``{"overflowed":
-    bool, "nonfinite": bool, "meshes": [...]}``, a dict per kind of mesh with the pieces and
-    segments the newest needed and its room. ``overflowed``: some mesh outgrew its room and
-    integrated straight chords, coarser than its tolerance: run that step again outside the graph
-    (the room has grown; a graph captured before keeps its buffers, so capture it again).
-    ``nonfinite``: a checked step's input held NaN or Inf. Nothing is raised or warned."""
+    """What the GPU reported since the last call, read now: every device is synchronised first
+    (so call it where the loop waits anyway, e.g. beside ``loss.item()``; a captured CUDA graph's
+    replays report too). Returns ``{"overflowed": bool, "nonfinite": bool, "meshes": [...]}``,
+    a dict per kind of learnable mesh with the pieces and segments the newest needed and its
+    room. ``overflowed``: some mesh outgrew its room and integrated straight chords, coarser than
+    its tolerance: run that step again outside the graph (the room has grown; a graph captured
+    before keeps its buffers, so capture it again). ``nonfinite``: a checked call's input held
+    NaN or Inf. Nothing is raised or warned."""
     if torch.cuda.is_available() and torch.cuda.is_initialized():
         torch.cuda.synchronize()
     meshes = []
     for room in MESH_ROOMS.values():
-        before = (room.pieces, room.segments)
-        room.seen = [0, 0]  # every stamp is news here
-        values = room.look(tell=False)
+        before, room.seen = (room.pieces, room.segments), 0  # every stamp is news here
+        meshes.append({**room.look(tell=False), "room": before})
         room.forget()
-        meshes.append({**values, "room": before})
-    return {
-        "overflowed": any(m["overflowed"] for m in meshes),
-        "nonfinite": any(m["nonfinite"] for m in meshes),
-        "meshes": meshes,
-    }
+    nonfinite = False
+    for checks in CHECKS.values():
+        checks.seen = 0
+        nonfinite = checks.look(tell=False) or nonfinite
+        checks.forget()
+    return {"overflowed": any(m["overflowed"] for m in meshes), "nonfinite": nonfinite, "meshes": meshes}
 
 
 def device_theta_gradient(
