@@ -69,10 +69,6 @@ class LRU(Generic[V]):
         """The keys held, least recently used first."""
         return list(self._items)
 
-    def values(self) -> list[V]:
-        """The results held, least recently used first."""
-        return list(self._items.values())
-
     def __len__(self) -> int:
         return len(self._items)
 

@@ -326,7 +326,8 @@ class AreaResampler:
                 measured = (none, none, none, none, 0, 0, 0)
             else:  # the arguments checked before the launch: a bad one is the caller's error
                 measured = device_arguments(physics, self.areas, flat.device, output, seed_value)
-            device_checks(flat.device).look()  # an earlier call's NaN, found on the device, raises
+            if not allow_nonfinite:  # an earlier checked call's NaN, found on the device, raises
+                device_checks(flat.device).look()
             try:
                 out = self._apply_on_device(flat, measured, physics is not None, not allow_nonfinite)
             except Exception as err:  # numba-cuda could not compile or launch it: torch's, said once

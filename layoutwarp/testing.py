@@ -71,7 +71,9 @@ def count_host_reads(fn: Callable[[], object]) -> Counter[str]:
     a GPU where the device path runs on the CPU (numba's CUDA simulator), so a CPU tensor's read
     counts as a device tensor's would; not counted: the arrays a kernel launch hands to the
     simulator, and reads of host memory the kernels write directly
-    ([`host_mapped`][layoutwarp.kernels.device.host_mapped]: no wait)."""
+    ([`host_mapped`][layoutwarp.kernels.device.host_mapped]: no wait). A lower bound: a copy to
+    the CPU by ``to`` or ``copy_``, and operators whose output size depends on values
+    (``nonzero``, masks, ``unique``), also wait, and are not counted."""
     import sys
 
     from torch.overrides import TorchFunctionMode

@@ -421,7 +421,7 @@ def step():
 def means():
     return step().detach().numpy()
 means()  # a nearly straight mesh: a small room
-room = mk.MESH_ROOMS.values()[-1]
+room = list(mk.MESH_ROOMS.values())[-1]
 layout.set_theta(case["theta"])
 out = {}
 with warnings.catch_warnings(record=True) as caught:
@@ -441,13 +441,15 @@ with warnings.catch_warnings():
     out["quads"] = means()  # outgrows its pieces' room: one chord an edge
 status = mk.device_status()
 out["status_over"], out["status_nan"] = status["overflowed"], status["nonfinite"]
+out["after_quads"] = means()  # the pieces' room grew, and the segments' was measured again
 bad = image.clone()
 bad[0, 2, 3] = float("nan")
 lw.simulate(bad[None], layout, size, tol=tol, allow_nonfinite=False)  # checked on the device: no wait
 out["nan_seen"] = mk.device_status()["nonfinite"]
 lw.simulate(bad[None], layout, size, tol=tol, allow_nonfinite=False)
+means()  # unchecked (integrate_exact's default): raises nothing
 try:
-    means()
+    lw.simulate(image[None], layout, size, tol=tol)  # checked (simulate's default)
     out["raised"] = ""
 except ValueError as err:
     out["raised"] = str(err)
@@ -472,7 +474,8 @@ def test_a_device_mesh_that_outgrows_its_room_integrates_chords_and_says_so_in_n
     host read), integrates one straight chord per smooth piece (the means of
     ``pixel_mesh(..., subdivisions=1)`` to rounding), and the next step warns, has grown the
     room, and gives the compiled CPU path's means. Pieces that outgrow theirs give one chord per
-    edge (the quads of the deformed corners). `device_status` reports the overflow, and a NaN a
+    edge (the quads of the deformed corners), and the step after it is exact again.
+    `device_status` reports the overflow, and a NaN a
     checked step met on the device; a later step raises for it. A fixed layout's forward checks
     on the device too, reading nothing back."""
     import os
@@ -511,6 +514,7 @@ def test_a_device_mesh_that_outgrows_its_room_integrates_chords_and_says_so_in_n
     assert bool(got["status_chords"]) and not bool(got["status_clean"])
     assert np.abs(got["quads"] - by_quads).max() <= 1e-12 * scale
     assert bool(got["status_over"]) and not bool(got["status_nan"])
+    assert np.abs(got["after_quads"] - exact).max() <= 1e-12 * scale
     assert bool(got["nan_seen"])
     assert "held NaN or Inf" in str(got["raised"])
     assert int(got["fixed_reads"]) == 0 and bool(got["fixed_nan_seen"])
@@ -578,17 +582,17 @@ def test_a_learnable_step_captured_in_a_cuda_graph_matches_the_uncaptured_step(f
     rho.grad = None
     with torch.cuda.graph(graph):
         static_out = step()
+    static_grad = rho.grad  # the graph's own: each replay writes it
     for image, scale in zip(images, (1.0, 0.97), strict=True):
         static.copy_(image)
         with torch.no_grad():
             rho.mul_(scale)  # θ moves between steps
-        rho.grad.zero_()
         graph.replay()
-        captured, captured_grad = static_out.clone(), rho.grad.clone()
-        rho.grad = None
-        eager = step().detach()
-        assert torch.allclose(captured, eager, rtol=0, atol=1e-6)
-        assert torch.allclose(captured_grad, rho.grad, rtol=1e-5, atol=1e-8)
+        captured, captured_grad = static_out.clone(), static_grad.clone()
+        eager = layer(static)
+        (eager_grad,) = torch.autograd.grad((eager * eager).mean(), rho)
+        assert torch.allclose(captured, eager.detach(), rtol=0, atol=1e-6)
+        assert torch.allclose(captured_grad, eager_grad, rtol=1e-5, atol=1e-8)
     assert not lw.device_status()["overflowed"]
 
 
@@ -600,6 +604,7 @@ def test_a_model_holding_a_learnable_layer_compiles_with_reduce_overhead_on_cuda
         pytest.skip("numba's CUDA target does not run here")
     rng = np.random.default_rng(int(torch.randint(0, 2**31, ())))
     model = torch.nn.Sequential(_cuda_learnable_layer("curv", rng), torch.nn.Conv2d(3, 4, 3)).cuda()
+    torch._dynamo.utils.counters.clear()
     compiled = torch.compile(model, mode="reduce-overhead", fullgraph=True)
     rho = model[0].layout.rho
     for _ in range(4):
@@ -615,6 +620,7 @@ def test_a_model_holding_a_learnable_layer_compiles_with_reduce_overhead_on_cuda
         assert torch.allclose(got_grad, rho.grad, rtol=1e-5, atol=1e-8)
         with torch.no_grad():
             rho.mul_(0.98)
+    assert not torch._dynamo.utils.counters["inductor"]["cudagraph_skips"]  # CUDA graphs were used
 
 
 def test_the_compiled_form_reads_a_fixed_centre_again_after_it_changes():

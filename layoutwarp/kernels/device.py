@@ -236,14 +236,14 @@ def cuda_launch(name: str | Callable, count: int, stream: int, *args) -> None:
 
 
 def host_mapped(n: int, device: torch.device) -> np.ndarray:
-    """``n`` int64 zeros in page-locked host memory mapped into ``device``'s address space: a
-    kernel there writes them directly (no copy launched; a CUDA graph's replays write them too),
-    and the host reads them whenever it likes, without waiting (numba's simulator: a plain
-    array)."""
+    """``n`` int64 zeros in page-locked host memory mapped into ``device``'s address space (in
+    its context): a kernel there writes them directly (no copy launched; a CUDA graph's replays
+    write them too), and the host reads them whenever it likes, without waiting (numba's
+    simulator: a plain array). Kept for the life of the process by its callers."""
     _import_cuda()
     if device.type == "cuda" and not simulated():
         with cuda.gpus[device.index or 0]:
-            out = cuda.mapped_array(n, dtype=np.int64, portable=True)
+            out = cuda.mapped_array(n, dtype=np.int64)
     else:
         out = cuda.mapped_array(n, dtype=np.int64)
     out[:] = 0

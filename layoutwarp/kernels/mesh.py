@@ -34,7 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from ..caches import LRU, ObjectMemo, version_of
+from ..caches import ObjectMemo, version_of
 from ..layouts import CurvLayout, EllipticLayout, FoveaLayout, Layout
 from ..mesh import INNER, MeshTopology, PixelMesh
 from .base import CHUNK, available, inline, one_thread_below, parallel, prange, serial, threads
@@ -1455,7 +1455,7 @@ HEADROOM = 1.25
 
 @dataclass
 class MeshRoom:
-    """The room the device meshes of one learnable layout, size, tolerance and source are built
+    """The room the device meshes of one learnable layout, sensor size and tolerance are built
     in ([`build_mesh_device`][]): their pieces and segments, sized by the first mesh (the one
     time the host reads how many it needs) with [`HEADROOM`][], and grown when a later mesh came
     within ``1 / HEADROOM`` of them. The kernels write what a mesh needed straight into
@@ -1464,7 +1464,9 @@ class MeshRoom:
     for; a CUDA graph's replays write it too), which the host reads whenever it builds the next
     mesh. So a step allocates without waiting for the device, and a captured step keeps its
     buffers. A mesh that outgrows its room is built with straight chords instead (valid, but
-    coarser than the tolerance) and stamps the status: [`device_status`][] reads it at once."""
+    coarser than the tolerance) and stamps the status: [`device_status`][] reads it at once.
+    A captured graph's replays all write the stamp of the capture: [`device_status`][], which
+    clears it, tells of each; [`look`][layoutwarp.kernels.mesh.MeshRoom.look] of the first."""
 
     status: np.ndarray  # the slots PIECES, SEGMENTS, OVERFLOW, int64, written by the kernels
     pieces: int = 0
@@ -1488,18 +1490,22 @@ class MeshRoom:
         pieces, segments, over = (int(v) for v in self.status[:3])
         news, self.seen = over > self.seen, max(over, self.seen)
         if news and tell:
+            need = f"{pieces} pieces" if pieces > self.pieces else f"{segments} segments"
             warnings.warn(
-                f"a learnable step's pixel mesh outgrew its room ({pieces} pieces, {segments} segments for "
-                f"{self.pieces} and {self.segments}): that step integrated straight chords, coarser than its "
+                f"a learnable step's pixel mesh outgrew its room ({need} for {self.pieces} and "
+                f"{self.segments} segments): that step integrated straight chords, coarser than its "
                 "tolerance; the room has grown (layoutwarp.device_status() tells at once)",
                 RuntimeWarning,
                 stacklevel=5,
             )
+        if pieces > self.pieces:  # the pieces outgrew their room: the segments went uncounted,
+            self.segments = 0  # so the next mesh reads its total (once)
         if pieces * HEADROOM > self.pieces:
             self.pieces = self.ahead(pieces, self.pieces)
-        if segments * HEADROOM > self.segments:
+        if self.segments and segments * HEADROOM > self.segments:
             self.segments = self.ahead(segments, self.segments)
-        self.segments = max(self.segments, self.pieces)  # room for a chord a piece
+        if self.segments:
+            self.segments = max(self.segments, self.pieces)  # room for a chord a piece
         return {"pieces": pieces, "segments": segments, "overflowed": news}
 
     def forget(self) -> None:
@@ -1508,17 +1514,21 @@ class MeshRoom:
         self.seen = 0
 
 
-#: Every [`MeshRoom`][], by layout kind and centre, sizes, tolerance, θ's length and device.
-MESH_ROOMS: LRU[MeshRoom] = LRU("device mesh rooms", 32)
+#: Every [`MeshRoom`][], by layout kind and centre, sensor size, tolerance, θ's length and device
+#: (the source's size changes no count). Never let go of: a captured CUDA graph writes its
+#: room's status for as long as it lives (a few bytes a room).
+MESH_ROOMS: dict[tuple, MeshRoom] = {}
 
 
 @dataclass
 class DeviceMesh:
     """A compiled mesh built where its θ lives ([`build_mesh_device`][]), as torch tensors
     there: the [`PixelMesh`][] (its segment arrays as long as its room, the room left over holding
-    segments of no length), its vertices in pixel units of the source (clamped to it), every
-    vertex's θ-derivative ``(V, 2, P)``, every smooth piece's segment count (as
-    [`CompiledMesh`][] has them), the room it was built in and its stamp there, and the source
+    segments of no length), its vertices in pixel units of the source (clamped to it) and every
+    vertex's θ-derivative ``(V, 2, P)`` (the rows past the mesh's vertices are not written),
+    every smooth piece's segment count (as [`CompiledMesh`][] has them, in the first
+    ``status[PIECES]`` rows; not written where the pieces outgrew their room, and not the mesh's
+    where its segments did), the room it was built in and its stamp there, and the source
     image's prefix table and block offsets
     ([`prefix_tables`][layoutwarp.kernels.exact.prefix_tables], built in the same launches)."""
 
@@ -1561,8 +1571,9 @@ def build_mesh_device(
     for its item) and two cumulative sums, so no mesh crosses the bus: at 2048x1024 → 257x129 a
     fovea mesh is about 50 MB. The first two kernels also build the prefix table of the source
     ``image`` ``(N, H, W)`` (contiguous, on the same device; ``None``: none). The buffers are
-    its [`MeshRoom`][]'s: the host reads the mesh's totals only for the first mesh of its kind,
-    and never waits for the device after that. A
+    its [`MeshRoom`][]'s: the host reads the mesh's totals only for the first mesh of its kind
+    (and its segments' after a mesh whose pieces outgrew their room, which counted none), and
+    never waits for the device otherwise. A
     ``theta`` on the CPU runs the same kernels in numba's CUDA simulator
     (``NUMBA_ENABLE_CUDASIM=1``), which is how they are tested without a GPU."""
     dev = theta.device
@@ -1573,8 +1584,10 @@ def build_mesh_device(
     c = _device_centre(spec.center, str(dev))
     p, ne, nc = th.numel(), ends.shape[0], uniform.shape[0]
     f64, i64 = {"dtype": torch.float64, "device": dev}, {"dtype": torch.int64, "device": dev}
-    key = (spec, size, float(tol), src_size, p, str(dev), max_subdiv)
-    room = MESH_ROOMS.get(key, lambda: MeshRoom(host_mapped(3, dev)))
+    key = (spec, size, float(tol), p, str(dev), max_subdiv)
+    if key not in MESH_ROOMS:
+        MESH_ROOMS[key] = MeshRoom(host_mapped(3, dev))
+    room = MESH_ROOMS[key]
     room.look()
     stamp = room.stamp()
 
@@ -1603,7 +1616,7 @@ def build_mesh_device(
         int(max_subdiv), INNER, bounds, dbounds, counts, edge_counts, room.status, stamp,
     )  # fmt: skip
     edge_offsets = torch.cumsum(edge_counts, 0)
-    if not room.segments:
+    if not room.segments:  # the first mesh, or one after the pieces outgrew theirs: read, once
         room.segments = room.ahead(int(edge_offsets[-1]), room.pieces)
     nv = nc + room.segments - ne
     verts, dverts = torch.empty(nv, 2, **f64), torch.empty(nv, 2, p, **f64)
@@ -1628,7 +1641,8 @@ def device_means(dm: DeviceMesh, per_seg: torch.Tensor, unit: float, check: bool
     (h, w), n = dm.mesh.size, per_seg.shape[1] - 1
     means, area, area_units = per_seg.new_empty(n, h, w), per_seg.new_empty(h, w), per_seg.new_empty(h, w)
     checks = device_checks(per_seg.device)
-    checks.look()
+    if check:
+        checks.look()
     args = (per_seg, dm.mesh.edge_offsets, float(unit), means, area, area_units, checks.status)
     cuda_launch(_cuda_pixel_means, h * w, stream_of(per_seg), *args, checks.stamp() if check else 0)
     return means, area, area_units
@@ -1644,9 +1658,10 @@ def device_status() -> dict[str, object]:
     before keeps its buffers, so capture it again). ``nonfinite``: a checked call's input held
     NaN or Inf. Nothing is raised or warned."""
     if torch.cuda.is_available() and torch.cuda.is_initialized():
-        torch.cuda.synchronize()
+        for index in range(torch.cuda.device_count()):
+            torch.cuda.synchronize(index)
     meshes = []
-    for room in MESH_ROOMS.values():
+    for room in list(MESH_ROOMS.values()):
         before, room.seen = (room.pieces, room.segments), 0  # every stamp is news here
         meshes.append({**room.look(tell=False), "room": before})
         room.forget()
