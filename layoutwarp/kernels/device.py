@@ -219,8 +219,10 @@ def cuda_launch(name: str | Callable, count: int, stream: int, *args) -> None:
     [`exact_forward`][layoutwarp.kernels.exact.exact_forward]; ``"backward"`` (segment) does
     [`exact_backward`][layoutwarp.kernels.exact.exact_backward], each step for step as on the
     CPU. Array arguments are torch CUDA tensors or numba device arrays (anything with
-    ``__cuda_array_interface__``), read and written in place. Kernels compile on first use and
-    are cached on disk. Each launch is counted in [`LAUNCHES`][]."""
+    ``__cuda_array_interface__``), read and written in place; the launch runs in the context of
+    the device of the first torch tensor among them (a second GPU's tensors, as a ``torchrun``
+    rank has them, launch on that GPU). Kernels compile on first use and are cached on disk. Each
+    launch is counted in [`LAUNCHES`][]."""
     _import_cuda()
     if name not in _CUDA_KERNELS:
         _CUDA_KERNELS[name] = cuda.jit(cache=True)(_kernel_source(name))
@@ -228,11 +230,13 @@ def cuda_launch(name: str | Callable, count: int, stream: int, *args) -> None:
     if count == 0:
         return
     LAUNCHES[getattr(name, "__name__", name)] += 1
-    arrays = [_device_array(a) for a in args]
-    on = cuda.external_stream(stream) if stream else 0  # 0: the default stream, as numba takes it
-    with warnings.catch_warnings():  # numba warns of low occupancy on small meshes: not the user's concern
-        warnings.filterwarnings("ignore", message=".*GPU under-utilization")
-        _CUDA_KERNELS[name][(count + CUDA_THREADS - 1) // CUDA_THREADS, CUDA_THREADS, on](*arrays)
+    index = next((a.device.index for a in args if getattr(a, "is_cuda", False)), None)
+    with cuda.gpus[index] if index and not simulated() else contextlib.nullcontext():
+        arrays = [_device_array(a) for a in args]
+        on = cuda.external_stream(stream) if stream else 0  # 0: the default stream, as numba takes it
+        with warnings.catch_warnings():  # numba warns of low occupancy on small meshes
+            warnings.filterwarnings("ignore", message=".*GPU under-utilization")
+            _CUDA_KERNELS[name][(count + CUDA_THREADS - 1) // CUDA_THREADS, CUDA_THREADS, on](*arrays)
 
 
 def host_mapped(n: int, device: torch.device) -> np.ndarray:
