@@ -463,9 +463,9 @@ def _exact(
     held = image.new_zeros((), dtype=torch.int8)  # where the image is: a CUDA graph holds no CPU tensor
     image = image.contiguous()
     if spec is not None and which == "cuda":  # the mesh built where it is used: none crosses the bus
-        means, area, areas, dm, incl = _device_exact(spec, theta, image, size, tol, check)
+        means, area, areas, dm = _device_exact(spec, theta, image, size, tol, check)
         if jacobian:  # the device mesh kept for the backward (the entry holds the means: their
-            DEVICE_MESHES[means.data_ptr()] = (means, dm, incl, area)  # memory is not reused meanwhile)
+            DEVICE_MESHES[means.data_ptr()] = (means, dm, area)  # memory is not reused meanwhile)
             while len(DEVICE_MESHES) > 4:
                 DEVICE_MESHES.popitem(last=False)
         return means, areas, no_jac, held  # checked on the device: no wait here
@@ -505,8 +505,8 @@ def _keeps_jacobian(image: Tensor, jacobian: bool) -> bool:
     return jacobian and not runs_on_device(image)
 
 
-#: The device meshes of the last four learnable forwards on a CUDA device, with their means,
-#: prefix tables and areas, by the address of their means: the backward takes its forward's
+#: The device meshes of the last four learnable forwards on a CUDA device (with their images'
+#: prefix tables), their means and areas, by the address of their means: the backward takes its forward's
 #: rather than building the mesh again (where a compiled graph copied the means, it builds it).
 DEVICE_MESHES: OrderedDict[int, tuple] = OrderedDict()
 
@@ -514,14 +514,14 @@ DEVICE_MESHES: OrderedDict[int, tuple] = OrderedDict()
 def _device_exact(
     spec: MeshSpec, theta: Tensor, image: Tensor, size: tuple[int, int], tol: float, check: bool = False
 ) -> tuple:
-    """The device mesh of ``spec`` at ``theta``, its integrals over ``image`` and the prefix
-    table: ``(means, areas in source pixels, areas in sensor units, mesh, table)``."""
+    """The device mesh of ``spec`` at ``theta`` (with ``image``'s prefix table) and its integrals
+    over ``image``: ``(means, areas in source pixels, areas in sensor units, mesh)``."""
     dm = build_mesh_device(
         spec, size, theta.detach().to(image.device), tol, tuple(image.shape[-2:]), image=image
     )
     per_seg = _cuda_per_segment(dm.pixel_vertices, dm.mesh, dm.incl, dm.offsets)
     means, area, areas = device_means(dm, per_seg, _unit(image), check)
-    return means, area, areas, dm, dm.incl
+    return means, area, areas, dm
 
 
 def _mesh_exact(
@@ -578,11 +578,11 @@ def _exact_backward(
     if spec is not None:  # the forward's device mesh, else built again (its sizes live on the device)
         kept = DEVICE_MESHES.pop(means.data_ptr(), None)
         if kept is None:
-            _, area, _, dm, incl = _device_exact(spec, theta, image.contiguous(), size, tol)
+            _, area, _, dm = _device_exact(spec, theta, image.contiguous(), size, tol)
         else:
-            _, dm, incl, area = kept
+            _, dm, area = kept
         g_means = torch.zeros_like(means) if grad_means is None else grad_means
-        args = (incl, means, area, g_means, grad_areas, _unit(image), tuple(image.shape[-2:]))
+        args = (means, area, g_means, grad_areas, _unit(image), tuple(image.shape[-2:]))
         return device_theta_gradient(dm, *args).to(theta), image.new_empty(0)
     with ops.autograd_inside():
         th = theta.detach().requires_grad_(theta_grad)  # the forward's mesh: built as it was

@@ -74,8 +74,6 @@ def count_host_reads(fn: Callable[[], object]) -> Counter[str]:
     ([`host_mapped`][layoutwarp.kernels.device.host_mapped]: no wait). A lower bound: a copy to
     the CPU by ``to`` or ``copy_``, and operators whose output size depends on values
     (``nonzero``, masks, ``unique``), also wait, and are not counted."""
-    import sys
-
     from torch.overrides import TorchFunctionMode
 
     counts: Counter[str] = Counter()

@@ -11,6 +11,8 @@ import hashlib
 import math
 import os
 import platform
+import subprocess
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -178,3 +180,15 @@ def ptx_or_skip(kernel, dtype: str = "float32", signature: str | None = None) ->
         if "NotFound" in type(err).__name__ or "Support" in type(err).__name__:  # a library missing
             pytest.skip(f"no CUDA compiler libraries here ({type(err).__name__})")
         raise
+
+
+def run_in_simulator(script: str, *args: object, wait: bool = False) -> None:
+    """Run ``script`` (Python source) with ``args`` in a process of its own under numba's CUDA
+    simulator (the device kernels as plain Python, no GPU), ``LAYOUTWARP_JIT=wait`` with
+    ``wait``; fail with the end of its standard error where it fails."""
+    env = {**os.environ, "NUMBA_DISABLE_JIT": "1", "NUMBA_ENABLE_CUDASIM": "1"}
+    if wait:
+        env["LAYOUTWARP_JIT"] = "wait"
+    cmd = [sys.executable, "-c", script, *(str(a) for a in args)]
+    run = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr[-3000:]

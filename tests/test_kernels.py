@@ -8,7 +8,7 @@ import warnings
 import numpy as np
 import pytest
 import torch
-from conftest import grad_tol, ptx_or_skip, rand_theta
+from conftest import grad_tol, ptx_or_skip, rand_theta, run_in_simulator
 
 import layoutwarp as lw
 from layoutwarp import kernels
@@ -250,9 +250,6 @@ def test_the_cuda_kernels_run_as_the_cpu_kernels_in_numbas_simulator(gen, tmp_pa
     guards, the prefix tables' and the edge sums' indexing) in numba's CUDA simulator against
     the compiled CPU kernels, on the same mesh and image: segments on cell lines (θ = 0, flat
     and vertical), random curved layouts in both dtypes, and pixels narrower than source cells."""
-    import os
-    import subprocess
-    import sys
 
     cases = [
         ("rect", (0.0, 0.0), (4, 4), (28, 28), np.float64),  # segments on cell lines, flat and vertical
@@ -277,10 +274,7 @@ def test_the_cuda_kernels_run_as_the_cpu_kernels_in_numbas_simulator(gen, tmp_pa
         wa, wb = kernels.exact_backward(verts, ss, se, sedge, incl, kernels.BLOCK, grad, 1)
         expected = {"incl": incl, "offsets": offsets, "out": out, "wa": wa, "wb": wb}
         refs[i] = (f"{family} θ={theta} {size} from {src} {np.dtype(dtype)}", dtype, expected)
-    env = {**os.environ, "NUMBA_DISABLE_JIT": "1", "NUMBA_ENABLE_CUDASIM": "1"}
-    args = [sys.executable, "-c", SIMULATED, *(str(tmp_path / f"case{i}.npz") for i in refs)]
-    run = subprocess.run(args, env=env, capture_output=True, text=True, timeout=600)
-    assert run.returncode == 0, run.stderr[-3000:]
+    run_in_simulator(SIMULATED, *(tmp_path / f"case{i}.npz" for i in refs))
     for i, (name, dtype, expected) in refs.items():
         sim = np.load(tmp_path / f"sim{i}.npz")
         # float32 tables: plain Python and numba round a float32 sum's intermediate steps differently

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 import torch.autograd.forward_ad as fwad
-from conftest import grad_tol, ptx_or_skip
+from conftest import grad_tol, ptx_or_skip, run_in_simulator
 from torch import Tensor
 
 import layoutwarp as lw
@@ -290,9 +290,6 @@ def test_the_device_mesh_is_the_compiled_mesh_in_numbas_simulator(tmp_path):
     (θ near ±1 and the centre near the border for the hard ones): the same segment counts and
     indices, the same vertices and pixel vertices, θ-derivatives to rounding; the totals the
     status reports; the room left over holding segments of no length."""
-    import os
-    import subprocess
-    import sys
 
     rng = np.random.default_rng(int(torch.randint(0, 2**31, ())))
     cases = [("curv", False), ("curv-off", True), ("fovea", False), ("fovea", True), ("elliptic", True)]
@@ -308,10 +305,7 @@ def test_the_device_mesh_is_the_compiled_mesh_in_numbas_simulator(tmp_path):
             theta=theta, size=np.array(size), src=np.array(src), tol=tol,
         )  # fmt: skip
         inputs[i] = (f"{family}, hard={hard}", spec, size, src, theta, tol)
-    env = {**os.environ, "NUMBA_DISABLE_JIT": "1", "NUMBA_ENABLE_CUDASIM": "1"}
-    args = [sys.executable, "-c", DEVICE_MESH, *(str(tmp_path / f"case{i}.npz") for i in inputs)]
-    run = subprocess.run(args, env=env, capture_output=True, text=True, timeout=600)
-    assert run.returncode == 0, run.stderr[-3000:]
+    run_in_simulator(DEVICE_MESH, *(tmp_path / f"case{i}.npz" for i in inputs))
     for i, (name, spec, size, src, theta, tol) in inputs.items():
         got = np.load(tmp_path / f"out{i}.npz")
         cm = mk.build_mesh(spec, size, theta, tol)
@@ -371,9 +365,6 @@ def test_a_learnable_step_on_the_device_path_matches_the_cpu_in_numbas_simulator
     them numba kernels, the loss's two and the layout's ρ → θ four included), and its reads of a
     device value back to the host (`count_host_reads`): none."""
     import json
-    import os
-    import subprocess
-    import sys
 
     rng = np.random.default_rng(int(torch.randint(0, 2**31, ())))
     th = (rng.uniform(0.1, 0.8, 2) * rng.choice([-1.0, 1.0], 2)).tolist()
@@ -388,10 +379,7 @@ def test_a_learnable_step_on_the_device_path_matches_the_cpu_in_numbas_simulator
     tol = 1e-2  # a few hundred segments: the kernels run as Python, a thread each
     case = {"spec": json.dumps(spec), "image": image, "size": np.array(size), "tol": tol, "g": g, "ga": ga}
     np.savez(tmp_path / "case.npz", **case)
-    env = {**os.environ, "NUMBA_DISABLE_JIT": "1", "NUMBA_ENABLE_CUDASIM": "1", "LAYOUTWARP_JIT": "wait"}
-    args = [sys.executable, "-c", DEVICE_STEP, str(tmp_path / "case.npz"), str(tmp_path / "out.npz")]
-    run = subprocess.run(args, env=env, capture_output=True, text=True, timeout=600)
-    assert run.returncode == 0, run.stderr[-3000:]
+    run_in_simulator(DEVICE_STEP, tmp_path / "case.npz", tmp_path / "out.npz", wait=True)
     got = np.load(tmp_path / "out.npz")
     layout = layout_from_spec(spec, learn=True)
     out, areas = integrate_exact(torch.from_numpy(image), layout, size, tol=tol, return_areas=True)
@@ -478,9 +466,6 @@ def test_a_device_mesh_that_outgrows_its_room_integrates_chords_and_says_so_in_n
     `device_status` reports the overflow, and a NaN a
     checked step met on the device; a later step raises for it. A fixed layout's forward checks
     on the device too, reading nothing back."""
-    import os
-    import subprocess
-    import sys
 
     rng = np.random.default_rng(int(torch.randint(0, 2**31, ())))
     theta = [float(rng.uniform(0.6, 0.85)), -float(rng.uniform(0.6, 0.85))]
@@ -489,10 +474,7 @@ def test_a_device_mesh_that_outgrows_its_room_integrates_chords_and_says_so_in_n
     image = rng.uniform(-1, 3, (2, *src))
     case = {"image": image, "size": np.array(size), "tol": 1e-2, "center": center, "theta": [*theta, *center]}
     np.savez(tmp_path / "case.npz", **case)
-    env = {**os.environ, "NUMBA_DISABLE_JIT": "1", "NUMBA_ENABLE_CUDASIM": "1", "LAYOUTWARP_JIT": "wait"}
-    args = [sys.executable, "-c", DEVICE_ROOM, str(tmp_path / "case.npz"), str(tmp_path / "out.npz")]
-    run = subprocess.run(args, env=env, capture_output=True, text=True, timeout=600)
-    assert run.returncode == 0, run.stderr[-3000:]
+    run_in_simulator(DEVICE_ROOM, tmp_path / "case.npz", tmp_path / "out.npz", wait=True)
     got = np.load(tmp_path / "out.npz")
     layout = lw.FoveaLayout(theta, center=tuple(center), learn=True, learn_center=True)
     img, scale = torch.from_numpy(image), np.abs(image).max()

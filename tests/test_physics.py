@@ -9,7 +9,7 @@ import warnings
 import numpy as np
 import pytest
 import torch
-from conftest import rand_theta
+from conftest import rand_theta, run_in_simulator
 
 import layoutwarp as lw
 from layoutwarp.checks import ArgumentError
@@ -845,9 +845,6 @@ def test_the_measurement_on_the_device_path_draws_what_the_cpu_kernel_draws_in_n
     same values to the bit, for every noise model and output, and for a fixed layout's forward
     with and without the measurement."""
     import json
-    import os
-    import subprocess
-    import sys
 
     seed = int(torch.randint(0, 2**31, (), generator=gen))
     camera = {
@@ -861,10 +858,7 @@ def test_the_measurement_on_the_device_path_draws_what_the_cpu_kernel_draws_in_n
     theta = rand_theta(gen, 0.6)
     case = {"camera": json.dumps(camera), "means": means, "areas": areas, "img": img, "theta": theta}
     np.savez(tmp_path / "case.npz", **{k: np.asarray(v) for k, v in case.items()})
-    env = {**os.environ, "NUMBA_DISABLE_JIT": "1", "NUMBA_ENABLE_CUDASIM": "1", "LAYOUTWARP_JIT": "wait"}
-    args = [sys.executable, "-c", DEVICE_MEASURE, str(tmp_path / "case.npz"), str(tmp_path / "out.npz")]
-    run = subprocess.run(args, env=env, capture_output=True, text=True, timeout=600)
-    assert run.returncode == 0, run.stderr[-3000:]
+    run_in_simulator(DEVICE_MEASURE, tmp_path / "case.npz", tmp_path / "out.npz", wait=True)
     got = np.load(tmp_path / "out.npz")
     layout = lw.CurvLayout(tuple(theta))
     with torch.no_grad():

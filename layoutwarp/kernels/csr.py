@@ -148,4 +148,4 @@ def csr_apply_on_device(
     args = (indptr, indices, data, x, out, area_um2, prnu, dsnu, params, int(seed), int(noise), int(output))
     checks = device_checks(x.device)
     cuda_launch(_cuda_csr_apply, indptr.shape[0] - 1, stream, *args, bool(measure), checks.status,
-                checks.stamp() if check else 0)  # fmt: skip
+                checks.take() if check else 0)  # fmt: skip

@@ -254,38 +254,54 @@ def host_mapped(n: int, device: torch.device) -> np.ndarray:
     return out
 
 
-class DeviceChecks:
+class Stamps:
+    """Events that kernels report without the host waiting: each call that may report one takes
+    a stamp ([`take`][layoutwarp.kernels.device.Stamps.take]), and a kernel that meets the event
+    writes it to slot ``slot`` of ``status`` (page-locked host memory the device writes
+    directly, [`host_mapped`][]). A captured CUDA graph's replays all write the stamp of the
+    capture: [`news`][layoutwarp.kernels.device.Stamps.news] tells of the first,
+    [`clear`][layoutwarp.kernels.device.Stamps.clear] of each."""
+
+    def __init__(self, status: np.ndarray, slot: int) -> None:
+        self.status, self.slot = status, slot
+        self.taken = self.seen = 0
+
+    def take(self) -> int:
+        """The next call's stamp (0, which no call takes, is no report)."""
+        self.taken += 1
+        return self.taken
+
+    def news(self) -> bool:
+        """Whether a stamp not seen before was written, without waiting for the device."""
+        stamp = int(self.status[self.slot])
+        news, self.seen = stamp > self.seen, max(stamp, self.seen)
+        return news
+
+    def clear(self) -> bool:
+        """Whether any stamp was written since the last clear; then clear it (once the device is
+        idle: nothing writes it meanwhile)."""
+        written = int(self.status[self.slot]) != 0
+        self.status[self.slot] = self.seen = 0
+        return written
+
+
+class DeviceChecks(Stamps):
     """The NaN and Inf checks of one device's kernels, answered on the device: a checked launch
-    takes a stamp ([`stamp`][layoutwarp.kernels.device.DeviceChecks.stamp]) and a kernel that
-    meets a value that is not finite writes it to ``status`` (page-locked host memory the device
-    writes directly, [`host_mapped`][]); the host raises when it next looks, without waiting
-    (the next checked call, or [`device_status`][layoutwarp.kernels.mesh.device_status] at once)."""
+    takes a stamp and a kernel that meets a value that is not finite writes it ([`Stamps`][]);
+    the next checked call raises ([`look`][layoutwarp.kernels.device.DeviceChecks.look]), or
+    [`device_status`][layoutwarp.kernels.mesh.device_status] tells at once."""
 
     def __init__(self, device: torch.device) -> None:
-        self.status = host_mapped(1, device)  # the stamp of the last checked call that met NaN/Inf
-        self.stamps = self.seen = 0
+        super().__init__(host_mapped(1, device), 0)
 
-    def stamp(self) -> int:
-        """A checked call's stamp (0 is no check)."""
-        self.stamps += 1
-        return self.stamps
-
-    def look(self, tell: bool = True) -> bool:
-        """Whether a checked call met NaN or Inf since the host last looked; with ``tell``, raise a
-        one-line ``ValueError`` then."""
-        news = int(self.status[0]) > self.seen
-        self.seen = max(self.seen, int(self.status[0]))
-        if news and tell:
+    def look(self) -> None:
+        """Raise a one-line ``ValueError`` where a checked call met NaN or Inf since the host last
+        looked."""
+        if self.news():
             raise ValueError(
                 "the input of an earlier call on the device held NaN or Inf (found there, read back now); "
                 "clean it or pass allow_nonfinite=True"
             )
-        return news
-
-    def forget(self) -> None:
-        """Clear the stamp (once the device is idle: nothing writes it meanwhile)."""
-        self.status[0] = 0
-        self.seen = 0
 
 
 #: Every device's [`DeviceChecks`][], by device.

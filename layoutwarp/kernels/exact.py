@@ -47,7 +47,7 @@ BLOCK = 16
 
 
 @inline
-def block_prefix(image: np.ndarray, r: int, rr: int, b: int, k: int, block: int, incl: np.ndarray) -> None:
+def _block_prefix(image: np.ndarray, r: int, rr: int, b: int, k: int, block: int, incl: np.ndarray) -> None:
     """Inclusive sums of block ``b`` of row ``r``, channel ``k``, into ``incl[rr, :, k]``."""
     w = image.shape[2]
     acc = image[k, r, b * block] * 0  # zero in the image's dtype
@@ -57,7 +57,7 @@ def block_prefix(image: np.ndarray, r: int, rr: int, b: int, k: int, block: int,
 
 
 @inline
-def row_offsets(rr: int, k: int, block: int, incl: np.ndarray, offsets: np.ndarray) -> None:
+def _row_offsets(rr: int, k: int, block: int, incl: np.ndarray, offsets: np.ndarray) -> None:
     """The float64 sums of the whole blocks before each block of ``incl[rr, :, k]``."""
     w = incl.shape[1]
     total = 0.0
@@ -67,19 +67,39 @@ def row_offsets(rr: int, k: int, block: int, incl: np.ndarray, offsets: np.ndarr
 
 
 @inline
+def prefix_block_item(image: np.ndarray, i: int, block: int, incl: np.ndarray) -> None:
+    """Item ``i`` (row × block × channel) of the prefix table's blocks, [`_block_prefix`][], for
+    one device thread (an ``i`` past the last does nothing)."""
+    n, h, w = image.shape
+    nb = (w + block - 1) // block
+    if i < h * nb * n:
+        r = i // (nb * n)
+        _block_prefix(image, r, r, (i // n) % nb, i % n, block, incl)
+
+
+@inline
+def prefix_offsets_item(i: int, block: int, incl: np.ndarray, offsets: np.ndarray) -> None:
+    """Item ``i`` (row × channel) of the prefix table's block offsets, [`_row_offsets`][], for one
+    device thread (an ``i`` past the last does nothing)."""
+    h, _, n = incl.shape
+    if i < h * n:
+        _row_offsets(i // n, i % n, block, incl, offsets)
+
+
+@inline
 def _band_prefix(
     image: np.ndarray, ra: int, rb: int, block: int, incl: np.ndarray, offsets: np.ndarray
 ) -> None:
     """The prefix tables (see [`prefix_tables`][]) of rows ``ra .. rb − 1`` into ``incl``/
-    ``offsets`` (row ``ra`` at index 0); [`block_prefix`][] and [`row_offsets`][] are
+    ``offsets`` (row ``ra`` at index 0); [`_block_prefix`][] and [`_row_offsets`][] are
     the one home of their arithmetic."""
     n, _, w = image.shape
     nb = (w + block - 1) // block
     for rr in range(rb - ra):
         for k in range(n):
             for b in range(nb):
-                block_prefix(image, ra + rr, rr, b, k, block, incl)
-            row_offsets(rr, k, block, incl, offsets)
+                _block_prefix(image, ra + rr, rr, b, k, block, incl)
+            _row_offsets(rr, k, block, incl, offsets)
 
 
 @parallel
@@ -531,21 +551,13 @@ cuda = None  # numba.cuda, bound by the first launch ([`layoutwarp.kernels.devic
 
 
 def _cuda_prefix_blocks(image: np.ndarray, block: int, incl: np.ndarray) -> None:
-    """One thread per (row, block, channel): [`block_prefix`][]."""
-    i = cuda.grid(1)
-    n, h, w = image.shape
-    nb = (w + block - 1) // block
-    if i < h * nb * n:
-        r, b, k = i // (nb * n), (i // n) % nb, i % n
-        block_prefix(image, r, r, b, k, block, incl)
+    """One thread per (row, block, channel): [`prefix_block_item`][]."""
+    prefix_block_item(image, cuda.grid(1), block, incl)
 
 
 def _cuda_prefix_offsets(block: int, incl: np.ndarray, offsets: np.ndarray) -> None:
-    """One thread per (row, channel): [`row_offsets`][]."""
-    i = cuda.grid(1)
-    h, _, n = incl.shape
-    if i < h * n:
-        row_offsets(i // n, i % n, block, incl, offsets)
+    """One thread per (row, channel): [`prefix_offsets_item`][]."""
+    prefix_offsets_item(cuda.grid(1), block, incl, offsets)
 
 
 def _cuda_forward(

@@ -29,7 +29,7 @@ from __future__ import annotations
 import functools
 import math
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -38,8 +38,8 @@ from ..caches import ObjectMemo, version_of
 from ..layouts import CurvLayout, EllipticLayout, FoveaLayout, Layout
 from ..mesh import INNER, MeshTopology, PixelMesh
 from .base import CHUNK, available, inline, one_thread_below, parallel, prange, serial, threads
-from .device import CHECKS, CUDA_THREADS, cuda_launch, device_checks, host_mapped, stream_of
-from .exact import BLOCK, block_prefix, row_offsets, segment_moments, segment_weights
+from .device import CHECKS, CUDA_THREADS, Stamps, cuda_launch, device_checks, host_mapped, stream_of
+from .exact import BLOCK, prefix_block_item, prefix_offsets_item, segment_moments, segment_weights
 
 __all__ = [
     "CUDA_KERNELS",
@@ -1139,13 +1139,9 @@ def _cuda_corners(
     ``npieces[i + 1]``, thread 0 setting ``npieces[0] = 0``, so that a cumulative sum of
     ``npieces`` in place gives the pieces' offsets (a mesh has at least as many edges as
     corners), and sums block ``i`` (row × block × channel) of the source ``image`` ``(N, H, W)``
-    into the prefix table ``incl`` ([`block_prefix`][layoutwarp.kernels.exact.block_prefix])."""
+    into the prefix table ``incl`` ([`prefix_block_item`][layoutwarp.kernels.exact.prefix_block_item])."""
     i = cuda.grid(1)
-    n, h, w = image.shape
-    nb = (w + block - 1) // block
-    if i < h * nb * n:
-        r = i // (nb * n)
-        block_prefix(image, r, r, (i // n) % nb, i % n, block, incl)
+    prefix_block_item(image, i, block, incl)
     if i == 0:
         npieces[0] = 0
     if i < corners.shape[0]:
@@ -1168,10 +1164,9 @@ def _cuda_amin(
     pixels' areas (horizontal edges, then vertical; [`_amin_across`][], [`_amin_beside`][]),
     each [`_quad_area`][] of the deformed corners ``q`` (the areas and the minima at once), and
     the block offsets of row × channel ``e`` of the prefix table ``incl``
-    ([`row_offsets`][layoutwarp.kernels.exact.row_offsets])."""
+    ([`prefix_offsets_item`][layoutwarp.kernels.exact.prefix_offsets_item])."""
     e = cuda.grid(1)
-    if e < incl.shape[0] * incl.shape[2]:
-        row_offsets(e // incl.shape[2], e % incl.shape[2], block, incl, offsets)
+    prefix_offsets_item(e, block, incl, offsets)
     nh = (h + 1) * w
     if e < nh:
         i, j = e // w, e % w
@@ -1465,30 +1460,28 @@ class MeshRoom:
     mesh. So a step allocates without waiting for the device, and a captured step keeps its
     buffers. A mesh that outgrows its room is built with straight chords instead (valid, but
     coarser than the tolerance) and stamps the status: [`device_status`][] reads it at once.
-    A captured graph's replays all write the stamp of the capture: [`device_status`][], which
-    clears it, tells of each; [`look`][layoutwarp.kernels.mesh.MeshRoom.look] of the first."""
+    Its overflows are [`Stamps`][layoutwarp.kernels.device.Stamps]: a captured graph's replays
+    all write the stamp of the capture, which [`device_status`][] tells of each time and
+    [`look`][layoutwarp.kernels.mesh.MeshRoom.look] the first time."""
 
     status: np.ndarray  # the slots PIECES, SEGMENTS, OVERFLOW, int64, written by the kernels
     pieces: int = 0
     segments: int = 0
-    stamps: int = 0  # the meshes built: the next one's stamp
-    seen: int = 0  # the overflow stamps taken in
+    overflows: Stamps = field(init=False)  # the stamps in slot OVERFLOW
+
+    def __post_init__(self) -> None:
+        self.overflows = Stamps(self.status, OVERFLOW)
 
     def ahead(self, need: int, least: int) -> int:
         """Room for ``need`` items with headroom, at least ``least``."""
         return max(least, math.ceil(need * HEADROOM) + 64)
 
-    def stamp(self) -> int:
-        """The next mesh's stamp (what its kernels write where it outgrew its room)."""
-        self.stamps += 1
-        return self.stamps
-
     def look(self, tell: bool = True) -> dict[str, int | bool]:
         """Take in what the kernels wrote so far, without waiting for them: grow the room a mesh
         came close to and, with ``tell``, warn where one outgrew it. Returns the status' values
         and whether an overflow is news."""
-        pieces, segments, over = (int(v) for v in self.status[:3])
-        news, self.seen = over > self.seen, max(over, self.seen)
+        pieces, segments = int(self.status[PIECES]), int(self.status[SEGMENTS])
+        news = self.overflows.news()
         if news and tell:
             need = f"{pieces} pieces" if pieces > self.pieces else f"{segments} segments"
             warnings.warn(
@@ -1507,11 +1500,6 @@ class MeshRoom:
         if self.segments:
             self.segments = max(self.segments, self.pieces)  # room for a chord a piece
         return {"pieces": pieces, "segments": segments, "overflowed": news}
-
-    def forget(self) -> None:
-        """Clear the stamp (once the device is idle: nothing writes it meanwhile)."""
-        self.status[OVERFLOW] = 0
-        self.seen = 0
 
 
 #: Every [`MeshRoom`][], by layout kind and centre, sensor size, tolerance, θ's length and device
@@ -1589,7 +1577,7 @@ def build_mesh_device(
         MESH_ROOMS[key] = MeshRoom(host_mapped(3, dev))
     room = MESH_ROOMS[key]
     room.look()
-    stamp = room.stamp()
+    stamp = room.overflows.take()
 
     def launch(name: str, count: int, *args: object) -> None:
         cuda_launch(CUDA_KERNELS[name][0], count, stream, *args)
@@ -1644,7 +1632,7 @@ def device_means(dm: DeviceMesh, per_seg: torch.Tensor, unit: float, check: bool
     if check:
         checks.look()
     args = (per_seg, dm.mesh.edge_offsets, float(unit), means, area, area_units, checks.status)
-    cuda_launch(_cuda_pixel_means, h * w, stream_of(per_seg), *args, checks.stamp() if check else 0)
+    cuda_launch(_cuda_pixel_means, h * w, stream_of(per_seg), *args, checks.take() if check else 0)
     return means, area, area_units
 
 
@@ -1662,20 +1650,15 @@ def device_status() -> dict[str, object]:
             torch.cuda.synchronize(index)
     meshes = []
     for room in list(MESH_ROOMS.values()):
-        before, room.seen = (room.pieces, room.segments), 0  # every stamp is news here
-        meshes.append({**room.look(tell=False), "room": before})
-        room.forget()
-    nonfinite = False
-    for checks in CHECKS.values():
-        checks.seen = 0
-        nonfinite = checks.look(tell=False) or nonfinite
-        checks.forget()
-    return {"overflowed": any(m["overflowed"] for m in meshes), "nonfinite": nonfinite, "meshes": meshes}
+        before = (room.pieces, room.segments)
+        values = room.look(tell=False)  # the room grown by what it reports
+        meshes.append({**values, "overflowed": room.overflows.clear(), "room": before})
+    nonfinite = [checks.clear() for checks in CHECKS.values()]
+    return {"overflowed": any(m["overflowed"] for m in meshes), "nonfinite": any(nonfinite), "meshes": meshes}
 
 
 def device_theta_gradient(
     dm: DeviceMesh,
-    incl: torch.Tensor,
     means: torch.Tensor,
     area: torch.Tensor,
     grad: torch.Tensor,
@@ -1684,8 +1667,8 @@ def device_theta_gradient(
     src_size: tuple[int, int],
 ) -> torch.Tensor:
     """θ's gradient ``(P,)`` (float64) from the gradients of [`device_means`][]' means ``grad``
-    and areas in sensor units ``grad_area`` (``None``: none), ``incl`` the image's prefix table:
-    two launches (the edge integrals' gradient, then every segment's Reynolds weights carried to
+    and areas in sensor units ``grad_area`` (``None``: none), over the image whose prefix table
+    ``dm`` holds: two launches (the edge integrals' gradient, then every segment's Reynolds weights carried to
     θ and summed)."""
     stream, mesh = stream_of(means), dm.mesh
     g_area = means.new_empty(0, 0) if grad_area is None else grad_area.detach().double().contiguous()
@@ -1694,6 +1677,6 @@ def device_theta_gradient(
     args = (grad.detach().double().contiguous(), means, area, g_area, float(unit), g_edge, g_theta)
     cuda_launch(_cuda_edge_gradient, g_edge.shape[1], stream, *args)
     hs, ws = src_size
-    args = (dm.pixel_vertices, mesh.seg_start, mesh.seg_end, mesh.seg_edge, incl, BLOCK, g_edge, dm.dverts)
+    args = (dm.pixel_vertices, mesh.seg_start, mesh.seg_end, mesh.seg_edge, dm.incl, BLOCK, g_edge, dm.dverts)
     cuda_launch(_cuda_theta_gradient, mesh.num_segments, stream, *args, ws / 2, hs / 2, g_theta)
     return g_theta
