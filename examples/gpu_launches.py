@@ -9,9 +9,8 @@ the script sets it and runs itself again), and `count_launches` counts every num
 and every torch operator that would run a kernel or a copy on a GPU, for a learnable curv ± and
 fovea training step (``simulate(...).sum().backward()``), a fixed layout's forward and the same
 with sensor physics, and the values each reads back to the host (``count_host_reads``: on a GPU,
-a wait). A learnable step checks its means for NaN on the device; a fixed layout's forward adds a
-sum and a read of it on a GPU (the simulator's CPU tensors take numpy's sum). The torch profiler
-also counts cuBLAS's inner kernels.
+a wait). Both check their output for NaN on the device, inside a kernel they launch anyway. The
+torch profiler also counts cuBLAS's inner kernels.
 
 Compile time: every CUDA kernel of a learnable float32 step compiled to PTX for compute
 capability 8.0, in a fresh process (what a first CUDA call compiles before it runs; the driver's

@@ -52,7 +52,7 @@ from .kernels.mesh import (
     mesh_spec,
     theta_gradient,
 )
-from .layouts import Layout
+from .layouts import Layout, theta_of
 from .maps import sample_points
 from .mesh import MeshTopology, PixelMesh, pixel_mesh
 from .ops import layout_token
@@ -433,13 +433,20 @@ def _exact(
     backend: str,
     jacobian: bool,
     check: bool,
+    bounds: Tensor,
+    dtype: torch.dtype,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """The exact means ``(N, h, w)`` and areas ``(h, w)`` (sensor units) of the pixels of
-    ``layout`` (a [`layout_token`][layoutwarp.ops.layout_token]) at ``theta``, float64, over the box
-    image ``image`` ``(N, H, W)``; with ``jacobian`` (θ is learned) also the θ-Jacobian of the edge
-    integrals ``(N + 1, E, P)`` where the compiled mesh gives it (the backward is then one
-    contraction), and a 0-d flag on the image's device, 1 where it holds it (0: the backward
-    computes again; only a CPU step holds one, so reading it never waits for a device).
+    """The exact means ``(N, h, w)`` (computed in float64, rounded once into ``dtype``) and
+    areas ``(h, w)`` (float64, sensor units) of the pixels of ``layout`` (a
+    [`layout_token`][layoutwarp.ops.layout_token]) at θ over the box image ``image``
+    ``(N, H, W)``. ``theta`` is θ itself where ``bounds`` is empty, else the parameter ρ of
+    ``θ = bounds · tanh(ρ)`` (float64;
+    [`Layout.theta_source`][layoutwarp.layouts.base.Layout.theta_source]): the operator makes
+    θ, so a learnable step's ρ → θ and back cost no launches of their own. With ``jacobian`` (θ
+    is learned) also the θ-Jacobian of the edge integrals ``(N + 1, E, P)`` where the compiled
+    mesh gives it (the backward is then one contraction), and a 0-d flag on the image's device,
+    1 where it holds it (0: the backward computes again; only a CPU step holds one, so reading
+    it never waits for a device).
     ``backend``: ``"auto"``, ``"numba"`` or ``"torch"`` (see [`integrate_exact`][]); ``check``:
     raise ``ValueError`` where NaN/Inf reach the means (every source pixel reaches some sensor
     pixel with positive weight, so a bad input value always reaches its output); a device mesh
@@ -455,22 +462,23 @@ def _exact(
         )
     template = ops.layout_of(layout)
     spec = mesh_spec(template) if which != "torch" else None
+    image = image.contiguous()
+    if spec is not None and which == "cuda":  # the mesh built where it is used: none crosses the bus
+        held = image.new_empty((), dtype=torch.int8)  # where the image is: a graph holds no CPU tensor
+        means, area, areas, dm = _device_exact(spec, theta, bounds, image, size, tol, check, dtype, held)
+        if jacobian:  # the device mesh kept for the backward (the entry holds the means: their
+            DEVICE_MESHES[means.data_ptr()] = (means, dm, area)  # memory is not reused meanwhile)
+            while len(DEVICE_MESHES) > 4:
+                DEVICE_MESHES.popitem(last=False)
+        return means, areas, image.new_empty(0, dtype=torch.float64), held  # checked on the device
     no_jac = (  # zeros: the torch path's room for a Jacobian it does not fill
         image.new_zeros(_jacobian_shape(theta, image, *size), dtype=torch.float64)
         if _keeps_jacobian(image, jacobian)
         else image.new_empty(0, dtype=torch.float64)
     )
-    held = image.new_zeros((), dtype=torch.int8)  # where the image is: a CUDA graph holds no CPU tensor
-    image = image.contiguous()
-    if spec is not None and which == "cuda":  # the mesh built where it is used: none crosses the bus
-        means, area, areas, dm = _device_exact(spec, theta, image, size, tol, check)
-        if jacobian:  # the device mesh kept for the backward (the entry holds the means: their
-            DEVICE_MESHES[means.data_ptr()] = (means, dm, area)  # memory is not reused meanwhile)
-            while len(DEVICE_MESHES) > 4:
-                DEVICE_MESHES.popitem(last=False)
-        return means, areas, no_jac, held  # checked on the device: no wait here
+    held = image.new_zeros((), dtype=torch.int8)
     if spec is not None and jacobian:  # mesh, integrals and their θ-Jacobian, chunk by chunk
-        th = theta.detach().double().cpu().numpy()
+        th = theta_of(theta, bounds).detach().cpu().numpy()
         with kernels.LOCK:
             tables = kernels.prefix_tables(image.numpy(), kernels.BLOCK)
             out, j = mesh_integrals(spec, size, th, tol, tables, (hs, ws))
@@ -479,20 +487,21 @@ def _exact(
         means, areas, jac = (torch.from_numpy(a) for a in (pix[:-1] / pix[-1], pix[-1] * _unit(image), j))
     else:
         with ops.autograd_inside() if jacobian else contextlib.nullcontext():  # the mesh a gradient needs
-            th = theta.detach().requires_grad_(jacobian)
+            th = theta_of(theta, bounds).detach().requires_grad_(jacobian)
             means, areas = _mesh_exact(th, image, template, size, tol, which != "torch", cache=not jacobian)
         means, areas, jac = means.detach(), areas.detach().clone(), no_jac
+    means = means.to(dtype)
     if check and not all_finite(means):
         raise_nonfinite(image)
     return means, areas, jac, held
 
 
 @_exact.register_fake
-def _(theta, image, layout, height, width, tol, backend, jacobian, check):
+def _(theta, image, layout, height, width, tol, backend, jacobian, check, bounds, dtype):
     n = image.shape[0]
     jac = _jacobian_shape(theta, image, height, width) if _keeps_jacobian(image, jacobian) else (0,)
     return (
-        image.new_empty(n, height, width, dtype=torch.float64),
+        image.new_empty(n, height, width, dtype=dtype),
         image.new_empty(height, width, dtype=torch.float64),
         image.new_empty(jac, dtype=torch.float64),
         image.new_empty((), dtype=torch.int8),
@@ -512,15 +521,26 @@ DEVICE_MESHES: OrderedDict[int, tuple] = OrderedDict()
 
 
 def _device_exact(
-    spec: MeshSpec, theta: Tensor, image: Tensor, size: tuple[int, int], tol: float, check: bool = False
+    spec: MeshSpec,
+    theta: Tensor,
+    bounds: Tensor,
+    image: Tensor,
+    size: tuple[int, int],
+    tol: float,
+    check: bool,
+    dtype: torch.dtype,
+    zero: Tensor,
 ) -> tuple:
-    """The device mesh of ``spec`` at ``theta`` (with ``image``'s prefix table) and its integrals
-    over ``image``: ``(means, areas in source pixels, areas in sensor units, mesh)``."""
+    """The device mesh of ``spec`` at θ (``theta`` and ``bounds`` as [`_exact`][] takes them; with
+    ``image``'s prefix table) and its integrals over ``image``: ``(means in dtype, areas in source
+    pixels, areas in sensor units, mesh)``; the 0-d ``zero`` set to 0 on the way."""
+    src = tuple(image.shape[-2:])
+    param, bounds = theta.detach().to(image.device), bounds.to(image.device)
     dm = build_mesh_device(
-        spec, size, theta.detach().to(image.device), tol, tuple(image.shape[-2:]), image=image
+        spec, size, param, tol, src, bounds=bounds if bounds.numel() else None, image=image
     )
     per_seg = _cuda_per_segment(dm.pixel_vertices, dm.mesh, dm.incl, dm.offsets)
-    means, area, areas = device_means(dm, per_seg, _unit(image), check)
+    means, area, areas = device_means(dm, per_seg, _unit(image), check, dtype, zero.view(1))
     return means, area, areas, dm
 
 
@@ -557,11 +577,13 @@ def _exact_backward(
     backend: str,
     theta_grad: bool,
     image_grad: bool,
+    bounds: Tensor,
 ) -> tuple[Tensor, Tensor]:
-    """θ's and the image's gradients of ``layoutwarp::exact`` from those of its means and areas
-    (``None``: unused) (the image's: an empty tensor unless ``image_grad``; θ's, zeros unless
-    ``theta_grad``): the exact Reynolds transport gradient, by one contraction with the kept
-    Jacobian, by the device kernels, or by the mesh again with autograd."""
+    """The gradients of ``layoutwarp::exact``'s ``theta`` (θ or ρ, as ``bounds`` says) and image
+    from those of its means and areas (``None``: unused) (the image's: an empty tensor unless
+    ``image_grad``; θ's, zeros unless ``theta_grad``): the exact Reynolds transport gradient, by
+    one contraction with the kept Jacobian, by the device kernels, or by the mesh again with
+    autograd."""
     size = (height, width)
     if (
         jac.numel() and bool(held) and not image_grad
@@ -569,33 +591,37 @@ def _exact_backward(
         g = np.zeros(means.shape) if grad_means is None else grad_means.detach().double().cpu().numpy()
         own = None if grad_areas is None else grad_areas.detach().double().cpu().numpy() * _unit(image)
         with kernels.LOCK:
-            g_edge = edge_gradient(g, means.cpu().numpy(), areas.cpu().numpy() / _unit(image), own)
+            g_edge = edge_gradient(g, means.double().cpu().numpy(), areas.cpu().numpy() / _unit(image), own)
             g_theta = theta_gradient(g_edge, jac.cpu().numpy())
-        return torch.from_numpy(g_theta).to(theta), image.new_empty(0)
+        return _to_param(torch.from_numpy(g_theta), theta, bounds), image.new_empty(0)
     which = "torch" if backend == "torch" or image_grad else ops.backend(image, "learn")
     template = ops.layout_of(layout)
     spec = mesh_spec(template) if which == "cuda" else None
     if spec is not None:  # the forward's device mesh, else built again (its sizes live on the device)
         kept = DEVICE_MESHES.pop(means.data_ptr(), None)
         if kept is None:
-            _, area, _, dm = _device_exact(spec, theta, image.contiguous(), size, tol)
+            zero = image.new_empty(1, dtype=torch.int8)
+            _, area, _, dm = _device_exact(
+                spec, theta, bounds, image.contiguous(), size, tol, False, means.dtype, zero
+            )
         else:
             _, dm, area = kept
         g_means = torch.zeros_like(means) if grad_means is None else grad_means
-        args = (means, area, g_means, grad_areas, _unit(image), tuple(image.shape[-2:]))
-        return device_theta_gradient(dm, *args).to(theta), image.new_empty(0)
+        args = (means, area, g_means, grad_areas, _unit(image), tuple(image.shape[-2:]), theta.dtype)
+        return device_theta_gradient(dm, *args), image.new_empty(0)
     with ops.autograd_inside():
-        th = theta.detach().requires_grad_(theta_grad)  # the forward's mesh: built as it was
+        param = theta.detach().requires_grad_(theta_grad)  # the forward's mesh: built as it was
+        th = theta_of(param, bounds)
         img = image.detach().requires_grad_(image_grad)
         m, a = _mesh_exact(th, img, template, size, tol, which != "torch", cache=False)
-        inputs = [t for t in (th, img) if t.requires_grad]
+        inputs = [t for t in (param, img) if t.requires_grad]
         outs = [(o, g) for o, g in ((m, grad_means), (a, grad_areas)) if o.requires_grad and g is not None]
         grads = iter(
             torch.autograd.grad([o for o, _ in outs], inputs, [g for _, g in outs], allow_unused=True)
             if outs
             else ()
         )
-    g_theta, g_image = (next(grads, None) if t.requires_grad else None for t in (th, img))
+    g_theta, g_image = (next(grads, None) if t.requires_grad else None for t in (param, img))
     return (
         torch.zeros_like(theta) if g_theta is None else g_theta.to(theta),
         image.new_empty(0)
@@ -608,29 +634,52 @@ def _exact_backward(
 
 @_exact_backward.register_fake
 def _(grad_means, grad_areas, theta, image, *rest):
-    return torch.empty_like(theta), image.new_empty(image.shape) if rest[-1] else image.new_empty(0)
+    return torch.empty_like(theta), image.new_empty(image.shape) if rest[-2] else image.new_empty(0)
+
+
+def _to_param(g_theta: Tensor, param: Tensor, bounds: Tensor) -> Tensor:
+    """The gradient of θ's parameter ``param`` (θ, or ρ: see
+    [`theta_of`][layoutwarp.layouts.base.theta_of]) from θ's, ``g_theta`` (float64), in
+    ``param``'s dtype."""
+    if not bounds.numel():
+        return g_theta.to(param)
+    with ops.autograd_inside():
+        p = param.detach().double().requires_grad_(True)
+        (g,) = torch.autograd.grad(theta_of(p, bounds), p, g_theta.to(p.device))
+    return g.to(param)
 
 
 def _exact_setup(ctx: Any, inputs: tuple, output: tuple) -> None:
-    theta, image, layout, height, width, tol, backend, _, _ = inputs
+    theta, image, layout, height, width, tol, backend, _, _, bounds, _ = inputs
     means, areas, jac, held = output
-    ctx.save_for_backward(theta, image, means, areas, jac, held)
+    ctx.save_for_backward(theta, image, means, areas, jac, held, bounds)
     ctx.args = (layout, height, width, tol, backend)
     ctx.set_materialize_grads(False)  # an output nobody used costs its backward nothing
 
 
 def _exact_grad(ctx: Any, grad_means: Tensor, grad_areas: Tensor, *_: Tensor) -> tuple:
-    theta, image, means, areas, jac, held = ctx.saved_tensors
+    theta, image, means, areas, jac, held, bounds = ctx.saved_tensors
     theta_grad, image_grad = ctx.needs_input_grad[:2]
     if grad_means is None and grad_areas is None:
-        return (None,) * 9
+        return (None,) * 11
     g_theta, g_image = _exact_backward(
-        grad_means, grad_areas, theta, image, means, areas, jac, held, *ctx.args, theta_grad, image_grad
+        grad_means,
+        grad_areas,
+        theta,
+        image,
+        means,
+        areas,
+        jac,
+        held,
+        *ctx.args,
+        theta_grad,
+        image_grad,
+        bounds,
     )
     return (
         (g_theta if theta_grad else None),
         (g_image if image_grad else None),
-        *[None] * 7,
+        *[None] * 9,
     )
 
 
@@ -760,11 +809,9 @@ def integrate_exact(
         means = _exact_on_mesh(work, mesh, kernel_ok).to(dtype)
         return (means, mesh.areas()) if return_areas else means
     tol = data_tolerance(image.dtype)[0] if tol is None else tol
-    # a fixed layout's θ as it was set: the mesh is float64
-    th = (
-        layout.theta_as(torch.float64)
-        if theta is None and not layout.learnable
-        else layout.resolve_theta(theta)
+    # θ as the operator takes it: a fixed layout's as it was set (float64), a learnable one's ρ
+    param, bounds = (
+        layout.theta_source() if theta is None else (theta, theta.new_empty(0, dtype=torch.float64))
     )
     if image.requires_grad and backend == "numba":
         raise ValueError(
@@ -772,12 +819,13 @@ def integrate_exact(
             "target runs, and no image gradient; use backend='torch'"
         )
     which = "torch" if image.requires_grad else backend
-    jacobian = th.requires_grad and torch.is_grad_enabled()
+    jacobian = param.requires_grad and torch.is_grad_enabled()
     h, w = check_size(size)
     token = layout_token(layout)
     check = not allow_nonfinite
-    means, areas, _, _ = torch.ops.layoutwarp.exact(th, work, token, h, w, float(tol), which, jacobian, check)
-    means = means.to(dtype)
+    means, areas, _, _ = torch.ops.layoutwarp.exact(
+        param, work, token, h, w, float(tol), which, jacobian, check, bounds, dtype
+    )
     return (means, areas) if return_areas else means
 
 

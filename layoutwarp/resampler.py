@@ -496,9 +496,8 @@ def _area(
     res = _kept(layout, theta, size, src, tol, image.device, lambda: ops.layout_of(layout, theta))
     if res is None:  # the cache keeps none: the exact walk (and the measurement)
         means, areas, _, _ = torch.ops.layoutwarp.exact(
-            theta, image, layout, height, width, tol, "auto", False, check
+            theta, image, layout, height, width, tol, "auto", False, check, theta.new_empty(0), image.dtype
         )
-        means = means.to(image.dtype)
         out = means if camera is None else measure(means, areas, camera, output=output, seed=seed)
     else:
         out, areas = res.product(image, camera, output, seed, not check), res.areas

@@ -90,11 +90,28 @@ def count_host_reads(fn: Callable[[], object]) -> Counter[str]:
     return counts
 
 
+def _copied(args: tuple, out: object) -> bool:
+    """Whether an operator that may return its input (``to``, ``contiguous``, ``reshape``: an
+    alias in its schema) made a new tensor instead: a copy, which on a device is a launch. Inside
+    layoutwarp's operators such calls reach the count whole, not as the ``_to_copy`` they run."""
+    import torch
+
+    base = next((a for a in args if isinstance(a, torch.Tensor)), None)
+    return (
+        isinstance(out, torch.Tensor)
+        and base is not None
+        and out.layout == base.layout == torch.strided  # a sparse tensor has no storage to compare
+        and out.numel() > 0
+        and out.untyped_storage().data_ptr() != base.untyped_storage().data_ptr()
+    )
+
+
 def count_launches(fn: Callable[[], object]) -> Counter[str]:
     """The GPU launches ``fn`` makes, counted without a GPU: every launch of a numba CUDA kernel
     ([`LAUNCHES`][layoutwarp.kernels.device.LAUNCHES], by kernel name, ``numba:NAME``) and every
     torch operator that runs a kernel or a copy on a device (``aten:NAME``; views and bare
-    allocations run none), including those of the backward; ``aten:_local_scalar_dense`` is a
+    allocations run none, and an operator that may return its input counts where it copied),
+    including those of the backward; ``aten:_local_scalar_dense`` is a
     host wait (a value read back). Run it where the device path runs: on a CUDA device, or on the
     CPU under numba's CUDA simulator. The total is what the torch profiler's count of GPU
     activities approximates (it adds cuBLAS's and cuSPARSE's inner kernels). layoutwarp's own
@@ -111,9 +128,10 @@ def count_launches(fn: Callable[[], object]) -> Counter[str]:
             if func.namespace == "layoutwarp":  # an operator of ours: what its work launches
                 with Ops():
                     return OPERATORS[name]._init_fn(*args, **(kwargs or {}))
-            if not func.is_view and name.rstrip("_") not in NO_KERNEL_OPS:
+            out = func(*args, **(kwargs or {}))
+            if _copied(args, out) if func.is_view else name.rstrip("_") not in NO_KERNEL_OPS:
                 counts[f"aten:{name}"] += 1
-            return func(*args, **(kwargs or {}))
+            return out
 
     before = Counter(LAUNCHES)
     with Ops():

@@ -346,11 +346,13 @@ def training_step():  # as an optimizer moves θ in place between steps
     with torch.no_grad():
         layout.rho.mul_(0.999)
     step()
+step()  # the first call imports and caches what every later step takes as it is
 launches = count_launches(step)
 kernels = sum(v for k, v in launches.items() if k.startswith("numba:"))
 reads = count_host_reads(training_step)
 np.savez(sys.argv[2], out=out.detach().numpy(), areas=areas.detach().numpy(), grad=grad.numpy(),
-         launches=sum(launches.values()), kernels=kernels, reads=sum(reads.values()))
+         launches=sum(launches.values()), kernels=kernels, reads=sum(reads.values()),
+         names=json.dumps(launches))
 """
 
 
@@ -361,9 +363,10 @@ def test_a_learnable_step_on_the_device_path_matches_the_cpu_in_numbas_simulator
     forward, the pixels' means and areas in one kernel, the backward from the means' and the
     areas' gradients to θ in two) in numba's CUDA simulator against the compiled CPU path: the
     same means and areas to rounding, θ's gradient to float32's (θ's dtype); a training step's
-    GPU launches, counted (numba kernels and torch operators, `count_launches`: at most 19, 8 of
-    them numba kernels, the loss's two and the layout's ρ → θ four included), and its reads of a
-    device value back to the host (`count_host_reads`): none."""
+    GPU launches, counted (numba kernels and torch operators, `count_launches`: at most 12, 8 of
+    them numba kernels, the loss's two included; ρ → θ, the means' rounding and their gradient's
+    way back are inside the kernels), and its reads of a device value back to the host
+    (`count_host_reads`): none."""
     import json
 
     rng = np.random.default_rng(int(torch.randint(0, 2**31, ())))
@@ -388,7 +391,7 @@ def test_a_learnable_step_on_the_device_path_matches_the_cpu_in_numbas_simulator
     assert np.abs(got["areas"] - areas.detach().numpy()).max() <= 1e-14
     ref = layout.rho.grad.numpy()
     assert np.abs(got["grad"] - ref).max() <= 1e-6 * max(1.0, np.abs(ref).max())  # θ in float32
-    assert int(got["launches"]) <= 19 and int(got["kernels"]) <= 8
+    assert int(got["launches"]) <= 12 and int(got["kernels"]) <= 8, str(got["names"])
     assert int(got["reads"]) == 0
 
 

@@ -49,12 +49,14 @@ def _cases(gen: torch.Generator) -> dict[str, tuple]:
     img32 = img64.float()
     curv = _learnable("curv", gen, F64)
     grid = _fixed("grid", gen)
-    th = curv.theta.detach().clone().requires_grad_(True)
+    rho, bounds = curv.theta_source()  # the operator makes θ = bounds · tanh(ρ)
+    th = rho.detach().clone().requires_grad_(True)
+    theta = curv.theta.detach().clone().requires_grad_(True)
     seed = torch.tensor(5, dtype=torch.int64)
     size = (4, 5)
     fixed = lw.CurvLayout((0.3, -0.2))
     ftheta = fixed.theta_as(F64)
-    exact = (th, img64, layout_token(curv), *size, 1e-4, "auto", True, True)
+    exact = (th, img64, layout_token(curv), *size, 1e-4, "auto", True, True, bounds, torch.float32)
     means, areas, jac, held = torch.ops.layoutwarp.exact(
         *[a.detach() if torch.is_tensor(a) else a for a in exact]
     )
@@ -65,7 +67,7 @@ def _cases(gen: torch.Generator) -> dict[str, tuple]:
     sep = torch.ops.layoutwarp.separable(img64, ex.detach(), ey.detach(), True)
     value = torch.rand(2, *size, generator=gen, dtype=F64, requires_grad=True)
     vol = torch.full(size, 4 / 20, dtype=F64)
-    flux = (th, vol, img64, seed, layout_token(curv), "", *size, 2, "bilinear")
+    flux = (theta, vol, img64, seed, layout_token(curv), "", *size, 2, "bilinear")
     ne = MeshTopology(size).num_edges
     assert jac.shape == (3, ne, 2)
     return {
@@ -82,6 +84,7 @@ def _cases(gen: torch.Generator) -> dict[str, tuple]:
             *tail,
             True,
             False,
+            bounds,
         ),
         "separable": (img64.clone().requires_grad_(True), ex, ey, True),
         "separable_backward": (
@@ -118,7 +121,7 @@ def _cases(gen: torch.Generator) -> dict[str, tuple]:
         "patterns": (CAMERA.pattern_seed, *size, means),
         "draws": (torch.rand(2, *size, generator=gen, dtype=F64) * 20, seed, "poisson", True),
         "flux": (value, *flux),
-        "flux_backward": (torch.rand_like(value), value.detach(), th.detach(), *flux[1:]),
+        "flux_backward": (torch.rand_like(value), value.detach(), theta.detach(), *flux[1:]),
         "pixel_areas": (grid.theta_as(F64).clone().requires_grad_(True), layout_token(grid), *size, 1e-4),
         "pixel_areas_backward": (torch.rand_like(areas), grid.theta_as(F64), layout_token(grid), *size, 1e-4),
         "guard_finite": (value, img64, "image"),

@@ -1130,20 +1130,42 @@ def _edge_vertices(
     return s
 
 
+@inline
+def _theta_entry(param: np.ndarray, bounds: np.ndarray, r: int) -> tuple[float, float]:
+    """θ's entry ``r`` from its parameter, in float64, and its derivative: ``bounds[r] ·
+    tanh(param[r])`` (a bounded family's θ from its ρ), or ``param[r]`` itself where ``bounds``
+    is empty."""
+    x = float(param[r])
+    if bounds.shape[0] == 0:
+        return x, 1.0
+    t = math.tanh(x)
+    return bounds[r] * t, bounds[r] * (1 - t * t)
+
+
 def _cuda_corners(
-    kind: int, centred: bool, corners: np.ndarray, ends: np.ndarray, th: np.ndarray, c: np.ndarray,
-    q: np.ndarray, dq: np.ndarray, npieces: np.ndarray, image: np.ndarray, block: int, incl: np.ndarray,
+    kind: int, centred: bool, corners: np.ndarray, ends: np.ndarray, param: np.ndarray, bounds: np.ndarray,
+    c: np.ndarray, theta: np.ndarray, slope: np.ndarray, q: np.ndarray, dq: np.ndarray, npieces: np.ndarray,
+    image: np.ndarray, block: int, incl: np.ndarray,
 ) -> None:  # fmt: skip
-    """Three independent steps in one launch: thread ``i`` maps uniform corner ``i`` (φ and
-    ``∂φ/∂θ`` into ``q``/``dq``), counts edge ``i``'s smooth pieces ([`_edge_pieces`][]) into
-    ``npieces[i + 1]``, thread 0 setting ``npieces[0] = 0``, so that a cumulative sum of
-    ``npieces`` in place gives the pieces' offsets (a mesh has at least as many edges as
-    corners), and sums block ``i`` (row × block × channel) of the source ``image`` ``(N, H, W)``
-    into the prefix table ``incl`` ([`prefix_block_item`][layoutwarp.kernels.exact.prefix_block_item])."""
+    """Four independent steps in one launch: every thread makes θ from its parameter
+    ([`_theta_entry`][]: ``param`` and ``bounds``), thread 0 writing it and its derivative into
+    ``theta`` and ``slope`` (``(P,)``, float64) for the kernels after; thread ``i`` maps uniform
+    corner ``i`` (φ and ``∂φ/∂θ`` into ``q``/``dq``), counts edge ``i``'s smooth pieces
+    ([`_edge_pieces`][]) into ``npieces[i + 1]``, thread 0 setting ``npieces[0] = 0``, so that
+    a cumulative sum of ``npieces`` in place gives the pieces' offsets (a mesh has at least as
+    many edges as corners), and sums block ``i`` (row × block × channel) of the source
+    ``image`` ``(N, H, W)`` into the prefix table ``incl``
+    ([`prefix_block_item`][layoutwarp.kernels.exact.prefix_block_item])."""
     i = cuda.grid(1)
     prefix_block_item(image, i, block, incl)
+    own = cuda.local.array(P_MAX, F8)
+    for r in range(param.shape[0]):
+        own[r], d = _theta_entry(param, bounds, r)
+        if i == 0:
+            theta[r], slope[r] = own[r], d
     if i == 0:
         npieces[0] = 0
+    th = own[: param.shape[0]]
     if i < corners.shape[0]:
         qi, work = cuda.local.array(2, F8), cuda.local.array((2, _DQ), F8)
         _phi_at(kind, centred, corners[i, 0], corners[i, 1], th, c, qi, work)
@@ -1301,25 +1323,27 @@ def _pixel_integral(
 
 def _cuda_pixel_means(
     per_seg: np.ndarray, edge_offsets: np.ndarray, unit: float, means: np.ndarray, area: np.ndarray,
-    area_units: np.ndarray, checks: np.ndarray, stamp: int,
+    area_units: np.ndarray, checks: np.ndarray, stamp: int, zero: np.ndarray,
 ) -> None:  # fmt: skip
     """One thread per pixel: its boundary integrals from its four edges' segments (each edge's
     sum in order, combined as [`MeshTopology.combine`][layoutwarp.mesh.MeshTopology.combine]
-    does), its means ``(N, h, w)`` (the integrals over the last, the area) and the area, as it is
-    and in sensor units (times ``unit``): the edge sums, the combination and the division in one
-    pass. A mean that is NaN or ±inf writes ``stamp`` to ``checks[0]`` (the finiteness check,
-    on the device, [`DeviceChecks`][layoutwarp.kernels.device.DeviceChecks]; a ``stamp`` of 0
-    checks nothing)."""
+    does), its means ``(N, h, w)`` (the integrals over the last, the area, in float64, rounded
+    once into ``means``' dtype) and the area, as it is and in sensor units (times ``unit``): the
+    edge sums, the combination and the division in one pass. A mean that is NaN or ±inf (once
+    rounded) writes ``stamp`` to ``checks[0]`` (the finiteness check, on the device,
+    [`DeviceChecks`][layoutwarp.kernels.device.DeviceChecks]; a ``stamp`` of 0 checks nothing).
+    Thread 0 also sets ``zero[0] = 0`` (a flag the caller returns: no fill launched for it)."""
     i = cuda.grid(1)
     n, h, w = means.shape
+    if i == 0:
+        zero[0] = 0
     if i < h * w:
         r, c = i // w, i % w
         a = _pixel_integral(per_seg, edge_offsets, r, c, w, (h + 1) * w, n)
         area[r, c], area_units[r, c] = a, a * unit
         for k in range(n):
-            m = _pixel_integral(per_seg, edge_offsets, r, c, w, (h + 1) * w, k) / a
-            means[k, r, c] = m
-            if stamp and not math.isfinite(m):
+            means[k, r, c] = _pixel_integral(per_seg, edge_offsets, r, c, w, (h + 1) * w, k) / a
+            if stamp and not math.isfinite(means[k, r, c]):
                 checks[0] = stamp
 
 
@@ -1345,17 +1369,19 @@ def _pixel_gradient(
 
 def _cuda_edge_gradient(
     g: np.ndarray, means: np.ndarray, area: np.ndarray, g_area: np.ndarray, unit: float, g_edge: np.ndarray,
-    g_theta: np.ndarray,
+    sums: np.ndarray, done: np.ndarray,
 ) -> None:  # fmt: skip
     """One thread per pixel edge: the gradient ``(N + 1, E)`` of the edge integrals from the
     means' and the areas' (the adjoint of [`_cuda_pixel_means`][]: the quotient rule and
     [`MeshTopology.combine_adjoint`][layoutwarp.mesh.MeshTopology.combine_adjoint] in one
-    pass). An edge adds to the pixel before it (above, or to its left) and takes from the one
-    after. Thread 0 also zeroes ``g_theta``, the sums [`_cuda_theta_gradient`][] adds to next."""
+    pass; ``g`` and ``means`` in the means' dtype, the sums in float64). An edge adds to the
+    pixel before it (above, or to its left) and takes from the one after. Thread 0 also zeroes
+    ``sums`` and ``done``, which [`_cuda_theta_gradient`][] adds to next."""
     e = cuda.grid(1)
     if e == 0:
-        for p in range(g_theta.shape[0]):
-            g_theta[p] = 0.0
+        done[0] = 0
+        for p in range(sums.shape[0]):
+            sums[p] = 0.0
     n, h, w = means.shape
     nh = (h + 1) * w
     if e < g_edge.shape[1]:
@@ -1378,15 +1404,18 @@ def _cuda_edge_gradient(
 
 def _cuda_theta_gradient(
     verts: np.ndarray, seg_start: np.ndarray, seg_end: np.ndarray, seg_edge: np.ndarray, incl: np.ndarray,
-    block: int, g_edge: np.ndarray, dverts: np.ndarray, sx: float, sy: float, g_theta: np.ndarray,
+    block: int, g_edge: np.ndarray, dverts: np.ndarray, sx: float, sy: float, sums: np.ndarray,
+    done: np.ndarray, slope: np.ndarray, g_param: np.ndarray,
 ) -> None:  # fmt: skip
     """One thread per segment: its Reynolds weights ([`segment_weights`][]) times its normal line
     element ``(ΔY, −ΔX)`` (pixel units, ``verts``) at its two vertices, carried to θ by their
     derivatives ``dverts`` ``(V, 2, P)`` (sensor units, so scaled by ``(sx, sy)``, a pixel unit's
     size in sensor units' reciprocal); the block's sums reduced in shared memory and added to
-    ``g_theta`` ``(P,)`` (zeroed by [`_cuda_edge_gradient`][]), one atomic addition per block and entry. The
-    vertex gradient, its scaling and the contraction with ``dverts`` in one pass: no value per
-    segment or vertex is written."""
+    ``sums`` ``(P,)`` (float64, zeroed with ``done`` by [`_cuda_edge_gradient`][]), one atomic
+    addition per block and entry. The vertex gradient, its scaling and the contraction with
+    ``dverts`` in one pass: no value per segment or vertex is written. The block that finishes
+    last (counted in ``done``) writes the gradient of θ's parameter, ``sums`` times θ's
+    derivative ``slope`` ([`_cuda_corners`][]), into ``g_param`` in its dtype: no launch after."""
     s = cuda.grid(1)
     t = cuda.threadIdx.x
     p_count = dverts.shape[2]
@@ -1411,18 +1440,23 @@ def _cuda_theta_gradient(
         stride //= 2
     if t == 0:
         for p in range(p_count):
-            cuda.atomic.add(g_theta, p, part[0, p])
+            cuda.atomic.add(sums, p, part[0, p])
+        cuda.threadfence()  # the sums seen by every block before the count is
+        if cuda.atomic.add(done, 0, 1) == cuda.gridDim.x - 1:  # the last block: every sum is in
+            for p in range(p_count):
+                g_param[p] = cuda.atomic.add(sums, p, 0.0) * slope[p]  # read where the sums are
 
 
 _A1, _A2, _A3, _I1 = "float64[::1]", "float64[:, ::1]", "float64[:, :, ::1]", "int64[::1]"
 _F3 = "float32[:, :, ::1]"  # a float32 image and its prefix table
 #: The device kernels of [`build_mesh_device`][], by name, with their argument types for a
-#: float32 image (what [`cuda_ptx`][layoutwarp.kernels.cuda_ptx] compiles them with, without a
+#: float32 image and ρ (what [`cuda_ptx`][layoutwarp.kernels.cuda_ptx] compiles them with, without a
 #: GPU; a float64 image compiles its own on first use).
 CUDA_KERNELS = {
     "corners": (
         _cuda_corners,
-        f"void(int64, boolean, {_A2}, {_A2}, {_A1}, {_A1}, {_A2}, {_A3}, {_I1}, {_F3}, int64, {_F3})",
+        f"void(int64, boolean, {_A2}, {_A2}, float32[::1], {_A1}, {_A1}, {_A1}, {_A1}, {_A2}, {_A3}, {_I1}, "
+        f"{_F3}, int64, {_F3})",
     ),
     "amin": (_cuda_amin, f"void({_A2}, int64, int64, {_A1}, int64, {_F3}, {_A3})"),
     "pieces_and_counts": (
@@ -1435,11 +1469,18 @@ CUDA_KERNELS = {
         f"void(int64, boolean, {_A2}, {_I1}, {_I1}, {_A1}, {_A1}, {_I1}, {_A2}, {_A3}, {_I1}, {_I1}, {_A2}, "
         f"{_A3}, float64, float64, {_A2}, {_A3}, {_I1}, {_I1}, {_I1}, {_A2}, {_I1}, {_I1}, int64)",
     ),
-    "pixel_means": (_cuda_pixel_means, f"void({_A2}, {_I1}, float64, {_A3}, {_A2}, {_A2}, {_I1}, int64)"),
-    "edge_gradient": (_cuda_edge_gradient, f"void({_A3}, {_A3}, {_A2}, {_A2}, float64, {_A2}, {_A1})"),
+    "pixel_means": (
+        _cuda_pixel_means,
+        f"void({_A2}, {_I1}, float64, {_F3}, {_A2}, {_A2}, {_I1}, int64, int8[::1])",
+    ),
+    "edge_gradient": (  # the means' gradient as a sum's backward gives it: strided (broadcast)
+        _cuda_edge_gradient,
+        f"void(float32[:, :, :], {_F3}, {_A2}, {_A2}, float64, {_A2}, {_A1}, {_I1})",
+    ),
     "theta_gradient": (
         _cuda_theta_gradient,
-        f"void({_A2}, {_I1}, {_I1}, {_I1}, float32[:, :, ::1], int64, {_A2}, {_A3}, float64, float64, {_A1})",
+        f"void({_A2}, {_I1}, {_I1}, {_I1}, {_F3}, int64, {_A2}, {_A3}, float64, float64, {_A1}, {_I1}, "
+        f"{_A1}, float32[::1])",
     ),
 }
 
@@ -1516,9 +1557,11 @@ class DeviceMesh:
     vertex's θ-derivative ``(V, 2, P)`` (the rows past the mesh's vertices are not written),
     every smooth piece's segment count (as [`CompiledMesh`][] has them, in the first
     ``status[PIECES]`` rows; not written where the pieces outgrew their room, and not the mesh's
-    where its segments did), the room it was built in and its stamp there, and the source
+    where its segments did), the room it was built in and its stamp there, the source
     image's prefix table and block offsets
-    ([`prefix_tables`][layoutwarp.kernels.exact.prefix_tables], built in the same launches)."""
+    ([`prefix_tables`][layoutwarp.kernels.exact.prefix_tables], built in the same launches), and
+    the θ it was built at with θ's derivative in its parameter (``(P,)``, float64; see
+    [`build_mesh_device`][])."""
 
     mesh: PixelMesh
     pixel_vertices: torch.Tensor
@@ -1528,6 +1571,8 @@ class DeviceMesh:
     stamp: int
     incl: torch.Tensor
     offsets: torch.Tensor
+    theta: torch.Tensor
+    slope: torch.Tensor
 
 
 @functools.lru_cache(maxsize=16)
@@ -1550,28 +1595,34 @@ def build_mesh_device(
     tol: float,
     src_size: tuple[int, int],
     *,
+    bounds: torch.Tensor | None = None,
     image: torch.Tensor | None = None,
     max_subdiv: int = 4096,
 ) -> DeviceMesh:
     """[`build_mesh`][] (``with_grad``) and [`pixel_vertices`][] on the CUDA device that
-    holds ``theta`` ``(P,)``, in four kernels (corners and pieces, edges' smaller areas, counts,
-    vertices with their pixel units: one thread per corner and edge, each thread the CPU's steps
-    for its item) and two cumulative sums, so no mesh crosses the bus: at 2048x1024 → 257x129 a
-    fovea mesh is about 50 MB. The first two kernels also build the prefix table of the source
-    ``image`` ``(N, H, W)`` (contiguous, on the same device; ``None``: none). The buffers are
-    its [`MeshRoom`][]'s: the host reads the mesh's totals only for the first mesh of its kind
-    (and its segments' after a mesh whose pieces outgrew their room, which counted none), and
-    never waits for the device otherwise. A
-    ``theta`` on the CPU runs the same kernels in numba's CUDA simulator
+    holds ``theta`` ``(P,)``: θ itself, or with ``bounds`` (``(P,)``, float64, on that device)
+    the parameter ρ of ``θ = bounds · tanh(ρ)`` (a learnable layout's, in its dtype), which the
+    first kernel makes θ of in float64, so neither takes a launch of its own. In four kernels
+    (corners and pieces, edges' smaller areas, counts, vertices with their pixel units: one
+    thread per corner and edge, each thread the CPU's steps for its item) and two cumulative
+    sums, so no mesh crosses the bus: at 2048x1024 → 257x129 a fovea mesh is about 50 MB. The
+    first two kernels also build the prefix table of the source ``image`` ``(N, H, W)``
+    (contiguous, on the same device; ``None``: none). The buffers are its [`MeshRoom`][]'s: the
+    host reads the mesh's totals only for the first mesh of its kind (and its segments' after a
+    mesh whose pieces outgrew their room, which counted none), and never waits for the device
+    otherwise. A ``theta`` on the CPU runs the same kernels in numba's CUDA simulator
     (``NUMBA_ENABLE_CUDASIM=1``), which is how they are tested without a GPU."""
     dev = theta.device
     stream = stream_of(theta)
     (h, w), (hs, ws) = size, src_size
     ends, ea, eb, uniform = _device_topology(size, str(dev))
-    th = theta.detach().to(torch.float64).contiguous()
+    param = theta.detach().contiguous()
     c = _device_centre(spec.center, str(dev))
-    p, ne, nc = th.numel(), ends.shape[0], uniform.shape[0]
+    p, ne, nc = param.numel(), ends.shape[0], uniform.shape[0]
     f64, i64 = {"dtype": torch.float64, "device": dev}, {"dtype": torch.int64, "device": dev}
+    th, slope = torch.empty(p, **f64), torch.empty(p, **f64)
+    if bounds is None:
+        bounds = th[:0]
     key = (spec, size, float(tol), p, str(dev), max_subdiv)
     if key not in MESH_ROOMS:
         MESH_ROOMS[key] = MeshRoom(host_mapped(3, dev))
@@ -1589,8 +1640,8 @@ def build_mesh_device(
     incl = image.new_empty(hs, ws, n)
     offsets = image.new_empty(hs, -(-ws // BLOCK), n, dtype=torch.float64)
     launch(
-        "corners", max(ne, hs * offsets.shape[1] * n), spec.kind, spec.centred, uniform, ends, th, c, q, dq,
-        piece_offsets, image, BLOCK, incl,
+        "corners", max(ne, hs * offsets.shape[1] * n), spec.kind, spec.centred, uniform, ends, param,
+        bounds, c, th, slope, q, dq, piece_offsets, image, BLOCK, incl,
     )  # fmt: skip
     amin = torch.empty(ne, **f64)
     launch("amin", max(ne, hs * n), q, h, w, amin, BLOCK, incl, offsets)
@@ -1616,23 +1667,30 @@ def build_mesh_device(
         seg_offsets, room.status, stamp,
     )  # fmt: skip
     mesh = PixelMesh(size, verts, seg_start, seg_end, seg_edge, seg_offsets)
-    return DeviceMesh(mesh, pv, dverts, counts, room, stamp, incl, offsets)
+    return DeviceMesh(mesh, pv, dverts, counts, room, stamp, incl, offsets, th, slope)
 
 
-def device_means(dm: DeviceMesh, per_seg: torch.Tensor, unit: float, check: bool) -> tuple[torch.Tensor, ...]:
-    """The pixels' means ``(N, h, w)``, areas ``(h, w)`` and areas in sensor units of the device
-    mesh ``dm`` from its segments' integrals ``per_seg`` ``(S, N + 1)`` (the exact forward's,
+def device_means(
+    dm: DeviceMesh, per_seg: torch.Tensor, unit: float, check: bool, dtype: torch.dtype, zero: torch.Tensor
+) -> tuple[torch.Tensor, ...]:
+    """The pixels' means ``(N, h, w)`` (in ``dtype``, rounded once), areas ``(h, w)`` and areas
+    in sensor units (float64) of the device mesh ``dm`` from its segments' integrals ``per_seg``
+    ``(S, N + 1)`` (the exact forward's,
     [`exact_forward`][layoutwarp.kernels.exact.exact_forward]'s per-segment values), in one
     launch (``unit``: a source pixel's area in sensor units; ``check``: a NaN or ±inf mean
     raises when the host next looks, [`DeviceChecks`][layoutwarp.kernels.device.DeviceChecks];
-    an earlier call's raises now)."""
+    an earlier call's raises now), which also zeroes the one-element ``zero``."""
     (h, w), n = dm.mesh.size, per_seg.shape[1] - 1
-    means, area, area_units = per_seg.new_empty(n, h, w), per_seg.new_empty(h, w), per_seg.new_empty(h, w)
+    means, area, area_units = (
+        per_seg.new_empty(n, h, w, dtype=dtype),
+        per_seg.new_empty(h, w),
+        per_seg.new_empty(h, w),
+    )
     checks = device_checks(per_seg.device)
     if check:
         checks.look()
     args = (per_seg, dm.mesh.edge_offsets, float(unit), means, area, area_units, checks.status)
-    cuda_launch(_cuda_pixel_means, h * w, stream_of(per_seg), *args, checks.take() if check else 0)
+    cuda_launch(_cuda_pixel_means, h * w, stream_of(per_seg), *args, checks.take() if check else 0, zero)
     return means, area, area_units
 
 
@@ -1665,18 +1723,24 @@ def device_theta_gradient(
     grad_area: torch.Tensor | None,
     unit: float,
     src_size: tuple[int, int],
+    dtype: torch.dtype,
 ) -> torch.Tensor:
-    """θ's gradient ``(P,)`` (float64) from the gradients of [`device_means`][]' means ``grad``
-    and areas in sensor units ``grad_area`` (``None``: none), over the image whose prefix table
-    ``dm`` holds: two launches (the edge integrals' gradient, then every segment's Reynolds weights carried to
-    θ and summed)."""
+    """The gradient ``(P,)`` of the parameter ``dm`` was built from (θ, or ρ; see
+    [`build_mesh_device`][]), in ``dtype``, from the gradients of [`device_means`][]' means
+    ``grad`` (the means' dtype) and areas in sensor units ``grad_area`` (``None``: none), over
+    the image whose prefix table ``dm`` holds: two launches (the edge integrals' gradient, then
+    every segment's Reynolds weights carried to θ, summed in float64 and carried to the
+    parameter)."""
     stream, mesh = stream_of(means), dm.mesh
-    g_area = means.new_empty(0, 0) if grad_area is None else grad_area.detach().double().contiguous()
-    g_edge = means.new_empty(means.shape[0] + 1, mesh.edge_offsets.numel() - 1)
-    g_theta = means.new_empty(dm.dverts.shape[2])
-    args = (grad.detach().double().contiguous(), means, area, g_area, float(unit), g_edge, g_theta)
+    g_area = area.new_empty(0, 0) if grad_area is None else grad_area.detach().double().contiguous()
+    g_edge = area.new_empty(means.shape[0] + 1, mesh.edge_offsets.numel() - 1)
+    sums, done = area.new_empty(dm.dverts.shape[2]), mesh.edge_offsets.new_empty(1)
+    args = (grad.detach(), means, area, g_area, float(unit), g_edge, sums, done)  # grad as it is: no copy
     cuda_launch(_cuda_edge_gradient, g_edge.shape[1], stream, *args)
     hs, ws = src_size
+    g_param = area.new_empty(sums.shape[0], dtype=dtype)
     args = (dm.pixel_vertices, mesh.seg_start, mesh.seg_end, mesh.seg_edge, dm.incl, BLOCK, g_edge, dm.dverts)
-    cuda_launch(_cuda_theta_gradient, mesh.num_segments, stream, *args, ws / 2, hs / 2, g_theta)
-    return g_theta
+    cuda_launch(
+        _cuda_theta_gradient, mesh.num_segments, stream, *args, ws / 2, hs / 2, sums, done, dm.slope, g_param
+    )
+    return g_param

@@ -32,6 +32,7 @@ from .base import (
     newton_inverse,
     register_family,
     tensor_dtype,
+    theta_of,
 )
 from .centered import CenteredLayout
 from .curv import (
@@ -81,4 +82,5 @@ __all__ = [
     "register_family",
     "square_to_disk",
     "tensor_dtype",
+    "theta_of",
 ]

@@ -32,6 +32,7 @@ __all__ = [
     "register_family",
     "safe_norm",
     "tensor_dtype",
+    "theta_of",
 ]
 
 
@@ -71,6 +72,14 @@ def tensor_dtype(*values: Any) -> torch.dtype:
         if isinstance(v, Tensor) and v.is_floating_point():
             return v.dtype
     return torch.get_default_dtype()
+
+
+def theta_of(param: Tensor, bounds: Tensor) -> Tensor:
+    """θ in float64 from what [`Layout.theta_source`][layoutwarp.layouts.base.Layout.theta_source]
+    gives: ``bounds · tanh(param)``, or ``param`` itself where ``bounds`` is empty
+    (differentiable; the formula a learnable layout's θ is made by, at float64)."""
+    x = param.double()
+    return x if bounds.numel() == 0 else bounds.to(x) * torch.tanh(x)
 
 
 def config_numbers(
@@ -240,6 +249,23 @@ class Layout(nn.Module):
             self._bounds_on[key] = self._bounds().to(rho)
         return self._bounds_on[key] * torch.tanh(rho)
 
+    def theta_source(self) -> tuple[Tensor, Tensor]:
+        """What θ is made of, for an operator that makes θ itself (so a learnable step's
+        ``ρ → θ``, and its gradient back, cost no launches of their own): ``(ρ, bounds)`` of a
+        learnable layout with ``θ = bounds · tanh(ρ)`` (``bounds`` ``(P,)`` float64, kept on
+        ρ's device), else ``(θ, empty)``: a fixed layout's θ as it was set (float64), an
+        unbounded family's ρ, or θ of a family that makes it its own way. [`theta_of`][] makes
+        θ of either, in float64, as [`theta_as`][] with ``torch.float64`` does."""
+        empty = self.rho.new_empty(0, dtype=torch.float64)
+        if not self.learnable or type(self)._to_theta is not Layout._to_theta:
+            return self.theta_as(torch.float64), empty
+        if self.unbounded:
+            return self.rho, empty
+        key = (self.rho.device, torch.float64)
+        if key not in self._bounds_on:
+            self._bounds_on[key] = self._bounds().to(self.rho.device)
+        return self.rho, self._bounds_on[key]
+
     def _to_rho(self, theta: Tensor) -> Tensor:
         """Inverse of `_to_theta`."""
         return theta.clone() if self.unbounded else torch.atanh(theta / self._bounds().to(theta))
@@ -285,10 +311,11 @@ class Layout(nn.Module):
     def theta_as(self, dtype: torch.dtype) -> Tensor:
         """θ in ``dtype``: a fixed layout's as it was set (held in float64, so
         ``theta_as(torch.float64)`` is exactly the θ given, a layout file's or ``set_theta``'s);
-        a learnable layout's from ``ρ``, differentiable."""
+        a learnable layout's from ``ρ``, differentiable, computed at the finer of ρ's precision
+        and ``dtype``'s."""
         if self._keeps_theta and not self.rho.requires_grad:
             return self.fixed_theta.to(dtype)
-        return self._to_theta(self.rho).to(dtype)
+        return self._to_theta(self.rho.to(torch.promote_types(self.rho.dtype, dtype))).to(dtype)
 
     @torch.no_grad()
     def set_theta(self, theta: Sequence[float] | Tensor) -> None:
