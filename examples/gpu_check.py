@@ -5,7 +5,9 @@ replayed), ``step_over_reference_b1``/``_b4`` (against the paper's reference lay
 step, where ``../shared/refcode`` is there and imports; ``null`` and ``reference_missing`` where
 not), ``fixed_over_pool``, ``physics_overhead`` (a fraction), ``launches_per_step`` (the
 profiler's GPU activities; ``launches_counted``: `count_launches`, as the tests count them
-without a GPU), ``host_reads`` (`count_host_reads` of a learnable step), ``first_call_s``,
+without a GPU), ``host_reads`` (`count_host_reads` of a learnable step), ``numba_launch_us`` and
+``torch_launch_us`` (the host's microseconds a launch of a numba kernel of 12 tensors and of a
+torch operator costs), ``first_call_s``,
 ``physics_cuda_equals_cpu`` (the share of recorded values equal on both, same seed)).
 
     python examples/gpu_check.py [--no-tests] [--out examples/gpu/gpu_check.json]
@@ -98,6 +100,38 @@ def launches(fn, calls: int = 5) -> float:
         torch.cuda.synchronize()
     events = [e for e in prof.events() if e.device_type == torch.autograd.DeviceType.CUDA]
     return len(events) / calls
+
+
+cuda = None  # numba.cuda, bound by the first launch (layoutwarp.kernels.cuda_launch)
+
+
+def _touch(a0, a1, a2, a3, a4, a5, a6, a7, a8, a9, a10, a11) -> None:
+    """A kernel of twelve array arguments (as many as the mesh's kernels take) that does nothing
+    but one write: what a launch costs the host."""
+    if cuda.grid(1) == 0:
+        a0[0] = a11[0]
+
+
+def launch_us(device: str = "cuda", calls: int = 300) -> tuple[float, float]:
+    """Host microseconds per launch, without waiting between them: a numba kernel of twelve
+    tensor arguments through `cuda_launch` (as layoutwarp's kernels launch), and a torch operator
+    (``add`` on the same tiny tensor)."""
+    from layoutwarp.kernels.device import cuda_launch, stream_of
+
+    x = [torch.zeros(4, device=device) for _ in range(12)]
+    stream = stream_of(x[0])
+    out = []
+    for fn in (lambda: cuda_launch(_touch, 1, stream, *x), lambda: torch.add(x[0], 1, out=x[1])):
+        fn()  # compiles (numba) and warms up
+        if device == "cuda":
+            torch.cuda.synchronize()
+        t = time.perf_counter()
+        for _ in range(calls):
+            fn()
+        if device == "cuda":
+            torch.cuda.synchronize()
+        out.append((time.perf_counter() - t) / calls * 1e6)
+    return out[0], out[1]
 
 
 def main() -> int:
@@ -207,6 +241,11 @@ def main() -> int:
         f"GPU activities per learnable curv step: {res['launches_per_step']:.0f} (profiler), "
         f"{res['launches_counted']} (count_launches, as tests count them without a GPU); "
         f"{res['host_reads']} values read back"
+    )
+    res["numba_launch_us"], res["torch_launch_us"] = launch_us()
+    print(
+        f"host cost of a launch: numba kernel of 12 tensors {res['numba_launch_us']:.1f} µs, torch "
+        f"operator {res['torch_launch_us']:.1f} µs"
     )
     fixed = lw.CurvLayout((0.3, -0.24)).cuda()
     phys = lw.SensorPhysics(
