@@ -148,6 +148,16 @@ def grad_tol(layout: lw.Layout, g: torch.Tensor) -> float:
     return 1e-12 * max(float(g.abs().max()), 1.0) / (1 - float(layout.theta.detach().abs().max())) ** 2
 
 
+def near_boundaries(pts: np.ndarray, polys: list, within: float = 1e-6) -> np.ndarray:
+    """Which of the shapely points ``pts`` lie within ``within`` of some polygon's boundary (where
+    point-in-polygon cannot tell one pixel from its neighbour): a tree query, not a distance to
+    the union of every boundary (seconds for a finely subdivided mesh)."""
+    near = np.zeros(len(pts), dtype=bool)
+    tree = shapely.STRtree([p.boundary for p in polys])
+    near[tree.query(pts, predicate="dwithin", distance=within)[0]] = True
+    return near
+
+
 def clip_reference(img: torch.Tensor, polys: list[np.ndarray], size) -> np.ndarray:
     """Mean of a piecewise-constant image over each polygon by shapely clipping (float64)."""
     n, hs, ws = img.shape

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import shapely
 import torch
-from conftest import rand_theta
+from conftest import near_boundaries, rand_theta
 
 import layoutwarp as lw
 
@@ -29,8 +29,7 @@ def test_backwarp_matches_point_in_polygon(family, gen):
     tree = shapely.STRtree(polys)
     centres = lw.coords.pixel_centers(target).reshape(-1, 2).numpy()
     pts = shapely.points(centres)
-    boundary = shapely.union_all([p.boundary for p in polys])
-    near = shapely.distance(pts, boundary) < 1e-6
+    near = near_boundaries(pts, polys)
     hits = tree.query(pts, predicate="within")
     ref = np.full(len(pts), -1)
     ref[hits[0]] = hits[1]

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import shapely
 import torch
-from conftest import clip_reference, rand_theta
+from conftest import clip_reference, near_boundaries, rand_theta
 
 import layoutwarp as lw
 from layoutwarp.augment import SensorAugmentation
@@ -572,7 +572,7 @@ def test_backwarp_agrees_with_point_in_polygon_and_opencv(name, gen):
     mesh = lw.pixel_mesh(layout, size, tol=1e-7)  # edges within ~1e-8 of the curves: far inside `near`
     polys = [shapely.Polygon(p) for p in mesh.polygons()]
     pts = shapely.points(lw.coords.pixel_centers(target).reshape(-1, 2).numpy())
-    near = shapely.distance(pts, shapely.union_all([p.boundary for p in polys])) < 1e-6
+    near = near_boundaries(pts, polys)
     hits = shapely.STRtree(polys).query(pts, predicate="within")
     ref = np.full(len(pts), -1)
     ref[hits[0]] = hits[1]
