@@ -735,3 +735,46 @@ def test_elliptic_does_not_fold_over_its_theta_range(tx):
     for ty in (-0.99, -0.9, -0.5, 0.0, 0.5, 0.9, 0.99):
         report = lw.EllipticLayout((tx, ty), dtype=F64).check_foldover(101)
         assert report.ok and report.min_det > 0, (tx, ty, report)
+
+
+@pytest.mark.parametrize("name", ["curv", "fovea", "elliptic", "spline", "grid"])
+def test_what_theta_is_made_of_makes_the_layouts_float64_theta_and_its_gradient(name, gen):
+    """`Layout.theta_source` and `theta_of` (how the exact integrator's operator makes θ itself):
+    a learnable float32 layout's θ in float64, bit for bit as ``theta_as(torch.float64)`` makes
+    it, with the same gradient in ρ; a frozen layout's θ as it is; and the exact integrator's
+    means and ρ-gradient from ρ those it gives for that θ passed in as it is."""
+    from layoutwarp.integrators import integrate_exact
+    from layoutwarp.layouts import theta_of
+
+    f32 = torch.float32
+    learnable = {
+        "curv": lambda: lw.CurvLayout(rand_theta(gen, 0.9), learn=True, dtype=f32),
+        "fovea": lambda: lw.FoveaLayout(
+            rand_theta(gen, 0.8), center=(0.2, -0.3), learn=True, learn_center=True, dtype=f32
+        ),
+        "elliptic": lambda: lw.EllipticLayout(rand_theta(gen, 0.8), learn=True, dtype=f32),
+        "spline": lambda: rand_spline(gen, learn=True).float(),
+        "grid": lambda: rand_grid(gen, learn=True).float(),
+    }[name]()
+    param, bounds = learnable.theta_source()
+    assert param is learnable.rho and bounds.dtype == F64
+    made, ref = theta_of(param, bounds), learnable.theta_as(F64)
+    assert made.dtype == F64 and torch.equal(made, ref)
+    weights = torch.randn(made.shape, generator=gen, dtype=F64)
+    (g_made,) = torch.autograd.grad((made * weights).sum(), learnable.rho)
+    (g_ref,) = torch.autograd.grad((ref * weights).sum(), learnable.rho)
+    assert torch.equal(g_made, g_ref)
+    frozen = learnable.requires_grad_(False)
+    theta, empty = frozen.theta_source()
+    assert empty.numel() == 0 and torch.equal(theta, ref.detach())
+    frozen.requires_grad_(True)
+    if name in ("curv", "fovea"):  # the compiled mesh's families: the operator makes this θ
+        img = torch.rand(2, 19, 23, generator=gen, dtype=F64)
+        g = torch.randn(2, 5, 6, generator=gen, dtype=F64)
+        got = integrate_exact(img, learnable, (5, 6), tol=1e-6)  # ρ and its bounds in
+        (g_got,) = torch.autograd.grad((got * g).sum(), learnable.rho)
+        theta = learnable.theta_as(F64)
+        want = integrate_exact(img, learnable, (5, 6), tol=1e-6, theta=theta)  # θ in, as it is
+        (g_want,) = torch.autograd.grad((want * g).sum(), learnable.rho)
+        assert torch.equal(got.detach(), want.detach())
+        assert float((g_got - g_want).abs().max()) <= 1e-6 * float(g_want.abs().max())  # ρ in float32
