@@ -536,6 +536,8 @@ def _device_exact(
     pixels, areas in sensor units, mesh)``; the 0-d ``zero`` set to 0 on the way."""
     src = tuple(image.shape[-2:])
     param, bounds = theta.detach().to(image.device), bounds.to(image.device)
+    if param.dtype not in (torch.float32, torch.float64):  # numba takes no half precision
+        param = param.float()
     dm = build_mesh_device(
         spec, size, param, tol, src, bounds=bounds if bounds.numel() else None, image=image
     )

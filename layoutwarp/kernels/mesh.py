@@ -1443,6 +1443,7 @@ def _cuda_theta_gradient(
             cuda.atomic.add(sums, p, part[0, p])
         cuda.threadfence()  # the sums seen by every block before the count is
         if cuda.atomic.add(done, 0, 1) == cuda.gridDim.x - 1:  # the last block: every sum is in
+            cuda.threadfence()  # nothing read before the count said so
             for p in range(p_count):
                 g_param[p] = cuda.atomic.add(sums, p, 0.0) * slope[p]  # read where the sums are
 
