@@ -538,9 +538,7 @@ def _device_exact(
     param, bounds = theta.detach().to(image.device), bounds.to(image.device)
     if param.dtype not in (torch.float32, torch.float64):  # numba takes no half precision
         param = param.float()
-    dm = build_mesh_device(
-        spec, size, param, tol, src, bounds=bounds if bounds.numel() else None, image=image
-    )
+    dm = build_mesh_device(spec, size, param, tol, src, bounds=bounds, image=image)
     per_seg = _cuda_per_segment(dm.pixel_vertices, dm.mesh, dm.incl, dm.offsets)
     means, area, areas = device_means(dm, per_seg, _unit(image), check, dtype, zero.view(1))
     return means, area, areas, dm

@@ -245,10 +245,8 @@ def host_mapped(n: int, device: torch.device) -> np.ndarray:
     write them too), and the host reads them whenever it likes, without waiting (numba's
     simulator: a plain array). Kept for the life of the process by its callers."""
     _import_cuda()
-    if device.type == "cuda" and not simulated():
-        with cuda.gpus[device.index or 0]:
-            out = cuda.mapped_array(n, dtype=np.int64)
-    else:
+    on_gpu = device.type == "cuda" and not simulated()
+    with cuda.gpus[device.index or 0] if on_gpu else contextlib.nullcontext():
         out = cuda.mapped_array(n, dtype=np.int64)
     out[:] = 0
     return out

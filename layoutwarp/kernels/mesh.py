@@ -1561,7 +1561,7 @@ class DeviceMesh:
     where its segments did), the room it was built in and its stamp there, the source
     image's prefix table and block offsets
     ([`prefix_tables`][layoutwarp.kernels.exact.prefix_tables], built in the same launches), and
-    the θ it was built at with θ's derivative in its parameter (``(P,)``, float64; see
+    θ's derivative in the parameter it was built from (``(P,)``, float64; see
     [`build_mesh_device`][])."""
 
     mesh: PixelMesh
@@ -1572,7 +1572,6 @@ class DeviceMesh:
     stamp: int
     incl: torch.Tensor
     offsets: torch.Tensor
-    theta: torch.Tensor
     slope: torch.Tensor
 
 
@@ -1601,17 +1600,17 @@ def build_mesh_device(
     max_subdiv: int = 4096,
 ) -> DeviceMesh:
     """[`build_mesh`][] (``with_grad``) and [`pixel_vertices`][] on the CUDA device that
-    holds ``theta`` ``(P,)``: θ itself, or with ``bounds`` (``(P,)``, float64, on that device)
-    the parameter ρ of ``θ = bounds · tanh(ρ)`` (a learnable layout's, in its dtype), which the
-    first kernel makes θ of in float64, so neither takes a launch of its own. In four kernels
-    (corners and pieces, edges' smaller areas, counts, vertices with their pixel units: one
-    thread per corner and edge, each thread the CPU's steps for its item) and two cumulative
-    sums, so no mesh crosses the bus: at 2048x1024 → 257x129 a fovea mesh is about 50 MB. The
-    first two kernels also build the prefix table of the source ``image`` ``(N, H, W)``
-    (contiguous, on the same device; ``None``: none). The buffers are its [`MeshRoom`][]'s: the
-    host reads the mesh's totals only for the first mesh of its kind (and its segments' after a
-    mesh whose pieces outgrew their room, which counted none), and never waits for the device
-    otherwise. A ``theta`` on the CPU runs the same kernels in numba's CUDA simulator
+    holds ``theta`` ``(P,)``: θ itself, or with ``bounds`` (``(P,)``, float64, on that device;
+    ``None`` or empty: none) the parameter ρ of ``θ = bounds · tanh(ρ)`` (a learnable layout's,
+    in its dtype), which the first kernel makes θ of in float64, so neither takes a launch of its
+    own. In four kernels (corners and pieces, edges' smaller areas, counts, vertices with their
+    pixel units: one thread per corner and edge, each thread the CPU's steps for its item) and
+    two cumulative sums, so no mesh crosses the bus: at 2048x1024 → 257x129 a fovea mesh is about
+    50 MB. The first two kernels also build the prefix table of the source ``image``
+    ``(N, H, W)`` (contiguous, on the same device; ``None``: none). The buffers are its
+    [`MeshRoom`][]'s: the host reads the mesh's totals only for the first mesh of its kind (and
+    its segments' after a mesh whose pieces outgrew their room, which counted none), and never
+    waits for the device otherwise. A ``theta`` on the CPU runs the same kernels in numba's CUDA simulator
     (``NUMBA_ENABLE_CUDASIM=1``), which is how they are tested without a GPU."""
     dev = theta.device
     stream = stream_of(theta)
@@ -1622,8 +1621,7 @@ def build_mesh_device(
     p, ne, nc = param.numel(), ends.shape[0], uniform.shape[0]
     f64, i64 = {"dtype": torch.float64, "device": dev}, {"dtype": torch.int64, "device": dev}
     th, slope = torch.empty(p, **f64), torch.empty(p, **f64)
-    if bounds is None:
-        bounds = th[:0]
+    bounds = th[:0] if bounds is None else bounds
     key = (spec, size, float(tol), p, str(dev), max_subdiv)
     if key not in MESH_ROOMS:
         MESH_ROOMS[key] = MeshRoom(host_mapped(3, dev))
@@ -1649,11 +1647,11 @@ def build_mesh_device(
     piece_offsets.cumsum_(0)
     if not room.pieces:  # the first mesh of its kind: its totals read, once
         room.pieces = room.ahead(int(piece_offsets[-1]), ne)
-    bounds, dbounds = torch.empty(room.pieces, 2, **f64), torch.empty(room.pieces, 2, p, **f64)
+    lims, dlims = torch.empty(room.pieces, 2, **f64), torch.empty(room.pieces, 2, p, **f64)  # pieces' ends
     counts, edge_counts = torch.empty(room.pieces, **i64), torch.empty(ne + 1, **i64)
     launch(
         "pieces_and_counts", ne, spec.kind, spec.centred, ends, th, c, piece_offsets, amin, float(tol),
-        int(max_subdiv), INNER, bounds, dbounds, counts, edge_counts, room.status, stamp,
+        int(max_subdiv), INNER, lims, dlims, counts, edge_counts, room.status, stamp,
     )  # fmt: skip
     edge_offsets = torch.cumsum(edge_counts, 0)
     if not room.segments:  # the first mesh, or one after the pieces outgrew theirs: read, once
@@ -1663,12 +1661,12 @@ def build_mesh_device(
     seg_start, seg_end, seg_edge = (torch.empty(room.segments, **i64) for _ in range(3))
     pv, seg_offsets = torch.empty_like(verts), torch.empty(ne + 1, **i64)
     launch(
-        "place", ne, spec.kind, spec.centred, ends, ea, eb, th, c, piece_offsets, bounds, dbounds, counts,
+        "place", ne, spec.kind, spec.centred, ends, ea, eb, th, c, piece_offsets, lims, dlims, counts,
         edge_offsets, q, dq, float(ws), float(hs), verts, dverts, seg_start, seg_end, seg_edge, pv,
         seg_offsets, room.status, stamp,
     )  # fmt: skip
     mesh = PixelMesh(size, verts, seg_start, seg_end, seg_edge, seg_offsets)
-    return DeviceMesh(mesh, pv, dverts, counts, room, stamp, incl, offsets, th, slope)
+    return DeviceMesh(mesh, pv, dverts, counts, room, stamp, incl, offsets, slope)
 
 
 def device_means(

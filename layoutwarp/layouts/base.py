@@ -244,10 +244,15 @@ class Layout(nn.Module):
         families whose every θ is valid (``unbounded``)."""
         if self.unbounded:
             return rho
-        key = (rho.device, rho.dtype)
-        if key not in self._bounds_on:  # made once per device: no copy to it every step
-            self._bounds_on[key] = self._bounds().to(rho)
-        return self._bounds_on[key] * torch.tanh(rho)
+        return self._bounds_at(rho.device, rho.dtype) * torch.tanh(rho)
+
+    def _bounds_at(self, device: torch.device, dtype: torch.dtype) -> Tensor:
+        """[`_bounds`][] on ``device`` in ``dtype``, made once per device and dtype (no copy to
+        the device every step)."""
+        key = (device, dtype)
+        if key not in self._bounds_on:
+            self._bounds_on[key] = self._bounds().to(device=device, dtype=dtype)
+        return self._bounds_on[key]
 
     def theta_source(self) -> tuple[Tensor, Tensor]:
         """What θ is made of, for an operator that makes θ itself (so a learnable step's
@@ -261,10 +266,7 @@ class Layout(nn.Module):
             return self.theta_as(torch.float64), empty
         if self.unbounded:
             return self.rho, empty
-        key = (self.rho.device, torch.float64)
-        if key not in self._bounds_on:
-            self._bounds_on[key] = self._bounds().to(self.rho.device)
-        return self.rho, self._bounds_on[key]
+        return self.rho, self._bounds_at(self.rho.device, torch.float64)
 
     def _to_rho(self, theta: Tensor) -> Tensor:
         """Inverse of `_to_theta`."""
