@@ -377,18 +377,21 @@ def _cpu_forward(
     """The compiled forward on the CPU: ``(N + 1, E)`` edge integrals (and areas), and the prefix
     tables where the image is small enough to keep them for the backward (else ``None``: it is
     integrated in bands of rows, holding no whole table)."""
-    nt = kernels.threads()
-    with kernels.LOCK:
-        if image.nbytes <= kernels.WHOLE_TABLE_BYTES:
-            tables = kernels.prefix_tables(image, kernels.BLOCK)
-            out = kernels.exact_forward(verts, seg_start, seg_end, edge_offsets, *tables, kernels.BLOCK, nt)
-            return out, tables
-        band = kernels.band_rows(image, nt)
-        seg_edge = np.ascontiguousarray(seg_edge)
-        out = kernels.exact_forward_banded(
-            verts, seg_start, seg_end, edge_offsets, seg_edge, image, kernels.BLOCK, band, nt
-        )
-        return out, None
+    nt = kernels.threads(image.size + _SEGMENT_WORK * len(seg_start))
+    if image.nbytes <= kernels.WHOLE_TABLE_BYTES:
+        tables = kernels.prefix_tables(image, kernels.BLOCK, nt)
+        out = kernels.exact_forward(verts, seg_start, seg_end, edge_offsets, *tables, kernels.BLOCK, nt)
+        return out, tables
+    band = kernels.band_rows(image, nt)
+    seg_edge = np.ascontiguousarray(seg_edge)
+    out = kernels.exact_forward_banded(
+        verts, seg_start, seg_end, edge_offsets, seg_edge, image, kernels.BLOCK, band, nt
+    )
+    return out, None
+
+
+#: What a segment costs the kernels, in elements of [`layoutwarp.kernels.threads`][]' work.
+_SEGMENT_WORK = 64
 
 
 def _cpu_weights(
@@ -402,11 +405,10 @@ def _cpu_weights(
 ) -> tuple[np.ndarray, np.ndarray]:
     """The compiled backward on the CPU: the Reynolds weights ``(wa, wb)`` of every segment
     ([`exact_backward`][layoutwarp.kernels.exact_backward]) for the edge gradient ``grad`` ``(N + 1, E)``."""
-    with kernels.LOCK:
-        incl = (tables or kernels.prefix_tables(image, kernels.BLOCK))[0]
-        seg_edge = np.ascontiguousarray(seg_edge)
-        nt = kernels.threads()
-        return kernels.exact_backward(verts, seg_start, seg_end, seg_edge, incl, kernels.BLOCK, grad, nt)
+    nt = kernels.threads(image.size + _SEGMENT_WORK * len(seg_start))
+    incl = (tables or kernels.prefix_tables(image, kernels.BLOCK, nt))[0]
+    seg_edge = np.ascontiguousarray(seg_edge)
+    return kernels.exact_backward(verts, seg_start, seg_end, seg_edge, incl, kernels.BLOCK, grad, nt)
 
 
 # ----------------------------------------------------------------------------------------
@@ -479,9 +481,8 @@ def _exact(
     held = image.new_zeros((), dtype=torch.int8)
     if spec is not None and jacobian:  # mesh, integrals and their θ-Jacobian, chunk by chunk
         th = theta_of(theta, bounds).detach().cpu().numpy()
-        with kernels.LOCK:
-            tables = kernels.prefix_tables(image.numpy(), kernels.BLOCK)
-            out, j = mesh_integrals(spec, size, th, tol, tables, (hs, ws))
+        tables = kernels.prefix_tables(image.numpy(), kernels.BLOCK)
+        out, j = mesh_integrals(spec, size, th, tol, tables, (hs, ws))
         pix = MeshTopology(size).combine(out)
         held.fill_(1)
         means, areas, jac = (torch.from_numpy(a) for a in (pix[:-1] / pix[-1], pix[-1] * _unit(image), j))
@@ -590,9 +591,8 @@ def _exact_backward(
     ):  # the compiled CPU step: the quotient rule and one contraction
         g = np.zeros(means.shape) if grad_means is None else grad_means.detach().double().cpu().numpy()
         own = None if grad_areas is None else grad_areas.detach().double().cpu().numpy() * _unit(image)
-        with kernels.LOCK:
-            g_edge = edge_gradient(g, means.double().cpu().numpy(), areas.cpu().numpy() / _unit(image), own)
-            g_theta = theta_gradient(g_edge, jac.cpu().numpy())
+        g_edge = edge_gradient(g, means.double().cpu().numpy(), areas.cpu().numpy() / _unit(image), own)
+        g_theta = theta_gradient(g_edge, jac.cpu().numpy())
         return _to_param(torch.from_numpy(g_theta), theta, bounds), image.new_empty(0)
     which = "torch" if backend == "torch" or image_grad else ops.backend(image, "learn")
     template = ops.layout_of(layout)

@@ -346,12 +346,11 @@ class AreaResampler:
             out = np.empty((n, w.shape[0]), dtype=np.float32)
             x = np.ascontiguousarray(flat.numpy())  # needs no gradient: no detach
             measured = None if physics is None else kernel_arguments(physics, self.areas, output, seed_value)
-            with kernels.LOCK:
-                nt = kernels.threads()  # numba's threads for this launch, bounded by torch's
-                if measured is None:
-                    bad = kernel(w.indptr, w.indices, w.data, x, out)
-                else:  # the means measured in place: the buffer is this call's own
-                    bad = kernel(w.indptr, w.indices, w.data, x, out, *measured, out, nt)
+            nt = kernels.threads(x.size)  # bounded by torch's; one for a small image
+            if measured is None:
+                bad = kernel(w.indptr, w.indices, w.data, x, out, nt)
+            else:  # the means measured in place: the buffer is this call's own
+                bad = kernel(w.indptr, w.indices, w.data, x, out, *measured, out, nt)
             if bad and not allow_nonfinite:
                 raise_nonfinite(images)
             return torch.from_numpy(out).view(n, *self.size)

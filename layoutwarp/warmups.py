@@ -1,6 +1,6 @@
-"""The warm-ups of [`layoutwarp.jit`][jit]: each group's public paths on tiny inputs of one dtype,
-in every type the library calls the group's kernels with, so that after a group's warm-up the
-entry points compile nothing (tests/test_jit.py checks it). The background worker and
+"""The warm-ups of [`layoutwarp.jit`][jit]: each unit's public paths on tiny inputs of one dtype,
+in every type the library calls the unit's kernels with, so that after a unit's warm-up the
+entry points compile nothing (tests/test_jit.py checks it). The background compile and
 ``layoutwarp doctor --compile`` run them; a look at the cache runs them with compiling forbidden."""
 
 from __future__ import annotations
@@ -20,6 +20,24 @@ def _warm_fixed(dtype: torch.dtype) -> None:
     with torch.no_grad(), RESAMPLERS.kept():  # the user's cached weights stay
         for layout in (CurvLayout((0.3, -0.2)), RectLayout((0.3, -0.2))):
             simulate(torch.full((1, 3, 8, 8), 0.5, dtype=dtype), layout.to(dtype), (3, 3))
+
+
+def _warm_mesh(dtype: torch.dtype) -> None:
+    from .kernels import mesh as mk
+
+    for layout in (
+        CurvLayout((0.3, -0.2)),
+        FoveaLayout((0.3, -0.2), center=(0.1, 0.1)),
+        FoveaLayout((0.3, -0.2), center=(0.1, 0.1), learn=True),
+        EllipticLayout((0.3, -0.2)),
+    ):
+        spec = mk.mesh_spec(layout)
+        theta = layout.theta_as(torch.float64).detach().numpy()
+        for with_grad in (True, False):  # a fixed layout's mesh, and a learnable one's
+            mk.build_mesh(spec, (3, 3), theta, 1e-3, with_grad=with_grad)
+    g = np.ones((3, 3, 3))  # the backward: the quotient rule and the contraction
+    g_edge = mk.edge_gradient(g, g, g[0], g[0])
+    mk.theta_gradient(g_edge, np.ones((*g_edge.shape, 2)))
 
 
 def _warm_learn(dtype: torch.dtype) -> None:
@@ -49,6 +67,7 @@ def _warm_measure(dtype: torch.dtype) -> None:
                 simulate(img, CurvLayout((0.3, -0.2)).to(dtype), (3, 3), physics=phys, output=output)
 
 
+jit.register_warmup("mesh", _warm_mesh)
 jit.register_warmup("fixed", _warm_fixed)
 jit.register_warmup("learn", _warm_learn)
 jit.register_warmup("measure", _warm_measure)

@@ -17,7 +17,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 # pytest's workers (pytest-xdist, one a core) share the cores, so a thread waiting for work
-# sleeps; the kernels compile once for all of them (layoutwarp.jit's wait mode takes turns)
+# sleeps; the kernels compile once for all of them, before they start (pytest_configure)
 if os.environ.get("PYTEST_XDIST_WORKER"):
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
@@ -38,6 +38,18 @@ torch.set_num_threads(min(2, torch.get_num_threads()))
 os.environ.setdefault("LAYOUTWARP_JIT", "wait")
 if SHARED.is_dir():  # the full data sets, where this checkout has them (tests that need them skip else)
     os.environ.setdefault("LAYOUTWARP_DATA", str(SHARED))
+
+
+def pytest_configure(config) -> None:
+    """Before any test (in pytest's controller, before its workers start): the units of kernels
+    missing from numba's cache, compiled two at a time in processes of their own, so that the
+    workers load them rather than each compile them (a clean clone's run)."""
+    if os.environ.get("PYTEST_XDIST_WORKER") or not lw.kernels.available() or lw.jit.mode() == "off":
+        return
+    missing = tuple(unit for unit, state in lw.jit.status().items() if state == "not compiled")
+    if missing:
+        print(f"compiling {', '.join(missing)} first (once per installation)", file=sys.stderr, flush=True)
+        lw.jit.compile_all(units=missing, processes=2)
 
 
 def seed_for(nodeid: str, setting: str | None = None) -> int:

@@ -406,18 +406,24 @@ def test_a_failing_cuda_target_warns_once_and_leaves_the_torch_path(monkeypatch)
 
 
 @pytest.mark.skipif(not kernels.available(), reason="needs numba")
-def test_kernel_threads_follow_torchs_count():
-    import numba
+def test_kernel_threads_follow_torchs_count_and_numbas_threading_layer_never_starts():
+    from numba.np.ufunc import parallel as numba_parallel
 
     before = torch.get_num_threads()
     try:
         torch.set_num_threads(1)  # e.g. OMP_NUM_THREADS=1 for jobs that share the cores
         assert kernels.threads() == 1
-        assert numba.get_num_threads() == 1  # the launches of this thread run on one
-        assert torch.get_num_threads() == 1  # and starting numba's OpenMP layer did not reset torch's
+        torch.set_num_threads(3)
+        assert kernels.threads() == 3 and kernels.threads(kernels.base.SMALL_WORK - 1) == 1
+        seen: list[str] = []
+        kernels.run_shares(lambda t, nt, out: out.append(f"{t}/{nt}"), 3, seen)
+        assert sorted(seen) == ["0/3", "1/3", "2/3"]
+        layout = lw.CurvLayout((0.3, -0.2), learn=True)  # a learnable step and a fixed forward
+        lw.simulate(torch.rand(1, 3, 64, 64), layout, (7, 9)).sum().backward()
+        lw.simulate(torch.rand(1, 3, 64, 64), lw.CurvLayout((0.3, -0.2)), (7, 9))
+        assert not numba_parallel._is_initialized  # no OpenMP pool: a forked child is safe
     finally:
         torch.set_num_threads(before)
-        kernels.threads()
 
 
 @pytest.mark.parametrize("planes", [1, 2, 3, 4, 5, 7, 8])

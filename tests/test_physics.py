@@ -179,8 +179,7 @@ def test_shot_and_read_noise_moments(compiled, gen, monkeypatch):
 
 
 def test_the_fused_kernel_matches_the_torch_path_and_ignores_the_thread_count(gen):
-    import numba
-
+    pytest.importorskip("numba")
     from layoutwarp.physics import measure
 
     mean = torch.rand(3, 5, 7, generator=gen, dtype=F64)
@@ -203,11 +202,12 @@ def test_the_fused_kernel_matches_the_torch_path_and_ignores_the_thread_count(ge
     try:
         torch.set_num_threads(1)
         one = measure(mean, areas, noisy)
-        assert numba.get_num_threads() == 1
+        torch.set_num_threads(3)
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(lw.kernels.base, "SMALL_WORK", 0)  # three shares however small
+            many = measure(mean, areas, noisy)
     finally:
         torch.set_num_threads(threads)
-    many = measure(mean, areas, noisy)
-    assert numba.get_num_threads() == min(threads, numba.config.NUMBA_NUM_THREADS)
     assert torch.equal(one, many) and not torch.equal(one, measure(mean, areas, exact))
 
 

@@ -7,7 +7,8 @@
 - [`csr`][layoutwarp.kernels.csr]: a fixed layout's product with its area weights;
 - [`noise`][layoutwarp.kernels.noise]: the sensor's measurement (noise, full well, ADC);
 - [`device`][layoutwarp.kernels.device]: numba's CUDA target, and every CUDA launch;
-- [`base`][layoutwarp.kernels.base]: what they share (numba, the decorators, threads, the lock).
+- [`base`][layoutwarp.kernels.base]: what they share (numba, the decorators, the threads that run
+  a kernel's shares).
 
 Compiled code is cached on disk (``cache=True``): a second process loads it instead of
 compiling again. numba invalidates a cache only when the function's own file changes, and the
@@ -20,7 +21,7 @@ layoutwarp calls; [`mesh`][layoutwarp.kernels.mesh] (which imports torch) is imp
 
 from __future__ import annotations
 
-from .base import CHUNK, LOCK, available, retain_freed_memory, threads
+from .base import CHUNK, available, retain_freed_memory, run_shares, threads
 from .csr import csr_apply, measured_csr_apply
 from .device import CUDA_THREADS, cuda_available, cuda_checked, cuda_launch, cuda_ptx
 from .exact import (
@@ -31,7 +32,9 @@ from .exact import (
     exact_forward,
     exact_forward_banded,
     prefix_tables,
-    segment_moments,
+)
+from .exact import (
+    segment_moments_from_python as segment_moments,
 )
 from .noise import sensor_measure
 
@@ -39,7 +42,6 @@ __all__ = [
     "BLOCK",
     "CHUNK",
     "CUDA_THREADS",
-    "LOCK",
     "WHOLE_TABLE_BYTES",
     "available",
     "band_rows",
@@ -54,6 +56,7 @@ __all__ = [
     "measured_csr_apply",
     "prefix_tables",
     "retain_freed_memory",
+    "run_shares",
     "segment_moments",
     "sensor_measure",
     "threads",

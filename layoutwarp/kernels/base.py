@@ -1,34 +1,44 @@
 """What every compiled kernel of the package shares: numba (optional: without it the torch paths
-run), the decorators each kernel is compiled with, the thread count and the launch lock."""
+run), the decorators each kernel is compiled with, and the threads that run a kernel's shares.
+
+A CPU kernel is a serial numba function of its thread's share, ``body(t, threads, ...)``, compiled
+with ``nogil=True``; [`run_shares`][] runs the shares ``t = 0 .. threads − 1`` at once, share 0
+on the calling thread and the others on a pool of Python threads. numba's ``parallel=True`` is
+not used: its parfor passes took two thirds of the kernels' compile time, and its threading
+layer (OpenMP here) made a forked child (a DataLoader worker) abort."""
 
 from __future__ import annotations
 
-import contextlib
+import math
+import os
 import threading
 import types
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any
+
+import numpy as np
 
 try:  # numba is a dependency, but the torch reference keeps working without it
     from numba import config as numba_config
-    from numba import get_num_threads, njit, prange, set_num_threads
+    from numba import njit
 except ImportError:  # pragma: no cover - depends on the environment
-    njit = prange = get_num_threads = set_num_threads = numba_config = None
+    njit = numba_config = None
 
 __all__ = [
     "CHUNK",
-    "LOCK",
+    "OPTIONS",
     "SMALL_WORK",
     "available",
     "inline",
+    "inline_ir",
     "njit",
     "numba_config",
-    "one_thread_below",
-    "parallel",
+    "own",
+    "per_thread",
     "plain_python",
-    "prange",
-    "quick_build",
     "retain_freed_memory",
+    "run_shares",
     "serial",
     "threads",
     "without_ir_inlining",
@@ -36,10 +46,8 @@ __all__ = [
 
 #: Segments per work chunk; chunks go to the threads in turn.
 CHUNK = 256
-#: Held around every launch of a parallel kernel: numba's ``workqueue`` threading layer (used
-#: where no OpenMP or TBB runtime is installed) aborts the process on concurrent launches from
-#: several Python threads. Each launch uses every core anyway.
-LOCK = threading.Lock()
+#: Work (elements) below which a kernel runs on one thread ([`threads`][]).
+SMALL_WORK = 1 << 20
 
 
 def available() -> bool:
@@ -53,54 +61,65 @@ def plain_python() -> bool:
     return njit is not None and bool(numba_config.DISABLE_JIT)
 
 
-#: Per Python thread: torch's thread count at [`threads`][]' last call there, and what it set.
-_THREADS = threading.local()
-
-
-def threads() -> int:
-    """The number of threads the kernels share their work out to, and set for the calling thread's
-    launches: numba's, at most torch's current count, so that ``torch.set_num_threads`` and
-    ``OMP_NUM_THREADS`` bound both (jobs meant for one core each no longer fight over the cores:
-    two such jobs with numba on two threads each ran a small training step 60x slower). Numba's
-    count is set again only when torch's changed since the calling thread's last call (asking
-    numba costs microseconds a launch)."""
-    if get_num_threads is None:
-        return 1
+def threads(work: int | None = None) -> int:
+    """The number of shares a kernel's work is cut into: torch's thread count
+    (``torch.set_num_threads``, ``OMP_NUM_THREADS``), so one setting bounds both; 1 where ``work``
+    (elements) is under [`SMALL_WORK`][]: such a kernel takes about a millisecond, and waking a
+    second thread costs a good part of that on a quiet machine and much more on a busy one."""
     import torch
 
-    wanted = torch.get_num_threads()
-    if getattr(_THREADS, "wanted", None) == wanted:
-        return _THREADS.n
-    current = get_num_threads()  # the first call starts numba's OpenMP layer, which resets torch's count
-    if torch.get_num_threads() != wanted:
-        torch.set_num_threads(wanted)
-    n = max(1, min(wanted, numba_config.NUMBA_NUM_THREADS))
-    if n != current:
-        set_num_threads(n)
-    _THREADS.wanted, _THREADS.n = wanted, n
-    return n
+    if work is not None and work < SMALL_WORK:
+        return 1
+    return max(1, torch.get_num_threads())
 
 
-#: Work (elements) below which a parallel kernel runs on one thread ([`one_thread_below`][]).
-SMALL_WORK = 1 << 20
+_POOL: list[tuple[ThreadPoolExecutor, int]] = []  # the pool and its number of threads
+_POOL_LOCK = threading.Lock()
 
 
-@contextlib.contextmanager
-def one_thread_below(work: int, limit: int = SMALL_WORK) -> Iterator[None]:
-    """Within: numba's parallel kernels run on one thread where ``work`` (elements) is under
-    ``limit``. Such a kernel takes about a millisecond; a parallel region's fork and join cost a
-    good part of that on a quiet machine, and on a busy one the join waits for a descheduled
-    thread, 10-80x the work (a learnable step's edge gradient: 0.4 ms quiet, 56 ms beside one
-    busy process). Larger work keeps every thread."""
-    if set_num_threads is None or work >= limit:
-        yield
-        return
-    n = get_num_threads()
-    set_num_threads(1)
-    try:
-        yield
-    finally:
-        set_num_threads(n)
+def _pool(workers: int) -> ThreadPoolExecutor:
+    """The pool that runs shares 1 .. of every kernel, grown to ``workers`` threads."""
+    with _POOL_LOCK:
+        if not _POOL or _POOL[0][1] < workers:
+            if _POOL:  # its threads end once they have run what they were given
+                _POOL[0][0].shutdown(wait=False)
+            _POOL[:] = [(ThreadPoolExecutor(workers, thread_name_prefix="layoutwarp"), workers)]
+        return _POOL[0][0]
+
+
+def _forget_pool() -> None:  # a forked child has none of its parent's threads: it starts its own
+    _POOL.clear()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forget_pool)
+
+
+def run_shares(body: Callable[..., Any], threads: int, *args: Any) -> list[Any]:
+    """``body(t, threads, *args)`` for every share ``t < threads`` at once (``body``: a numba
+    function compiled with ``nogil=True``, so the shares run in parallel), share 0 on the calling
+    thread; returns their results in the order of ``t``. Shares write disjoint parts of the
+    outputs, so the result does not depend on the thread count or on which thread ran what."""
+    if threads <= 1:
+        return [body(0, 1, *args)]
+    futures: list[Future] = [_pool(threads - 1).submit(body, t, threads, *args) for t in range(1, threads)]
+    first = body(0, threads, *args)
+    return [first, *(f.result() for f in futures)]
+
+
+#: Bytes between two threads' work space ([`per_thread`][]): two cache lines (the second one is
+#: fetched with the first on x86).
+APART = 128
+
+
+def per_thread(nt: int, shape: tuple[int, ...], dtype: type = np.float64) -> np.ndarray:
+    """Work space of ``shape`` for each of ``nt`` threads, none sharing a cache line with another's
+    (threads writing to one line in turn stall each other: a learnable step's integrals ran 2.5x
+    slower on two threads than on one): ``(nt·k, *shape)``, thread ``t``'s at row ``t·k``
+    ([`own`][])."""
+    row = math.prod(shape) * np.dtype(dtype).itemsize
+    k = max(1, -(-APART // row)) if row else 1
+    return np.empty((nt * k, *shape), dtype=dtype)
 
 
 def retain_freed_memory(trim_bytes: int = 1 << 30) -> bool:
@@ -127,56 +146,77 @@ def retain_freed_memory(trim_bytes: int = 1 << 30) -> bool:
         return False
 
 
-def parallel(fn):
-    """A kernel with ``prange`` loops, called from Python (numpy's error model: a division by zero
-    gives inf, unchecked, so loops with one vectorise)."""
-    return njit(parallel=True, cache=True, nogil=True, error_model="numpy")(fn) if njit is not None else fn
+#: The options every kernel and helper is compiled with: numpy's error model (a division by zero
+#: gives inf, unchecked, so loops with one vectorise) and no reference counting (``_nrt=False``:
+#: a kernel allocates nothing, its caller hands it its outputs and work space; counting the
+#: references of the arrays a helper takes cost atomic operations in the innermost loops, 2-6x a
+#: mesh stage's time).
+OPTIONS = {"cache": True, "error_model": "numpy", "_nrt": False}
 
 
 def serial(fn):
-    """A serial kernel compiled once and called as a function: a driver of parallel kernels (one
-    call from Python), or a step called once a chunk that is not worth inlining everywhere."""
-    return njit(cache=True, nogil=True, error_model="numpy")(fn) if njit is not None else fn
+    """A kernel (or a thread's share of one, [`run_shares`][]) compiled once and called as a
+    function, the GIL released while it runs."""
+    return njit(nogil=True, **OPTIONS)(fn) if njit is not None else fn
 
 
 def inline(fn):
-    """A helper inlined into each kernel that calls it, at numba's IR level (``inline="always"``):
-    the mesh builds in half the time of plain calls; the price is compile time, which
-    [`layoutwarp.jit.quick`][] avoids where a first call cannot wait."""
-    return njit(inline="always", cache=True)(fn) if njit is not None else fn
+    """A helper inlined into every kernel that calls it by LLVM (``forceinline``: compiled once per
+    signature, as a function of its own, and inlined afterwards; numba's IR-level inlining typed
+    and lowered it again at every call site, most of the compile time), so that the loops it is
+    called in still run in SIMD lanes. Called from compiled code only (no Python wrapper)."""
+    if njit is None:
+        return fn
+    return njit(forceinline=True, no_cpython_wrapper=True, no_cfunc_wrapper=True, **OPTIONS)(fn)
 
 
-_QUICK: dict[Any, Any] = {}  # each kernel's quick build
-_QUICK_LOCK = threading.RLock()
+_COPIES: dict[Any, Any] = {}  # each helper's copy without IR inlining
+_COPIES_LOCK = threading.RLock()
 
 
-def quick_build(kernel: Any) -> Any:
+def _plain_copy(kernel: Any) -> Any:
     """``kernel`` (a compiled function) recompiled without numba's IR inlining: its Python
-    function, every compiled function it calls replaced by its own quick build
-    ([`without_ir_inlining`][]), and its options less ``inline``; cached on disk under its name
-    with ``_quick`` (see [`layoutwarp.jit.quick`][] for what it costs and saves)."""
-    with _QUICK_LOCK:
-        if kernel not in _QUICK:
+    function with its compiled callees replaced by their own plain copies, and its options less
+    ``inline``; cached on disk under its name with ``_quick``."""
+    with _COPIES_LOCK:
+        if kernel not in _COPIES:
             func = without_ir_inlining(kernel.py_func)
             options = {k: v for k, v in kernel.targetoptions.items() if k not in ("inline", "nopython")}
-            _QUICK[kernel] = njit(cache=True, **options)(func)  # every kernel of the package is cached
-        return _QUICK[kernel]
+            _COPIES[kernel] = njit(cache=True, **options)(func)
+        return _COPIES[kernel]
 
 
 def without_ir_inlining(func: Callable) -> Callable:
     """A copy of the Python function ``func`` (named ``NAME_quick``: numba's cache files are
-    named by it) whose compiled callees (``inline="always"`` or not) are their quick builds
-    ([`quick_build`][]): numba then types and lowers each helper once, as a function of its own,
-    instead of again at every call site. The CUDA kernels compile from such copies: NVVM inlines
-    the device functions afterwards (the same PTX to within a few instructions), in a fifth of the
-    compile time (a learnable step's kernels: 51 s to 9 s on 2 cores)."""
+    named by it) whose compiled callees (``inline="always"`` or not) are copies without IR
+    inlining: numba then types and lowers each helper once, as a function of its own, instead of
+    again at every call site. The CUDA kernels compile from such copies: NVVM inlines the device
+    functions afterwards (the same PTX to within a few instructions), in a fifth of the compile
+    time."""
     from numba.core.dispatcher import Dispatcher
 
     scope = dict(func.__globals__)
     for name in func.__code__.co_names:  # the compiled functions it calls, by their global names
         if isinstance(scope.get(name), Dispatcher):
-            scope[name] = quick_build(scope[name])
+            scope[name] = _plain_copy(scope[name])
     rebuilt = types.FunctionType(func.__code__, scope, func.__name__, func.__defaults__, func.__closure__)
     rebuilt.__qualname__ = f"{func.__qualname__}_quick"
     rebuilt.__module__, rebuilt.__doc__ = func.__module__, func.__doc__
     return rebuilt
+
+
+def inline_ir(fn):
+    """A helper inlined at numba's IR level (``inline="always"``): for a helper that returns a view
+    of an array it was given (a function compiled without reference counting returns none), or a
+    small one called with many different constant arguments (each combination of constants is a
+    compile of its own for [`inline`][]'s helpers)."""
+    return njit(inline="always", **OPTIONS)(fn) if njit is not None else fn
+
+
+def _own(rows: np.ndarray, t: int, nt: int) -> np.ndarray:
+    """Thread ``t``'s work space in [`per_thread`][]'s ``rows`` (``nt`` threads): a view, so
+    inlined at numba's IR level (a function without reference counting returns no view)."""
+    return rows[t * (rows.shape[0] // nt)]
+
+
+own = inline_ir(_own)

@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 
-from .base import inline, parallel, prange, serial
+from .base import inline, run_shares, serial
 from .device import cuda_launch, device_checks
 from .noise import measured_value, sensor_measure, stream_origin
 
@@ -43,20 +43,14 @@ def _csr_row(lo: int, hi: int, indices: np.ndarray, data: np.ndarray, x: np.ndar
     return a0, a1, a2, a3
 
 
-@parallel
-def csr_apply(
-    indptr: np.ndarray, indices: np.ndarray, data: np.ndarray, x: np.ndarray, out: np.ndarray
+@serial
+def _csr_share(
+    t: int, nt: int, indptr: np.ndarray, indices: np.ndarray, data: np.ndarray, x: np.ndarray, out: np.ndarray
 ) -> int:
-    """``out[n] = W @ x[n]`` for a CSR matrix ``W`` (``(R, M)``) and planes ``x`` ``(N, M)`` (the
-    fixed-layout area weights of [`AreaResampler`][layoutwarp.resampler.AreaResampler]), rows dealt to
-    the threads:
-    each row of ``W`` is read once for every four planes (RGB: once; 2.3x faster than once per
-    plane at 2048x1024 → 257x129). Returns how many of the values written are not finite (NaN
-    or ±inf): the finiteness check of [`simulate`][layoutwarp.sensor.simulate] while they are in registers
-    (a pass over ``out`` afterwards cost about 3 % of the call)."""
-    n = x.shape[0]
+    """Rows ``t·R/T ..`` of [`csr_apply`][]; returns how many of the values it wrote are not finite."""
+    n, rows = x.shape[0], indptr.shape[0] - 1
     bad = 0
-    for r in prange(indptr.shape[0] - 1):
+    for r in range(t * rows // nt, (t + 1) * rows // nt):
         lo, hi = indptr[r], indptr[r + 1]
         for k in range(0, n, 4):
             m = min(4, n - k)
@@ -68,17 +62,28 @@ def csr_apply(
     return bad
 
 
-@serial
+def csr_apply(
+    indptr: np.ndarray, indices: np.ndarray, data: np.ndarray, x: np.ndarray, out: np.ndarray,
+    threads: int = 1,
+) -> int:  # fmt: skip
+    """``out[n] = W @ x[n]`` for a CSR matrix ``W`` (``(R, M)``) and planes ``x`` ``(N, M)`` (the
+    fixed-layout area weights of [`AreaResampler`][layoutwarp.resampler.AreaResampler]), a band of rows
+    to each of ``threads``: each row of ``W`` is read once for every four planes (RGB: once; 2.3x
+    faster than once per plane at 2048x1024 → 257x129). Returns how many of the values written are
+    not finite (NaN or ±inf): the finiteness check of [`simulate`][layoutwarp.sensor.simulate] while
+    they are in registers (a pass over ``out`` afterwards cost about 3 % of the call)."""
+    return sum(run_shares(_csr_share, threads, indptr, indices, data, x, out))
+
+
 def measured_csr_apply(
     indptr: np.ndarray, indices: np.ndarray, data: np.ndarray, x: np.ndarray, mean: np.ndarray, *measure
 ) -> int:
     """[`csr_apply`][] into ``mean``, then
     [`sensor_measure`][layoutwarp.kernels.noise.sensor_measure] of ``mean`` with its other
     arguments ``measure`` (``area_um2, …, out, threads``): a fixed layout's exact forward with
-    sensor physics in one call from Python, no interpreter between the two launches, each thread
-    measuring the rows it has just summed. Returns [`csr_apply`][]'s count of non-finite
-    means (the measurement passes NaN and ±inf through)."""
-    bad = csr_apply(indptr, indices, data, x, mean)
+    sensor physics. Returns [`csr_apply`][]'s count of non-finite means (the measurement passes
+    NaN and ±inf through)."""
+    bad = csr_apply(indptr, indices, data, x, mean, measure[-1])
     sensor_measure(mean, *measure)
     return bad
 

@@ -26,7 +26,7 @@ import math
 
 import numpy as np
 
-from .base import CHUNK, inline, parallel, prange
+from .base import CHUNK, inline, run_shares, serial, threads
 
 __all__ = [
     "BLOCK",
@@ -39,6 +39,7 @@ __all__ = [
     "exact_forward_banded",
     "prefix_tables",
     "segment_moments",
+    "segment_moments_from_python",
     "segment_weights",
 ]
 
@@ -102,22 +103,30 @@ def _band_prefix(
             _row_offsets(rr, k, block, incl, offsets)
 
 
-@parallel
-def prefix_tables(image: np.ndarray, block: int) -> tuple[np.ndarray, np.ndarray]:
+@serial
+def _prefix_share(
+    t: int, nt: int, image: np.ndarray, block: int, incl: np.ndarray, offsets: np.ndarray
+) -> None:
+    h = image.shape[1]
+    r0, r1 = t * h // nt, (t + 1) * h // nt
+    _band_prefix(image, r0, r1, block, incl[r0:r1], offsets[r0:r1])
+
+
+def prefix_tables(image: np.ndarray, block: int, nt: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Row prefix sums of ``image (N, H, W)``, safe in float32, channels last.
 
     Returns ``(incl, offsets)``: ``incl[r, c, n]`` is the inclusive prefix sum of row ``r`` of
     channel ``n`` within the ``block``-column block of ``c`` (in the image's dtype) and
     ``offsets[r, k, n]`` the float64 sum of the whole blocks before block ``k``, so a prefix
     never carries more than one block's rounding. Channels last puts everything one piece
-    reads in one or two cache lines.
+    reads in one or two cache lines. ``nt``: threads (default [`threads`][layoutwarp.kernels.base.threads]
+    of the image's size), each a band of rows.
     """
     n, h, w = image.shape
     nb = (w + block - 1) // block
     incl = np.empty((h, w, n), dtype=image.dtype)
     offsets = np.empty((h, nb, n), dtype=np.float64)
-    for r in prange(h):
-        _band_prefix(image, r, r + 1, block, incl[r : r + 1], offsets[r : r + 1])
+    run_shares(_prefix_share, min(h, threads(image.size) if nt is None else nt), image, block, incl, offsets)
     return incl, offsets
 
 
@@ -296,6 +305,11 @@ def segment_moments(
     _segment_rows(x0, y0, x1, y1, r0, r1, 0, incl, offsets, block, w, acc, 0, True, ma, mb)
 
 
+#: [`segment_moments`][] for calls from Python (the kernels' helpers are compiled for kernels
+#: only, without a Python wrapper; ``layoutwarp.kernels.segment_moments`` is this one).
+segment_moments_from_python = serial(getattr(segment_moments, "py_func", segment_moments))
+
+
 @inline
 def _edge_sum(e: int, per_seg: np.ndarray, edge_offsets: np.ndarray, out: np.ndarray) -> None:
     """Add edge ``e``'s segments ``per_seg[s, :]`` into ``out[:, e]``, in order."""
@@ -304,17 +318,24 @@ def _edge_sum(e: int, per_seg: np.ndarray, edge_offsets: np.ndarray, out: np.nda
             out[k, e] += per_seg[s, k]
 
 
-@parallel
-def _edge_sums(per_seg: np.ndarray, edge_offsets: np.ndarray) -> np.ndarray:
-    """Sum each edge's segments: ``(S, N + 1)`` → ``(N + 1, E)``."""
+@serial
+def _edge_sums_share(t: int, nt: int, per_seg: np.ndarray, edge_offsets: np.ndarray, out: np.ndarray) -> None:
     e_count = edge_offsets.shape[0] - 1
-    out = np.zeros((per_seg.shape[1], e_count), dtype=np.float64)
-    for e in prange(e_count):
+    for e in range(t * e_count // nt, (t + 1) * e_count // nt):
         _edge_sum(e, per_seg, edge_offsets, out)
-    return out
 
 
-@parallel
+@serial
+def _forward_share(
+    t: int, nt: int, verts: np.ndarray, seg_start: np.ndarray, seg_end: np.ndarray, incl: np.ndarray,
+    offsets: np.ndarray, block: int, per_seg: np.ndarray,
+) -> None:  # fmt: skip
+    s_count = seg_start.shape[0]
+    for chunk in range(t, (s_count + CHUNK - 1) // CHUNK, nt):
+        for s in range(chunk * CHUNK, min((chunk + 1) * CHUNK, s_count)):
+            _segment_forward(s, verts, seg_start, seg_end, incl, offsets, block, per_seg)
+
+
 def exact_forward(
     verts: np.ndarray,
     seg_start: np.ndarray,
@@ -334,20 +355,104 @@ def exact_forward(
     columns; a piece in cell ``(r, c)`` with mid-``X`` fraction ``f`` adds ``ΔY · P_r(c + f)``,
     where ``P_r`` interpolates the prefix table linearly inside the cell: ``P_r(c + f) =
     offset + I(c − 1) + f · (I(c) − I(c − 1))``, exact for the box image ``L(c) = I(c) −
-    I(c − 1)``. Row ``N`` sums to the pixel areas. ``threads``: see
-    [`threads`][layoutwarp.kernels.base.threads].
+    I(c − 1)``. Row ``N`` sums to the pixel areas. ``threads``: shares of the segments, dealt in
+    chunks in turn (see [`run_shares`][layoutwarp.kernels.base.run_shares]); then each edge's
+    segments are summed in order.
     """
-    s_count = seg_start.shape[0]
-    per_seg = np.zeros((s_count, incl.shape[2] + 1), dtype=np.float64)
-    n_chunks = (s_count + CHUNK - 1) // CHUNK
-    for thread in prange(threads):
-        for chunk in range(thread, n_chunks, threads):
-            for s in range(chunk * CHUNK, min((chunk + 1) * CHUNK, s_count)):
-                _segment_forward(s, verts, seg_start, seg_end, incl, offsets, block, per_seg)
-    return _edge_sums(per_seg, edge_offsets)
+    per_seg = np.zeros((seg_start.shape[0], incl.shape[2] + 1), dtype=np.float64)
+    run_shares(_forward_share, threads, verts, seg_start, seg_end, incl, offsets, block, per_seg)
+    out = np.zeros((per_seg.shape[1], edge_offsets.shape[0] - 1), dtype=np.float64)
+    run_shares(_edge_sums_share, threads, per_seg, edge_offsets, out)
+    return out
 
 
-@parallel
+@serial
+def _band_counts(
+    verts: np.ndarray, seg_start: np.ndarray, seg_end: np.ndarray, h: int, band: int, first: np.ndarray
+) -> None:
+    """The first half of [`_bands`][]' counting sort: ``first[b + 1]`` the segments band ``b`` lists,
+    then summed (``first`` zeroed)."""
+    for s in range(seg_start.shape[0]):
+        y0, y1 = verts[seg_start[s], 1], verts[seg_end[s], 1]
+        if y1 != y0:
+            r0, r1 = _row_span(y0, y1, h)
+            for b in range(r0 // band, r1 // band + 1):
+                first[b + 1] += 1
+    for b in range(first.shape[0] - 1):
+        first[b + 1] += first[b]
+
+
+@serial
+def _band_lists(
+    verts: np.ndarray, seg_start: np.ndarray, seg_end: np.ndarray, h: int, band: int, fill: np.ndarray,
+    listed: np.ndarray,
+) -> None:  # fmt: skip
+    """The second half: each segment into the lists of its bands (``fill``: where each band's next
+    goes, from ``first[:-1]``)."""
+    for s in range(seg_start.shape[0]):
+        y0, y1 = verts[seg_start[s], 1], verts[seg_end[s], 1]
+        if y1 != y0:
+            r0, r1 = _row_span(y0, y1, h)
+            for b in range(r0 // band, r1 // band + 1):
+                listed[fill[b]] = s
+                fill[b] += 1
+
+
+def _bands(verts: np.ndarray, seg_start: np.ndarray, seg_end: np.ndarray, h: int, band: int) -> tuple:
+    """The segments listed per band of ``band`` rows (a counting sort; a segment crossing several
+    bands is listed in each): ``(first, listed)``, band ``b``'s at ``listed[first[b] .. first[b + 1]]``."""
+    first = np.zeros((h + band - 1) // band + 1, dtype=np.int64)
+    _band_counts(verts, seg_start, seg_end, h, band, first)
+    listed = np.empty(first[-1], dtype=np.int64)
+    _band_lists(verts, seg_start, seg_end, h, band, first[:-1].copy(), listed)
+    return first, listed
+
+
+@serial
+def _banded_share(
+    t: int, nt: int, verts: np.ndarray, seg_start: np.ndarray, seg_end: np.ndarray, seg_edge: np.ndarray,
+    image: np.ndarray, block: int, band: int, first: np.ndarray, listed: np.ndarray, sums: np.ndarray,
+    incls: np.ndarray, offsetss: np.ndarray,
+) -> None:  # fmt: skip
+    """Thread ``t``'s bands (in turn), each one's prefix table built in its buffers ``incls[t]``,
+    ``offsetss[t]`` (``(T, band, W, N)``, ``(T, band, ⌈W/block⌉, N)``) and every piece in those
+    rows added to its own per-edge sums ``sums[t]``."""
+    h, w = image.shape[1], image.shape[2]
+    incl, offsets = incls[t], offsetss[t]
+    out_t = sums[t]
+    for bi in range(t, first.shape[0] - 1, nt):
+        ra = bi * band
+        rb = min(h, ra + band)
+        _band_prefix(image, ra, rb, block, incl, offsets)
+        for j in range(first[bi], first[bi + 1]):
+            s = listed[j]
+            x0, y0 = verts[seg_start[s], 0], verts[seg_start[s], 1]
+            x1, y1 = verts[seg_end[s], 0], verts[seg_end[s], 1]
+            r0, r1 = _row_span(y0, y1, h)
+            rlo, rhi = max(r0, ra), min(r1, rb - 1)
+            e = seg_edge[s]
+            _segment_rows(
+                x0, y0, x1, y1, rlo, rhi, ra, incl, offsets, block, w, out_t, e, False, out_t, out_t
+            )
+
+
+@serial
+def _banded_total_share(
+    t: int, nt: int, verts: np.ndarray, seg_start: np.ndarray, seg_end: np.ndarray, edge_offsets: np.ndarray,
+    sums: np.ndarray, out: np.ndarray,
+) -> None:  # fmt: skip
+    """Edges ``t·E/T ..``: the threads' sums in order, and each edge's ``∫ X dY``."""
+    e_count, n = sums.shape[1], sums.shape[2]
+    for e in range(t * e_count // nt, (t + 1) * e_count // nt):
+        for k in range(n):
+            for r in range(sums.shape[0]):
+                out[k, e] += sums[r, e, k]
+        for s in range(edge_offsets[e], edge_offsets[e + 1]):
+            x0, y0 = verts[seg_start[s], 0], verts[seg_start[s], 1]
+            x1, y1 = verts[seg_end[s], 0], verts[seg_end[s], 1]
+            out[n, e] += (y1 - y0) * (x0 + x1) / 2
+
+
 def exact_forward_banded(
     verts: np.ndarray,
     seg_start: np.ndarray,
@@ -367,56 +472,14 @@ def exact_forward_banded(
     segment crossing several bands is listed in each, its rows split between them);
     ``seg_edge[s]`` is the edge of segment ``s``."""
     n, h, w = image.shape
-    nb = (w + block - 1) // block
-    s_count = seg_start.shape[0]
     e_count = edge_offsets.shape[0] - 1
-    n_bands = (h + band - 1) // band
-    first = np.zeros(n_bands + 1, dtype=np.int64)  # counting sort of the segments by band
-    for s in range(s_count):
-        y0, y1 = verts[seg_start[s], 1], verts[seg_end[s], 1]
-        if y1 != y0:
-            r0, r1 = _row_span(y0, y1, h)
-            for b in range(r0 // band, r1 // band + 1):
-                first[b + 1] += 1
-    for b in range(n_bands):
-        first[b + 1] += first[b]
-    fill = first[:-1].copy()
-    listed = np.empty(first[n_bands], dtype=np.int64)
-    for s in range(s_count):
-        y0, y1 = verts[seg_start[s], 1], verts[seg_end[s], 1]
-        if y1 != y0:
-            r0, r1 = _row_span(y0, y1, h)
-            for b in range(r0 // band, r1 // band + 1):
-                listed[fill[b]] = s
-                fill[b] += 1
+    first, listed = _bands(verts, seg_start, seg_end, h, band)
     sums = np.zeros((threads, e_count, n), dtype=np.float64)
-    for thread in prange(threads):
-        incl = np.empty((band, w, n), dtype=image.dtype)
-        offsets = np.empty((band, nb, n), dtype=np.float64)
-        for bi in range(thread, n_bands, threads):
-            ra = bi * band
-            rb = min(h, ra + band)
-            _band_prefix(image, ra, rb, block, incl, offsets)
-            for j in range(first[bi], first[bi + 1]):
-                s = listed[j]
-                x0, y0 = verts[seg_start[s], 0], verts[seg_start[s], 1]
-                x1, y1 = verts[seg_end[s], 0], verts[seg_end[s], 1]
-                r0, r1 = _row_span(y0, y1, h)
-                rlo, rhi = max(r0, ra), min(r1, rb - 1)
-                e = seg_edge[s]
-                out_t = sums[thread]
-                _segment_rows(
-                    x0, y0, x1, y1, rlo, rhi, ra, incl, offsets, block, w, out_t, e, False, out_t, out_t
-                )
+    tables = np.empty((threads, band, w, n), image.dtype), np.empty((threads, band, -(-w // block), n))
+    segs = (verts, seg_start, seg_end)
+    run_shares(_banded_share, threads, *segs, seg_edge, image, block, band, first, listed, sums, *tables)
     out = np.zeros((n + 1, e_count), dtype=np.float64)
-    for e in prange(e_count):
-        for k in range(n):
-            for t in range(threads):
-                out[k, e] += sums[t, e, k]
-        for s in range(edge_offsets[e], edge_offsets[e + 1]):
-            x0, y0 = verts[seg_start[s], 0], verts[seg_start[s], 1]
-            x1, y1 = verts[seg_end[s], 0], verts[seg_end[s], 1]
-            out[n, e] += (y1 - y0) * (x0 + x1) / 2
+    run_shares(_banded_total_share, threads, *segs, edge_offsets, sums, out)
     return out
 
 
@@ -512,7 +575,17 @@ def _segment_moments(
                 mb[0, k] += lv * m1
 
 
-@parallel
+@serial
+def _backward_share(
+    t: int, nt: int, verts: np.ndarray, seg_start: np.ndarray, seg_end: np.ndarray, seg_edge: np.ndarray,
+    incl: np.ndarray, block: int, grad: np.ndarray, wa: np.ndarray, wb: np.ndarray,
+) -> None:  # fmt: skip
+    s_count = seg_start.shape[0]
+    for chunk in range(t, (s_count + CHUNK - 1) // CHUNK, nt):
+        for s in range(chunk * CHUNK, min((chunk + 1) * CHUNK, s_count)):
+            wa[s], wb[s] = segment_weights(s, verts, seg_start, seg_end, seg_edge, incl, block, grad)
+
+
 def exact_backward(
     verts: np.ndarray,
     seg_start: np.ndarray,
@@ -533,14 +606,9 @@ def exact_backward(
     boundary line ``L`` is the mean of the two cells (the symmetric derivative). The caller
     multiplies by the segment's normal ``(ΔY, −ΔX)`` and adds to the vertices.
     """
-    s_count = seg_start.shape[0]
-    wa = np.zeros(s_count, dtype=np.float64)
-    wb = np.zeros(s_count, dtype=np.float64)
-    n_chunks = (s_count + CHUNK - 1) // CHUNK
-    for thread in prange(threads):
-        for chunk in range(thread, n_chunks, threads):
-            for s in range(chunk * CHUNK, min((chunk + 1) * CHUNK, s_count)):
-                wa[s], wb[s] = segment_weights(s, verts, seg_start, seg_end, seg_edge, incl, block, grad)
+    wa = np.zeros(seg_start.shape[0], dtype=np.float64)
+    wb = np.zeros(seg_start.shape[0], dtype=np.float64)
+    run_shares(_backward_share, threads, verts, seg_start, seg_end, seg_edge, incl, block, grad, wa, wb)
     return wa, wb
 
 

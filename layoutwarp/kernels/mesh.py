@@ -37,7 +37,7 @@ import torch
 from ..caches import ObjectMemo, version_of
 from ..layouts import CurvLayout, EllipticLayout, FoveaLayout, Layout
 from ..mesh import INNER, MeshTopology, PixelMesh
-from .base import CHUNK, available, inline, one_thread_below, parallel, prange, serial, threads
+from .base import CHUNK, available, inline, inline_ir, own, per_thread, run_shares, serial, threads
 from .device import CHECKS, CUDA_THREADS, Stamps, cuda_launch, device_checks, host_mapped, stream_of
 from .exact import BLOCK, prefix_block_item, prefix_offsets_item, segment_moments, segment_weights
 
@@ -266,15 +266,15 @@ def _store(out: np.ndarray, i: int, f: tuple, p: int) -> None:
 
 @serial
 def _phi_run(
-    kind: int, centred: bool, th: np.ndarray, c: np.ndarray, pts: np.ndarray, n: int, out: np.ndarray
-) -> None:
+    kind: int, centred: bool, th: np.ndarray, c: np.ndarray, pts: np.ndarray, n: int, out: np.ndarray,
+    qi: np.ndarray, work: np.ndarray,
+) -> None:  # fmt: skip
     """φ and ``∂φ/∂θ`` at the points ``(pts[0, i], pts[1, i])``, ``i < n``, into ``out[:, i]``:
     ``(φ_x, φ_y, ∂φ_x/∂θ (P), ∂φ_y/∂θ (P))``, as [`_phi`][] gives them. Rows, not points, are
     contiguous, and CURV runs one loop per case without a branch on θ inside it: the loop runs in
-    SIMD lanes."""
+    SIMD lanes. ``qi`` ``(2,)``, ``work`` ``(2, P + 2)``: work space (ELLIPTIC's points)."""
     p = th.shape[0]
     if kind == 1:
-        qi, work = np.empty(2), np.empty((2, p + 2))
         for i in range(n):
             _phi(kind, centred, pts[0, i], pts[1, i], th, c, qi, work)
             out[0, i], out[1, i] = qi[0], qi[1]
@@ -331,7 +331,7 @@ def _circle(ax: float, ay: float, dx: float, dy: float, sx: float, sy: float, lo
     return 0, 0.0, 0.0
 
 
-@inline
+@inline_ir  # small, and called with six combinations of constants
 def _add_kink(
     t: float, draw: np.ndarray, n: int, cuts: np.ndarray, dcuts: np.ndarray, k: int, grad: bool
 ) -> int:
@@ -424,20 +424,19 @@ def _edge_pieces(
 # The mesh: pieces, counts, vertices (threads take chunks of edges in turn, with their own
 # work space)
 # ----------------------------------------------------------------------------------------
-@parallel
-def _count_pieces(
-    kind: int, centred: bool, ends: np.ndarray, th: np.ndarray, c: np.ndarray, threads: int
-) -> np.ndarray:
-    ne, p = ends.shape[0], th.shape[0]
-    out = np.empty(ne, dtype=np.int64)
-    n_chunks = (ne + CHUNK - 1) // CHUNK
-    for thread in prange(threads):
-        scratch, cuts, dcuts = np.empty((8, p)), np.empty(8), np.empty((8, p))
-        lo, dlo = np.empty(10), np.empty((10, p))
-        for chunk in range(thread, n_chunks, threads):
-            for e in range(chunk * CHUNK, min((chunk + 1) * CHUNK, ne)):
-                out[e] = _edge_pieces(kind, centred, e, ends, th, c, scratch, cuts, dcuts, lo, dlo, False)
-    return out
+@serial
+def _count_share(
+    t: int, nt: int, kind: int, centred: bool, ends: np.ndarray, th: np.ndarray, c: np.ndarray,
+    out: np.ndarray, work: tuple,
+) -> None:  # fmt: skip
+    """Thread ``t``'s chunks of edges (in turn): each edge's smooth pieces into ``out``;
+    ``work``: [`_edge_work`][]'s arrays."""
+    ne = ends.shape[0]
+    scratch, cuts = own(work[0], t, nt), own(work[1], t, nt)
+    dcuts, lo, dlo = own(work[2], t, nt), own(work[3], t, nt), own(work[4], t, nt)
+    for chunk in range(t, (ne + CHUNK - 1) // CHUNK, nt):
+        for e in range(chunk * CHUNK, min((chunk + 1) * CHUNK, ne)):
+            out[e] = _edge_pieces(kind, centred, e, ends, th, c, scratch, cuts, dcuts, lo, dlo, False)
 
 
 @inline
@@ -531,55 +530,60 @@ def _sagittas(
         sag[q], length[q] = sg / 8, ln
 
 
-@parallel
-def _pieces_and_counts(
-    kind: int, centred: bool, ends: np.ndarray, th: np.ndarray, c: np.ndarray, piece_offsets: np.ndarray,
-    amin: np.ndarray, tol: float, max_subdiv: int, with_grad: bool, inner: float, threads: int,
+@serial
+def _pieces_share(
+    t: int, nt: int, kind: int, centred: bool, ends: np.ndarray, th: np.ndarray, c: np.ndarray,
+    piece_offsets: np.ndarray, amin: np.ndarray, tol: float, max_subdiv: int, with_grad: bool, inner: float,
     span: int, bounds: np.ndarray, dbounds: np.ndarray, counts: np.ndarray, edge_counts: np.ndarray,
+    work: tuple, phi_work: tuple, all_pts: np.ndarray, all_out: np.ndarray, all_sag: np.ndarray,
+    all_length: np.ndarray,
 ) -> None:  # fmt: skip
     """Every smooth piece's parameter range (``bounds`` (pieces, 2), ``dbounds`` (pieces, 2, P))
     and its segment count, bounding the sagitta as [`layoutwarp.mesh._segment_counts`][] does,
     and every edge's segments (``edge_counts[e + 1]``; ``edge_counts[0]`` is left alone). A chunk
     of edges places its sample points first, maps them in one loop ([`_phi_run`][]), then
-    counts; ``span``: the most pieces a chunk has."""
+    counts; ``span``: the most pieces a chunk has. Thread ``t`` of ``nt`` takes every ``nt``-th
+    chunk, with its rows of the work space: [`_edge_work`][]'s, [`_phi_work`][]'s, the sample
+    points ``(T, 2, 7·span)`` and their map ``(T, 2 + 2P, 7·span)``, the pieces' sagittas and
+    lengths ``(T, span)``."""
     ne, p = ends.shape[0], th.shape[0]
     n_chunks = (ne + CHUNK - 1) // CHUNK
     ns = 7 if with_grad else 5  # samples a piece: 5 along it, 2 just inside its ends
-    for thread in prange(threads):
-        scratch, cuts, dcuts = np.empty((8, p)), np.empty(8), np.empty((8, p))
-        lo, dlo = np.empty(10), np.empty((10, p))
-        pts, out = np.empty((2, ns * span)), np.empty((2 + 2 * p, ns * span))
-        sag, length = np.empty(span), np.empty(span)
-        for chunk in range(thread, n_chunks, threads):
-            e0, e1 = chunk * CHUNK, min((chunk + 1) * CHUNK, ne)
-            for e in range(e0, e1):
-                base = piece_offsets[e]
-                n = _edge_bounds(
-                    kind, centred, e, ends, th, c, piece_offsets, scratch, cuts, dcuts, lo, dlo,
-                    bounds, dbounds,
-                )  # fmt: skip
-                ax, ay = ends[e, 0], ends[e, 1]
-                dx, dy = ends[e, 2] - ax, ends[e, 3] - ay
-                for i in range(n):
-                    a, b = lo[i], lo[i + 1]
-                    k = (base + i - piece_offsets[e0]) * ns
-                    for s in range(ns):  # five along the piece; with_grad, two just inside its ends
-                        pts[0, k + s], pts[1, k + s] = _sample_point(ax, ay, dx, dy, a, b, s, inner)
-            npc = piece_offsets[e1] - piece_offsets[e0]
-            _phi_run(kind, centred, th, c, pts, npc * ns, out)
-            if with_grad and p == 4:  # θ's count a constant: the loop over pieces runs in SIMD lanes
-                _sagittas(out, npc, ns, True, 4, sag, length)
-            elif with_grad and p == 2:
-                _sagittas(out, npc, ns, True, 2, sag, length)
-            else:
-                _sagittas(out, npc, ns, with_grad, p, sag, length)
-            for e in range(e0, e1):
-                first, last = piece_offsets[e], piece_offsets[e + 1]
-                j0 = first - piece_offsets[e0]
-                total = _segment_counts(
-                    sag, length, j0, last - first, first, amin[e], tol, max_subdiv, counts
-                )
-                edge_counts[e + 1] = total
+    scratch, cuts = own(work[0], t, nt), own(work[1], t, nt)
+    dcuts, lo, dlo = own(work[2], t, nt), own(work[3], t, nt), own(work[4], t, nt)
+    qi, dq = own(phi_work[0], t, nt), own(phi_work[1], t, nt)
+    pts, out = own(all_pts, t, nt), own(all_out, t, nt)
+    sag, length = own(all_sag, t, nt), own(all_length, t, nt)
+    for chunk in range(t, n_chunks, nt):
+        e0, e1 = chunk * CHUNK, min((chunk + 1) * CHUNK, ne)
+        for e in range(e0, e1):
+            base = piece_offsets[e]
+            n = _edge_bounds(
+                kind, centred, e, ends, th, c, piece_offsets, scratch, cuts, dcuts, lo, dlo,
+                bounds, dbounds,
+            )  # fmt: skip
+            ax, ay = ends[e, 0], ends[e, 1]
+            dx, dy = ends[e, 2] - ax, ends[e, 3] - ay
+            for i in range(n):
+                a, b = lo[i], lo[i + 1]
+                k = (base + i - piece_offsets[e0]) * ns
+                for s in range(ns):  # five along the piece; with_grad, two just inside its ends
+                    pts[0, k + s], pts[1, k + s] = _sample_point(ax, ay, dx, dy, a, b, s, inner)
+        npc = piece_offsets[e1] - piece_offsets[e0]
+        _phi_run(kind, centred, th, c, pts, npc * ns, out, qi, dq)
+        if with_grad and p == 4:  # θ's count a constant: the loop over pieces runs in SIMD lanes
+            _sagittas(out, npc, ns, True, 4, sag, length)
+        elif with_grad and p == 2:
+            _sagittas(out, npc, ns, True, 2, sag, length)
+        else:
+            _sagittas(out, npc, ns, with_grad, p, sag, length)
+        for e in range(e0, e1):
+            first, last = piece_offsets[e], piece_offsets[e + 1]
+            j0 = first - piece_offsets[e0]
+            total = _segment_counts(
+                sag, length, j0, last - first, first, amin[e], tol, max_subdiv, counts
+            )
+            edge_counts[e + 1] = total
 
 
 @functools.lru_cache(maxsize=16)
@@ -624,7 +628,48 @@ def _amin_beside(area: np.ndarray, i: int, j: int) -> float:
     return min(left, area[i, j] if j < area.shape[1] else np.inf)
 
 
-@parallel
+@serial
+def _corners_share(
+    t: int, nt: int, kind: int, centred: bool, corners: np.ndarray, th: np.ndarray, c: np.ndarray,
+    q: np.ndarray, dq: np.ndarray, phi_work: tuple, all_pts: np.ndarray, all_out: np.ndarray,
+) -> None:  # fmt: skip
+    """Thread ``t``'s chunks of corners (in turn), deformed into ``q`` ``(V0, 2)`` with their
+    θ-derivatives ``dq`` ``(V0, 2, P)``; work space: [`_phi_work`][]'s, the points
+    ``(T, 2, CHUNK)`` and their map ``(T, 2 + 2P, CHUNK)``."""
+    nc = corners.shape[0]
+    qi, work = own(phi_work[0], t, nt), own(phi_work[1], t, nt)
+    pts, out = own(all_pts, t, nt), own(all_out, t, nt)
+    for chunk in range(t, (nc + CHUNK - 1) // CHUNK, nt):
+        v0, n = chunk * CHUNK, min(CHUNK, nc - chunk * CHUNK)
+        for i in range(n):
+            pts[0, i], pts[1, i] = corners[v0 + i, 0], corners[v0 + i, 1]
+        _phi_run(kind, centred, th, c, pts, n, out, qi, work)
+        _unpack(out, n, q[v0:], dq[v0:])
+
+
+@serial
+def _areas_share(t: int, nt: int, q: np.ndarray, area: np.ndarray) -> None:
+    """Rows ``t·h/T ..`` of the pixels' corner-quad areas ``area`` ``(h, w)``."""
+    h, w = area.shape
+    for i in range(t * h // nt, (t + 1) * h // nt):
+        for j in range(w):
+            area[i, j] = _quad_area(q, i, j, w)
+
+
+@serial
+def _amin_share(t: int, nt: int, area: np.ndarray, amin: np.ndarray) -> None:
+    """Rows ``t·h/T ..`` of the edges' smaller adjacent areas ``amin`` ``(E,)``, numbered as
+    [`MeshTopology`][] numbers the edges."""
+    h, w = area.shape
+    nh = (h + 1) * w
+    for i in range(t * (h + 1) // nt, (t + 1) * (h + 1) // nt):  # horizontal edges
+        for j in range(w):
+            amin[i * w + j] = _amin_across(area, i, j)
+    for i in range(t * h // nt, (t + 1) * h // nt):  # vertical edges
+        for j in range(w + 1):
+            amin[nh + i * (w + 1) + j] = _amin_beside(area, i, j)
+
+
 def _corners(
     kind: int, centred: bool, h: int, w: int, corners: np.ndarray, th: np.ndarray, c: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -632,25 +677,12 @@ def _corners(
     adjacent pixel area ``(E,)`` from the corner quads (the count stage's area estimate)."""
     nc, p = corners.shape[0], th.shape[0]
     q, dq = np.empty((nc, 2)), np.empty((nc, 2, p))
-    for chunk in prange((nc + CHUNK - 1) // CHUNK):
-        v0, n = chunk * CHUNK, min(CHUNK, nc - chunk * CHUNK)
-        pts, out = np.empty((2, n)), np.empty((2 + 2 * p, n))
-        for i in range(n):
-            pts[0, i], pts[1, i] = corners[v0 + i, 0], corners[v0 + i, 1]
-        _phi_run(kind, centred, th, c, pts, n, out)
-        _unpack(out, n, q[v0:], dq[v0:])
-    area = np.empty((h, w))
-    for i in prange(h):
-        for j in range(w):
-            area[i, j] = _quad_area(q, i, j, w)
-    nh = (h + 1) * w
-    amin = np.empty(nh + h * (w + 1))  # per edge, as MeshTopology numbers them
-    for i in prange(h + 1):  # horizontal edges
-        for j in range(w):
-            amin[i * w + j] = _amin_across(area, i, j)
-    for i in prange(h):  # vertical edges
-        for j in range(w + 1):
-            amin[nh + i * (w + 1) + j] = _amin_beside(area, i, j)
+    nt = threads(nc)
+    work = (_phi_work(nt, p), per_thread(nt, (2, CHUNK)), per_thread(nt, (2 + 2 * p, CHUNK)))
+    run_shares(_corners_share, nt, kind, centred, corners, th, c, q, dq, *work)
+    area, amin = np.empty((h, w)), np.empty((h + 1) * w + h * (w + 1))
+    run_shares(_areas_share, nt, q, area)
+    run_shares(_amin_share, nt, area, amin)
     return q, dq, amin
 
 
@@ -730,7 +762,7 @@ def _place_chunk(
                     pts[0, i], pts[1, i] = ax + t * dx, ay + t * dy
                 s += 1
     n = edge_offsets[e1] - e1 - base
-    _phi_run(kind, centred, th, c, pts, n, out)  # the chunk's new vertices in one loop
+    _phi_run(kind, centred, th, c, pts, n, out, qi, dq)  # the chunk's new vertices in one loop
     _unpack(out, n, verts, dverts)
     for j in range(nm):  # a piece's ends move with a learned centre: its vertices too
         pc, e, s = moving[j, 0], moving[j, 1], moving[j, 2]
@@ -746,32 +778,32 @@ def _place_chunk(
                 _add_moving(dverts, v, dq, p, dx, dy, dbounds, pc, f)
 
 
-@parallel
-def _place_vertices(
-    kind: int, centred: bool, ends: np.ndarray, ea: np.ndarray, eb: np.ndarray, th: np.ndarray,
-    c: np.ndarray, piece_offsets: np.ndarray, bounds: np.ndarray, dbounds: np.ndarray,
-    counts: np.ndarray, edge_offsets: np.ndarray, ncorner: int, threads: int, span: int,
+@serial
+def _place_share(
+    t: int, nt: int, kind: int, centred: bool, ends: np.ndarray, ea: np.ndarray, eb: np.ndarray,
+    th: np.ndarray, c: np.ndarray, piece_offsets: np.ndarray, bounds: np.ndarray, dbounds: np.ndarray,
+    counts: np.ndarray, edge_offsets: np.ndarray, ncorner: int, span: int,
     verts: np.ndarray, dverts: np.ndarray, seg_start: np.ndarray, seg_end: np.ndarray, seg_edge: np.ndarray,
+    work: tuple,
 ) -> None:  # fmt: skip
     """Segments and interior vertices of every edge, numbered as [`pixel_mesh`][layoutwarp.mesh.pixel_mesh]
     numbers them: segment ``s`` of edge ``e`` starts at the new vertex ``V0 + s − e − 1`` unless
     it is the edge's first. A chunk's new vertices are consecutive (``span``: the most a chunk
-    has), placed by [`_place_chunk`][]."""
-    ne, p = ends.shape[0], th.shape[0]
+    has), placed by [`_place_chunk`][]; thread ``t`` of ``nt`` takes every ``nt``-th chunk, with
+    its rows of ``work`` ([`_place_work`][])."""
+    ne = ends.shape[0]
     n_chunks = (ne + CHUNK - 1) // CHUNK
     mesh = (kind, centred, ends, th, c, piece_offsets, bounds, dbounds, counts, edge_offsets)
-    for thread in prange(threads):
-        qi, dq = np.empty(2), np.empty((2, p + 2))
-        pts, out = np.empty((2, span)), np.empty((2 + 2 * p, span))
-        moving = np.empty((10 * CHUNK, 3), dtype=np.int64)  # 9 pieces an edge at most
-        for chunk in range(thread, n_chunks, threads):
-            e0, e1 = chunk * CHUNK, min((chunk + 1) * CHUNK, ne)
-            for e in range(e0, e1):
-                _edge_segments(
-                    e, edge_offsets[e], edge_offsets[e + 1], ea, eb, ncorner, seg_start, seg_end, seg_edge
-                )
-            v0 = ncorner + edge_offsets[e0] - e0
-            _place_chunk(*mesh, e0, e1, pts, out, moving, qi, dq, verts[v0:], dverts[v0:])
+    qi, dq = own(work[0], t, nt), own(work[1], t, nt)
+    pts, out, moving = own(work[2], t, nt), own(work[3], t, nt), own(work[4], t, nt)
+    for chunk in range(t, n_chunks, nt):
+        e0, e1 = chunk * CHUNK, min((chunk + 1) * CHUNK, ne)
+        for e in range(e0, e1):
+            _edge_segments(
+                e, edge_offsets[e], edge_offsets[e + 1], ea, eb, ncorner, seg_start, seg_end, seg_edge
+            )
+        v0 = ncorner + edge_offsets[e0] - e0
+        _place_chunk(*mesh, e0, e1, pts, out, moving, qi, dq, verts[v0:], dverts[v0:])
 
 
 @inline
@@ -783,67 +815,68 @@ def _still(v: np.ndarray) -> bool:
     return True
 
 
-@parallel
-def _integrate(
-    kind: int, centred: bool, ends: np.ndarray, ea: np.ndarray, eb: np.ndarray, th: np.ndarray,
-    c: np.ndarray, piece_offsets: np.ndarray, bounds: np.ndarray, dbounds: np.ndarray,
+@serial
+def _integrate_share(
+    t: int, nt: int, kind: int, centred: bool, ends: np.ndarray, ea: np.ndarray, eb: np.ndarray,
+    th: np.ndarray, c: np.ndarray, piece_offsets: np.ndarray, bounds: np.ndarray, dbounds: np.ndarray,
     counts: np.ndarray, edge_offsets: np.ndarray, corners: np.ndarray, dcorners: np.ndarray,
-    incl: np.ndarray, offsets: np.ndarray, block: int, ws: float, hs: float, threads: int, span: int,
-) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    incl: np.ndarray, offsets: np.ndarray, block: int, ws: float, hs: float, span: int, out: np.ndarray,
+    jac: np.ndarray, work: tuple, all_verts: np.ndarray, all_dverts: np.ndarray, sums: tuple,
+) -> None:  # fmt: skip
     """[`mesh_integrals`][] a chunk of edges at a time: its new vertices into work space
     ([`_place_chunk`][]), in pixel units as [`_to_pixels`][] gives them; its segments'
     integrals (each edge summed in segment order), moments
     ([`segment_moments`][]) and θ-Jacobian while the segment is at hand.
-    ``corners`` ``(V0, 2)`` in pixel units, ``span``: the most new vertices a chunk has."""
+    ``corners`` ``(V0, 2)`` in pixel units, ``span``: the most new vertices a chunk has; into
+    ``out`` ``(N + 1, E)`` and ``jac`` ``(N + 1, E, P)``, every edge's written once, from work
+    space (no zeroing). Thread ``t`` of ``nt`` takes every ``nt``-th chunk, with its rows of the
+    work space: ``work`` ([`_place_work`][]), the chunk's new vertices ``(T, span, 2)`` and their
+    θ-derivatives ``(T, span, 2, P)``, and ``sums`` ([`_integral_work`][]: a segment's integrals
+    and moments, an edge's θ-Jacobian and integrals)."""
     ne, p, n = ends.shape[0], th.shape[0], incl.shape[2]
-    out = np.empty((n + 1, ne))  # every edge's written once, from work space: no zeroing
-    jac = np.empty((n + 1, ne, p))
     n_chunks = (ne + CHUNK - 1) // CHUNK
     sx, sy = ws / 2, hs / 2  # ∂X/∂x, ∂Y/∂y
     mesh = (kind, centred, ends, th, c, piece_offsets, bounds, dbounds, counts, edge_offsets)
-    for thread in prange(threads):
-        qi, dq = np.empty(2), np.empty((2, p + 2))
-        pts, rows = np.empty((2, span)), np.empty((2 + 2 * p, span))
-        moving = np.empty((10 * CHUNK, 3), dtype=np.int64)
-        verts, dverts = np.empty((span, 2)), np.empty((span, 2, p))
-        acc, ma, mb = np.empty((1, n + 1)), np.empty((1, n)), np.empty((1, n))  # a segment's
-        ej, oe = np.empty((n + 1, p)), np.empty(n + 1)  # an edge's θ-Jacobian and integrals
-        for chunk in range(thread, n_chunks, threads):
-            e0, e1 = chunk * CHUNK, min((chunk + 1) * CHUNK, ne)
-            _place_chunk(*mesh, e0, e1, pts, rows, moving, qi, dq, verts, dverts)
-            base = edge_offsets[e0] - e0
-            for i in range(edge_offsets[e1] - e1 - base):
-                verts[i, 0], verts[i, 1] = _pixel_vertex(verts[i, 0], verts[i, 1], ws, hs)
-            for e in range(e0, e1):
-                first, last = edge_offsets[e], edge_offsets[e + 1] - 1
-                ej[:, :] = 0.0
-                oe[:] = 0.0
-                x1, y1 = corners[ea[e], 0], corners[ea[e], 1]
-                vb = dcorners[ea[e]]  # the θ-velocity (2, P) of the segment's end, then of its start
-                for s in range(first, last + 1):
-                    x0, y0, va = x1, y1, vb
-                    i = s - e - base  # the segment's end is new vertex i, unless it is the edge's last
-                    if s == last:
-                        x1, y1, vb = corners[eb[e], 0], corners[eb[e], 1], dcorners[eb[e]]
-                    else:
-                        x1, y1, vb = verts[i, 0], verts[i, 1], dverts[i]
-                    if y1 == y0 and _still(va) and _still(vb):  # no ∫ P dY, and no θ moves it: adds 0
-                        continue
-                    segment_moments(x0, y0, x1, y1, incl, offsets, block, acc, ma, mb)
-                    for k in range(n + 1):
-                        oe[k] += acc[0, k]
-                    nx, ny = (y1 - y0) * sx, (x0 - x1) * sy  # the normal, times dX/dx and dY/dy
-                    for r in range(p):  # ν·v at both ends, times the moments
-                        da = nx * va[0, r] + ny * va[1, r]
-                        db = nx * vb[0, r] + ny * vb[1, r]
-                        for k in range(n):
-                            ej[k, r] += ma[0, k] * da + mb[0, k] * db
-                        ej[n, r] += (da + db) / 2
+    qi, dq = own(work[0], t, nt), own(work[1], t, nt)
+    pts, rows, moving = own(work[2], t, nt), own(work[3], t, nt), own(work[4], t, nt)
+    verts, dverts = own(all_verts, t, nt), own(all_dverts, t, nt)
+    acc, ma = own(sums[0], t, nt), own(sums[1], t, nt)
+    mb, ej, oe = own(sums[2], t, nt), own(sums[3], t, nt), own(sums[4], t, nt)
+    for chunk in range(t, n_chunks, nt):
+        e0, e1 = chunk * CHUNK, min((chunk + 1) * CHUNK, ne)
+        _place_chunk(*mesh, e0, e1, pts, rows, moving, qi, dq, verts, dverts)
+        base = edge_offsets[e0] - e0
+        for i in range(edge_offsets[e1] - e1 - base):
+            verts[i, 0], verts[i, 1] = _pixel_vertex(verts[i, 0], verts[i, 1], ws, hs)
+        for e in range(e0, e1):
+            first, last = edge_offsets[e], edge_offsets[e + 1] - 1
+            ej[:, :] = 0.0
+            oe[:] = 0.0
+            x1, y1 = corners[ea[e], 0], corners[ea[e], 1]
+            vb = dcorners[ea[e]]  # the θ-velocity (2, P) of the segment's end, then of its start
+            for s in range(first, last + 1):
+                x0, y0, va = x1, y1, vb
+                i = s - e - base  # the segment's end is new vertex i, unless it is the edge's last
+                if s == last:
+                    x1, y1, vb = corners[eb[e], 0], corners[eb[e], 1], dcorners[eb[e]]
+                else:
+                    x1, y1, vb = verts[i, 0], verts[i, 1], dverts[i]
+                if y1 == y0 and _still(va) and _still(vb):  # no ∫ P dY, and no θ moves it: adds 0
+                    continue
+                segment_moments(x0, y0, x1, y1, incl, offsets, block, acc, ma, mb)
                 for k in range(n + 1):
-                    out[k, e] = oe[k]
-                    for r in range(p):
-                        jac[k, e, r] = ej[k, r]
-    return out, jac
+                    oe[k] += acc[0, k]
+                nx, ny = (y1 - y0) * sx, (x0 - x1) * sy  # the normal, times dX/dx and dY/dy
+                for r in range(p):  # ν·v at both ends, times the moments
+                    da = nx * va[0, r] + ny * va[1, r]
+                    db = nx * vb[0, r] + ny * vb[1, r]
+                    for k in range(n):
+                        ej[k, r] += ma[0, k] * da + mb[0, k] * db
+                    ej[n, r] += (da + db) / 2
+            for k in range(n + 1):
+                out[k, e] = oe[k]
+                for r in range(p):
+                    jac[k, e, r] = ej[k, r]
 
 
 @dataclass
@@ -872,11 +905,12 @@ def _count_stage(
     th = np.ascontiguousarray(theta, dtype=np.float64)
     c = np.array(spec.center, dtype=np.float64)
     args = (spec.kind, spec.centred)
-    nt = threads()
-    with one_thread_below((h + 1) * (w + 1)):
-        cq, cdq, amin = _corners(*args, h, w, uniform, th, c)
-    npieces = _count_pieces(*args, ends, th, c, nt)
-    ne = len(npieces)
+    cq, cdq, amin = _corners(*args, h, w, uniform, th, c)
+    ne = len(ends)
+    nt = threads(ne * _EDGE_WORK)
+    npieces = np.empty(ne, dtype=np.int64)
+    work = _edge_work(nt, len(th))
+    run_shares(_count_share, nt, *args, ends, th, c, npieces, work)
     piece_offsets = np.zeros(ne + 1, dtype=np.int64)
     np.cumsum(npieces, out=piece_offsets[1:])
     total = int(piece_offsets[-1])
@@ -884,9 +918,13 @@ def _count_stage(
     counts, edge_offsets = np.empty(total, dtype=np.int64), np.empty(ne + 1, dtype=np.int64)
     chunk_ends = np.r_[0:ne:CHUNK, ne]
     span = int(np.diff(piece_offsets[chunk_ends]).max())  # the most pieces a chunk has
-    limits = (float(tol), int(max_subdiv), with_grad, INNER, nt, span)
+    limits = (float(tol), int(max_subdiv), with_grad, INNER, span)
     out = (bounds, dbounds, counts, edge_offsets)
-    _pieces_and_counts(*args, ends, th, c, piece_offsets, amin, *limits, *out)
+    ns, p = 7, len(th)  # samples a piece, at most
+    points = (per_thread(nt, (2, ns * span)), per_thread(nt, (2 + 2 * p, ns * span)))
+    space = (*points, per_thread(nt, (span,)), per_thread(nt, (span,)))
+    work = (work, _phi_work(nt, p), *space)
+    run_shares(_pieces_share, nt, *args, ends, th, c, piece_offsets, amin, *limits, *out, *work)
     edge_offsets[0] = 0
     np.cumsum(edge_offsets, out=edge_offsets)
     vspan = int(np.diff(edge_offsets[chunk_ends] - chunk_ends).max())  # the most new vertices a chunk has
@@ -915,9 +953,11 @@ def build_mesh(
     verts, dverts = np.empty((ncorner + nseg - ne, 2)), np.empty((ncorner + nseg - ne, 2, len(k.th)))
     verts[:ncorner], dverts[:ncorner] = k.corners, k.dcorners
     seg_start, seg_end, seg_edge = (np.empty(nseg, dtype=np.int64) for _ in range(3))
-    _place_vertices(
-        spec.kind, spec.centred, ends, ea, eb, k.th, k.c, k.piece_offsets, k.bounds, k.dbounds, k.counts,
-        k.edge_offsets, ncorner, threads(), k.span, verts, dverts, seg_start, seg_end, seg_edge,
+    nt = threads(ne * _EDGE_WORK)
+    run_shares(
+        _place_share, nt, spec.kind, spec.centred, ends, ea, eb, k.th, k.c, k.piece_offsets, k.bounds,
+        k.dbounds, k.counts, k.edge_offsets, ncorner, k.span, verts, dverts, seg_start, seg_end, seg_edge,
+        _place_work(nt, len(k.th), k.span),
     )  # fmt: skip
     return CompiledMesh((h, w), verts, dverts, seg_start, seg_end, seg_edge, k.edge_offsets, k.counts)
 
@@ -951,19 +991,62 @@ def mesh_integrals(
     hs, ws = src_size
     ends, ea, eb, _ = _topology(size)
     k = _count_stage(spec, size, theta, tol, max_subdiv, True)
-    with one_thread_below(len(k.corners)):
-        corners = _to_pixels(k.corners, float(ws), float(hs))
-    return _integrate(
-        spec.kind, spec.centred, ends, ea, eb, k.th, k.c, k.piece_offsets, k.bounds, k.dbounds, k.counts,
-        k.edge_offsets, corners, k.dcorners, *tables, BLOCK, float(ws), float(hs), threads(), k.span,
+    corners = _to_pixels(k.corners, float(ws), float(hs))
+    ne, n, p = len(ends), tables[0].shape[2], len(k.th)
+    out, jac = np.empty((n + 1, ne)), np.empty((n + 1, ne, p))
+    nt = threads(ne * _EDGE_WORK)
+    space = (per_thread(nt, (k.span, 2)), per_thread(nt, (k.span, 2, p)), _integral_work(nt, n, p))
+    run_shares(
+        _integrate_share, nt, spec.kind, spec.centred, ends, ea, eb, k.th, k.c, k.piece_offsets, k.bounds,
+        k.dbounds, k.counts, k.edge_offsets, corners, k.dcorners, *tables, BLOCK, float(ws), float(hs),
+        k.span, out, jac, _place_work(nt, p, k.span), *space,
     )  # fmt: skip
+    return out, jac
 
 
-@parallel
+def _phi_work(nt: int, p: int) -> tuple[np.ndarray, np.ndarray]:
+    """Each of ``nt`` threads' work space for [`_phi`][]: a point ``(2,)`` and its derivatives
+    ``(2, P + 2)``."""
+    return per_thread(nt, (2,)), per_thread(nt, (2, p + 2))
+
+
+def _edge_work(nt: int, p: int) -> tuple[np.ndarray, ...]:
+    """Each of ``nt`` threads' work space for [`_edge_pieces`][]: ``scratch`` ``(8, P)``, ``cuts``
+    ``(8,)``, ``dcuts`` ``(8, P)``, ``lo`` ``(10,)``, ``dlo`` ``(10, P)``."""
+    cuts, los = per_thread(nt, (8,)), per_thread(nt, (10,))
+    return per_thread(nt, (8, p)), cuts, per_thread(nt, (8, p)), los, per_thread(nt, (10, p))
+
+
+def _place_work(nt: int, p: int, span: int) -> tuple[np.ndarray, ...]:
+    """Each of ``nt`` threads' work space for [`_place_chunk`][] of a chunk of at most ``span`` new
+    vertices: [`_phi_work`][]'s, their points ``(2, span)`` and map ``(2 + 2P, span)``, and the
+    chunk's moving pieces ``(10·CHUNK, 3)`` (9 pieces an edge at most)."""
+    pts, out = per_thread(nt, (2, span)), per_thread(nt, (2 + 2 * p, span))
+    return (*_phi_work(nt, p), pts, out, per_thread(nt, (10 * CHUNK, 3), np.int64))
+
+
+def _integral_work(nt: int, n: int, p: int) -> tuple[np.ndarray, ...]:
+    """Each of ``nt`` threads' work space for the integrals of ``n`` channels: a segment's
+    integrals ``(1, N + 1)`` and moments ``(1, N)`` twice, an edge's θ-Jacobian ``(N + 1, P)`` and
+    integrals ``(N + 1,)``."""
+    segment = per_thread(nt, (1, n + 1)), per_thread(nt, (1, n)), per_thread(nt, (1, n))
+    return (*segment, per_thread(nt, (n + 1, p)), per_thread(nt, (n + 1,)))
+
+
+#: What an edge costs the mesh's kernels, in elements of [`threads`][layoutwarp.kernels.base.threads]' work.
+_EDGE_WORK = 64
+
+
+@serial
+def _to_pixels_share(t: int, nt: int, verts: np.ndarray, ws: float, hs: float, out: np.ndarray) -> None:
+    nv = verts.shape[0]
+    for v in range(t * nv // nt, (t + 1) * nv // nt):
+        out[v, 0], out[v, 1] = _pixel_vertex(verts[v, 0], verts[v, 1], ws, hs)
+
+
 def _to_pixels(verts: np.ndarray, ws: float, hs: float) -> np.ndarray:
     out = np.empty_like(verts)
-    for v in prange(verts.shape[0]):
-        out[v, 0], out[v, 1] = _pixel_vertex(verts[v, 0], verts[v, 1], ws, hs)
+    run_shares(_to_pixels_share, threads(len(verts)), verts, ws, hs, out)
     return out
 
 
@@ -971,36 +1054,42 @@ def pixel_vertices(mesh: CompiledMesh, src_size: tuple[int, int]) -> np.ndarray:
     """The mesh's vertices in pixel units of an ``(H, W)`` source, clamped to it, as
     [`pixel_vertices`][layoutwarp.mesh.PixelMesh.pixel_vertices] gives them."""
     hs, ws = src_size
-    with one_thread_below(len(mesh.vertices)):
-        return _to_pixels(mesh.vertices, float(ws), float(hs))
+    return _to_pixels(mesh.vertices, float(ws), float(hs))
 
 
-@parallel
-def _edge_gradient(
-    grad: np.ndarray, means: np.ndarray, areas: np.ndarray, area_grad: np.ndarray
-) -> np.ndarray:
+@serial
+def _pixel_gradient_share(
+    t: int, nt: int, grad: np.ndarray, means: np.ndarray, areas: np.ndarray, area_grad: np.ndarray,
+    gp: np.ndarray,
+) -> None:  # fmt: skip
+    """Rows ``t·h/T ..`` of the pixels' boundary integrals' gradient ``gp`` ``(N + 1, h, w)``: the
+    quotient rule."""
     n, h, w = grad.shape
-    nh = (h + 1) * w
-    out = np.empty((n + 1, nh + h * (w + 1)))
-    gp = np.empty((n + 1, h, w))
     own = area_grad.shape[0] > 0
-    for i in prange(h):  # the pixels' boundary integrals' gradient: the quotient rule
+    for i in range(t * h // nt, (t + 1) * h // nt):
         for j in range(w):
             acc = 0.0
             for k in range(n):
                 gp[k, i, j] = grad[k, i, j] / areas[i, j]
                 acc += grad[k, i, j] * means[k, i, j]
             gp[n, i, j] = -acc / areas[i, j] + area_grad[i, j] if own else -acc / areas[i, j]
-    for k in range(n + 1):  # each edge: + the pixel it bounds above / on the right, − below / left
-        for i in prange(h + 1):
+
+
+@serial
+def _edge_gradient_share(t: int, nt: int, gp: np.ndarray, out: np.ndarray) -> None:
+    """Rows ``t·h/T ..`` of every edge's gradient ``out`` ``(N + 1, E)``: + the pixel it bounds
+    above / on the right, − below / left."""
+    n1, h, w = gp.shape
+    nh = (h + 1) * w
+    for k in range(n1):
+        for i in range(t * (h + 1) // nt, (t + 1) * (h + 1) // nt):
             for j in range(w):
                 top = gp[k, i, j] if i < h else 0.0
                 out[k, i * w + j] = top - gp[k, i - 1, j] if i > 0 else top
-        for i in prange(h):
+        for i in range(t * h // nt, (t + 1) * h // nt):
             for j in range(w + 1):
                 right = gp[k, i, j - 1] if j > 0 else 0.0
                 out[k, nh + i * (w + 1) + j] = right - gp[k, i, j] if j < w else right
-    return out
 
 
 def edge_gradient(
@@ -1013,24 +1102,23 @@ def edge_gradient(
     quotient rule, then [`combine_adjoint`][layoutwarp.mesh.MeshTopology.combine_adjoint], in one
     compiled pass."""
     own = np.zeros((0, 0)) if area_grad is None else area_grad
-    with one_thread_below(grad.size + means.size):
-        return _edge_gradient(*(np.ascontiguousarray(a, dtype=np.float64) for a in (grad, means, areas, own)))
+    args = [np.ascontiguousarray(a, dtype=np.float64) for a in (grad, means, areas, own)]
+    n, h, w = args[0].shape
+    gp, out = np.empty((n + 1, h, w)), np.empty((n + 1, (h + 1) * w + h * (w + 1)))
+    nt = threads(grad.size + means.size)
+    run_shares(_pixel_gradient_share, nt, *args, gp)
+    run_shares(_edge_gradient_share, nt, gp, out)
+    return out
 
 
-@parallel
-def _contract(g: np.ndarray, jac: np.ndarray) -> np.ndarray:
+@serial
+def _contract_share(t: int, nt: int, g: np.ndarray, jac: np.ndarray, part: np.ndarray) -> None:
+    """Thread ``t``'s chunks of 4096 rows (in turn), each chunk's sums into its row of ``part``."""
     rows, p = jac.shape
-    n_chunks = (rows + 4095) // 4096
-    part = np.zeros((n_chunks, p))
-    for c in prange(n_chunks):  # fixed chunks, summed in order: the same result on any thread count
+    for c in range(t, part.shape[0], nt):
         for r in range(c * 4096, min(rows, (c + 1) * 4096)):
             for q in range(p):
                 part[c, q] += g[r] * jac[r, q]
-    out = np.zeros(p)
-    for c in range(n_chunks):
-        for q in range(p):
-            out[q] += part[c, q]
-    return out
 
 
 def theta_gradient(g_edge: np.ndarray, jac: np.ndarray) -> np.ndarray:
@@ -1040,8 +1128,13 @@ def theta_gradient(g_edge: np.ndarray, jac: np.ndarray) -> np.ndarray:
     whose worker threads would keep spinning on the cores into the next step's kernels (a
     2048x1024 → 257x129 fovea step ran 2.5x slower with numpy's ``@`` here)."""
     p = jac.shape[-1]
-    with one_thread_below(jac.size):
-        return _contract(np.ascontiguousarray(g_edge).reshape(-1), np.ascontiguousarray(jac).reshape(-1, p))
+    g, j = np.ascontiguousarray(g_edge).reshape(-1), np.ascontiguousarray(jac).reshape(-1, p)
+    part = np.zeros(((len(j) + 4095) // 4096, p))  # fixed chunks summed in order: any thread count
+    run_shares(_contract_share, threads(jac.size), g, j, part)
+    out = np.zeros(p)
+    for row in part:  # in order, as a loop (numpy's sum would pair them)
+        out += row
+    return out
 
 
 # ----------------------------------------------------------------------------------------

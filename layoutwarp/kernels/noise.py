@@ -8,7 +8,7 @@ import math
 
 import numpy as np
 
-from .base import inline, parallel, prange, serial
+from .base import inline, own, per_thread, run_shares, serial
 from .device import cuda_launch
 
 try:  # numba's own code generator, present wherever numba is
@@ -440,7 +440,68 @@ def _prefetch_inputs(
         _prefetch_span(mean[r], lo, hi)
 
 
-@parallel
+@serial
+def _measure_share(
+    t: int,
+    nt: int,
+    mean: np.ndarray,
+    area_um2: np.ndarray,
+    prnu: np.ndarray,
+    dsnu: np.ndarray,
+    params: np.ndarray,
+    seed: int,
+    noise: int,
+    output: int,
+    out: np.ndarray,
+    consts: np.ndarray,
+    all_words: np.ndarray,
+) -> None:
+    """Share ``t`` of ``nt`` of [`sensor_measure`][], with its rows of the work space: a run's pixel
+    constants ``consts`` ``(T, 5, MEASURE_CHUNK)`` and the flags ``all_words`` ``(T, ⌈N·share/8⌉)``
+    (zeroed; none without noise)."""
+    g_prnu, g_dsnu, read = params[2], params[3], params[5]
+    n, p = mean.shape
+    state0 = stream_origin(seed)
+    in_place = out.ctypes.data == mean.ctypes.data
+    c = MEASURE_CHUNK
+    mine = own(consts, t, nt)
+    scale, dark, full, zero, inv = mine[0], mine[1], mine[2], mine[3], mine[4]
+    start, stop = t * p // nt, (t + 1) * p // nt
+    share = stop - start
+    words = own(all_words, t, nt)[: (n * share + 7) // 8 if noise != 0 else 0]
+    redo = words.view(np.uint8)  # element (r, start + j)'s flag at r·share + j: 1 to rerun
+    _prefetch_inputs(mean, area_um2, prnu, dsnu, params, start, min(stop, start + 2 * c))
+    for lo in range(start, stop, MEASURE_CHUNK):
+        m = min(stop, lo + MEASURE_CHUNK) - lo
+        _prefetch_inputs(mean, area_um2, prnu, dsnu, params, lo + 2 * c, min(stop, lo + 3 * c))
+        for j in range(m):  # the run's pixels' constants
+            scale[j], dark[j], full[j], zero[j], inv[j] = _pixel_constants(area_um2[lo + j], params)
+        if g_prnu != 0.0:  # the fixed patterns in loops of their own: the one above vectorises
+            for j in range(m):
+                scale[j] = scale[j] * (1.0 + g_prnu * prnu[lo + j])
+        if g_dsnu != 0.0:
+            for j in range(m):
+                dark[j] = dark[j] + g_dsnu * dsnu[lo + j]
+        for r in range(n):
+            row = out[r, lo : lo + m]  # 1-d: 1.5x the 2-d stores
+            if not in_place:  # measured where they are written: no overlap check, one loop
+                for j in range(m):
+                    row[j] = mean[r, lo + j]
+            flags = redo[r * share + lo - start : r * share + lo - start + m]
+            key = state0 + np.uint64(r * p + lo) * _ELEMENT_G  # the run's first shot stream
+            _measure_run(row, flags, scale, dark, full, zero, inv, params, key, noise, read, output)
+    for b in range(words.size):  # the rescan
+        if words[b] == 0:
+            continue
+        for f in range(8 * b, min(n * share, 8 * b + 8)):
+            if redo[f] == 0:
+                continue
+            r, i = f // share, start + f % share  # its mean was left where it was
+            out[r, i] = measured_value(
+                mean[r, i], r * p + i, i, area_um2, prnu, dsnu, params, state0, noise, output
+            )
+
+
 def sensor_measure(
     mean: np.ndarray,
     area_um2: np.ndarray,
@@ -465,9 +526,9 @@ def sensor_measure(
     SplitMix64 sequence seeded by ``seed`` ([`_ELEMENT_G`][]), so the result does not depend
     on the thread count.
 
-    Thread ``t`` of ``threads`` (see [`threads`][layoutwarp.kernels.base.threads]) takes the
+    Thread ``t`` of ``threads`` (see [`run_shares`][layoutwarp.kernels.base.run_shares]) takes the
     pixels ``[t·P/T, (t + 1)·P/T)``,
-    the share of a ``prange`` over them that the same thread had in the forward just before, in
+    the share of the rows that the same thread had in the forward just before, in
     runs of [`MEASURE_CHUNK`][] pixels through all ``N`` planes, with work space of its own. The
     forward's streams (tens of MB) push most of its output out of the caches, so the thread first
     hints its first two runs' inputs to the caches, and each run those of the run after next
@@ -482,46 +543,12 @@ def sensor_measure(
     in one tight loop, whose code and branch history stay warm (a rescan after every run made the
     kernel 5–25 % slower).
     """
-    g_prnu, g_dsnu, read = params[2], params[3], params[5]
     n, p = mean.shape
-    state0 = stream_origin(seed)
-    in_place = out.ctypes.data == mean.ctypes.data
-    for thread in prange(threads):  # each thread its work space, and its share of the pixels
-        c = MEASURE_CHUNK
-        scale, dark, full, zero, inv = np.empty(c), np.empty(c), np.empty(c), np.empty(c), np.empty(c)
-        start, stop = thread * p // threads, (thread + 1) * p // threads
-        share = stop - start
-        words = np.zeros((n * share + 7) // 8 if noise != 0 else 0, dtype=np.uint64)
-        redo = words.view(np.uint8)  # element (r, start + j)'s flag at r·share + j: 1 to rerun
-        _prefetch_inputs(mean, area_um2, prnu, dsnu, params, start, min(stop, start + 2 * c))
-        for lo in range(start, stop, MEASURE_CHUNK):
-            m = min(stop, lo + MEASURE_CHUNK) - lo
-            _prefetch_inputs(mean, area_um2, prnu, dsnu, params, lo + 2 * c, min(stop, lo + 3 * c))
-            for j in range(m):  # the run's pixels' constants
-                scale[j], dark[j], full[j], zero[j], inv[j] = _pixel_constants(area_um2[lo + j], params)
-            if g_prnu != 0.0:  # the fixed patterns in loops of their own: the one above vectorises
-                for j in range(m):
-                    scale[j] = scale[j] * (1.0 + g_prnu * prnu[lo + j])
-            if g_dsnu != 0.0:
-                for j in range(m):
-                    dark[j] = dark[j] + g_dsnu * dsnu[lo + j]
-            for r in range(n):
-                row = out[r, lo : lo + m]  # 1-d: 1.5x the 2-d stores
-                if not in_place:  # measured where they are written: no overlap check, one loop
-                    row[:] = mean[r, lo : lo + m]
-                flags = redo[r * share + lo - start : r * share + lo - start + m]
-                key = state0 + np.uint64(r * p + lo) * _ELEMENT_G  # the run's first shot stream
-                _measure_run(row, flags, scale, dark, full, zero, inv, params, key, noise, read, output)
-        for b in range(words.size):  # the rescan
-            if words[b] == 0:
-                continue
-            for f in range(8 * b, min(n * share, 8 * b + 8)):
-                if redo[f] == 0:
-                    continue
-                r, i = f // share, start + f % share  # its mean was left where it was
-                out[r, i] = measured_value(
-                    mean[r, i], r * p + i, i, area_um2, prnu, dsnu, params, state0, noise, output
-                )
+    consts = per_thread(threads, (5, MEASURE_CHUNK))
+    words = per_thread(threads, ((n * -(-p // threads) + 7) // 8 if noise != 0 else 0,), np.uint64)
+    words[:] = 0
+    args = (mean, area_um2, prnu, dsnu, params, seed, noise, output, out, consts, words)
+    run_shares(_measure_share, threads, *args)
 
 
 # ----------------------------------------------------------------------------------------
