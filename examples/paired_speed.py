@@ -64,9 +64,8 @@ print(json.dumps(out))
 
 def run(tree: str, cache: str, calls: int) -> dict[str, list[float]]:
     env = {**os.environ, "NUMBA_CACHE_DIR": cache, "PYTHONPATH": tree}
-    res = subprocess.run(
-        [sys.executable, "-c", CHILD, str(calls)], cwd=tree, env=env, capture_output=True, text=True, check=False
-    )
+    cmd = [sys.executable, "-c", CHILD, str(calls)]
+    res = subprocess.run(cmd, cwd=tree, env=env, capture_output=True, text=True, check=False)
     if res.returncode != 0:
         sys.exit(f"paired_speed: the run in {tree} failed:\n{res.stderr[-2000:]}")
     return json.loads(res.stdout.strip().splitlines()[-1])
@@ -77,7 +76,7 @@ def main() -> None:
     parser.add_argument("--against", required=True, help="the other checkout (its root folder)")
     parser.add_argument("--pairs", type=int, default=6, help="runs of each checkout (default 6)")
     parser.add_argument("--calls", type=int, default=5, help="timed calls of each kind a run (default 5)")
-    parser.add_argument("--cache", default=None, help="where the two compile caches live (default: a temp folder)")
+    parser.add_argument("--cache", default=None, help="where the two kernel caches go (default: temporary)")
     args = parser.parse_args()
     here = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     other = os.path.abspath(args.against)
