@@ -30,6 +30,7 @@ from __future__ import annotations
 import atexit
 import contextlib
 import importlib
+import json
 import os
 import signal
 import subprocess
@@ -52,6 +53,7 @@ __all__ = [
     "UNITS",
     "cache_folder",
     "compile_all",
+    "compile_missing",
     "compiled",
     "mode",
     "ready",
@@ -187,40 +189,44 @@ def status() -> dict[str, str]:
 
 
 def compile_all(
-    progress: Callable[[str, float], None] | None = None, units: tuple[str, ...] = UNITS, processes: int = 1
+    progress: Callable[[str, float, float], None] | None = None,
+    units: tuple[str, ...] = UNITS,
+    processes: int = 1,
 ) -> None:
     """Compile (or load) ``units`` (names from [`UNITS`][]; all by default), telling
-    ``progress(unit, seconds)`` after each: in this process, or with ``processes > 1`` in that
-    many child processes at a time, each a unit (numba compiles one kernel at a time in a
-    process): what ``layoutwarp doctor --compile`` runs."""
+    ``progress(unit, seconds, cpu_seconds)`` after each (its warm-up's wall and CPU time): in this
+    process, or with ``processes > 1`` in that many child processes at a time, each a unit
+    (numba compiles one kernel at a time in a process; ``mesh`` first, before the units that load
+    its kernels): what ``layoutwarp doctor --compile`` runs."""
     if processes <= 1:
         for unit in units:
-            start = time.perf_counter()
+            start, cpu = time.perf_counter(), time.process_time()
             _warm(unit)
             _READY.add(unit)
             if progress is not None:
-                progress(unit, time.perf_counter() - start)
+                progress(unit, time.perf_counter() - start, time.process_time() - cpu)
         return
 
     pool = ThreadPoolExecutor(processes)
     mesh = pool.submit(lambda: None)  # done at once unless mesh is compiled below
+    code = (
+        "import json, sys; from layoutwarp.jit import compile_all; "
+        "compile_all(lambda *a: print(json.dumps(a)), units=(sys.argv[1],))"
+    )
 
-    def one(unit: str) -> str:
-        if unit.startswith("learn/"):
-            mesh.result()  # the learn units load the mesh's kernels: after them, not beside them
-        start = time.perf_counter()
-        code = f"from layoutwarp.jit import compile_all; compile_all(units=({unit!r},))"
-        res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False)
+    def one(unit: str) -> None:
+        if _loads_mesh(unit):
+            mesh.result()  # after the mesh's kernels, not beside them (compiling them twice)
+        res = subprocess.run([sys.executable, "-c", code, unit], capture_output=True, text=True, check=False)
         if res.returncode != 0:
             raise RuntimeError(f"compiling {unit} failed:\n{res.stderr[-2000:]}")
         if progress is not None:
-            progress(unit, time.perf_counter() - start)
-        return unit
+            progress(*json.loads(res.stdout.strip().splitlines()[-1]))
 
     with pool:
         if "mesh" in units:
             mesh = pool.submit(one, "mesh")
-        later = [u for u in units if u.startswith("learn/")]
+        later = [u for u in units if _loads_mesh(u)]
         futures = [pool.submit(one, u) for u in units if u != "mesh" and u not in later]
         futures += [pool.submit(one, u) for u in later]
         for f in [mesh, *futures]:
@@ -228,6 +234,28 @@ def compile_all(
     for unit in units:
         if _loads(unit):
             _READY.add(unit)
+
+
+def compile_missing(processes: int = 2, say: Callable[[str], None] | None = None) -> tuple[str, ...]:
+    """Compile the units missing from the cache, ``processes`` at a time ([`compile_all`][]), and
+    return their names (none where the mode is ``"off"`` or numba is missing): for a program that
+    is about to need most of them (the test suite, ``layoutwarp bench``). ``say``: told what is
+    compiled, before it is."""
+    if not kernels.available() or mode() == "off":
+        return ()
+    missing = tuple(unit for unit, state in status().items() if state == "not compiled")
+    if missing:
+        if say is not None:
+            say(f"compiling {', '.join(missing)} ({processes} at a time; once per installation)")
+        compile_all(units=missing, processes=processes)
+    return missing
+
+
+def _loads_mesh(unit: str) -> bool:
+    """Whether ``unit``'s warm-up runs mostly the mesh unit's kernels (a learnable layout's step;
+    a float64 fixed forward's walk runs a few, compiled beside the mesh unit rather than after it:
+    the shorter wall time)."""
+    return unit.startswith("learn/")
 
 
 def _units(group: str, dtype: str | torch.dtype) -> tuple[str, ...]:

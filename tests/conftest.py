@@ -44,14 +44,10 @@ def pytest_configure(config) -> None:
     """Before any test (in pytest's controller, before its workers start): the units of kernels
     missing from numba's cache, compiled two at a time in processes of their own, so that the
     workers load them rather than each compile them (a clean clone's run)."""
-    from layoutwarp import jit, kernels
+    from layoutwarp import jit
 
-    if os.environ.get("PYTEST_XDIST_WORKER") or not kernels.available() or jit.mode() == "off":
-        return
-    missing = tuple(unit for unit, state in jit.status().items() if state == "not compiled")
-    if missing:
-        print(f"compiling {', '.join(missing)} first (once per installation)", file=sys.stderr, flush=True)
-        jit.compile_all(units=missing, processes=2)
+    if not os.environ.get("PYTEST_XDIST_WORKER"):
+        jit.compile_missing(2, lambda line: print(line, file=sys.stderr, flush=True))
 
 
 def seed_for(nodeid: str, setting: str | None = None) -> int:

@@ -978,6 +978,8 @@ def main_bench(
     ``text_path`` as a fenced Markdown block, which the docs include), write JSON and plot."""
     say = lambda msg: print(f"  .. {msg}", flush=True)  # noqa: E731
     rows = tuple(only) if only else None
+    with jit.use_mode("wait"):  # what it times, compiled first, two units at a time
+        jit.compile_missing(2, say)
     if quick:
         config = BenchConfig.quick(mc_samples=(1, 4, 16), photo=photo, device=device, only=rows)
         result = run(config, progress=say)

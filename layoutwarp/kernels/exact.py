@@ -305,9 +305,16 @@ def segment_moments(
     _segment_rows(x0, y0, x1, y1, r0, r1, 0, incl, offsets, block, w, acc, 0, True, ma, mb)
 
 
-#: [`segment_moments`][] for calls from Python (the kernels' helpers are compiled for kernels
-#: only, without a Python wrapper; ``layoutwarp.kernels.segment_moments`` is this one).
-segment_moments_from_python = serial(getattr(segment_moments, "py_func", segment_moments))
+@serial
+def segment_moments_from_python(
+    x0: float, y0: float, x1: float, y1: float, incl: np.ndarray, offsets: np.ndarray, block: int,
+    acc: np.ndarray, ma: np.ndarray, mb: np.ndarray,
+) -> None:  # fmt: skip
+    """[`segment_moments`][] for calls from Python (``layoutwarp.kernels.segment_moments`` is this
+    one): the kernels' helpers are compiled for kernels only, without a Python wrapper, and a
+    function of their own is needed for one with it (numba's disk cache tells two builds of one
+    function apart by their arguments' types only)."""
+    segment_moments(x0, y0, x1, y1, incl, offsets, block, acc, ma, mb)
 
 
 @inline

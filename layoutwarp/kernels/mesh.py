@@ -427,16 +427,17 @@ def _edge_pieces(
 @serial
 def _count_share(
     t: int, nt: int, kind: int, centred: bool, ends: np.ndarray, th: np.ndarray, c: np.ndarray,
-    out: np.ndarray, work: tuple,
+    out: np.ndarray, work: tuple, grad: bool,
 ) -> None:  # fmt: skip
     """Thread ``t``'s chunks of edges (in turn): each edge's smooth pieces into ``out``;
-    ``work``: [`_edge_work`][]'s arrays."""
+    ``work``: [`_edge_work`][]'s arrays; ``grad``: False, passed as a value (a constant would
+    compile [`_edge_pieces`][] a second time, beside [`_edge_bounds`][]'s)."""
     ne = ends.shape[0]
     scratch, cuts = own(work[0], t, nt), own(work[1], t, nt)
     dcuts, lo, dlo = own(work[2], t, nt), own(work[3], t, nt), own(work[4], t, nt)
     for chunk in range(t, (ne + CHUNK - 1) // CHUNK, nt):
         for e in range(chunk * CHUNK, min((chunk + 1) * CHUNK, ne)):
-            out[e] = _edge_pieces(kind, centred, e, ends, th, c, scratch, cuts, dcuts, lo, dlo, False)
+            out[e] = _edge_pieces(kind, centred, e, ends, th, c, scratch, cuts, dcuts, lo, dlo, grad)
 
 
 @inline
@@ -481,11 +482,12 @@ def _segment_counts(
 def _edge_bounds(
     kind: int, centred: bool, e: int, ends: np.ndarray, th: np.ndarray, c: np.ndarray,
     piece_offsets: np.ndarray, scratch: np.ndarray, cuts: np.ndarray, dcuts: np.ndarray,
-    lo: np.ndarray, dlo: np.ndarray, bounds: np.ndarray, dbounds: np.ndarray,
+    lo: np.ndarray, dlo: np.ndarray, bounds: np.ndarray, dbounds: np.ndarray, grad: bool = True,
 ) -> int:  # fmt: skip
     """Edge ``e``'s smooth pieces with their θ-derivatives ([`_edge_pieces`][]; one piece from
     0 to 1 where ``piece_offsets`` says it has no kink) into ``lo``, ``dlo`` and its rows of
-    ``bounds``, ``dbounds``; returns their number. The other arrays: work space."""
+    ``bounds``, ``dbounds``; returns their number. The other arrays: work space. ``grad``: True
+    (the CPU kernel passes it as a value, see [`_count_share`][])."""
     p = th.shape[0]
     base = piece_offsets[e]
     n = piece_offsets[e + 1] - base
@@ -494,7 +496,7 @@ def _edge_bounds(
         for r in range(p):
             dlo[0, r], dlo[1, r] = 0.0, 0.0
     else:
-        _edge_pieces(kind, centred, e, ends, th, c, scratch, cuts, dcuts, lo, dlo, True)
+        _edge_pieces(kind, centred, e, ends, th, c, scratch, cuts, dcuts, lo, dlo, grad)
     for i in range(n):
         bounds[base + i, 0], bounds[base + i, 1] = lo[i], lo[i + 1]
         for r in range(p):
@@ -536,7 +538,7 @@ def _pieces_share(
     piece_offsets: np.ndarray, amin: np.ndarray, tol: float, max_subdiv: int, with_grad: bool, inner: float,
     span: int, bounds: np.ndarray, dbounds: np.ndarray, counts: np.ndarray, edge_counts: np.ndarray,
     work: tuple, phi_work: tuple, all_pts: np.ndarray, all_out: np.ndarray, all_sag: np.ndarray,
-    all_length: np.ndarray,
+    all_length: np.ndarray, kink_grad: bool,
 ) -> None:  # fmt: skip
     """Every smooth piece's parameter range (``bounds`` (pieces, 2), ``dbounds`` (pieces, 2, P))
     and its segment count, bounding the sagitta as [`layoutwarp.mesh._segment_counts`][] does,
@@ -545,7 +547,7 @@ def _pieces_share(
     counts; ``span``: the most pieces a chunk has. Thread ``t`` of ``nt`` takes every ``nt``-th
     chunk, with its rows of the work space: [`_edge_work`][]'s, [`_phi_work`][]'s, the sample
     points ``(T, 2, 7·span)`` and their map ``(T, 2 + 2P, 7·span)``, the pieces' sagittas and
-    lengths ``(T, span)``."""
+    lengths ``(T, span)``; ``kink_grad``: True, as a value (see [`_count_share`][])."""
     ne, p = ends.shape[0], th.shape[0]
     n_chunks = (ne + CHUNK - 1) // CHUNK
     ns = 7 if with_grad else 5  # samples a piece: 5 along it, 2 just inside its ends
@@ -560,7 +562,7 @@ def _pieces_share(
             base = piece_offsets[e]
             n = _edge_bounds(
                 kind, centred, e, ends, th, c, piece_offsets, scratch, cuts, dcuts, lo, dlo,
-                bounds, dbounds,
+                bounds, dbounds, kink_grad,
             )  # fmt: skip
             ax, ay = ends[e, 0], ends[e, 1]
             dx, dy = ends[e, 2] - ax, ends[e, 3] - ay
@@ -910,7 +912,7 @@ def _count_stage(
     nt = threads(ne * _EDGE_WORK)
     npieces = np.empty(ne, dtype=np.int64)
     work = _edge_work(nt, len(th))
-    run_shares(_count_share, nt, *args, ends, th, c, npieces, work)
+    run_shares(_count_share, nt, *args, ends, th, c, npieces, work, False)
     piece_offsets = np.zeros(ne + 1, dtype=np.int64)
     np.cumsum(npieces, out=piece_offsets[1:])
     total = int(piece_offsets[-1])
@@ -924,7 +926,7 @@ def _count_stage(
     points = (per_thread(nt, (2, ns * span)), per_thread(nt, (2 + 2 * p, ns * span)))
     space = (*points, per_thread(nt, (span,)), per_thread(nt, (span,)))
     work = (work, _phi_work(nt, p), *space)
-    run_shares(_pieces_share, nt, *args, ends, th, c, piece_offsets, amin, *limits, *out, *work)
+    run_shares(_pieces_share, nt, *args, ends, th, c, piece_offsets, amin, *limits, *out, *work, True)
     edge_offsets[0] = 0
     np.cumsum(edge_offsets, out=edge_offsets)
     vspan = int(np.diff(edge_offsets[chunk_ends] - chunk_ends).max())  # the most new vertices a chunk has
