@@ -193,7 +193,7 @@ def compile_all(
     units: tuple[str, ...] = UNITS,
     processes: int = 1,
 ) -> None:
-    """Compile (or load) ``units`` (names from [`UNITS`][]; all by default), telling
+    """Compile (or load) ``units`` (names from ``UNITS``; all by default), telling
     ``progress(unit, seconds, cpu_seconds)`` after each (its warm-up's wall and CPU time): in this
     process, or with ``processes > 1`` in that many child processes at a time, each a unit
     (numba compiles one kernel at a time in a process; ``mesh`` first, before the units that load
