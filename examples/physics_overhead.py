@@ -139,7 +139,7 @@ def kernel_overheads(
     def product(measure: str = "", module: ModuleType = lw.kernels) -> None:
         mean = np.empty((x.shape[0], w.shape[0]), np.float32)
         if not measure:
-            lw.kernels.csr_apply(w.indptr, w.indices, w.data, x, mean)
+            lw.kernels.csr_apply(w.indptr, w.indices, w.data, x, mean, nt)
             return
         out = mean if measure == "in place" else np.empty_like(mean)
         module.measured_csr_apply(w.indptr, w.indices, w.data, x, mean, *measured, out, nt)

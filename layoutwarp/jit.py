@@ -131,37 +131,43 @@ def ready(group: str, dtype: str | torch.dtype = "float32", wait: bool = False) 
     current = mode()
     if not kernels.available() or current == "off":
         return False
+    _share_cores()  # back to the thread's count once the child is done
     if all(u in _READY for u in units):
         return True
     if kernels.base.plain_python():  # NUMBA_DISABLE_JIT: nothing to compile
         _READY.update(units)
         return True
     background = current == "background" and not wait
-    _share_cores()  # back to the thread's count once the child is done
-    with _LOCK:
-        for unit in units:
-            if unit in _READY:
-                continue
-            worker = _WORKER
-            if worker is not None and worker.has(unit):
-                if background:
-                    return False  # the child has it to do: the torch path answers meanwhile
-                if worker.current() == unit:  # else compiled here, before the child gets to it
-                    _announce(unit, "waiting for the background compile of")
-                    worker.wait_for(unit)
-            elif background and worker is not None and worker.busy() and unit not in worker.done:
-                return False  # looked at again once the child has it, or is free
-            if _loads(unit):
-                _READY.add(unit)
-                continue
-            if background:  # the child takes it (and the other units of its dtype)
-                _start_worker(units, dtype)
-                _share_cores()
-                return False
-            _announce(unit, "compiling")
-            _warm(unit)
+    for unit in units:
+        if unit in _READY:
+            continue
+        worker = _WORKER
+        if worker is not None and worker.has(unit):
+            if background:
+                return False  # the child has it to do: the torch path answers meanwhile
+            if worker.current() == unit:  # else compiled here, before the child gets to it
+                _announce(unit, "waiting for the background compile of")
+                worker.wait_for(unit)
+        elif background and worker is not None and worker.busy() and unit not in worker.done:
+            return False  # looked at again once the child has it, or is free
+        elif background and (unit in _FAILED or _FORKED):
+            if time.monotonic() - _LOOKED.get(unit, -LOOK_AGAIN_S) < LOOK_AGAIN_S:
+                return False  # another process may fill the cache: looked at again now and then
+            _LOOKED[unit] = time.monotonic()
+        if _loads(unit):
             _READY.add(unit)
-        return True
+            continue
+        if worker is not None and unit in worker.done:
+            _FAILED.add(unit)  # the child compiled it into another cache: not started again for it
+        if background:  # the child takes it (and the other units of its dtype)
+            with _LOCK:
+                _start_worker(units, dtype)
+            _share_cores()
+            return False
+        _announce(unit, "compiling")
+        _warm(unit)
+        _READY.add(unit)
+    return True
 
 
 def compiled(group: str, dtype: str | torch.dtype, kernel: Any) -> Any | None:
@@ -350,34 +356,31 @@ def register_warmup(group: str, fn: Callable[[torch.dtype], None]) -> None:
 # ----------------------------------------------------------------------------------------
 class _Worker:
     """A ``python -c "...serve()"`` child compiling the units it was given, in order, answering
-    ``done UNIT`` on its stdout after each, at normal priority. It ends when they are done, when
-    this process ends (killed at exit; on Linux also by the kernel should this process die), or
-    at [`stop_worker`][]."""
+    ``done UNIT`` (or ``failed UNIT``) on its stdout after each, at normal priority, with this
+    process's ``sys.path`` (so it compiles the package this process imported). It ends when they
+    are done, when this process ends (killed at exit; on Linux also by the kernel should this
+    process die: the thread that starts it, whose end the kernel watches, lives as long as the
+    child), or at [`stop_worker`][]. ``OSError`` where it cannot start."""
 
     def __init__(self, units: list[str]) -> None:
         self.todo = list(units)
         self.done: set[str] = set()
         self.changed = threading.Condition(_LOCK)
-        env = {**os.environ, ENV: "wait", "OMP_NUM_THREADS": "1", "LAYOUTWARP_PARENT": str(os.getpid())}
-        self.proc = subprocess.Popen(
-            [sys.executable, "-c", "from layoutwarp.jit import _serve; _serve()"],
-            stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.DEVNULL,
-            text=True,
-            env=env,
-        )
-        self.proc.stdin.write("".join(u + "\n" for u in units))
-        self.proc.stdin.close()
-        threading.Thread(target=self._read, daemon=True, name="layoutwarp-compile").start()
+        self.proc: subprocess.Popen | None = None
+        self._error: BaseException | None = None
+        started = threading.Event()
+        threading.Thread(target=self._run, args=(started,), daemon=True, name="layoutwarp-compile").start()
+        started.wait()
+        if self._error is not None:
+            raise OSError(f"{type(self._error).__name__}: {self._error}")
 
     def has(self, unit: str) -> bool:
         """Whether ``unit`` is still to come from the child."""
-        return unit in self.todo and self.proc.poll() is None
+        return unit in self.todo and self.proc is not None and self.proc.poll() is None
 
     def busy(self) -> bool:
         """Whether the child is still at work."""
-        return bool(self.todo) and self.proc.poll() is None
+        return bool(self.todo) and self.proc is not None and self.proc.poll() is None
 
     def current(self) -> str | None:
         """The unit the child is on."""
@@ -388,38 +391,98 @@ class _Worker:
             while self.has(unit):
                 self.changed.wait(0.5)
 
-    def _read(self) -> None:
+    def _run(self, started: threading.Event) -> None:
+        env = {
+            **os.environ,
+            ENV: "wait",
+            "OMP_NUM_THREADS": "1",
+            "LAYOUTWARP_PARENT": str(os.getpid()),
+            "PYTHONPATH": os.pathsep.join(p for p in sys.path if p),
+        }
+        try:
+            self.proc = subprocess.Popen(
+                [sys.executable, "-c", "from layoutwarp.jit import _serve; _serve()"],
+                stdin=subprocess.PIPE,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.DEVNULL,
+                text=True,
+                env=env,
+            )
+            self.proc.stdin.write("".join(u + "\n" for u in self.todo))
+            self.proc.stdin.close()
+        except (OSError, ValueError) as err:  # no Python to start (an embedded interpreter), no pipe
+            self._error = err
+            if self.proc is not None:
+                self.proc.kill()
+        started.set()
+        if self._error is not None:
+            return
         for line in self.proc.stdout:
-            if line.startswith("done "):
+            word, _, unit = line.strip().partition(" ")
+            if word in ("done", "failed"):
                 with self.changed:
-                    unit = line.split()[-1]
                     if unit in self.todo:
                         self.todo.remove(unit)
-                        self.done.add(unit)
+                        (self.done if word == "done" else _FAILED).add(unit)
                     self.changed.notify_all()
+        self.proc.wait()  # reaped here, by the thread that started it
         with self.changed:
-            self.todo = []  # ended: nothing more will come from it
+            _FAILED.update(self.todo)  # ended before them: not to be started again
+            self.todo = []
             self.changed.notify_all()
 
     def stop(self) -> None:
-        if self.proc.poll() is None:
+        if self.proc is not None and self.proc.poll() is None:
             self.proc.kill()
-        self.proc.wait()
 
 
-def _start_worker(units: tuple[str, ...], dtype: str | torch.dtype) -> None:
+#: Units the background child could not compile into this process's cache (it failed, or what it
+#: compiled does not load here): their calls take the torch path, unless they need compiled code.
+_FAILED: set[str] = set()
+
+
+def _start_worker(units: tuple[str, ...], dtype: str | torch.dtype) -> bool:
     """Start this process's background child on ``units``, then the other units of ``dtype`` not
-    loaded here (one child a process: a later start waits for the first to end)."""
+    loaded here (one child a process: a later start waits for the first to end); ``False`` where
+    none starts (a forked child of a process that compiles, a unit the child failed on before, no
+    Python to start: its call takes the torch path)."""
     global _WORKER
     if _WORKER is not None and _WORKER.busy():
-        return  # on other units: this one's call takes the torch path until it is free
-    if _WORKER is not None:
-        _WORKER.stop()  # reaped
+        return True  # on other units: this one's call takes the torch path until it is free
+    if _FORKED or any(u in _FAILED for u in units):
+        return False
     name = str(dtype).removeprefix("torch.")
     todo = [u for u in units if u not in _READY]
-    todo += [u for u in UNITS if u.endswith("/" + name) and u not in todo and u not in _READY]
+    todo += [u for u in UNITS if u.endswith("/" + name) and u not in todo and u not in _READY | _FAILED]
+    try:
+        worker = _Worker(todo)
+    except OSError as err:
+        _FAILED.update(todo)
+        _announce(todo[0], f"no background compile ({err}); the torch path answers:")
+        return False
+    _WORKER = worker
     _announce(todo[0], "compiling in the background (the torch path answers meanwhile):")
-    _WORKER = _Worker(todo)
+    return True
+
+
+#: Whether this process is a forked child (a DataLoader's worker) of one whose background compile
+#: ran: it starts none of its own (its parent's fills the same cache) and looks at the cache again
+#: at most every [`LOOK_AGAIN_S`][] seconds.
+_FORKED = False
+LOOK_AGAIN_S = 5.0
+_LOOKED: dict[str, float] = {}  # unit: when a forked child last found it missing
+
+
+def _after_fork_in_child() -> None:
+    global _WORKER, _FORKED, _LOCK
+    _FORKED = _FORKED or (_WORKER is not None and bool(_WORKER.todo))  # (not poll(): not its child)
+    _WORKER = None  # its parent's, not its own
+    _LOCK = threading.RLock()  # another thread may have held it at the fork
+    _SHARED.__dict__.clear()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_after_fork_in_child)
 
 
 def stop_worker() -> None:
@@ -488,13 +551,17 @@ def _end_with_parent() -> None:
 
 
 def _serve() -> None:
-    """The background child's loop: compile each unit named on stdin, answer ``done UNIT``."""
+    """The background child's loop: compile each unit named on stdin, answer ``done UNIT`` (or
+    ``failed UNIT``)."""
     _end_with_parent()
     parent = int(os.environ.get("LAYOUTWARP_PARENT", "0"))
     for line in sys.stdin:
         unit = line.strip()
-        with contextlib.suppress(Exception):  # a failure: a unit that does not load, compiled
-            _warm(unit)  # (and reported) where a call runs it
+        try:
+            _warm(unit)
+            said = "done"
+        except Exception:  # its calls take the torch path in the parent (a call that needs the
+            said = "failed"  # compiled kernels compiles them there, and reports the error)
         if parent and os.getppid() != parent:
             return
-        print(f"done {unit}", flush=True)
+        print(f"{said} {unit}", flush=True)

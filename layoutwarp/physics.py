@@ -488,7 +488,7 @@ def _measure(mean: Tensor, areas: Tensor, physics: str, output: str, seed: Tenso
             return _measure_on_device(mean, args)
         except Exception as err:  # numba-cuda could not compile or launch it: the torch path, said once
             fall_back(_DEVICE_MEASURE, err)
-    kernel = None  # on the CPU the noise's draws come from compiled code (a quick build at first)
+    kernel = None  # on the CPU the noise's draws come from compiled code (compiled here if need be)
     if mean.device.type == "cpu":
         kernel = jit.compiled("measure", kernel_dtype, kernels.sensor_measure)
     if kernel is not None:
@@ -790,8 +790,8 @@ def _measure_on_device(mean: Tensor, args: tuple) -> Tensor:
 
 def _measure_compiled(mean: Tensor, args: tuple, kernel: Callable) -> Tensor:
     """[`measure`][] without gradient on the CPU: the fused kernel
-    `sensor_measure` (``kernel``: it or its quick build, see
-    [`compiled`][layoutwarp.jit.compiled]) with [`kernel_arguments`][]' ``args``."""
+    `sensor_measure` (``kernel``, see [`compiled`][layoutwarp.jit.compiled]) with
+    [`kernel_arguments`][]' ``args``."""
     x = mean.detach() if mean.requires_grad else mean
     if x.dtype not in (torch.float32, torch.float64) or not x.is_contiguous():
         x = x.to(torch.float64).contiguous()  # the kernel's two builds: float32 and float64

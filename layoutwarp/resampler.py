@@ -334,12 +334,12 @@ class AreaResampler:
                 fall_back(_DEVICE_PRODUCT, err)
             else:
                 return out.view(n, *self.size)  # checked on the device: no wait here
-        # compiled unless its kernels are still compiling (the noise's draws take a quick build: jit)
+        # compiled unless its kernels are still compiling (the noise's draws are compiled first: jit)
         kernel = None
         if flat.device.type == "cpu" and not flat.requires_grad:
             if physics is None:
                 kernel = kernels.csr_apply if which == "numba" else None
-            else:  # the noise's draws come from compiled code (a quick build at first)
+            else:  # the noise's draws come from compiled code (compiled here if need be)
                 kernel = jit.compiled("measure", flat.dtype, kernels.measured_csr_apply)
         if kernel is not None:
             w = self.weights

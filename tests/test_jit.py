@@ -9,6 +9,7 @@ import sys
 import textwrap
 import time
 
+import numpy as np
 import pytest
 import torch
 from conftest import ROOT, ptx_or_skip
@@ -318,3 +319,125 @@ def test_the_first_cuda_compile_says_so_once(tmp_path):
     lines = [line for line in res.stderr.splitlines() if line.startswith("layoutwarp:")]
     assert lines == ["layoutwarp: compiling the CUDA kernels for this GPU (seconds; once per installation; "
                      "see layoutwarp doctor)"]  # fmt: skip
+
+
+def test_the_compile_started_from_a_short_lived_thread_lives_as_long_as_its_process(tmp_path):
+    """The kernel ends a child with the *thread* that started it (PR_SET_PDEATHSIG): a first call
+    from a thread that ends (a web request's, a DataLoader's pin thread) must not take the
+    background compile with it."""
+    code = """
+        import os, sys, threading, time, torch, layoutwarp as lw
+        def call():
+            with torch.no_grad():
+                lw.simulate(torch.ones(1, 1, 20, 20), lw.CurvLayout((0.3, 0.1)), (4, 4))
+        t = threading.Thread(target=call)
+        t.start(); t.join()
+        time.sleep(1)
+        print(os.getpid(), lw.jit._WORKER.proc.poll(), flush=True)
+        sys.stdin.readline()
+    """
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache"), jit.ENV: "background"}
+    pipes = dict.fromkeys(("stdin", "stdout", "stderr"), subprocess.PIPE)
+    cmd = [sys.executable, "-c", textwrap.dedent(code)]
+    proc = subprocess.Popen(cmd, cwd=ROOT, env=env, text=True, **pipes)
+    try:
+        pid, state = proc.stdout.readline().split()
+        assert state == "None" and _children_of(int(pid))  # still compiling after its thread ended
+    finally:
+        proc.communicate("\n", timeout=120)
+    time.sleep(2)
+    assert _children_of(int(pid)) == []
+
+
+def test_no_python_to_start_leaves_the_torch_path_and_one_line(tmp_path):
+    """Where no child can start (an embedded interpreter: ``sys.executable`` is not Python), the
+    call answers from the torch path, one line says why, and no later call tries again."""
+    code = """
+        import sys, torch, layoutwarp as lw
+        sys.executable = "/nonexistent/python"
+        img = torch.arange(2 * 30 * 40.0).reshape(1, 2, 30, 40)
+        with torch.no_grad():
+            outs = [lw.simulate(img, lw.CurvLayout((0.4, -0.3)), (5, 7)) for _ in range(3)]
+        print(lw.jit._WORKER is None, all(torch.equal(outs[0], o) for o in outs))
+    """
+    res = run_python(code, {"NUMBA_CACHE_DIR": str(tmp_path / "cache"), jit.ENV: "background"})
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert res.stdout.split() == ["True", "True"]
+    notices = [line for line in res.stderr.splitlines() if line.startswith("layoutwarp:")]
+    assert len(notices) == 1 and "no background compile" in notices[0], notices
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="needs fork")
+def test_a_forked_child_of_a_compiling_process_starts_no_compile_of_its_own(tmp_path):
+    """A DataLoader's fork workers inherit the parent's state: while the parent's background child
+    fills the cache, a forked child answers from the torch path and starts no second compile."""
+    code = """
+        import os, sys, time, torch, layoutwarp as lw
+        img = torch.ones(1, 1, 20, 20)
+        with torch.no_grad():
+            lw.simulate(img, lw.CurvLayout((0.3, 0.1)), (4, 4))
+        r, w = os.pipe()
+        pid = os.fork()
+        if pid == 0:
+            with torch.no_grad():
+                lw.simulate(img, lw.CurvLayout((0.3, 0.1)), (4, 4))
+            os.write(w, b"none" if lw.jit._WORKER is None else b"own")
+            os._exit(0)
+        os.waitpid(pid, 0)
+        print(pid, os.read(r, 16).decode(), flush=True)
+    """
+    res = run_python(code, {"NUMBA_CACHE_DIR": str(tmp_path / "cache"), jit.ENV: "background"})
+    assert res.returncode == 0, res.stderr[-3000:]
+    child, worker = res.stdout.split()
+    assert worker == "none" and _children_of(int(child)) == []
+
+
+def test_torch_threads_come_back_when_the_compile_ends_whatever_the_thread_calls_next(monkeypatch):
+    """The calling thread's torch runs one thread fewer while the background child compiles, and as
+    many as before once it has ended, even where the thread's later calls need no compile."""
+
+    class Busy:
+        running = True
+
+        def busy(self):
+            return self.running
+
+        def has(self, unit):
+            return False
+
+    worker = Busy()
+    monkeypatch.setattr(jit, "_WORKER", worker)
+    monkeypatch.setattr(jit, "_READY", set(jit.UNITS))
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        assert jit.ready("fixed", torch.float32) and torch.get_num_threads() == 1
+        worker.running = False
+        assert jit.ready("fixed", torch.float32) and torch.get_num_threads() == 2
+    finally:
+        jit._SHARED.__dict__.clear()
+        torch.set_num_threads(before)
+
+
+def test_shares_from_several_threads_with_different_counts_all_run():
+    """Threads calling kernels with different thread counts at once (the pool grows under them)
+    each get every share run once."""
+    import threading
+
+    errors: list[BaseException] = []
+
+    def caller(nt: int) -> None:
+        try:
+            for _ in range(200):
+                seen = np.zeros(nt, dtype=np.int64)
+                lw.kernels.run_shares(lambda t, n, out: out.__setitem__(t, out[t] + 1), nt, seen)
+                assert (seen == 1).all()
+        except BaseException as err:  # reported below
+            errors.append(err)
+
+    threads = [threading.Thread(target=caller, args=(nt,)) for nt in (2, 3, 5, 8)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert errors == []

@@ -369,7 +369,8 @@ def test_the_kernels_first_tries_give_the_full_samplers_draws_bit_for_bit(noise,
 def test_the_kernels_poisson_sampler_keeps_large_counts_finite_in_its_rare_steps():
     # a draw at mean 98946 whose normal gives k = 98304 = 12·8192, rejected by the squeeze, so
     # step Q evaluates log p_k: with k an int64, k⁵ wrapped to 0 and log p_k was -inf (that k
-    # could never be accepted there); numba's default error model raises on that division
+    # could never be accepted there); with numba's default error model in the sampler, that
+    # division raised
     numba = pytest.importorskip("numba")
     stats = pytest.importorskip("scipy.stats")
     from layoutwarp.kernels import noise

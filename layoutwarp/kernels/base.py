@@ -78,17 +78,19 @@ _POOL_LOCK = threading.Lock()
 
 
 def _pool(workers: int) -> ThreadPoolExecutor:
-    """The pool that runs shares 1 .. of every kernel, grown to ``workers`` threads."""
-    with _POOL_LOCK:
-        if not _POOL or _POOL[0][1] < workers:
-            if _POOL:  # its threads end once they have run what they were given
-                _POOL[0][0].shutdown(wait=False)
-            _POOL[:] = [(ThreadPoolExecutor(workers, thread_name_prefix="layoutwarp"), workers)]
-        return _POOL[0][0]
+    """The pool that runs shares 1 .. of every kernel, grown to ``workers`` threads (under
+    ``_POOL_LOCK``)."""
+    if not _POOL or _POOL[0][1] < workers:
+        if _POOL:  # its threads end once they have run what they were given
+            _POOL[0][0].shutdown(wait=False)
+        _POOL[:] = [(ThreadPoolExecutor(workers, thread_name_prefix="layoutwarp"), workers)]
+    return _POOL[0][0]
 
 
 def _forget_pool() -> None:  # a forked child has none of its parent's threads: it starts its own
+    global _POOL_LOCK
     _POOL.clear()
+    _POOL_LOCK = threading.Lock()  # another thread may have held it at the fork
 
 
 if hasattr(os, "register_at_fork"):
@@ -102,7 +104,9 @@ def run_shares(body: Callable[..., Any], threads: int, *args: Any) -> list[Any]:
     outputs, so the result does not depend on the thread count or on which thread ran what."""
     if threads <= 1:
         return [body(0, 1, *args)]
-    futures: list[Future] = [_pool(threads - 1).submit(body, t, threads, *args) for t in range(1, threads)]
+    with _POOL_LOCK:  # a thread that grows the pool meanwhile would shut this one down under us
+        pool = _pool(threads - 1)
+        futures: list[Future] = [pool.submit(body, t, threads, *args) for t in range(1, threads)]
     first = body(0, threads, *args)
     return [first, *(f.result() for f in futures)]
 

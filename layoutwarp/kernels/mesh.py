@@ -1168,7 +1168,7 @@ def _edge_pieces_and_counts(
     sag: np.ndarray, length: np.ndarray,
     bounds: np.ndarray, dbounds: np.ndarray, counts: np.ndarray, edge_counts: np.ndarray,
 ) -> None:  # fmt: skip
-    """Edge ``e``'s part of [`_pieces_and_counts`][] (always ``with_grad``): its pieces'
+    """Edge ``e``'s part of [`_pieces_share`][] (always ``with_grad``): its pieces'
     bounds and segment counts, and its segments into ``edge_counts[e + 1]``; ``rows``
     ``(2 + 2 P_MAX, 7)`` (a piece's seven samples), ``one``, ``one_len`` (1,), ``sag``,
     ``length`` (10,): work space."""
@@ -1198,7 +1198,7 @@ def _edge_vertices(
     counts: np.ndarray, first: int, chords: bool, ncorner: int, q: np.ndarray, dq: np.ndarray,
     verts: np.ndarray, dverts: np.ndarray, seg_start: np.ndarray, seg_end: np.ndarray, seg_edge: np.ndarray,
 ) -> int:  # fmt: skip
-    """Edge ``e``'s part of [`_place_vertices`][]: its segments from ``first`` on and its new
+    """Edge ``e``'s part of [`_place_share`][]: its segments from ``first`` on and its new
     vertices, numbered as there, each vertex's ``∂v/∂θ`` with the term of a piece whose ends move
     with θ; with ``chords``, one segment a piece (its chord) whatever ``counts`` says. Returns
     the end of its segments."""
