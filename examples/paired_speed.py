@@ -63,7 +63,7 @@ print(json.dumps(out))
 
 
 def run(tree: str, cache: str, calls: int) -> dict[str, list[float]]:
-    env = {**os.environ, "NUMBA_CACHE_DIR": cache, "PYTHONPATH": tree}
+    env = {**os.environ, "NUMBA_CACHE_DIR": cache, "PYTHONPATH": tree, "LAYOUTWARP_JIT": "wait"}
     cmd = [sys.executable, "-c", CHILD, str(calls)]
     res = subprocess.run(cmd, cwd=tree, env=env, capture_output=True, text=True, check=False)
     if res.returncode != 0:
@@ -91,7 +91,7 @@ def main() -> None:
     ratios: dict[str, list[float]] = {}
     for i in range(args.pairs):
         got = {}
-        for k in (("this", "other") if i % 2 == 0 else ("other", "this")):
+        for k in ("this", "other") if i % 2 == 0 else ("other", "this"):
             got[k] = run(trees[k], caches[k], args.calls)
             for name, ts in got[k].items():
                 times[k].setdefault(name, []).extend(ts)

@@ -3,6 +3,7 @@ and 1e-6 (float32) on random layouts, sizes and the hard cases; gradcheck on the
 
 from __future__ import annotations
 
+import math
 import warnings
 
 import numpy as np
@@ -528,3 +529,32 @@ print(faults() - before)
         for flag in ("0", "1")
     ]
     assert counts[0] > 10_000 and counts[1] < 200, counts  # by default the freed top is trimmed
+
+
+@pytest.mark.parametrize("shape", [(1,), (3, 4), (2, 700), (0,)])
+def test_each_threads_work_space_lies_a_page_from_every_other_and_from_the_heap(shape):
+    """Work space written by several threads at once: thread t's rows, as its kernels take them
+    (``own``), lie at least ``APART`` bytes from every other thread's and from the array's ends
+    (its neighbours in the heap), and hold its shape."""
+    from layoutwarp.kernels.base import APART, own, per_thread, serial
+
+    @serial
+    def fill(t: int, nt: int, rows: np.ndarray) -> None:
+        mine = own(rows, t, nt)
+        mine[...] = t + 1
+
+    nt = 3
+    rows = per_thread(nt, shape)
+    rows[...] = np.nan
+    kernels.run_shares(fill, nt, rows)  # the compiled own: each thread's rows, and only those
+    mine = [own.py_func(rows, t, nt) for t in range(nt)]
+    assert all((m == t + 1).all() for t, m in enumerate(mine))
+    assert np.isnan(rows).sum() == rows.size - nt * math.prod(shape)
+    starts = [m.ctypes.data - rows.ctypes.data for m in mine]
+    assert all(m.shape == shape for m in mine)
+    size = mine[0].nbytes
+    if size == 0:
+        return
+    edges = [0, *[x for s in starts for x in (s, s + size)], rows.nbytes]
+    gaps = [b - a for a, b in zip(edges[::2], edges[1::2], strict=True)]
+    assert min(gaps) >= APART, gaps

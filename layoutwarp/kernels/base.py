@@ -111,19 +111,22 @@ def run_shares(body: Callable[..., Any], threads: int, *args: Any) -> list[Any]:
     return [first, *(f.result() for f in futures)]
 
 
-#: Bytes between two threads' work space ([`per_thread`][]): two cache lines (the second one is
-#: fetched with the first on x86).
-APART = 128
+#: Bytes between two threads' work space ([`per_thread`][]): a page. Two cache lines apart, the
+#: two shares of a learnable fovea step's integrals took 1.2–1.4x the time they take a page apart
+#: (the 2-core machine of docs/speed.md; the hardware's prefetchers, or its cores' sharing).
+APART = 4096
 
 
 def per_thread(nt: int, shape: tuple[int, ...], dtype: type = np.float64) -> np.ndarray:
     """Work space of ``shape`` for each of ``nt`` threads, none sharing a cache line with another's
-    (threads writing to one line in turn stall each other: a learnable step's integrals ran 2.5x
-    slower on two threads than on one): ``(nt·k, *shape)``, thread ``t``'s at row ``t·k``
-    ([`own`][])."""
+    or with its neighbours in the heap (threads writing to one line in turn stall each other: a
+    learnable step's integrals ran 2.5x slower on two threads than on one, and 1.2x slower with
+    the threads' rows 128 bytes apart): ``((nt + 2)·k, *shape)``, thread ``t``'s at row ``(t + 1)·k``
+    ([`own`][]), with ``k - 1`` rows (at least [`APART`][] bytes) unused between two threads' and
+    ``k`` at either end."""
     row = math.prod(shape) * np.dtype(dtype).itemsize
-    k = max(1, -(-APART // row)) if row else 1
-    return np.empty((nt * k, *shape), dtype=dtype)
+    k = 1 + -(-APART // row) if row else 1
+    return np.empty(((nt + 2) * k, *shape), dtype=dtype)
 
 
 def retain_freed_memory(trim_bytes: int = 1 << 30) -> bool:
@@ -220,7 +223,7 @@ def inline_ir(fn):
 def _own(rows: np.ndarray, t: int, nt: int) -> np.ndarray:
     """Thread ``t``'s work space in [`per_thread`][]'s ``rows`` (``nt`` threads): a view, so
     inlined at numba's IR level (a function without reference counting returns no view)."""
-    return rows[t * (rows.shape[0] // nt)]
+    return rows[(t + 1) * (rows.shape[0] // (nt + 2))]
 
 
 own = inline_ir(_own)

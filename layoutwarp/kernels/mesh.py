@@ -582,9 +582,7 @@ def _pieces_share(
         for e in range(e0, e1):
             first, last = piece_offsets[e], piece_offsets[e + 1]
             j0 = first - piece_offsets[e0]
-            total = _segment_counts(
-                sag, length, j0, last - first, first, amin[e], tol, max_subdiv, counts
-            )
+            total = _segment_counts(sag, length, j0, last - first, first, amin[e], tol, max_subdiv, counts)
             edge_counts[e + 1] = total
 
 
