@@ -14,9 +14,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .checks import check_choice, check_layout, check_shape, check_size
+from .checks import check_choice, check_shape, check_size
 from .coords import sensor_to_pixels
-from .layouts import Layout
+from .layouts import Layout, check_layout
 from .maps import inverse_coords, raster_index_map
 
 __all__ = ["backwarp", "backwarp_cross_entropy", "backwarp_numpy", "sensor_index_maps"]

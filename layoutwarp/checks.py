@@ -35,7 +35,6 @@ __all__ = [
     "check_float_dtype",
     "check_generator",
     "check_int",
-    "check_layout",
     "check_memory",
     "check_number",
     "check_points",
@@ -369,23 +368,6 @@ def check_type(value: Any, kind: type | tuple[type, ...], name: str, what: str) 
     if isinstance(value, kind):
         return value
     raise ArgumentError(_argument(name), f"{name} must be {what}, got {type(value).__name__}: {value!r:.60}")
-
-
-def check_layout(layout: Any, name: str = "layout") -> Any:
-    """``layout`` if it is a layoutwarp [`Layout`][layoutwarp.layouts.base.Layout] (a family name
-    or anything else is refused, naming what to pass)."""
-    from .layouts import FAMILIES, Layout
-
-    if isinstance(layout, Layout):
-        return layout
-    hint = (
-        f" (make one with make_layout({layout!r}, theta))"
-        if isinstance(layout, str) and layout in FAMILIES
-        else ""
-    )
-    raise ArgumentError(
-        _argument(name), f"{name} must be a layoutwarp Layout{hint}, got {type(layout).__name__}"
-    )
 
 
 def check_generator(generator: Any, name: str = "generator") -> torch.Generator | None:

@@ -5,12 +5,17 @@ record, so a silent fallback to a slower path shows in the numbers it produced).
 from __future__ import annotations
 
 import importlib.metadata
+import os
 import platform
+import sys
 import warnings
+from pathlib import Path
+from typing import Any
 
 from . import jit, kernels
+from .version import __version__
 
-__all__ = ["backends", "cpu_backend", "cuda_backend", "report"]
+__all__ = ["backends", "cpu_backend", "cuda_backend", "report", "run_info"]
 
 #: The distributions whose versions the report lists (absent ones say so).
 PACKAGES = ("torch", "numpy", "numba", "numba-cuda", "kornia", "opencv-contrib-python-headless", "scipy")
@@ -66,8 +71,6 @@ def backends() -> str:
 
 def report() -> str:
     """The full report of ``layoutwarp doctor``."""
-    from .version import __version__
-
     lines = [f"layoutwarp {__version__}, python {platform.python_version()} ({platform.machine()})"]
     lines += [f"  {name:<32} {_version(name) or 'not installed'}" for name in PACKAGES]
     lines += [f"CPU:  {cpu_backend()}", f"CUDA: {cuda_backend()}"]
@@ -79,3 +82,38 @@ def report() -> str:
         if "not compiled" in states.values():
             lines.append("  (compiled in the background at first use, or now: layoutwarp doctor --compile)")
     return "\n".join(lines)
+
+
+def run_info(device: Any = None, seeds: Any = None) -> dict[str, Any]:
+    """How a run ran, for every record that reports numbers (results, studies, benchmarks,
+    preprocessing manifests), so a number can be traced and rerun.
+
+    Returns:
+        the layoutwarp, torch, numba, NumPy and Python versions, the machine, ``device``, torch's
+        thread count, the world size and rank under ``torchrun`` (1 and 0 alone), the command
+        line, ``seeds``, and which backend each path took ([`backends`][]).
+    """
+    import numpy as np
+    import torch
+
+    try:
+        from importlib.metadata import version
+
+        numba = version("numba")
+    except Exception:  # not installed: the torch paths ran
+        numba = None
+    return {
+        "layoutwarp": __version__,
+        "torch": str(torch.__version__),
+        "numba": numba,
+        "numpy": np.__version__,
+        "python": platform.python_version(),
+        "machine": f"{platform.system()} {platform.machine()}",
+        "device": None if device is None else str(device),
+        "threads": torch.get_num_threads(),
+        "world_size": int(os.environ.get("WORLD_SIZE", "1")),
+        "rank": int(os.environ.get("RANK", "0")),
+        "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]]) if sys.argv else None,
+        "backends": backends(),
+        "seeds": seeds,
+    }

@@ -33,13 +33,12 @@ from .checks import (
     check_choice,
     check_extent,
     check_int,
-    check_layout,
     check_number,
     check_size,
 )
 from .coords import sensor_to_pixels, uniform_corners
 from .files import atomic_write
-from .layouts import Layout
+from .layouts import Layout, check_layout
 from .mesh import MeshTopology, distance_subdivisions, pixel_mesh, polygon_area
 from .physics import SensorPhysics, as_physics, pixel_snr
 

@@ -4,17 +4,13 @@ from __future__ import annotations
 
 import functools
 import os
-import platform
-import sys
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
 
 from .checks import ArgumentError
-from .version import __version__
 
-__all__ = ["atomic_write", "check_file_destination", "file_in_the_way", "run_info"]
+__all__ = ["atomic_write", "check_file_destination", "file_in_the_way"]
 
 
 @functools.cache
@@ -92,40 +88,3 @@ def atomic_write(path: str | Path, content: bytes | str | Callable[[str], object
         Path(tmp).unlink(missing_ok=True)
         raise
     return path
-
-
-def run_info(device: Any = None, seeds: Any = None) -> dict[str, Any]:
-    """How a run ran, for every record that reports numbers (results, studies, benchmarks,
-    preprocessing manifests), so a number can be traced and rerun.
-
-    Returns:
-        the layoutwarp, torch, numba, NumPy and Python versions, the machine, ``device``, torch's
-        thread count, the world size and rank under ``torchrun`` (1 and 0 alone), the command
-        line, ``seeds``, and which backend each path took ([`backends`][layoutwarp.doctor.backends]).
-    """
-    import numpy as np
-    import torch
-
-    from .doctor import backends
-
-    try:
-        from importlib.metadata import version
-
-        numba = version("numba")
-    except Exception:  # not installed: the torch paths ran
-        numba = None
-    return {
-        "layoutwarp": __version__,
-        "torch": str(torch.__version__),
-        "numba": numba,
-        "numpy": np.__version__,
-        "python": platform.python_version(),
-        "machine": f"{platform.system()} {platform.machine()}",
-        "device": None if device is None else str(device),
-        "threads": torch.get_num_threads(),
-        "world_size": int(os.environ.get("WORLD_SIZE", "1")),
-        "rank": int(os.environ.get("RANK", "0")),
-        "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]]) if sys.argv else None,
-        "backends": backends(),
-        "seeds": seeds,
-    }

@@ -320,12 +320,9 @@ def _warm(unit: str) -> None:
     group, _, dtype = unit.partition("/")
     if group not in _WARMUPS:  # registered when the warm-ups' module loads
         importlib.import_module(f"{__package__}.warmups")
-    from .ops import autograd_inside
-
     _WARMING.on = True
-    try:
-        with autograd_inside():  # whatever the caller's grad mode, inside an operator too: the
-            _WARMUPS[group](getattr(torch, dtype or "float64"))  # learnable paths train a step
+    try:  # whatever the caller's grad mode, inside an operator too (the warm-up sees to it)
+        _WARMUPS[group](getattr(torch, dtype or "float64"))
     finally:
         _WARMING.on = False
 

@@ -22,9 +22,9 @@ from typing import Any
 import torch
 
 from .caches import ObjectMemo, version_of
-from .checks import ArgumentError, check_layout, check_size
+from .checks import ArgumentError, check_size
 from .files import atomic_write
-from .layouts import FAMILIES, Layout
+from .layouts import FAMILIES, Layout, check_layout
 from .version import __version__
 
 __all__ = [

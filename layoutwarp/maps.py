@@ -15,9 +15,9 @@ import torch
 from torch import Tensor
 
 from . import ops
-from .checks import check_generator, check_int, check_layout, check_number, check_size
+from .checks import check_generator, check_int, check_number, check_size
 from .coords import pixel_centers, sensor_to_pixels
-from .layouts import Layout
+from .layouts import Layout, check_layout
 from .mesh import pixel_mesh
 from .ops import layout_token, random_seed
 

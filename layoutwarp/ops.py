@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import contextlib
 import json
-import weakref
 from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING, Any
 
@@ -32,10 +31,11 @@ from . import jit, kernels
 from .caches import LRU, ObjectMemo, version_of
 from .checks import all_finite, raise_nonfinite
 from .kernels.device import runs_on_device, usable
+from .layoutfile import layout_from_spec
+from .layouts import layout_by_handle
 
 if TYPE_CHECKING:
     from .layouts import Layout
-    from .physics import SensorPhysics
 
 __all__ = [
     "OPERATORS",
@@ -53,7 +53,6 @@ __all__ = [
     "no_context",
     "object_of",
     "object_token",
-    "physics_of",
     "random_seed",
     "refuse_grad_transforms",
     "seed_value",
@@ -72,32 +71,21 @@ SECOND_ORDER = (
     "method='montecarlo' with grad='autograd' (bilinear radiance)"
 )
 
-_OBJECTS: weakref.WeakValueDictionary[str, Layout] = weakref.WeakValueDictionary()
 #: Layouts rebuilt from their tokens inside the operators: a template per token (its own θ
 #: unused), and a layout per token and θ where the operator needs one whose own θ is that θ.
 TEMPLATES: LRU[Layout] = LRU("layouts of operators", 16)
 
 
-def make_token(layout: Layout) -> str:
-    """A layout's token as made at its construction (see [`layout_token`][])."""
-    from .layoutfile import layout_spec
-    from .layouts import FAMILIES
-
-    if FAMILIES.get(layout.family) is type(layout):
-        return json.dumps(layout_spec(layout), sort_keys=True)
-    token = f"object:{id(layout)}"
-    _OBJECTS[token] = layout
-    return token
-
-
 def layout_token(layout: Layout) -> str:
     """The text by which ``layout`` enters an operator: the JSON description of a registered
     family (so an exported program holds all it needs), else a handle of the object in this
-    process. Made when the layout is constructed (and again when a state dict is loaded into
-    it), so that reading it costs a compiled graph nothing; θ travels beside it as a tensor."""
+    process ([`Layout.make_token`][layoutwarp.layouts.base.Layout.make_token]). Made when the
+    layout is constructed (and again when a state dict is loaded into it, θ's part kept), so
+    that reading it costs a compiled graph nothing and a new θ compiles nothing again; θ
+    travels beside it as a tensor."""
     token = getattr(layout, "_token", None)
     if token is None or (token.startswith("object:") and token != f"object:{id(layout)}"):
-        token = layout._token = make_token(layout)  # a constructor skipped, or a copy's handle
+        token = layout._token = layout.make_token()  # a constructor skipped, or a copy's handle
     return token
 
 
@@ -105,12 +93,10 @@ def layout_of(token: str, theta: Tensor | None = None) -> Layout:
     """The layout of a [`layout_token`][]: with ``theta``, one whose own θ is ``theta`` (kept per
     token and value); without, a template for the maps that take θ as an argument."""
     if token.startswith("object:"):
-        layout = _OBJECTS.get(token)
+        layout = layout_by_handle(token)
         if layout is None:
             raise RuntimeError(f"layoutwarp: the layout {token} no longer exists in this process")
         return layout
-    from .layoutfile import layout_from_spec
-
     if theta is None:  # kept: never made of inference-mode tensors, which autograd refuses later
         return TEMPLATES.get(token, lambda: _outside_inference(lambda: layout_from_spec(json.loads(token))))
     values = theta_values(theta)
@@ -159,19 +145,6 @@ def theta_values(theta: Tensor) -> tuple[float, ...]:
     return THETA_VALUES.get(
         theta, (version_of(theta),), lambda: tuple(theta.detach().to("cpu", torch.float64).tolist())
     )
-
-
-def physics_of(text: str) -> SensorPhysics | None:
-    """The camera of a [`SensorPhysics.to_json`][layoutwarp.physics.SensorPhysics.to_json] text
-    (``""``: none)."""
-    if not text:
-        return None
-    from .physics import SensorPhysics
-
-    return _PHYSICS.get(text, lambda: SensorPhysics.from_json(text))
-
-
-_PHYSICS: LRU[SensorPhysics] = LRU("cameras of operators", 16)
 
 
 def backend(x: Tensor, group: str, *, name: str | None = None, wait: bool = False) -> str:

@@ -480,7 +480,7 @@ def measure(
 def _measure(mean: Tensor, areas: Tensor, physics: str, output: str, seed: Tensor) -> Tensor:
     """[`measure`][] without gradient: one compiled pass on the CPU (`sensor_measure`), one kernel
     on a CUDA device, or the torch path; the camera as its [`token`][SensorPhysics.token]."""
-    camera = ops.physics_of(physics)
+    camera = physics_of(physics)
     kernel_dtype = mean.dtype if mean.dtype == torch.float32 else torch.float64  # its two builds
     if ops.backend(mean, "measure", name=_DEVICE_MEASURE) == "cuda":
         args = device_arguments(camera, areas, mean.device, output, ops.seed_value(seed))
@@ -569,7 +569,7 @@ def _gain(physics: SensorPhysics, a_um2: Tensor) -> float | Tensor:
 def _full_well_op(full: Tensor, physics: str) -> Tensor:
     """Each pixel's full well in electrons ``full`` (a copy), after the check of [`_full_well`][]:
     a full well not above the read noise is refused. Its gradient passes through."""
-    camera = ops.physics_of(physics)
+    camera = physics_of(physics)
     _full_well(camera, full.detach() / camera.full_well_per_um2)
     return full.clone()
 
@@ -697,6 +697,17 @@ def _full_well(physics: SensorPhysics, a_um2: Tensor) -> Tensor | None:
             f"{smallest:.3g} e⁻, not above the read noise {physics.read_noise_e:g} e⁻",
         )
     return full
+
+
+def physics_of(text: str) -> SensorPhysics | None:
+    """The camera of a [`SensorPhysics.token`][] text (``""``: none), kept per text: how a
+    camera comes out of an operator's arguments."""
+    if not text:
+        return None
+    return _PHYSICS.get(text, lambda: SensorPhysics.from_json(text))
+
+
+_PHYSICS: LRU[SensorPhysics] = LRU("cameras of operators", 16)
 
 
 #: The compiled measurement's per-sensor inputs, for the last eight (camera, pixel areas) pairs

@@ -48,16 +48,16 @@ from .checks import (
     check_choice,
     check_device,
     check_int,
-    check_layout,
     check_number,
     check_size,
     warn_if_finer,
     warn_if_stretched,
 )
-from .files import atomic_write, file_in_the_way, run_info
+from .doctor import run_info
+from .files import atomic_write, file_in_the_way
 from .labels import LABEL_RULES as SENSOR_RULES
 from .layoutfile import layout_from_spec, layout_spec, load_layout, same_spec, save_layout
-from .layouts import Layout
+from .layouts import Layout, check_layout
 from .physics import SensorPhysics, apply_psf, as_physics, measure
 from .resampler import AreaResampler
 

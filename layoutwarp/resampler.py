@@ -24,7 +24,6 @@ from .checks import (
     ArgumentError,
     all_finite,
     check_device,
-    check_layout,
     check_number,
     check_size,
     raise_nonfinite,
@@ -33,10 +32,10 @@ from .integrators import data_tolerance, green_pieces
 from .kernels.csr import csr_apply_on_device
 from .kernels.device import device_checks, fall_back, stream_of
 from .labels import labels_to_sensor
-from .layouts import Layout
+from .layouts import Layout, check_layout
 from .mesh import PixelMesh, pixel_mesh
 from .ops import layout_token
-from .physics import SensorPhysics, device_arguments, kernel_arguments, measure, noise_seed
+from .physics import SensorPhysics, device_arguments, kernel_arguments, measure, noise_seed, physics_of
 
 if TYPE_CHECKING:
     import scipy.sparse
@@ -491,7 +490,7 @@ def _area(
     physics: the transposed weights), twice (the product is linear)."""
     _check_float32(image)
     size, src = (height, width), tuple(image.shape[-2:])
-    camera = ops.physics_of(physics)
+    camera = physics_of(physics)
     res = _kept(layout, theta, size, src, tol, image.device, lambda: ops.layout_of(layout, theta))
     if res is None:  # the cache keeps none: the exact walk (and the measurement)
         means, areas, _, _ = torch.ops.layoutwarp.exact(

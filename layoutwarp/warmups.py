@@ -5,12 +5,15 @@ entry points compile nothing (tests/test_jit.py checks it). The background compi
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import torch
 
 from . import jit, kernels
 from .integrators import integrate_exact
 from .layouts import CurvLayout, EllipticLayout, FoveaLayout, RectLayout
+from .ops import autograd_inside
 from .physics import SensorPhysics
 from .resampler import RESAMPLERS
 from .sensor import simulate
@@ -67,7 +70,18 @@ def _warm_measure(dtype: torch.dtype) -> None:
                 simulate(img, CurvLayout((0.3, -0.2)).to(dtype), (3, 3), physics=phys, output=output)
 
 
-jit.register_warmup("mesh", _warm_mesh)
-jit.register_warmup("fixed", _warm_fixed)
-jit.register_warmup("learn", _warm_learn)
-jit.register_warmup("measure", _warm_measure)
+def _inside(warm: Callable[[torch.dtype], None]) -> Callable[[torch.dtype], None]:
+    """``warm`` with autograd on, whatever the caller's grad mode, inside an operator too (the
+    learnable paths train a step)."""
+
+    def run(dtype: torch.dtype) -> None:
+        with autograd_inside():
+            warm(dtype)
+
+    return run
+
+
+jit.register_warmup("mesh", _inside(_warm_mesh))
+jit.register_warmup("fixed", _inside(_warm_fixed))
+jit.register_warmup("learn", _inside(_warm_learn))
+jit.register_warmup("measure", _inside(_warm_measure))

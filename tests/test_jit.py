@@ -276,7 +276,7 @@ def test_a_cuda_fallback_is_named_with_its_reason(monkeypatch):
     assert doctor.cuda_backend() == "torch (numba's CUDA kernels do not run here (AttributeError: row_stack))"
     assert doctor.cuda_backend(probe=False) == "not used yet in this process (a test GPU)"
     monkeypatch.setattr(kernels, "cuda_checked", lambda: {"float32": False})
-    assert "cuda: torch (numba's CUDA kernels do not run here" in lw.files.run_info()["backends"]
+    assert "cuda: torch (numba's CUDA kernels do not run here" in lw.doctor.run_info()["backends"]
 
 
 def test_a_look_at_the_cache_keeps_the_users_cached_weights():

@@ -510,3 +510,61 @@ def test_compiled_gradients_of_a_strided_image_have_the_fake_kernels_strides(gen
     (want,) = torch.autograd.grad(loss(x), x)
     (got,) = torch.autograd.grad(torch.compile(loss, fullgraph=True, backend="aot_eager")(x), x)
     torch.testing.assert_close(got, want)
+
+
+# ----------------------------------------------------------------------------------------
+# What a compiled layer is compiled for: its layout's settings, never θ or the batch
+# ----------------------------------------------------------------------------------------
+@pytest.mark.parametrize(
+    ("family", "learn", "method"),
+    [
+        ("curv", True, "exact"),
+        ("fovea", True, "exact"),
+        ("grid", False, "exact"),
+        ("rect", True, "point"),
+        ("rect", False, "separable"),
+        ("curv", True, "montecarlo"),
+    ],
+)
+def test_loading_twelve_checkpoints_into_a_compiled_layer_compiles_once(family, learn, method, gen):
+    """A compiled layer into which 12 checkpoints (each a new θ) are loaded in turn is compiled
+    once (Dynamo's frame count; its recompile limit is 8), and gives, after each load, the
+    values of an eager layer made from that checkpoint."""
+    from torch._dynamo.testing import CompileCounter
+
+    torch._dynamo.reset()
+    layer = _layer(family, learn, method, False, gen)
+    img = torch.rand(2, 1, 24, 20, generator=gen)
+    counter = CompileCounter()
+    compiled = torch.compile(layer, fullgraph=True, backend=counter)
+    for _ in range(12):
+        state = {k: v.clone() for k, v in _layer(family, learn, method, False, gen).state_dict().items()}
+        layer.load_state_dict(state)
+        eager = _layer(family, learn, method, False, gen)
+        eager.load_state_dict(state)
+        layer.noise_calls.zero_()
+        got = compiled(img)
+        torch.testing.assert_close(got, eager(img), rtol=1e-6, atol=1e-6)
+    assert counter.frame_count == 1, counter.frame_count
+
+
+@pytest.mark.parametrize("family", ["curv", "rect", "fovea"])
+def test_a_dynamic_compile_serves_every_batch_size_with_one_graph(family, gen):
+    """``torch.compile(dynamic=True)`` of a learnable layer: batches of 2 to 6 (among them the
+    length of θ) run through one compiled graph, with the eager values and θ-gradients. (A batch
+    of 1 compiles once more, as for any model: Dynamo specialises sizes 0 and 1.)"""
+    from torch._dynamo.testing import CompileCounter
+
+    torch._dynamo.reset()
+    layer = _layer(family, True, "exact", False, gen)
+    counter = CompileCounter()
+    compiled = torch.compile(layer, fullgraph=True, dynamic=True, backend=counter)
+    for batch in (3, 2, 4, 5, 6):
+        img = torch.rand(batch, 1, 24, 20, generator=gen)
+        out = compiled(img)
+        (g,) = torch.autograd.grad(out.square().sum(), layer.layout.rho)
+        ref = layer(img)
+        (g_ref,) = torch.autograd.grad(ref.square().sum(), layer.layout.rho)
+        torch.testing.assert_close(out, ref, rtol=1e-6, atol=1e-6)
+        torch.testing.assert_close(g, g_ref, rtol=1e-5, atol=1e-7)
+    assert counter.frame_count == 1, counter.frame_count

@@ -32,7 +32,8 @@ from torch import Tensor
 from .. import jit, kernels, resampler
 from ..checks import check_size
 from ..coords import uniform_corners
-from ..files import atomic_write, run_info
+from ..doctor import run_info
+from ..files import atomic_write
 from ..integrators import data_tolerance, integrate_exact
 from ..kernels.mesh import build_mesh, mesh_spec
 from ..layoutfile import layout_from_spec

@@ -21,7 +21,8 @@ from typing import Any
 
 import numpy as np
 
-from ..files import atomic_write, run_info
+from ..doctor import run_info
+from ..files import atomic_write
 from ..layouts import FAMILIES, make_layout
 from .runs import RunOptions, train_run
 from .tasks import Task

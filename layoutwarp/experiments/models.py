@@ -24,7 +24,8 @@ import torch
 from torch import nn
 
 from ..checks import check_choice
-from ..files import atomic_write, run_info
+from ..doctor import run_info
+from ..files import atomic_write
 from ..layoutfile import layout_from_spec, layout_spec
 from .tasks import get_task
 

@@ -18,7 +18,8 @@ import torch
 from torch import nn
 
 from ..coords import uniform_corners
-from ..files import atomic_write, run_info
+from ..doctor import run_info
+from ..files import atomic_write
 from ..layoutfile import save_layout
 from ..layouts import Layout
 from ..mesh import polygon_area

@@ -31,7 +31,8 @@ from typing import Any
 
 import numpy as np
 
-from ..files import atomic_write, run_info
+from ..doctor import run_info
+from ..files import atomic_write
 from ..layouts import Layout
 from .models import save_model
 from .protocols import StudyPlan

@@ -27,9 +27,10 @@ from .base import (
     FAMILIES,
     FoldoverReport,
     Layout,
+    check_layout,
     config_numbers,
+    layout_by_handle,
     make_layout,
-    newton_inverse,
     register_family,
     tensor_dtype,
     theta_of,
@@ -46,6 +47,7 @@ from .curv import (
 from .elliptic import EllipticLayout, disk_to_square, square_to_disk
 from .fovea import FoveaLayout
 from .grid import GridLayout
+from .inverse import newton_inverse
 from .rect import RectLayout, phi_rect, phi_rect_dtheta, phi_rect_inverse, phi_rect_jacobian
 from .spline import SplineLayout
 from .uniform import UniformLayout
@@ -66,8 +68,10 @@ __all__ = [
     "RectLayout",
     "SplineLayout",
     "UniformLayout",
+    "check_layout",
     "config_numbers",
     "disk_to_square",
+    "layout_by_handle",
     "make_layout",
     "newton_inverse",
     "phi_curv",

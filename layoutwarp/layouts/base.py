@@ -8,8 +8,10 @@ Sensor Layouts for End-to-End Learning of Task-Specific Camera Parameters", §3.
 from __future__ import annotations
 
 import functools
+import json
 import math
 import threading
+import weakref
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar, TypeVar
@@ -19,13 +21,16 @@ import torch
 from torch import Tensor, nn
 
 from ..checks import ArgumentError, check_bool, check_float_dtype, check_number, check_points
+from .inverse import newton_inverse
 
 __all__ = [
     "FAMILIES",
     "FoldoverReport",
     "Layout",
+    "check_layout",
     "config_numbers",
     "denom",
+    "layout_by_handle",
     "make_layout",
     "newton_inverse",
     "promote",
@@ -199,9 +204,11 @@ class Layout(nn.Module):
         self._token: str | None = None
         # |θ| < 1 keeps every built-in family a bijection (θ = ±1 folds the sensor onto a point)
         self.bound = check_number(bound, "bound", 0, None if self.unbounded else 1, lo_open=True)
-        self._bounds_on: dict[tuple[torch.device, torch.dtype], Tensor] = {}  # _bounds() where ρ lives
         self._dtype = check_float_dtype(dtype) if dtype is not None else tensor_dtype(theta)
         learn = check_bool(learn, "learn")
+        # _bounds() where ρ lives, float64 (a buffer made here: nothing a compiled graph guards on
+        # fills in at its first call)
+        self.register_buffer("theta_bounds", self._bounds(), persistent=False)
         exact = self._validate_theta(theta, torch.float64)
         rho = self._to_rho(exact)
         self._keeps_theta = not (learn and self.num_params)
@@ -220,7 +227,7 @@ class Layout(nn.Module):
     def _apply(self, fn: Callable[[Tensor], Tensor], recurse: bool = True) -> Layout:
         """As `nn.Module`'s, except that a fixed layout's `exact_buffers` are moved, never rounded."""
         dtype = fn(torch.empty(0, dtype=self._dtype)).dtype  # what the conversion does to a float
-        exact = {n: self._buffers[n] for n in self.exact_buffers if n in self._buffers}
+        exact = {n: self._buffers[n] for n in (*self.exact_buffers, "theta_bounds") if n in self._buffers}
         super()._apply(fn, recurse)
         for name, value in exact.items():
             if value is not None:
@@ -247,12 +254,9 @@ class Layout(nn.Module):
         return self._bounds_at(rho.device, rho.dtype) * torch.tanh(rho)
 
     def _bounds_at(self, device: torch.device, dtype: torch.dtype) -> Tensor:
-        """[`_bounds`][] on ``device`` in ``dtype``, made once per device and dtype (no copy to
-        the device every step)."""
-        key = (device, dtype)
-        if key not in self._bounds_on:
-            self._bounds_on[key] = self._bounds().to(device=device, dtype=dtype)
-        return self._bounds_on[key]
+        """[`_bounds`][] on ``device`` in ``dtype``: the layout's ``theta_bounds`` buffer (moved
+        with the layout, float64 whatever its dtype), cast where ``dtype`` asks."""
+        return self.theta_bounds.to(device=device, dtype=dtype)
 
     def theta_source(self) -> tuple[Tensor, Tensor]:
         """What θ is made of, for an operator that makes θ itself (so a learnable step's
@@ -346,9 +350,7 @@ class Layout(nn.Module):
         elif not self._keeps_theta:
             state_dict.pop(kept, None)
         super()._load_from_state_dict(state_dict, prefix, *args)
-        from ..ops import make_token
-
-        self._token = make_token(self)  # its constants may have changed
+        self._token = self.make_token(keep_theta=True)  # its settings may have changed, not θ's part
 
     @property
     def learnable(self) -> bool:
@@ -390,6 +392,26 @@ class Layout(nn.Module):
     def to_config(self) -> dict[str, Any]:
         """The JSON-able constructor arguments that rebuild this layout (see [`from_config`][])."""
         return {"theta": [float(v) for v in self.theta_as(torch.float64).detach().cpu()], "bound": self.bound}
+
+    def theta_keys(self) -> tuple[str, ...]:
+        """The keys of [`to_config`][] that hold θ (those a new θ changes; the rest are settings)."""
+        return ("theta",)
+
+    def make_token(self, keep_theta: bool = False) -> str:
+        """The layout's token ([`layoutwarp.ops.layout_token`][]): its description as JSON text
+        (a registered family) or a handle of the object in this process. With ``keep_theta``, θ's
+        part is the previous token's: a new θ (a loaded state dict) leaves the token as it was,
+        so a compiled graph that reads it is not compiled again."""
+        if FAMILIES.get(self.family) is not type(self):
+            token = f"object:{id(self)}"
+            _OBJECTS[token] = self
+            return token
+        spec = {"family": self.family, **self.to_config()}
+        old = getattr(self, "_token", None)
+        if keep_theta and old is not None and not old.startswith("object:"):
+            before = json.loads(old)
+            spec.update({k: before[k] for k in self.theta_keys() if k in before and k in spec})
+        return json.dumps(spec, sort_keys=True)
 
     @classmethod
     def from_config(
@@ -512,6 +534,29 @@ def _forward_jacobian(f: Callable[[Tensor], Tensor], x: Tensor, n: int) -> Tenso
 
 
 _BUILDING = threading.local()
+#: Layouts of families that are not registered, by their tokens' handles (``object:<id>``).
+_OBJECTS: weakref.WeakValueDictionary[str, Layout] = weakref.WeakValueDictionary()
+
+
+def check_layout(layout: Any, name: str = "layout") -> Layout:
+    """``layout`` if it is a layoutwarp [`Layout`][] (a family name or anything else is refused,
+    naming what to pass)."""
+    if isinstance(layout, Layout):
+        return layout
+    hint = (
+        f" (make one with make_layout({layout!r}, theta))"
+        if isinstance(layout, str) and layout in FAMILIES
+        else ""
+    )
+    raise ArgumentError(
+        name.split("[")[0], f"{name} must be a layoutwarp Layout{hint}, got {type(layout).__name__}"
+    )
+
+
+def layout_by_handle(token: str) -> Layout | None:
+    """The layout whose token is the handle ``token`` (``object:<id>``: a family that is not
+    registered), while it lives in this process; else ``None``."""
+    return _OBJECTS.get(token)
 
 
 def _then_token(init: Callable[..., None]) -> Callable[..., None]:
@@ -526,9 +571,7 @@ def _then_token(init: Callable[..., None]) -> Callable[..., None]:
         finally:
             _BUILDING.depth = depth
         if depth == 0:
-            from ..ops import make_token
-
-            self._token = make_token(self)
+            self._token = self.make_token()
 
     return wrapped
 
@@ -568,69 +611,3 @@ def make_layout(family: str | Layout, theta: Sequence[float] | Tensor | None = N
     if cls is None:
         raise ValueError(f"family must be one of {', '.join(map(repr, FAMILIES))}; got {family!r}")
     return cls(theta, **kwargs)
-
-
-def newton_inverse(
-    phi: Callable[[Tensor, Tensor], Tensor],
-    q: Tensor,
-    theta: Tensor,
-    *,
-    max_iter: int = 100,
-    tol: float = 1e-13,
-) -> Tensor:
-    """Invert a bijection ``φ(·, θ)`` of S at points ``q`` by damped Newton iteration.
-
-    Solved in float64 from the start point ``p = q`` with a backtracking line search on the
-    residual ``‖φ(p) − q‖`` and iterates kept inside S, which converges for the bi-Lipschitz
-    maps layouts are required to be. The converged point is returned with one Newton step
-    re-attached to the autograd graph, so gradients w.r.t. ``q`` and ``θ`` follow the
-    implicit-function theorem (``dp = J⁻¹ (dq − ∂φ/∂θ dθ)``).
-
-    Raises:
-        RuntimeError: if some point does not converge within ``max_iter`` iterations.
-    """
-
-    def jac(p: Tensor, th: Tensor) -> Tensor:
-        with torch.enable_grad():
-            pp = p.detach().requires_grad_(True)
-            out = phi(pp, th)
-            rows = [torch.autograd.grad(out[..., i].sum(), pp, retain_graph=i == 0)[0] for i in range(2)]
-        return torch.stack(rows, -2)
-
-    th64 = theta.detach().double()
-    q64 = q.detach().double()
-    p = q64.clone()
-    with torch.no_grad():
-        res = phi(p, th64) - q64
-        err = res.norm(dim=-1)
-        for _ in range(max_iter):
-            if bool((err <= tol).all()):
-                break
-            j = jac(p, th64)
-            step = torch.linalg.solve(j, res.unsqueeze(-1)).squeeze(-1)
-            lam = torch.ones_like(err)
-            for _ in range(30):  # backtracking: accept the first step that reduces ‖res‖
-                cand = (p - lam[..., None] * step).clamp(-1, 1)
-                cres = phi(cand, th64) - q64
-                cerr = cres.norm(dim=-1)
-                better = (cerr < err) | (err <= tol)
-                if bool(better.all()):
-                    break
-                lam = torch.where(better, lam, lam / 2)
-            accept = (cerr < err)[..., None]
-            p = torch.where(accept, cand, p)
-            res = torch.where(accept, cres, res)
-            err = res.norm(dim=-1)
-        if not bool((err <= max(tol, 1e-9)).all()):
-            bad = int((err > max(tol, 1e-9)).sum())
-            raise RuntimeError(
-                f"newton_inverse: {bad} point(s) did not converge in {max_iter} iterations "
-                f"(largest residual {float(err.max()):.3g}); is φ a bijection of S?"
-            )
-    p = p.to(q.dtype)
-    if not (q.requires_grad or theta.requires_grad):
-        return p
-    # Re-attach: p* − J⁻¹(φ(p*, θ) − q) equals p* in value and has the implicit gradient.
-    j = jac(p, theta.detach()).to(q.dtype)
-    r = phi(p, theta) - q
-    return p - torch.linalg.solve(j, r.unsqueeze(-1)).squeeze(-1)

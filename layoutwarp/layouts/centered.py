@@ -171,6 +171,9 @@ class CenteredLayout(Layout):
         d = torch.cat([d, dc], -1)
         return torch.where(self._fixed(p.to(u), u)[..., :, None], torch.zeros_like(d), d)
 
+    def theta_keys(self) -> tuple[str, ...]:
+        return ("theta", "center") if self.learn_center else ("theta",)
+
     def to_config(self) -> dict[str, Any]:
         th = self.theta_as(torch.float64).detach().cpu()
         c = th[2:] if self.learn_center else self.fixed_center.cpu()  # float64, never rounded

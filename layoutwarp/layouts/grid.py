@@ -418,6 +418,9 @@ class GridLayout(Layout):
         return torch.where(torch.isfinite(t) & (t > 0) & (t < 1), t, torch.full_like(t, float("nan")))
 
     # -- files -----------------------------------------------------------------------
+    def theta_keys(self) -> tuple[str, ...]:
+        return ("control",)
+
     def to_config(self) -> dict[str, Any]:
         ctrl = self.control_points(self.theta_as(torch.float64)).detach().cpu()
         return {"grid": list(self.grid), "control": ctrl.tolist(), "min_det": self.min_det}
