@@ -35,7 +35,7 @@ FRONT_DOOR = {
     "SimulationPlan": "sensor",
     "plan_simulation": "sensor",
     "SensorPhysics": "physics",
-    "data_tolerance": "integrators",
+    "data_tolerance": "tolerance",
     "Layout": "layouts",
     "UniformLayout": "layouts",
     "RectLayout": "layouts",

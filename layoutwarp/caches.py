@@ -21,6 +21,7 @@ nothing they depend on can change.)
 from __future__ import annotations
 
 import contextlib
+import threading
 import weakref
 from collections import OrderedDict
 from collections.abc import Callable, Hashable, Iterator
@@ -47,27 +48,45 @@ class LRU(Generic[V]):
     def __init__(self, name: str, maxsize: int) -> None:
         self.name, self.maxsize = name, maxsize
         self._items: OrderedDict[Hashable, V] = OrderedDict()
+        self._lock = threading.Lock()  # threads may share a cache: each look and change whole
         CACHES[name] = self
 
     def get(self, key: Hashable, build: Callable[[], V], keep: bool = True) -> V:
-        """The result under ``key``, else ``build()``, kept if ``keep`` and ``maxsize`` allow."""
-        if key in self._items:
-            self._items.move_to_end(key)
-            return self._items[key]
+        """The result under ``key``, else ``build()``, kept if ``keep`` and ``maxsize`` allow.
+        (Built outside the cache's lock: two threads missing one key at once build it twice, and
+        the second's is kept.)"""
+        with self._lock:
+            if key in self._items:
+                self._items.move_to_end(key)
+                return self._items[key]
         value = build()
-        if keep and self.maxsize > 0:
-            self._items[key] = value
-            while len(self._items) > self.maxsize:
-                self._items.popitem(last=False)
+        if keep:
+            self.put(key, value)
         return value
+
+    def put(self, key: Hashable, value: V) -> None:
+        """Keep ``value`` under ``key`` (if ``maxsize`` allows), the least recently used out."""
+        with self._lock:
+            if self.maxsize > 0:
+                self._items[key] = value
+                self._items.move_to_end(key)
+                while len(self._items) > self.maxsize:
+                    self._items.popitem(last=False)
+
+    def pop(self, key: Hashable) -> V | None:
+        """The result under ``key``, no longer kept; ``None`` where there is none."""
+        with self._lock:
+            return self._items.pop(key, None)
 
     def clear(self) -> None:
         """Forget every result."""
-        self._items.clear()
+        with self._lock:
+            self._items.clear()
 
     def keys(self) -> list[Hashable]:
         """The keys held, least recently used first."""
-        return list(self._items)
+        with self._lock:
+            return list(self._items)
 
     def __len__(self) -> int:
         return len(self._items)
@@ -76,12 +95,14 @@ class LRU(Generic[V]):
     def kept(self) -> Iterator[None]:
         """Within: as usual; after: as it was before (what was built within is forgotten, and
         nothing held before was pushed out)."""
-        saved = self._items.copy()
+        with self._lock:
+            saved = self._items.copy()
         try:
             yield
         finally:
-            self._items.clear()
-            self._items.update(saved)
+            with self._lock:
+                self._items.clear()
+                self._items.update(saved)
 
     def __repr__(self) -> str:
         return f"LRU({self.name!r}, {len(self)} of {self.maxsize})"
@@ -106,8 +127,8 @@ class ObjectMemo:
 
     def __init__(self, name: str) -> None:
         self.name = name
-        self._entries: dict[int, tuple[weakref.ref, tuple, Any]] = {}
-        CACHES[name] = self
+        self._entries: dict[int, tuple[weakref.ref, tuple, Any]] = {}  # one dict step at a time:
+        CACHES[name] = self  # (get and set are atomic under the GIL; an entry is replaced whole)
 
     def get(self, obj: Any, state: tuple, compute: Callable[[], V]) -> V:
         """The value remembered for ``obj`` in ``state``, else ``compute()`` remembered (a state

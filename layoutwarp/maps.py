@@ -14,12 +14,12 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from . import ops
 from .checks import check_generator, check_int, check_number, check_size
 from .coords import pixel_centers, sensor_to_pixels
 from .layouts import Layout, check_layout
 from .mesh import pixel_mesh
-from .ops import layout_token, random_seed
+from .operators import base as ops
+from .operators.base import layout_token, random_seed
 
 __all__ = [
     "Maps",
@@ -110,7 +110,7 @@ def map_points(layout: Layout, points: Tensor, *, inverse: bool = False) -> Tens
 @torch.library.custom_op("layoutwarp::map_points", mutates_args=())
 def _map_points(points: Tensor, theta: Tensor, layout: str, inverse: bool) -> Tensor:
     """``φ(points)`` or ``φ⁻¹(points)`` ``(..., 2)`` in float64 for the layout of a
-    [`layout_token`][layoutwarp.ops.layout_token] at ``theta`` (an inverse may iterate until it
+    [`layout_token`][layoutwarp.operators.base.layout_token] at ``theta`` (an inverse may iterate until it
     converges: inside an operator, no compiled graph sees its loop). No gradient."""
     layout_ = ops.layout_of(layout)
     with torch.no_grad():
@@ -239,7 +239,7 @@ def _raster_index_map(
     tol: float,
     oversample: int,
 ) -> Tensor:
-    """[`raster_index_map`][] of the layout of a [`layout_token`][layoutwarp.ops.layout_token] at
+    """[`raster_index_map`][] of the layout of a [`layout_token`][layoutwarp.operators.base.layout_token] at
     ``theta``: ``(H, W)`` int64 on the CPU."""
     (h, w), (ht, wt), k = (height, width), (target_height, target_width), oversample
     with torch.no_grad():

@@ -54,7 +54,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from . import jit, kernels, ops
+from . import jit, kernels
 from .caches import LRU, tensor_token
 from .checks import (
     ArgumentError,
@@ -67,7 +67,8 @@ from .checks import (
 )
 from .kernels.device import fall_back, stream_of
 from .kernels.noise import measure_on_device
-from .ops import random_seed
+from .operators import base as ops
+from .operators.base import random_seed
 
 __all__ = [
     "NOISE",

@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
-from . import jit, kernels, ops
+from . import jit, kernels
 from .caches import LRU
 from .checks import (
     ArgumentError,
@@ -34,7 +34,8 @@ from .kernels.device import device_checks, fall_back, stream_of
 from .labels import labels_to_sensor
 from .layouts import Layout, check_layout
 from .mesh import PixelMesh, pixel_mesh
-from .ops import layout_token
+from .operators import base as ops
+from .operators.base import layout_token
 from .physics import SensorPhysics, device_arguments, kernel_arguments, measure, noise_seed, physics_of
 
 if TYPE_CHECKING:
@@ -446,7 +447,7 @@ def _kept(
     layout: Callable[[], Layout],
 ) -> AreaResampler | None:
     """The [`AreaResampler`][] kept in [`RESAMPLERS`][] for the layout of a
-    [`layout_token`][layoutwarp.ops.layout_token] at ``theta`` (keyed by the token and θ's
+    [`layout_token`][layoutwarp.operators.base.layout_token] at ``theta`` (keyed by the token and θ's
     values: no layout is made, ``layout()``, for a resampler already kept); ``None`` for an
     unregistered family, or when the cache keeps none."""
     if RESAMPLERS.maxsize == 0 or token.startswith("object:"):
@@ -481,7 +482,7 @@ def _area(
     with_areas: bool,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The exact means ``(N, h, w)`` of the fixed layout ``layout`` (a
-    [`layout_token`][layoutwarp.ops.layout_token]) at ``theta`` over float32 images ``(N, H, W)``
+    [`layout_token`][layoutwarp.operators.base.layout_token]) at ``theta`` over float32 images ``(N, H, W)``
     by its cached area weights ([`resampler_for`][]), and, ``with_areas``, the pixels' areas
     ``(h, w)`` (float64, sensor units; else an empty tensor); with ``physics`` (a camera's
     [`token`][layoutwarp.physics.SensorPhysics.token], ``""``: none) what that sensor records,

@@ -34,7 +34,7 @@ from .integrators import (
 )
 from .layoutfile import load_layout, save_layout
 from .layouts import Layout, make_layout
-from .ops import layout_token, random_seed, refuse_grad_transforms
+from .operators.base import layout_token, random_seed, refuse_grad_transforms
 from .physics import SensorPhysics, apply_psf, as_physics, check_output, measure, noise_seed
 from .resampler import RESAMPLERS
 

@@ -120,7 +120,7 @@ def count_launches(fn: Callable[[], object]) -> Counter[str]:
 
     counts: Counter[str] = Counter()
 
-    from .ops import OPERATORS
+    from .operators.base import OPERATORS
 
     class Ops(TorchDispatchMode):
         def __torch_dispatch__(self, func, types, args=(), kwargs=None):

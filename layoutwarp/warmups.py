@@ -13,7 +13,7 @@ import torch
 from . import jit, kernels
 from .integrators import integrate_exact
 from .layouts import CurvLayout, EllipticLayout, FoveaLayout, RectLayout
-from .ops import autograd_inside
+from .operators.base import autograd_inside
 from .physics import SensorPhysics
 from .resampler import RESAMPLERS
 from .sensor import simulate

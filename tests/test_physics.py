@@ -878,9 +878,9 @@ def test_a_device_kernel_that_fails_warns_once_and_leaves_the_torch_path(monkeyp
     """Where numba-cuda cannot compile or launch the measurement's kernel, the call warns once,
     names the kernel and the reason, and returns the other path's result; later calls go there
     without trying again."""
-    from layoutwarp import ops
     from layoutwarp import physics as ph
     from layoutwarp.kernels import device
+    from layoutwarp.operators import base as ops
 
     calls = []
 

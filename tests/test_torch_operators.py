@@ -12,7 +12,7 @@ import torch
 
 import layoutwarp as lw
 from layoutwarp.layouts import FAMILIES
-from layoutwarp.ops import OPERATORS, SECOND_ORDER, TRANSFORMS, layout_token
+from layoutwarp.operators.base import OPERATORS, SECOND_ORDER, TRANSFORMS, layout_token
 
 F64 = torch.float64
 CAMERA = lw.SensorPhysics(

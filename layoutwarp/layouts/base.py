@@ -188,7 +188,7 @@ class Layout(nn.Module):
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         # each family's constructor, once the outermost one returns, makes the layout's token
-        # (layoutwarp.ops.layout_token: how it enters layoutwarp's operators)
+        # (layoutwarp.operators.base.layout_token: how it enters layoutwarp's operators)
         super().__init_subclass__(**kwargs)
         cls.__init__ = _then_token(cls.__init__)  # type: ignore[method-assign]
 
@@ -398,7 +398,7 @@ class Layout(nn.Module):
         return ("theta",)
 
     def make_token(self, keep_theta: bool = False) -> str:
-        """The layout's token ([`layoutwarp.ops.layout_token`][]): its description as JSON text
+        """The layout's token ([`layoutwarp.operators.base.layout_token`][]): its description as JSON text
         (a registered family) or a handle of the object in this process. With ``keep_theta``, θ's
         part is the previous token's: a new θ (a loaded state dict) leaves the token as it was,
         so a compiled graph that reads it is not compiled again."""
