@@ -525,7 +525,8 @@ def _share_cores() -> None:
 
 
 def cache_folder() -> str | None:
-    """Where numba keeps this installation's compiled kernels (``None`` without numba)."""
+    """Where numba keeps this installation's compiled kernels (``None`` without numba): the
+    kernels package's ``__pycache__`` (the mesh's in ``mesh/__pycache__`` beneath it)."""
     if not kernels.available():
         return None
     probe = kernels.exact._prefix_share

@@ -297,18 +297,34 @@ class _Integration:
         integrates in float32 (float64 for float64 input) inside any mixed-precision context, as
         its tolerances assume. With physics: the PSF first, the measurement after."""
         device = work.device.type if isinstance(work, Tensor) else self.layout.rho.device.type
+        route = self._route(work)  # decided once: nothing below asks again
         if device in ("cpu", "cuda", "mps", "xpu") and torch.is_autocast_enabled(device):
             with torch.autocast(device_type=device, enabled=False):
-                return self._measured(work)
-        return self._measured(work)
+                return self._measured(work, route)
+        return self._measured(work, route)
 
-    def _measured(self, work: Tensor | Radiance) -> Tensor:
+    def _route(self, work: Tensor | Radiance) -> str:
+        """This call's route: ``"weights"`` (a fixed layout's cached sparse area weights,
+        [`resampler_for`][]: the exact method, θ needing no gradient, a registered family, float32
+        images and a cache that keeps weights), else the plan's integrator."""
+        method, rho = self.plan.method, self.layout.rho
+        # inside torch.vmap a batched ρ reports no requires_grad, though the ρ it holds may: the
+        # learnable path, whose θ reaches autograd (the weights' would leave θ without gradient)
+        learned = rho.requires_grad or torch._C._functorch.is_batchedtensor(rho)
+        fixed = not (torch.is_grad_enabled() and learned)
+        if method != "exact" or not fixed or RESAMPLERS.maxsize == 0:
+            return method
+        if not (isinstance(work, Tensor) and work.dtype == torch.float32):
+            return method
+        return method if layout_token(self.layout).startswith("object:") else "weights"
+
+    def _measured(self, work: Tensor | Radiance, route: str) -> Tensor:
         if self.physics is None:
-            return self._dispatch(work)
+            return self._dispatch(work, route)
         if not (isinstance(work, Tensor) and self.physics.psf is not None):
-            return self._recorded(work)
+            return self._recorded(work, route)
         # the blur spreads a bad value over its neighbours: the record checked against the source
-        out = replace(self, allow_nonfinite=True)._recorded(apply_psf(work, self.physics))
+        out = replace(self, allow_nonfinite=True)._recorded(apply_psf(work, self.physics), route)
         return out if self.allow_nonfinite else torch.ops.layoutwarp.guard_finite(out, work, "image")
 
     def _noise_seed(self) -> Tensor:
@@ -318,17 +334,17 @@ class _Integration:
             seed = random_seed(None, self.seed + 2)  # the jitter and its boundary flux take seed, seed + 1
         return noise_seed(self.physics, self.generator, seed)
 
-    def _recorded(self, work: Tensor | Radiance) -> Tensor:
+    def _recorded(self, work: Tensor | Radiance, route: str) -> Tensor:
         """What the sensor records of ``work`` (after the optics)."""
         seed = self._noise_seed()
         grad = torch.is_grad_enabled() and isinstance(work, Tensor) and work.requires_grad
-        if self._fixed_weights(work) and not grad:  # the cached weights and the measurement, fused
+        if route == "weights" and not grad:  # the cached weights and the measurement, fused
             out, _ = self._area(work, self.physics.token, seed, False)
             return out
         if self.plan.method in ("exact", "separable"):  # the integrator's own areas (a learnable
-            mean, areas = self._dispatch(work, with_areas=True)  # layout's compiled path: no torch mesh)
+            mean, areas = self._dispatch(work, route, with_areas=True)  # compiled path: no torch mesh)
         else:  # the sampling integrators: the areas of the polygons the pixels are
-            mean = self._dispatch(work)
+            mean = self._dispatch(work, route)
             areas = torch.ops.layoutwarp.pixel_areas(
                 self._theta(), layout_token(self.layout), *self.size, self.tol
             )
@@ -338,17 +354,6 @@ class _Integration:
         """θ as the geometry takes it: a fixed layout's as it was set (float64), a learned one's."""
         return self.layout.theta if self.layout.learnable else self.layout.theta_as(torch.float64)
 
-    def _fixed_weights(self, work: Tensor | Radiance) -> bool:
-        """Whether ``work`` is integrated by cached sparse area weights ([`resampler_for`][]): the
-        exact method, a fixed layout (θ needs no gradient) of a registered family, float32 images,
-        and a cache that keeps weights."""
-        fixed = not (torch.is_grad_enabled() and self.layout.rho.requires_grad)
-        if self.plan.method != "exact" or not fixed or RESAMPLERS.maxsize == 0:
-            return False
-        if not (isinstance(work, Tensor) and work.dtype == torch.float32):
-            return False
-        return not layout_token(self.layout).startswith("object:")
-
     def _area(self, work: Tensor, physics: str, seed: Tensor, with_areas: bool) -> tuple[Tensor, Tensor]:
         """``layoutwarp::area`` on ``work``: the means (or, with ``physics``, the record) and areas."""
         args = (layout_token(self.layout), *self.size, float(self.tol), physics, self.output)
@@ -356,14 +361,16 @@ class _Integration:
             work, self._theta(), *args, seed, not self.allow_nonfinite, with_areas
         )
 
-    def _dispatch(self, work: Tensor | Radiance, with_areas: bool = False) -> Tensor | tuple[Tensor, Tensor]:
+    def _dispatch(
+        self, work: Tensor | Radiance, route: str, with_areas: bool = False
+    ) -> Tensor | tuple[Tensor, Tensor]:
         """The pixel means (and, for the exact and separable methods ``with_areas``, the pixels'
         areas in sensor units, from the integrator). An exact method's are checked for NaN/Inf
         inside its operator (unless ``allow_nonfinite``): every source pixel reaches some sensor
         pixel with positive weight, so a bad input value always reaches its (small) output."""
         plan, layout, size = self.plan, self.layout, self.size
         if plan.method in ("separable", "exact"):
-            if self._fixed_weights(work):  # one sparse product: the exact integral of a fixed layout
+            if route == "weights":  # one sparse product: the exact integral of a fixed layout
                 means, areas = self._area(work, "", _NO_SEED, with_areas)
                 return (means, areas) if with_areas else means
             check = {"allow_nonfinite": self.allow_nonfinite, "return_areas": with_areas}

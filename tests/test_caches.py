@@ -63,3 +63,53 @@ def test_a_tensor_token_is_its_identity_and_version():
     assert tensor_token(a) is first and tensor_token(b) is not first
     a.add_(1)
     assert tensor_token(a) is not first
+
+
+def test_simulate_from_four_threads_at_once_gives_the_single_threaded_values(gen):
+    """Four threads share one fixed layout (and a learnable one) and call ``simulate`` at once on
+    images of different sizes and sensor sizes, caches small enough that they push each other's
+    entries out: every result equals the same call made alone, bit for bit."""
+    import threading
+
+    fixed, learn = lw.CurvLayout((0.3, -0.2)), lw.FoveaLayout((0.2, 0.1), center=(0.1, -0.2), learn=True)
+    cases = [
+        (torch.rand(2, 1, 24 + 8 * k, 30 + 6 * k, generator=gen), (4 + k, 5 + k), layout)
+        for k in range(4)
+        for layout in (fixed, learn)
+    ]
+
+    def run(case):
+        img, size, layout = case
+        out = lw.simulate(img, layout, size)
+        grad = torch.autograd.grad(out.sum(), layout.rho)[0] if layout.rho.requires_grad else None
+        return out.detach(), grad
+
+    alone = [run(c) for c in cases]
+    saved = {name: CACHES[name].maxsize for name in ("resamplers", "meshes") if hasattr(CACHES[name], "maxsize")}
+    for name in saved:
+        CACHES[name].maxsize = 2  # entries pushed out while other threads use theirs
+    try:
+        got: dict[int, tuple] = {}
+        errors: list[BaseException] = []
+
+        def worker(t: int) -> None:
+            try:
+                for _ in range(3):
+                    for i in range(t, len(cases), 4):
+                        got[i] = run(cases[i])
+            except BaseException as exc:  # reported below, not lost in the thread
+                errors.append(exc)
+
+        threads = [threading.Thread(target=worker, args=(t,)) for t in range(4)]
+        for th in threads:
+            th.start()
+        for th in threads:
+            th.join()
+    finally:
+        for name, size in saved.items():
+            CACHES[name].maxsize = size
+    assert not errors, errors
+    for i, (out, grad) in enumerate(alone):
+        assert torch.equal(got[i][0], out), i
+        if grad is not None:
+            assert torch.equal(got[i][1], grad), i

@@ -568,3 +568,32 @@ def test_a_dynamic_compile_serves_every_batch_size_with_one_graph(family, gen):
         torch.testing.assert_close(out, ref, rtol=1e-6, atol=1e-6)
         torch.testing.assert_close(g, g_ref, rtol=1e-5, atol=1e-7)
     assert counter.frame_count == 1, counter.frame_count
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+@pytest.mark.parametrize("family", ["curv", "fovea", "elliptic", "rect", "grid"])
+def test_vmap_over_theta_gives_the_loops_values_and_gradients(family, dtype, gen):
+    """``vmap`` over θ (``functional_call`` with a batch of ρ) of a learnable exact layer: the
+    values and ρ's gradient of a loop over the batch. A batched ρ reports no ``requires_grad``
+    inside vmap; the layer must still take the learnable path (a float32 image would otherwise
+    go to a fixed layout's cached weights, and θ get no gradient). A fine tolerance: the two
+    paths' polylines then agree to rounding."""
+    from torch.func import functional_call, vmap
+
+    fine = 1e-10 if dtype == F64 else 1e-6
+    layer = lw.SensorLayer((4, 5), _learnable(family, gen, dtype), "exact", tol=fine)
+    img = torch.rand(1, 1, 16, 20, generator=gen, dtype=dtype)
+    n = layer.layout.rho.numel()
+    scale = 0.03 if family == "grid" else 0.3
+    rhos = layer.layout.rho.detach() + scale * torch.randn(3, n, generator=gen, dtype=dtype)
+    rhos.requires_grad_(True)
+    out = vmap(lambda r: functional_call(layer, {"layout.rho": r}, (img,)))(rhos)
+    (g,) = torch.autograd.grad(out.square().sum(), rhos)
+    ref = torch.stack([functional_call(layer, {"layout.rho": r}, (img,)) for r in rhos])
+    (g_ref,) = torch.autograd.grad(ref.square().sum(), rhos)
+    close = {"rtol": 0, "atol": 1e-8} if dtype == F64 else {"rtol": 0, "atol": 1e-5}
+    torch.testing.assert_close(out, ref, **close)
+    torch.testing.assert_close(
+        g, g_ref, rtol=1e-5 if dtype == F64 else 2e-3, atol=1e-7 if dtype == F64 else 1e-4
+    )
+    assert g_ref.abs().max() > 1e-3  # a gradient that could be wrong

@@ -183,6 +183,10 @@ class Layout(nn.Module):
     separable: ClassVar[bool] = False
     straight_edges: ClassVar[bool] = False
     unbounded: ClassVar[bool] = False
+    #: The compiled map of the kernels this class's φ is (``"curv"``: φ_curv about
+    #: ``fixed_center``, ``"elliptic"``), or ``None``. Read on the class that declares it only:
+    #: a subclass may change φ, so it keeps the torch path unless it declares one itself.
+    kernel_map: ClassVar[str | None] = None
     #: Buffers of a fixed layout's constants, held in float64 whatever the layout's dtype.
     exact_buffers: ClassVar[tuple[str, ...]] = ("rho", "fixed_theta")
 

@@ -144,6 +144,7 @@ class CurvLayout(CenteredLayout):
     a movable centre (see [`CenteredLayout`][]: ``center``, ``learn_center``)."""
 
     family = "curv"
+    kernel_map = "curv"
 
     def _fixed(self, p: Tensor, u: Tensor) -> Tensor:
         return (p.abs() >= 1) | ((u * u).sum(-1, keepdim=True) >= 1)  # outside the adapted circle

@@ -71,6 +71,7 @@ class EllipticLayout(Layout):
     """
 
     family = "elliptic"
+    kernel_map = "elliptic"
 
     def phi(self, p: Tensor, theta: Tensor) -> Tensor:
         return _elliptic_phi(p, theta)

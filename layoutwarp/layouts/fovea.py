@@ -24,6 +24,7 @@ class FoveaLayout(CurvLayout):
     """
 
     family = "fovea"
+    kernel_map = "curv"
 
     def __init__(
         self, theta: Sequence[float] | Tensor | None = None, *, learn_center: bool = True, **kwargs: Any
