@@ -20,6 +20,9 @@ benchmark live beside the library in `layoutwarp.experiments`.
 from __future__ import annotations
 
 import importlib
+import importlib.abc
+import importlib.util
+import sys
 from typing import Any
 
 from .version import __version__
@@ -83,6 +86,74 @@ CORE = (
 LAZY_MODULES = ("augment", "doctor", "export", "jit", "labels", "preprocess", "resampler")
 
 __all__ = ["__version__", *FRONT_DOOR]
+
+
+#: The modules that register layoutwarp's torch operators (``torch.ops.layoutwarp.*``).
+OPERATOR_MODULES = ("operators", "maps", "physics", "resampler")
+
+
+def _register_operators() -> None:
+    """Import every module that registers an operator of the ``layoutwarp`` namespace."""
+    for module in OPERATOR_MODULES:
+        importlib.import_module(f".{module}", __name__)
+
+
+def _importing() -> bool:
+    """Whether a module of layoutwarp is being imported now (its operators are on their way: a
+    lookup then, e.g. torch.library's own while it defines one, must not import the others)."""
+    modules = [m for n, m in list(sys.modules.items()) if n.startswith(f"{__name__}.")]
+    return any(getattr(getattr(m, "__spec__", None), "_initializing", False) for m in modules)
+
+
+def _look_up_operators(torch: Any) -> None:
+    """Make the first lookup of ``torch.ops.layoutwarp.<op>`` register layoutwarp's operators:
+    a program that ``torch.export`` saved (or AOTInductor packaged) loads in a process that did
+    no more than ``import layoutwarp``, while that import stays free of torch (a fast
+    ``--help``)."""
+
+    class Namespace(torch._ops._OpNamespace):
+        def __getattr__(self, op_name: str) -> Any:
+            try:
+                return super().__getattr__(op_name)
+            except AttributeError:
+                if op_name.startswith("__") or _importing():
+                    raise  # a dunder, or a lookup made while layoutwarp's own modules load
+            _register_operators()
+            return super().__getattr__(op_name)
+
+    Namespace.__module__ = torch._ops._OpNamespace.__module__  # what its operators' names begin with
+
+    if not isinstance(torch.ops.__dict__.get("layoutwarp"), Namespace):
+        torch.ops.__dict__.pop("layoutwarp", None)
+        setattr(torch.ops, "layoutwarp", Namespace("layoutwarp"))  # noqa: B010
+        if "layoutwarp" not in torch.ops._dir:
+            torch.ops._dir.append("layoutwarp")
+
+
+class _AfterTorch(importlib.abc.MetaPathFinder):
+    """Runs [`_look_up_operators`][] once torch is imported (when ``import layoutwarp`` came first)."""
+
+    def find_spec(self, name: str, path: Any = None, target: Any = None) -> Any:
+        if name != "torch":
+            return None
+        sys.meta_path.remove(self)
+        spec = importlib.util.find_spec(name)
+        if spec is None or spec.loader is None or not hasattr(spec.loader, "exec_module"):
+            return spec
+        run = spec.loader.exec_module
+
+        def exec_module(module: Any) -> None:
+            run(module)
+            _look_up_operators(module)
+
+        spec.loader.exec_module = exec_module  # type: ignore[method-assign]  # this load only
+        return spec
+
+
+if "torch" in sys.modules:
+    _look_up_operators(sys.modules["torch"])
+elif not any(isinstance(f, _AfterTorch) for f in sys.meta_path):
+    sys.meta_path.insert(0, _AfterTorch())
 
 
 def __getattr__(name: str) -> Any:

@@ -3,7 +3,9 @@
 A network fed by a non-uniform sensor predicts on the deformed grid. For the loss and for
 display, every target pixel centre ``q`` reads the sensor pixel that contains it: the
 uniform cell of ``φ⁻¹(q)``. Nearest back-warping is a gather, so label maps keep their
-dtype and gradients reach the logits (not θ, as in the paper: θ learns through the sensor).
+dtype and gradients reach the logits (not θ, whose gradient through a piecewise-constant map is
+zero: θ learns through the sensor, as in the paper). Bilinear back-warping samples at ``φ⁻¹(q)``,
+which moves with θ: its gradient reaches θ too (the implicit derivative of the inverse).
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from .checks import check_choice, check_shape, check_size
-from .coords import sensor_to_pixels
+from .coords import pixel_centers, sensor_to_pixels
 from .layouts import Layout, check_layout
 from .maps import inverse_coords, raster_index_map
 
@@ -97,7 +99,7 @@ def backwarp(
             raise TypeError(
                 f"mode='bilinear' needs a floating-point pred, got {pred.dtype}; use mode='nearest'"
             )
-        p = inverse_coords(layout, size).to(pred)
+        p = _theta_attached(layout, inverse_coords(layout, size), size).to(pred)
         x = pred if pred.ndim == 4 else pred[:, None]
         out = F.grid_sample(
             x,
@@ -107,6 +109,22 @@ def backwarp(
             align_corners=False,
         )
         return out if pred.ndim == 4 else out[:, 0]
+
+
+def _theta_attached(layout: Layout, p: Tensor, size: tuple[int, int]) -> Tensor:
+    """``p = φ⁻¹(q, θ)`` of the target centres ``q`` (float64, no gradient), with θ's gradient
+    re-attached where θ needs one (a learnable layout, or θ batched under ``torch.vmap``): one
+    Newton step ``p − J⁻¹ (φ(p, θ) − q)``, equal to ``p`` in value (the residual is the
+    inverse's, ~1e-13) and with the implicit derivative ``∂p/∂θ = −J⁻¹ ∂φ/∂θ``."""
+    theta = layout.theta
+    batched = torch._C._functorch.is_batchedtensor(theta)
+    if not (torch.is_grad_enabled() and (theta.requires_grad or batched)):
+        return p
+    q = pixel_centers(size, dtype=torch.float64, device=p.device)
+    th = theta.to(torch.float64)
+    j = layout.phi_jacobian(p, th.detach())  # (H, W, 2, 2)
+    residual = layout.phi(p, th) - q
+    return p - torch.linalg.solve(j, residual.unsqueeze(-1)).squeeze(-1)
 
 
 def backwarp_numpy(

@@ -101,3 +101,53 @@ def test_backwarp_uniform_integer_ratio_is_nearest_upsampling(gen, device):
     layout = lw.CurvLayout(rand_theta(gen)).to(device)  # nearest and bilinear on the device
     for mode in ("nearest", "bilinear"):
         assert lw.backwarp(x, layout, (9, 11), mode=mode).device == x.device
+
+
+@pytest.mark.parametrize(
+    "family",
+    [
+        "fovea",
+        "rect",
+        pytest.param("curv", marks=pytest.mark.slow),
+        pytest.param("elliptic", marks=pytest.mark.slow),
+    ],
+)
+def test_bilinear_backwarp_of_a_learnable_sensor_gives_theta_its_central_difference_gradient(family, gen):
+    """A float64 model: conv → learnable sensor → bilinear back-warp → conv → loss. Autograd's
+    θ-gradient (through the sensor and through the sampling points φ⁻¹(q, θ) of the back-warp)
+    equals central differences of the loss in ρ; without the back-warp's part it would not
+    (the check that the test can fail: its share of the gradient is not small)."""
+    F64 = torch.float64
+    layout = lw.make_layout(family, learn=True, dtype=F64)
+    with torch.no_grad():
+        layout.rho.add_(0.3 * torch.randn(layout.rho.shape, generator=gen, dtype=F64))
+    pre = torch.nn.Conv2d(1, 1, 3, padding=1).double()
+    post = torch.nn.Conv2d(1, 1, 3, padding=1).double()
+    img = torch.rand(1, 1, 24, 28, generator=gen, dtype=F64)
+    target = torch.rand(1, 1, 16, 18, generator=gen, dtype=F64)
+
+    def loss(detach_warp: bool = False) -> torch.Tensor:
+        low = lw.simulate(pre(img), layout, (6, 7), tol=1e-10)
+        if detach_warp:
+            with torch.no_grad():
+                p = lw.maps.inverse_coords(layout, (16, 18))
+            up = torch.nn.functional.grid_sample(
+                low, p[None].to(low), mode="bilinear", padding_mode="border", align_corners=False
+            )
+        else:
+            up = lw.backwarp(low, layout, (16, 18), mode="bilinear")
+        return (post(up) - target).square().mean()
+
+    (g,) = torch.autograd.grad(loss(), layout.rho)
+    (g_sensor_only,) = torch.autograd.grad(loss(detach_warp=True), layout.rho)
+    eps, fd = 1e-6, torch.zeros_like(g)
+    with torch.no_grad():
+        for i in range(layout.rho.numel()):
+            layout.rho[i] += eps
+            up = loss()
+            layout.rho[i] -= 2 * eps
+            down = loss()
+            layout.rho[i] += eps
+            fd[i] = (up - down) / (2 * eps)
+    torch.testing.assert_close(g, fd, rtol=1e-5, atol=1e-9)
+    assert (g_sensor_only - fd).abs().max() > 100 * (g - fd).abs().max()

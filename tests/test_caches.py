@@ -85,7 +85,9 @@ def test_simulate_from_four_threads_at_once_gives_the_single_threaded_values(gen
         return out.detach(), grad
 
     alone = [run(c) for c in cases]
-    saved = {name: CACHES[name].maxsize for name in ("resamplers", "meshes") if hasattr(CACHES[name], "maxsize")}
+    saved = {
+        name: CACHES[name].maxsize for name in ("resamplers", "meshes") if hasattr(CACHES[name], "maxsize")
+    }
     for name in saved:
         CACHES[name].maxsize = 2  # entries pushed out while other threads use theirs
     try:

@@ -307,10 +307,12 @@ def test_export_of_a_fixed_layer_reproduces_eager(family, method, physics, gen):
     )
 
 
-def test_an_exported_program_loads_and_runs_in_another_process(gen, tmp_path):
+@pytest.mark.parametrize("imports", ["import torch\nimport layoutwarp", "import layoutwarp\nimport torch"])
+def test_an_exported_program_loads_and_runs_in_another_process(imports, gen, tmp_path):
     """``torch.export.save`` of a fixed fovea layer with a seeded camera; a fresh process that
-    imports ``layoutwarp.sensor`` (registering the operators) loads it and records, call after
-    call, what the layer records here: the program carries the layout and the camera as text."""
+    does no more than ``import layoutwarp`` (before or after torch: the operators register at
+    the first lookup of ``torch.ops.layoutwarp``) loads it and records, call after call, what
+    the layer records here: the program carries the layout and the camera as text."""
     import subprocess
     import sys
 
@@ -320,7 +322,7 @@ def test_an_exported_program_loads_and_runs_in_another_process(gen, tmp_path):
     torch.export.save(torch.export.export(copy.deepcopy(layer), (img,)), tmp_path / "sensor.pt2")
     torch.save({"img": img, "want": torch.stack([layer(img), layer(img)])}, tmp_path / "case.pt")
     code = (
-        "import sys, torch\nimport layoutwarp.sensor\n"
+        f"import sys\n{imports}\nassert 'layoutwarp.sensor' not in sys.modules\n"
         "m = torch.export.load(sys.argv[1]).module()\ncase = torch.load(sys.argv[2])\n"
         "got = torch.stack([m(case['img']), m(case['img'])])\nassert torch.equal(got, case['want'])\n"
     )
@@ -597,3 +599,18 @@ def test_vmap_over_theta_gives_the_loops_values_and_gradients(family, dtype, gen
         g, g_ref, rtol=1e-5 if dtype == F64 else 2e-3, atol=1e-7 if dtype == F64 else 1e-4
     )
     assert g_ref.abs().max() > 1e-3  # a gradient that could be wrong
+
+
+@pytest.mark.parametrize("learn", [False, True])
+def test_a_uint8_image_compiles_to_one_graph_with_the_eager_values(learn, gen):
+    """A uint8 image through ``torch.compile(fullgraph=True)`` (its tolerance is a quarter of one
+    of its steps, read from the dtype without making a tensor): one graph, eager's values."""
+    from torch._dynamo.testing import CompileCounter
+
+    torch._dynamo.reset()
+    layer = lw.SensorLayer((5, 6), "curv", learn=learn, theta=(0.3, -0.2))
+    img = (torch.rand(1, 3, 30, 36, generator=gen) * 255).to(torch.uint8)
+    counter = CompileCounter()
+    got = torch.compile(layer, fullgraph=True, backend=counter)(img)
+    torch.testing.assert_close(got, layer(img), rtol=1e-6, atol=1e-6)
+    assert counter.frame_count == 1, counter.frame_count
