@@ -12,12 +12,9 @@ each round's ratio against ``simulate`` (both calls of a round meet the same mac
 which drifts by 1.5x within seconds on small virtual machines), as ``layoutwarp bench`` does.
 ``--kernels`` then times the compiled calls beneath (the product alone, and the product with the
 measurement written to a buffer of its own or over the means, as ``AreaResampler.apply`` does)
-and prints each measurement's overhead on the product alone, the same way. ``--against COMMIT``
-adds to those rounds the fused call of ``layoutwarp/kernels.py`` as it was at ``COMMIT`` (from
-git, imported as a module of its own, its compiled code cached in a temporary folder): an A/B of a
-kernel change in one process, where the machine's drift between two runs cannot read as a
-difference.
-Run: ``python examples/physics_overhead.py [--rounds 500] [--threads 2] [--kernels] [--against COMMIT]``
+and prints each measurement's overhead on the product alone, the same way. (To compare a kernel
+change with the code before it, run ``examples/paired_speed.py --against OTHER_CHECKOUT``.)
+Run: ``python examples/physics_overhead.py [--rounds 500] [--threads 2] [--kernels]``
 (500 rounds take about 8 s, and 5 s more with ``--kernels``; the median of the rounds' ratios
 moves by about a point between runs of 120 rounds, by a few tenths at 1000).
 """
@@ -25,13 +22,8 @@ moves by about a point between runs of 120 rounds, by a few tenths at 1000).
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import statistics
-import subprocess
-import sys
-import tempfile
 from pathlib import Path
-from types import ModuleType
 
 import cv2
 import numpy as np
@@ -58,15 +50,7 @@ def main() -> None:
         "--threads", type=positive_int, default=2, help="torch and OpenCV threads (default 2)"
     )
     parser.add_argument("--kernels", action="store_true", help="also time the compiled calls beneath")
-    parser.add_argument(
-        "--against",
-        metavar="COMMIT",
-        help="with --kernels: also the fused call of COMMIT's kernels.py (a commit before 2825e4c)",
-    )
     args = parser.parse_args()
-    if args.against and not args.kernels:
-        parser.error("--against needs --kernels")
-    other = kernels_at(args.against) if args.against else None  # a bad commit fails before the timing
     torch.set_num_threads(args.threads)
     cv2.setNumThreads(args.threads)
     img = torch.rand(1, 3, 1024, 2048, generator=torch.Generator().manual_seed(0))
@@ -91,33 +75,7 @@ def main() -> None:
     physics = over(times["simulate + physics"], times["simulate"])
     print(f"physics overhead: {physics:+.1f} % (median of the rounds' ratios)")
     if args.kernels:
-        kernel_overheads(img, layout, camera, args.rounds, other, args.against)
-
-
-def kernels_at(commit: str) -> ModuleType:
-    """``layoutwarp/kernels.py`` as it was at ``commit``, imported as a module of its own from a
-    temporary folder named after the commit, where numba caches its compiled code for the next run;
-    exits with git's message if there is no such file (the kernels became the package
-    ``layoutwarp/kernels/`` at commit 2825e4c: compare against a commit before it)."""
-
-    def git(*args: str) -> str:
-        done = subprocess.run(["git", "-C", str(ROOT), *args], capture_output=True, text=True)
-        if done.returncode != 0:
-            raise SystemExit(f"--against {commit}: {done.stderr.strip()}")
-        return done.stdout
-
-    sha = git("rev-parse", "--verify", f"{commit}^{{commit}}").strip()
-    path = Path(tempfile.gettempdir()) / f"layoutwarp-kernels-{sha[:12]}" / f"kernels_{sha[:12]}.py"
-    if not path.exists():  # written once: numba's cache is valid while the file is unchanged
-        source = git("show", f"{sha}:layoutwarp/kernels.py")
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.with_suffix(".tmp").write_text(source)
-        path.with_suffix(".tmp").replace(path)
-    spec = importlib.util.spec_from_file_location(path.stem, path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # numba finds the module by name when it loads its cache
-    spec.loader.exec_module(module)
-    return module
+        kernel_overheads(img, layout, camera, args.rounds)
 
 
 def kernel_overheads(
@@ -125,32 +83,27 @@ def kernel_overheads(
     layout: lw.Layout,
     camera: lw.SensorPhysics,
     rounds: int,
-    other: ModuleType | None = None,
-    commit: str = "",
 ) -> None:
     """The compiled calls under ``simulate``: the cached weights' product alone, and with the
-    measurement (shot and read noise, full well, ADC) into a buffer of its own or over the means;
-    with ``other`` (the kernels of ``commit``), also its fused call over the means."""
+    measurement (shot and read noise, full well, ADC) into a buffer of its own or over the means."""
     tol = lw.data_tolerance(img.dtype)[0]  # simulate's default for these images: its cached resampler
     res = lw.resampler.resampler_for(layout, (129, 257), tuple(img.shape[-2:]), tol, "cpu")
     w, x = res.weights, np.ascontiguousarray(img.reshape(img.shape[1], -1).numpy())
     measured, nt = lw.physics.kernel_arguments(camera, res.areas), lw.kernels.threads()
 
-    def product(measure: str = "", module: ModuleType = lw.kernels) -> None:
+    def product(measure: str = "") -> None:
         mean = np.empty((x.shape[0], w.shape[0]), np.float32)
         if not measure:
             lw.kernels.csr_apply(w.indptr, w.indices, w.data, x, mean, nt)
             return
         out = mean if measure == "in place" else np.empty_like(mean)
-        module.measured_csr_apply(w.indptr, w.indices, w.data, x, mean, *measured, out, nt)
+        lw.kernels.measured_csr_apply(w.indptr, w.indices, w.data, x, mean, *measured, out, nt)
 
     calls = {
         "product": product,
         "own buffer": lambda: product("own"),
         "in place": lambda: product("in place"),
     }
-    if other is not None:
-        calls[f"in place at {commit}"] = lambda: product("in place", other)
     times = dict(zip(calls, interleaved_times(list(calls.values()), rounds), strict=True))
     for name in list(calls)[1:]:
         pct = over(times[name], times["product"])

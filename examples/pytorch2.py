@@ -1,12 +1,17 @@
-"""layoutwarp with PyTorch 2: a learnable sensor compiled in one graph, a fixed one exported,
-the sensor under autocast and vmap, and a second derivative refused in one line.
-Run: python examples/pytorch2.py   (about a minute on 2 cores, most of it inductor)
+"""layoutwarp with PyTorch 2: a learnable sensor compiled in one graph, a fixed one exported and
+loaded in a fresh process, the sensor under autocast and vmap, DataLoader workers forked after
+training, and a second derivative refused in one line.
+Run: python examples/pytorch2.py   (a minute or two on 2 cores from an empty inductor cache)
 """
 
 from __future__ import annotations
 
 import copy
+import subprocess
+import sys
+import tempfile
 import time
+from pathlib import Path
 
 import torch
 import torch.nn.functional as F
@@ -39,6 +44,17 @@ program = torch.export.export(copy.deepcopy(fixed), (images,))  # its own noise 
 same = torch.equal(program.module()(images), fixed(images))
 ops = sorted({str(n.target) for n in program.graph.nodes if "layoutwarp" in str(n.target)})
 print(f"exported: {', '.join(ops)}; the first call equals eager: {same}")
+with tempfile.TemporaryDirectory() as folder:  # a fresh process: `import layoutwarp` is enough
+    path = Path(folder) / "sensor.pt2"
+    torch.export.save(torch.export.export(copy.deepcopy(fixed), (images,)), path)
+    code = (
+        "import sys, torch, layoutwarp\n"
+        "print(tuple(torch.export.load(sys.argv[1]).module()(torch.rand(8, 1, 28, 28)).shape))"
+    )
+    run = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True)
+    if run.returncode:
+        sys.exit(run.stderr)
+    print(f"loaded in a fresh process after `import layoutwarp`: output {run.stdout.strip()}")
 
 # 3. autocast: the sensor integrates in float32, the network runs in bfloat16
 with torch.autocast("cpu", dtype=torch.bfloat16):
@@ -52,7 +68,20 @@ batched = torch.func.vmap(lambda x: lw.simulate(x, fovea, (8, 8)))(images)
 looped = torch.stack([lw.simulate(x, fovea, (8, 8)) for x in images])
 print(f"vmap over simulate equals the loop: {torch.equal(batched, looped)}")
 
-# 5. a second derivative through a compiled gradient: refused, in one line
+
+# 5. DataLoader workers forked (Linux's default) after the parent trained: they sense samples too
+class Sensed(torch.utils.data.Dataset):
+    def __len__(self) -> int:
+        return len(images)
+
+    def __getitem__(self, i: int) -> torch.Tensor:
+        return lw.simulate(images[i], fovea, (8, 8))
+
+
+loader = torch.utils.data.DataLoader(Sensed(), batch_size=4, num_workers=2)
+print(f"two forked DataLoader workers give the loop's values: {torch.equal(torch.cat(list(loader)), looped)}")
+
+# 6. a second derivative through a compiled gradient: refused, in one line
 learnable = lw.CurvLayout((0.3, -0.2), learn=True)
 loss = lw.simulate(images, learnable, (8, 8)).square().sum()
 (g,) = torch.autograd.grad(loss, learnable.rho, create_graph=True)

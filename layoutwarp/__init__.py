@@ -83,7 +83,17 @@ CORE = (
     "warmups",
 )
 #: Submodules that ``layoutwarp.<name>`` loads on first use.
-LAZY_MODULES = ("augment", "doctor", "export", "jit", "labels", "preprocess", "resampler")
+LAZY_MODULES = (
+    "augment",
+    "doctor",
+    "export",
+    "jit",
+    "kernels",
+    "labels",
+    "operators",
+    "preprocess",
+    "resampler",
+)
 
 __all__ = ["__version__", *FRONT_DOOR]
 

@@ -112,7 +112,10 @@ def _map_points(points: Tensor, theta: Tensor, layout: str, inverse: bool) -> Te
     """``φ(points)`` or ``φ⁻¹(points)`` ``(..., 2)`` in float64 for the layout of a
     [`layout_token`][layoutwarp.operators.base.layout_token] at ``theta`` (an inverse may iterate until it
     converges: inside an operator, no compiled graph sees its loop). No gradient."""
-    layout_ = ops.layout_of(layout)
+    if points.ndim == 0 or points.shape[-1] != 2:
+        ops.refuse("map_points", "points", f"must be (..., 2), got shape {tuple(points.shape)}")
+    layout_ = ops.layout_of(layout, op="map_points")
+    ops.check_theta("map_points", theta, layout_)
     with torch.no_grad():
         out = layout_.phi_inverse(points, theta) if inverse else layout_.phi(points, theta)
     return out.clone() if out is points else out

@@ -481,6 +481,12 @@ def measure(
 def _measure(mean: Tensor, areas: Tensor, physics: str, output: str, seed: Tensor) -> Tensor:
     """[`measure`][] without gradient: one compiled pass on the CPU (`sensor_measure`), one kernel
     on a CUDA device, or the torch path; the camera as its [`token`][SensorPhysics.token]."""
+    if mean.ndim < 2 or areas.shape != mean.shape[-2:]:
+        ops.refuse(
+            "measure",
+            "areas",
+            f"must be the pixels' (h, w) = {tuple(mean.shape[-2:])}, got {tuple(areas.shape)}",
+        )
     camera = physics_of(physics)
     kernel_dtype = mean.dtype if mean.dtype == torch.float32 else torch.float64  # its two builds
     if ops.backend(mean, "measure", name=_DEVICE_MEASURE) == "cuda":

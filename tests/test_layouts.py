@@ -325,3 +325,41 @@ def test_jacobian_determinant_closed_forms(cls, gen):
         layout = cls(theta, dtype=F64)
         expected = torch.linalg.det(layout.phi_jacobian(p, layout.theta))
         assert (layout.phi_jacobian_det(p, layout.theta) - expected).abs().max() < 1e-12
+
+
+def test_a_state_dict_of_another_family_or_bound_is_refused_in_one_line(gen):
+    """A layer's state says its layout's family (and the bound that makes ρ θ): a curv layer's
+    state loaded into a rect layer (same shapes) is refused in one line, as a learnable ρ of
+    another bound is; the same family loads (θ equal), and a state written before layouts said
+    their family (no ``kind``) loads as it did, strictly; the state stays tensors only."""
+    curv = lw.SensorLayer((4, 5), "curv", theta=(0.3, -0.2))
+    for other in (lw.SensorLayer((4, 5), "rect"), lw.SensorLayer((4, 5), "curv", bound=0.9)):
+        with pytest.raises(ValueError, match="the state dict holds") as err:
+            other.load_state_dict(curv.state_dict())
+        assert "\n" not in str(err.value)
+    same = lw.SensorLayer((4, 5), "curv")
+    same.load_state_dict(curv.state_dict())
+    assert torch.equal(same.layout.theta, curv.layout.theta)
+    assert all(isinstance(v, torch.Tensor) for v in curv.state_dict().values())
+    old = {k: v for k, v in curv.state_dict().items() if not k.endswith(".kind")}
+    fresh = lw.SensorLayer((4, 5), "curv")
+    fresh.load_state_dict(old)  # strict: nothing missing
+    assert torch.equal(fresh.layout.theta, curv.layout.theta)
+    fixed = lw.SensorLayer((4, 5), lw.CurvLayout((0.1, 0.2), bound=0.9))  # θ itself in the state
+    lw.SensorLayer((4, 5), lw.CurvLayout()).load_state_dict(fixed.state_dict())
+
+
+def test_a_learnable_theta_within_rounding_of_the_bound_is_refused_in_one_line():
+    """A learnable float32 layout cannot hold θ = 0.9999999999 (bound · tanh(ρ) rounds to the
+    bound, where the layout folds): refused in one line naming θ, as a fixed layout refuses θ = 1;
+    float64 holds it, and so does float32 a little further in."""
+    for make in (
+        lambda: lw.CurvLayout((0.9999999999, 0.1), learn=True),
+        lambda: lw.SensorLayer((4, 5), "curv", theta=(0.9999999999, 0.1)),
+        lambda: lw.CurvLayout((1.0, 0.1)),
+    ):
+        with pytest.raises(ValueError, match=r"theta\[0\]") as err:
+            make()
+        assert "\n" not in str(err.value)
+    assert lw.CurvLayout((0.9999999999, 0.1), learn=True, dtype=torch.float64).theta[0] < 1
+    assert lw.CurvLayout((0.99999, 0.1), learn=True).theta[0] < 1

@@ -95,6 +95,7 @@ def _cases(gen: torch.Generator) -> dict[str, tuple]:
             sep,
             [True, True, True],
         ),
+        "separable_adjoint": (torch.rand_like(sep).requires_grad_(True), ex.detach(), ey.detach(), 12, 14),
         "area": (
             img32.clone().requires_grad_(True),
             ftheta,
@@ -614,3 +615,118 @@ def test_a_uint8_image_compiles_to_one_graph_with_the_eager_values(learn, gen):
     got = torch.compile(layer, fullgraph=True, backend=counter)(img)
     torch.testing.assert_close(got, layer(img), rtol=1e-6, atol=1e-6)
     assert counter.frame_count == 1, counter.frame_count
+
+
+def test_vmap_of_a_layer_compiles_to_one_graph(gen):
+    """``torch.compile(torch.vmap(layer), fullgraph=True)`` captures one graph (the check for
+    gradient transforms reads no functorch level inside a compiled graph) with the eager values."""
+    from torch._dynamo.testing import CompileCounter
+
+    torch._dynamo.reset()
+    layer = lw.SensorLayer((4, 5), _fixed("curv", gen))
+    imgs = torch.rand(3, 1, 1, 16, 20, generator=gen)
+    counter = CompileCounter()
+    got = torch.compile(torch.vmap(layer), fullgraph=True, backend=counter)(imgs)
+    torch.testing.assert_close(got, torch.vmap(layer)(imgs), rtol=1e-6, atol=1e-6)
+    assert counter.frame_count == 1, counter.frame_count
+
+
+def test_dataloader_fork_workers_simulate_after_the_parent_trained(gen):
+    """The default DataLoader on Linux forks its workers: after the parent has trained a learnable
+    layer (the kernels' threads started), each forked worker senses its samples and gives the
+    parent's values (no threading layer that a fork breaks)."""
+    import multiprocessing
+
+    if "fork" not in multiprocessing.get_all_start_methods():
+        pytest.skip("no fork start method on this platform")
+    layer = lw.SensorLayer((4, 5), "curv", learn=True)
+    opt = torch.optim.SGD(layer.parameters(), lr=0.1)
+    for _ in range(2):
+        opt.zero_grad()
+        layer(torch.rand(2, 1, 32, 40, generator=gen)).square().mean().backward()
+        opt.step()
+    fixed = lw.CurvLayout((0.3, -0.2))
+    images = torch.rand(8, 1, 32, 40, generator=gen)
+
+    class Sensed(torch.utils.data.Dataset):
+        def __len__(self) -> int:
+            return len(images)
+
+        def __getitem__(self, i: int) -> torch.Tensor:
+            return lw.simulate(images[i], fixed, (4, 5))
+
+    loader = torch.utils.data.DataLoader(
+        Sensed(), batch_size=2, num_workers=2, multiprocessing_context="fork"
+    )
+    got = torch.cat(list(loader))
+    want = torch.stack([lw.simulate(x, fixed, (4, 5)) for x in images])
+    assert torch.equal(got, want)
+
+
+@pytest.mark.parametrize("family", ["rect", "uniform", "curv"])
+def test_an_input_gradient_penalty_through_a_fixed_layout_has_its_exact_second_derivative(family, gen):
+    """A fixed layout's product is linear in the image: a penalty on the input gradient of a
+    model after it (``tanh``) has its exact second derivative. float64: ``gradgradcheck`` of the
+    rectangular layouts' separable path; float32 (rect and uniform: the separable adjoint; curv:
+    the cached weights): the penalty's gradient equals the one computed in float64."""
+    layout = lw.make_layout(family, None if family == "uniform" else (0.3, -0.2))
+    img = torch.rand(1, 1, 12, 14, generator=gen, dtype=F64)
+    w = torch.rand(1, 1, 4, 5, generator=gen, dtype=F64)
+
+    def penalty_grad(x: torch.Tensor) -> torch.Tensor:
+        x = x.clone().requires_grad_(True)
+        out = torch.tanh(3 * lw.simulate(x, layout.to(x.dtype), (4, 5)))
+        (g,) = torch.autograd.grad((out * w.to(x.dtype)).sum(), x, create_graph=True)
+        (h,) = torch.autograd.grad(g.square().sum(), x)
+        return h
+
+    if family == "curv":  # float64: the exact walk, whose image gradient is first order only
+        with pytest.raises(RuntimeError, match="exact first derivatives only") as err:
+            penalty_grad(img)
+        assert "\n" not in str(err.value)
+        # the float64 reference: the same float32 weights, as a dense matrix
+        res = lw.resampler.resampler_for(layout, (4, 5), (12, 14), lw.data_tolerance(torch.float32)[0], "cpu")
+        m = torch.from_numpy(res.weights.toarray()).double()
+        x = img.reshape(-1).clone().requires_grad_(True)
+        out = torch.tanh(3 * (m @ x)).reshape(1, 1, 4, 5)
+        (g,) = torch.autograd.grad((out * w).sum(), x, create_graph=True)
+        (want,) = torch.autograd.grad(g.square().sum(), x)
+        want = want.reshape(img.shape)
+    else:
+        want = penalty_grad(img)
+        fn = lambda x: torch.tanh(3 * lw.simulate(x, layout.double(), (4, 5)))  # noqa: E731
+        assert torch.autograd.gradgradcheck(fn, (img.clone().requires_grad_(True),))
+    got = penalty_grad(img.float())
+    assert want.abs().max() > 1e-3  # a second derivative that could be wrong
+    torch.testing.assert_close(got.double(), want, rtol=1e-4, atol=1e-5)
+
+
+def test_raw_operators_refuse_bad_arguments_in_one_line_naming_operator_and_argument(gen):
+    """``torch.ops.layoutwarp.*`` called directly with a wrong θ length, a text that is no layout's
+    token, a 4-D image, an unknown backend, points that are not (..., 2), or areas of another
+    shape: a ``ValueError`` in one line naming the operator and the argument."""
+    curv = lw.CurvLayout((0.3, -0.2))
+    token, th = layout_token(curv), curv.theta_as(F64)
+    img = torch.rand(2, 12, 14, generator=gen, dtype=F64)
+    empty = th.new_empty(0)
+
+    def exact(theta=th, image=img, layout=token, backend="auto"):
+        return torch.ops.layoutwarp.exact(theta, image, layout, 4, 5, 1e-3, backend, False, True, empty, F64)
+
+    means, areas, _, _ = exact()
+    cases = {
+        "layoutwarp::exact: theta": lambda: exact(theta=torch.zeros(3, dtype=F64)),
+        "layoutwarp::exact: layout": lambda: exact(layout="not json"),
+        "layoutwarp::exact: image": lambda: exact(image=img[None]),
+        "layoutwarp::exact: backend": lambda: exact(backend="banana"),
+        "layoutwarp::map_points: points": lambda: torch.ops.layoutwarp.map_points(
+            torch.zeros(5, 3, dtype=F64), th, token, False
+        ),
+        "layoutwarp::measure: areas": lambda: torch.ops.layoutwarp.measure(
+            means, areas[:3], CAMERA.token, "dn", torch.tensor(1)
+        ),
+    }
+    for start, call in cases.items():
+        with pytest.raises(ValueError) as err:
+            call()
+        assert str(err.value).startswith(start) and "\n" not in str(err.value), str(err.value)

@@ -221,6 +221,7 @@ class Layout(nn.Module):
             self.register_buffer("fixed_theta", exact.clone())  # never the caller's tensor
         else:
             self.rho = nn.Parameter(rho.to(self._dtype))
+            self._check_learned_theta()
 
     @property
     def dtype(self) -> torch.dtype:
@@ -280,6 +281,21 @@ class Layout(nn.Module):
         """Inverse of `_to_theta`."""
         return theta.clone() if self.unbounded else torch.atanh(theta / self._bounds().to(theta))
 
+    def _check_learned_theta(self) -> None:
+        """Refuse a θ that ``ρ`` in the layout's dtype cannot hold inside the bound (θ so near it
+        that ``bound · tanh(ρ)`` rounds onto it: a layout that folds)."""
+        if self.unbounded:
+            return
+        theta = self._to_theta(self.rho.detach()).to(torch.float64)
+        for i, (v, b) in enumerate(zip(theta.tolist(), self._bounds().tolist(), strict=True)):
+            if abs(v) >= b:
+                raise ArgumentError(
+                    "theta",
+                    f"theta[{i}] is within {str(self._dtype).removeprefix('torch.')} rounding of the "
+                    f"bound {b:g}: a learnable layout of this dtype holds |θ| up to about "
+                    f"{b * (1 - 2 * torch.finfo(self._dtype).eps):.9g}",
+                )
+
     def _check_theta(self, theta: Tensor) -> None:
         """Raise ``ValueError`` naming the first entry of a (float64, CPU) θ that is not allowed."""
         for i, (v, b) in enumerate(zip(theta.tolist(), self._bounds().tolist(), strict=True)):
@@ -337,17 +353,43 @@ class Layout(nn.Module):
             self.fixed_theta.copy_(t)
 
     def _save_to_state_dict(self, destination: dict[str, Any], prefix: str, keep_vars: bool) -> None:
-        """As `nn.Module`'s; a fixed layout whose ``rho`` was made to require grad (and trained)
-        saves the θ of its ``rho``."""
+        """As `nn.Module`'s, with the layout's ``kind`` (its family and bound, as bytes); a fixed
+        layout whose ``rho`` was made to require grad (and trained) saves the θ of its ``rho``."""
         super()._save_to_state_dict(destination, prefix, keep_vars)
+        destination[prefix + "kind"] = torch.tensor(list(self._kind().encode()), dtype=torch.uint8)
         if self._keeps_theta and self.rho.requires_grad:
             destination[prefix + "fixed_theta"] = self._to_theta(self.rho.detach()).to(torch.float64)
+
+    def _kind(self) -> str:
+        """What a state dict says of the layout besides its tensors: ``family;bound`` (the bound
+        makes ρ θ), so that loading it into a layout of another family (or, for ρ alone,
+        another bound) is refused."""
+        return f"{self.family};{self.bound!r}"
+
+    def _check_kind(self, saved: Tensor, loading_theta: bool) -> None:
+        """Refuse, in one line, a state dict of another family (or a ρ of another bound)."""
+        family, _, bound = bytes(saved.to(torch.uint8).tolist()).decode(errors="replace").partition(";")
+        if family != self.family:
+            raise ValueError(
+                f"the state dict holds a {family} layout, not a {self.family} one: load it into a "
+                f"{family} layout (make_layout({family!r}, learn=...))"
+            )
+        if bound and float(bound) != self.bound and not loading_theta:
+            raise ValueError(
+                f"the state dict holds ρ of a layout with bound={bound}, this one has bound={self.bound}: "
+                f"θ = bound · tanh(ρ) would differ; make the layout with bound={bound}"
+            )
 
     def _load_from_state_dict(self, state_dict: dict[str, Any], prefix: str, *args: Any) -> None:
         """As `nn.Module`'s, and a state dict with ``rho`` alone (a learnable layout's, or one
         written before fixed layouts kept θ) sets a fixed layout's θ from it, as the layout that
         wrote it computed θ (in ``ρ``'s dtype); a fixed layout's ``fixed_theta`` is left out where
-        ``ρ`` is learned."""
+        ``ρ`` is learned. One of another family is refused (its ``kind``, the family and bound as
+        bytes: a state dict stays tensors only); one written before layouts said their family is
+        taken as this layout's."""
+        kind = state_dict.pop(prefix + "kind", None)  # a state written before layouts said it: none
+        if kind is not None:  # θ itself in the state (a fixed layout's): ρ's bound does not matter
+            self._check_kind(kind, self._keeps_theta and prefix + "fixed_theta" in state_dict)
         rho, kept = state_dict.get(prefix + "rho"), prefix + "fixed_theta"
         if self._keeps_theta and kept not in state_dict and rho is not None and rho.shape == self.rho.shape:
             state_dict[kept] = self._to_theta(rho.detach().cpu()).to(torch.float64)
@@ -518,6 +560,8 @@ class Layout(nn.Module):
         )
 
     def extra_repr(self) -> str:
+        if torch.compiler.is_compiling():  # e.g. vmap names its function: no values read in a graph
+            return f"bound={self.bound:g}, learn={self.learnable}"
         th = ", ".join(f"{v:.4g}" for v in self.theta.detach().tolist())
         return f"theta=({th}), bound={self.bound:g}, learn={self.learnable}"
 

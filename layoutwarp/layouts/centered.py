@@ -200,6 +200,8 @@ class CenteredLayout(Layout):
         )
 
     def extra_repr(self) -> str:
+        if torch.compiler.is_compiling():  # e.g. vmap names its function: no values read in a graph
+            return super().extra_repr()
         th = ", ".join(f"{v:.4g}" for v in self.theta.detach()[:2].tolist())
         c = ", ".join(f"{v:.4g}" for v in self.center.detach().tolist())
         return f"theta=({th}), center=({c}), bound={self.bound:g}, learn={self.learnable}"

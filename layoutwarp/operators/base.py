@@ -20,7 +20,7 @@ from __future__ import annotations
 import contextlib
 import json
 from collections.abc import Callable, Iterator
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NoReturn
 
 import torch
 from torch import Tensor
@@ -45,6 +45,7 @@ __all__ = [
     "autograd_inside",
     "backend",
     "batch_rule",
+    "check_theta",
     "first_order_only",
     "generator_of",
     "layout_of",
@@ -53,6 +54,7 @@ __all__ = [
     "object_of",
     "object_token",
     "random_seed",
+    "refuse",
     "refuse_grad_transforms",
     "seed_value",
     "theta_values",
@@ -88,20 +90,48 @@ def layout_token(layout: Layout) -> str:
     return token
 
 
-def layout_of(token: str, theta: Tensor | None = None) -> Layout:
+def refuse(op: str, argument: str, message: str) -> NoReturn:
+    """Raise ``ValueError`` in one line naming the operator and its argument: how every operator
+    answers a bad argument (a user may call ``torch.ops.layoutwarp.*`` directly)."""
+    raise ValueError(f"layoutwarp::{op}: {argument} {message}")
+
+
+def check_theta(op: str, theta: Tensor, layout: Layout, bounds: Tensor | None = None) -> None:
+    """Refuse (in one line) a θ (or ρ) that is not the layout's ``P`` values, or bounds of
+    another length."""
+    n = layout.num_params or 0
+    if theta.shape != (n,):
+        refuse(
+            op, "theta", f"must hold the {layout.family} layout's {n} values, got shape {tuple(theta.shape)}"
+        )
+    if bounds is not None and bounds.numel() and bounds.shape != theta.shape:
+        refuse(op, "bounds", f"must be empty or as long as theta ({n}), got shape {tuple(bounds.shape)}")
+
+
+def layout_of(token: str, theta: Tensor | None = None, op: str = "operator") -> Layout:
     """The layout of a [`layout_token`][]: with ``theta``, one whose own θ is ``theta`` (kept per
-    token and value); without, a template for the maps that take θ as an argument."""
+    token and value); without, a template for the maps that take θ as an argument. A text that
+    is no layout's token is refused in one line naming ``op``."""
+    if not (token.startswith("object:") or token.startswith("{")):
+        refuse(op, "layout", f"must be a layout's token (layout_token(layout)), got {token[:60]!r}")
     if token.startswith("object:"):
         layout = layout_by_handle(token)
         if layout is None:
             raise RuntimeError(f"layoutwarp: the layout {token} no longer exists in this process")
         return layout
+
+    def spec() -> dict[str, Any]:
+        try:
+            return json.loads(token)
+        except json.JSONDecodeError as err:
+            refuse(op, "layout", f"must be a layout's token (JSON text), got {token[:60]!r}: {err}")
+
     if theta is None:  # kept: never made of inference-mode tensors, which autograd refuses later
-        return TEMPLATES.get(token, lambda: _outside_inference(lambda: layout_from_spec(json.loads(token))))
+        return TEMPLATES.get(token, lambda: _outside_inference(lambda: layout_from_spec(spec())))
     values = theta_values(theta)
 
     def build() -> Layout:
-        layout = layout_from_spec(json.loads(token))
+        layout = layout_from_spec(spec())
         layout.set_theta(torch.tensor(values, dtype=torch.float64))
         return layout
 
@@ -224,8 +254,8 @@ TRANSFORMS = (
 def refuse_grad_transforms() -> None:
     """Raise, in one line, inside ``torch.func.grad``, ``jacrev``, ``vjp`` or ``jvp``, whose
     autograd layers cannot enter layoutwarp's operators (``torch.func.vmap`` can)."""
-    if torch._C._functorch.maybe_current_level() is None or torch.compiler.is_compiling():
-        return  # no transform around the call
+    if torch.compiler.is_compiling() or torch._C._functorch.maybe_current_level() is None:
+        return  # no transform around the call (a compiled graph is asked first: it reads no level)
     for interpreter in retrieve_all_functorch_interpreters():
         if interpreter.key() in (TransformType.Grad, TransformType.Jvp):
             what = "grad, jacrev or vjp" if interpreter.key() == TransformType.Grad else "jvp or jacfwd"

@@ -81,11 +81,13 @@ def _exact(
     checks on the device, and the error comes when its status reaches the host, in a later step
     ([`device_status`][layoutwarp.kernels.mesh.device_status] reads it at once): the step waits
     for nothing."""
+    _check_exact(image, backend)
+    template = ops.layout_of(layout, op="exact")
+    ops.check_theta("exact", theta, template, bounds)
     size, (hs, ws) = (height, width), image.shape[-2:]
     which = "torch" if backend == "torch" else ops.backend(image, "learn", wait=backend == "numba")
     if backend == "numba" and which == "torch":
         raise ValueError(NUMBA_NEEDS)
-    template = ops.layout_of(layout)
     spec = mesh_spec(template) if which != "torch" else None
     image = image.contiguous()
     if spec is not None and which == "cuda":  # the mesh built where it is used: none crosses the bus
@@ -118,8 +120,17 @@ def _exact(
     return means, areas, jac, held
 
 
+def _check_exact(image: Tensor, backend: str) -> None:
+    """Refuse, in one line, an image that is not ``(N, H, W)`` or a backend of no name."""
+    if image.ndim != 3:
+        ops.refuse("exact", "image", f"must be (N, H, W), got shape {tuple(image.shape)}")
+    if backend not in ("auto", "numba", "torch"):
+        ops.refuse("exact", "backend", f"must be 'auto', 'numba' or 'torch', got {backend!r}")
+
+
 @_exact.register_fake
 def _(theta, image, layout, height, width, tol, backend, jacobian, check, bounds, dtype):
+    _check_exact(image, backend)
     n = image.shape[0]
     jac = _jacobian_shape(theta, image, height, width) if _keeps_jacobian(image, jacobian) else (0,)
     return (

@@ -162,14 +162,50 @@ def _separable_setup(ctx: Any, inputs: tuple, output: Tensor) -> None:
 def _separable_grad(ctx: Any, grad: Tensor) -> tuple:
     image, ex, ey, out = ctx.saved_tensors
     needs = list(ctx.needs_input_grad[:3])
-    grads = _separable_backward(grad, image, ex, ey, out, needs)
-    return (*(g if n else None for g, n in zip(grads, needs, strict=True)), None)
+    g_image = g_ex = g_ey = None
+    if needs[0]:  # linear in the image: its adjoint, an operator with exact derivatives of its own
+        g_image = _separable_adjoint(grad, ex, ey, image.shape[-2], image.shape[-1])
+    if needs[1] or needs[2]:
+        _, g_ex, g_ey = _separable_backward(grad, image, ex, ey, out, [False, needs[1], needs[2]])
+    return g_image, (g_ex if needs[1] else None), (g_ey if needs[2] else None), None
 
 
 _separable.register_autograd(_separable_grad, setup_context=_separable_setup)
 ops.first_order_only(_separable_backward, "separable")
 ops.register(_separable, fold=0)
 ops.register(_separable_backward)
+
+
+@torch.library.custom_op("layoutwarp::separable_adjoint", mutates_args=())
+def _separable_adjoint(grad: Tensor, ex: Tensor, ey: Tensor, src_height: int, src_width: int) -> Tensor:
+    """``W_yᵀ · grad · W_x`` ``(N, H, W)``: the adjoint of ``layoutwarp::separable`` in the image
+    (its image gradient), for ``grad`` ``(N, h, w)``. Linear in ``grad``, so its own derivative
+    is ``layoutwarp::separable`` again: an input-gradient penalty through a fixed rectangular
+    layout has its exact second derivative. (θ's second derivative is refused.)"""
+    wy_t = _axis_csr(ey, src_height, grad.dtype)[1]
+    wx = _axis_csr(ex, src_width, grad.dtype)[0]
+    return _rows(wy_t, _cols(grad.contiguous(), wx)).contiguous()
+
+
+@_separable_adjoint.register_fake
+def _(grad, ex, ey, src_height, src_width):
+    return grad.new_empty(grad.shape[0], src_height, src_width)
+
+
+def _adjoint_setup(ctx: Any, inputs: tuple, output: Tensor) -> None:
+    _, ex, ey, _, _ = inputs
+    ctx.save_for_backward(ex, ey)
+
+
+def _adjoint_grad(ctx: Any, grad: Tensor) -> tuple:
+    if ctx.needs_input_grad[1] or ctx.needs_input_grad[2]:
+        raise RuntimeError(ops.SECOND_ORDER.format(op="separable"))
+    ex, ey = ctx.saved_tensors
+    return _separable(grad, ex, ey, False), None, None, None, None
+
+
+_separable_adjoint.register_autograd(_adjoint_grad, setup_context=_adjoint_setup)
+ops.register(_separable_adjoint, fold=0)
 
 
 def _edge_grad(grad: Tensor, out: Tensor, vals: Tensor, edges: Tensor, dim: int) -> Tensor:
