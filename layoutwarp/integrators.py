@@ -88,8 +88,8 @@ def integrate_exact(
     boundary segment is cut at source rows and columns, and within one cell ``P`` is linear
     in ``X``, so a piece contributes ``ΔY · P(mid-X)`` exactly. Each shared edge is computed
     once; straight-edged pixels are exact, curved edges are polylines within ``tol``
-    (see [`layoutwarp.mesh.pixel_mesh`][layoutwarp.mesh.pixel_mesh]). Differentiable in the image (autograd through
-    the prefix tables) and, through the mesh vertices, in θ, with the exact Reynolds
+    (see [`layoutwarp.mesh.pixel_mesh`][layoutwarp.mesh.pixel_mesh]). Differentiable in the image
+    (autograd through the prefix tables) and, through the mesh vertices, in θ, with the exact Reynolds
     boundary gradient (symmetric where an edge lies on a source cell boundary).
 
     Args:
