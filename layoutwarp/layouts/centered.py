@@ -9,7 +9,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .base import Layout, config_numbers, promote, tensor_dtype
+from .arith import promote
+from .base import Layout, config_numbers, tensor_dtype
 
 __all__ = ["CenteredLayout", "side_scale"]
 

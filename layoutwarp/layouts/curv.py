@@ -9,7 +9,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .base import denom, promote, register_family, safe_norm
+from .arith import denom, promote, safe_norm
+from .base import register_family
 from .centered import CenteredLayout, side_scale
 
 __all__ = [

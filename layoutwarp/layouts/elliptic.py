@@ -8,7 +8,8 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-from .base import Layout, promote, register_family, safe_norm
+from .arith import promote, safe_norm
+from .base import Layout, register_family
 from .curv import phi_curv_inverse
 
 __all__ = ["EllipticLayout", "disk_to_square", "square_to_disk"]

@@ -9,7 +9,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .base import denom, promote, register_family
+from .arith import denom, promote
+from .base import register_family
 from .centered import CenteredLayout
 
 __all__ = ["RectLayout", "phi_rect", "phi_rect_dtheta", "phi_rect_inverse", "phi_rect_jacobian"]
