@@ -12,6 +12,16 @@
   new buffer or the object's end drops the entry. Reading them again would cost a JSON text or
   a wait for the device every call.
 
+**What a key cannot see.** A tensor's version counter moves with every in-place change made
+through it (`set_theta`, an optimiser's step, `load_state_dict`, `add_` under `no_grad`), and
+every key here holds the version of each tensor it was computed from, so results follow such
+changes (`tests/test_cache_keys.py` changes every family's state each of these ways and compares
+every kept path with a layout made anew). A change that bypasses the counter is not seen:
+writing through ``tensor.data`` (its own counter), through a numpy view (``tensor.numpy()``) or
+DLPack, or into a tensor's storage by other means. After such a write, [`clear_caches`][] is the
+one remedy (e.g. ``layout.fixed_theta.data.copy_(new)`` then ``lw.caches.clear_caches()``;
+better: ``layout.set_theta(new)``).
+
 Every cache registers itself in [`CACHES`][] under its name, so a user (or a test) sees and
 clears them all in one place. (Pure functions of values alone, e.g. a mesh's topology for a size
 or a frozen camera's PSF taps, are memoized where they are written, with ``functools.lru_cache``:

@@ -116,9 +116,9 @@ def _map_points(points: Tensor, theta: Tensor, layout: str, inverse: bool) -> Te
         ops.refuse("map_points", "points", f"must be (..., 2), got shape {tuple(points.shape)}")
     layout_ = ops.layout_of(layout, op="map_points")
     ops.check_theta("map_points", theta, layout_)
-    with torch.no_grad():
+    with ops.autograd_inside():  # a generic inverse differentiates φ for Newton's Jacobian
         out = layout_.phi_inverse(points, theta) if inverse else layout_.phi(points, theta)
-    return out.clone() if out is points else out
+    return out.detach().clone() if out is points else out.detach()
 
 
 @_map_points.register_fake

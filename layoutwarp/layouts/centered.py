@@ -79,6 +79,12 @@ class CenteredLayout(Layout):
         super().__init__(theta, bound=bound, learn=learn, dtype=dtype)
         self.register_buffer("fixed_center", c)  # float64, as ρ (Layout.exact_buffers)
 
+    def _load_from_state_dict(self, state_dict: dict[str, Any], prefix: str, *args: Any) -> None:
+        """As [`Layout`][layoutwarp.layouts.base.Layout]'s; a loaded fixed centre may move φ off the
+        centred map (or onto it)."""
+        super()._load_from_state_dict(state_dict, prefix, *args)
+        self._centred = not self.learn_center and bool((self.fixed_center == 0).all())
+
     def _bounds(self) -> Tensor:
         b = torch.full((self.num_params or 0,), self.bound, dtype=torch.float64)
         if self.learn_center:
