@@ -181,8 +181,10 @@ def __getattr__(name: str) -> Any:
         return globals()[name]
     if module is not None:
         value = getattr(importlib.import_module(f".{module}", __name__), name)
-    elif name in LAZY_MODULES:
-        value = importlib.import_module(f".{name}", __name__)
+    elif name in LAZY_MODULES or (
+        not name.startswith("_") and importlib.util.find_spec(f"{__name__}.{name}")
+    ):
+        value = importlib.import_module(f".{name}", __name__)  # any submodule, on first use
     else:
         raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
     globals()[name] = value

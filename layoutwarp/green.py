@@ -66,8 +66,8 @@ class _PrefixTables:
         incl = padded.reshape(n, h, nb, block).cumsum(-1)  # block-local inclusive prefix
         offs = incl[..., -1].double().cumsum(-1) - incl[..., -1].double()  # exclusive, float64
         self.block, self.nb, self.width, self.rows = block, nb, nb * block, h
-        self.incl = incl.reshape(n, -1)
-        self.offsets = offs.reshape(n, -1)
+        self.incl = incl.reshape(n, h * nb * block)  # sizes named: an empty batch has them too
+        self.offsets = offs.reshape(n, h * nb)
 
     def _ends(self, row: Tensor, col: Tensor) -> tuple[Tensor, Tensor]:
         """``I(c − 1)`` (0 at a block start) and ``I(c)`` in float64, ``(N, pieces)`` each."""

@@ -141,7 +141,7 @@ class MeshTopology:
         eh[..., 1:, :] -= pixel_values
         ev[..., :, 1:] += pixel_values
         ev[..., :, :-1] -= pixel_values
-        parts = (eh.reshape(*lead, -1), ev.reshape(*lead, -1))
+        parts = (eh.reshape(*lead, (h + 1) * w), ev.reshape(*lead, h * (w + 1)))  # an empty lead too
         return np.concatenate(parts, -1) if isinstance(pixel_values, np.ndarray) else torch.cat(parts, -1)
 
 

@@ -374,3 +374,29 @@ def test_curved_tolerance_holds_for_mixed_sign_theta(gen):
         for tol in (1e-3, 1e-5):
             err = float((lw.simulate(img, layout, size, tol=tol) - ref).abs().max())
             assert err <= tol, (theta, size, tol, err)
+
+
+@pytest.mark.parametrize("learn", [False, True])
+@pytest.mark.parametrize("integrator", ["exact", "exact-torch", "separable", "montecarlo", "point"])
+def test_every_integrator_takes_an_empty_batch(integrator, learn):
+    """An empty batch ``(0, H, W)`` called directly: an empty ``(0, h, w)`` result (and the pixels'
+    areas where asked, summing to the square's 4), and a backward that runs."""
+    layout = (lw.RectLayout if integrator == "separable" else lw.CurvLayout)((0.3, -0.2), learn=learn)
+    image = torch.rand(0, 12, 14, requires_grad=True)
+    call = {
+        "exact": lambda: lw.integrators.integrate_exact(image, layout, (4, 5), return_areas=True),
+        "exact-torch": lambda: lw.integrators.integrate_exact(
+            image, layout, (4, 5), backend="torch", return_areas=True
+        ),
+        "separable": lambda: lw.integrators.integrate_separable(image, layout, (4, 5), return_areas=True),
+        "montecarlo": lambda: (lw.integrators.integrate_montecarlo(image, layout, (4, 5), seed=1), None),
+        "point": lambda: (lw.integrators.integrate_point(image, layout, (4, 5)), None),
+    }[integrator]
+    out, areas = call()
+    assert out.shape == (0, 4, 5)
+    if areas is not None:
+        assert areas.shape == (4, 5) and abs(float(areas.detach().sum()) - 4) < 1e-9
+    loss = out.sum() + (0 if areas is None else areas.sum())
+    if loss.requires_grad:
+        loss.backward()
+        assert image.grad is None or image.grad.shape == image.shape

@@ -304,11 +304,14 @@ def test_a_tasks_own_freeze_epochs_is_its_protocol_not_an_error(monkeypatch, tmp
 
 
 def test_import_layoutwarp_is_enough_for_its_subpackages():
-    """``import layoutwarp`` alone gives ``lw.kernels`` and ``lw.operators`` (as the docs' blocks use
-    them), in a fresh process."""
+    """``import layoutwarp`` alone gives every submodule on first use (``lw.kernels``,
+    ``lw.operators``, ``lw.integrators``, ...: as the docs' blocks use them), in a fresh process."""
     import subprocess
     import sys
 
-    code = "import layoutwarp as lw\nlw.kernels.threads()\nassert 'exact' in lw.operators.OPERATORS\n"
+    code = (
+        "import layoutwarp as lw\nlw.kernels.threads()\nassert 'exact' in lw.operators.OPERATORS\n"
+        "assert callable(lw.integrators.integrate_exact) and callable(lw.optics.apply_psf)\n"
+    )
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert run.returncode == 0, run.stderr[-2000:]

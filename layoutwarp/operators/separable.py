@@ -72,6 +72,8 @@ def _axis_csr(edges: Tensor, n_src: int, dtype: torch.dtype) -> tuple[Tensor, Te
 def _rows(mat: Tensor, x: Tensor) -> Tensor:
     """``mat @ x[k]`` for every ``k``: sparse ``(m, H)`` times ``(N, H, W)`` gives ``(N, m, W)``."""
     n, h, w = x.shape
+    if n == 0:  # an empty batch
+        return x.new_zeros(0, mat.shape[0], w)
     if n <= 8:
         return torch.stack([torch.sparse.mm(mat, x[k]) for k in range(n)])
     flat = x.permute(1, 0, 2).reshape(h, n * w)  # one call for many small images
@@ -81,7 +83,7 @@ def _rows(mat: Tensor, x: Tensor) -> Tensor:
 def _cols(x: Tensor, mat_t: Tensor) -> Tensor:
     """``x @ mat_t``: ``(N, H, W)`` times sparse ``(W, m)`` gives ``(N, H, m)``."""
     n, h, w = x.shape
-    return torch.mm(x.reshape(n * h, w), mat_t).view(n, h, -1)
+    return torch.mm(x.reshape(n * h, w), mat_t).view(n, h, mat_t.shape[1])
 
 
 def _edge_values(profile: Tensor, edges: Tensor) -> Tensor:
