@@ -317,7 +317,7 @@ class AreaResampler:
         """[`apply`][]'s product (and, with ``physics``, the measurement fused into it, its
         noise drawn from ``seed``), eagerly: the work of ``layoutwarp::area``."""
         n = images.shape[0]
-        flat = images.reshape(n, -1)
+        flat = images.reshape(n, images.shape[-2] * images.shape[-1])  # sizes named: an empty batch too
         seed_value = 0 if seed is None or physics is None else ops.seed_value(seed)
         which = ops.backend(flat, "fixed", name=_DEVICE_PRODUCT)
         if which == "cuda" and not flat.requires_grad:
@@ -355,7 +355,9 @@ class AreaResampler:
                 raise_nonfinite(images)
             return torch.from_numpy(out).view(n, *self.size)
         cols = [self.sparse @ flat[k].unsqueeze(1) for k in range(n)]  # contiguous planes: no transpose
-        mean = torch.cat(cols, 1).T.reshape(n, *self.size).contiguous()
+        mean = (
+            torch.cat(cols, 1).T.reshape(n, *self.size).contiguous() if n else flat.new_zeros(0, *self.size)
+        )
         if not (allow_nonfinite or all_finite(mean)):
             raise_nonfinite(images)
         if physics is None:
@@ -366,7 +368,9 @@ class AreaResampler:
         """The transposed weights applied to ``(N, h, w)``: ``(N, H, W)``, the images' gradient
         of [`apply`][] without physics."""
         n = grad.shape[0]
-        flat = grad.reshape(n, -1).to(torch.float32)
+        flat = grad.reshape(n, grad.shape[-2] * grad.shape[-1]).to(torch.float32)
+        if n == 0:  # an empty batch
+            return grad.new_zeros(0, *self.src_size)
         cols = [self.sparse_t @ flat[k].unsqueeze(1) for k in range(n)]
         return torch.cat(cols, 1).T.reshape(n, *self.src_size).to(grad.dtype).contiguous()
 

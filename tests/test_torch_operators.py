@@ -730,3 +730,37 @@ def test_raw_operators_refuse_bad_arguments_in_one_line_naming_operator_and_argu
         with pytest.raises(ValueError) as err:
             call()
         assert str(err.value).startswith(start) and "\n" not in str(err.value), str(err.value)
+
+
+def _variants(args: tuple, image_at: int, variant: str) -> tuple:
+    """``args`` with the image argument at ``image_at`` made non-contiguous (``"strided"``, the
+    same values), rounded to float32 (``"float32"``) or emptied of its batch (``"empty"``)."""
+    x = args[image_at]
+    if variant == "strided":
+        y = x.detach().transpose(-1, -2).contiguous().transpose(-1, -2)
+    elif variant == "float32":
+        y = x.detach().float()
+    else:
+        y = x.detach()[:0]
+    y = y.requires_grad_(x.requires_grad)
+    return (*args[:image_at], y, *args[image_at + 1 :])
+
+
+#: Operators that take an image ``(N, H, W)``, and where it is among their arguments.
+IMAGE_AT = {"exact": 1, "separable": 0, "separable_adjoint": 0, "area": 0, "guard_finite": 1}
+
+
+@pytest.mark.parametrize("variant", ["strided", "float32", "empty"])
+def test_the_image_operators_pass_opcheck_on_strided_float32_and_empty_images(variant, gen):
+    """``torch.library.opcheck`` again on every operator that takes an image, with that image
+    non-contiguous (a transposed copy's transpose), in float32 (``area`` takes nothing else), and
+    with an empty batch: the fake kernels' shapes, strides and dtypes hold for them too."""
+    import layoutwarp.sensor  # noqa: F401
+
+    cases = _cases(gen)
+    for name, at in IMAGE_AT.items():
+        if variant == "float32" and name == "area":
+            continue  # area's images are float32 already
+        args = _variants(cases[name], at, variant)
+        result = torch.library.opcheck(OPERATORS[name], args)
+        assert all(v == "SUCCESS" for v in result.values()), (name, variant, result)
