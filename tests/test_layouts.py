@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import math
 
 import pytest
@@ -363,3 +364,27 @@ def test_a_learnable_theta_within_rounding_of_the_bound_is_refused_in_one_line()
         assert "\n" not in str(err.value)
     assert lw.CurvLayout((0.9999999999, 0.1), learn=True, dtype=torch.float64).theta[0] < 1
     assert lw.CurvLayout((0.99999, 0.1), learn=True).theta[0] < 1
+
+
+def test_a_grid_checkpoint_taken_after_a_folding_step_loads_to_the_same_layer():
+    """A learnable grid's state saved right after a step that folds it (the layer guards that step
+    from its last valid grid at the next forward) loads into a fresh layer that guards it the same
+    way: equal outputs (the last valid grid is saved with ρ). A fixed grid refuses a folded state
+    in one line, as its constructor does."""
+    x = torch.rand(1, 1, 16, 16, generator=torch.Generator().manual_seed(0))
+    layer = lw.SensorLayer((4, 4), lw.GridLayout(grid=(2, 2), learn=True))
+    with torch.no_grad():
+        layer.layout.rho[2] = 0.5  # a valid step
+    layer(x)  # the guard records it as the last valid grid
+    with torch.no_grad():
+        layer.layout.rho[2] = 1.2  # the next step folds the grid
+    fresh = lw.SensorLayer((4, 4), lw.GridLayout(grid=(2, 2), learn=True))
+    fresh.load_state_dict(copy.deepcopy(layer.state_dict()))
+    assert torch.equal(fresh(x), layer(x))
+    assert torch.equal(fresh.layout.rho, layer.layout.rho)
+    fixed = lw.SensorLayer((4, 4), lw.GridLayout(grid=(2, 2)))
+    folded = {k: v.clone() for k, v in fixed.state_dict().items()}
+    folded["layout.fixed_theta"][2] = 1.2
+    with pytest.raises(ValueError, match="fold") as err:
+        fixed.load_state_dict(folded)
+    assert "\n" not in str(err.value)

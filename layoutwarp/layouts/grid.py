@@ -154,7 +154,9 @@ class GridLayout(Layout):
         _raise_if_folded(ctrl)
         super().__init__(ctrl[mask], bound=bound, learn=learn, dtype=dtype or tensor_dtype(control))
         self.register_buffer("free", mask, persistent=False)
-        self.register_buffer("last_valid", self.rho.detach().clone(), persistent=False)
+        # saved with ρ: a checkpoint taken after a step that folds the grid guards, once loaded,
+        # as the layer that wrote it would
+        self.register_buffer("last_valid", self.rho.detach().clone())
 
     # -- constructors ----------------------------------------------------------------
     @classmethod
@@ -231,7 +233,15 @@ class GridLayout(Layout):
             ctrl = self.control_points(self.theta_as(torch.float64)).detach().cpu()
         return _foldover_report(ctrl)
 
-    @torch.no_grad()
+    def _load_from_state_dict(self, state_dict: dict[str, Any], prefix: str, *args: Any) -> None:
+        """As [`Layout`][layoutwarp.layouts.base.Layout]'s; a state written before grids saved
+        their last valid control points keeps this layout's."""
+        state_dict.setdefault(prefix + "last_valid", self.last_valid.detach().clone())
+        theta = state_dict.get(prefix + "fixed_theta")
+        if self._keeps_theta and isinstance(theta, Tensor) and theta.shape == self.fixed_theta.shape:
+            _raise_if_folded(self.control_points(theta.to(torch.float64)))  # as the constructor does
+        super()._load_from_state_dict(state_dict, prefix, *args)
+
     @torch.no_grad()
     def guard_(self) -> Tensor:
         """Undo the part of the last step that folds the grid (see [`Layout.guard_`][]).
