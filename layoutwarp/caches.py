@@ -24,7 +24,7 @@ better: ``layout.set_theta(new)``).
 
 Every cache registers itself in [`CACHES`][] under its name, so a user (or a test) sees and
 clears them all in one place. One store is kept outside the rule on purpose: the rooms of the
-device meshes ([`MESH_ROOMS`][layoutwarp.kernels.mesh.device.MESH_ROOMS], a few bytes of mapped
+device meshes (``layoutwarp.kernels.mesh.MESH_ROOMS``, a few bytes of mapped
 host memory per layout kind and size), which a captured CUDA graph writes into for as long as it
 lives, so they live as long as the process. (Pure functions of values alone, e.g. a mesh's topology for a size
 or a frozen camera's PSF taps, are memoized where they are written, with ``functools.lru_cache``:
