@@ -108,7 +108,6 @@ def test_backwarp_uniform_integer_ratio_is_nearest_upsampling(gen, device):
     [
         "fovea",
         "rect",
-        pytest.param("curv", marks=pytest.mark.slow),
         pytest.param("elliptic", marks=pytest.mark.slow),
     ],
 )
