@@ -535,7 +535,7 @@ def pixel_mesh(
             most ``tol``), and on its θ-gradient when θ requires grad (see
             `_edge_parameters`). The default ``1e-5`` is a geometric reference; the
             integrators pass what the data needs
-            ([`data_tolerance`][layoutwarp.integrators.data_tolerance]). ``None``:
+            ([`data_tolerance`][layoutwarp.tolerance.data_tolerance]). ``None``:
             one segment per edge. Ignored for straight-edged layouts, which always use one
             segment per straight piece (between the cuts of
             [`Layout.edge_breakpoints`][layoutwarp.layouts.base.Layout.edge_breakpoints]).
@@ -570,8 +570,26 @@ def pixel_mesh(
     theta = layout.resolve_theta(theta)
     dtype = dtype or theta.dtype
     key = None if subdivisions is not None else _cache_key(layout, (h, w), tol, max_subdiv, dtype, theta)
-    build = lambda: _build_mesh(layout, (h, w), theta, tol, max_subdiv, subdivisions, dtype)  # noqa: E731
+
+    def build() -> PixelMesh:
+        mesh = _build_mesh(layout, (h, w), theta, tol, max_subdiv, subdivisions, dtype)
+        if torch.finfo(dtype).bits < 64:  # a valid layout whose pixels the dtype cannot hold: refused
+            _check_resolved(mesh, dtype)
+        return mesh
+
     return build() if key is None else MESHES.get(key, build, keep=cache)
+
+
+def _check_resolved(mesh: PixelMesh, dtype: torch.dtype) -> None:
+    """Refuse, in one line, a mesh whose vertices ``dtype`` rounds into pixels of no positive
+    area (θ near ±1 makes the border pixels narrower than float32 resolves)."""
+    areas = mesh.areas().detach()
+    if bool((areas <= 0).any()):
+        n, name = int((areas <= 0).sum()), str(dtype).removeprefix("torch.")
+        raise ValueError(
+            f"pixel_mesh: {n} pixels of this layout are narrower than {name} resolves (smallest "
+            f"area {float(areas.min()):.3g}): make the mesh in float64 (dtype=torch.float64)"
+        )
 
 
 def _build_mesh(

@@ -444,7 +444,7 @@ def preprocess_folder(
         workers: worker threads (1: no pool).
         tol: bound on each pixel's error relative to the value range, spent on curved edges
             (default ``None``: what each file's dtype resolves,
-            [`data_tolerance`][layoutwarp.integrators.data_tolerance]:
+            [`data_tolerance`][layoutwarp.tolerance.data_tolerance]:
             a quarter of a level for integer images, i.e. 9.8e-4 at 8 bit and 3.8e-6 at 16 bit,
             and 2^-12 for float images); with rounding, integer outputs stay within 0.75 levels
             of the exact integral.

@@ -237,3 +237,15 @@ def test_learnable_user_layout_gets_accurate_theta_gradients(gen):
 
     fd = (value(theta + h) - value(theta - h)) / (2 * h)
     assert abs(float(g) - fd) <= 1e-4 * max(1.0, abs(fd))
+
+
+def test_a_float32_mesh_whose_pixels_float32_cannot_hold_is_refused_in_one_line():
+    """θ = (−0.999999, −0.999999) is a valid layout whose border pixels are narrower than float32
+    resolves: its float32 mesh is refused in one line (it had pixels of negative area); its
+    float64 mesh has every area positive, and the integrators (float64 meshes) run."""
+    layout = lw.CurvLayout((-0.999999, -0.999999))
+    with pytest.raises(ValueError, match="narrower than float32") as err:
+        lw.pixel_mesh(layout, (16, 16))
+    assert "\n" not in str(err.value)
+    assert bool((lw.pixel_mesh(layout, (16, 16), dtype=torch.float64).areas() > 0).all())
+    assert torch.isfinite(lw.simulate(torch.rand(1, 1, 64, 64), layout, (16, 16))).all()

@@ -161,7 +161,7 @@ class TaskSpec:
         return self.metrics[0]
 
 
-#: [`data_tolerance`][layoutwarp.integrators.data_tolerance] of uint8 images (a quarter of one
+#: [`data_tolerance`][layoutwarp.tolerance.data_tolerance] of uint8 images (a quarter of one
 #: level), written out so that the protocols need no torch (tests check the two agree).
 UINT8_TOLERANCE = 0.25 / 255
 
