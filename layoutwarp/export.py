@@ -25,6 +25,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import torch
+from torch import Tensor
 from tqdm import tqdm
 
 from .checks import (
@@ -39,7 +40,7 @@ from .checks import (
 from .coords import sensor_to_pixels, uniform_corners
 from .files import atomic_write
 from .layouts import Layout, check_layout
-from .mesh import MeshTopology, distance_subdivisions, pixel_mesh, polygon_area
+from .mesh import MeshTopology, pixel_mesh, polygon_area, smooth_pieces
 from .physics import SensorPhysics, as_physics, pixel_snr
 
 __all__ = [
@@ -48,6 +49,7 @@ __all__ = [
     "RASTER_MAX_SIDE",
     "ExportReport",
     "check_raster",
+    "distance_subdivisions",
     "export_layout",
     "pixel_polygons_um",
     "report_json",
@@ -106,6 +108,68 @@ class ExportReport:
             snr = f"SNR {p['min_snr']:.3g} .. {p['max_snr']:.3g}"
             lines.append(f"  at {p['photons_per_um2']:g} photons/µm²: {full}, {snr}")
         return "\n".join(lines + [f"  warning: {w}" for w in self.warnings])
+
+
+def distance_subdivisions(
+    layout: Layout,
+    size: tuple[int, int],
+    tol: float,
+    *,
+    scale: tuple[float, float] = (2.0, 2.0),
+    manhattan: bool = False,
+    min_counts: Tensor | np.ndarray | None = None,
+    max_subdiv: int = 4096,
+) -> tuple[Tensor, float]:
+    """Segments per smooth piece so that every polyline stays within a distance of its curve.
+
+    The geometric counterpart of the value tolerance of [`pixel_mesh`][] (used for fabrication
+    masks, where the edge's position is what matters): each smooth piece of every edge
+    ([`smooth_pieces`][], a vertex on every kink) is split into ``2^k`` equal parameter steps
+    until the curve's distance from every chord, measured at the step's middle, is at most
+    ``tol``. Distances are in the units of ``scale``, the sensor's extent ``(H, W)``
+    (micrometres for a mask; the default ``(2, 2)`` measures in sensor coordinates). With
+    ``manhattan``, a segment's axis-aligned Z step adds ``min(|ΔX|, |ΔY|) / 2`` to its deviation.
+    Straight-edged layouts need no steps beyond one per piece unless ``manhattan``.
+
+    Args:
+        layout: the pixel layout (its θ, without gradient).
+        size: sensor size ``(H, W)``.
+        tol: the largest deviation, in the units of ``scale``.
+        scale: the sensor's extent ``(H, W)`` in the unit of ``tol``.
+        manhattan: count the deviation of axis-aligned steps.
+        min_counts: ``(E,)`` fewest segments per piece of each edge (default 1).
+        max_subdiv: cap on segments per piece.
+
+    Returns:
+        ``(counts, deviation)``: ``(pieces,)`` int64 counts for ``pixel_mesh(...,
+        subdivisions=counts)`` and the largest deviation measured.
+    """
+    theta = layout.theta_as(torch.float64).detach().cpu()
+    a, b = MeshTopology(check_size(size)).edge_ends()
+    owner, t0, t1 = smooth_pieces(layout, a, b, theta=theta)
+    pa = a[owner] + t0[:, None] * (b - a)[owner]  # smooth pieces in uniform coordinates
+    pd = (t1 - t0)[:, None] * (b - a)[owner]
+    first = (
+        np.ones(len(owner), dtype=np.int64) if min_counts is None else np.asarray(min_counts)[owner.numpy()]
+    )
+    n = first.astype(np.int64).copy()
+    dev = np.zeros(len(owner))
+    while (not layout.straight_edges) or manhattan:  # double the steps of every piece not yet within
+        bad = np.zeros(len(owner), dtype=bool)
+        for k in np.unique(n):
+            idx = np.flatnonzero(n == k)
+            t = torch.linspace(0, 1, 2 * k + 1, dtype=torch.float64)
+            with torch.no_grad():
+                q = layout.phi(pa[idx, None] + t[None, :, None] * pd[idx, None], theta)
+            p = sensor_to_pixels(q, scale).numpy()  # vertices and midpoints
+            dev[idx] = np.linalg.norm(p[:, 1::2] - (p[:, 0:-1:2] + p[:, 2::2]) / 2, axis=-1).max(1)
+            if manhattan:  # a Z step deviates from its chord by at most min(|dx|, |dy|) / 2
+                dev[idx] += np.abs(np.diff(p[:, ::2], axis=1)).min(-1).max(1) / 2
+            bad[idx] = (dev[idx] > tol) & (k < max_subdiv)
+        if not bad.any():
+            break
+        n[bad] *= 2
+    return torch.from_numpy(n), float(dev.max(initial=0.0))
 
 
 def _edge_polylines(

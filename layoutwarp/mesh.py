@@ -33,7 +33,6 @@ __all__ = [
     "MESHES",
     "MeshTopology",
     "PixelMesh",
-    "distance_subdivisions",
     "pixel_mesh",
     "polygon_area",
     "segment_area",
@@ -429,68 +428,6 @@ def _chord_and_sagitta(
     return length, sag
 
 
-def distance_subdivisions(
-    layout: Layout,
-    size: tuple[int, int],
-    tol: float,
-    *,
-    scale: tuple[float, float] = (2.0, 2.0),
-    manhattan: bool = False,
-    min_counts: Tensor | np.ndarray | None = None,
-    max_subdiv: int = 4096,
-) -> tuple[Tensor, float]:
-    """Segments per smooth piece so that every polyline stays within a distance of its curve.
-
-    The geometric counterpart of the value tolerance of [`pixel_mesh`][] (used for fabrication
-    masks, where the edge's position is what matters): each smooth piece of every edge
-    ([`smooth_pieces`][], a vertex on every kink) is split into ``2^k`` equal parameter steps
-    until the curve's distance from every chord, measured at the step's middle, is at most
-    ``tol``. Distances are in the units of ``scale``, the sensor's extent ``(H, W)``
-    (micrometres for a mask; the default ``(2, 2)`` measures in sensor coordinates). With
-    ``manhattan``, a segment's axis-aligned Z step adds ``min(|ΔX|, |ΔY|) / 2`` to its deviation.
-    Straight-edged layouts need no steps beyond one per piece unless ``manhattan``.
-
-    Args:
-        layout: the pixel layout (its θ, without gradient).
-        size: sensor size ``(H, W)``.
-        tol: the largest deviation, in the units of ``scale``.
-        scale: the sensor's extent ``(H, W)`` in the unit of ``tol``.
-        manhattan: count the deviation of axis-aligned steps.
-        min_counts: ``(E,)`` fewest segments per piece of each edge (default 1).
-        max_subdiv: cap on segments per piece.
-
-    Returns:
-        ``(counts, deviation)``: ``(pieces,)`` int64 counts for ``pixel_mesh(...,
-        subdivisions=counts)`` and the largest deviation measured.
-    """
-    theta = layout.theta_as(torch.float64).detach().cpu()
-    a, b = MeshTopology(check_size(size)).edge_ends()
-    owner, t0, t1 = smooth_pieces(layout, a, b, theta=theta)
-    pa = a[owner] + t0[:, None] * (b - a)[owner]  # smooth pieces in uniform coordinates
-    pd = (t1 - t0)[:, None] * (b - a)[owner]
-    first = (
-        np.ones(len(owner), dtype=np.int64) if min_counts is None else np.asarray(min_counts)[owner.numpy()]
-    )
-    n = first.astype(np.int64).copy()
-    dev = np.zeros(len(owner))
-    while (not layout.straight_edges) or manhattan:  # double the steps of every piece not yet within
-        bad = np.zeros(len(owner), dtype=bool)
-        for k in np.unique(n):
-            idx = np.flatnonzero(n == k)
-            t = torch.linspace(0, 1, 2 * k + 1, dtype=torch.float64)
-            with torch.no_grad():
-                q = layout.phi(pa[idx, None] + t[None, :, None] * pd[idx, None], theta)
-            p = sensor_to_pixels(q, scale).numpy()  # vertices and midpoints
-            dev[idx] = np.linalg.norm(p[:, 1::2] - (p[:, 0:-1:2] + p[:, 2::2]) / 2, axis=-1).max(1)
-            if manhattan:  # a Z step deviates from its chord by at most min(|dx|, |dy|) / 2
-                dev[idx] += np.abs(np.diff(p[:, ::2], axis=1)).min(-1).max(1) / 2
-            bad[idx] = (dev[idx] > tol) & (k < max_subdiv)
-        if not bad.any():
-            break
-        n[bad] *= 2
-    return torch.from_numpy(n), float(dev.max(initial=0.0))
-
-
 #: How far inside its piece (a fraction of it) the count stage samples ∂φ/∂θ at the piece's ends.
 INNER = 1e-6
 
@@ -545,7 +482,8 @@ def pixel_mesh(
         subdivisions: force the segment counts instead of the adaptive choice, with a vertex on
             every kink: an int for every smooth piece, an ``(E,)`` tensor per edge (for each of
             its pieces), or a ``(pieces,)`` tensor per smooth piece in the order of
-            [`smooth_pieces`][] (e.g. [`distance_subdivisions`][]). Used for references
+            [`smooth_pieces`][] (e.g.
+            [`distance_subdivisions`][layoutwarp.export.distance_subdivisions]). Used for references
             (smooth in θ, for finite differences) and fabrication masks.
         dtype: vertex dtype (default: θ's dtype).
         theta: use this θ instead of the layout's own (see
