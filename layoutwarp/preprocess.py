@@ -25,20 +25,17 @@ Destination layout::
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import json
 import os
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
-import cv2
 import numpy as np
 import torch
 
@@ -55,6 +52,7 @@ from .checks import (
 )
 from .doctor import run_info
 from .files import atomic_write, file_in_the_way
+from .imagefiles import encode_image, read_image, to_dtype
 from .labels import LABEL_RULES as SENSOR_RULES
 from .layoutfile import layout_from_spec, layout_spec, load_layout, same_spec, save_layout
 from .layouts import Layout, check_layout
@@ -96,84 +94,6 @@ class PreprocessResult:
     @property
     def images_per_second(self) -> float:
         return self.processed / self.seconds if self.seconds > 0 else float("nan")
-
-
-def _encode(path: Path, arr: np.ndarray) -> bytes:
-    ok, buf = cv2.imencode(path.suffix, arr)
-    if not ok:
-        raise ValueError(f"OpenCV cannot encode a {arr.dtype} {arr.shape} image as {path.suffix}")
-    return buf.tobytes()
-
-
-def _to_dtype(values: np.ndarray, dtype: np.dtype) -> np.ndarray:
-    if np.issubdtype(dtype, np.integer):
-        info = np.iinfo(dtype)
-        return np.clip(np.rint(values), info.min, info.max).astype(dtype)
-    return values.astype(dtype)
-
-
-_CV_SILENT = 0  # cv::utils::logging::LOG_LEVEL_SILENT in every release
-
-
-def _cv_log() -> Any:
-    """OpenCV's log-level functions: in ``cv2.utils.logging`` in newer releases, on ``cv2`` itself in
-    older ones (4.8, the oldest pyproject allows)."""
-    return getattr(cv2.utils, "logging", cv2)
-
-
-_QUIET_LOCK = threading.Lock()
-_QUIET = {"depth": 0, "level": 0}
-
-
-@contextlib.contextmanager
-def _opencv_quiet() -> Iterator[None]:
-    """Within: OpenCV logs nothing (a broken file is reported once, as the run's failure), and as
-    it was after the last thread leaves (the level is process-wide; the worker threads decode at
-    once)."""
-    with _QUIET_LOCK:
-        if _QUIET["depth"] == 0:
-            _QUIET["level"] = _cv_log().getLogLevel()
-            _cv_log().setLogLevel(_CV_SILENT)
-        _QUIET["depth"] += 1
-    try:
-        yield
-    finally:
-        with _QUIET_LOCK:
-            _QUIET["depth"] -= 1
-            if _QUIET["depth"] == 0:
-                _cv_log().setLogLevel(_QUIET["level"])
-
-
-def _truncation(data: np.ndarray) -> str | None:
-    """Why a PNG or JPEG file's bytes are cut short (its end marker missing), or ``None``. Such a
-    file is refused before decoding: OpenCV decodes a truncated JPEG into an image whose lower
-    part is grey, and libpng and libjpeg print their own lines about it."""
-    raw = data.tobytes()
-    if raw.startswith(b"\x89PNG\r\n\x1a\n"):
-        if raw.rfind(b"IEND") < raw.rfind(b"IDAT"):  # data may follow IEND (metadata, a trailer)
-            return "truncated PNG file (no IEND chunk after its image data)"
-    elif raw.startswith(b"\xff\xd8"):
-        scan = raw.find(b"\xff\xda")  # the first scan (an EXIF thumbnail's end comes before it)
-        if scan < 0 or raw.find(b"\xff\xd9", scan) < 0:  # a video may follow (motion photos)
-            return "truncated JPEG file (no end-of-image marker after its scan)"
-    return None
-
-
-def read_image(path: Path, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray:
-    """An image file as OpenCV decodes it (HW or HWC, its own dtype); ``ValueError`` if unreadable
-    or cut short (a PNG or JPEG file without its end marker).
-
-    Read as bytes first, so paths OpenCV's own reader cannot open (non-ASCII names) work too.
-    """
-    data = np.fromfile(str(path), dtype=np.uint8)
-    why = _truncation(data) if data.size else "empty file"
-    if why is not None:
-        raise ValueError(why)
-    with _opencv_quiet():
-        img = cv2.imdecode(data, flags)
-    if img is None:
-        raise ValueError("unreadable or not an image")
-    return img
 
 
 class _Job:
@@ -233,9 +153,9 @@ class _Job:
         try:
             img = read_image(Path(task["src"]))
             res = self.resampler(img.shape[:2], img.dtype)
-            out = _to_dtype(self.record(img, res, rel), img.dtype)
+            out = to_dtype(self.record(img, res, rel), img.dtype)
             dst = Path(task["dst"])
-            atomic_write(dst, _encode(dst, out))
+            atomic_write(dst, encode_image(dst, out))
             entry = {"file": rel, "src_bytes": task["src_bytes"], "src_mtime_ns": task["src_mtime_ns"]}
             entry |= {"src_hw": list(img.shape[:2]), "out_bytes": dst.stat().st_size}
             if task.get("label_src"):
@@ -258,7 +178,7 @@ class _Job:
             label = read_image(src)
             if label.ndim != 2:
                 raise ValueError(f"label map {src} must be single-channel, has shape {label.shape}")
-            atomic_write(dst, _encode(dst, res.labels(label, self.label_rule)))
+            atomic_write(dst, encode_image(dst, res.labels(label, self.label_rule)))
         return {"label": str(dst), "label_bytes": dst.stat().st_size}
 
 
