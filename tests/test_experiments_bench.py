@@ -209,7 +209,7 @@ def test_the_memory_child_measures_a_fixed_layouts_first_call_with_and_without_c
     spec |= {"src": (64, 96), "size": (9, 13), "threads": torch.get_num_threads()}
     for size, built in ((0, False), (4, True)):
         resampler.RESAMPLERS.clear()
-        bench._memory_child(spec | {"cache_size": size}, Conn())
+        bench.memory_child(spec | {"cache_size": size}, Conn())
         assert resampler.RESAMPLERS.maxsize == size and bool(len(resampler.RESAMPLERS)) == built
     assert len(sent) == 2 and all(v >= 0 for v in sent)
 

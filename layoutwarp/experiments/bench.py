@@ -13,7 +13,6 @@ The caller chooses torch's thread count (``layoutwarp bench --threads``); nothin
 
 from __future__ import annotations
 
-import itertools
 import json
 import multiprocessing as mp
 import os
@@ -43,6 +42,14 @@ from ..mesh import pixel_mesh
 from ..sensor import simulate
 from ..testing import count_ops
 from .scene import SineScene, blurred_noise, load_photo
+from .timing import (
+    cuda_peak_mb,
+    interleaved_times,
+    time_backward,
+    time_call,
+    time_overhead,
+    time_paired,
+)
 
 __all__ = [
     "ENTRY_POINTS",
@@ -81,93 +88,7 @@ class Row:
     extra: dict = field(default_factory=dict)
 
 
-def _sync() -> None:
-    """Wait for queued GPU work, so that a timed call is really done (a no-op without CUDA)."""
-    if torch.cuda.is_available():
-        torch.cuda.synchronize()
-
-
-def _time_paired(fns: Sequence[Callable[[], object]], repeats: int) -> list[float]:
-    """Median ms of each of ``fns`` over the rounds of [`interleaved_times`][]."""
-    return [float(np.median(col)) for col in interleaved_times(fns, repeats)]
-
-
-def _time_overhead(
-    base: Callable[[], object], other: Callable[[], object], rounds: int
-) -> tuple[float, float, float]:
-    """``other`` against ``base`` over [`interleaved_times`][]' rounds: the median ms of each,
-    and how much longer ``other`` takes as the median of the rounds' ratios minus 1 (both calls
-    of a round meet the same machine state)."""
-    times = interleaved_times([base, other], rounds)
-    t_base, t_other = (float(np.median(col)) for col in times)
-    return t_base, t_other, float(np.median(np.divide(times[1], times[0]))) - 1
-
-
-def interleaved_times(fns: Sequence[Callable[[], object]], rounds: int) -> list[list[float]]:
-    """Time calls that are to be compared, in interleaved rounds: ``times[i][k]``, the ms of
-    ``fns[i]`` in round ``k`` (``max(rounds, 1)`` rounds, after one warm-up call each).
-
-    Every round calls each of ``fns`` once, so the calls of a round meet the same machine state
-    (on a small virtual machine the speed drifts by 1.5x within seconds): compare two calls by
-    the median of their rounds' ratios. Round ``k`` takes the ``k``-th of the calls' orders (all
-    of them in turn), so each call follows each other as often: what a call leaves behind
-    (caches, another pool's spinning threads) is shared alike, which a rotation of one order,
-    keeping every call's predecessor, would not do."""
-    for fn in fns:
-        fn()
-    orders = list(itertools.permutations(range(len(fns))))
-    times: list[list[float]] = [[] for _ in fns]
-    for k in range(max(rounds, 1)):
-        for i in orders[k % len(orders)]:
-            times[i].append(_time(fns[i], 0))
-    return times
-
-
-def _time(fn: Callable[[], object], repeats: int) -> float:
-    """Median ms of ``repeats`` calls after a warm-up (``repeats = 0``: one call, no warm-up)."""
-    if repeats == 0:
-        _sync()
-        t0 = time.perf_counter()
-        fn()
-        _sync()
-        return (time.perf_counter() - t0) * 1e3
-    fn()
-    times = []
-    for _ in range(repeats):
-        _sync()
-        t0 = time.perf_counter()
-        fn()
-        _sync()
-        times.append(time.perf_counter() - t0)
-    return float(np.median(times) * 1e3)
-
-
-def _time_backward(forward: Callable[[], Tensor], layout: Layout, repeats: int) -> float:
-    """Median time (ms) of ``forward().sum().backward()``'s backward pass alone, after a warm-up."""
-    times = []
-    for k in range(repeats + 1):
-        loss = forward().sum()
-        _sync()
-        t0 = time.perf_counter()
-        loss.backward()
-        _sync()
-        if k:
-            times.append(time.perf_counter() - t0)
-        layout.rho.grad = None
-    return float(np.median(times) * 1e3)
-
-
-def _cuda_peak_mb(fn: Callable[[], object]) -> float:
-    """Growth of allocated GPU memory (MiB) over what was allocated before ``fn`` ran, at its peak."""
-    _sync()
-    torch.cuda.reset_peak_memory_stats()
-    base = torch.cuda.memory_allocated()
-    fn()
-    _sync()
-    return (torch.cuda.max_memory_allocated() - base) / 2**20
-
-
-def _status_mb(key: str) -> float:
+def status_mb(key: str) -> float:
     with open("/proc/self/status") as f:
         for line in f:
             if line.startswith(key + ":"):
@@ -175,7 +96,7 @@ def _status_mb(key: str) -> float:
     raise KeyError(key)
 
 
-def _memory_child(spec: dict, conn) -> None:  # pragma: no cover - runs in a spawned process
+def memory_child(spec: dict, conn) -> None:  # pragma: no cover - runs in a spawned process
     torch.set_num_threads(spec["threads"])
     if "cache_size" in spec:  # how many fixed layouts' area weights simulate keeps
         resampler.RESAMPLERS.maxsize = spec["cache_size"]
@@ -188,7 +109,7 @@ def _memory_child(spec: dict, conn) -> None:  # pragma: no cover - runs in a spa
             simulate(blurred_noise(48, 64), layout, (5, 7), spec["method"], **spec["opts"])
     with open("/proc/self/clear_refs", "w") as f:
         f.write("5")  # reset the peak resident set (VmHWM) to the current one
-    before = _status_mb("VmRSS")
+    before = status_mb("VmRSS")
     with torch.no_grad():
         if spec["method"] == "inter_area":
             cv2.resize(npimg, spec["size"][::-1], interpolation=cv2.INTER_AREA)
@@ -196,7 +117,7 @@ def _memory_child(spec: dict, conn) -> None:  # pragma: no cover - runs in a spa
             _remap(npimg, maps)
         else:
             simulate(img, layout, spec["size"], spec["method"], **spec["opts"])
-    conn.send(_status_mb("VmHWM") - before)
+    conn.send(status_mb("VmHWM") - before)
     conn.close()
 
 
@@ -216,7 +137,7 @@ def peak_memory_mb(spec: dict) -> float | None:
         return None
     ctx = mp.get_context("spawn")
     parent, child = ctx.Pipe()
-    proc = ctx.Process(target=_memory_child, args=(spec, child))
+    proc = ctx.Process(target=memory_child, args=(spec, child))
     proc.start()
     value = parent.recv() if parent.poll(900) else None
     proc.join()
@@ -413,10 +334,10 @@ def run(config: BenchConfig | None = None, progress: Callable[[str], None] | Non
 
 def _anchors(cfg: BenchConfig, img: Tensor, curv: Layout) -> dict[str, float]:
     """``cv2.resize(INTER_AREA)`` and a bare ``grid_sample`` MC-16 of the curv layout, in ms."""
-    t_area = _time(_forward_fn(img, curv, cfg.size, "inter_area", {}), cfg.repeats)
+    t_area = time_call(_forward_fn(img, curv, cfg.size, "inter_area", {}), cfg.repeats)
     gen = torch.Generator(cfg.device).manual_seed(0)  # samples drawn on the device, as a GPU user would
     dev_img = img.to(cfg.device)
-    t_gs = _time(lambda: _grid_sample_mc(dev_img, curv, cfg.size, 4, gen), cfg.repeats)
+    t_gs = time_call(lambda: _grid_sample_mc(dev_img, curv, cfg.size, 4, gen), cfg.repeats)
     return {"inter_area": t_area, "grid_sample_mc16": t_gs}
 
 
@@ -463,7 +384,7 @@ def _layout_rows(
     rows = []
     npi = np.ascontiguousarray(img[0].permute(1, 2, 0).numpy())
     maps = forward_maps(layout, size, cfg.src).numpy()  # point-sampling anchor: maps made once
-    t_remap = _time(lambda: _remap(npi, maps), repeats)
+    t_remap = time_call(lambda: _remap(npi, maps), repeats)
     anchors[f"remap_linear_{name}"] = t_remap
     out = torch.from_numpy(_remap(npi, maps)).permute(2, 0, 1)[None]
     rows.append(
@@ -508,7 +429,7 @@ def _layout_rows(
         if on_cuda and photo:
             dev_img, dev_curv = img.to(cfg.device), layout_from_spec(spec).to(cfg.device)
             gen = torch.Generator(cfg.device).manual_seed(0)
-            rows[-1].peak_mb = _cuda_peak_mb(lambda: _grid_sample_mc(dev_img, dev_curv, size, 4, gen))
+            rows[-1].peak_mb = cuda_peak_mb(lambda: _grid_sample_mc(dev_img, dev_curv, size, 4, gen))
     dev_layout, dev_img = layout_from_spec(spec).to(cfg.device), img.to(cfg.device)  # the timed copies
     dev_learn = layout_from_spec(spec, learn=True).to(cfg.device)  # the same layout, learnable
     for method, opts, setting in _settings(dev_layout, name, cfg.tols, cfg.mc_samples):
@@ -518,7 +439,7 @@ def _layout_rows(
             with torch.no_grad():
                 return simulate(dev_img, dev_layout, size, method, **opts)
 
-        row = Row(image_name, name, method, setting, _time(fwd, repeats), **errors(fwd().cpu()))
+        row = Row(image_name, name, method, setting, time_call(fwd, repeats), **errors(fwd().cpu()))
         if method == "exact" and dev_layout.separable:
             row.method = "separable"
         if g_ref is not None:
@@ -526,17 +447,19 @@ def _layout_rows(
             def fwd_grad(method=method, opts=opts):
                 return simulate(dev_img, dev_learn, size, method, **opts)
 
-            row.extra["forward_with_grad_ms"] = _time(fwd_grad, repeats)  # learnable: mesh rebuilt every call
-            row.backward_ms = _time_backward(fwd_grad, dev_learn, repeats)
+            row.extra["forward_with_grad_ms"] = time_call(
+                fwd_grad, repeats
+            )  # learnable: mesh rebuilt every call
+            row.backward_ms = time_backward(fwd_grad, dev_learn, repeats)
             (fwd_grad().double().cpu() * gw).sum().backward()
             g = _theta_grad(dev_learn).cpu()
             dev_learn.rho.grad = None
             row.grad_rel_err = float((g - g_ref).norm() / g_ref.norm())
             row.extra["grad"], row.extra["grad_ref"] = g.tolist(), g_ref.tolist()
         if photo:
-            row.peak_mb = _cuda_peak_mb(fwd) if on_cuda else mem(method, opts)
+            row.peak_mb = cuda_peak_mb(fwd) if on_cuda else mem(method, opts)
             if on_cuda and g_ref is not None:
-                row.extra["train_peak_mb"] = _cuda_peak_mb(lambda f=fwd_grad: f().sum().backward())
+                row.extra["train_peak_mb"] = cuda_peak_mb(lambda f=fwd_grad: f().sum().backward())
                 dev_learn.rho.grad = None
         rows.append(row)
     return rows
@@ -560,16 +483,16 @@ def reuse_row(cfg: BenchConfig, image_name: str, img: Tensor) -> Row:
             return simulate(dev_img, layout, cfg.size)
 
     resampler.RESAMPLERS.clear()
-    first = _time(fwd, 0)
+    first = time_call(fwd, 0)
     inter_area = _forward_fn(img, layout, cfg.size, "inter_area", {})
-    area, repeat = _time_paired([inter_area, fwd], cfg.repeats * 2 + 1)
+    area, repeat = time_paired([inter_area, fwd], cfg.repeats * 2 + 1)
     cpu_layout = layout_from_spec(bench_layouts(cfg.theta)["curv"])  # Module.cpu() moves in place
     with torch.no_grad():  # the reference on the CPU, the timed layout left on its device
         ref = integrate_exact(img.flatten(0, 1), cpu_layout, cfg.size, tol=data_tolerance(torch.float32)[0])
     err = (fwd().cpu().double().flatten(0, 1) - ref).abs()
     kept, resampler.RESAMPLERS.maxsize = resampler.RESAMPLERS.maxsize, 0
     try:
-        walk = _time(fwd, cfg.repeats)
+        walk = time_call(fwd, cfg.repeats)
     finally:
         resampler.RESAMPLERS.maxsize = kept
     extra = {"first_call_ms": first, "over_inter_area": repeat / area, "walk_ms": walk}
@@ -619,7 +542,7 @@ def training_rows(cfg: BenchConfig, image_name: str, img: Tensor) -> list[Row]:
     for name, spec in specs.items():
         layout = layout_from_spec(spec, learn=True).to(cfg.device)
         fixed = layout_from_spec(spec).to(cfg.device)
-        mesh_ms = _time(lambda layout=layout: _learnable_mesh(layout, cfg.size), cfg.repeats)
+        mesh_ms = time_call(lambda layout=layout: _learnable_mesh(layout, cfg.size), cfg.repeats)
         for batch in (1, 4):
             x = img.to(cfg.device).expand(batch, -1, -1, -1).contiguous()
             planes = x.reshape(-1, *x.shape[-2:])
@@ -636,12 +559,12 @@ def training_rows(cfg: BenchConfig, image_name: str, img: Tensor) -> list[Row]:
             def mc16(step=step) -> None:
                 step(method="montecarlo", opts={"samples": 4, "seed": 0})
 
-            t_ex, t_mc, t_fwd = _time_paired([step, mc16, forward], cfg.repeats)
+            t_ex, t_mc, t_fwd = time_paired([step, mc16, forward], cfg.repeats)
             extra = {
                 "batch": batch,
                 "ops": count_ops(step),
                 "mesh_ms": mesh_ms,
-                "in_a_row_ms": _time(step, cfg.repeats),
+                "in_a_row_ms": time_call(step, cfg.repeats),
                 "over_mc16": t_ex / t_mc,
                 "over_fixed_forward": t_ex / t_fwd,
             }
@@ -693,7 +616,7 @@ def physics_rows(cfg: BenchConfig, image_name: str, img: Tensor, anchors: dict[s
     # within seconds: many pairs (1000 at the default repeats, about 5 s; the median moves by about
     # a point between runs of 200), and the overhead as the median of each round's ratio, both
     # calls of a round meeting the same machine state
-    tp, tq, over = _time_overhead(plain, measured, cfg.repeats * 200)
+    tp, tq, over = time_overhead(plain, measured, cfg.repeats * 200)
     noise = float((measured().cpu().double() - plain().cpu().double()).pow(2).mean().sqrt())
     extra = {"over_plain": over, "plain_ms": tp, "physics": ph.to_dict()}
     if cfg.device == "cpu" and kernels.available():
@@ -704,9 +627,9 @@ def physics_rows(cfg: BenchConfig, image_name: str, img: Tensor, anchors: dict[s
         args = kernel_arguments(ph, areas)
         mean = plain().reshape(-1, areas.numel()).numpy()
         out, nt = np.empty_like(mean), kernels.threads()
-        extra["kernel_ms"] = _time(lambda: kernels.sensor_measure(mean, *args, out, nt), cfg.repeats * 40)
+        extra["kernel_ms"] = time_call(lambda: kernels.sensor_measure(mean, *args, out, nt), cfg.repeats * 40)
         quiet = (*args[:-2], 0, args[-1])  # the same camera without noise: what the sampler costs
-        extra["kernel_noise_free_ms"] = _time(
+        extra["kernel_noise_free_ms"] = time_call(
             lambda: kernels.sensor_measure(mean, *quiet, out, nt), cfg.repeats * 40
         )
     rows = [Row(image_name, "curv", "exact + physics", "noise,FW,ADC", tq, rmse=noise, extra=extra)]
@@ -719,13 +642,13 @@ def physics_rows(cfg: BenchConfig, image_name: str, img: Tensor, anchors: dict[s
         simulate(dev_img, learnable, cfg.size, physics=physics).sum().backward()
         learnable.rho.grad = None
 
-    t_plain, t_phys, over = _time_overhead(step, lambda: step(ph), cfg.repeats * 4)
+    t_plain, t_phys, over = time_overhead(step, lambda: step(ph), cfg.repeats * 4)
     extra = {"over_plain": over, "plain_ms": t_plain, "ops": count_ops(lambda: step(ph))}
     rows.append(Row(image_name, "curv ±", "physics train step", "noise,FW,ADC", t_phys, extra=extra))
     flat = dev_img.reshape(-1, h, w)
     for kind in ("gaussian", "airy"):
         psf = SensorPhysics(sensor_um=extent, photons_per_um2=1.0, psf=kind)
-        t = _time(lambda psf=psf: apply_psf(flat, psf), cfg.repeats)
+        t = time_call(lambda psf=psf: apply_psf(flat, psf), cfg.repeats)
         row = Row(
             image_name, "-", f"psf {kind}", "f/5.6", t, extra={"over_inter_area": t / anchors["inter_area"]}
         )
@@ -880,7 +803,10 @@ def scaling(
     for label, (family, method, opts) in SCALING_METHODS.items():
         layout = make_layout(family, None if family == "uniform" else theta)
         times[label] = [
-            [_time(_forward_fn(blurred_noise(*src), layout, size, method, opts), repeats) for size in sizes]
+            [
+                time_call(_forward_fn(blurred_noise(*src), layout, size, method, opts), repeats)
+                for size in sizes
+            ]
             for src in srcs
         ]
     src_px = np.log([a * b for a, b in srcs])
