@@ -483,7 +483,7 @@ def pixel_mesh(
             every kink: an int for every smooth piece, an ``(E,)`` tensor per edge (for each of
             its pieces), or a ``(pieces,)`` tensor per smooth piece in the order of
             [`smooth_pieces`][] (e.g.
-            [`distance_subdivisions`][layoutwarp.export.distance_subdivisions]). Used for references
+            ``layoutwarp.export.distance_subdivisions``). Used for references
             (smooth in θ, for finite differences) and fabrication masks.
         dtype: vertex dtype (default: θ's dtype).
         theta: use this θ instead of the layout's own (see

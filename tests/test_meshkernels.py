@@ -1,4 +1,4 @@
-"""The compiled learnable path (layoutwarp.kernels.mesh + integrators._CompiledExact) against the
+"""The compiled learnable path (layoutwarp.kernels.mesh + layoutwarp::exact) against the
 torch reference: the same mesh, values and θ-gradients to rounding, on random and hard layouts."""
 
 from __future__ import annotations

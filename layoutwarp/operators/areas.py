@@ -15,7 +15,7 @@ __all__: list[str] = []
 @torch.library.custom_op("layoutwarp::pixel_areas", mutates_args=())
 def _pixel_areas(theta: Tensor, layout: str, height: int, width: int, tol: float) -> Tensor:
     """The areas ``(h, w)`` (float64, sensor units) of the pixel polygons of ``layout`` (a
-    [`layout_token`][layoutwarp.ops.layout_token]) at ``theta``: what sensor physics needs beside
+    [`layout_token`][layoutwarp.operators.base.layout_token]) at ``theta``: what sensor physics needs beside
     the sampling integrators' means. Differentiable in θ (the mesh built again with autograd)."""
     mesh = pixel_mesh(
         ops.layout_of(layout), (height, width), tol=tol, dtype=torch.float64, theta=theta.detach()

@@ -66,7 +66,7 @@ def _exact(
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """The exact means ``(N, h, w)`` (computed in float64, rounded once into ``dtype``) and
     areas ``(h, w)`` (float64, sensor units) of the pixels of ``layout`` (a
-    [`layout_token`][layoutwarp.ops.layout_token]) at θ over the box image ``image``
+    [`layout_token`][layoutwarp.operators.base.layout_token]) at θ over the box image ``image``
     ``(N, H, W)``. ``theta`` is θ itself where ``bounds`` is empty, else the parameter ρ of
     ``θ = bounds · tanh(ρ)`` (float64;
     [`Layout.theta_source`][layoutwarp.layouts.base.Layout.theta_source]): the operator makes
