@@ -35,6 +35,7 @@ from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -70,6 +71,10 @@ __all__ = [
     "preprocess_folder",
     "read_image",
 ]
+
+#: Sensors of at least this many pixels say when their area weights are built, and how long it
+#: took (with progress shown): a 4000x4000 sensor's take a minute or more.
+ANNOUNCE_PIXELS = 1 << 20
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
 #: The most worker threads (or Dask processes) a run takes.
@@ -111,9 +116,10 @@ class _Job:
         label_rule: str,
         device: str = "cpu",
         physics: SensorPhysics | None = None,
+        say: Callable[[str], None] | None = None,
     ):
         self.layout, self.size, self.tol, self.label_rule = layout, size, tol, label_rule
-        self.device, self.physics = device, physics
+        self.device, self.physics, self.say = device, physics, say
         self._cache: dict[tuple, AreaResampler] = {}
         self._lock = threading.Lock()
 
@@ -142,9 +148,17 @@ class _Job:
             if key not in self._cache:
                 warn_if_finer(self.size, src_size)  # once a source size (and once a calling line)
                 warn_if_stretched(self.size, src_size)
+                fine = self.say is not None and self.size[0] * self.size[1] >= ANNOUNCE_PIXELS
+                if fine:  # minutes for a fine sensor: said, so a long first image reads as work
+                    h, w = self.size
+                    self.say(f"preprocess: building the area weights of the {h}x{w} sensor for "
+                             f"{src_size[0]}x{src_size[1]} images (once per source size) ...")  # fmt: skip
+                t0 = time.perf_counter()
                 self._cache[key] = AreaResampler(
                     self.layout, self.size, src_size, tol=self.tol, dtype=dtype, device=self.device
                 )
+                if fine:
+                    self.say(f"preprocess: ... built in {time.perf_counter() - t0:.1f} s")
             return self._cache[key]
 
     def process(self, task: dict) -> dict:
@@ -498,7 +512,7 @@ def preprocess_folder(
             bar.update(1)
 
         fixed = layout_from_spec(config, dtype=torch.float64)
-        job = _Job(fixed, size, tol, label_rule, str(device), physics)
+        job = _Job(fixed, size, tol, label_rule, str(device), physics, say=_above(bar) if show else None)
         if engine == "dask" and tasks:
             spec = {"layout": config, "size": list(size), "tol": tol, "label_rule": label_rule}
             spec |= {"physics": physics.to_dict() if physics else None}
@@ -531,6 +545,11 @@ def preprocess_folder(
     result.manifest = dst / "manifest.json"
     atomic_write(result.manifest, json.dumps(manifest, indent=2).encode())
     return result
+
+
+def _above(bar: Any) -> Callable[[str], None]:
+    """A line written above the progress bar, on standard error with it."""
+    return lambda line: bar.write(line, file=sys.stderr)
 
 
 def _run_on_dask(

@@ -430,3 +430,22 @@ def test_preprocess_refuses_to_overwrite_a_folders_own_files(tmp_path, seed):
     res = preprocess_folder(tmp_path / "src", tmp_path / "ours", layout, size, progress=False)
     again = preprocess_folder(tmp_path / "src", tmp_path / "ours", layout, size, progress=False)
     assert res.processed == 1 and again.skipped == 1  # a run's own destination resumes
+
+
+def test_a_fine_sensor_says_when_its_area_weights_are_built(tmp_path, monkeypatch, capfd):
+    """With progress shown, a sensor of at least ``ANNOUNCE_PIXELS`` pixels says, above the bar,
+    that it builds its area weights (once per source size) and how long that took; with progress
+    off it says nothing."""
+    import layoutwarp.preprocess as pre
+
+    src = tmp_path / "src"
+    src.mkdir()
+    for k in range(2):  # one source size: the weights built once
+        assert cv2.imwrite(str(src / f"{k}.png"), np.full((30, 38), 100 + k, np.uint8))
+    monkeypatch.setattr(pre, "ANNOUNCE_PIXELS", 20)  # a 5x6 sensor counts as fine here
+    preprocess_folder(src, tmp_path / "out", fixed("curv", (0.3, -0.2)), (5, 6), progress=True)
+    err = capfd.readouterr().err
+    assert err.count("building the area weights of the 5x6 sensor for 30x38 images") == 1, err
+    assert re.search(r"built in \d+\.\d s", err), err
+    preprocess_folder(src, tmp_path / "quiet", fixed("curv", (0.3, -0.2)), (5, 6), progress=False)
+    assert "area weights" not in capfd.readouterr().err
