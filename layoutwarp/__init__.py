@@ -82,18 +82,6 @@ CORE = (
     "sensor",
     "warmups",
 )
-#: Submodules that ``layoutwarp.<name>`` loads on first use.
-LAZY_MODULES = (
-    "augment",
-    "doctor",
-    "export",
-    "jit",
-    "kernels",
-    "labels",
-    "operators",
-    "preprocess",
-    "resampler",
-)
 
 __all__ = ["__version__", *FRONT_DOOR]
 
@@ -181,9 +169,7 @@ def __getattr__(name: str) -> Any:
         return globals()[name]
     if module is not None:
         value = getattr(importlib.import_module(f".{module}", __name__), name)
-    elif name in LAZY_MODULES or (
-        not name.startswith("_") and importlib.util.find_spec(f"{__name__}.{name}")
-    ):
+    elif not name.startswith("_") and importlib.util.find_spec(f"{__name__}.{name}"):
         value = importlib.import_module(f".{name}", __name__)  # any submodule, on first use
     else:
         raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -18,7 +18,7 @@ from torch import Tensor
 
 from .checks import check_choice, check_shape, check_size
 from .coords import pixel_centers, sensor_to_pixels
-from .layouts import Layout, check_layout
+from .layouts import Layout, check_layout, wants_grad
 from .maps import inverse_coords, raster_index_map
 
 __all__ = ["backwarp", "backwarp_cross_entropy", "backwarp_numpy", "sensor_index_maps"]
@@ -117,8 +117,7 @@ def _theta_attached(layout: Layout, p: Tensor, size: tuple[int, int]) -> Tensor:
     Newton step ``p − J⁻¹ (φ(p, θ) − q)``, equal to ``p`` in value (the residual is the
     inverse's, ~1e-13) and with the implicit derivative ``∂p/∂θ = −J⁻¹ ∂φ/∂θ``."""
     theta = layout.theta
-    batched = torch._C._functorch.is_batchedtensor(theta)
-    if not (torch.is_grad_enabled() and (theta.requires_grad or batched)):
+    if not (torch.is_grad_enabled() and wants_grad(theta)):
         return p
     q = pixel_centers(size, dtype=torch.float64, device=p.device)
     th = theta.to(torch.float64)

@@ -24,9 +24,9 @@ better: ``layout.set_theta(new)``).
 
 Every cache registers itself in [`CACHES`][] under its name, so a user (or a test) sees and
 clears them all in one place. One store is kept outside the rule on purpose: the rooms of the
-device meshes (``layoutwarp.kernels.mesh.MESH_ROOMS``, a few bytes of mapped
-host memory per layout kind and size), which a captured CUDA graph writes into for as long as it
-lives, so they live as long as the process. (Pure functions of values alone, e.g. a mesh's topology for a size
+device meshes (``layoutwarp.kernels.mesh.MESH_ROOMS``, a few bytes of mapped host memory per
+layout kind and size), which a captured CUDA graph writes into for as long as it lives, so they
+live as long as the process. (Pure functions of values alone, e.g. a mesh's topology for a size
 or a frozen camera's PSF taps, are memoized where they are written, with ``functools.lru_cache``:
 nothing they depend on can change.)
 """
@@ -140,8 +140,10 @@ class ObjectMemo:
 
     def __init__(self, name: str) -> None:
         self.name = name
-        self._entries: dict[int, tuple[weakref.ref, tuple, Any]] = {}  # one dict step at a time:
-        CACHES[name] = self  # (get and set are atomic under the GIL; an entry is replaced whole)
+        # no lock: each look and change is one dict step (atomic under the GIL), and an entry
+        # is replaced whole
+        self._entries: dict[int, tuple[weakref.ref, tuple, Any]] = {}
+        CACHES[name] = self
 
     def get(self, obj: Any, state: tuple, compute: Callable[[], V]) -> V:
         """The value remembered for ``obj`` in ``state``, else ``compute()`` remembered (a state

@@ -33,7 +33,7 @@ from .integrators import (
     integrate_separable,
 )
 from .layoutfile import load_layout, save_layout
-from .layouts import Layout, make_layout
+from .layouts import Layout, make_layout, wants_grad
 from .operators.base import layout_token, random_seed, refuse_grad_transforms
 from .physics import SensorPhysics, apply_psf, as_physics, check_output, measure, noise_seed
 from .resampler import RESAMPLERS
@@ -307,11 +307,10 @@ class _Integration:
         """This call's route: ``"weights"`` (a fixed layout's cached sparse area weights,
         [`resampler_for`][]: the exact method, θ needing no gradient, a registered family, float32
         images and a cache that keeps weights), else the plan's integrator."""
-        method, rho = self.plan.method, self.layout.rho
-        # inside torch.vmap a batched ρ reports no requires_grad, though the ρ it holds may: the
-        # learnable path, whose θ reaches autograd (the weights' would leave θ without gradient)
-        learned = rho.requires_grad or torch._C._functorch.is_batchedtensor(rho)
-        fixed = not (torch.is_grad_enabled() and learned)
+        method = self.plan.method
+        # a ρ batched under vmap too: the learnable path, whose θ reaches autograd (the weights'
+        # would leave θ without gradient)
+        fixed = not (torch.is_grad_enabled() and wants_grad(self.layout.rho))
         if method != "exact" or not fixed or RESAMPLERS.maxsize == 0:
             return method
         if not (isinstance(work, Tensor) and work.dtype == torch.float32):

@@ -34,6 +34,7 @@ from .base import (
     register_family,
     tensor_dtype,
     theta_of,
+    wants_grad,
 )
 from .centered import CenteredLayout
 from .curv import (
@@ -87,4 +88,5 @@ __all__ = [
     "square_to_disk",
     "tensor_dtype",
     "theta_of",
+    "wants_grad",
 ]

@@ -35,6 +35,7 @@ __all__ = [
     "register_family",
     "tensor_dtype",
     "theta_of",
+    "wants_grad",
 ]
 
 
@@ -54,6 +55,12 @@ def theta_of(param: Tensor, bounds: Tensor) -> Tensor:
     (differentiable; the formula a learnable layout's θ is made by, at float64)."""
     x = param.double()
     return x if bounds.numel() == 0 else bounds.to(x) * torch.tanh(x)
+
+
+def wants_grad(t: Tensor) -> bool:
+    """Whether ``t`` can carry a gradient to a parameter: it requires grad, or it is batched under
+    ``torch.vmap`` (a batched tensor reports no ``requires_grad``, though what it holds may)."""
+    return t.requires_grad or torch._C._functorch.is_batchedtensor(t)
 
 
 def config_numbers(
@@ -250,28 +257,35 @@ class Layout(nn.Module):
         """Inverse of `_to_theta`."""
         return theta.clone() if self.unbounded else torch.atanh(theta / self._bounds().to(theta))
 
+    def _outside(self, theta: Tensor) -> tuple[int, float, float] | None:
+        """The first entry of a (float64, CPU) θ that is not finite or not inside its bound, as
+        ``(index, value, bound)``; ``None`` where every entry is allowed."""
+        for i, (v, b) in enumerate(zip(theta.tolist(), self._bounds().tolist(), strict=True)):
+            if not math.isfinite(v) or abs(v) >= b:
+                return i, v, b
+        return None
+
     def _check_learned_theta(self) -> None:
         """Refuse a θ that ``ρ`` in the layout's dtype cannot hold inside the bound (θ so near it
         that ``bound · tanh(ρ)`` rounds onto it: a layout that folds)."""
-        if self.unbounded:
-            return
-        theta = self._to_theta(self.rho.detach()).to(torch.float64)
-        for i, (v, b) in enumerate(zip(theta.tolist(), self._bounds().tolist(), strict=True)):
-            if abs(v) >= b:
-                raise ArgumentError(
-                    "theta",
-                    f"theta[{i}] is within {str(self._dtype).removeprefix('torch.')} rounding of the "
-                    f"bound {b:g}: a learnable layout of this dtype holds |θ| up to about "
-                    f"{b * (1 - 2 * torch.finfo(self._dtype).eps):.9g}",
-                )
+        bad = None if self.unbounded else self._outside(self._to_theta(self.rho.detach()).double())
+        if bad is not None:
+            i, _, b = bad
+            raise ArgumentError(
+                "theta",
+                f"theta[{i}] is within {str(self._dtype).removeprefix('torch.')} rounding of the "
+                f"bound {b:g}: a learnable layout of this dtype holds |θ| up to about "
+                f"{b * (1 - 2 * torch.finfo(self._dtype).eps):.9g}",
+            )
 
     def _check_theta(self, theta: Tensor) -> None:
         """Raise ``ValueError`` naming the first entry of a (float64, CPU) θ that is not allowed."""
-        for i, (v, b) in enumerate(zip(theta.tolist(), self._bounds().tolist(), strict=True)):
-            if not math.isfinite(v) or abs(v) >= b:
-                raise ValueError(
-                    f"theta[{i}] = {v!r} is out of range: each θ must be finite with |θ| < bound = {b}"
-                )
+        bad = self._outside(theta)
+        if bad is not None:
+            i, v, b = bad
+            raise ValueError(
+                f"theta[{i}] = {v!r} is out of range: each θ must be finite with |θ| < bound = {b}"
+            )
 
     def _validate_theta(self, theta: Sequence[float] | Tensor | None, dtype: torch.dtype) -> Tensor:
         n = self.num_params or 0

@@ -112,13 +112,13 @@ def layout_of(token: str, theta: Tensor | None = None, op: str = "operator") -> 
     """The layout of a [`layout_token`][]: with ``theta``, one whose own θ is ``theta`` (kept per
     token and value); without, a template for the maps that take θ as an argument. A text that
     is no layout's token is refused in one line naming ``op``."""
-    if not (token.startswith("object:") or token.startswith("{")):
-        refuse(op, "layout", f"must be a layout's token (layout_token(layout)), got {token[:60]!r}")
     if token.startswith("object:"):
         layout = layout_by_handle(token)
         if layout is None:
             raise RuntimeError(f"layoutwarp: the layout {token} no longer exists in this process")
         return layout
+    if not token.startswith("{"):
+        refuse(op, "layout", f"must be a layout's token (layout_token(layout)), got {token[:60]!r}")
 
     def spec() -> dict[str, Any]:
         try:
