@@ -1,14 +1,17 @@
-"""One command on a fresh GPU machine: the CUDA tests, then every GPU figure the docs quote, printed
-and written to ``examples/gpu/gpu_check.json`` (keys: ``device``, ``torch``, ``numpy``,
-``step_over_gs16`` per family, ``captured_step_over_gs16`` (the step captured in a CUDA graph and
-replayed), ``step_over_reference_b1``/``_b4`` (against the paper's reference layer, a 16-sample
-step, where ``../shared/refcode`` is there and imports; ``null`` and ``reference_missing`` where
-not), ``fixed_over_pool``, ``physics_overhead`` (a fraction), ``launches_per_step`` (the
-profiler's GPU activities; ``launches_counted``: `count_launches`, as the tests count them
-without a GPU), ``host_reads`` (`count_host_reads` of a learnable step), ``numba_launch_us`` and
-``torch_launch_us`` (the host's microseconds a launch of a numba kernel of 12 tensors and of a
-torch operator costs), ``first_call_s``,
-``physics_cuda_equals_cpu`` (the share of recorded values equal on both, same seed)).
+"""One command on a fresh GPU machine: every GPU figure the docs quote, then the CUDA tests, printed
+and written to ``examples/gpu/gpu_check.json``. Keys: ``device``, ``torch``, ``numpy``;
+``step_over_gs16`` per family (``step_over_gs16_dispatcher``: the curv ± step with every kernel
+launched through numba's dispatcher instead of directly); ``captured_step_over_gs16`` (the step
+captured in a CUDA graph and replayed); ``step_over_reference_b1``/``_b4`` (against the paper's
+reference layer, a 16-sample step, where ``shared/refcode`` beside or inside the checkout
+imports; else ``null``, and ``reference_missing`` says why); ``fixed_over_pool``;
+``physics_overhead`` (a fraction); ``launches_per_step`` (the profiler's GPU activities;
+``launches_counted``: `count_launches`, as the tests count them without a GPU;
+``gpu_busy_ms_per_step``: the profiler's time of those); ``host_reads`` (`count_host_reads` of a
+learnable step); ``numba_launch_us``, ``direct_launch_us`` and ``torch_launch_us`` (the host's
+microseconds a launch of a numba kernel of 12 tensors costs through numba's dispatcher and
+directly, and a torch operator's); ``first_call_s``; ``physics_cuda_equals_cpu`` (the share of
+recorded values equal on both, same seed); ``cuda_tests``.
 
     python examples/gpu_check.py [--no-tests] [--out examples/gpu/gpu_check.json]
 
@@ -38,6 +41,7 @@ from layoutwarp.testing import count_host_reads, count_launches
 
 lw.jit.set_mode("wait")  # time the compiled kernels, never the torch path while they compile
 SIZE = (129, 257)
+TESTS = "(cuda or device or gpu or numpy) and not simulator"  # the tests a GPU adds to, by name
 FIRST_CALL = """
 import time, torch, torch.nn.functional as F, layoutwarp as lw
 img = F.interpolate(torch.rand(1, 3, 256, 512), size=(1024, 2048), mode="bilinear").cuda()
@@ -76,9 +80,11 @@ def captured(fn):
 def reference_layer() -> tuple[object, str | None]:
     """The paper's reference layer (``FoveatedSensor`` with its curvilinear deformation, from
     ``../shared/refcode`` beside the checkout) and ``None``, or ``None`` and why not."""
-    root = Path(__file__).resolve().parents[2] / "shared" / "refcode"
-    if not (root / "sensor").is_dir():
-        return None, f"no reference layer at {root}"
+    here = Path(__file__).resolve()
+    roots = [here.parents[2] / "shared" / "refcode", here.parents[1] / "shared" / "refcode"]
+    root = next((r for r in roots if (r / "sensor").is_dir()), None)
+    if root is None:
+        return None, f"no reference layer at {roots[0]} or {roots[1]}"
     sys.path.insert(0, str(root))
     try:
         from sensor.deformations import CurvilinearDeformation
@@ -88,8 +94,9 @@ def reference_layer() -> tuple[object, str | None]:
     return (lambda: FoveatedSensor(SIZE, t_init=[0.3, -0.24], spp=16, deform=CurvilinearDeformation())), None
 
 
-def launches(fn, calls: int = 5) -> float:
-    """GPU activities (kernels, copies, memsets) per call, from torch's profiler."""
+def launches(fn, calls: int = 5) -> tuple[float, float]:
+    """GPU activities (kernels, copies, memsets) per call, and the milliseconds the GPU spends
+    in them per call, from torch's profiler."""
     from torch.profiler import ProfilerActivity, profile
 
     fn()
@@ -99,7 +106,7 @@ def launches(fn, calls: int = 5) -> float:
             fn()
         torch.cuda.synchronize()
     events = [e for e in prof.events() if e.device_type == torch.autograd.DeviceType.CUDA]
-    return len(events) / calls
+    return len(events) / calls, sum(e.time_range.elapsed_us() for e in events) / calls / 1e3
 
 
 cuda = None  # numba.cuda, bound by the first launch (layoutwarp.kernels.cuda_launch)
@@ -112,16 +119,24 @@ def _touch(a0, a1, a2, a3, a4, a5, a6, a7, a8, a9, a10, a11) -> None:
         a0[0] = a11[0]
 
 
-def launch_us(device: str = "cuda", calls: int = 300) -> tuple[float, float]:
+def launch_us(device: str = "cuda", calls: int = 300) -> tuple[float, float, float]:
     """Host microseconds per launch, without waiting between them: a numba kernel of twelve
-    tensor arguments through `cuda_launch` (as layoutwarp's kernels launch), and a torch operator
-    (``add`` on the same tiny tensor)."""
-    from layoutwarp.kernels.device import cuda_launch, stream_of
+    tensor arguments through `cuda_launch` by numba's dispatcher and directly (as layoutwarp's
+    kernels launch), and a torch operator (``add`` on the same tiny tensor)."""
+    from layoutwarp.kernels import device as kd
 
     x = [torch.zeros(4, device=device) for _ in range(12)]
-    stream = stream_of(x[0])
+    stream = kd.stream_of(x[0])
+
+    def through(fast: bool):
+        def call():
+            kd.FAST_LAUNCH = fast
+            kd.cuda_launch(_touch, 1, stream, *x)
+
+        return call
+
     out = []
-    for fn in (lambda: cuda_launch(_touch, 1, stream, *x), lambda: torch.add(x[0], 1, out=x[1])):
+    for fn in (through(False), through(True), lambda: torch.add(x[0], 1, out=x[1])):
         fn()  # compiles (numba) and warms up
         if device == "cuda":
             torch.cuda.synchronize()
@@ -131,7 +146,8 @@ def launch_us(device: str = "cuda", calls: int = 300) -> tuple[float, float]:
         if device == "cuda":
             torch.cuda.synchronize()
         out.append((time.perf_counter() - t) / calls * 1e6)
-    return out[0], out[1]
+    kd.FAST_LAUNCH = True
+    return out[0], out[1], out[2]
 
 
 def main() -> int:
@@ -143,32 +159,6 @@ def main() -> int:
         print("gpu_check: no CUDA GPU here", file=sys.stderr)
         return 2
     res: dict = {"device": torch.cuda.get_device_name(), "torch": torch.__version__, "numpy": np.__version__}
-    if not args.no_tests:
-        t = time.perf_counter()
-        tests = subprocess.run(
-            [
-                sys.executable,
-                "-m",
-                "pytest",
-                "-q",
-                "-p",
-                "no:cacheprovider",
-                "tests/test_kernels.py",
-                "tests/test_meshkernels.py",
-                "tests/test_jit.py",
-                "tests/test_physics.py",
-                "-k",
-                "(cuda or device or gpu or numpy) and not simulator",
-            ],
-            cwd=Path(__file__).resolve().parents[1],
-            capture_output=True,
-            text=True,
-        )
-        summary = tests.stdout.strip().splitlines()[-1] if tests.stdout.strip() else tests.stderr[-500:]
-        res["cuda_tests"] = {"rc": tests.returncode, "summary": summary, "seconds": time.perf_counter() - t}
-        print("CUDA tests:", summary, flush=True)
-        if tests.returncode:
-            print(tests.stdout[-6000:], flush=True)
     with tempfile.TemporaryDirectory() as cache:
         env = {**os.environ, "NUMBA_CACHE_DIR": cache}
         first = subprocess.run([sys.executable, "-c", FIRST_CALL], env=env, capture_output=True, text=True)
@@ -203,6 +193,16 @@ def main() -> int:
             f"({gs16:.2f} ms)"
         )
 
+    from layoutwarp.kernels import device as kd
+
+    kd.FAST_LAUNCH = False  # the same step, every kernel launched through numba's dispatcher
+    ms, gs16, ratio = paired_ms(lambda: step(curv), gs16_step)
+    kd.FAST_LAUNCH = True
+    res["step_ms_dispatcher"], res["step_over_gs16_dispatcher"] = ms, ratio
+    res["direct_launch_off"] = kd.DIRECT_OFF[:1]
+    print(f"learnable curv+- step, numba's dispatcher launching: {ms:.2f} ms = {ratio:.2f}x grid_sample's")
+    write(res, args.out)
+
     def accumulate(layout):  # a step whose gradient accumulates in place: what a graph replays
         lw.simulate(img, layout, SIZE).sum().backward()
 
@@ -235,21 +235,22 @@ def main() -> int:
     if res["reference_missing"]:
         print("reference layer:", res["reference_missing"])
     res["host_reads"] = sum(count_host_reads(lambda: step(curv)).values())
-    res["launches_per_step"] = launches(lambda: step(curv))
+    res["launches_per_step"], res["gpu_busy_ms_per_step"] = launches(lambda: step(curv))
     res["launches_counted"] = sum(count_launches(lambda: step(curv)).values())
     print(
         f"GPU activities per learnable curv step: {res['launches_per_step']:.0f} (profiler), "
         f"{res['launches_counted']} (count_launches, as tests count them without a GPU); "
-        f"{res['host_reads']} values read back"
+        f"{res['host_reads']} values read back; the GPU busy {res['gpu_busy_ms_per_step']:.2f} ms of a step"
     )
     try:  # a diagnostic: its failure must not cost the figures after it
-        res["numba_launch_us"], res["torch_launch_us"] = launch_us()
+        res["numba_launch_us"], res["direct_launch_us"], res["torch_launch_us"] = launch_us()
         print(
-            f"host cost of a launch: numba kernel of 12 tensors {res['numba_launch_us']:.1f} µs, torch "
-            f"operator {res['torch_launch_us']:.1f} µs"
+            f"host cost of a launch: numba kernel of 12 tensors {res['numba_launch_us']:.1f} µs through "
+            f"numba's dispatcher, {res['direct_launch_us']:.1f} µs direct; torch operator "
+            f"{res['torch_launch_us']:.1f} µs"
         )
     except Exception as err:
-        res["numba_launch_us"] = res["torch_launch_us"] = None
+        res["numba_launch_us"] = res["direct_launch_us"] = res["torch_launch_us"] = None
         res["launch_us_error"] = f"{type(err).__name__}: {err}"[:300]
         print("host cost of a launch: not measured:", res["launch_us_error"])
     fixed = lw.CurvLayout((0.3, -0.24)).cuda()
@@ -283,11 +284,30 @@ def main() -> int:
         on_cpu = lw.simulate(img.cpu(), lw.CurvLayout((0.3, -0.24)), SIZE, physics=seeded)
     res["physics_cuda_equals_cpu"] = float((on_gpu == on_cpu).double().mean())
     print(f"sensor physics, CUDA vs CPU, same seed: {res['physics_cuda_equals_cpu']:.4%} of values equal")
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(res, indent=1) + "\n")
+    if not args.no_tests:  # last: the figures come first where the device time runs short
+        write(res, args.out)
+        t = time.perf_counter()
+        tests = subprocess.run(
+            [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-n", "8", "tests", "-k", TESTS],
+            cwd=Path(__file__).resolve().parents[1],
+            capture_output=True,
+            text=True,
+        )
+        summary = tests.stdout.strip().splitlines()[-1] if tests.stdout.strip() else tests.stderr[-500:]
+        res["cuda_tests"] = {"rc": tests.returncode, "summary": summary, "seconds": time.perf_counter() - t}
+        print("CUDA tests:", summary, flush=True)
+        if tests.returncode:
+            print(tests.stdout[-8000:], flush=True)
+    write(res, args.out)
+    return 0
+
+
+def write(res: dict, out: str) -> None:
+    """The figures so far, to ``out`` (and to ``$OUT/gpu_check.json`` on the device machine)."""
+    Path(out).parent.mkdir(parents=True, exist_ok=True)
+    Path(out).write_text(json.dumps(res, indent=1) + "\n")
     if os.environ.get("OUT"):
         Path(os.environ["OUT"], "gpu_check.json").write_text(json.dumps(res, indent=1) + "\n")
-    return 0
 
 
 if __name__ == "__main__":

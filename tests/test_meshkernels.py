@@ -618,3 +618,72 @@ def test_the_compiled_form_reads_a_fixed_centre_again_after_it_changes():
     with torch.no_grad():
         layout.fixed_center.copy_(torch.tensor([0.4, -0.2]))
     assert mk.mesh_spec(layout).center == pytest.approx((0.4, -0.2))
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@pytest.mark.parametrize("family", ["curv", "fovea"])
+def test_direct_launches_give_the_dispatchers_values_bit_for_bit(family: str, monkeypatch):
+    """On a GPU: a learnable step whose kernels launch directly (`cuda_launch`'s arguments
+    marshalled by layoutwarp, numba's dispatcher skipped) gives the values and θ-gradient of the
+    same step launched through numba's dispatcher, bit for bit, and the direct launch stayed on."""
+    from layoutwarp.kernels import device as kd
+
+    if not lw.kernels.cuda_available("float32"):
+        pytest.skip("numba's CUDA target does not run here")
+    rng = np.random.default_rng(int(torch.randint(0, 2**31, ())))
+    layer = _cuda_learnable_layer(family, rng)
+    image = torch.rand(2, 3, 150, 200, device="cuda")
+
+    def step() -> tuple[Tensor, Tensor]:
+        layer.zero_grad()
+        out = layer(image)
+        (out * out).mean().backward()
+        return out.detach().clone(), layer.layout.rho.grad.clone()
+
+    monkeypatch.setattr(kd, "FAST_LAUNCH", False)
+    through_numba = step()
+    monkeypatch.setattr(kd, "FAST_LAUNCH", True)
+    before = sum(kd.LAUNCHES.values())
+    step()  # the dispatcher launches once per kind of argument list, and its choice is kept
+    direct = step()
+    assert not kd.DIRECT_OFF, kd.DIRECT_OFF
+    assert kd._DIRECT and sum(kd.LAUNCHES.values()) > before
+    assert torch.equal(direct[0], through_numba[0]) and torch.equal(direct[1], through_numba[1])
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_direct_launch_marshals_arguments_as_numbas_dispatcher_does():
+    """On a GPU: `_direct_params` of tensors (contiguous, transposed, 1-D integer, offset into
+    storage), numbers, a bool and a host-mapped array equals numba's own marshalling of the same
+    arguments (``_Kernel._prepare_args``), value for value."""
+    from layoutwarp.kernels import device as kd
+
+    if not lw.kernels.cuda_available("float32"):
+        pytest.skip("numba's CUDA target does not run here")
+    base = torch.rand(7, 5, device="cuda", dtype=torch.float64)
+    mapped = kd.host_mapped(3, torch.device("cuda"))
+    args = (torch.rand(4, 6, device="cuda"), base.t(), torch.arange(9, device="cuda"), base[2:], 3, 0.25,
+            True, mapped)  # fmt: skip
+    kd.cuda_launch(_eight_arguments, 1, 0, *args)
+    dispatcher = kd._CUDA_KERNELS[_eight_arguments]
+    arrays = [kd._device_array(a) for a in args]
+    kernel = dispatcher.overloads[tuple(dispatcher.typeof_pyval(a) for a in arrays)]
+    theirs: list = []
+    for t, v in zip(kernel.argument_types, arrays, strict=True):
+        kernel._prepare_args(t, v, 0, [], theirs)
+    ours = kd._direct_params(args)
+    value = lambda v: getattr(v, "value", v)  # noqa: E731
+    assert [value(v) for v in ours] == [value(v) for v in theirs]
+    torch.cuda.synchronize()
+    assert float(args[0][0, 0]) == 3.25 and int(mapped[0]) == 1
+
+
+cuda = None  # numba.cuda, bound by the first launch (layoutwarp.kernels.cuda_launch)
+
+
+def _eight_arguments(a, b, c, d, n, x, flag, status):
+    """A kernel of the argument kinds layoutwarp's kernels take (see the test above)."""
+    if cuda.grid(1) == 0:
+        a[0, 0] = n + x + b[0, 0] * 0 + c[0] * 0 + d[0, 0] * 0
+        if flag:
+            status[0] = 1

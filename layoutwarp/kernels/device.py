@@ -8,6 +8,7 @@ name ([`layoutwarp.kernels.exact.CUDA_SOURCES`][]), the device mesh's by their s
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import importlib
 import os
 import sys
@@ -27,7 +28,9 @@ if TYPE_CHECKING:
 
 __all__ = [
     "CUDA_THREADS",
+    "DIRECT_OFF",
     "FAILED",
+    "FAST_LAUNCH",
     "LAUNCHES",
     "REMOVED_NUMPY_ALIASES",
     "cuda_available",
@@ -231,12 +234,99 @@ def cuda_launch(name: str | Callable, count: int, stream: int, *args) -> None:
         return
     LAUNCHES[getattr(name, "__name__", name)] += 1
     index = next((a.device.index for a in args if getattr(a, "is_cuda", False)), None)
+    blocks = (count + CUDA_THREADS - 1) // CUDA_THREADS
+    key = _launch_key(name, index, args) if FAST_LAUNCH and not simulated() else None
     with cuda.gpus[index] if index and not simulated() else contextlib.nullcontext():
+        if key is not None and key in _DIRECT:
+            try:
+                _direct_launch(_DIRECT[key], blocks, stream, args)
+                return
+            except Exception as err:  # marshalling refused before any launch: numba launches
+                DIRECT_OFF.append(f"{type(err).__name__}: {err}"[:300])
+                key = None
         arrays = [_device_array(a) for a in args]
         on = cuda.external_stream(stream) if stream else 0  # 0: the default stream, as numba takes it
         with warnings.catch_warnings():  # numba warns of low occupancy on small meshes
             warnings.filterwarnings("ignore", message=".*GPU under-utilization")
-            _CUDA_KERNELS[name][(count + CUDA_THREADS - 1) // CUDA_THREADS, CUDA_THREADS, on](*arrays)
+            _CUDA_KERNELS[name][blocks, CUDA_THREADS, on](*arrays)
+        if key is not None:
+            _remember_direct(key, _CUDA_KERNELS[name], arrays)
+
+
+#: Whether [`cuda_launch`][] launches a kernel it has launched before with the same argument
+#: types directly (the compiled function and its arguments' pointers, shapes and strides handed
+#: to the driver), rather than through numba's dispatcher, which wraps every tensor in a device
+#: array and types it again at every launch. ``LAYOUTWARP_CUDA_LAUNCH=numba`` turns it off.
+FAST_LAUNCH = os.environ.get("LAYOUTWARP_CUDA_LAUNCH", "direct") != "numba"
+_DIRECT: dict[tuple, object] = {}  # (kernel, device, argument kinds) → the compiled function
+_STREAMS: dict[int, object] = {}  # stream handle → cuda.core's stream on it
+_CONFIGS: dict[int, object] = {}  # blocks → cuda.core's launch configuration
+#: Why the direct launch is off in this process (numba-cuda's internals differ), or ``None``.
+DIRECT_OFF: list[str] = []
+
+
+def _launch_key(name: object, index: int | None, args: tuple) -> tuple | None:
+    """What decides which compiled copy of kernel ``name`` its arguments launch, cheaply read:
+    per argument, a tensor's dtype, rank and contiguity, a numba device array's dtype and rank,
+    or the Python type of a number; ``None`` for any other argument (numba then launches it)."""
+    if DIRECT_OFF:
+        return None
+    kinds: list[object] = [name, index]
+    for a in args:
+        if hasattr(a, "data_ptr"):
+            kinds.append((a.dtype, a.dim(), a.is_contiguous()))
+        elif getattr(a, "__cuda_ndarray__", False):
+            kinds.append((a.dtype.str, a.ndim, "device array"))
+        elif type(a) in (bool, int, float):
+            kinds.append(type(a))
+        else:
+            return None
+    return tuple(kinds)
+
+
+def _remember_direct(key: tuple, dispatcher: object, arrays: list) -> None:
+    """After numba launched ``dispatcher`` with ``arrays``: keep the compiled function it chose
+    for launches of the same ``key`` ([`_launch_key`][]). Where numba-cuda's internals are not
+    the ones this reads, the direct launch turns off for the process (numba launches as before)."""
+    try:
+        argtypes = tuple(dispatcher.typeof_pyval(a) for a in arrays)
+        kernel = dispatcher.overloads.get(argtypes)
+        if kernel is not None:
+            _DIRECT[key] = kernel._codelibrary.get_cufunc().kernel
+    except Exception as err:  # another numba-cuda: launch through its dispatcher
+        DIRECT_OFF.append(f"{type(err).__name__}: {err}"[:300])
+
+
+def _direct_params(args: tuple) -> list[object]:
+    """Launch arguments marshalled as numba's dispatcher marshals them (numba-cuda 0.30,
+    ``_Kernel._prepare_args``): an array as meminfo, parent, size, item size, data pointer,
+    shape and strides in bytes; an integer as int64, a float as double, a bool as it is."""
+    params: list[object] = []
+    for a in args:
+        if hasattr(a, "data_ptr"):
+            size = a.element_size()
+            params += (0, 0, a.numel(), size, a.data_ptr(), *a.shape, *(s * size for s in a.stride()))
+        elif type(a) is bool:
+            params.append(a)
+        elif type(a) is int:
+            params.append(ctypes.c_int64(a))
+        elif type(a) is float:
+            params.append(ctypes.c_double(a))
+        else:  # a numba device array
+            params += (0, 0, a.size, a.dtype.itemsize, a.device_ctypes_pointer.value, *a.shape, *a.strides)
+    return params
+
+
+def _direct_launch(function: object, blocks: int, stream: int, args: tuple) -> None:
+    """Launch the compiled ``function`` on ``blocks`` blocks of [`CUDA_THREADS`][] threads on
+    the stream with handle ``stream``, with ``args`` marshalled by [`_direct_params`][]."""
+    from cuda.core import LaunchConfig, Stream, launch
+
+    if stream not in _STREAMS:
+        _STREAMS[stream] = Stream.from_handle(stream)
+    if blocks not in _CONFIGS:
+        _CONFIGS[blocks] = LaunchConfig(grid=blocks, block=CUDA_THREADS)
+    launch(_STREAMS[stream], _CONFIGS[blocks], function, *_direct_params(args))
 
 
 def host_mapped(n: int, device: torch.device) -> np.ndarray:
