@@ -253,7 +253,7 @@ def simulate(
             raise ValueError("physics.psf blurs a source image; a callable radiance must include its optics")
     run = _Integration(
         plan, layout, size, tol, samples, grad, generator, seed, noise, physics, output, allow_nonfinite
-    )
+    ).integrate
     if is_callable:
         out = run(image)[None]
         return (out, plan) if return_plan else out
@@ -292,7 +292,7 @@ class _Integration:
     output: str = "radiance"
     allow_nonfinite: bool = True
 
-    def __call__(self, work: Tensor | Radiance) -> Tensor:
+    def integrate(self, work: Tensor | Radiance) -> Tensor:
         """Integrate ``work`` (``(N, H, W)`` or a callable radiance) with autocast off: the sensor
         integrates in float32 (float64 for float64 input) inside any mixed-precision context, as
         its tolerances assume. With physics: the PSF first, the measurement after."""

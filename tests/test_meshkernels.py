@@ -622,7 +622,7 @@ def test_the_compiled_form_reads_a_fixed_centre_again_after_it_changes():
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 @pytest.mark.parametrize("family", ["curv", "fovea"])
-def test_direct_launches_give_the_dispatchers_values_bit_for_bit(family: str, monkeypatch):
+def test_direct_cuda_launches_give_the_dispatchers_values_bit_for_bit(family: str, monkeypatch):
     """On a GPU: a learnable step whose kernels launch directly (`cuda_launch`'s arguments
     marshalled by layoutwarp, numba's dispatcher skipped) gives the values and θ-gradient of the
     same step launched through numba's dispatcher, bit for bit, and the direct launch stayed on."""
@@ -652,7 +652,7 @@ def test_direct_launches_give_the_dispatchers_values_bit_for_bit(family: str, mo
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
-def test_direct_launch_marshals_arguments_as_numbas_dispatcher_does():
+def test_a_direct_cuda_launch_marshals_arguments_as_numbas_dispatcher_does():
     """On a GPU: `_direct_params` of tensors (contiguous, transposed, 1-D integer, offset into
     storage), numbers, a bool and a host-mapped array equals numba's own marshalling of the same
     arguments (``_Kernel._prepare_args``), value for value."""
