@@ -88,16 +88,16 @@ def kernel_overheads(
     measurement (shot and read noise, full well, ADC) into a buffer of its own or over the means."""
     tol = lw.data_tolerance(img.dtype)[0]  # simulate's default for these images: its cached resampler
     res = lw.resampler.resampler_for(layout, (129, 257), tuple(img.shape[-2:]), tol, "cpu")
-    w, x = res.weights, np.ascontiguousarray(img.reshape(img.shape[1], -1).numpy())
+    runs, x = res.runs, np.ascontiguousarray(img.reshape(img.shape[1], -1).numpy())
     measured, nt = lw.physics.kernel_arguments(camera, res.areas), lw.kernels.threads()
 
     def product(measure: str = "") -> None:
-        mean = np.empty((x.shape[0], w.shape[0]), np.float32)
+        mean = np.empty((x.shape[0], runs.shape[0]), np.float32)
         if not measure:
-            lw.kernels.csr_apply(w.indptr, w.indices, w.data, x, mean, nt)
+            lw.kernels.runs_apply(*runs.arrays(), x, mean, nt)
             return
         out = mean if measure == "in place" else np.empty_like(mean)
-        lw.kernels.measured_csr_apply(w.indptr, w.indices, w.data, x, mean, *measured, out, nt)
+        lw.kernels.measured_runs_apply(*runs.arrays(), x, mean, *measured, out, nt)
 
     calls = {
         "product": product,

@@ -291,9 +291,9 @@ def test_the_measurement_and_product_kernels_compile_for_the_device_without_one(
     """The CUDA kernels of the measurement and of the fixed-layout product (with the measurement
     fused) compile to PTX, the samplers' rounding (``np.floor``, ``np.rint``, which numba-cuda
     types but has no loop for until layoutwarp adds it) as the device's instructions."""
-    from layoutwarp.kernels import csr, noise
+    from layoutwarp.kernels import noise, runs
 
-    for table in (noise.CUDA_KERNELS, csr.CUDA_KERNELS):
+    for table in (noise.CUDA_KERNELS, runs.CUDA_KERNELS):
         for name, (fn, signature) in table.items():
             ptx = ptx_or_skip(fn, signature=signature)
             assert ".entry" in ptx and "cvt.rmi" in ptx and "cvt.rni" in ptx, name
@@ -427,27 +427,81 @@ def test_kernel_threads_follow_torchs_count_and_numbas_threading_layer_never_sta
         torch.set_num_threads(before)
 
 
-@pytest.mark.parametrize("planes", [1, 2, 3, 4, 5, 7, 8])
-def test_the_csr_product_matches_scipy_for_any_plane_count(planes, gen):
-    # the rows are read once per four planes: every remainder (1-3 planes) and several blocks,
-    # against scipy's product in float64
-    scipy_sparse = pytest.importorskip("scipy.sparse")
+def _random_runs(gen: torch.Generator) -> tuple:
+    """The float64 area weights, and their `Runs`, of a random curved layout of mixed-sign θ, at a
+    random sensor size over a random source (a pixel spans 1.5 to 8 source cells a side)."""
+    from layoutwarp.mesh import pixel_mesh
+    from layoutwarp.resampler import Runs, area_weights
+
     rng = np.random.default_rng(int(torch.randint(0, 2**31, (), generator=gen)))
-    w = scipy_sparse.random(37, 500, density=0.05, format="csr", random_state=rng, dtype=np.float32)
-    w.indices = w.indices.astype(np.int32)
-    x = rng.random((planes, 500), dtype=np.float32)
-    out = np.full((planes, 37), np.nan, dtype=np.float32)
-    assert kernels.csr_apply(w.indptr, w.indices, w.data, x, out) == 0  # every value written is finite
-    ref = (w.astype(np.float64) @ x.astype(np.float64).T).T
-    assert np.abs(out - ref).max() < 1e-6 * max(1.0, np.abs(ref).max())
-    # NaN and ±inf in a few source values: the count of non-finite values written, the reference's
+    th = (float(rng.uniform(0.1, 0.6)), -float(rng.uniform(0.1, 0.6)))
+    layout = [lw.CurvLayout(th), lw.FoveaLayout(th, center=(0.2, -0.1)), lw.EllipticLayout(th)][
+        rng.integers(3)
+    ]
+    size = (int(rng.integers(3, 12)), int(rng.integers(3, 12)))
+    src = tuple(int(n * rng.uniform(1.5, 8)) for n in size)
+    mesh = pixel_mesh(layout, size, tol=1e-4, dtype=torch.float64)
+    area = mesh.areas(mesh.pixel_vertices(src)).flatten().numpy()
+    w = area_weights(layout, size, src, tol=1e-4, mesh=mesh)
+    return w, Runs.of(w, area, src[1])
+
+
+def test_runs_hold_the_area_weights(gen):
+    """A random curved layout's area weights held as runs give back the same matrix: every entry
+    within a float32 rounding of the float64 weight, none lost or added."""
+    w, runs = _random_runs(gen)
+    back = runs.csr()
+    assert back.shape == w.shape and back.nnz == w.nnz
+    assert np.array_equal(back.indices, w.indices) and np.array_equal(back.indptr, w.indptr)
+    assert np.abs(back.data - w.data).max() <= 2**-23 * np.abs(w.data).max()
+    assert runs.run_head.min() >= 0 and runs.run_tail.min() >= 0
+    assert (runs.run_head + runs.run_tail <= runs.run_len).all()
+
+
+@pytest.mark.parametrize("planes", [1, 2, 3, 4, 5, 7, 8])
+def test_the_runs_product_matches_scipy_for_any_plane_count(planes, gen):
+    """The runs' product (planes in groups of three, and the one or two left) equals scipy's
+    float64 product of the float64 weights to float32 rounding; NaN and ±inf are counted as the
+    reference has them."""
+    w, runs = _random_runs(gen)
+    rng = np.random.default_rng(int(torch.randint(0, 2**31, (), generator=gen)))
+    x = rng.random((planes, w.shape[1]), dtype=np.float32)
+    out = np.full((planes, w.shape[0]), np.nan, dtype=np.float32)
+    assert kernels.runs_apply(*runs.arrays(), x, out, 2) == 0  # every value written is finite
+    ref = (w @ x.astype(np.float64).T).T
+    assert np.abs(out - ref).max() <= 2e-7 * max(1.0, np.abs(ref).max())
     bad = rng.choice(x.size, size=int(rng.integers(1, 6)), replace=False)
     x.flat[bad] = rng.choice([np.nan, np.inf, -np.inf], size=bad.size)
     with np.errstate(invalid="ignore"):
-        ref = (w.astype(np.float64) @ x.astype(np.float64).T).T
-    count = kernels.csr_apply(w.indptr, w.indices, w.data, x, out)
+        ref = (w @ x.astype(np.float64).T).T
+    count = kernels.runs_apply(*runs.arrays(), x, out, 1)
     assert count == int((~np.isfinite(ref)).sum())
     assert np.array_equal(np.isfinite(out), np.isfinite(ref))
+
+
+def test_runs_split_where_a_row_of_a_pixel_leaves_it_and_comes_back():
+    """A pixel's row of cells cut, whole, cut, whole, cut (a boundary crossing it and back), a gap,
+    and a row wholly cut: runs whose heads and tails are the cut cells, the whole cells between
+    them scaled once, and the product equal to the matrix's."""
+    import scipy.sparse
+
+    from layoutwarp.resampler import Runs
+
+    area = np.array([4.0, 2.0])
+    whole = 1 / area
+    #  pixel 0, source row 0 (width 10): cut, whole, cut, whole, cut | gap | whole whole; row 1: cut cut
+    cells = [[0, 1, 2, 3, 4, 6, 7, 10, 11], [12, 13]]
+    values = [[0.05, whole[0], 0.1, whole[0], 0.02, whole[0], whole[0], 0.03, 0.04], [0.2, 0.3]]
+    w = scipy.sparse.csr_matrix((np.concatenate(values), np.concatenate(cells), [0, 9, 11]), shape=(2, 20))
+    runs = Runs.of(w, area, 10)
+    assert runs.run_start.tolist() == [0, 3, 6, 10, 12]
+    assert runs.run_len.tolist() == [3, 2, 2, 2, 2]
+    assert runs.run_head.tolist() == [1, 0, 0, 2, 2] and runs.run_tail.tolist() == [1, 1, 0, 0, 0]
+    x = np.random.default_rng(0).random((2, 20), dtype=np.float32)
+    out = np.empty((2, 2), np.float32)
+    kernels.runs_apply(*runs.arrays(), x, out, 1)
+    assert np.allclose(out, (w @ x.astype(np.float64).T).T, rtol=1e-6)
+    assert (abs(runs.csr() - w.astype(np.float32)) > 1e-7).nnz == 0
 
 
 @pytest.mark.parametrize(

@@ -4,7 +4,8 @@
   backward on the CPU, and the same per-segment functions as CUDA kernels;
 - [`mesh`][layoutwarp.kernels.mesh]: the pixel meshes of the built-in curved families with
   every vertex's θ-derivative, on the CPU or built on a CUDA device;
-- [`csr`][layoutwarp.kernels.csr]: a fixed layout's product with its area weights;
+- [`runs`][layoutwarp.kernels.runs]: a fixed layout's product with its area weights, held as runs
+  of whole cells and cut cells;
 - [`noise`][layoutwarp.kernels.noise]: the sensor's measurement (noise, full well, ADC);
 - [`device`][layoutwarp.kernels.device]: numba's CUDA target, and every CUDA launch;
 - [`base`][layoutwarp.kernels.base]: what they share (numba, the decorators, the threads that run
@@ -22,7 +23,6 @@ layoutwarp calls; [`mesh`][layoutwarp.kernels.mesh] (which imports torch) is imp
 from __future__ import annotations
 
 from .base import CHUNK, available, retain_freed_memory, run_shares, threads
-from .csr import csr_apply, measured_csr_apply
 from .device import CUDA_THREADS, cuda_available, cuda_checked, cuda_launch, cuda_ptx
 from .exact import (
     BLOCK,
@@ -37,6 +37,7 @@ from .exact import (
     segment_moments_from_python as segment_moments,
 )
 from .noise import sensor_measure
+from .runs import measured_runs_apply, runs_apply
 
 __all__ = [
     "BLOCK",
@@ -45,7 +46,6 @@ __all__ = [
     "WHOLE_TABLE_BYTES",
     "available",
     "band_rows",
-    "csr_apply",
     "cuda_available",
     "cuda_checked",
     "cuda_launch",
@@ -53,10 +53,11 @@ __all__ = [
     "exact_backward",
     "exact_forward",
     "exact_forward_banded",
-    "measured_csr_apply",
+    "measured_runs_apply",
     "prefix_tables",
     "retain_freed_memory",
     "run_shares",
+    "runs_apply",
     "segment_moments",
     "sensor_measure",
     "threads",

@@ -1,0 +1,238 @@
+"""The fixed-layout product: a fixed layout's area weights stored as runs of source cells, applied
+to an image in one pass over each pixel's cells, alone or with the sensor's measurement fused after
+it.
+
+A source cell wholly inside a sensor pixel weighs ``1 / area`` of that pixel; a cell that a pixel
+boundary cuts weighs the share of the pixel's area inside it. A run is the cells of one pixel in
+one source row, contiguous: its first ``head`` and last ``tail`` cells are cut (their weights
+stored, in order), the cells between them whole (summed, then scaled once by ``1 / area``). At
+2048x1024 → 257x129 a pixel spans about 8x8 cells: about 300 000 runs of 9 cells, 1.2 million of
+their cells cut; the runs and weights take 1.24x the bytes of one float32 plane of the image (a
+CSR matrix of the same weights: 2.6x).
+
+The arrays, for ``R`` pixels (row-major sensor index):
+
+- ``pix_runs`` ``(R + 1,)`` int64: pixel ``k``'s runs are ``pix_runs[k] .. pix_runs[k + 1]``;
+- ``run_start``, ``run_len``, ``run_head``, ``run_tail`` ``(runs,)`` int32: a run's first cell
+  (``row · W + col``), its length and its cut cells at each end;
+- ``inv_area`` ``(R,)`` float64: a whole cell's weight in pixel ``k``;
+- ``pix_cuts`` ``(R + 1,)`` int64 and ``cut_weight`` ``(cuts,)`` float32: the weights of pixel
+  ``k``'s cut cells, run by run, head before tail.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .base import inline, run_shares, serial
+from .device import cuda_launch, device_checks
+from .noise import measured_value, sensor_measure, stream_origin
+
+__all__ = ["CUDA_KERNELS", "measured_runs_apply", "runs_apply", "runs_apply_on_device"]
+
+
+def _pixel_sums(
+    k, pix_runs, run_start, run_len, run_head, run_tail, inv_area, pix_cuts, cut_weight, x, p, q, r
+):
+    """Pixel ``k``'s means of planes ``p``, ``q`` and ``r`` (three planes at once: an RGB image's
+    cells are read in one pass; a plane may repeat) in one pass over its runs, summed in float64."""
+    a0 = a1 = a2 = np.float64(0.0)  # the cut cells' weighted sums
+    b0 = b1 = b2 = np.float64(0.0)  # the whole cells' sums
+    o = pix_cuts[k]
+    for j in range(pix_runs[k], pix_runs[k + 1]):
+        s = np.int64(run_start[j])
+        e = s + run_len[j]
+        h = s + run_head[j]
+        t = e - run_tail[j]
+        for c in range(s, h):
+            w = np.float64(cut_weight[o])
+            o += 1
+            a0 += w * x[p, c]
+            a1 += w * x[q, c]
+            a2 += w * x[r, c]
+        for c in range(h, t):
+            b0 += x[p, c]
+            b1 += x[q, c]
+            b2 += x[r, c]
+        for c in range(t, e):
+            w = np.float64(cut_weight[o])
+            o += 1
+            a0 += w * x[p, c]
+            a1 += w * x[q, c]
+            a2 += w * x[r, c]
+    v = inv_area[k]
+    return a0 + b0 * v, a1 + b1 * v, a2 + b2 * v
+
+
+def _pixel_sum(k, pix_runs, run_start, run_len, run_head, run_tail, inv_area, pix_cuts, cut_weight, x, p):
+    """Pixel ``k``'s mean of plane ``p`` (a gray image's), as [`_pixel_sums`][] of one plane."""
+    a = b = np.float64(0.0)
+    o = pix_cuts[k]
+    for j in range(pix_runs[k], pix_runs[k + 1]):
+        s = np.int64(run_start[j])
+        e = s + run_len[j]
+        h = s + run_head[j]
+        t = e - run_tail[j]
+        for c in range(s, h):
+            a += np.float64(cut_weight[o]) * x[p, c]
+            o += 1
+        for c in range(h, t):
+            b += x[p, c]
+        for c in range(t, e):
+            a += np.float64(cut_weight[o]) * x[p, c]
+            o += 1
+    return a + b * inv_area[k]
+
+
+_pixel_sum = inline(_pixel_sum)
+_pixel_sums = inline(_pixel_sums)
+
+
+@serial
+def _runs_share(
+    t: int, nt: int, pix_runs: np.ndarray, run_start: np.ndarray, run_len: np.ndarray, run_head: np.ndarray,
+    run_tail: np.ndarray, inv_area: np.ndarray, pix_cuts: np.ndarray, cut_weight: np.ndarray, x: np.ndarray,
+    out: np.ndarray,
+) -> int:  # fmt: skip
+    """Pixels ``t·R/T ..`` of [`runs_apply`][]; returns how many of the values it wrote are not
+    finite."""
+    n, rows = x.shape[0], pix_runs.shape[0] - 1
+    bad = 0
+    for k in range(t * rows // nt, (t + 1) * rows // nt):
+        for p in range(0, n, 3):
+            if n - p == 1:
+                v = _pixel_sum(
+                    k, pix_runs, run_start, run_len, run_head, run_tail, inv_area, pix_cuts, cut_weight, x, p
+                )
+                out[p, k] = v
+                bad += not np.isfinite(out[p, k])
+                continue
+            q, r = p + 1, min(p + 2, n - 1)  # two planes left: the second read twice
+            sums = _pixel_sums(
+                k,
+                pix_runs,
+                run_start,
+                run_len,
+                run_head,
+                run_tail,
+                inv_area,
+                pix_cuts,
+                cut_weight,
+                x,
+                p,
+                q,
+                r,
+            )
+            for i in range(min(3, n - p)):
+                out[p + i, k] = sums[i]
+                bad += not np.isfinite(out[p + i, k])
+    return bad
+
+
+def runs_apply(*args: np.ndarray | int) -> int:
+    """``out[n] = W @ x[n]`` for the area weights ``W`` of a fixed layout held as runs and cut cells
+    (the module's eight arrays ``pix_runs, run_start, run_len, run_head, run_tail, inv_area,
+    pix_cuts, cut_weight``), planes ``x`` ``(N, M)`` float32 and ``out`` ``(N, R)``, then ``threads``: a band
+    of pixels to each thread, every pixel's cells read once for every three planes. Returns how many
+    of the values written are not finite (NaN or ±inf): [`simulate`][layoutwarp.sensor.simulate]'s
+    finiteness check while they are in registers."""
+    *arrays, threads = args
+    return sum(run_shares(_runs_share, int(threads), *arrays))
+
+
+def measured_runs_apply(*args: np.ndarray | int) -> int:
+    """[`runs_apply`][]'s product (its ten arrays first) into ``mean``, then
+    [`sensor_measure`][layoutwarp.kernels.noise.sensor_measure] of ``mean`` with the other
+    arguments (``area_um2, …, out, threads``): a fixed layout's exact forward with sensor physics.
+    Returns [`runs_apply`][]'s count of non-finite means (the measurement passes NaN and ±inf
+    through)."""
+    product, measure = args[:10], args[10:]
+    bad = runs_apply(*product, measure[-1])
+    sensor_measure(product[-1], *measure)
+    return bad
+
+
+# ----------------------------------------------------------------------------------------
+# CUDA: one thread per pixel, every plane, the measurement fused
+# ----------------------------------------------------------------------------------------
+cuda = None  # numba.cuda, bound by the first launch ([`layoutwarp.kernels.device.cuda_launch`][])
+
+
+def _cuda_runs_apply(
+    pix_runs: np.ndarray, run_start: np.ndarray, run_len: np.ndarray, run_head: np.ndarray,
+    run_tail: np.ndarray, inv_area: np.ndarray, pix_cuts: np.ndarray, cut_weight: np.ndarray, x: np.ndarray,
+    out: np.ndarray, area_um2: np.ndarray, prnu: np.ndarray, dsnu: np.ndarray, params: np.ndarray, seed: int,
+    noise: int, output: int, measure: bool, checks: np.ndarray, stamp: int,
+) -> None:  # fmt: skip
+    """One thread per pixel: [`runs_apply`][]'s sums for every plane (the pixel's cells read once
+    per three planes; neighbouring threads read neighbouring runs of a source row), written to
+    ``out`` ``(N, R)``, and with ``measure`` then measured
+    ([`measured_value`][layoutwarp.kernels.noise.measured_value], from the value as ``out``'s
+    dtype holds it, as [`measured_runs_apply`][] measures its buffer): a fixed layout's forward,
+    with the sensor's measurement, in one launch on a CUDA device. ``area_um2``, ``prnu``,
+    ``dsnu``, ``params``, ``seed``, ``noise``, ``output``: as
+    [`sensor_measure`][layoutwarp.kernels.noise.sensor_measure] takes them (read only with
+    ``measure``). A sum that is NaN or ±inf writes ``stamp`` to ``checks[0]`` (0: no check;
+    [`DeviceChecks`][layoutwarp.kernels.device.DeviceChecks])."""
+    k = cuda.grid(1)
+    rows = pix_runs.shape[0] - 1
+    if k < rows:
+        n = x.shape[0]
+        for p in range(0, n, 3):
+            q, r = min(p + 1, n - 1), min(p + 2, n - 1)  # one or two planes left: read again
+            sums = _pixel_sums(
+                k,
+                pix_runs,
+                run_start,
+                run_len,
+                run_head,
+                run_tail,
+                inv_area,
+                pix_cuts,
+                cut_weight,
+                x,
+                p,
+                q,
+                r,
+            )
+            for i in range(min(3, n - p)):
+                out[p + i, k] = sums[i]
+                if stamp and not math.isfinite(sums[i]):
+                    checks[0] = stamp
+                if measure:  # from the mean as the buffer holds it, as the CPU measures its buffer
+                    at, origin = (p + i) * rows + k, stream_origin(seed)
+                    out[p + i, k] = measured_value(
+                        out[p + i, k], at, k, area_um2, prnu, dsnu, params, origin, noise, output
+                    )
+
+
+_F1, _I1, _J1, _F2 = "float64[::1]", "int64[::1]", "int32[::1]", "float32[:, ::1]"
+#: The CUDA kernels of this file with their argument types (for
+#: [`cuda_ptx`][layoutwarp.kernels.device.cuda_ptx]: float32 images).
+CUDA_KERNELS = {
+    "runs_apply": (
+        _cuda_runs_apply,
+        f"void({_I1}, {_J1}, {_J1}, {_J1}, {_J1}, {_F1}, {_I1}, float32[::1], {_F2}, {_F2}, {_F1}, {_F1}, "
+        f"{_F1}, {_F1}, int64, int64, int64, boolean, {_I1}, int64)",
+    ),
+}
+
+
+def runs_apply_on_device(
+    runs: tuple, x, out, measured: tuple, measure: bool, stream: int, check: bool = False
+) -> None:
+    """[`runs_apply`][] on a CUDA device (or in the simulator), one launch on ``stream``: the eight
+    arrays ``runs`` and the planes ``x`` ``(N, M)`` and ``out`` ``(N, R)`` as tensors there; with
+    ``measure``, the means then measured with ``measured`` ``(area_um2, prnu, dsnu, params, seed,
+    noise, output)`` as [`measure_on_device`][layoutwarp.kernels.noise.measure_on_device] takes
+    them (without, any arrays of float64 will do: they are not read). With ``check``, a sum that
+    is NaN or ±inf raises when the host next looks
+    ([`DeviceChecks`][layoutwarp.kernels.device.DeviceChecks]; look before the call)."""
+    area_um2, prnu, dsnu, params, seed, noise, output = measured
+    checks = device_checks(x.device)
+    args = (*runs, x, out, area_um2, prnu, dsnu, params, int(seed), int(noise), int(output), bool(measure))
+    cuda_launch(
+        _cuda_runs_apply, runs[0].shape[0] - 1, stream, *args, checks.status, checks.take() if check else 0
+    )
