@@ -46,6 +46,7 @@ __all__ = [
     "RESAMPLERS",
     "AreaResampler",
     "Runs",
+    "area_product",
     "area_weights",
     "resampler_for",
 ]
@@ -567,8 +568,7 @@ def _check_float32(image: torch.Tensor) -> None:
     )
 
 
-@torch.library.custom_op("layoutwarp::area", mutates_args=())
-def _area(
+def area_product(
     image: torch.Tensor,
     theta: torch.Tensor,
     layout: str,
@@ -581,14 +581,16 @@ def _area(
     check: bool,
     with_areas: bool,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """The exact means ``(N, h, w)`` of the fixed layout ``layout`` (a
-    [`layout_token`][layoutwarp.operators.base.layout_token]) at ``theta`` over float32 images ``(N, H, W)``
-    by its cached area weights ([`resampler_for`][]), and, ``with_areas``, the pixels' areas
-    ``(h, w)`` (float64, sensor units; else an empty tensor); with ``physics`` (a camera's
+    """``layoutwarp::area``, the operator of a fixed layout's product (called directly where
+    [`plain_eager`][layoutwarp.operators.base.plain_eager]): the exact means ``(N, h, w)`` of the
+    fixed layout ``layout`` (a [`layout_token`][layoutwarp.operators.base.layout_token]) at
+    ``theta`` over float32 images ``(N, H, W)`` by its cached area weights
+    ([`resampler_for`][]), and, ``with_areas``, the pixels' areas ``(h, w)`` (float64, sensor
+    units; else an empty tensor); with ``physics`` (a camera's
     [`token`][layoutwarp.physics.SensorPhysics.token], ``""``: none) what that sensor records,
-    fused, its noise drawn from ``seed``. ``check``:
-    raise ``ValueError`` where NaN/Inf reach the output. Differentiable in the images (without
-    physics: the transposed weights), twice (the product is linear)."""
+    fused, its noise drawn from ``seed``. ``check``: raise ``ValueError`` where NaN/Inf reach the
+    output. Differentiable in the images (without physics: the transposed weights), twice (the
+    product is linear)."""
     _check_float32(image)
     size, src = (height, width), tuple(image.shape[-2:])
     camera = physics_of(physics)
@@ -601,6 +603,9 @@ def _area(
     else:
         out, areas = res.product(image, camera, output, seed, not check), res.areas
     return out, (areas.clone() if with_areas else areas.new_empty(0))
+
+
+_area = torch.library.custom_op("layoutwarp::area", area_product, mutates_args=())
 
 
 @_area.register_fake

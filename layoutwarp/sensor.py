@@ -34,9 +34,9 @@ from .integrators import (
 )
 from .layoutfile import load_layout, save_layout
 from .layouts import Layout, make_layout, wants_grad
-from .operators.base import layout_token, random_seed, refuse_grad_transforms
+from .operators.base import layout_token, plain_eager, random_seed, refuse_grad_transforms
 from .physics import SensorPhysics, apply_psf, as_physics, check_output, measure, noise_seed
-from .resampler import RESAMPLERS
+from .resampler import RESAMPLERS, area_product
 
 __all__ = ["METHODS", "SensorLayer", "SimulationPlan", "plan_simulation", "simulate"]
 
@@ -138,7 +138,8 @@ def _prepare(image: Tensor) -> tuple[Tensor, torch.dtype, tuple[int, ...]]:
     if not isinstance(image, Tensor):
         kind = type(image).__name__
         raise TypeError(f"image must be a torch.Tensor (B, C, H, W) or a callable, got {kind}")
-    check_shape(image, "B C H W|C H W", "image")
+    if image.ndim not in (3, 4):  # check_shape's pattern, asked only where it fails (a tenth of a small call)
+        check_shape(image, "B C H W|C H W", "image")
     if image.shape[-1] == 0 or image.shape[-2] == 0:
         raise ValueError(f"image height and width must be >= 1, got {tuple(image.shape[-2:])}")
     lead = tuple(image.shape[:-2])
@@ -304,14 +305,14 @@ class _Integration:
         return self._measured(work, route)
 
     def _route(self, work: Tensor | Radiance) -> str:
-        """This call's route: ``"weights"`` (a fixed layout's cached sparse area weights,
-        [`resampler_for`][]: the exact method, θ needing no gradient, a registered family, float32
-        images and a cache that keeps weights), else the plan's integrator."""
+        """This call's route: ``"weights"`` (a fixed layout's cached area weights,
+        [`resampler_for`][]: the exact or separable method, θ needing no gradient, a registered
+        family, float32 images and a cache that keeps weights), else the plan's integrator."""
         method = self.plan.method
         # a ρ batched under vmap too: the learnable path, whose θ reaches autograd (the weights'
         # would leave θ without gradient)
         fixed = not (torch.is_grad_enabled() and wants_grad(self.layout.rho))
-        if method != "exact" or not fixed or RESAMPLERS.maxsize == 0:
+        if method not in ("exact", "separable") or not fixed or RESAMPLERS.maxsize == 0:
             return method
         if not (isinstance(work, Tensor) and work.dtype == torch.float32):
             return method
@@ -355,10 +356,12 @@ class _Integration:
 
     def _area(self, work: Tensor, physics: str, seed: Tensor, with_areas: bool) -> tuple[Tensor, Tensor]:
         """``layoutwarp::area`` on ``work``: the means (or, with ``physics``, the record) and areas."""
-        args = (layout_token(self.layout), *self.size, float(self.tol), physics, self.output)
-        return torch.ops.layoutwarp.area(
-            work, self._theta(), *args, seed, not self.allow_nonfinite, with_areas
+        theta, args = (
+            self._theta(),
+            (layout_token(self.layout), *self.size, float(self.tol), physics, self.output),
         )
+        op = area_product if plain_eager(work, theta, seed) else torch.ops.layoutwarp.area
+        return op(work, theta, *args, seed, not self.allow_nonfinite, with_areas)
 
     def _dispatch(
         self, work: Tensor | Radiance, route: str, with_areas: bool = False

@@ -764,3 +764,43 @@ def test_the_image_operators_pass_opcheck_on_strided_float32_and_empty_images(va
         args = _variants(cases[name], at, variant)
         result = torch.library.opcheck(OPERATORS[name], args)
         assert all(v == "SUCCESS" for v in result.values()), (name, variant, result)
+
+
+def test_a_plain_eager_fixed_forward_skips_the_dispatcher_and_gives_the_operators_values(gen):
+    """A fixed layout's forward in plain eager mode calls ``layoutwarp::area``'s implementation
+    directly (torch's dispatcher cost a small call most of its time) and gives the registered
+    operator's values bit for bit; under anything that needs the dispatcher (autograd, vmap, fake
+    tensors, compiling) the predicate sends the call through the operator."""
+    from torch._subclasses.fake_tensor import FakeTensorMode
+
+    from layoutwarp.operators.base import plain_eager
+
+    image = torch.rand(2, 3, 40, 60, generator=gen)
+    layout = lw.CurvLayout((0.3, -0.2))
+    with torch.no_grad():
+        direct = lw.simulate(image, layout, (5, 7))
+    theta, seed = layout.theta_as(torch.float64), torch.zeros((), dtype=torch.int64)
+    through, _ = torch.ops.layoutwarp.area(
+        image.reshape(6, 40, 60),
+        theta,
+        layout_token(layout),
+        5,
+        7,
+        2.0**-12,
+        "",
+        "radiance",
+        seed,
+        True,
+        False,
+    )
+    assert torch.equal(direct.reshape(6, 5, 7), through)
+    assert plain_eager(image, theta)
+    assert not plain_eager(image.clone().requires_grad_(), theta)
+    with torch.no_grad():
+        assert plain_eager(image.clone().requires_grad_(), theta)
+    seen = []
+    torch.vmap(lambda t: seen.append(plain_eager(t)) or t)(image)
+    assert seen == [False]
+    with FakeTensorMode():
+        assert not plain_eager(torch.empty(3))
+    assert torch.compile(lambda t: t + plain_eager(t), fullgraph=True)(torch.zeros(1)).item() == 0
