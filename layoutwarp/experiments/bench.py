@@ -485,7 +485,16 @@ def reuse_row(cfg: BenchConfig, image_name: str, img: Tensor) -> Row:
     resampler.RESAMPLERS.clear()
     first = time_call(fwd, 0)
     inter_area = _forward_fn(img, layout, cfg.size, "inter_area", {})
-    area, repeat = time_paired([inter_area, fwd], cfg.repeats * 2 + 1)
+
+    def read() -> None:  # the memory limit: one read of the image
+        dev_img.sum()
+
+    def interpolate() -> None:  # a uniform grid's box integral in torch
+        torch.nn.functional.interpolate(dev_img, size=cfg.size, mode="area")
+
+    area, repeat, t_read, t_interp = time_paired([inter_area, fwd, read, interpolate], cfg.repeats * 2 + 1)
+    tol = data_tolerance(torch.float32)[0]
+    kept_runs = resampler.resampler_for(layout, cfg.size, tuple(img.shape[-2:]), tol, cfg.device)
     cpu_layout = layout_from_spec(bench_layouts(cfg.theta)["curv"])  # Module.cpu() moves in place
     with torch.no_grad():  # the reference on the CPU, the timed layout left on its device
         ref = integrate_exact(img.flatten(0, 1), cpu_layout, cfg.size, tol=data_tolerance(torch.float32)[0])
@@ -496,6 +505,9 @@ def reuse_row(cfg: BenchConfig, image_name: str, img: Tensor) -> Row:
     finally:
         resampler.RESAMPLERS.maxsize = kept
     extra = {"first_call_ms": first, "over_inter_area": repeat / area, "walk_ms": walk}
+    extra |= {"read_ms": t_read, "over_read": repeat / t_read, "over_interpolate": repeat / t_interp}
+    if kept_runs is not None:  # the weights' bytes over one float32 plane of the image
+        extra["weights_over_plane"] = kept_runs.runs.nbytes / (4 * img.shape[-1] * img.shape[-2])
     if cfg.memory and cfg.device == "cpu":  # the first call's memory without the weights
         spec = {"layout": bench_layouts(cfg.theta)["curv"], "method": "exact", "opts": {}, "src": cfg.src}
         spec |= {"size": cfg.size, "threads": torch.get_num_threads(), "cache_size": 0}
@@ -964,7 +976,11 @@ def report_text(result: dict) -> str:
         if r["method"] == "exact, cached weights":
             lines.append(
                 f"a fixed layout's repeated exact forward: {r['forward_ms']:.2f} ms "
-                f"({r['extra']['over_inter_area']:.2f}x INTER_AREA, in pairs); its first call, "
+                f"({r['extra']['over_inter_area']:.2f}x INTER_AREA, "
+                f"{r['extra'].get('over_interpolate', float('nan')):.2f}x F.interpolate(area), "
+                f"{r['extra'].get('over_read', float('nan')):.1f}x one read of the image, x.sum() "
+                f"{r['extra'].get('read_ms', float('nan')):.2f} ms; in rounds); its weights "
+                f"{r['extra'].get('weights_over_plane', float('nan')):.2f}x a float32 plane; its first call, "
                 f"which builds the area weights: {r['extra']['first_call_ms']:.1f} ms; with no weights "
                 f"kept (resampler.RESAMPLERS.maxsize = 0), the compiled walk: {r['extra']['walk_ms']:.2f} ms"
                 + (
