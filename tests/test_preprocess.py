@@ -237,8 +237,12 @@ def test_cli_preprocess_with_benchmark(tmp_path, capsys):
     assert main([*argv, "--benchmark", "--no-progress"]) == 0
     text = capsys.readouterr().out
     assert "images/s" in text and "ratio" in text
+    assert "where the workers' time went: decode" in text and "integrate" in text
     manifest = json.loads((dst / "manifest.json").read_text())
     assert manifest["benchmark"]["ratio"] > 0 and manifest["files_done"] == 3
+    stages = manifest["benchmark"]["stage_seconds"]  # every stage timed, together within the run
+    assert set(stages) == {"decode", "weights", "integrate", "encode"} and min(stages.values()) > 0
+    assert sum(stages.values()) <= manifest["seconds"] * 1.05
     lab = cv2.imread(str(next((dst / "labels").glob("*.png"))), cv2.IMREAD_UNCHANGED)
     assert lab.shape == (45, 60) and lab.max() <= 11
     assert main(["preprocess", str(SAMPLES / "camvid" / "val"), str(tmp_path / "x")]) == 2

@@ -103,7 +103,12 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
             f"benchmark ({len(files)} files): layoutwarp {ours:.1f} images/s, "
             f"imread + resize(INTER_AREA) + imwrite {ref:.1f} images/s, ratio {ours / ref:.2f}x"
         )
+        total = sum(res.stages.values()) or float("nan")
+        per_image = {k: v / max(res.processed, 1) * 1e3 for k, v in res.stages.items()}
+        parts = [f"{k} {v / total:.0%} ({per_image[k]:.1f} ms/image)" for k, v in res.stages.items()]
+        print("  where the workers' time went: " + ", ".join(parts))
         manifest["benchmark"] = {"images_per_s": ours, "baseline_images_per_s": ref, "ratio": ours / ref}
+        manifest["benchmark"]["stage_seconds"] = res.stages
     if decoder_lines or base is not None:
         atomic_write(res.manifest, json.dumps(manifest, indent=2))
     return 1 if res.failed else 0
