@@ -10,8 +10,10 @@ imports; else ``null``, and ``reference_missing`` says why); ``fixed_over_pool``
 ``gpu_busy_ms_per_step``: the profiler's time of those); ``host_reads`` (`count_host_reads` of a
 learnable step); ``numba_launch_us``, ``direct_launch_us`` and ``torch_launch_us`` (the host's
 microseconds a launch of a numba kernel of 12 tensors costs through numba's dispatcher and
-directly, and a torch operator's); ``first_call_s``; ``physics_cuda_equals_cpu`` (the share of
-recorded values equal on both, same seed); ``cuda_tests``.
+directly, and a torch operator's); ``first_call_s``; ``cuda_vs_cpu_f64_maxabs`` (the same
+compiled mesh on both) and ``cuda_vs_cpu_fixed_f64_maxabs`` (a fixed layout: two meshes within
+``fixed_f64_error_bound``); ``physics_cuda_equals_cpu`` (the share of recorded values equal on
+both, same seed); ``cuda_tests``.
 
     python examples/gpu_check.py [--no-tests] [--out examples/gpu/gpu_check.json]
 
@@ -271,13 +273,27 @@ def main() -> int:
         f"({t_pool:.3f} ms); "
         f"with physics {t_phys:.3f} ms (+{res['physics_overhead']:.0%})"
     )
-    with torch.no_grad():  # the device kernels against the CPU kernels, float64
-        small = img[:, :, :256, :512].double()
-        a = lw.simulate(small, lw.CurvLayout((0.3, -0.24)).double().cuda(), (33, 65)).cpu()  # .double()
-        # converts in place: a layout of its own, so `fixed` stays float32 for the noise below
-        b = lw.simulate(small.cpu(), lw.CurvLayout((0.3, -0.24)).double(), (33, 65))
-    res["cuda_vs_cpu_f64_maxabs"] = float((a - b).abs().max())
-    print("CUDA vs CPU, float64, max abs difference:", res["cuda_vs_cpu_f64_maxabs"])
+    small = img[:, :, :256, :512].double()
+    # the device kernels against the CPU kernels, float64, on the same compiled mesh (a learnable
+    # layout's forward with autograd on: the CPU's fixed route builds its mesh in torch, whose
+    # polylines differ within the tolerance)
+    on = [
+        lw.simulate(small.to(d), lw.CurvLayout((0.3, -0.24), learn=True).double().to(d), (33, 65))
+        for d in ("cuda", "cpu")
+    ]
+    res["cuda_vs_cpu_f64_maxabs"] = float((on[0].detach().cpu() - on[1].detach()).abs().max())
+    print("CUDA vs CPU, float64, the same compiled mesh, max abs difference:", res["cuda_vs_cpu_f64_maxabs"])
+    with torch.no_grad():  # a fixed layout: the device's compiled mesh against the CPU's torch mesh
+        a = lw.simulate(small, lw.CurvLayout((0.3, -0.24)).double().cuda(), (33, 65)).cpu()
+        b, plan = lw.simulate(small.cpu(), lw.CurvLayout((0.3, -0.24)).double(), (33, 65), return_plan=True)
+    res["cuda_vs_cpu_fixed_f64_maxabs"], res["fixed_f64_error_bound"] = (
+        float((a - b).abs().max()),
+        plan.error_bound,
+    )
+    print(
+        f"a fixed float64 layout, CUDA vs CPU: {res['cuda_vs_cpu_fixed_f64_maxabs']:.2e} "
+        f"(two polylines within the error bound {plan.error_bound:.2e})"
+    )
     seeded = lw.SensorPhysics((2800, 5600), photons_per_um2=5, read_noise_e=2.0, adc_bits=12, seed=1)
     with torch.no_grad():  # the same noise draws on both: the same counter-based streams
         on_gpu = lw.simulate(img, fixed, SIZE, physics=seeded).cpu()
