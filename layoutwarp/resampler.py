@@ -184,7 +184,7 @@ def _block_weights(
 @dataclass(frozen=True)
 class Runs:
     """A fixed layout's area weights as runs of source cells (the arrays of
-    [`layoutwarp.kernels.runs`][]): the cells of one pixel in one source row, contiguous, whose
+    ``layoutwarp/kernels/runs.py``): the cells of one pixel in one source row, contiguous, whose
     first ``head`` and last ``tail`` cells a pixel boundary cuts (their weights kept in float32, in
     order) and whose cells between weigh ``inv_area`` of the pixel. At 2048x1024 → 257x129 they
     take 1.24x the bytes of one float32 plane of the image, against 2.6x for the same weights as a
@@ -324,7 +324,7 @@ class AreaResampler:
 
     @property
     def weights(self) -> scipy.sparse.csr_matrix:
-        """The weights as a float32 CSR matrix, made from [`runs`][] on first use and kept."""
+        """The weights as a float32 CSR matrix, made from the [`Runs`][] on first use and kept."""
         if self._weights is None:
             self._weights = self.runs.csr()
         return self._weights
@@ -582,7 +582,7 @@ def area_product(
     with_areas: bool,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """``layoutwarp::area``, the operator of a fixed layout's product (called directly where
-    [`plain_eager`][layoutwarp.operators.base.plain_eager]): the exact means ``(N, h, w)`` of the
+    ``operators.base.plain_eager``): the exact means ``(N, h, w)`` of the
     fixed layout ``layout`` (a [`layout_token`][layoutwarp.operators.base.layout_token]) at
     ``theta`` over float32 images ``(N, H, W)`` by its cached area weights
     ([`resampler_for`][]), and, ``with_areas``, the pixels' areas ``(h, w)`` (float64, sensor
