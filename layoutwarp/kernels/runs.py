@@ -87,6 +87,31 @@ def _pixel_sum(k, pix_runs, run_start, run_len, run_head, run_tail, inv_area, pi
 
 
 _pixel_sum = inline(_pixel_sum)
+
+
+@inline
+def _pixel_out(k, pix_runs, run_start, run_len, run_head, run_tail, inv_area, pix_cuts, cut_weight, x, out):
+    """Pixel ``k``'s means of every plane of ``x``, written to ``out[:, k]`` (three planes a pass,
+    then the one or two left); returns how many of them are not finite."""
+    n = x.shape[0]
+    bad = 0
+    for p in range(0, n, 3):
+        if n - p == 1:
+            out[p, k] = _pixel_sum(
+                k, pix_runs, run_start, run_len, run_head, run_tail, inv_area, pix_cuts, cut_weight, x, p
+            )
+            bad += not math.isfinite(out[p, k])
+            continue
+        q, r = p + 1, min(p + 2, n - 1)  # two planes left: the second read twice
+        sums = _pixel_sums(
+            k, pix_runs, run_start, run_len, run_head, run_tail, inv_area, pix_cuts, cut_weight, x, p, q, r
+        )
+        for i in range(min(3, n - p)):
+            out[p + i, k] = sums[i]
+            bad += not math.isfinite(out[p + i, k])
+    return bad
+
+
 _pixel_sums = inline(_pixel_sums)
 
 
@@ -98,36 +123,12 @@ def _runs_share(
 ) -> int:  # fmt: skip
     """Pixels ``t·R/T ..`` of [`runs_apply`][]; returns how many of the values it wrote are not
     finite."""
-    n, rows = x.shape[0], pix_runs.shape[0] - 1
+    rows = pix_runs.shape[0] - 1
     bad = 0
     for k in range(t * rows // nt, (t + 1) * rows // nt):
-        for p in range(0, n, 3):
-            if n - p == 1:
-                v = _pixel_sum(
-                    k, pix_runs, run_start, run_len, run_head, run_tail, inv_area, pix_cuts, cut_weight, x, p
-                )
-                out[p, k] = v
-                bad += not np.isfinite(out[p, k])
-                continue
-            q, r = p + 1, min(p + 2, n - 1)  # two planes left: the second read twice
-            sums = _pixel_sums(
-                k,
-                pix_runs,
-                run_start,
-                run_len,
-                run_head,
-                run_tail,
-                inv_area,
-                pix_cuts,
-                cut_weight,
-                x,
-                p,
-                q,
-                r,
-            )
-            for i in range(min(3, n - p)):
-                out[p + i, k] = sums[i]
-                bad += not np.isfinite(out[p + i, k])
+        bad += _pixel_out(
+            k, pix_runs, run_start, run_len, run_head, run_tail, inv_area, pix_cuts, cut_weight, x, out
+        )
     return bad
 
 
@@ -179,33 +180,17 @@ def _cuda_runs_apply(
     k = cuda.grid(1)
     rows = pix_runs.shape[0] - 1
     if k < rows:
-        n = x.shape[0]
-        for p in range(0, n, 3):
-            q, r = min(p + 1, n - 1), min(p + 2, n - 1)  # one or two planes left: read again
-            sums = _pixel_sums(
-                k,
-                pix_runs,
-                run_start,
-                run_len,
-                run_head,
-                run_tail,
-                inv_area,
-                pix_cuts,
-                cut_weight,
-                x,
-                p,
-                q,
-                r,
-            )
-            for i in range(min(3, n - p)):
-                out[p + i, k] = sums[i]
-                if stamp and not math.isfinite(sums[i]):
-                    checks[0] = stamp
-                if measure:  # from the mean as the buffer holds it, as the CPU measures its buffer
-                    at, origin = (p + i) * rows + k, stream_origin(seed)
-                    out[p + i, k] = measured_value(
-                        out[p + i, k], at, k, area_um2, prnu, dsnu, params, origin, noise, output
-                    )
+        bad = _pixel_out(
+            k, pix_runs, run_start, run_len, run_head, run_tail, inv_area, pix_cuts, cut_weight, x, out
+        )
+        if stamp and bad:
+            checks[0] = stamp
+        if measure:  # from the means as the buffer holds them, as the CPU measures its buffer
+            origin = stream_origin(seed)
+            for p in range(x.shape[0]):
+                out[p, k] = measured_value(
+                    out[p, k], p * rows + k, k, area_um2, prnu, dsnu, params, origin, noise, output
+                )
 
 
 _F1, _I1, _J1, _F2 = "float64[::1]", "int64[::1]", "int32[::1]", "float32[:, ::1]"
