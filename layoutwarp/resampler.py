@@ -13,7 +13,6 @@ from __future__ import annotations
 import math
 import warnings
 from collections.abc import Callable
-from dataclasses import dataclass, fields
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -31,7 +30,7 @@ from .checks import (
 )
 from .integrators import data_tolerance, green_pieces
 from .kernels.device import device_checks, fall_back, stream_of
-from .kernels.runs import runs_apply_on_device
+from .kernels.runs import Runs, runs_apply_on_device
 from .labels import labels_to_sensor
 from .layouts import Layout, check_layout
 from .mesh import PixelMesh, pixel_mesh
@@ -45,7 +44,6 @@ if TYPE_CHECKING:
 __all__ = [
     "RESAMPLERS",
     "AreaResampler",
-    "Runs",
     "area_product",
     "area_weights",
     "resampler_for",
@@ -181,90 +179,6 @@ def _block_weights(
     return pixel, r * ws + c[rep] + offs, cum[rep]
 
 
-@dataclass(frozen=True)
-class Runs:
-    """A fixed layout's area weights as runs of source cells (the arrays of
-    ``layoutwarp/kernels/runs.py``): the cells of one pixel in one source row, contiguous, whose
-    first ``head`` and last ``tail`` cells a pixel boundary cuts (their weights kept in float32, in
-    order) and whose cells between weigh ``inv_area`` of the pixel. At 2048x1024 → 257x129 they
-    take 1.24x the bytes of one float32 plane of the image, against 2.6x for the same weights as a
-    CSR matrix."""
-
-    pix_runs: np.ndarray
-    run_start: np.ndarray
-    run_len: np.ndarray
-    run_head: np.ndarray
-    run_tail: np.ndarray
-    inv_area: np.ndarray
-    pix_cuts: np.ndarray
-    cut_weight: np.ndarray
-    shape: tuple[int, int]
-
-    @classmethod
-    def of(cls, weights: scipy.sparse.csr_matrix, area: np.ndarray, src_width: int) -> Runs:
-        """The runs of float64 area ``weights`` (``(R, H · W)``, [`area_weights`][]) of pixels of
-        ``area`` ``(R,)`` (in source cells): an entry within 1e-9 of ``1 / area`` is a whole cell,
-        every other a cut one. A run ends at a gap, at the end of a source row, and where a whole
-        cell follows a cut cell that follows a whole cell (a pixel whose row crosses a boundary
-        and back: two runs)."""
-        indptr, cell, data = weights.indptr.astype(np.int64), weights.indices.astype(np.int64), weights.data
-        rows, n = indptr.size - 1, cell.size
-        pixel = np.repeat(np.arange(rows), np.diff(indptr))
-        whole = np.abs(data * area[pixel] - 1.0) <= 1e-9
-        span = np.ones(n, bool)  # a new span of contiguous cells of one pixel in one source row
-        span[1:] = (pixel[1:] != pixel[:-1]) | (cell[1:] != cell[:-1] + 1) | (cell[1:] % src_width == 0)
-        seen = np.cumsum(whole) - whole  # whole cells before each entry ...
-        seen -= seen[np.flatnonzero(span)][np.cumsum(span) - 1]  # ... in its span
-        first = span.copy()
-        first[1:] |= whole[1:] & ~whole[:-1] & (seen[1:] > 0)
-        run = np.cumsum(first) - 1
-        starts = np.flatnonzero(first)
-        length = np.diff(np.r_[starts, n])
-        wholes = np.bincount(run, weights=whole, minlength=starts.size).astype(np.int64)
-        first_whole = np.full(starts.size, n)
-        np.minimum.at(first_whole, run[whole], np.flatnonzero(whole))
-        head = np.where(wholes > 0, first_whole - starts, length)
-        cut = ~whole
-        index = np.int32 if weights.shape[1] < 2**31 else np.int64
-        return cls(
-            np.r_[0, np.cumsum(np.bincount(pixel[starts], minlength=rows))],
-            cell[starts].astype(index),
-            length.astype(np.int32),
-            head.astype(np.int32),
-            (length - head - wholes).astype(np.int32),
-            1.0 / area,
-            np.r_[0, np.cumsum(np.bincount(pixel[cut], minlength=rows))],
-            data[cut].astype(np.float32),
-            weights.shape,
-        )
-
-    def arrays(self) -> tuple[np.ndarray, ...]:
-        """The eight arrays, in the order the kernels take them."""
-        return tuple(getattr(self, f.name) for f in fields(self)[:8])
-
-    @property
-    def nbytes(self) -> int:
-        """The bytes the runs hold."""
-        return sum(a.nbytes for a in self.arrays())
-
-    def csr(self) -> scipy.sparse.csr_matrix:
-        """The same weights as a float32 ``scipy.sparse.csr_matrix``."""
-        import scipy.sparse
-
-        rows = self.pix_runs.size - 1
-        length = self.run_len.astype(np.int64)
-        offset = np.cumsum(length) - length
-        cell = np.repeat(self.run_start.astype(np.int64) - offset, length) + np.arange(int(length.sum()))
-        pixel = np.repeat(np.repeat(np.arange(rows), np.diff(self.pix_runs)), length)
-        # within a run: head cells, whole cells, tail cells
-        at = np.arange(cell.size) - np.repeat(offset, length)
-        cut = (at < np.repeat(self.run_head, length)) | (at >= np.repeat(length - self.run_tail, length))
-        value = self.inv_area[pixel].astype(np.float32)
-        value[cut] = self.cut_weight  # the cut cells in the order they are kept
-        indptr = np.r_[0, np.cumsum(np.bincount(pixel, minlength=rows))]
-        return scipy.sparse.csr_matrix((value, cell, indptr), shape=self.shape)
-
-
 class AreaResampler:
     """Exact sensor resampling for a fixed layout and source size (precomputed weights).
 
@@ -283,7 +197,8 @@ class AreaResampler:
     the CPU's in the last bits (a rounded integer output by one level, rarely).
 
     Attributes:
-        runs: the weights as [`Runs`][] (what the products read: each source cell once).
+        runs: the weights as [`Runs`][layoutwarp.kernels.runs.Runs] (what the products read: each
+            source cell once).
         weights: the ``(h · w, H · W)`` float32 ``scipy.sparse.csr_matrix`` of [`area_weights`][],
             made from `runs` on first use (the image gradient, label maps and torch's product
             read it).
@@ -324,7 +239,8 @@ class AreaResampler:
 
     @property
     def weights(self) -> scipy.sparse.csr_matrix:
-        """The weights as a float32 CSR matrix, made from the [`Runs`][] on first use and kept."""
+        """The weights as a float32 CSR matrix, made from the
+        [`Runs`][layoutwarp.kernels.runs.Runs] on first use and kept."""
         if self._weights is None:
             self._weights = self.runs.csr()
         return self._weights

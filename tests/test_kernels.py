@@ -430,8 +430,9 @@ def test_kernel_threads_follow_torchs_count_and_numbas_threading_layer_never_sta
 def _random_runs(gen: torch.Generator) -> tuple:
     """The float64 area weights, and their `Runs`, of a random curved layout of mixed-sign θ, at a
     random sensor size over a random source (a pixel spans 1.5 to 8 source cells a side)."""
+    from layoutwarp.kernels.runs import Runs
     from layoutwarp.mesh import pixel_mesh
-    from layoutwarp.resampler import Runs, area_weights
+    from layoutwarp.resampler import area_weights
 
     rng = np.random.default_rng(int(torch.randint(0, 2**31, (), generator=gen)))
     th = (float(rng.uniform(0.1, 0.6)), -float(rng.uniform(0.1, 0.6)))
@@ -485,7 +486,7 @@ def test_runs_split_where_a_row_of_a_pixel_leaves_it_and_comes_back():
     them scaled once, and the product equal to the matrix's."""
     import scipy.sparse
 
-    from layoutwarp.resampler import Runs
+    from layoutwarp.kernels.runs import Runs
 
     area = np.array([4.0, 2.0])
     whole = 1 / area
