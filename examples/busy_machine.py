@@ -33,7 +33,7 @@ from pathlib import Path
 import torch
 
 import layoutwarp as lw
-from layoutwarp.experiments.bench import README_EXAMPLE
+from layoutwarp.experiments.firstcalls import README_EXAMPLE
 
 BUSY = "while True:\n    pass\n"
 

@@ -1,7 +1,7 @@
 """The README's example as a new installation meets it: a fresh process with an empty numba cache
 (a new ``NUMBA_CACHE_DIR``), timing import, a learnable curv step at 2048x1024 RGB → 257x129, a
 fixed-layout forward and a call with physics (see docs/speed.md, "The first call"). The code run
-is ``layoutwarp.experiments.bench.README_EXAMPLE``, which ``layoutwarp bench`` times too.
+is ``layoutwarp.experiments.firstcalls.README_EXAMPLE``, which ``layoutwarp bench`` times too.
 
     python examples/first_call.py [--mode background|wait|off]
 """
@@ -15,7 +15,7 @@ import subprocess
 import sys
 import tempfile
 
-from layoutwarp.experiments.bench import README_EXAMPLE
+from layoutwarp.experiments.firstcalls import README_EXAMPLE
 
 
 def main() -> int:

@@ -38,7 +38,7 @@ import torch
 import torch.nn.functional as F
 
 import layoutwarp as lw
-from layoutwarp.experiments.bench import interleaved_times
+from layoutwarp.experiments.timing import interleaved_times
 from layoutwarp.testing import count_host_reads, count_launches
 
 lw.jit.set_mode("wait")  # time the compiled kernels, never the torch path while they compile

@@ -31,7 +31,8 @@ import torch
 
 import layoutwarp as lw
 from layoutwarp.cli import positive_int
-from layoutwarp.experiments.bench import BENCH_PHYSICS, interleaved_times
+from layoutwarp.experiments.benchphysics import BENCH_PHYSICS
+from layoutwarp.experiments.timing import interleaved_times
 
 lw.jit.set_mode("wait")  # time the compiled kernels, never the torch path while they compile
 

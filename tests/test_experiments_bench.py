@@ -11,17 +11,11 @@ import torch
 from conftest import rand_theta
 
 import layoutwarp as lw
-from layoutwarp.experiments.bench import (
-    BenchConfig,
-    fd_theta_gradient,
-    format_scaling,
-    format_table,
-    report_text,
-    run,
-    scaling,
-)
+from layoutwarp.experiments.bench import run, scaling
+from layoutwarp.experiments.benchconfig import BenchConfig
+from layoutwarp.experiments.benchtext import format_scaling, format_table, report_text
 from layoutwarp.experiments.plots import pareto_figure
-from layoutwarp.experiments.scene import SineScene
+from layoutwarp.experiments.scene import SineScene, fd_theta_gradient
 
 F64 = torch.float64
 
@@ -152,11 +146,11 @@ def test_run_small_reports_every_method_and_plots(tmp_path):
 def test_paired_timing_takes_every_order_so_each_call_follows_each_other_as_often():
     from collections import Counter
 
-    from layoutwarp.experiments import bench
+    from layoutwarp.experiments.timing import interleaved_times
 
     calls: list[str] = []
     fns = [lambda name=name: calls.append(name) for name in "abc"]
-    times = bench.interleaved_times(fns, 12)  # each call's ms, round by round
+    times = interleaved_times(fns, 12)  # each call's ms, round by round
     assert len(times) == 3 and all(len(t) == 12 and min(t) >= 0 for t in times)
     rounds = ["".join(calls[3 + 3 * k : 6 + 3 * k]) for k in range(12)]  # after the warm-up calls
     assert calls[:3] == ["a", "b", "c"] and sorted(rounds[:6]) == sorted(rounds[6:])
@@ -193,7 +187,8 @@ def test_the_memory_child_measures_a_fixed_layouts_first_call_with_and_without_c
     # run in this process (the bench spawns it): the growth it reports, and whether the call it
     # measured built area weights (cache_size 0: the compiled walk, no weights)
     from layoutwarp import resampler
-    from layoutwarp.experiments import bench
+    from layoutwarp.experiments.benchconfig import bench_layouts
+    from layoutwarp.experiments.memory import memory_child
 
     sent: list[float] = []
 
@@ -205,21 +200,22 @@ def test_the_memory_child_measures_a_fixed_layouts_first_call_with_and_without_c
             pass
 
     monkeypatch.setattr(resampler.RESAMPLERS, "maxsize", resampler.RESAMPLERS.maxsize)  # restored afterwards
-    spec = {"layout": bench.bench_layouts((0.3, 0.2))["curv"], "method": "exact", "opts": {}}
+    spec = {"layout": bench_layouts((0.3, 0.2))["curv"], "method": "exact", "opts": {}}
     spec |= {"src": (64, 96), "size": (9, 13), "threads": torch.get_num_threads()}
     for size, built in ((0, False), (4, True)):
         resampler.RESAMPLERS.clear()
-        bench.memory_child(spec | {"cache_size": size}, Conn())
+        memory_child(spec | {"cache_size": size}, Conn())
         assert resampler.RESAMPLERS.maxsize == size and bool(len(resampler.RESAMPLERS)) == built
     assert len(sent) == 2 and all(v >= 0 for v in sent)
 
 
 @pytest.mark.skipif(not lw.kernels.available(), reason="needs numba")
 def test_first_calls_time_an_entry_point_from_an_empty_cache_and_warm(tmp_path, monkeypatch):
-    """bench.first_calls runs an entry point in a fresh process with a throw-away empty cache
+    """firstcalls.first_calls runs an entry point in a fresh process with a throw-away empty cache
     (background mode) and with this installation's, reports both, and its report line gives the
     difference; the throw-away cache is left by a stopped worker (nothing compiles on after)."""
-    from layoutwarp.experiments.bench import ENTRY_POINTS, first_calls, format_first_calls
+    from layoutwarp.experiments.benchtext import format_first_calls
+    from layoutwarp.experiments.firstcalls import ENTRY_POINTS, first_calls
 
     monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "home"))  # this test's "installation"
     out = first_calls(["export"], fill=True)
@@ -233,7 +229,7 @@ def test_first_calls_time_an_entry_point_from_an_empty_cache_and_warm(tmp_path, 
 
 def test_the_bench_table_keeps_every_number_under_its_header_whatever_the_settings_length():
     """A setting longer than the column (tol=0.0001) once pushed its row's numbers one column on."""
-    from layoutwarp.experiments.bench import format_table
+    from layoutwarp.experiments.benchtext import format_table
 
     row = {"extra": {}, "backward_ms": None, "rmse": 1e-6, "max_err": 2e-6, "scene_rmse": None}
     row |= {"grad_rel_err": None, "peak_mb": None, "forward_ms": 2.5}

@@ -257,7 +257,7 @@ def test_reynolds_gradient_is_the_boundary_flux_formula_with_the_same_draws(name
     # the backward contracts the weights onto the edges and takes one vector-Jacobian product of
     # φ; the reference forms ∂φ/∂θ column by column (closed forms or autograd columns) and the
     # pixels' fluxes, as the paper writes them, from the same generator draws
-    from layoutwarp.experiments.bench import bench_layouts
+    from layoutwarp.experiments.benchconfig import bench_layouts
     from layoutwarp.layoutfile import layout_from_spec
     from layoutwarp.maps import sample_points
     from layoutwarp.mesh import MeshTopology

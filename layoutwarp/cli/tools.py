@@ -108,7 +108,7 @@ def _bench_rows(text: str | None) -> list[str] | None:
     """``--layouts``: comma-separated rows of the benchmark, checked."""
     if text is None:
         return None
-    from ..experiments.bench import bench_layouts
+    from ..experiments.benchconfig import bench_layouts
 
     names = list(bench_layouts((0.0, 0.0)))
     rows = [t.strip() for t in text.split(",")]

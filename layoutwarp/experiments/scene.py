@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -11,8 +12,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..integrators import integrate_exact
 from ..layouts import Layout
-from ..mesh import MeshTopology, smooth_pieces
+from ..mesh import MeshTopology, pixel_mesh, smooth_pieces
 from .data import samples_dir
 
 __all__ = ["SineScene", "blurred_noise", "load_photo"]
@@ -117,3 +119,44 @@ class SineScene:
             out.index_add_(1, e, torch.stack([(pc * weight).flatten(1).sum(1) for pc in px]))
         pix = topo.combine(out)
         return pix[1:] / pix[0]
+
+
+def _exact64(img64: Tensor, layout: Layout, size, subdivisions: int, theta: Tensor) -> Tensor:
+    """Float64 exact forward with θ; curved edges on a fixed-subdivision mesh (smooth in θ, for
+    finite differences), straight-edged layouts on their exact mesh."""
+    if layout.straight_edges:
+        mesh = pixel_mesh(layout, size, theta=theta)
+    else:
+        mesh = pixel_mesh(layout, size, subdivisions=subdivisions, theta=theta)
+    return integrate_exact(img64.flatten(0, 1), layout, size, mesh=mesh)
+
+
+def fd_theta_gradient(
+    img64: Tensor,
+    layout: Layout,
+    theta: Sequence[float] | Tensor,
+    size,
+    weights: Tensor,
+    h: float = 1e-6,
+    subdiv: int = 64,
+) -> Tensor:
+    """Central finite differences of ``Σ weights · exact(θ)`` in float64, shape ``(P,)``.
+
+    Curved edges use ``subdiv`` equal parameter steps (no adaptive choice), so the forward
+    is smooth in θ and the differences are not polluted by changing subdivisions. The box
+    image makes the loss only piecewise smooth in θ (its derivative jumps whenever an edge
+    crosses a source row or column), so the step is small: edges move by about
+    ``1e-6 · source size`` pixels and few of them cross a boundary inside the window.
+    """
+    th = torch.as_tensor(theta, dtype=torch.float64)
+
+    def loss(t: Tensor) -> float:
+        with torch.no_grad():
+            return float((_exact64(img64, layout, size, subdiv, t) * weights).sum())
+
+    grads = []
+    for k in range(th.numel()):
+        step = torch.zeros_like(th)
+        step[k] = h
+        grads.append((loss(th + step) - loss(th - step)) / (2 * h))
+    return torch.tensor(grads, dtype=torch.float64)

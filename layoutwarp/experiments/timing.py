@@ -7,6 +7,7 @@ from __future__ import annotations
 import itertools
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -109,3 +110,21 @@ def cuda_peak_mb(fn: Callable[[], object]) -> float:
     fn()
     sync()
     return (torch.cuda.max_memory_allocated() - base) / 2**20
+
+
+@dataclass
+class Row:
+    """One measured configuration (times in ms, errors in image units, memory in MiB)."""
+
+    image: str
+    layout: str
+    method: str
+    setting: str
+    forward_ms: float
+    backward_ms: float | None = None
+    rmse: float | None = None
+    max_err: float | None = None
+    scene_rmse: float | None = None
+    grad_rel_err: float | None = None
+    peak_mb: float | None = None
+    extra: dict = field(default_factory=dict)
