@@ -5,6 +5,7 @@ works), a file cut short refused in our words and OpenCV's own lines kept off th
 from __future__ import annotations
 
 import contextlib
+import os
 import threading
 from collections.abc import Iterator
 from pathlib import Path
@@ -13,7 +14,10 @@ from typing import Any
 import cv2
 import numpy as np
 
-__all__ = ["encode_image", "read_image", "to_dtype"]
+__all__ = ["IMAGE_SUFFIXES", "encode_image", "list_images", "read_image", "to_dtype"]
+
+#: The image files preprocessing reads (by suffix, any case).
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
 
 
 def encode_image(path: Path, arr: np.ndarray) -> bytes:
@@ -94,3 +98,16 @@ def read_image(path: Path, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray:
     if img is None:
         raise ValueError("unreadable or not an image")
     return img
+
+
+def list_images(src: str | Path, exclude: str | Path | None = None) -> list[Path]:
+    """Every image file (by suffix, see [`IMAGE_SUFFIXES`][]) under ``src`` in sorted order,
+    leaving out the folder ``exclude`` (e.g. a destination inside the source)."""
+    src = Path(src)
+    exclude = Path(exclude).resolve() if exclude is not None else None
+    files = []
+    for root, dirs, names in os.walk(src):
+        rootp = Path(root)
+        dirs[:] = sorted(d for d in dirs if exclude is None or (rootp / d).resolve() != exclude)
+        files += [rootp / n for n in sorted(names) if Path(n).suffix.lower() in IMAGE_SUFFIXES]
+    return files

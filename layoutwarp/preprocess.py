@@ -54,7 +54,7 @@ from .checks import (
 )
 from .doctor import run_info
 from .files import atomic_write, file_in_the_way
-from .imagefiles import encode_image, read_image, to_dtype
+from .imagefiles import IMAGE_SUFFIXES, encode_image, list_images, read_image, to_dtype
 from .labels import LABEL_RULES as SENSOR_RULES
 from .layoutfile import layout_from_spec, layout_spec, load_layout, same_spec, save_layout
 from .layouts import Layout, check_layout
@@ -62,13 +62,11 @@ from .physics import SensorPhysics, apply_psf, as_physics, measure
 from .resampler import AreaResampler
 
 __all__ = [
-    "IMAGE_SUFFIXES",
     "LABEL_RULES",
     "PreprocessResult",
     "check_destination",
     "check_no_overwrite",
     "file_seed",
-    "list_images",
     "preprocess_folder",
     "read_image",
 ]
@@ -77,7 +75,6 @@ __all__ = [
 #: took (with progress shown): a 4000x4000 sensor's take a minute or more.
 ANNOUNCE_PIXELS = 1 << 20
 
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
 #: The most worker threads (or Dask processes) a run takes.
 MAX_WORKERS = 256
 #: Label rules: the sensor-grid rules of [`layoutwarp.labels`][], or full-size copies with back-warp maps.
@@ -257,19 +254,6 @@ def file_seed(seed: int | None, rel: str | Path) -> int:
     ``None``), the same on every machine, run and engine."""
     digest = hashlib.blake2b(f"{seed or 0}:{Path(rel).as_posix()}".encode(), digest_size=8).digest()
     return int.from_bytes(digest, "little") >> 1
-
-
-def list_images(src: str | Path, exclude: str | Path | None = None) -> list[Path]:
-    """Every image file (by suffix, see [`IMAGE_SUFFIXES`][]) under ``src`` in sorted order,
-    leaving out the folder ``exclude`` (e.g. a destination inside the source)."""
-    src = Path(src)
-    exclude = Path(exclude).resolve() if exclude is not None else None
-    files = []
-    for root, dirs, names in os.walk(src):
-        rootp = Path(root)
-        dirs[:] = sorted(d for d in dirs if exclude is None or (rootp / d).resolve() != exclude)
-        files += [rootp / n for n in sorted(names) if Path(n).suffix.lower() in IMAGE_SUFFIXES]
-    return files
 
 
 def _read_done(path: Path) -> dict[str, dict]:

@@ -35,7 +35,8 @@ ADDRESS = re.compile(r"([A-Za-z][A-Za-z0-9+.-]*://)?(\[[0-9A-Fa-f:.]+\]|[^\s:/\[
 
 def _cmd_preprocess(args: argparse.Namespace) -> int:
     from ..files import atomic_write
-    from ..preprocess import IMAGE_SUFFIXES, check_destination, list_images, preprocess_folder
+    from ..imagefiles import IMAGE_SUFFIXES, list_images
+    from ..preprocess import check_destination, preprocess_folder
 
     existing_folder(args.src, "SRC")
     check_destination(Path(args.dst), Path(args.src))
