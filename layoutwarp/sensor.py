@@ -138,7 +138,7 @@ def _prepare(image: Tensor) -> tuple[Tensor, torch.dtype, tuple[int, ...]]:
     if not isinstance(image, Tensor):
         kind = type(image).__name__
         raise TypeError(f"image must be a torch.Tensor (B, C, H, W) or a callable, got {kind}")
-    if image.ndim not in (3, 4):  # check_shape's pattern, asked only where it fails (a tenth of a small call)
+    if image.ndim not in (3, 4):  # the pattern parsed only to word the error (it cost a small call 10 %)
         check_shape(image, "B C H W|C H W", "image")
     if image.shape[-1] == 0 or image.shape[-2] == 0:
         raise ValueError(f"image height and width must be >= 1, got {tuple(image.shape[-2:])}")
@@ -356,10 +356,8 @@ class _Integration:
 
     def _area(self, work: Tensor, physics: str, seed: Tensor, with_areas: bool) -> tuple[Tensor, Tensor]:
         """``layoutwarp::area`` on ``work``: the means (or, with ``physics``, the record) and areas."""
-        theta, args = (
-            self._theta(),
-            (layout_token(self.layout), *self.size, float(self.tol), physics, self.output),
-        )
+        theta = self._theta()
+        args = (layout_token(self.layout), *self.size, float(self.tol), physics, self.output)
         op = area_product if plain_eager(work, theta, seed) else torch.ops.layoutwarp.area
         return op(work, theta, *args, seed, not self.allow_nonfinite, with_areas)
 

@@ -261,7 +261,7 @@ FAST_LAUNCH = os.environ.get("LAYOUTWARP_CUDA_LAUNCH", "direct") != "numba"
 _DIRECT: dict[tuple, object] = {}  # (kernel, device, argument kinds) → the compiled function
 _STREAMS: dict[int, object] = {}  # stream handle → cuda.core's stream on it
 _CONFIGS: dict[int, object] = {}  # blocks → cuda.core's launch configuration
-#: Why the direct launch is off in this process (numba-cuda's internals differ), or ``None``.
+#: Why the direct launch is off in this process (numba-cuda's internals differ); empty while on.
 DIRECT_OFF: list[str] = []
 
 
