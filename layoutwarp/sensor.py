@@ -34,7 +34,13 @@ from .integrators import (
 )
 from .layoutfile import load_layout, save_layout
 from .layouts import Layout, make_layout, wants_grad
-from .operators.base import layout_token, plain_eager, random_seed, refuse_grad_transforms
+from .operators.base import (
+    layout_token,
+    plain_eager,
+    random_seed,
+    refuse_forward_ad,
+    refuse_grad_transforms,
+)
 from .physics import SensorPhysics, apply_psf, as_physics, check_output, measure, noise_seed
 from .resampler import RESAMPLERS, area_product
 
@@ -226,6 +232,7 @@ def simulate(
     refuse_grad_transforms()
     if not isinstance(layout, Layout):
         raise TypeError(f"layout must be a layoutwarp Layout, got {type(layout).__name__}")
+    refuse_forward_ad(image, layout.rho)
     allow_nonfinite, return_plan = (
         check_bool(allow_nonfinite, "allow_nonfinite"),
         check_bool(return_plan, "return_plan"),

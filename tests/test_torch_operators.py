@@ -804,3 +804,22 @@ def test_a_plain_eager_fixed_forward_skips_the_dispatcher_and_gives_the_operator
     with FakeTensorMode():
         assert not plain_eager(torch.empty(3))
     assert torch.compile(lambda t: t + plain_eager(t), fullgraph=True)(torch.zeros(1)).item() == 0
+
+
+@pytest.mark.parametrize("learn", [False, True])
+def test_a_forward_mode_tangent_is_refused_in_one_line_not_dropped(learn, gen):
+    """``torch.autograd.forward_ad``: a dual image reaching `simulate` raises one line (the
+    operators have reverse-mode formulas only; torch dropped the tangent without a word), and an
+    open dual level with plain inputs changes nothing."""
+    import torch.autograd.forward_ad as fwad
+
+    from layoutwarp.operators.base import FORWARD_AD
+
+    layout = lw.CurvLayout((0.3, -0.2), learn=learn)
+    img, tangent = torch.rand(1, 1, 37, 53, generator=gen), torch.rand(1, 1, 37, 53, generator=gen)
+    with fwad.dual_level():
+        with pytest.raises(RuntimeError, match="no forward-mode derivatives") as err:
+            lw.simulate(fwad.make_dual(img, tangent), layout, (5, 7))
+        assert str(err.value) == FORWARD_AD and "\n" not in FORWARD_AD
+        inside = lw.simulate(img, layout, (5, 7)).detach()
+    assert torch.equal(inside, lw.simulate(img, layout, (5, 7)).detach())

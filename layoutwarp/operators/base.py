@@ -251,6 +251,24 @@ TRANSFORMS = (
 )
 
 
+FORWARD_AD = (
+    "layoutwarp's operators have no forward-mode derivatives (a tangent from "
+    "torch.autograd.forward_ad would be dropped): use torch.autograd.grad, or loss.backward()"
+)
+
+
+def refuse_forward_ad(*tensors: object) -> None:
+    """Raise, in one line, where any of ``tensors`` carries a forward-mode tangent
+    (``torch.autograd.forward_ad.make_dual``): the operators register reverse-mode formulas only,
+    and torch would drop the tangent without a word."""
+    from torch.autograd import forward_ad
+
+    if forward_ad._current_level < 0 or torch.compiler.is_compiling():
+        return  # no dual level open (the usual case: one integer read)
+    if any(isinstance(t, Tensor) and forward_ad.unpack_dual(t).tangent is not None for t in tensors):
+        raise RuntimeError(FORWARD_AD)
+
+
 def plain_eager(*tensors: Tensor) -> bool:
     """Whether a call on ``tensors`` may run an operator's implementation directly, skipping
     torch's dispatcher (about 140 µs of a small call): eager, not compiling or tracing, no
