@@ -175,7 +175,9 @@ def integrate_separable(
     _, hs, ws = _check_image(image).shape
     if not layout.separable:
         raise ValueError(f"integrate_separable needs a separable layout, got {type(layout).__name__}")
-    ex, ey = separable_edges(layout, check_size(size), (hs, ws), layout.resolve_theta(theta))
+    # θ in float64 (a fixed layout's exactly as set; a learnable one's from ρ, differentiable)
+    theta = layout.theta_as(torch.float64) if theta is None else theta
+    ex, ey = separable_edges(layout, check_size(size), (hs, ws), theta)
     work = image.to(floating_dtype(image.dtype)).contiguous()
     means = torch.ops.layoutwarp.separable(work, ex, ey, not allow_nonfinite)
     if not return_areas:

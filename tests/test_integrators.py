@@ -400,3 +400,22 @@ def test_every_integrator_takes_an_empty_batch(integrator, learn):
     if loss.requires_grad:
         loss.backward()
         assert image.grad is None or image.grad.shape == image.shape
+
+
+@pytest.mark.parametrize("family", ["rect", "spline"])
+def test_a_float64_image_on_a_fixed_separable_layout_uses_theta_as_set(family, gen):
+    """The separable integrator takes a fixed layout's θ in float64, as it was set: a float64 image
+    gives the same values whatever the layout's own dtype (its float32 θ moved rect pixels'
+    means by 3e-7 before)."""
+    th = (torch.rand(2, generator=gen, dtype=torch.float64) * 1.2 - 0.6).tolist()
+    if family == "spline":
+        th = (torch.rand(8, generator=gen, dtype=torch.float64) - 0.5).tolist()
+
+    def make(dtype: torch.dtype) -> lw.Layout:
+        if family == "rect":
+            return lw.RectLayout(th, dtype=dtype)
+        return lw.SplineLayout(th, knots=(4, 4), dtype=dtype)
+
+    img = torch.rand(2, 3, 40, 56, generator=gen, dtype=torch.float64)
+    default, wide = (lw.simulate(img, make(d), (6, 9)) for d in (torch.float32, torch.float64))
+    assert default.dtype == torch.float64 and torch.equal(default, wide)
