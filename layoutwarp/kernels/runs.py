@@ -219,8 +219,13 @@ class Runs:
         )
 
     def arrays(self) -> tuple[np.ndarray, ...]:
-        """The eight arrays, in the order the kernels take them."""
-        return tuple(getattr(self, f.name) for f in fields(self)[:8])
+        """The eight arrays, in the order the kernels take them (made once: a small call's
+        product reads them every time)."""
+        held = self.__dict__.get("_arrays")
+        if held is None:
+            held = tuple(getattr(self, f.name) for f in fields(self)[:8])
+            object.__setattr__(self, "_arrays", held)  # a frozen dataclass: its own cache only
+        return held
 
     @property
     def nbytes(self) -> int:
