@@ -131,24 +131,28 @@ def parse_um(text: str) -> tuple[float, float]:
     return h, w
 
 
+def _inside_pair(text: str, names: str, example: str) -> tuple[float, float, bool]:
+    """``text`` as two comma-separated numbers (``names``, e.g. ``"TX,TY"``, and ``example`` word
+    the error), and whether both are finite with ``|v| < 1``."""
+    try:
+        a, b = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be {names}, e.g. {example}, got {text!r}") from None
+    return a, b, all(math.isfinite(v) and abs(v) < 1 for v in (a, b))
+
+
 def parse_theta(text: str) -> tuple[float, float]:
     """``"0.3,-0.1"`` to ``(0.3, -0.1)``; each value finite with ``|θ| < 1``."""
-    try:
-        tx, ty = (float(v) for v in text.split(","))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be TX,TY, e.g. 0.3,0.1, got {text!r}") from None
-    if not all(math.isfinite(v) and abs(v) < 1 for v in (tx, ty)):
+    tx, ty, inside = _inside_pair(text, "TX,TY", "0.3,0.1")
+    if not inside:
         raise argparse.ArgumentTypeError(f"each θ must be finite with |θ| < 1, got {text!r}")
     return tx, ty
 
 
 def parse_range(text: str) -> tuple[float, float]:
     """``"-0.8,0.8"`` to ``(-0.8, 0.8)``: finite, ``|θ| < 1``, low below high."""
-    try:
-        lo, hi = (float(v) for v in text.split(","))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be LO,HI, e.g. -0.8,0.8, got {text!r}") from None
-    if not (all(math.isfinite(v) and abs(v) < 1 for v in (lo, hi)) and lo < hi):
+    lo, hi, inside = _inside_pair(text, "LO,HI", "-0.8,0.8")
+    if not (inside and lo < hi):
         raise argparse.ArgumentTypeError(f"must have -1 < LO < HI < 1, got {text!r}")
     return lo, hi
 
