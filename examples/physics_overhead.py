@@ -95,10 +95,10 @@ def kernel_overheads(
     def product(measure: str = "") -> None:
         mean = np.empty((x.shape[0], runs.shape[0]), np.float32)
         if not measure:
-            lw.kernels.runs_apply(*runs.arrays(), x, mean, nt)
+            lw.kernels.runs_apply(runs.arrays(), x, mean, nt)
             return
         out = mean if measure == "in place" else np.empty_like(mean)
-        lw.kernels.measured_runs_apply(*runs.arrays(), x, mean, *measured, out, nt)
+        lw.kernels.measured_runs_apply(runs.arrays(), x, mean, *measured, out, nt)
 
     calls = {
         "product": product,

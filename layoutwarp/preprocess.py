@@ -159,9 +159,10 @@ class _Job:
                 self._cache[key] = AreaResampler(
                     self.layout, self.size, src_size, tol=self.tol, dtype=dtype, device=self.device
                 )
-                # the compiled product loaded (or compiled) now, so every image takes it: the same
-                # bytes whenever a file is processed, and its load counted with the weights
-                jit.ready("fixed", torch.float32, wait=True)
+                if torch.device(self.device).type == "cpu":  # the compiled product loaded (or
+                    # compiled) now, so every image takes it: the same bytes whenever a file is
+                    # processed, and its load counted with the weights
+                    jit.ready("fixed", torch.float32, wait=True)
                 if fine:
                     self.say(f"preprocess: ... built in {time.perf_counter() - t0:.1f} s")
             return self._cache[key]

@@ -228,9 +228,10 @@ class AreaResampler:
             # areas are all later calls need (a kept mesh is 0.5-0.8 copies of an RGB image)
             mesh = pixel_mesh(layout, self.size, tol=self.tol, dtype=torch.float64, cache=False)
             # the areas before the weights: the two are never held with the areas' temporaries
-            self.areas = mesh.areas().to(device)
-            cells = mesh.areas(mesh.pixel_vertices(self.src_size)).flatten().cpu().numpy()
+            areas = mesh.areas()
+            self.areas = areas.to(device)
         weights = area_weights(layout, self.size, self.src_size, tol=self.tol, mesh=mesh)
+        cells = areas.flatten().cpu().numpy() * (self.src_size[0] * self.src_size[1] / 4)  # in source cells
         self.runs = Runs.of(weights, cells, self.src_size[1])
         self._weights: scipy.sparse.csr_matrix | None = None
         self._csr: torch.Tensor | None = None
@@ -361,9 +362,9 @@ class AreaResampler:
             measured = None if physics is None else kernel_arguments(physics, self.areas, output, seed_value)
             nt = kernels.threads(x.size)  # bounded by torch's; one for a small image
             if measured is None:
-                bad = kernel(*self.runs.arrays(), x, out, nt)
+                bad = kernel(self.runs.arrays(), x, out, nt)
             else:  # the means measured in place: the buffer is this call's own
-                bad = kernel(*self.runs.arrays(), x, out, *measured, out, nt)
+                bad = kernel(self.runs.arrays(), x, out, *measured, out, nt)
             if bad and not allow_nonfinite:
                 raise_nonfinite(images)
             return torch.from_numpy(out).view(n, *self.size)

@@ -468,14 +468,14 @@ def test_the_runs_product_matches_scipy_for_any_plane_count(planes, gen):
     rng = np.random.default_rng(int(torch.randint(0, 2**31, (), generator=gen)))
     x = rng.random((planes, w.shape[1]), dtype=np.float32)
     out = np.full((planes, w.shape[0]), np.nan, dtype=np.float32)
-    assert kernels.runs_apply(*runs.arrays(), x, out, 2) == 0  # every value written is finite
+    assert kernels.runs_apply(runs.arrays(), x, out, 2) == 0  # every value written is finite
     ref = (w @ x.astype(np.float64).T).T
     assert np.abs(out - ref).max() <= 2e-7 * max(1.0, np.abs(ref).max())
     bad = rng.choice(x.size, size=int(rng.integers(1, 6)), replace=False)
     x.flat[bad] = rng.choice([np.nan, np.inf, -np.inf], size=bad.size)
     with np.errstate(invalid="ignore"):
         ref = (w @ x.astype(np.float64).T).T
-    count = kernels.runs_apply(*runs.arrays(), x, out, 1)
+    count = kernels.runs_apply(runs.arrays(), x, out, 1)
     assert count == int((~np.isfinite(ref)).sum())
     assert np.array_equal(np.isfinite(out), np.isfinite(ref))
 
@@ -500,7 +500,7 @@ def test_runs_split_where_a_row_of_a_pixel_leaves_it_and_comes_back():
     assert runs.run_head.tolist() == [1, 0, 0, 2, 2] and runs.run_tail.tolist() == [1, 1, 0, 0, 0]
     x = np.random.default_rng(0).random((2, 20), dtype=np.float32)
     out = np.empty((2, 2), np.float32)
-    kernels.runs_apply(*runs.arrays(), x, out, 1)
+    kernels.runs_apply(runs.arrays(), x, out, 1)
     assert np.allclose(out, (w @ x.astype(np.float64).T).T, rtol=1e-6)
     assert (abs(runs.csr() - w.astype(np.float32)) > 1e-7).nnz == 0
 

@@ -44,14 +44,12 @@ from .scene import SineScene, blurred_noise, fd_theta_gradient, load_photo
 from .timing import (
     Row,
     cuda_peak_mb,
-    interleaved_times,
     time_backward,
     time_call,
     time_paired,
 )
 
 __all__ = [
-    "interleaved_times",
     "main_bench",
     "run",
     "scaling",

@@ -23,7 +23,7 @@ The arrays, for ``R`` pixels (row-major sensor index):
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -69,6 +69,9 @@ def _pixel_sums(
             a2 += w * x[r, c]
     v = inv_area[k]
     return a0 + b0 * v, a1 + b1 * v, a2 + b2 * v
+
+
+_pixel_sums = inline(_pixel_sums)
 
 
 def _pixel_sum(k, pix_runs, run_start, run_len, run_head, run_tail, inv_area, pix_cuts, cut_weight, x, p):
@@ -117,9 +120,6 @@ def _pixel_out(k, pix_runs, run_start, run_len, run_head, run_tail, inv_area, pi
     return bad
 
 
-_pixel_sums = inline(_pixel_sums)
-
-
 @serial
 def _runs_share(
     t: int, nt: int, pix_runs: np.ndarray, run_start: np.ndarray, run_len: np.ndarray, run_head: np.ndarray,
@@ -137,26 +137,26 @@ def _runs_share(
     return bad
 
 
-def runs_apply(*args: np.ndarray | int) -> int:
-    """``out[n] = W @ x[n]`` for the area weights ``W`` of a fixed layout held as runs and cut cells
-    (the module's eight arrays ``pix_runs, run_start, run_len, run_head, run_tail, inv_area,
-    pix_cuts, cut_weight``), planes ``x`` ``(N, M)`` float32 and ``out`` ``(N, R)``, then ``threads``: a band
-    of pixels to each thread, every pixel's cells read once for every three planes. Returns how many
-    of the values written are not finite (NaN or ±inf): [`simulate`][layoutwarp.sensor.simulate]'s
-    finiteness check while they are in registers."""
-    *arrays, threads = args
-    return sum(run_shares(_runs_share, int(threads), *arrays))
+def runs_apply(runs: tuple[np.ndarray, ...], x: np.ndarray, out: np.ndarray, threads: int) -> int:
+    """``out[n] = W @ x[n]`` for the area weights ``W`` of a fixed layout held as ``runs`` (the
+    eight arrays of [`Runs.arrays`][layoutwarp.kernels.runs.Runs.arrays]), planes ``x``
+    ``(N, M)`` float32 and ``out`` ``(N, R)``: a band of pixels to each of ``threads``, every
+    pixel's cells read once for every three planes. Returns how many of the values written are not
+    finite (NaN or ±inf): [`simulate`][layoutwarp.sensor.simulate]'s finiteness check while they
+    are in registers."""
+    return sum(run_shares(_runs_share, int(threads), *runs, x, out))
 
 
-def measured_runs_apply(*args: np.ndarray | int) -> int:
-    """[`runs_apply`][]'s product (its ten arrays first) into ``mean``, then
-    [`sensor_measure`][layoutwarp.kernels.noise.sensor_measure] of ``mean`` with the other
-    arguments (``area_um2, …, out, threads``): a fixed layout's exact forward with sensor physics.
-    Returns [`runs_apply`][]'s count of non-finite means (the measurement passes NaN and ±inf
-    through)."""
-    product, measure = args[:10], args[10:]
-    bad = runs_apply(*product, measure[-1])
-    sensor_measure(product[-1], *measure)
+def measured_runs_apply(
+    runs: tuple[np.ndarray, ...], x: np.ndarray, mean: np.ndarray, *measure: object
+) -> int:
+    """[`runs_apply`][] into ``mean``, then
+    [`sensor_measure`][layoutwarp.kernels.noise.sensor_measure] of ``mean`` with its other
+    arguments ``measure`` (``area_um2, …, out, threads``): a fixed layout's exact forward with
+    sensor physics. Returns [`runs_apply`][]'s count of non-finite means (the measurement passes
+    NaN and ±inf through)."""
+    bad = runs_apply(runs, x, mean, int(measure[-1]))
+    sensor_measure(mean, *measure)
     return bad
 
 
@@ -219,13 +219,11 @@ class Runs:
         )
 
     def arrays(self) -> tuple[np.ndarray, ...]:
-        """The eight arrays, in the order the kernels take them (made once: a small call's
-        product reads them every time)."""
-        held = self.__dict__.get("_arrays")
-        if held is None:
-            held = tuple(getattr(self, f.name) for f in fields(self)[:8])
-            object.__setattr__(self, "_arrays", held)  # a frozen dataclass: its own cache only
-        return held
+        """The eight arrays, in the order the kernels take them."""
+        return (
+            self.pix_runs, self.run_start, self.run_len, self.run_head, self.run_tail, self.inv_area,
+            self.pix_cuts, self.cut_weight,
+        )  # fmt: skip
 
     @property
     def nbytes(self) -> int:
