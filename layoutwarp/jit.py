@@ -14,7 +14,8 @@ per image dtype a fixed layout's forward (``fixed/…``), the exact integrator (
   compiled kernels in milliseconds. The child ends with its process: it is killed when the
   process exits (or dies), and what it finished stays cached for the next process. A call whose
   result would differ beyond rounding (the sensor's noise: the compiled sampler and torch's are
-  different streams) compiles what it needs in the foreground ([`compiled`][]).
+  different streams) runs a plain compiled kernel of the same values meanwhile, which compiles in
+  seconds in the foreground ([`compiled`][]).
 - ``"wait"``: compile at first use, in the process, and wait for it: every call compiled, and
   results the same to the bit from a process's first call on (the test suite runs this way).
 - ``"off"``: the torch path only.
@@ -170,11 +171,40 @@ def ready(group: str, dtype: str | torch.dtype = "float32", wait: bool = False) 
     return True
 
 
-def compiled(group: str, dtype: str | torch.dtype, kernel: Any) -> Any | None:
+def compiled(group: str, dtype: str | torch.dtype, kernel: Any, first: Any = None) -> Any | None:
     """``kernel`` (a compiled kernel of ``group``) where the result must come from compiled code
     (the sensor's noise draws): compiled here first if need be, whatever the mode but ``"off"``;
-    ``None`` where numba is missing or the mode is ``"off"`` (the torch path)."""
-    return kernel if ready(group, dtype, wait=True) else None
+    ``None`` where numba is missing or the mode is ``"off"`` (the torch path).
+
+    ``first``: a kernel of the same results, bit for bit, that compiles in seconds: in the
+    ``"background"`` mode, what runs (compiled here, once per installation) while ``kernel``'s
+    unit is still to compile, which the background child then takes."""
+    if first is None or mode() != "background":
+        return kernel if ready(group, dtype, wait=True) else None
+    if ready(group, dtype):
+        return kernel
+    if not kernels.available() or mode() == "off":
+        return None
+    return _announcing(first, _units(group, dtype)[-1], "compiling the plain version (seconds) of")
+
+
+def _announcing(kernel: Callable, unit: str, doing: str) -> Callable:
+    """``kernel``, announcing ``doing`` ``unit`` once should a call of it compile (not where it
+    loads from the cache)."""
+    from numba.core import event
+
+    class Announce(event.Listener):
+        def on_start(self, ev: event.Event) -> None:
+            _announce(unit, doing)
+
+        def on_end(self, ev: event.Event) -> None:
+            pass
+
+    def run(*args: Any) -> Any:
+        with event.install_listener("numba:compile", Announce()):
+            return kernel(*args)
+
+    return run
 
 
 def status() -> dict[str, str]:

@@ -341,7 +341,7 @@ def _measure(mean: Tensor, areas: Tensor, physics: str, output: str, seed: Tenso
             fall_back(_DEVICE_MEASURE, err)
     kernel = None  # on the CPU the noise's draws come from compiled code (compiled here if need be)
     if mean.device.type == "cpu":
-        kernel = jit.compiled("measure", kernel_dtype, kernels.sensor_measure)
+        kernel = jit.compiled("measure", kernel_dtype, kernels.sensor_measure, kernels.sensor_measure_plain)
     if kernel is not None:
         return _measure_compiled(mean, kernel_arguments(camera, areas, output, ops.seed_value(seed)), kernel)
     return _measure_torch(mean, areas, camera, output, seed).contiguous()

@@ -349,31 +349,32 @@ class AreaResampler:
                 fall_back(_DEVICE_PRODUCT, err)
             else:
                 return out.view(n, *self.size)  # checked on the device: no wait here
-        # compiled unless its kernels are still compiling (the noise's draws are compiled first: jit)
-        kernel = None
-        if flat.device.type == "cpu" and not flat.requires_grad:
-            if physics is None:
-                kernel = kernels.runs_apply if which == "numba" else None
-            else:  # the noise's draws come from compiled code (compiled here if need be)
-                kernel = jit.compiled("measure", flat.dtype, kernels.measured_runs_apply)
-        if kernel is not None:
+        # compiled unless its kernels are still compiling; the measurement fused where it is compiled
+        cpu = flat.device.type == "cpu" and not flat.requires_grad
+        fused = cpu and physics is not None and jit.ready("measure", flat.dtype)
+        if cpu and (which == "numba" or fused):
             out = np.empty((n, self.runs.shape[0]), dtype=np.float32)
             x = np.ascontiguousarray(flat.numpy())  # needs no gradient: no detach
-            measured = None if physics is None else kernel_arguments(physics, self.areas, output, seed_value)
             nt = kernels.threads(x.size)  # bounded by torch's; one for a small image
-            if measured is None:
-                bad = kernel(self.runs.arrays(), x, out, nt)
-            else:  # the means measured in place: the buffer is this call's own
-                bad = kernel(self.runs.arrays(), x, out, *measured, out, nt)
+            if fused:  # the means measured in place: the buffer is this call's own
+                measured = kernel_arguments(physics, self.areas, output, seed_value)
+                bad = kernels.measured_runs_apply(self.runs.arrays(), x, out, *measured, out, nt)
+            else:
+                bad = kernels.runs_apply(self.runs.arrays(), x, out, nt)
             if bad and not allow_nonfinite:
                 raise_nonfinite(images)
-            return torch.from_numpy(out).view(n, *self.size)
-        cols = [self.sparse @ flat[k].unsqueeze(1) for k in range(n)]  # contiguous planes: no transpose
-        mean = (
-            torch.cat(cols, 1).T.reshape(n, *self.size).contiguous() if n else flat.new_zeros(0, *self.size)
-        )
-        if not (allow_nonfinite or all_finite(mean)):
-            raise_nonfinite(images)
+            mean = torch.from_numpy(out).view(n, *self.size)
+            if fused or physics is None:
+                return mean
+        else:
+            cols = [self.sparse @ flat[k].unsqueeze(1) for k in range(n)]  # contiguous planes: no transpose
+            mean = (
+                torch.cat(cols, 1).T.reshape(n, *self.size).contiguous()
+                if n
+                else flat.new_zeros(0, *self.size)
+            )
+            if not (allow_nonfinite or all_finite(mean)):
+                raise_nonfinite(images)
         if physics is None:
             return mean
         return measure(mean, self.areas, physics, output=output, seed=seed)

@@ -259,6 +259,44 @@ def _kernel_electrons(
     return out[0]
 
 
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_the_plain_measurement_gives_the_fused_kernels_values_bit_for_bit(dtype, gen):
+    # what a process measures with while the fused kernel compiles: every noise, output, fixed
+    # pattern and ADC, means from below 0 through the Poisson methods' switch at 10 to 3e4, NaN and
+    # inf passed through, in place or not, on 1 to 3 threads
+    from layoutwarp import kernels
+
+    rng = np.random.default_rng(int(torch.randint(0, 2**31, (), generator=gen)))
+    n, p = 3, 4099
+    mean = np.concatenate([rng.uniform(-0.5, 1.0, p - 3) ** 3 * 3.0e4, [np.nan, np.inf, 9.999]])
+    means = np.stack([rng.permutation(mean) for _ in range(n)]).astype(dtype)
+    area = rng.uniform(0.5, 2.0, p)
+    prnu, dsnu = rng.standard_normal(p), rng.standard_normal(p)
+    for noise in (0, 1, 2):
+        for output in (0, 1, 2):
+            for g_prnu, g_dsnu, read, top in ((0.0, 0.0, 0.0, math.inf), (0.01, 0.5, 2.5, 4095.0)):
+                params = np.array([1.3, 0.6, g_prnu, g_dsnu, 0.4, read, 3.0e4, 0.1, 64.0, top])
+                seed = int(rng.integers(0, 2**62))
+                fast = np.empty_like(means)
+                kernels.sensor_measure(means, area, prnu, dsnu, params, seed, noise, output, fast, 2)
+                for threads, in_place in ((1, False), (3, True)):
+                    plain = means.copy() if in_place else np.empty_like(means)
+                    kernels.sensor_measure_plain(
+                        plain if in_place else means,
+                        area,
+                        prnu,
+                        dsnu,
+                        params,
+                        seed,
+                        noise,
+                        output,
+                        plain,
+                        threads,
+                    )
+                    assert np.array_equal(plain, fast, equal_nan=True), (noise, output, read, threads)
+            assert not np.array_equal(fast, means, equal_nan=True)  # it measured
+
+
 def test_the_compiled_measurement_sees_areas_changed_in_place(gen):
     # its per-sensor inputs are cached by the areas tensor: a change in place must not go stale
     from layoutwarp.physics import measure

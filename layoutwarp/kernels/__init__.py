@@ -36,7 +36,7 @@ from .exact import (
 from .exact import (
     segment_moments_from_python as segment_moments,
 )
-from .noise import sensor_measure
+from .noise import sensor_measure, sensor_measure_plain
 from .runs import measured_runs_apply, runs_apply
 
 __all__ = [
@@ -60,5 +60,6 @@ __all__ = [
     "runs_apply",
     "segment_moments",
     "sensor_measure",
+    "sensor_measure_plain",
     "threads",
 ]

@@ -24,6 +24,7 @@ __all__ = [
     "measure_on_device",
     "measured_value",
     "sensor_measure",
+    "sensor_measure_plain",
     "stream_origin",
 ]
 
@@ -343,7 +344,7 @@ def _noisy_run(
         shot_key = key + np.uint64(j) * _ELEMENT_G
         mu = max(e, 0.0)
         k, g, z2, ok_z1, ok_k, ok_z2 = _first_tries(mu, shot_key, shot_key + _STREAM_G)
-        shot = k if poisson else g + (e - mu)  # Gaussian: e + √max(e, 0)·z, bit for bit
+        shot = k if poisson else (g if e >= 0.0 else e)  # Gaussian: e + √max(e, 0)·z, bit for bit
         flag = (not (ok_z1 and (ok_k or not poisson))) | (not ok_z2 and read != 0.0)
         flags[j] = flag
         value = _recorded(shot + read * z2, full[j], zero[j], inv[j], params, output)
@@ -500,6 +501,31 @@ def _measure_share(
             out[r, i] = measured_value(
                 mean[r, i], r * p + i, i, area_um2, prnu, dsnu, params, state0, noise, output
             )
+
+
+@serial
+def _plain_share(
+    t: int, nt: int, mean: np.ndarray, area_um2: np.ndarray, prnu: np.ndarray, dsnu: np.ndarray,
+    params: np.ndarray, seed: int, noise: int, output: int, out: np.ndarray,
+) -> None:  # fmt: skip
+    """Pixels ``t·P/T ..`` of [`sensor_measure_plain`][] (its arguments), every plane."""
+    n, p = mean.shape
+    origin = stream_origin(seed)
+    for r in range(n):
+        for i in range(t * p // nt, (t + 1) * p // nt):
+            out[r, i] = measured_value(
+                mean[r, i], r * p + i, i, area_um2, prnu, dsnu, params, origin, noise, output
+            )
+
+
+def sensor_measure_plain(*args: object) -> None:
+    """[`sensor_measure`][]'s values, bit for bit, element by element from the full samplers
+    ([`measured_value`][], as the CUDA kernels draw them): no first tries in vectorised runs, no
+    prefetching, so it compiles in a fraction of the time (2–3 s from an empty cache, where
+    `sensor_measure` takes 10–15 s) and runs slower. What a process measures with while
+    `sensor_measure` compiles (see [`layoutwarp.jit.compiled`][]). Its arguments are
+    `sensor_measure`'s."""
+    run_shares(_plain_share, int(args[-1]), *args[:-1])
 
 
 def sensor_measure(
