@@ -90,7 +90,7 @@ def kernel_overheads(
     tol = lw.data_tolerance(img.dtype)[0]  # simulate's default for these images: its cached resampler
     res = lw.resampler.resampler_for(layout, (129, 257), tuple(img.shape[-2:]), tol, "cpu")
     runs, x = res.runs, np.ascontiguousarray(img.reshape(img.shape[1], -1).numpy())
-    measured, nt = lw.physics.kernel_arguments(camera, res.areas), lw.kernels.threads()
+    measured, nt = lw.measurement.kernel_arguments(camera, res.areas), lw.kernels.threads()
 
     def product(measure: str = "") -> None:
         mean = np.empty((x.shape[0], runs.shape[0]), np.float32)

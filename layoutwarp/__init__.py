@@ -87,7 +87,7 @@ __all__ = ["__version__", *FRONT_DOOR]
 
 
 #: The modules that register layoutwarp's torch operators (``torch.ops.layoutwarp.*``).
-OPERATOR_MODULES = ("operators", "maps", "physics", "resampler")
+OPERATOR_MODULES = ("operators", "maps", "measurement", "resampler")
 
 
 def _register_operators() -> None:

@@ -58,7 +58,8 @@ from .imagefiles import IMAGE_SUFFIXES, encode_image, list_images, read_image, t
 from .labels import LABEL_RULES as SENSOR_RULES
 from .layoutfile import layout_from_spec, layout_spec, load_layout, same_spec, save_layout
 from .layouts import Layout, check_layout
-from .physics import SensorPhysics, apply_psf, as_physics, measure
+from .measurement import measure
+from .physics import SensorPhysics, apply_psf, as_physics
 from .resampler import AreaResampler
 
 __all__ = [

@@ -33,10 +33,11 @@ from .kernels.device import device_checks, fall_back, stream_of
 from .kernels.runs import Runs, runs_apply_on_device
 from .labels import labels_to_sensor
 from .layouts import Layout, check_layout
+from .measurement import device_arguments, kernel_arguments, measure, noise_seed
 from .mesh import PixelMesh, pixel_mesh
 from .operators import base as ops
 from .operators.base import layout_token
-from .physics import SensorPhysics, device_arguments, kernel_arguments, measure, noise_seed, physics_of
+from .physics import SensorPhysics, physics_of
 
 if TYPE_CHECKING:
     import scipy.sparse

@@ -34,6 +34,7 @@ from .integrators import (
 )
 from .layoutfile import load_layout, save_layout
 from .layouts import Layout, make_layout, wants_grad
+from .measurement import measure, noise_seed
 from .operators.base import (
     layout_token,
     plain_eager,
@@ -41,7 +42,7 @@ from .operators.base import (
     refuse_forward_ad,
     refuse_grad_transforms,
 )
-from .physics import SensorPhysics, apply_psf, as_physics, check_output, measure, noise_seed
+from .physics import SensorPhysics, apply_psf, as_physics, check_output
 from .resampler import RESAMPLERS, area_product
 
 __all__ = ["METHODS", "SensorLayer", "SimulationPlan", "plan_simulation", "simulate"]
@@ -217,7 +218,8 @@ def simulate(
             (these two need ``physics``).
         return_plan: also return the [`SimulationPlan`][] that ran.
         noise: with ``physics``, a 0-d int64 tensor the noise is drawn from (what a
-            [`SensorLayer`][]'s seeded sequence passes; see [`noise_seed`][layoutwarp.physics.noise_seed]).
+            [`SensorLayer`][]'s seeded sequence passes; see
+            [`noise_seed`][layoutwarp.measurement.noise_seed]).
 
     Returns:
         ``(B, C, h, w)`` (or ``(C, h, w)``) in the image's floating dtype (float32 for uint8);

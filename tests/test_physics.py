@@ -180,7 +180,7 @@ def test_shot_and_read_noise_moments(compiled, gen, monkeypatch):
 
 def test_the_fused_kernel_matches_the_torch_path_and_ignores_the_thread_count(gen):
     pytest.importorskip("numba")
-    from layoutwarp.physics import measure
+    from layoutwarp.measurement import measure
 
     mean = torch.rand(3, 5, 7, generator=gen, dtype=F64)
     areas = (0.5 + torch.rand(5, 7, generator=gen, dtype=F64)) * (4 / 35)
@@ -215,7 +215,7 @@ def test_the_resampler_measures_in_one_call_what_measure_records(gen):
     # AreaResampler.apply(images, physics): on the CPU the product and the measurement in one
     # compiled call, the same bytes as the two steps; with image gradients, torch's product and
     # measure (Gaussian shot noise), whose gradient is the one of the two steps too
-    from layoutwarp.physics import measure
+    from layoutwarp.measurement import measure
 
     res = lw.AreaResampler(lw.CurvLayout(rand_theta(gen, 0.7)), (9, 11), (40, 52))
     img = torch.rand(3, 40, 52, generator=gen)
@@ -299,7 +299,7 @@ def test_the_plain_measurement_gives_the_fused_kernels_values_bit_for_bit(dtype,
 
 def test_the_compiled_measurement_sees_areas_changed_in_place(gen):
     # its per-sensor inputs are cached by the areas tensor: a change in place must not go stale
-    from layoutwarp.physics import measure
+    from layoutwarp.measurement import measure
 
     mean = torch.rand(2, 4, 6, generator=gen, dtype=F64)
     areas = (0.5 + torch.rand(4, 6, generator=gen, dtype=F64)) * (4 / 24)
@@ -519,7 +519,7 @@ def test_theta_gradient_of_the_expectation_matches_central_differences(gen):
             fixed = lw.make_layout(family, t, dtype=F64)
             mesh = lw.pixel_mesh(fixed, (5, 6), **mesh_opts)
             mean = lw.integrators.integrate_exact(img[0], fixed, (5, 6), mesh=mesh)
-            from layoutwarp.physics import measure
+            from layoutwarp.measurement import measure
 
             return (measure(mean, mesh.areas(), ph, output="electrons") * w[0]).sum()
 
@@ -864,7 +864,7 @@ with torch.no_grad():
     for noise in ("poisson", "gaussian", "none"):
         for output in ("radiance", "electrons", "dn"):
             phys = lw.SensorPhysics(**cam, noise=noise)
-            out[f"{noise}-{output}"] = lw.physics.measure(means, areas, phys, output=output).numpy()
+            out[f"{noise}-{output}"] = lw.measurement.measure(means, areas, phys, output=output).numpy()
     phys = lw.SensorPhysics(**cam)
     out["fixed"] = lw.simulate(img, layout, (5, 6)).numpy()
     out["fixed-physics"] = lw.simulate(img, layout, (5, 6), physics=phys).numpy()
@@ -904,7 +904,7 @@ def test_the_measurement_on_the_device_path_draws_what_the_cpu_kernel_draws_in_n
         for noise in ("poisson", "gaussian", "none"):
             for output in ("radiance", "electrons", "dn"):
                 phys = SensorPhysics(**camera, noise=noise)
-                ref = lw.physics.measure(means, areas, phys, output=output).numpy()
+                ref = lw.measurement.measure(means, areas, phys, output=output).numpy()
                 assert np.array_equal(got[f"{noise}-{output}"], ref), (noise, output)
         assert np.array_equal(got["fixed"], lw.simulate(img, layout, (5, 6)).numpy())
         recorded = lw.simulate(img, layout, (5, 6), physics=SensorPhysics(**camera)).numpy()
@@ -916,7 +916,7 @@ def test_a_device_kernel_that_fails_warns_once_and_leaves_the_torch_path(monkeyp
     """Where numba-cuda cannot compile or launch the measurement's kernel, the call warns once,
     names the kernel and the reason, and returns the other path's result; later calls go there
     without trying again."""
-    from layoutwarp import physics as ph
+    from layoutwarp import measurement as ph
     from layoutwarp.kernels import device
     from layoutwarp.operators import base as ops
 
@@ -960,8 +960,8 @@ def test_the_measurement_on_cuda_draws_the_cpus_noise(gen):
         cpu = lw.simulate(img, layout.cpu(), (15, 20), physics=cam, output="dn")
         means = torch.rand(3, 15, 20, generator=gen, dtype=torch.float64) * 40
         areas = torch.full((15, 20), 4 / 300, dtype=torch.float64)
-        alone = lw.physics.measure(means.cuda(), areas.cuda(), cam, output="electrons").cpu()
-        alone_cpu = lw.physics.measure(means, areas, cam, output="electrons")
+        alone = lw.measurement.measure(means.cuda(), areas.cuda(), cam, output="electrons").cpu()
+        alone_cpu = lw.measurement.measure(means, areas, cam, output="electrons")
     assert not lw.kernels.device.FAILED
     for a, b in ((gpu, cpu), (alone, alone_cpu)):
         assert float((a == b).double().mean()) >= 0.99

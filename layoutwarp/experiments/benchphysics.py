@@ -38,7 +38,8 @@ def physics_rows(cfg: BenchConfig, image_name: str, img: Tensor, anchors: dict[s
     source image against INTER_AREA; the Airy row's error is the RMSE of its truncated kernel
     against one holding 99.9 % of the energy, relative to the image's range
     (``extra["truncated_energy"]``: what the kernel leaves out)."""
-    from ..physics import SensorPhysics, apply_psf, kernel_arguments
+    from ..measurement import kernel_arguments
+    from ..physics import SensorPhysics, apply_psf
 
     h, w = cfg.src
     extent = (2.734375 * h, 2.734375 * w)  # µm: 2.73 µm source pixels at 2048x1024

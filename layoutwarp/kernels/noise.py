@@ -540,7 +540,7 @@ def sensor_measure(
     out: np.ndarray,
     threads: int,
 ) -> None:
-    """[`layoutwarp.physics.measure`][] in one pass: means ``(N, P)`` to ``out`` ``(N, P)``, of
+    """[`layoutwarp.measurement.measure`][] in one pass: means ``(N, P)`` to ``out`` ``(N, P)``, of
     their dtype, which may be ``mean`` itself (measured in place, one buffer less; no other
     overlap).
 
@@ -611,6 +611,6 @@ def measure_on_device(
 ) -> None:  # fmt: skip
     """[`sensor_measure`][] of ``mean`` ``(N, P)`` into ``out`` on a CUDA device (or in the
     simulator): one launch on ``stream``, one thread per element; the pixel inputs as tensors
-    there (see [`layoutwarp.physics.device_arguments`][])."""
+    there (see [`layoutwarp.measurement.device_arguments`][])."""
     args = (mean, area_um2, prnu, dsnu, params, int(seed), int(noise), int(output), out)
     cuda_launch(_cuda_measure, mean.shape[0] * mean.shape[1], stream, *args)
