@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from . import jit, kernels
 from .caches import LRU
@@ -54,6 +55,8 @@ __all__ = [
 #: Boundary pieces (segments cut at source cell lines) that [`area_weights`][] handles at once:
 #: it works through blocks of sensor rows of about this many, so its temporaries stay bounded.
 PIECES_PER_BLOCK = 1 << 14
+#: A weights build that runs this long shows its progress and the time left on a terminal.
+PROGRESS_AFTER_S = 2.0
 
 
 def area_weights(
@@ -78,7 +81,8 @@ def area_weights(
     cells inside the pixel get (non-zero) weights; ``nnz ≈`` source pixels plus the cells on
     pixel boundaries. Computed in float64, block by block of sensor rows
     ([`PIECES_PER_BLOCK`][]), each block's rows written in order: besides the result, what
-    the build holds at once is one block's pieces.
+    the build holds at once is one block's pieces. A build that runs [`PROGRESS_AFTER_S`][] or
+    longer shows a progress bar with the time left, on a terminal (stderr).
 
     Args:
         layout: the pixel layout.
@@ -116,6 +120,9 @@ def area_weights(
     index = np.int32 if bound < 2**31 else np.int64
     indices, data = np.empty(bound, index), np.empty(bound, weights_dtype)
     counts, n = [np.zeros(1, np.int64)], 0
+    bar = tqdm(
+        total=h, desc=f"area weights {h}x{w}", unit="row", leave=False, delay=PROGRESS_AFTER_S, disable=None
+    )
     for i0 in range(0, h, step):
         i1 = min(h, i0 + step)
         # the block's pixels are bounded by horizontal edges of corner rows i0..i1 and vertical
@@ -132,6 +139,8 @@ def area_weights(
         data[n : n + cell.size] = value / area[pixel]
         n += cell.size
         counts.append(np.bincount(pixel - i0 * w, minlength=(i1 - i0) * w))
+        bar.update(i1 - i0)
+    bar.close()
     indices.resize(n, refcheck=False)  # shrunk in place: the pages past n go back
     data.resize(n, refcheck=False)
     indptr = np.cumsum(np.concatenate(counts)).astype(index)

@@ -66,6 +66,27 @@ def test_area_weights_built_in_blocks_of_any_height_are_the_same_matrix(family, 
     assert np.abs(got - ref).max() < 1e-12
 
 
+def test_a_long_weights_build_shows_its_progress_on_a_terminal_only(monkeypatch):
+    # a build that runs past PROGRESS_AFTER_S draws a bar (rows done, the time left) on a
+    # terminal's stderr, and nothing where stderr is a file or a pipe
+    import io
+    import sys
+
+    import layoutwarp.resampler as res
+
+    class Terminal(io.StringIO):
+        def isatty(self) -> bool:
+            return True
+
+    monkeypatch.setattr(res, "PROGRESS_AFTER_S", 0.0)
+    monkeypatch.setattr(res, "PIECES_PER_BLOCK", 50)  # a block a row or so: the bar moves
+    for stream, shown in ((Terminal(), True), (io.StringIO(), False)):
+        monkeypatch.setattr(sys, "stderr", stream)
+        area_weights(lw.CurvLayout((0.3, -0.2)), (12, 16), (40, 60))
+        text = stream.getvalue()
+        assert ("area weights 12x16" in text and "/12 [" in text and "row/s" in text) == shown, text
+
+
 def test_area_weights_rows_are_cell_overlaps(gen):
     # independent: shapely clipping of one curved pixel (fine polygon) with every source cell
     layout = fixed("curv", rand_theta(gen, 0.8))
