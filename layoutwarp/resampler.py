@@ -81,7 +81,7 @@ def area_weights(
     cells inside the pixel get (non-zero) weights; ``nnz ≈`` source pixels plus the cells on
     pixel boundaries. Computed in float64, block by block of sensor rows
     ([`PIECES_PER_BLOCK`][]), each block's rows written in order: besides the result, what
-    the build holds at once is one block's pieces. A build that runs [`PROGRESS_AFTER_S`][] or
+    the build holds at once is one block's pieces. A build that runs `PROGRESS_AFTER_S` (2 s) or
     longer shows a progress bar with the time left, on a terminal (stderr).
 
     Args:

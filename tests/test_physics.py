@@ -356,7 +356,7 @@ def test_the_first_try_table_holds_each_edge_exactly_and_a_close_lower_bound_of_
     # edges must be the ziggurat's bit for bit (a draw is u·x[i]), the ratio bounds at most the
     # ratios (else a try the exact test rejects would be accepted) and close (each bound's
     # 1 − ratio at most 1/32 above the exact one, so few accepted tries are rerun)
-    from layoutwarp.kernels import noise
+    from layoutwarp.kernels import samplers as noise
 
     words = noise._ZIG_P
     assert words.dtype == np.uint64 and words.shape == (1024,)
@@ -378,20 +378,20 @@ def test_the_kernels_first_tries_give_the_full_samplers_draws_bit_for_bit(noise,
     # reads them from a strided view (a signature of its own: each run's means copied into the
     # output, the cache hints stepping by the view's stride, which no result can show)
     numba = pytest.importorskip("numba")
-    from layoutwarp.kernels import noise as nk
+    from layoutwarp.kernels import samplers as nk
 
     @numba.njit
     def reference(mu, seed, read, noise):
-        state0 = nk._mix(np.uint64(seed) * nk._GOLDEN + np.uint64(0x632BE59BD9B4E019))
+        state0 = nk.mix(np.uint64(seed) * nk.GOLDEN + np.uint64(0x632BE59BD9B4E019))
         out = np.empty(mu.size)
         for i in range(mu.size):
-            key = state0 + np.uint64(i) * nk._ELEMENT_G
+            key = state0 + np.uint64(i) * nk.ELEMENT_G
             if noise == 1:
-                e, _ = nk._poisson(mu[i], key)
+                e, _ = nk.poisson(mu[i], key)
             else:
-                z, _ = nk._normal(key)
+                z, _ = nk.normal(key)
                 e = mu[i] + math.sqrt(mu[i]) * z
-            z, _ = nk._normal(key + nk._STREAM_G)
+            z, _ = nk.normal(key + nk.STREAM_G)
             out[i] = e + read * z
         return out
 
@@ -411,12 +411,12 @@ def test_the_kernels_poisson_sampler_keeps_large_counts_finite_in_its_rare_steps
     # division raised
     numba = pytest.importorskip("numba")
     stats = pytest.importorskip("scipy.stats")
-    from layoutwarp.kernels import noise
+    from layoutwarp.kernels import samplers as noise
 
     @numba.njit  # error_model="python": x / 0 raises
     def draw(mu, seed, i):
-        state0 = noise._mix(np.uint64(seed) * noise._GOLDEN + np.uint64(0x632BE59BD9B4E019))
-        return noise._poisson(mu, state0 + np.uint64(i) * noise._ELEMENT_G)[0]
+        state0 = noise.mix(np.uint64(seed) * noise.GOLDEN + np.uint64(0x632BE59BD9B4E019))
+        return noise.poisson(mu, state0 + np.uint64(i) * noise.ELEMENT_G)[0]
 
     @numba.njit
     def log_p(mu, k):

@@ -30,7 +30,8 @@ import numpy as np
 
 from .base import inline, run_shares, serial
 from .device import cuda_launch, device_checks
-from .noise import measured_value, sensor_measure, stream_origin
+from .noise import measured_value, sensor_measure
+from .samplers import stream_origin
 
 if TYPE_CHECKING:
     import scipy.sparse
