@@ -559,7 +559,7 @@ def cache_folder() -> str | None:
     kernels package's ``__pycache__`` (the mesh's in ``mesh/__pycache__`` beneath it)."""
     if not kernels.available():
         return None
-    probe = kernels.exact._prefix_share
+    probe = kernels.exact.segment_moments_from_python
     return getattr(getattr(probe, "_cache", None), "_cache_path", None)
 
 

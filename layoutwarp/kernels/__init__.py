@@ -25,18 +25,17 @@ from __future__ import annotations
 from .base import CHUNK, available, retain_freed_memory, run_shares, threads
 from .device import CUDA_THREADS, cuda_available, cuda_checked, cuda_launch, cuda_ptx
 from .exact import (
-    BLOCK,
     WHOLE_TABLE_BYTES,
     band_rows,
     exact_backward,
     exact_forward,
     exact_forward_banded,
-    prefix_tables,
 )
 from .exact import (
     segment_moments_from_python as segment_moments,
 )
 from .noise import sensor_measure, sensor_measure_plain
+from .prefix import BLOCK, prefix_tables
 from .runs import measured_runs_apply, runs_apply
 
 __all__ = [

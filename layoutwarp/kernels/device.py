@@ -2,7 +2,7 @@
 launching them on torch's stream, and checking once that they run.
 
 Every CUDA kernel of the package is launched by [`cuda_launch`][]: the exact integrator's by
-name ([`layoutwarp.kernels.exact.CUDA_SOURCES`][]), the device mesh's by their source function.
+name ([`layoutwarp.kernels.exact_cuda.CUDA_SOURCES`][]), the device mesh's by their source function.
 """
 
 from __future__ import annotations
@@ -21,7 +21,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .base import njit, numba_config, without_ir_inlining
-from .exact import BLOCK, CUDA_SOURCES, cuda_signature
+from .exact_cuda import CUDA_SOURCES, cuda_signature
+from .prefix import BLOCK
 
 if TYPE_CHECKING:
     import torch
@@ -156,7 +157,7 @@ def _complete_ufuncs() -> None:
 
 def _kernel_source(kernel: str | Callable) -> Callable:
     """The source CUDA kernel ``kernel`` (a name of
-    [`CUDA_SOURCES`][layoutwarp.kernels.exact.CUDA_SOURCES], or a kernel function) compiles
+    [`CUDA_SOURCES`][layoutwarp.kernels.exact_cuda.CUDA_SOURCES], or a kernel function) compiles
     from: its module's ``cuda`` (a ``None`` placeholder there: importing numba.cuda costs a tenth
     of a second) bound to numba.cuda, and its compiled callees without numba's IR inlining
     ([`without_ir_inlining`][layoutwarp.kernels.base.without_ir_inlining]: NVVM inlines them, in
@@ -217,7 +218,7 @@ def cuda_launch(name: str | Callable, count: int, stream: int, *args) -> None:
     module's kernel source (a function of a source file, compiled on first use). The kernels, by
     name:
     ``"prefix_blocks"`` (items: row × block × channel) and ``"prefix_offsets"`` (row ×
-    channel) build [`prefix_tables`][layoutwarp.kernels.exact.prefix_tables]; ``"forward"``
+    channel) build [`prefix_tables`][layoutwarp.kernels.prefix.prefix_tables]; ``"forward"``
     (segment) and ``"edge_sums"`` (pixel edge) do
     [`exact_forward`][layoutwarp.kernels.exact.exact_forward]; ``"backward"`` (segment) does
     [`exact_backward`][layoutwarp.kernels.exact.exact_backward], each step for step as on the

@@ -1,4 +1,4 @@
-"""The exact integrator's kernels, CPU and CUDA: prefix tables, the segment walk of Green's
+"""The exact integrator's kernels: prefix tables, the segment walk of Green's
 theorem, the forward and the backward.
 
 Each kernel fuses what the torch reference in [`layoutwarp.integrators`][] does in some
@@ -17,7 +17,7 @@ arithmetic mirrors the reference step for step, so both agree to rounding.
 The per-segment steps are ``@njit`` functions that numba also compiles for CUDA: there the
 whole-table forward runs one GPU thread per segment (and per table row × block × channel, per
 pixel edge), launched by [`layoutwarp.kernels.device.cuda_launch`][] from the sources in
-[`CUDA_SOURCES`][].
+[`layoutwarp.kernels.exact_cuda`][].
 """
 
 from __future__ import annotations
@@ -26,108 +26,21 @@ import math
 
 import numpy as np
 
-from .base import CHUNK, inline, run_shares, serial, threads
+from .base import CHUNK, inline, run_shares, serial
+from .prefix import band_prefix
 
 __all__ = [
-    "BLOCK",
-    "CUDA_SOURCES",
     "WHOLE_TABLE_BYTES",
     "band_rows",
-    "cuda_signature",
+    "edge_sum",
     "exact_backward",
     "exact_forward",
     "exact_forward_banded",
-    "prefix_tables",
+    "segment_forward",
     "segment_moments",
     "segment_moments_from_python",
     "segment_weights",
 ]
-
-#: Columns per block of the prefix tables (see [`prefix_tables`][]).
-BLOCK = 16
-
-
-@inline
-def _block_prefix(image: np.ndarray, r: int, rr: int, b: int, k: int, block: int, incl: np.ndarray) -> None:
-    """Inclusive sums of block ``b`` of row ``r``, channel ``k``, into ``incl[rr, :, k]``."""
-    w = image.shape[2]
-    acc = image[k, r, b * block] * 0  # zero in the image's dtype
-    for c in range(b * block, min(w, (b + 1) * block)):
-        acc += image[k, r, c]
-        incl[rr, c, k] = acc
-
-
-@inline
-def _row_offsets(rr: int, k: int, block: int, incl: np.ndarray, offsets: np.ndarray) -> None:
-    """The float64 sums of the whole blocks before each block of ``incl[rr, :, k]``."""
-    w = incl.shape[1]
-    total = 0.0
-    for b in range(offsets.shape[1]):
-        offsets[rr, b, k] = total
-        total += incl[rr, min(w, (b + 1) * block) - 1, k]
-
-
-@inline
-def prefix_block_item(image: np.ndarray, i: int, block: int, incl: np.ndarray) -> None:
-    """Item ``i`` (row × block × channel) of the prefix table's blocks, [`_block_prefix`][], for
-    one device thread (an ``i`` past the last does nothing)."""
-    n, h, w = image.shape
-    nb = (w + block - 1) // block
-    if i < h * nb * n:
-        r = i // (nb * n)
-        _block_prefix(image, r, r, (i // n) % nb, i % n, block, incl)
-
-
-@inline
-def prefix_offsets_item(i: int, block: int, incl: np.ndarray, offsets: np.ndarray) -> None:
-    """Item ``i`` (row × channel) of the prefix table's block offsets, [`_row_offsets`][], for one
-    device thread (an ``i`` past the last does nothing)."""
-    h, _, n = incl.shape
-    if i < h * n:
-        _row_offsets(i // n, i % n, block, incl, offsets)
-
-
-@inline
-def _band_prefix(
-    image: np.ndarray, ra: int, rb: int, block: int, incl: np.ndarray, offsets: np.ndarray
-) -> None:
-    """The prefix tables (see [`prefix_tables`][]) of rows ``ra .. rb − 1`` into ``incl``/
-    ``offsets`` (row ``ra`` at index 0); [`_block_prefix`][] and [`_row_offsets`][] are
-    the one home of their arithmetic."""
-    n, _, w = image.shape
-    nb = (w + block - 1) // block
-    for rr in range(rb - ra):
-        for k in range(n):
-            for b in range(nb):
-                _block_prefix(image, ra + rr, rr, b, k, block, incl)
-            _row_offsets(rr, k, block, incl, offsets)
-
-
-@serial
-def _prefix_share(
-    t: int, nt: int, image: np.ndarray, block: int, incl: np.ndarray, offsets: np.ndarray
-) -> None:
-    h = image.shape[1]
-    r0, r1 = t * h // nt, (t + 1) * h // nt
-    _band_prefix(image, r0, r1, block, incl[r0:r1], offsets[r0:r1])
-
-
-def prefix_tables(image: np.ndarray, block: int, nt: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Row prefix sums of ``image (N, H, W)``, safe in float32, channels last.
-
-    Returns ``(incl, offsets)``: ``incl[r, c, n]`` is the inclusive prefix sum of row ``r`` of
-    channel ``n`` within the ``block``-column block of ``c`` (in the image's dtype) and
-    ``offsets[r, k, n]`` the float64 sum of the whole blocks before block ``k``, so a prefix
-    never carries more than one block's rounding. Channels last puts everything one piece
-    reads in one or two cache lines. ``nt``: threads (default [`threads`][layoutwarp.kernels.base.threads]
-    of the image's size), each a band of rows.
-    """
-    n, h, w = image.shape
-    nb = (w + block - 1) // block
-    incl = np.empty((h, w, n), dtype=image.dtype)
-    offsets = np.empty((h, nb, n), dtype=np.float64)
-    run_shares(_prefix_share, min(h, threads(image.size) if nt is None else nt), image, block, incl, offsets)
-    return incl, offsets
 
 
 @inline
@@ -252,7 +165,7 @@ def _segment_rows(
 
 
 @inline
-def _segment_forward(
+def segment_forward(
     s: int,
     verts: np.ndarray,
     seg_start: np.ndarray,
@@ -318,7 +231,7 @@ def segment_moments_from_python(
 
 
 @inline
-def _edge_sum(e: int, per_seg: np.ndarray, edge_offsets: np.ndarray, out: np.ndarray) -> None:
+def edge_sum(e: int, per_seg: np.ndarray, edge_offsets: np.ndarray, out: np.ndarray) -> None:
     """Add edge ``e``'s segments ``per_seg[s, :]`` into ``out[:, e]``, in order."""
     for s in range(edge_offsets[e], edge_offsets[e + 1]):
         for k in range(per_seg.shape[1]):
@@ -329,7 +242,7 @@ def _edge_sum(e: int, per_seg: np.ndarray, edge_offsets: np.ndarray, out: np.nda
 def _edge_sums_share(t: int, nt: int, per_seg: np.ndarray, edge_offsets: np.ndarray, out: np.ndarray) -> None:
     e_count = edge_offsets.shape[0] - 1
     for e in range(t * e_count // nt, (t + 1) * e_count // nt):
-        _edge_sum(e, per_seg, edge_offsets, out)
+        edge_sum(e, per_seg, edge_offsets, out)
 
 
 @serial
@@ -340,7 +253,7 @@ def _forward_share(
     s_count = seg_start.shape[0]
     for chunk in range(t, (s_count + CHUNK - 1) // CHUNK, nt):
         for s in range(chunk * CHUNK, min((chunk + 1) * CHUNK, s_count)):
-            _segment_forward(s, verts, seg_start, seg_end, incl, offsets, block, per_seg)
+            segment_forward(s, verts, seg_start, seg_end, incl, offsets, block, per_seg)
 
 
 def exact_forward(
@@ -358,12 +271,13 @@ def exact_forward(
     ``verts`` are ``(V, 2)`` float64 in source pixel units (inside the image); segment ``s``
     runs from ``verts[seg_start[s]]`` to ``verts[seg_end[s]]`` and edge ``e`` is made of the
     segments ``edge_offsets[e] .. edge_offsets[e + 1] − 1``; ``incl``/``offsets`` are the
-    image's [`prefix_tables`][]. Each segment is cut at source rows, then each row piece at
-    columns; a piece in cell ``(r, c)`` with mid-``X`` fraction ``f`` adds ``ΔY · P_r(c + f)``,
-    where ``P_r`` interpolates the prefix table linearly inside the cell: ``P_r(c + f) =
-    offset + I(c − 1) + f · (I(c) − I(c − 1))``, exact for the box image ``L(c) = I(c) −
-    I(c − 1)``. Row ``N`` sums to the pixel areas. ``threads``: shares of the segments, dealt in
-    chunks in turn (see [`run_shares`][layoutwarp.kernels.base.run_shares]); then each edge's
+    image's [`prefix_tables`][layoutwarp.kernels.prefix.prefix_tables]. Each segment is cut at
+    source rows, then each row piece at columns; a piece in cell ``(r, c)`` with mid-``X``
+    fraction ``f`` adds ``ΔY · P_r(c + f)``, where ``P_r`` interpolates the prefix table
+    linearly inside the cell: ``P_r(c + f) = offset + I(c − 1) + f · (I(c) − I(c − 1))``, exact
+    for the box image ``L(c) = I(c) − I(c − 1)``. Row ``N`` sums to the pixel areas.
+    ``threads``: shares of the segments, dealt in chunks in turn (see
+    [`run_shares`][layoutwarp.kernels.base.run_shares]); then each edge's
     segments are summed in order.
     """
     per_seg = np.zeros((seg_start.shape[0], incl.shape[2] + 1), dtype=np.float64)
@@ -430,7 +344,7 @@ def _banded_share(
     for bi in range(t, first.shape[0] - 1, nt):
         ra = bi * band
         rb = min(h, ra + band)
-        _band_prefix(image, ra, rb, block, incl, offsets)
+        band_prefix(image, ra, rb, block, incl, offsets)
         for j in range(first[bi], first[bi + 1]):
             s = listed[j]
             x0, y0 = verts[seg_start[s], 0], verts[seg_start[s], 1]
@@ -617,88 +531,3 @@ def exact_backward(
     wb = np.zeros(seg_start.shape[0], dtype=np.float64)
     run_shares(_backward_share, threads, verts, seg_start, seg_end, seg_edge, incl, block, grad, wa, wb)
     return wa, wb
-
-
-# ----------------------------------------------------------------------------------------
-# CUDA: the same per-segment arithmetic, one GPU thread per segment (or row, or edge)
-# ----------------------------------------------------------------------------------------
-cuda = None  # numba.cuda, bound by the first launch ([`layoutwarp.kernels.device.cuda_launch`][])
-
-
-def _cuda_prefix_blocks(image: np.ndarray, block: int, incl: np.ndarray) -> None:
-    """One thread per (row, block, channel): [`prefix_block_item`][]."""
-    prefix_block_item(image, cuda.grid(1), block, incl)
-
-
-def _cuda_prefix_offsets(block: int, incl: np.ndarray, offsets: np.ndarray) -> None:
-    """One thread per (row, channel): [`prefix_offsets_item`][]."""
-    prefix_offsets_item(cuda.grid(1), block, incl, offsets)
-
-
-def _cuda_forward(
-    verts: np.ndarray,
-    seg_start: np.ndarray,
-    seg_end: np.ndarray,
-    incl: np.ndarray,
-    offsets: np.ndarray,
-    block: int,
-    per_seg: np.ndarray,
-) -> None:
-    """One thread per segment: [`_segment_forward`][] (its row of ``per_seg`` zeroed first: no
-    zeroed buffer to launch for)."""
-    s = cuda.grid(1)
-    if s < seg_start.shape[0]:
-        for k in range(per_seg.shape[1]):
-            per_seg[s, k] = 0.0
-        _segment_forward(s, verts, seg_start, seg_end, incl, offsets, block, per_seg)
-
-
-def _cuda_edge_sums(per_seg: np.ndarray, edge_offsets: np.ndarray, out: np.ndarray) -> None:
-    """One thread per pixel edge: [`_edge_sum`][] (its column of ``out`` zeroed first)."""
-    e = cuda.grid(1)
-    if e < edge_offsets.shape[0] - 1:
-        for k in range(out.shape[0]):
-            out[k, e] = 0.0
-        _edge_sum(e, per_seg, edge_offsets, out)
-
-
-def _cuda_backward(
-    verts: np.ndarray,
-    seg_start: np.ndarray,
-    seg_end: np.ndarray,
-    seg_edge: np.ndarray,
-    incl: np.ndarray,
-    block: int,
-    grad: np.ndarray,
-    wa: np.ndarray,
-    wb: np.ndarray,
-) -> None:
-    """One thread per segment: [`segment_weights`][]."""
-    s = cuda.grid(1)
-    if s < seg_start.shape[0]:
-        wa[s], wb[s] = segment_weights(s, verts, seg_start, seg_end, seg_edge, incl, block, grad)
-
-
-#: The CUDA kernels' sources by the names [`layoutwarp.kernels.device.cuda_launch`][] takes.
-CUDA_SOURCES = {
-    "prefix_blocks": _cuda_prefix_blocks,
-    "prefix_offsets": _cuda_prefix_offsets,
-    "forward": _cuda_forward,
-    "edge_sums": _cuda_edge_sums,
-    "backward": _cuda_backward,
-}
-
-
-def cuda_signature(name: str, dtype: str) -> str:
-    """CUDA kernel ``name``'s argument types (numba's notation) for images of ``dtype``,
-    C-contiguous arrays, as [`layoutwarp.kernels.device.cuda_launch`][] passes them."""
-    img, idx, f64 = f"{dtype}[:, :, ::1]", "int64[::1]", "float64[::1]"
-    f64_2, f64_3 = "float64[:, ::1]", "float64[:, :, ::1]"
-    args = {
-        "prefix_blocks": [img, "int64", img],
-        "prefix_offsets": ["int64", img, f64_3],
-        "forward": [f64_2, idx, idx, img, f64_3, "int64", f64_2],
-        "edge_sums": [f64_2, idx, f64_2],
-        "backward": [f64_2, idx, idx, idx, img, "int64", f64_2, f64, f64],
-    }[name]
-    return f"void({', '.join(args)})"

@@ -10,7 +10,8 @@ import numpy as np
 
 from ..base import inline
 from ..device import CUDA_THREADS
-from ..exact import prefix_block_item, prefix_offsets_item, segment_weights
+from ..exact import segment_weights
+from ..prefix import prefix_block_item, prefix_offsets_item
 from .build import (
     add_moving,
     edge_bounds,
@@ -141,7 +142,7 @@ def _cuda_corners(
     a cumulative sum of ``npieces`` in place gives the pieces' offsets (a mesh has at least as
     many edges as corners), and sums block ``i`` (row × block × channel) of the source
     ``image`` ``(N, H, W)`` into the prefix table ``incl``
-    ([`prefix_block_item`][layoutwarp.kernels.exact.prefix_block_item])."""
+    ([`prefix_block_item`][layoutwarp.kernels.prefix.prefix_block_item])."""
     i = cuda.grid(1)
     prefix_block_item(image, i, block, incl)
     own = cuda.local.array(P_MAX, F8)
@@ -172,7 +173,7 @@ def _cuda_amin(
     pixels' areas (horizontal edges, then vertical; [`_amin_across`][], [`_amin_beside`][]),
     each [`quad_area`][] of the deformed corners ``q`` (the areas and the minima at once), and
     the block offsets of row × channel ``e`` of the prefix table ``incl``
-    ([`prefix_offsets_item`][layoutwarp.kernels.exact.prefix_offsets_item])."""
+    ([`prefix_offsets_item`][layoutwarp.kernels.prefix.prefix_offsets_item])."""
     e = cuda.grid(1)
     prefix_offsets_item(e, block, incl, offsets)
     nh = (h + 1) * w

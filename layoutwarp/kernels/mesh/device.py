@@ -15,7 +15,7 @@ import torch
 
 from ...mesh import INNER, PixelMesh
 from ..device import CHECKS, Stamps, cuda_launch, device_checks, host_mapped, stream_of
-from ..exact import BLOCK
+from ..prefix import BLOCK
 from .build import mesh_topology
 from .cuda import (
     CUDA_KERNELS,
@@ -105,7 +105,7 @@ class DeviceMesh:
     ``status[PIECES]`` rows; not written where the pieces outgrew their room, and not the mesh's
     where its segments did), the room it was built in and its stamp there, the source
     image's prefix table and block offsets
-    ([`prefix_tables`][layoutwarp.kernels.exact.prefix_tables], built in the same launches), and
+    ([`prefix_tables`][layoutwarp.kernels.prefix.prefix_tables], built in the same launches), and
     θ's derivative in the parameter it was built from (``(P,)``, float64; see
     [`build_mesh_device`][])."""
 

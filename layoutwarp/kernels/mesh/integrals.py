@@ -9,7 +9,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..base import CHUNK, inline, own, per_thread, run_shares, serial, threads
-from ..exact import BLOCK, segment_moments
+from ..exact import segment_moments
+from ..prefix import BLOCK
 from .build import EDGE_WORK, count_stage, mesh_topology, pixel_vertex, place_chunk, place_work
 from .spec import CompiledMesh, MeshSpec
 
