@@ -13,7 +13,8 @@ Camera Parameters", §3.2). Conventions used everywhere in this package:
   parameter ``ρ`` and derives ``θ = bound · tanh(ρ)``.
 
 Where things are: `base` ([`Layout`][], the registry [`FAMILIES`][] with
-[`register_family`][] and [`make_layout`][], [`newton_inverse`][]); `centered` (the paper's two
+[`register_family`][] and [`make_layout`][], [`newton_inverse`][]); `values` (θ from ρ, a
+layout's dtype, a description's numbers); `centered` (the paper's two
 families' movable centre); one module a family: `uniform`, `rect`, `curv`, `fovea`, `elliptic`,
 `spline`, `grid`. The functional forms ([`phi_rect`][], [`phi_curv`][], their inverses,
 Jacobians and θ-derivatives) take ``θ`` explicitly; the [`Layout`][] modules wrap them. Every
@@ -28,13 +29,9 @@ from .base import (
     FoldoverReport,
     Layout,
     check_layout,
-    config_numbers,
     layout_by_handle,
     make_layout,
     register_family,
-    tensor_dtype,
-    theta_of,
-    wants_grad,
 )
 from .centered import CenteredLayout
 from .curv import (
@@ -52,6 +49,7 @@ from .inverse import newton_inverse
 from .rect import RectLayout, phi_rect, phi_rect_dtheta, phi_rect_inverse, phi_rect_jacobian
 from .spline import SplineLayout
 from .uniform import UniformLayout
+from .values import config_numbers, tensor_dtype, theta_of, wants_grad
 
 # the registry in the order the command line and the figures list the built-in families
 for _name in BUILTIN_FAMILIES:

@@ -1,4 +1,5 @@
-"""The base of every layout family: [`Layout`][], the family registry, and what the families share.
+"""The base of every layout family: [`Layout`][] and the family registry (what the families
+share of their numbers is in [`layoutwarp.layouts.values`][]).
 
 A layout is a bijection φ(·, θ) of the sensor square S = [-1, 1]² onto itself; sensor pixel ``k``
 is the image ``A_k = φ(U_k, θ)`` of the uniform cell ``U_k`` (Sommerhoff et al., "Differentiable
@@ -22,63 +23,18 @@ from torch import Tensor, nn
 
 from ..checks import ArgumentError, check_bool, check_float_dtype, check_number, check_points
 from .inverse import newton_inverse
+from .values import config_numbers, tensor_dtype
 
 __all__ = [
     "FAMILIES",
     "FoldoverReport",
     "Layout",
     "check_layout",
-    "config_numbers",
     "layout_by_handle",
     "make_layout",
     "newton_inverse",
     "register_family",
-    "tensor_dtype",
-    "theta_of",
-    "wants_grad",
 ]
-
-
-def tensor_dtype(*values: Any) -> torch.dtype:
-    """The dtype a layout built from ``values`` gets unless ``dtype=`` says otherwise: that of the
-    first floating-point tensor among them (as torch and Kornia keep an argument's dtype), else
-    torch's default dtype."""
-    for v in values:
-        if isinstance(v, Tensor) and v.is_floating_point():
-            return v.dtype
-    return torch.get_default_dtype()
-
-
-def theta_of(param: Tensor, bounds: Tensor) -> Tensor:
-    """θ in float64 from what [`Layout.theta_source`][layoutwarp.layouts.base.Layout.theta_source]
-    gives: ``bounds · tanh(param)``, or ``param`` itself where ``bounds`` is empty
-    (differentiable; the formula a learnable layout's θ is made by, at float64)."""
-    x = param.double()
-    return x if bounds.numel() == 0 else bounds.to(x) * torch.tanh(x)
-
-
-def wants_grad(t: Tensor) -> bool:
-    """Whether ``t`` can carry a gradient to a parameter: it requires grad, or it is batched under
-    ``torch.vmap`` (a batched tensor reports no ``requires_grad``, though what it holds may)."""
-    return t.requires_grad or torch._C._functorch.is_batchedtensor(t)
-
-
-def config_numbers(
-    config: dict[str, Any], key: str, default: list[float] | None = None, *, required: bool = False
-) -> list[float] | None:
-    """``config[key]`` as a list of numbers (``default`` when absent, unless ``required``: a
-    layout file without its θ must not become the uniform layout); ``ValueError`` otherwise.
-
-    Used by [`Layout.from_config`][] of every family to read layout files.
-    """
-    if required and key not in config:
-        raise ValueError(f"{key!r} is missing: the layout's description must give it")
-    value = config.get(key, default)
-    if value is not None and (
-        not isinstance(value, list) or not all(isinstance(v, (int, float)) for v in value)
-    ):
-        raise ValueError(f"{key!r} must be a list of numbers, got {value!r}")
-    return value
 
 
 @dataclass(frozen=True)

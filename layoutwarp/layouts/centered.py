@@ -10,7 +10,8 @@ import torch
 from torch import Tensor
 
 from .arith import promote
-from .base import Layout, config_numbers, tensor_dtype
+from .base import Layout
+from .values import config_numbers, tensor_dtype
 
 __all__ = ["CenteredLayout", "side_scale"]
 

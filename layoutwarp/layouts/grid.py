@@ -24,7 +24,8 @@ from torch import Tensor
 
 from ..checks import ArgumentError, check_choice, check_number, check_size
 from ..coords import cell_index, pixels_to_sensor, uniform_corners
-from .base import FoldoverReport, Layout, register_family, tensor_dtype
+from .base import FoldoverReport, Layout, register_family
+from .values import tensor_dtype
 
 __all__ = ["GridLayout", "cell_corner_dets", "inverse_bilinear"]
 

@@ -22,7 +22,8 @@ from torch import Tensor
 
 from ..checks import check_choice, check_int
 from ..coords import cell_index
-from .base import Layout, config_numbers, register_family, tensor_dtype
+from .base import Layout, register_family
+from .values import config_numbers, tensor_dtype
 
 __all__ = ["KINDS", "SplineLayout", "knot_outputs", "spline_1d", "spline_1d_derivative", "spline_1d_inverse"]
 

@@ -271,7 +271,7 @@ def _(grad_means, grad_areas, theta, image, *rest):
 
 def _to_param(g_theta: Tensor, param: Tensor, bounds: Tensor) -> Tensor:
     """The gradient of θ's parameter ``param`` (θ, or ρ: see
-    [`theta_of`][layoutwarp.layouts.base.theta_of]) from θ's, ``g_theta`` (float64), in
+    [`theta_of`][layoutwarp.layouts.values.theta_of]) from θ's, ``g_theta`` (float64), in
     ``param``'s dtype."""
     if not bounds.numel():
         return g_theta.to(param)
