@@ -40,8 +40,9 @@ from .checks import (
 from .coords import sensor_to_pixels, uniform_corners
 from .files import atomic_write
 from .layouts import Layout, check_layout
-from .mesh import MeshTopology, pixel_mesh, polygon_area, smooth_pieces
+from .mesh import pixel_mesh, polygon_area, smooth_pieces
 from .physics import SensorPhysics, as_physics, pixel_snr
+from .topology import MeshTopology
 
 __all__ = [
     "FORMATS",

@@ -260,7 +260,7 @@ def test_reynolds_gradient_is_the_boundary_flux_formula_with_the_same_draws(name
     from layoutwarp.experiments.benchconfig import bench_layouts
     from layoutwarp.layoutfile import layout_from_spec
     from layoutwarp.maps import sample_points
-    from layoutwarp.mesh import MeshTopology
+    from layoutwarp.topology import MeshTopology
 
     spec = bench_layouts(tuple(float(v) for v in rand_theta(gen, 0.8)))[name]
     layout = layout_from_spec(spec, learn=True).to(F64)

@@ -11,7 +11,8 @@ import torch
 from conftest import rand_theta
 
 import layoutwarp as lw
-from layoutwarp.mesh import MeshTopology, polygon_area, segment_area, smooth_pieces
+from layoutwarp.mesh import polygon_area, segment_area, smooth_pieces
+from layoutwarp.topology import MeshTopology
 
 F64 = torch.float64
 # sizes that break the reference code's arange(-1, 1, 2/n) (n + 1 cells), odd and even, 1xN

@@ -15,8 +15,9 @@ from layoutwarp import kernels
 from layoutwarp.integrators import integrate_exact
 from layoutwarp.kernels import mesh as mk
 from layoutwarp.layoutfile import layout_from_spec
-from layoutwarp.mesh import MeshTopology, pixel_mesh, smooth_pieces
+from layoutwarp.mesh import pixel_mesh, smooth_pieces
 from layoutwarp.testing import count_ops
+from layoutwarp.topology import MeshTopology
 
 pytestmark = pytest.mark.skipif(not lw.kernels.available(), reason="needs numba")
 

@@ -43,7 +43,7 @@ def _fixed(family: str, gen: torch.Generator) -> lw.Layout:
 # ----------------------------------------------------------------------------------------
 def _cases(gen: torch.Generator) -> dict[str, tuple]:
     """Sample arguments of every operator, from a run of the forward where a backward needs it."""
-    from layoutwarp.mesh import MeshTopology
+    from layoutwarp.topology import MeshTopology
 
     img64 = torch.rand(2, 12, 14, generator=gen, dtype=F64)
     img32 = img64.float()

@@ -11,7 +11,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
-from ...mesh import INNER, MeshTopology
+from ...mesh import INNER
+from ...topology import MeshTopology
 from ..base import CHUNK, inline, own, per_thread, run_shares, serial, threads
 from .phi import edge_pieces, phi_point, phi_run, unpack_point
 from .spec import CompiledMesh, MeshSpec
@@ -185,7 +186,7 @@ def _pieces_share(
 @functools.lru_cache(maxsize=16)
 def mesh_topology(size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Uniform edge ends ``(E, 4)``, their corner indices and the uniform corners ``(V0, 2)`` of
-    [`MeshTopology`][] as arrays (cached per size; do not modify)."""
+    [`MeshTopology`][layoutwarp.topology.MeshTopology] as arrays (cached per size; do not modify)."""
     topo = MeshTopology(size)
     ua, ub = topo.edge_ends()
     ea, eb = topo.edge_corners()
@@ -255,7 +256,7 @@ def _areas_share(t: int, nt: int, q: np.ndarray, area: np.ndarray) -> None:
 @serial
 def _amin_share(t: int, nt: int, area: np.ndarray, amin: np.ndarray) -> None:
     """Rows ``t·h/T ..`` of the edges' smaller adjacent areas ``amin`` ``(E,)``, numbered as
-    [`MeshTopology`][] numbers the edges."""
+    [`MeshTopology`][layoutwarp.topology.MeshTopology] numbers the edges."""
     h, w = area.shape
     nh = (h + 1) * w
     for i in range(t * (h + 1) // nt, (t + 1) * (h + 1) // nt):  # horizontal edges
