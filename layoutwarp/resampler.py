@@ -281,8 +281,7 @@ class AreaResampler:
                 else type(image).__name__
             )
             raise ArgumentError("image", f"image must be a numpy (H, W) or (H, W, C) array, got {what}")
-        kinds = (np.integer, np.floating, np.bool_)
-        if not any(np.issubdtype(image.dtype, k) for k in kinds):
+        if image.dtype.kind not in "biuf":  # bool, integers, floats
             raise ArgumentError(
                 "image", f"image must hold real numbers (integers or floats), got {image.dtype}"
             )
@@ -291,12 +290,8 @@ class AreaResampler:
                 "image",
                 f"image must be {self.src_size} (H, W), optionally with channels, got shape {image.shape}",
             )
-        if np.issubdtype(image.dtype, np.floating) and not all_finite(
-            torch.from_numpy(np.ascontiguousarray(image))
-        ):
-            raise ArgumentError(
-                "image", "image has NaN or Inf values, which would spread into its sensor pixels"
-            )
+        if image.dtype.kind == "f" and not all_finite(torch.from_numpy(np.ascontiguousarray(image))):
+            raise ArgumentError("image", "image has NaN or Inf values, which would spread into its pixels")
         planes = image.reshape(*self.src_size, -1).transpose(2, 0, 1)  # (C, H, W): made contiguous below
         x = torch.from_numpy(np.ascontiguousarray(planes, np.float32)).to(self.device)
         with torch.no_grad():
@@ -371,11 +366,7 @@ class AreaResampler:
                 bad = kernels.measured_runs_apply(self.runs.arrays(), x, out, *measured, out, nt)
             else:
                 bad = kernels.runs_apply(self.runs.arrays(), x, out, nt)
-            if bad and not allow_nonfinite:
-                raise_nonfinite(images)
-            mean = torch.from_numpy(out).view(n, *self.size)
-            if fused or physics is None:
-                return mean
+            mean, ok = torch.from_numpy(out).view(n, *self.size), not bad
         else:
             cols = [self.sparse @ flat[k].unsqueeze(1) for k in range(n)]  # contiguous planes: no transpose
             mean = (
@@ -383,9 +374,10 @@ class AreaResampler:
                 if n
                 else flat.new_zeros(0, *self.size)
             )
-            if not (allow_nonfinite or all_finite(mean)):
-                raise_nonfinite(images)
-        if physics is None:
+            ok = allow_nonfinite or all_finite(mean)
+        if not (ok or allow_nonfinite):
+            raise_nonfinite(images)
+        if physics is None or fused:
             return mean
         return measure(mean, self.areas, physics, output=output, seed=seed)
 
