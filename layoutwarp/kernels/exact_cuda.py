@@ -28,14 +28,9 @@ def _cuda_prefix_offsets(block: int, incl: np.ndarray, offsets: np.ndarray) -> N
 
 
 def _cuda_forward(
-    verts: np.ndarray,
-    seg_start: np.ndarray,
-    seg_end: np.ndarray,
-    incl: np.ndarray,
-    offsets: np.ndarray,
-    block: int,
-    per_seg: np.ndarray,
-) -> None:
+    verts: np.ndarray, seg_start: np.ndarray, seg_end: np.ndarray, incl: np.ndarray, offsets: np.ndarray,
+    block: int, per_seg: np.ndarray,
+) -> None:  # fmt: skip
     """One thread per segment: [`segment_forward`][layoutwarp.kernels.exact.segment_forward] (its
     row of ``per_seg`` zeroed first: no zeroed buffer to launch for)."""
     s = cuda.grid(1)
@@ -56,16 +51,9 @@ def _cuda_edge_sums(per_seg: np.ndarray, edge_offsets: np.ndarray, out: np.ndarr
 
 
 def _cuda_backward(
-    verts: np.ndarray,
-    seg_start: np.ndarray,
-    seg_end: np.ndarray,
-    seg_edge: np.ndarray,
-    incl: np.ndarray,
-    block: int,
-    grad: np.ndarray,
-    wa: np.ndarray,
-    wb: np.ndarray,
-) -> None:
+    verts: np.ndarray, seg_start: np.ndarray, seg_end: np.ndarray, seg_edge: np.ndarray, incl: np.ndarray,
+    block: int, grad: np.ndarray, wa: np.ndarray, wb: np.ndarray,
+) -> None:  # fmt: skip
     """One thread per segment: [`segment_weights`][layoutwarp.kernels.exact.segment_weights]."""
     s = cuda.grid(1)
     if s < seg_start.shape[0]:

@@ -94,19 +94,10 @@ def _pixel_constants(a: float, params: np.ndarray) -> tuple[float, float, float,
 
 @inline
 def _noisy_run(
-    row: np.ndarray,
-    flags: np.ndarray,
-    scale: np.ndarray,
-    dark: np.ndarray,
-    full: np.ndarray,
-    zero: np.ndarray,
-    inv: np.ndarray,
-    params: np.ndarray,
-    key: np.uint64,
-    poisson: bool,
-    read: float,
+    row: np.ndarray, flags: np.ndarray, scale: np.ndarray, dark: np.ndarray, full: np.ndarray,
+    zero: np.ndarray, inv: np.ndarray, params: np.ndarray, key: np.uint64, poisson: bool, read: float,
     output: int,
-) -> None:
+) -> None:  # fmt: skip
     """[`_measure_run`][] with noise, Poisson or Gaussian: each draw's first try
     ([`first_tries`][]), ``flags[j]`` set where one was rejected and that element's mean left
     in ``row`` for the rescan. Called with ``poisson`` a constant, so each kind of noise gets a
@@ -126,19 +117,10 @@ def _noisy_run(
 
 @inline
 def _measure_run(
-    row: np.ndarray,
-    flags: np.ndarray,
-    scale: np.ndarray,
-    dark: np.ndarray,
-    full: np.ndarray,
-    zero: np.ndarray,
-    inv: np.ndarray,
-    params: np.ndarray,
-    key: np.uint64,
-    noise: int,
-    read: float,
+    row: np.ndarray, flags: np.ndarray, scale: np.ndarray, dark: np.ndarray, full: np.ndarray,
+    zero: np.ndarray, inv: np.ndarray, params: np.ndarray, key: np.uint64, noise: int, read: float,
     output: int,
-) -> None:
+) -> None:  # fmt: skip
     """One plane of a run of `sensor_measure`: the means ``row`` measured in place, the pixel
     constants from [`_pixel_constants`][], ``key`` the first element's shot
     stream. Without noise a loop with no draws; with noise [`_noisy_run`][]. Each loop is
@@ -209,20 +191,10 @@ def _prefetch_inputs(
 
 @serial
 def _measure_share(
-    t: int,
-    nt: int,
-    mean: np.ndarray,
-    area_um2: np.ndarray,
-    prnu: np.ndarray,
-    dsnu: np.ndarray,
-    params: np.ndarray,
-    seed: int,
-    noise: int,
-    output: int,
-    out: np.ndarray,
-    consts: np.ndarray,
+    t: int, nt: int, mean: np.ndarray, area_um2: np.ndarray, prnu: np.ndarray, dsnu: np.ndarray,
+    params: np.ndarray, seed: int, noise: int, output: int, out: np.ndarray, consts: np.ndarray,
     all_words: np.ndarray,
-) -> None:
+) -> None:  # fmt: skip
     """Share ``t`` of ``nt`` of [`sensor_measure`][], with its rows of the work space: a run's pixel
     constants ``consts`` ``(T, 5, MEASURE_CHUNK)`` and the flags ``all_words`` ``(T, ⌈N·share/8⌉)``
     (zeroed; none without noise)."""

@@ -39,18 +39,9 @@ def sample_radiance(image: Tensor | Radiance, points: Tensor, radiance: str) -> 
 
 @torch.library.custom_op("layoutwarp::flux", mutates_args=())
 def _flux(
-    value: Tensor,
-    theta: Tensor,
-    vol: Tensor,
-    image: Tensor,
-    seed: Tensor,
-    layout: str,
-    radiance_fn: str,
-    height: int,
-    width: int,
-    samples: int,
-    radiance: str,
-) -> Tensor:
+    value: Tensor, theta: Tensor, vol: Tensor, image: Tensor, seed: Tensor, layout: str, radiance_fn: str,
+    height: int, width: int, samples: int, radiance: str,
+) -> Tensor:  # fmt: skip
     """Identity on ``value``; its θ-gradient is the Reynolds boundary flux (paper eq. 16).
 
     ``∂I_k/∂θ = (1/|A_k|) ∮_∂A_k (L − I_k) ⟨∂r/∂θ, n⟩ ds`` (constant sensitivity ``W``, so
@@ -68,19 +59,9 @@ def _(value, *rest):
 
 @torch.library.custom_op("layoutwarp::flux_backward", mutates_args=())
 def _flux_backward(
-    grad: Tensor,
-    value: Tensor,
-    theta: Tensor,
-    vol: Tensor,
-    image: Tensor,
-    seed: Tensor,
-    layout: str,
-    radiance_fn: str,
-    height: int,
-    width: int,
-    samples: int,
-    radiance: str,
-) -> Tensor:
+    grad: Tensor, value: Tensor, theta: Tensor, vol: Tensor, image: Tensor, seed: Tensor, layout: str,
+    radiance_fn: str, height: int, width: int, samples: int, radiance: str,
+) -> Tensor:  # fmt: skip
     """θ's gradient of ``layoutwarp::flux``: [`_flux_gradient`][] with the weights ``grad / vol``."""
     source = ops.object_of(radiance_fn) if radiance_fn else image
     generator = ops.generator_of(seed, theta.device)
