@@ -5,6 +5,7 @@ one graph under ``torch.compile(fullgraph=True)`` for every family, integrator a
 from __future__ import annotations
 
 import copy
+import json
 import warnings
 
 import pytest
@@ -823,3 +824,49 @@ def test_a_forward_mode_tangent_is_refused_in_one_line_not_dropped(learn, gen):
         assert str(err.value) == FORWARD_AD and "\n" not in FORWARD_AD
         inside = lw.simulate(img, layout, (5, 7)).detach()
     assert torch.equal(inside, lw.simulate(img, layout, (5, 7)).detach())
+
+
+def test_eager_calls_do_not_import_dynamo_and_a_later_compile_traces_none_of_the_kernels():
+    """torch wraps every custom operator's implementation in ``torch._dynamo.disable``, made at
+    its first call (importing ``torch._dynamo``, 1–2 s). In a fresh process, a learnable step, a
+    fixed forward and a call with physics import no ``torch._dynamo``; a ``torch.compile`` after
+    them captures one graph (the implementations disabled from then on, as torch makes them),
+    whose values and θ-gradients equal eager's."""
+    import subprocess
+    import sys
+    import textwrap
+
+    code = """
+        import json, sys, torch, layoutwarp as lw
+        g = torch.Generator().manual_seed(3)
+        img = torch.rand(2, 3, 40, 56, generator=g)
+        layer = lw.SensorLayer((7, 9), "curv", theta=(0.3, -0.2), learn=True)
+        layer(img).sum().backward()
+        eager_grad = layer.layout.rho.grad.clone()
+        with torch.no_grad():
+            lw.simulate(img, lw.CurvLayout((0.3, -0.1)), (7, 9))
+        cam = lw.SensorPhysics((30.0, 40.0), photons_per_um2=50.0, seed=1)
+        lw.simulate(img, lw.CurvLayout((0.3, -0.1)), (7, 9), physics=cam)
+        before = "torch._dynamo" in sys.modules
+        from torch._dynamo.testing import CompileCounter
+        counter = CompileCounter()
+        compiled = torch.compile(layer, fullgraph=True, backend=counter)
+        layer.layout.rho.grad = None
+        out = compiled(img)
+        out.sum().backward()
+        from layoutwarp.operators.base import OPERATORS
+        impl = OPERATORS["exact"]._backend_fns[None].__wrapped__
+        print(json.dumps({"before": before, "frames": counter.frame_count,
+            "same": bool(torch.equal(out, layer(img))),
+            "grad": float((layer.layout.rho.grad - eager_grad).abs().max()),
+            "disabled": getattr(impl, "__dynamo_disable", None) is not None
+                and getattr(impl, "__dynamo_disable").__name__ != "run"}))
+    """
+    res = subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(code)], capture_output=True, text=True, timeout=600
+    )
+    assert res.returncode == 0, res.stderr[-3000:]
+    out = json.loads(res.stdout.strip().splitlines()[-1])
+    assert out["before"] is False, out
+    assert out["frames"] == 1 and out["same"] and out["grad"] < 1e-6, out
+    assert out["disabled"], out

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import sys
 from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING, Any, NoReturn
 
@@ -241,7 +242,28 @@ def register(op: Any, fold: int | None = None, outputs: tuple[str, ...] = ("imag
     split back by its role in ``outputs``, else one call per sample) and return it."""
     OPERATORS[op._name] = op
     op.register_vmap(batch_rule(op, fold, outputs))
+    _disable_dynamo_lazily(op)
     return op
+
+
+def _disable_dynamo_lazily(op: Any) -> None:
+    """torch runs a custom operator's implementation through ``torch._dynamo.disable``, made at
+    its first call, which imports ``torch._dynamo`` (1–2 s) in every process, compiled or not.
+    Until something imports it (``torch.compile``, ``torch.export``), nothing can trace the
+    implementation, so it runs as it is; from then on through torch's own disabled wrapper.
+    Where a torch release keeps these internals otherwise, nothing changes."""
+    for wrapper in getattr(op, "_backend_fns", {}).values():
+        impl = getattr(wrapper, "__wrapped__", None)  # torch._disable_dynamo's functools.wraps
+        if impl is None or getattr(impl, "__dynamo_disable", None) is not None:
+            continue
+
+        def run(*args: Any, _impl: Callable = impl, _wrapper: Callable = wrapper, **kwargs: Any) -> Any:
+            if "torch._dynamo" not in sys.modules:
+                return _impl(*args, **kwargs)
+            _impl.__dynamo_disable = None  # torch's wrapper makes its disabled function from now on
+            return _wrapper(*args, **kwargs)
+
+        impl.__dynamo_disable = run
 
 
 #: The message of a refused ``torch.func`` gradient transform.
