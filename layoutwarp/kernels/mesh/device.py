@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import functools
 import math
+import threading
 import warnings
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
@@ -93,6 +94,7 @@ class MeshRoom:
 #: (the source's size changes no count). Never let go of: a captured CUDA graph writes its
 #: room's status for as long as it lives (a few bytes a room).
 MESH_ROOMS: dict[tuple, MeshRoom] = {}
+_ROOMS_LOCK = threading.Lock()
 
 
 @dataclass
@@ -168,9 +170,10 @@ def build_mesh_device(
     th, slope = torch.empty(p, **f64), torch.empty(p, **f64)
     bounds = th[:0] if bounds is None else bounds
     key = (spec, size, float(tol), p, str(dev), max_subdiv)
-    if key not in MESH_ROOMS:
-        MESH_ROOMS[key] = MeshRoom(host_mapped(3, dev))
-    room = MESH_ROOMS[key]
+    with _ROOMS_LOCK:  # threads building one kind of mesh at once share its one room
+        room = MESH_ROOMS.get(key)
+        if room is None:
+            room = MESH_ROOMS[key] = MeshRoom(host_mapped(3, dev))
     room.look()
     stamp = room.overflows.take()
 
