@@ -15,7 +15,9 @@ per image dtype a fixed layout's forward (``fixed/…``), the exact integrator (
   process exits (or dies), and what it finished stays cached for the next process. A call whose
   result would differ beyond rounding (the sensor's noise: the compiled sampler and torch's are
   different streams) runs a plain compiled kernel of the same values meanwhile, which compiles in
-  seconds in the foreground ([`compiled`][]).
+  seconds in the foreground ([`compiled`][]). Its means are what the call's own route gives
+  them: from the torch path while a fixed layout's product compiles, equal to rounding, so a
+  count drawn from a mean at its edge can differ by one from ``"wait"``'s.
 - ``"wait"``: compile at first use, in the process, and wait for it: every call compiled, and
   results the same to the bit from a process's first call on (the test suite runs this way).
 - ``"off"``: the torch path only.

@@ -17,12 +17,12 @@ from torch import Tensor
 
 from . import jit, kernels
 from .caches import LRU, tensor_token
-from .checks import check_choice
+from .checks import ArgumentError, check_choice, check_generator, check_shape, check_tensor
 from .kernels.device import fall_back, stream_of
 from .kernels.noise import measure_on_device
 from .operators import base as ops
 from .operators.base import random_seed
-from .physics import OUTPUTS, SensorPhysics, physics_of
+from .physics import OUTPUTS, SensorPhysics, as_physics, physics_of
 
 __all__ = ["device_arguments", "kernel_arguments", "measure", "noise_seed"]
 
@@ -64,7 +64,8 @@ def measure(
         mean: the integrators' mean radiance per pixel (image units; 1.0 is ``photons_per_um2``).
         areas: pixel areas ``(h, w)`` in sensor units (the square ``[-1, 1]²``: they sum to 4),
             e.g. [`areas`][layoutwarp.mesh.PixelMesh.areas]; differentiable in θ.
-        physics: the camera.
+        physics: the camera (or its dict,
+            [`SensorPhysics.to_dict`][layoutwarp.physics.SensorPhysics.to_dict]).
         output: ``"radiance"`` (the ISP's estimate of ``mean``), ``"electrons"`` (after the full
             well, before the ADC) or ``"dn"`` (the ADC's digital numbers).
         generator: the noise's random generator (default: ``physics.seed``'s draws, or torch's
@@ -75,13 +76,40 @@ def measure(
         ``(N, h, w)`` in ``mean``'s dtype.
 
     Raises:
-        ValueError: a full well below the read noise in the smallest pixel.
+        ArgumentError: an argument of the wrong kind or shape (naming it), or a full well below
+            the read noise in the smallest pixel (a ``ValueError``).
     """
-    check_choice(output, OUTPUTS, "output")
+    physics, seed = _check_measure(mean, areas, physics, output, generator, seed)
     seed = noise_seed(physics, generator, seed)
     if torch.is_grad_enabled() and (mean.requires_grad or areas.requires_grad):
         return _measure_torch(mean, areas, physics, output, seed)
     return torch.ops.layoutwarp.measure(mean, areas, physics.token, output, seed)
+
+
+def _check_measure(
+    mean: Any, areas: Any, physics: Any, output: str, generator: Any, seed: Any
+) -> tuple[SensorPhysics, Tensor | None]:
+    """[`measure`][]'s arguments checked, each in one line naming it: the camera (a dict of
+    one too) and the seed as [`measure`][] takes them."""
+    check_shape(mean, "* h w", "mean")
+    if not mean.is_floating_point():
+        raise ArgumentError("mean", f"mean must be a floating-point tensor, got {mean.dtype}")
+    check_tensor(areas, "areas")
+    if tuple(areas.shape) != tuple(mean.shape[-2:]) or not areas.is_floating_point():
+        raise ArgumentError(
+            "areas",
+            f"areas must be the pixels' floating-point (h, w) = {tuple(mean.shape[-2:])} of mean "
+            f"(..., h, w), got {tuple(areas.shape)} {areas.dtype}",
+        )
+    camera = as_physics(physics)
+    if camera is None:
+        raise ArgumentError("physics", "physics must be a SensorPhysics or its dict, got None")
+    check_choice(output, OUTPUTS, "output")
+    check_generator(generator)
+    if seed is not None and not (isinstance(seed, Tensor) and seed.ndim == 0 and seed.dtype == torch.int64):
+        what = f"{type(seed).__name__} {getattr(seed, 'dtype', '')} {tuple(getattr(seed, 'shape', ()))}"
+        raise ArgumentError("seed", f"seed must be a 0-d int64 tensor (noise_seed), got {what.strip()}")
+    return camera, seed
 
 
 @torch.library.custom_op("layoutwarp::measure", mutates_args=())
@@ -144,8 +172,8 @@ def _measure_torch(mean: Tensor, areas: Tensor, physics: SensorPhysics, output: 
     rate = electrons.clamp_min(0)
     if mode != "none":
         shot, read = torch.ops.layoutwarp.draws(rate.detach(), seed, mode, bool(physics.read_noise_e))
-        if mode == "poisson":
-            electrons = shot + (electrons - electrons.detach())
+        if mode == "poisson":  # the count, the gradient of the mean (0 where it is ±inf)
+            electrons = shot + (electrons - electrons.detach()).nan_to_num(0.0)
         else:
             electrons = electrons + torch.sqrt(rate.clamp_min(1e-12)) * shot * (rate > 0)
         if physics.read_noise_e:
@@ -159,7 +187,8 @@ def _measure_torch(mean: Tensor, areas: Tensor, physics: SensorPhysics, output: 
     if physics.adc_bits is not None:
         top = 2**physics.adc_bits - 1
         rounded = dn.detach().round().clamp(0, top)
-        dn = dn + (rounded - dn.detach())  # straight through: the value rounded, the gradient kept
+        # straight through: the value rounded, the gradient kept (0 where dn is ±inf)
+        dn = rounded + (dn - dn.detach()).nan_to_num(0.0)
     if output == "dn":
         return dn
     recovered = (dn - physics.black_level_dn) / k - physics.dark_e_per_um2 * a_um2
@@ -226,8 +255,11 @@ def _draws(rate: Tensor, seed: Tensor, mode: str, read: bool) -> tuple[Tensor, T
     (``"gaussian"``) for the shot noise, then standard normals for the read noise (``read``;
     else zeros)."""
     generator = ops.generator_of(seed, rate.device)
-    if mode == "poisson":
-        shot = torch.poisson(rate, generator=generator)
+    if mode == "poisson":  # a NaN or infinite mean passed through, as the compiled sampler does;
+        # beyond 2⁶² electrons (torch's int64 counts overflow) the count is the mean, rounded down
+        drawn = torch.isfinite(rate) & (rate < 2.0**62)
+        shot = torch.poisson(torch.where(drawn, rate, 0.0), generator=generator)
+        shot = torch.where(drawn, shot, rate.floor())
     else:
         shot = torch.randn(rate.shape, generator=generator, dtype=rate.dtype, device=rate.device)
     if not read:

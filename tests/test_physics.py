@@ -848,6 +848,49 @@ def test_nonfinite_input_passes_through_the_measurement_with_allow_nonfinite(gen
         assert not np.isfinite(e[:4000]).any() and np.isfinite(e[4000:]).all()  # inf - inf: NaN, as in torch
 
 
+@pytest.mark.parametrize("noise", ["poisson", "gaussian", "none"])
+def test_the_differentiable_measurement_records_what_the_compiled_one_does_of_nonfinite_and_huge_means(
+    noise,
+):
+    # the torch path (a gradient) and the compiled pass record the same of means the noise cannot
+    # move (no read noise): ±inf, NaN and ±1e30 (the straight-through steps kept the value, not
+    # inf − inf = NaN or 1e30 − 1e30 = 0; torch's Poisson overflowed its int64 counts and refused
+    # NaN and inf)
+    from layoutwarp.measurement import measure
+
+    mean = torch.tensor([[[math.inf, math.nan, 1e30, -math.inf, -1e30]]], dtype=F64)
+    areas = torch.ones(1, 5, dtype=F64)
+    for output, full in (("dn", 1e4), ("electrons", None), ("radiance", 1e4)):
+        cam = physics(noise=noise, adc_bits=10, full_well_per_um2=full, read_noise_e=0.0, seed=1)
+        with torch.no_grad():
+            compiled = measure(mean, areas, cam, output=output)
+        x = mean.clone().requires_grad_(True)
+        taped = measure(x, areas, cam, output=output)
+        torch.testing.assert_close(taped.detach(), compiled, rtol=1e-12, atol=0, equal_nan=True)
+        taped.nansum().backward()  # a gradient of the finite values' path, no error
+
+
+def test_measure_checks_its_arguments_in_one_line_each():
+    from layoutwarp.measurement import measure
+
+    mean, areas = torch.rand(2, 9, 11, dtype=F64), torch.full((9, 11), 4 / 99, dtype=F64)
+    cam = physics(seed=3)
+    for grad in (False, True):
+        m = mean.clone().requires_grad_(grad)
+        for args, kw, match in (
+            ((m, areas[:1], cam), {}, r"areas must be the pixels' floating-point \(h, w\) = \(9, 11\)"),
+            ((m, areas.long(), cam), {}, "areas must be .* got .* torch.int64"),
+            ((m[0, 0], areas[0], cam), {}, r"mean must have shape \(\.\.\., h, w\), got \(11,\)"),
+            ((m, areas, None), {}, "physics must be a SensorPhysics or its dict, got None"),
+            ((m, areas, cam), {"seed": 5}, "seed must be a 0-d int64 tensor"),
+            ((m, areas, cam), {"output": "volts"}, "output must be one of"),
+        ):
+            with pytest.raises(ArgumentError, match=match):
+                measure(*args, **kw)
+    # a camera's dict is a camera, as simulate takes it
+    assert torch.equal(measure(mean, areas, cam.to_dict()), measure(mean, areas, cam))
+
+
 #: The measurement and a fixed layout's forward through the device path in numba's CUDA simulator,
 #: written for the test to compare with the CPU kernels.
 DEVICE_MEASURE = """
