@@ -347,16 +347,24 @@ def _add_training_args(p: argparse.ArgumentParser, task: TaskSpec, quick_help: s
     add_physics_args(p, extent=f"the task's images at 1 µm a source pixel ({_extent_text(task)})")
 
 
+def _task_parser(
+    sub: argparse._SubParsersAction, task: TaskSpec, description: str, quick_help: str
+) -> argparse.ArgumentParser:
+    """A task's parser under a command, with the training arguments every command shares."""
+    p = sub.add_parser(task.name, help=task.description, description=description, formatter_class=Formatter)
+    _add_training_args(p, task, quick_help)
+    return p
+
+
 def _add_train_parser(sub: argparse._SubParsersAction, task: TaskSpec, families: Sequence[str]) -> None:
     d = task.defaults
-    t = sub.add_parser(
-        task.name,
-        help=task.description,
-        description=f"{task.description}: train layouts jointly with the network and compare them "
+    t = _task_parser(
+        sub,
+        task,
+        f"{task.description}: train layouts jointly with the network and compare them "
         "with the uniform baseline.",
-        formatter_class=Formatter,
+        "smoke test on the bundled samples: 1 seed, the first size, few epochs",
     )
-    _add_training_args(t, task, "smoke test on the bundled samples: 1 seed, the first size, few epochs")
     t.add_argument(
         "--family",
         action="append",
@@ -392,14 +400,13 @@ def _add_train_parser(sub: argparse._SubParsersAction, task: TaskSpec, families:
 
 def _add_study_parser(sub: argparse._SubParsersAction, task: TaskSpec, families: Sequence[str]) -> None:
     plan = task.study
-    st = sub.add_parser(
-        task.name,
-        help=task.description,
-        description=f"The {task.name} pixel-budget study: uniform layouts at "
+    st = _task_parser(
+        sub,
+        task,
+        f"The {task.name} pixel-budget study: uniform layouts at "
         f"{_sizes_text(plan.uniform_sizes)}, every family at {_sizes_text(plan.learned_sizes)}; resumable.",
-        formatter_class=Formatter,
+        "bundled samples, 1 seed, 1 epoch, 2 uniform sizes and 1 learned size",
     )
-    _add_training_args(st, task, "bundled samples, 1 seed, 1 epoch, 2 uniform sizes and 1 learned size")
     st.add_argument(
         "--family",
         action="append",
@@ -429,58 +436,53 @@ def _add_study_parser(sub: argparse._SubParsersAction, task: TaskSpec, families:
     st.set_defaults(func=_cmd_study, task=task.name)
 
 
+def _add_landscape_parser(sub: argparse._SubParsersAction, task: TaskSpec, two: Sequence[str]) -> None:
+    lt = _task_parser(
+        sub,
+        task,
+        f"A θ-landscape of {task.name}: θ frozen on an N x N grid (one seed a point, "
+        "three at uniform and at the best point), the study's training; resumable.",
+        "bundled samples, 1 epoch, a 3x3 grid",
+    )
+    lt.add_argument("--family", choices=two, required=True, help="a two-parameter family")
+    lt.add_argument(
+        "--grid", type=int_range(2, 25), help="N: the grid is N x N, 2 to 25 (default: 7; 3 with --quick)"
+    )
+    lt.add_argument(
+        "--range",
+        type=parse_range,
+        default="-0.8,0.8",
+        help="θ range LO,HI on both axes",
+    )
+    sizes = _sizes_text(task.study.learned_sizes[:1])
+    lt.add_argument("--size", type=parse_wxh, help=f"sensor WIDTHxHEIGHT (default: {sizes})")
+    lt.add_argument(
+        "--study", metavar="DIR", help="a study folder whose learned θ are rerun frozen and marked"
+    )
+    lt.add_argument(
+        "--out", help=f"output folder (default: results/landscape-{task.name}-FAMILY); rerun to resume"
+    )
+    lt.set_defaults(func=_cmd_landscape, task=task.name)
+
+
 def add_commands(
     sub: argparse._SubParsersAction, specs: dict[str, TaskSpec], families: Sequence[str], two: Sequence[str]
 ) -> None:
     """The ``train``, ``study``, ``landscape`` and ``evaluate`` commands' parsers, a subcommand a task."""
-    t = add_command(sub, "train", "Train a layout jointly with a network: the paper's experiments.")
-    tasks = t.add_subparsers(dest="task", required=True, metavar="TASK", parser_class=Parser)
-    for task in specs.values():
-        _add_train_parser(tasks, task, families)
-
-    st = add_command(
-        sub,
-        "study",
-        "The pixel-budget study: uniform layouts at several sizes, every family at some; resumable.",
-    )
-    st_tasks = st.add_subparsers(dest="task", required=True, metavar="TASK", parser_class=Parser)
-    for task in specs.values():
-        _add_study_parser(st_tasks, task, families)
-
-    la = add_command(
-        sub,
-        "landscape",
-        "Train the task's network with θ frozen at every point of a grid: does learning find the best θ?",
-    )
-    la_tasks = la.add_subparsers(dest="task", required=True, metavar="TASK", parser_class=Parser)
-    for task in specs.values():
-        lt = la_tasks.add_parser(
-            task.name,
-            help=task.description,
-            description=f"A θ-landscape of {task.name}: θ frozen on an N x N grid (one seed a point, "
-            "three at uniform and at the best point), the study's training; resumable.",
-            formatter_class=Formatter,
+    per_task = (
+        ("train", "Train a layout jointly with a network: the paper's experiments.",
+         _add_train_parser, families),
+        ("study", "The pixel-budget study: uniform layouts at several sizes, every family at some; "
+         "resumable.", _add_study_parser, families),
+        ("landscape", "Train the task's network with θ frozen at every point of a grid: does learning "
+         "find the best θ?", _add_landscape_parser, two),
+    )  # fmt: skip
+    for name, text, add, names in per_task:
+        tasks = add_command(sub, name, text).add_subparsers(
+            dest="task", required=True, metavar="TASK", parser_class=Parser
         )
-        _add_training_args(lt, task, "bundled samples, 1 epoch, a 3x3 grid")
-        lt.add_argument("--family", choices=two, required=True, help="a two-parameter family")
-        lt.add_argument(
-            "--grid", type=int_range(2, 25), help="N: the grid is N x N, 2 to 25 (default: 7; 3 with --quick)"
-        )
-        lt.add_argument(
-            "--range",
-            type=parse_range,
-            default="-0.8,0.8",
-            help="θ range LO,HI on both axes",
-        )
-        sizes = _sizes_text(task.study.learned_sizes[:1])
-        lt.add_argument("--size", type=parse_wxh, help=f"sensor WIDTHxHEIGHT (default: {sizes})")
-        lt.add_argument(
-            "--study", metavar="DIR", help="a study folder whose learned θ are rerun frozen and marked"
-        )
-        lt.add_argument(
-            "--out", help=f"output folder (default: results/landscape-{task.name}-FAMILY); rerun to resume"
-        )
-        lt.set_defaults(func=_cmd_landscape, task=task.name)
+        for task in specs.values():
+            add(tasks, task, names)
 
     ev = add_command(
         sub, "evaluate", "Score a saved model (a train run's model_*.pt) on a data folder; print JSON."
