@@ -185,7 +185,7 @@ def compiled(group: str, dtype: str | torch.dtype, kernel: Any, first: Any = Non
         return kernel if ready(group, dtype, wait=True) else None
     if ready(group, dtype):
         return kernel
-    if not kernels.available() or mode() == "off":
+    if not kernels.available():
         return None
     return _announcing(first, _units(group, dtype)[-1], "compiling the plain version (seconds) of")
 

@@ -107,8 +107,8 @@ def _check_measure(
     check_choice(output, OUTPUTS, "output")
     check_generator(generator)
     if seed is not None and not (isinstance(seed, Tensor) and seed.ndim == 0 and seed.dtype == torch.int64):
-        what = f"{type(seed).__name__} {getattr(seed, 'dtype', '')} {tuple(getattr(seed, 'shape', ()))}"
-        raise ArgumentError("seed", f"seed must be a 0-d int64 tensor (noise_seed), got {what.strip()}")
+        what = f"a {seed.dtype} tensor of shape {tuple(seed.shape)}" if isinstance(seed, Tensor) else seed
+        raise ArgumentError("seed", f"seed must be a 0-d int64 tensor (noise_seed), got {what!s:.60}")
     return camera, seed
 
 

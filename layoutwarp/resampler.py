@@ -366,7 +366,7 @@ class AreaResampler:
                 bad = kernels.measured_runs_apply(self.runs.arrays(), x, out, *measured, out, nt)
             else:
                 bad = kernels.runs_apply(self.runs.arrays(), x, out, nt)
-            mean, ok = torch.from_numpy(out).view(n, *self.size), not bad
+            mean, ok = torch.from_numpy(out).view(n, *self.size), allow_nonfinite or not bad
         else:
             cols = [self.sparse @ flat[k].unsqueeze(1) for k in range(n)]  # contiguous planes: no transpose
             mean = (
@@ -375,7 +375,7 @@ class AreaResampler:
                 else flat.new_zeros(0, *self.size)
             )
             ok = allow_nonfinite or all_finite(mean)
-        if not (ok or allow_nonfinite):
+        if not ok:
             raise_nonfinite(images)
         if physics is None or fused:
             return mean

@@ -287,8 +287,9 @@ def sensor_measure(
     are read only where their gains are not 0 (empty arrays will do). ``noise``: 0 none,
     1 Poisson, 2 Gaussian; ``output``: 0 radiance, 1 electrons, 2 DN. Element ``i`` (row-major)
     draws its shot noise and its read noise from two streams of its own, disjoint blocks of one
-    SplitMix64 sequence seeded by ``seed`` ([`ELEMENT_G`][]), so the result does not depend
-    on the thread count.
+    SplitMix64 sequence seeded by ``seed``
+    ([`ELEMENT_G`][layoutwarp.kernels.samplers.ELEMENT_G]), so the result does not depend on the
+    thread count.
 
     Thread ``t`` of ``threads`` (see [`run_shares`][layoutwarp.kernels.base.run_shares]) takes the
     pixels ``[t·P/T, (t + 1)·P/T)``,
