@@ -58,6 +58,7 @@ __all__ = [
     "compile_all",
     "compile_missing",
     "compiled",
+    "loaded",
     "mode",
     "ready",
     "register_warmup",
@@ -122,12 +123,21 @@ def use_mode(value: str) -> Iterator[None]:
         _MODE[:] = saved
 
 
+def loaded(unit: str) -> bool:
+    """Whether ``unit``'s kernels (one of [`UNITS`][]) are loaded in this process and the mode lets
+    them run: they run now, with no look at the cache and no compile."""
+    if unit not in UNITS:
+        raise ValueError(f"unit must be one of {', '.join(UNITS)}, got {unit!r}")
+    return unit in _READY and mode() != "off"
+
+
 def ready(group: str, dtype: str | torch.dtype = "float32", wait: bool = False) -> bool:
     """Whether ``group``'s compiled kernels for images of ``dtype`` (float32 or float64) run now
-    (see the module docstring). ``wait``: the caller needs the compiled kernels (its result would
-    differ on the torch path): unless the mode is ``"off"``, compile them here (or wait for the
-    background child where it is on them), then ``True``. ``False`` where numba is missing or the
-    mode is ``"off"``: the caller takes its torch path."""
+    (see the module docstring); ``group`` ``"mesh"``: the learnable layouts' mesh unit alone (any
+    dtype), which a fixed layout's weights also build on. ``wait``: the caller needs the compiled
+    kernels (its result would differ on the torch path): unless the mode is ``"off"``, compile them
+    here (or wait for the background child where it is on them), then ``True``. ``False`` where
+    numba is missing or the mode is ``"off"``: the caller takes its torch path."""
     units = _units(group, dtype)
     if getattr(_WARMING, "on", False):  # a warm-up takes the compiled paths
         return True
@@ -299,10 +309,12 @@ def _loads_mesh(unit: str) -> bool:
 def _units(group: str, dtype: str | torch.dtype) -> tuple[str, ...]:
     """The units a group of one dtype needs (the learnable layouts' mesh, then the group's own)."""
     name = str(dtype).removeprefix("torch.")
-    if group not in GROUPS:
-        raise ValueError(f"group must be one of {', '.join(GROUPS)}, got {group!r}")
+    if group not in GROUPS and group != "mesh":
+        raise ValueError(f"group must be one of {', '.join(GROUPS)} or mesh, got {group!r}")
     if name not in DTYPES:
         raise ValueError(f"dtype must be one of {', '.join(DTYPES)}, got {dtype!r}")
+    if group == "mesh":
+        return ("mesh",)
     return ("mesh", f"learn/{name}") if group == "learn" else (f"{group}/{name}",)
 
 

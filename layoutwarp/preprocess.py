@@ -157,13 +157,13 @@ class _Job:
                     self.say(f"preprocess: building the area weights of the {h}x{w} sensor for "
                              f"{src_size[0]}x{src_size[1]} images (once per source size) ...")  # fmt: skip
                 t0 = time.perf_counter()
+                # the compiled build and product loaded (or compiled) first, so every image takes
+                # them: the same bytes whenever a file is processed, and their load counted with
+                # the weights
+                jit.ready("fixed", torch.float32, wait=True)
                 self._cache[key] = AreaResampler(
                     self.layout, self.size, src_size, tol=self.tol, dtype=dtype, device=self.device
                 )
-                if torch.device(self.device).type == "cpu":  # the compiled product loaded (or
-                    # compiled) now, so every image takes it: the same bytes whenever a file is
-                    # processed, and its load counted with the weights
-                    jit.ready("fixed", torch.float32, wait=True)
                 if fine:
                     self.say(f"preprocess: ... built in {time.perf_counter() - t0:.1f} s")
             return self._cache[key]

@@ -1,23 +1,21 @@
 """The exact integrator as a sparse matrix, for fixed layouts.
 
 For a fixed layout nothing needs gradients, so the exact integrator (Green's theorem over the
-pixel polygons, [`integrate_exact`][layoutwarp.integrators.integrate_exact]) becomes a sparse matrix:
-[`area_weights`][] gives, for every sensor pixel, the fraction of its area that falls in every
-source cell. [`AreaResampler`][] builds it once per source size and applies it to any number
-of images with one sparse product each (CPU or CUDA); preprocessing, label maps and fixed-layout
-simulation use it.
+pixel polygons, [`integrate_exact`][layoutwarp.integrators.integrate_exact]) becomes a sparse matrix
+of area weights: for every sensor pixel, the fraction of its area that falls in every source cell
+([`layoutwarp.weights`][]). [`AreaResampler`][] builds them once per source size, held as runs of
+cells ([`Runs`][layoutwarp.kernels.runs.Runs]), and applies them to any number of images with one
+pass each (CPU or CUDA); preprocessing, label maps and fixed-layout simulation use it.
 """
 
 from __future__ import annotations
 
-import math
 import warnings
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from . import jit, kernels
 from .caches import LRU
@@ -29,164 +27,21 @@ from .checks import (
     check_size,
     raise_nonfinite,
 )
-from .integrators import data_tolerance, green_pieces
+from .integrators import data_tolerance
 from .kernels.device import device_checks, fall_back, stream_of
-from .kernels.runs import Runs, runs_apply_on_device
+from .kernels.runs import runs_apply_on_device
 from .labels import labels_to_sensor
 from .layouts import Layout, check_layout
 from .measurement import device_arguments, kernel_arguments, measure, noise_seed
-from .mesh import PixelMesh, pixel_mesh
 from .operators import base as ops
 from .operators.base import layout_token
 from .physics import SensorPhysics, physics_of
+from .weights import fixed_runs
 
 if TYPE_CHECKING:
     import scipy.sparse
 
-__all__ = [
-    "RESAMPLERS",
-    "AreaResampler",
-    "area_product",
-    "area_weights",
-    "resampler_for",
-]
-
-
-#: Boundary pieces (segments cut at source cell lines) that [`area_weights`][] handles at once:
-#: it works through blocks of sensor rows of about this many, so its temporaries stay bounded.
-PIECES_PER_BLOCK = 1 << 14
-#: A weights build that runs this long shows its progress and the time left on a terminal.
-PROGRESS_AFTER_S = 2.0
-
-
-def area_weights(
-    layout: Layout,
-    size: tuple[int, int],
-    src_size: tuple[int, int],
-    *,
-    tol: float | None = None,
-    dtype: torch.dtype | np.dtype | type = np.float32,
-    weights_dtype: np.dtype | type = np.float64,
-    mesh: PixelMesh | None = None,
-) -> scipy.sparse.csr_matrix:
-    """Exact area weights of every sensor pixel over the source cells, as a sparse matrix.
-
-    ``W[k, r · W_src + c]`` is the fraction of pixel ``k``'s area (row-major sensor index)
-    inside source cell ``(r, c)``; rows sum to 1, and ``W @ image.reshape(-1, C)`` equals
-    ``simulate(image, layout, size, method="exact", tol=tol)`` up to rounding.
-
-    Built from the same Green's-theorem pieces as the exact integrator: a boundary piece in
-    cell ``(r, c)`` contributes ``ΔY · (Σ_{c' < c} L[r, c'] + f · L[r, c])``, a step in ``c'``;
-    the steps of one pixel and row are summed by a sort and a cumulative sum, so only the
-    cells inside the pixel get (non-zero) weights; ``nnz ≈`` source pixels plus the cells on
-    pixel boundaries. Computed in float64, block by block of sensor rows
-    ([`PIECES_PER_BLOCK`][]), each block's rows written in order: besides the result, what
-    the build holds at once is one block's pieces. A build that runs `PROGRESS_AFTER_S` (2 s) or
-    longer shows a progress bar with the time left, on a terminal (stderr).
-
-    Args:
-        layout: the pixel layout.
-        size: sensor size ``(h, w)``.
-        src_size: source size ``(H, W)``.
-        tol: bound on each pixel's error relative to the images' value range, spent on the
-            polyline approximation of curved edges; ``None``: what images of ``dtype`` resolve
-            ([`data_tolerance`][]).
-        dtype: the dtype of the images the weights are for (sets the default ``tol``).
-        weights_dtype: the dtype of the returned weights (float64 or float32).
-        mesh: the layout's float64 [`pixel_mesh`][] at ``tol``, where the
-            caller has built it (default: the cached one, built on first use).
-
-    Returns:
-        a ``(h · w, H · W)`` ``scipy.sparse.csr_matrix``.
-    """
-    (h, w), (hs, ws) = check_size(size), check_size(src_size, "src_size")
-    tol = data_tolerance(dtype)[0] if tol is None else tol
-    with torch.no_grad():
-        if mesh is None:
-            mesh = pixel_mesh(layout, (h, w), tol=tol, dtype=torch.float64)
-        verts = mesh.pixel_vertices((hs, ws))
-        area = mesh.areas(verts).flatten().cpu().numpy()  # source pixel units, same polylines
-        verts, starts, ends = verts.cpu(), mesh.seg_start.cpu(), mesh.seg_end.cpu()
-        pieces = sum(  # a bound on the pieces, in chunks: no segment-long temporaries
-            float(((verts[e] - verts[s]).abs().ceil().sum(-1) + 2).sum())
-            for s, e in zip(starts.split(1 << 16), ends.split(1 << 16), strict=True)
-        )
-    top, off = mesh.topology, mesh.edge_offsets.cpu().numpy()
-    seg_edge, pix = mesh.seg_edge.cpu(), top.edge_pixels()
-    step = max(1, h // max(1, math.ceil(pieces / PIECES_PER_BLOCK)))
-    # at most a cell per source pixel (inside one pixel) plus two per piece (the pixels on its
-    # sides); np.empty takes address space only, so the bound's unused pages are never touched
-    bound = hs * ws + 2 * int(pieces)
-    index = np.int32 if bound < 2**31 else np.int64
-    indices, data = np.empty(bound, index), np.empty(bound, weights_dtype)
-    counts, n = [np.zeros(1, np.int64)], 0
-    bar = tqdm(
-        total=h, desc=f"area weights {h}x{w}", unit="row", leave=False, delay=PROGRESS_AFTER_S, disable=None
-    )
-    for i0 in range(0, h, step):
-        i1 = min(h, i0 + step)
-        # the block's pixels are bounded by horizontal edges of corner rows i0..i1 and vertical
-        # edges of rows i0..i1-1: two runs of edges, so two runs of segments
-        runs = (top.horizontal(i0, 0), top.horizontal(i1 + 1, 0)), (top.vertical(i0, 0), top.vertical(i1, 0))
-        segs = torch.cat([torch.arange(int(off[e0]), int(off[e1])) for e0, e1 in runs])
-        with torch.no_grad():
-            pcs = green_pieces(verts[starts[segs]], verts[ends[segs]], (hs, ws))
-        edge = seg_edge[segs[pcs.seg]].numpy()
-        pixel, cell, value = _block_weights(
-            pix[edge], *(t.numpy() for t in (pcs.row, pcs.col, pcs.dy, pcs.frac)), (i0 * w, i1 * w), hs, ws
-        )
-        indices[n : n + cell.size] = cell
-        data[n : n + cell.size] = value / area[pixel]
-        n += cell.size
-        counts.append(np.bincount(pixel - i0 * w, minlength=(i1 - i0) * w))
-        bar.update(i1 - i0)
-    bar.close()
-    indices.resize(n, refcheck=False)  # shrunk in place: the pages past n go back
-    data.resize(n, refcheck=False)
-    indptr = np.cumsum(np.concatenate(counts)).astype(index)
-    import scipy.sparse  # loaded on first use: `import layoutwarp` does not load scipy
-
-    return scipy.sparse.csr_matrix((data, indices, indptr), shape=(h * w, hs * ws))
-
-
-def _block_weights(
-    pix: np.ndarray,
-    row: np.ndarray,
-    col: np.ndarray,
-    dy: np.ndarray,
-    frac: np.ndarray,
-    pixels: tuple[int, int],
-    hs: int,
-    ws: int,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The weights' entries of the pixels ``[pixels[0], pixels[1])`` from the Green pieces of the
-    edges bounding them (``pix``: each piece's edge's adding and subtracting pixel, ``(P, 2)``):
-    pixel, source cell and unnormalised weight of every non-zero entry, sorted by pixel and cell
-    (the order of a CSR matrix's rows)."""
-    keys, cols, deltas = [], [], []
-    for k, sign in ((0, 1.0), (1, -1.0)):
-        p = pix[:, k]
-        m = (p >= pixels[0]) & (p < pixels[1])  # the pixels of this block; -1 off the sensor
-        v = sign * dy[m]
-        key = p[m] * hs + row[m]
-        keys += [key, key]
-        cols += [col[m], col[m] + 1]
-        deltas += [v * (frac[m] - 1), -v * frac[m]]
-    key, c, delta = np.concatenate(keys), np.concatenate(cols), np.concatenate(deltas)
-    order = np.lexsort((c, key))
-    key, c, delta = key[order], c[order], delta[order]
-    cum = np.cumsum(delta)
-    start = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
-    cum -= np.repeat(np.r_[0.0, cum[start[1:] - 1]], np.diff(np.r_[start, key.size]))  # per group
-    last = np.r_[key[1:] != key[:-1], True]
-    run = np.where(last, 0, np.r_[c[1:], 0] - c)  # cells from this step to the next
-    scale = np.abs(delta).max(initial=1.0)
-    live = (run > 0) & (np.abs(cum) > 1e-12 * scale)
-    key, c, cum, run = key[live], c[live], cum[live], run[live]
-    rep = np.repeat(np.arange(key.size), run)
-    offs = np.arange(rep.size) - np.repeat(np.cumsum(run) - run, run)
-    pixel, r = np.divmod(key[rep], hs)
-    return pixel, r * ws + c[rep] + offs, cum[rep]
+__all__ = ["RESAMPLERS", "AreaResampler", "area_product", "resampler_for"]
 
 
 class AreaResampler:
@@ -196,22 +51,24 @@ class AreaResampler:
         layout: the pixel layout (its current θ is frozen in the weights).
         size: sensor size ``(h, w)``.
         src_size: source image size ``(H, W)``.
-        tol: the accuracy, as [`area_weights`][] (default: what ``dtype`` images need).
+        tol: the accuracy, as [`area_weights`][layoutwarp.weights.area_weights] (default: what
+            ``dtype`` images need).
         dtype: the dtype of the images the weights are for.
         device: where the sparse products run.
 
     Call with an ``(H, W)`` or ``(H, W, C)`` numpy image of any real dtype; returns a float32
     ``(h, w)`` / ``(h, w, C)`` array in the input's units (no rescaling of uint8/uint16).
-    The sparse product runs on ``device`` (the weights are built on the CPU once, then moved):
+    The product runs on ``device`` (the weights are built on the CPU once, by a compiled walk over
+    each pixel's boundary where the fixed layout's kernels run, then moved):
     CPU or CUDA; a CUDA product sums in another order, so its float32 values can differ from
     the CPU's in the last bits (a rounded integer output by one level, rarely).
 
     Attributes:
         runs: the weights as [`Runs`][layoutwarp.kernels.runs.Runs] (what the products read: each
             source cell once).
-        weights: the ``(h · w, H · W)`` float32 ``scipy.sparse.csr_matrix`` of [`area_weights`][],
-            made from `runs` on first use (the image gradient, label maps and torch's product
-            read it).
+        weights: the ``(h · w, H · W)`` float32 ``scipy.sparse.csr_matrix`` of
+            [`area_weights`][layoutwarp.weights.area_weights], made from `runs` on first use (the
+            image gradient, label maps and torch's product read it).
         areas: the pixels' areas ``(h, w)``, float64, in sensor units (the square ``[-1, 1]²``),
             on ``device`` (what sensor physics needs besides the means).
     """
@@ -234,15 +91,8 @@ class AreaResampler:
             raise ArgumentError("dtype", f"dtype must be a numpy or torch dtype, got {dtype!r}") from None
         self.tol = tol_needed if tol is None else check_number(tol, "tol", 0, lo_open=True)
         self.device = check_device(device)
-        with torch.no_grad():  # the mesh the weights are built on, not kept: the weights and the
-            # areas are all later calls need (a kept mesh is 0.5-0.8 copies of an RGB image)
-            mesh = pixel_mesh(layout, self.size, tol=self.tol, dtype=torch.float64, cache=False)
-            # the areas before the weights: the two are never held with the areas' temporaries
-            areas = mesh.areas()
-            self.areas = areas.to(device)
-        weights = area_weights(layout, self.size, self.src_size, tol=self.tol, mesh=mesh)
-        cells = areas.flatten().cpu().numpy() * (self.src_size[0] * self.src_size[1] / 4)  # in source cells
-        self.runs = Runs.of(weights, cells, self.src_size[1])
+        self.runs, areas = fixed_runs(self.layout, self.size, self.src_size, self.tol)
+        self.areas = areas.to(device)
         self._weights: scipy.sparse.csr_matrix | None = None
         self._csr: torch.Tensor | None = None
         self._csr_t: torch.Tensor | None = None

@@ -12,14 +12,14 @@ from layoutwarp.caches import CACHES, LRU, ObjectMemo, clear_caches, tensor_toke
 
 
 def test_every_cache_is_registered_and_cleared_in_one_place():
-    img = torch.rand(1, 1, 30, 40)
-    lw.simulate(img, lw.CurvLayout((0.3, 0.1)), (5, 6))  # a mesh, area weights, a layout key
-    lw.simulate(
-        img, lw.CurvLayout((0.3, 0.1)), (5, 6), physics=lw.SensorPhysics((6.0, 8.0), photons_per_um2=9)
-    )
+    img, layout = torch.rand(1, 1, 30, 40), lw.CurvLayout((0.3, 0.1))
+    lw.simulate(img, layout, (5, 6))  # area weights (on torch's mesh or the compiled one)
+    lw.simulate(img, layout, (5, 6), physics=lw.SensorPhysics((6.0, 8.0), photons_per_um2=9))
+    lw.pixel_mesh(layout, (5, 6))  # a mesh, kept by its layout's key
     names = {"meshes", "resamplers", "sensors", "sensors on devices", "layout keys", "fixed centres"}
     assert names <= set(CACHES)
-    assert all(len(CACHES[n]) > 0 for n in ("resamplers", "sensors", "layout keys"))
+    sizes = {n: len(CACHES[n]) for n in ("meshes", "resamplers", "sensors", "layout keys")}
+    assert all(sizes.values()), (sizes, lw.jit.mode(), lw.jit.status())
     clear_caches()
     assert all(len(cache) == 0 for cache in CACHES.values())
 

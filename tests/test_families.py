@@ -18,7 +18,7 @@ import layoutwarp as lw
 from layoutwarp.augment import SensorAugmentation
 from layoutwarp.export import export_layout
 from layoutwarp.layouts.grid import cell_corner_dets
-from layoutwarp.resampler import area_weights
+from layoutwarp.weights import area_weights
 
 F64 = torch.float64
 

@@ -432,7 +432,7 @@ def _random_runs(gen: torch.Generator) -> tuple:
     random sensor size over a random source (a pixel spans 1.5 to 8 source cells a side)."""
     from layoutwarp.kernels.runs import Runs
     from layoutwarp.mesh import pixel_mesh
-    from layoutwarp.resampler import area_weights
+    from layoutwarp.weights import area_weights
 
     rng = np.random.default_rng(int(torch.randint(0, 2**31, (), generator=gen)))
     th = (float(rng.uniform(0.1, 0.6)), -float(rng.uniform(0.1, 0.6)))
@@ -445,6 +445,94 @@ def _random_runs(gen: torch.Generator) -> tuple:
     area = mesh.areas(mesh.pixel_vertices(src)).flatten().numpy()
     w = area_weights(layout, size, src, tol=1e-4, mesh=mesh)
     return w, Runs.of(w, area, src[1])
+
+
+def _built_and_reference(layout: lw.Layout, size: tuple, src: tuple, threads: int = 2) -> tuple:
+    """A layout's runs built by the compiled walk (`kernels.build_runs`) and by numpy's matrix
+    (`area_weights`, then `Runs.of`), from one float64 mesh."""
+    from layoutwarp.kernels.runs import Runs
+    from layoutwarp.mesh import pixel_mesh
+    from layoutwarp.weights import area_weights
+
+    mesh = pixel_mesh(layout, size, tol=1e-4, dtype=torch.float64)
+    verts = mesh.pixel_vertices(src)
+    area = mesh.areas(verts).flatten().numpy()
+    cells = mesh.areas().flatten().numpy() * (src[0] * src[1] / 4)
+    parts = (t.numpy() for t in (verts, mesh.seg_start, mesh.seg_end, mesh.edge_offsets))
+    built = kernels.build_runs(*parts, size, src, area, cells, threads)
+    return built, Runs.of(area_weights(layout, size, src, tol=1e-4, mesh=mesh), cells, src[1])
+
+
+@pytest.mark.parametrize(
+    ("family", "theta", "size", "src"),
+    [
+        ("random", None, None, None),
+        ("random", None, None, None),
+        ("rect", (0.0, 0.0), (4, 4), (28, 28)),  # every edge on a cell line: no cut cell at all
+        ("rect", (0.3, -0.5), (5, 7), (33, 41)),
+        ("curv", (0.7, 0.2), (60, 70), (20, 30)),  # pixels smaller than source cells
+        ("curv", (0.97, -0.96), (9, 8), (70, 64)),  # near the bound: thin, strongly curved pixels
+        ("curv", (0.4, -0.3), (1, 1), (37, 45)),  # one pixel: the whole image
+        ("elliptic", (0.5, -0.6), (11, 13), (90, 100)),
+    ],
+)
+def test_the_compiled_build_gives_the_runs_of_the_area_weights(family, theta, size, src, gen):
+    """The runs the compiled walk builds pixel by pixel equal those numpy's matrix gives: the same
+    runs, heads, tails and whole cells, and every cut weight within a float32 rounding (the two
+    sum a row's steps in another order); on 1 and 3 threads, bit for bit."""
+    rng = np.random.default_rng(int(torch.randint(0, 2**31, (), generator=gen)))
+    if family == "random":
+        th = (float(rng.uniform(0.1, 0.8)), -float(rng.uniform(0.1, 0.8)))
+        family = ["curv", "fovea", "elliptic"][rng.integers(3)]
+        layout = {"curv": lw.CurvLayout, "elliptic": lw.EllipticLayout}.get(family, lw.FoveaLayout)
+        layout = layout(th, center=(0.2, -0.1)) if family == "fovea" else layout(th)
+        size = (int(rng.integers(2, 14)), int(rng.integers(2, 14)))
+        src = tuple(int(n * rng.uniform(0.6, 9)) + 1 for n in size)
+    else:
+        layout = lw.make_layout(family, theta)
+    built, ref = _built_and_reference(layout, size, src)
+    for name in ("pix_runs", "run_start", "run_len", "run_head", "run_tail", "inv_area", "pix_cuts"):
+        a, b = getattr(built, name), getattr(ref, name)
+        assert a.dtype == b.dtype and np.array_equal(a, b), name
+    assert built.shape == ref.shape and built.cut_weight.dtype == np.float32
+    assert np.abs(built.cut_weight - ref.cut_weight).max(initial=0) <= 2**-23 * np.abs(ref.cut_weight).max(
+        initial=0
+    )
+    one, three = _built_and_reference(layout, size, src, 1)[0], _built_and_reference(layout, size, src, 3)[0]
+    assert all(np.array_equal(a, b) for a, b in zip(one.arrays(), three.arrays(), strict=True))
+
+
+@pytest.mark.parametrize("family", ["curv", "fovea", "elliptic"])
+def test_a_resampler_builds_its_runs_compiled_or_with_numpy_alike(family, gen, monkeypatch):
+    """`AreaResampler` builds its runs by the compiled walk where the fixed kernels run, and from
+    numpy's matrix where they do not (``LAYOUTWARP_JIT=off``): the same runs, and products equal
+    to float32 rounding; on the compiled mesh (a sensor of `COMPILED_MESH_PIXELS` or more), the
+    same products too."""
+    import layoutwarp.weights as weights
+    from layoutwarp.resampler import AreaResampler
+
+    th = rand_theta(gen, 0.8)
+    layout = lw.FoveaLayout(th, center=(0.2, -0.1)) if family == "fovea" else lw.make_layout(family, th)
+    size, src = (13, 17), (96, 120)
+    with lw.jit.use_mode("wait"), monkeypatch.context() as torch_mesh:
+        torch_mesh.setattr(weights, "mesh_spec", lambda layout: None)  # torch's mesh, as "off" takes
+        built = AreaResampler(layout, size, src)
+    with lw.jit.use_mode("wait"):
+        meshes, build_mesh = [], weights.build_mesh
+        monkeypatch.setattr(weights, "COMPILED_MESH_PIXELS", 0)
+        monkeypatch.setattr(weights, "build_mesh", lambda *a, **k: meshes.append(a) or build_mesh(*a, **k))
+        on_compiled_mesh = AreaResampler(layout, size, src)
+        assert len(meshes) == 1 and meshes[0][1] == size
+    with lw.jit.use_mode("off"):
+        ref = AreaResampler(layout, size, src)
+    for a, b in zip(built.runs.arrays()[:-1], ref.runs.arrays()[:-1], strict=True):
+        assert np.array_equal(a, b)
+    x = torch.rand(3, *src, generator=gen)
+    with lw.jit.use_mode("wait"):
+        out, out_compiled = built.apply(x), on_compiled_mesh.apply(x)
+    assert (out - ref.apply(x)).abs().max() <= 2e-7
+    assert (out_compiled - out).abs().max() <= 2e-7
+    assert torch.allclose(on_compiled_mesh.areas, built.areas, rtol=1e-13, atol=0)
 
 
 def test_runs_hold_the_area_weights(gen):

@@ -18,7 +18,8 @@ from layoutwarp.backwarp import sensor_index_maps
 from layoutwarp.checks import ArgumentError
 from layoutwarp.cli import main
 from layoutwarp.preprocess import preprocess_folder
-from layoutwarp.resampler import AreaResampler, area_weights
+from layoutwarp.resampler import AreaResampler
+from layoutwarp.weights import area_weights
 
 F64 = torch.float64
 
@@ -47,7 +48,7 @@ def test_area_weights_equal_exact_integrator(family, gen):
 def test_area_weights_built_in_blocks_of_any_height_are_the_same_matrix(family, gen, monkeypatch):
     # the build takes blocks of sensor rows, each from the edges bounding its pixels: one row a
     # block, a few rows, and the whole sensor in one block give one matrix (and the integral)
-    import layoutwarp.resampler as res
+    import layoutwarp.weights as res
 
     layout = fixed(family, rand_theta(gen, 0.9))
     src, size = (41, 67), (tuple(int(v) for v in torch.randint(5, 15, (2,), generator=gen)))
@@ -72,7 +73,7 @@ def test_a_long_weights_build_shows_its_progress_on_a_terminal_only(monkeypatch)
     import io
     import sys
 
-    import layoutwarp.resampler as res
+    import layoutwarp.weights as res
 
     class Terminal(io.StringIO):
         def isatty(self) -> bool:
@@ -85,6 +86,29 @@ def test_a_long_weights_build_shows_its_progress_on_a_terminal_only(monkeypatch)
         area_weights(lw.CurvLayout((0.3, -0.2)), (12, 16), (40, 60))
         text = stream.getvalue()
         assert ("area weights 12x16" in text and "/12 [" in text and "row/s" in text) == shown, text
+
+
+def test_the_compiled_weights_build_shows_its_progress_on_a_terminal_only(monkeypatch):
+    # the compiled walk's two passes over the sensor rows, block by block, move one bar
+    import io
+    import sys
+
+    import layoutwarp.kernels.weights as kw
+    import layoutwarp.weights as res
+
+    class Terminal(io.StringIO):
+        def isatty(self) -> bool:
+            return True
+
+    monkeypatch.setattr(res, "PROGRESS_AFTER_S", 0.0)
+    monkeypatch.setattr(kw, "BLOCK_PIXELS", 40)  # blocks of 2 rows: the bar moves
+    with lw.jit.use_mode("wait"):
+        for stream, shown in ((Terminal(), True), (io.StringIO(), False)):
+            monkeypatch.setattr(sys, "stderr", stream)
+            runs, _ = res.fixed_runs(lw.CurvLayout((0.3, -0.2)), (12, 16), (40, 60), 1e-4)
+            text = stream.getvalue()
+            assert ("area weights 12x16" in text and "/24 [" in text and "row/s" in text) == shown, text
+            assert runs.shape == (12 * 16, 40 * 60)
 
 
 def test_area_weights_rows_are_cell_overlaps(gen):
@@ -199,14 +223,15 @@ def test_parallel_workers_give_identical_files_and_share_weights(tmp_path, monke
         assert cv2.imwrite(str(src / f"same/{k}.png"), rng.integers(0, 256, (30, 38, 3), dtype=np.uint8))
     builds = []
 
-    def counting(layout, size, src_size, **kw):
-        builds.append((tuple(src_size), kw["tol"]))
-        return area_weights(layout, size, src_size, **kw)
+    class Counting(AreaResampler):  # each build of a weights' resampler
+        def __init__(self, layout, size, src_size, **kw):
+            builds.append((tuple(src_size), kw["tol"], kw["dtype"]))
+            super().__init__(layout, size, src_size, **kw)
 
-    monkeypatch.setattr("layoutwarp.resampler.area_weights", counting)
+    monkeypatch.setattr("layoutwarp.preprocess.AreaResampler", Counting)
     layout, size = fixed("curv", (0.5, 0.5)), (7, 11)
     a = preprocess_folder(src, tmp_path / "a", layout, size, progress=False)
-    assert len(builds) == len(set(builds)) == 5  # (size, dtype tolerance) pairs of the inputs
+    assert len(builds) == len(set(builds)) == 5  # (size, dtype) pairs of the inputs
     builds.clear()
     b = preprocess_folder(src, tmp_path / "b", layout, size, workers=4, progress=False)
     assert len(builds) == len(set(builds)) == 5

@@ -5,7 +5,7 @@
 - [`mesh`][layoutwarp.kernels.mesh]: the pixel meshes of the built-in curved families with
   every vertex's θ-derivative, on the CPU or built on a CUDA device;
 - [`runs`][layoutwarp.kernels.runs]: a fixed layout's product with its area weights, held as runs
-  of whole cells and cut cells;
+  of whole cells and cut cells; [`weights`][layoutwarp.kernels.weights] builds them from its mesh;
 - [`noise`][layoutwarp.kernels.noise]: the sensor's measurement (noise, full well, ADC);
 - [`device`][layoutwarp.kernels.device]: numba's CUDA target, and every CUDA launch;
 - [`base`][layoutwarp.kernels.base]: what they share (numba, the decorators, the threads that run
@@ -37,6 +37,7 @@ from .exact import (
 from .noise import sensor_measure, sensor_measure_plain
 from .prefix import BLOCK, prefix_tables
 from .runs import measured_runs_apply, runs_apply
+from .weights import build_runs
 
 __all__ = [
     "BLOCK",
@@ -45,6 +46,7 @@ __all__ = [
     "WHOLE_TABLE_BYTES",
     "available",
     "band_rows",
+    "build_runs",
     "cuda_available",
     "cuda_checked",
     "cuda_launch",

@@ -32,10 +32,13 @@ from .prefix import band_prefix
 __all__ = [
     "WHOLE_TABLE_BYTES",
     "band_rows",
+    "cell_piece",
     "edge_sum",
     "exact_backward",
     "exact_forward",
     "exact_forward_banded",
+    "row_piece",
+    "row_span",
     "segment_forward",
     "segment_moments",
     "segment_moments_from_python",
@@ -44,7 +47,7 @@ __all__ = [
 
 
 @inline
-def _row_span(y0: float, y1: float, h: int) -> tuple[int, int]:
+def row_span(y0: float, y1: float, h: int) -> tuple[int, int]:
     """The source rows a segment from ``y0`` to ``y1`` crosses, clamped to the image."""
     ylo, yhi = min(y0, y1), max(y0, y1)
     r0 = min(max(math.floor(ylo), 0), h - 1)
@@ -59,7 +62,7 @@ def _cell(incl: np.ndarray, row: int, col: int, k: int, block: int) -> float:
 
 
 @inline
-def _row_piece(
+def row_piece(
     row: int, x0: float, y0: float, dxv: float, inv_dy: float, ylo: float, yhi: float, flat: bool, w: int
 ) -> tuple[float, float, int, int, float]:
     """The piece in source row ``row`` of the segment from ``(x0, y0)`` by ``(dxv, 1/inv_dy)``,
@@ -82,10 +85,10 @@ def _row_piece(
 
 
 @inline
-def _cell_piece(
+def cell_piece(
     col: int, x0: float, inv_dx: float, t_lo: float, t_hi: float, c0: int, c1: int
 ) -> tuple[float, float]:
-    """The parameter range inside column ``col`` of a row piece ([`_row_piece`][]): from the
+    """The parameter range inside column ``col`` of a row piece ([`row_piece`][]): from the
     crossing of one of the column's lines to the next, ``t = (X − x0) / ΔX``, and the piece's own
     ends in place of the outer lines of its first and last columns. The columns so tile
     ``t_lo .. t_hi`` exactly, however few ulps ``ΔX`` spans (``X → t`` is ill-conditioned
@@ -141,10 +144,10 @@ def _segment_rows(
     inv_dy = 1.0 / dyv
     ylo, yhi = min(y0, y1), max(y0, y1)
     for row in range(rlo, rhi + 1):
-        t_lo, t_hi, c0, c1, inv_dx = _row_piece(row, x0, y0, dxv, inv_dy, ylo, yhi, False, w)
+        t_lo, t_hi, c0, c1, inv_dx = row_piece(row, x0, y0, dxv, inv_dy, ylo, yhi, False, w)
         rr = row - ra
         for col in range(c0, c1 + 1):
-            t0, t1 = _cell_piece(col, x0, inv_dx, t_lo, t_hi, c0, c1)
+            t0, t1 = cell_piece(col, x0, inv_dx, t_lo, t_hi, c0, c1)
             dy = (t1 - t0) * dyv
             frac = min(max(x0 + (t0 + t1) / 2 * dxv - col, 0.0), 1.0)
             blk = col // block
@@ -183,7 +186,7 @@ def segment_forward(
     if y1 == y0:
         return  # ΔY = 0 adds nothing
     per_seg[s, n] = (y1 - y0) * (x0 + x1) / 2
-    r0, r1 = _row_span(y0, y1, h)
+    r0, r1 = row_span(y0, y1, h)
     _segment_rows(x0, y0, x1, y1, r0, r1, 0, incl, offsets, block, w, per_seg, s, False, per_seg, per_seg)
 
 
@@ -214,7 +217,7 @@ def segment_moments(
         _segment_moments(x0, y0, x1, y1, incl, block, ma, mb)
         return
     acc[0, n] = (y1 - y0) * (x0 + x1) / 2
-    r0, r1 = _row_span(y0, y1, h)
+    r0, r1 = row_span(y0, y1, h)
     _segment_rows(x0, y0, x1, y1, r0, r1, 0, incl, offsets, block, w, acc, 0, True, ma, mb)
 
 
@@ -296,7 +299,7 @@ def _band_counts(
     for s in range(seg_start.shape[0]):
         y0, y1 = verts[seg_start[s], 1], verts[seg_end[s], 1]
         if y1 != y0:
-            r0, r1 = _row_span(y0, y1, h)
+            r0, r1 = row_span(y0, y1, h)
             for b in range(r0 // band, r1 // band + 1):
                 first[b + 1] += 1
     for b in range(first.shape[0] - 1):
@@ -313,7 +316,7 @@ def _band_lists(
     for s in range(seg_start.shape[0]):
         y0, y1 = verts[seg_start[s], 1], verts[seg_end[s], 1]
         if y1 != y0:
-            r0, r1 = _row_span(y0, y1, h)
+            r0, r1 = row_span(y0, y1, h)
             for b in range(r0 // band, r1 // band + 1):
                 listed[fill[b]] = s
                 fill[b] += 1
@@ -349,7 +352,7 @@ def _banded_share(
             s = listed[j]
             x0, y0 = verts[seg_start[s], 0], verts[seg_start[s], 1]
             x1, y1 = verts[seg_end[s], 0], verts[seg_end[s], 1]
-            r0, r1 = _row_span(y0, y1, h)
+            r0, r1 = row_span(y0, y1, h)
             rlo, rhi = max(r0, ra), min(r1, rb - 1)
             e = seg_edge[s]
             _segment_rows(
@@ -440,11 +443,11 @@ def segment_weights(
     flat, vertical = dyv == 0.0, dxv == 0.0
     inv_dy = 1.0 / dyv if not flat else 1.0
     ylo, yhi = min(y0, y1), max(y0, y1)
-    r0, r1 = _row_span(y0, y1, h)
+    r0, r1 = row_span(y0, y1, h)
     for row in range(r0, (r0 if flat else r1) + 1):
-        t_lo, t_hi, c0, c1, inv_dx = _row_piece(row, x0, y0, dxv, inv_dy, ylo, yhi, flat, w)
+        t_lo, t_hi, c0, c1, inv_dx = row_piece(row, x0, y0, dxv, inv_dy, ylo, yhi, flat, w)
         for col in range(c0, c1 + 1):
-            t0, t1 = _cell_piece(col, x0, inv_dx, t_lo, t_hi, c0, c1)
+            t0, t1 = cell_piece(col, x0, inv_dx, t_lo, t_hi, c0, c1)
             row2, col2 = _other_cell(row, col, x0, y0, flat, vertical)
             gl = 0.0
             if row2 == row and col2 == col:  # inside the cell (nearly always): one look-up
@@ -479,11 +482,11 @@ def _segment_moments(
     flat, vertical = dyv == 0.0, dxv == 0.0
     inv_dy = 1.0 / dyv if not flat else 1.0
     ylo, yhi = min(y0, y1), max(y0, y1)
-    r0, r1 = _row_span(y0, y1, h)
+    r0, r1 = row_span(y0, y1, h)
     for row in range(r0, (r0 if flat else r1) + 1):
-        t_lo, t_hi, c0, c1, inv_dx = _row_piece(row, x0, y0, dxv, inv_dy, ylo, yhi, flat, w)
+        t_lo, t_hi, c0, c1, inv_dx = row_piece(row, x0, y0, dxv, inv_dy, ylo, yhi, flat, w)
         for col in range(c0, c1 + 1):
-            t0, t1 = _cell_piece(col, x0, inv_dx, t_lo, t_hi, c0, c1)
+            t0, t1 = cell_piece(col, x0, inv_dx, t_lo, t_hi, c0, c1)
             row2, col2 = _other_cell(row, col, x0, y0, flat, vertical)
             m1 = (t1 * t1 - t0 * t0) / 2
             m0 = (t1 - t0) - m1

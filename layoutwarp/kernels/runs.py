@@ -183,7 +183,7 @@ class Runs:
     @classmethod
     def of(cls, weights: scipy.sparse.csr_matrix, area: np.ndarray, src_width: int) -> Runs:
         """The runs of float64 area ``weights`` (``(R, H · W)``,
-        [`area_weights`][layoutwarp.resampler.area_weights]) of pixels of ``area`` ``(R,)`` (in
+        [`area_weights`][layoutwarp.weights.area_weights]) of pixels of ``area`` ``(R,)`` (in
         source cells): an entry within 1e-9 of ``1 / area`` is a whole cell,
         every other a cut one. A run ends at a gap, at the end of a source row, and where a whole
         cell follows a cut cell that follows a whole cell (a pixel whose row crosses a boundary
