@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence  # an operator's list argument (torch 2.6 reads no list[int])
 from typing import Any
 
 import torch
@@ -37,7 +38,7 @@ register(_guard_finite)
 
 
 @torch.library.custom_op("layoutwarp::uniform", mutates_args=())
-def _uniform(seed: Tensor, shape: list[int], like: Tensor) -> Tensor:
+def _uniform(seed: Tensor, shape: Sequence[int], like: Tensor) -> Tensor:
     """Uniform draws in ``[0, 1)`` of ``shape``, ``like``'s dtype and device: the first draws of a
     generator on that device seeded with ``seed`` (what ``torch.rand(shape,
     generator=torch.Generator(device).manual_seed(seed))`` gives)."""

@@ -5,6 +5,7 @@ for the uniform layout), with the analytic boundary gradient of the pixels' edge
 from __future__ import annotations
 
 import warnings
+from collections.abc import Sequence  # an operator's list argument (torch 2.6 reads no list[bool])
 from typing import Any
 
 import torch
@@ -120,7 +121,7 @@ def _(image, ex, ey, check):
 
 @torch.library.custom_op("layoutwarp::separable_backward", mutates_args=())
 def _separable_backward(
-    grad: Tensor, image: Tensor, ex: Tensor, ey: Tensor, out: Tensor, needs: list[bool]
+    grad: Tensor, image: Tensor, ex: Tensor, ey: Tensor, out: Tensor, needs: Sequence[bool]
 ) -> tuple[Tensor, Tensor, Tensor]:
     """The gradients of ``layoutwarp::separable`` in the image, ``ex`` and ``ey`` (empty tensors
     where ``needs`` says none is needed).
