@@ -692,8 +692,9 @@ def test_dataloader_fork_workers_simulate_after_the_parent_trained(gen):
 def test_an_input_gradient_penalty_through_a_fixed_layout_has_its_exact_second_derivative(family, gen):
     """A fixed layout's product is linear in the image: a penalty on the input gradient of a
     model after it (``tanh``) has its exact second derivative. float64: ``gradgradcheck`` of the
-    rectangular layouts' separable path; float32 (rect and uniform: the separable adjoint; curv:
-    the cached weights): the penalty's gradient equals the one computed in float64."""
+    rectangular layouts' separable path and of curv's exact walk; float32 (rect and uniform: the
+    separable adjoint; curv: the cached weights): the penalty's gradient equals the one computed
+    in float64 (curv's: with the same weights as a dense matrix, and by the exact walk)."""
     layout = lw.make_layout(family, None if family == "uniform" else (0.3, -0.2))
     img = torch.rand(1, 1, 12, 14, generator=gen, dtype=F64)
     w = torch.rand(1, 1, 4, 5, generator=gen, dtype=F64)
@@ -705,11 +706,7 @@ def test_an_input_gradient_penalty_through_a_fixed_layout_has_its_exact_second_d
         (h,) = torch.autograd.grad(g.square().sum(), x)
         return h
 
-    if family == "curv":  # float64: the exact walk, whose image gradient is first order only
-        with pytest.raises(RuntimeError, match="exact first derivatives only") as err:
-            penalty_grad(img)
-        assert "\n" not in str(err.value)
-        # the float64 reference: the same float32 weights, as a dense matrix
+    if family == "curv":  # the float64 reference: the same float32 weights, as a dense matrix
         res = lw.resampler.resampler_for(layout, (4, 5), (12, 14), lw.data_tolerance(torch.float32)[0], "cpu")
         m = torch.from_numpy(res.weights.toarray()).double()
         x = img.reshape(-1).clone().requires_grad_(True)
@@ -717,10 +714,12 @@ def test_an_input_gradient_penalty_through_a_fixed_layout_has_its_exact_second_d
         (g,) = torch.autograd.grad((out * w).sum(), x, create_graph=True)
         (want,) = torch.autograd.grad(g.square().sum(), x)
         want = want.reshape(img.shape)
+        walk = penalty_grad(img)  # float64: the exact walk, its image gradient's derivative exact
+        torch.testing.assert_close(walk, want, rtol=1e-6, atol=1e-7)
     else:
         want = penalty_grad(img)
-        fn = lambda x: torch.tanh(3 * lw.simulate(x, layout.double(), (4, 5)))  # noqa: E731
-        assert torch.autograd.gradgradcheck(fn, (img.clone().requires_grad_(True),))
+    fn = lambda x: torch.tanh(3 * lw.simulate(x, layout.double(), (4, 5)))  # noqa: E731
+    assert torch.autograd.gradgradcheck(fn, (img.clone().requires_grad_(True),))
     got = penalty_grad(img.float())
     assert want.abs().max() > 1e-3  # a second derivative that could be wrong
     torch.testing.assert_close(got.double(), want, rtol=1e-4, atol=1e-5)

@@ -315,7 +315,31 @@ def _exact_grad(ctx: Any, grad_means: Tensor, grad_areas: Tensor, *_: Tensor) ->
     )
 
 
+def _exact_backward_setup(ctx: Any, inputs: tuple, output: tuple) -> None:
+    theta, image, *_ = inputs[2:]
+    layout, height, width, tol, backend, theta_grad, _, bounds = inputs[8:]
+    # θ fixed: the image's gradient is the transposed product, linear in the means' gradient alone
+    ctx.linear = not theta_grad
+    ctx.save_for_backward(theta, bounds)
+    ctx.args = (layout, height, width, tol, backend, image.dtype)
+
+
+def _exact_backward_grad(ctx: Any, g_theta: Tensor | None, g_image: Tensor | None) -> tuple:
+    """The derivative of the image's gradient ``Wᵀ g`` of a fixed layout: ``W u`` (the forward)
+    for the means' gradient, nothing for the rest; refused in one line where θ's gradient was
+    taken too (its derivatives are a compiled formula's)."""
+    if not ctx.linear:
+        raise RuntimeError(ops.SECOND_ORDER.format(op="exact"))
+    if g_image is None or g_image.numel() == 0:
+        return (None,) * 16
+    theta, bounds = ctx.saved_tensors
+    layout, height, width, tol, backend, dtype = ctx.args
+    means = torch.ops.layoutwarp.exact(theta, g_image, layout, height, width, tol, backend, False, False,
+                                       bounds, dtype)[0]  # fmt: skip
+    return means, *[None] * 15
+
+
 _exact.register_autograd(_exact_grad, setup_context=_exact_setup)
-ops.first_order_only(_exact_backward, "exact")
+_exact_backward.register_autograd(_exact_backward_grad, setup_context=_exact_backward_setup)
 ops.register(_exact, fold=1, outputs=("image", "shared", "jacobian", "shared"))
 ops.register(_exact_backward)
