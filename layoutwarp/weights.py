@@ -38,8 +38,8 @@ PIECES_PER_BLOCK = 1 << 14
 #: A weights build that runs this long shows its progress and the time left on a terminal.
 PROGRESS_AFTER_S = 2.0
 #: A fixed layout's sensor of this many pixels or more builds its mesh compiled even where the mesh
-#: unit is not loaded yet: loading it from the cache costs about a second, once per process, and
-#: the compiled mesh takes a fifth to a tenth of torch's time (a second or more from here on).
+#: unit is not loaded yet: loading it from the cache costs about a second, once per process, which
+#: the compiled mesh wins back from here on (torch's takes a second or more).
 COMPILED_MESH_PIXELS = 1 << 18
 
 
