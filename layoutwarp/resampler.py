@@ -169,6 +169,7 @@ class AreaResampler:
 
         ``allow_nonfinite=False`` raises ``ValueError`` where NaN/Inf in the images reach the
         means (as [`simulate`][layoutwarp.sensor.simulate] does by default); ``True`` passes them through."""
+        self._check_planes(images, "images", self.src_size)
         needs_grad = torch.is_grad_enabled() and images.requires_grad
         if physics is not None and needs_grad:  # the means with their gradient, then the measurement
             mean = self.apply(images, allow_nonfinite=allow_nonfinite)
@@ -234,12 +235,23 @@ class AreaResampler:
     def adjoint(self, grad: torch.Tensor) -> torch.Tensor:
         """The transposed weights applied to ``(N, h, w)``: ``(N, H, W)``, the images' gradient
         of [`apply`][] without physics."""
+        self._check_planes(grad, "grad", self.size)
         n = grad.shape[0]
         flat = grad.reshape(n, grad.shape[-2] * grad.shape[-1]).to(torch.float32)
         if n == 0:  # an empty batch
             return grad.new_zeros(0, *self.src_size)
         cols = [self.sparse_t @ flat[k].unsqueeze(1) for k in range(n)]
         return torch.cat(cols, 1).T.reshape(n, *self.src_size).to(grad.dtype).contiguous()
+
+    @staticmethod
+    def _check_planes(x: Any, name: str, size: tuple[int, int]) -> None:
+        """Refuse, in one line, planes that are not a real ``(N, *size)`` tensor: the products read
+        exactly ``size``'s cells of each."""
+        if not isinstance(x, torch.Tensor) or x.ndim != 3 or tuple(x.shape[1:]) != size:
+            got = f"shape {tuple(x.shape)}" if isinstance(x, torch.Tensor) else type(x).__name__
+            raise ArgumentError(name, f"{name} must be a (N, {size[0]}, {size[1]}) tensor, got {got}")
+        if x.dtype.is_complex or x.dtype == torch.bool:
+            raise ArgumentError(name, f"{name} must hold real numbers, got {x.dtype}")
 
     def _apply_on_device(
         self, flat: torch.Tensor, measured: tuple, measure: bool, check: bool

@@ -152,6 +152,28 @@ CASES = {
         "device",
         "'meta' holds no data",
     ),
+    # the compiled product reads each image's (H, W) cells: another size read past it (values of
+    # memory that is not the image) or a part of it, silently
+    "images smaller than the resampler's source": (
+        lambda: _resampler().apply(torch.ones(2, 7, 7)),
+        "images",
+        "(N, 48, 64) tensor, got shape (2, 7, 7)",
+    ),
+    "images larger than the resampler's source": (
+        lambda: _resampler().apply(torch.ones(1, 96, 128)),
+        "images",
+        "(N, 48, 64) tensor, got shape (1, 96, 128)",
+    ),
+    "one image without its batch": (
+        lambda: _resampler().apply(torch.ones(48, 64)),
+        "images",
+        "got shape (48, 64)",
+    ),
+    "a gradient of another sensor size": (
+        lambda: _resampler().adjoint(torch.ones(1, 3, 3)),
+        "grad",
+        "(N, 6, 8) tensor, got shape (1, 3, 3)",
+    ),
 }
 
 
