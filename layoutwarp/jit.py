@@ -80,7 +80,7 @@ DTYPES = ("float32", "float64")
 #: dtype), then each group for one dtype.
 UNITS = ("mesh", *(f"{g}/{d}" for d in DTYPES for g in GROUPS))
 #: What each unit compiles, in the notices.
-_WHAT = {"mesh": "the pixel mesh of a learnable layout", **GROUPS}
+_WHAT = {"mesh": "the pixel mesh of the curved layouts", **GROUPS}
 #: The modes of [`set_mode`][] and of ``LAYOUTWARP_JIT``.
 MODES = ("background", "wait", "off")
 #: The environment variable that sets the mode.
@@ -124,17 +124,15 @@ def use_mode(value: str) -> Iterator[None]:
 
 
 def loaded(unit: str) -> bool:
-    """Whether ``unit``'s kernels (one of [`UNITS`][]) are loaded in this process and the mode lets
-    them run: they run now, with no look at the cache and no compile."""
+    """Whether ``unit``'s kernels (one of [`UNITS`][]) run now: loaded in this process, not "off"."""
     if unit not in UNITS:
         raise ValueError(f"unit must be one of {', '.join(UNITS)}, got {unit!r}")
     return unit in _READY and mode() != "off"
 
 
 def ready(group: str, dtype: str | torch.dtype = "float32", wait: bool = False) -> bool:
-    """Whether ``group``'s compiled kernels for images of ``dtype`` (float32 or float64) run now
-    (see the module docstring); ``group`` ``"mesh"``: the learnable layouts' mesh unit alone (any
-    dtype), which a fixed layout's weights also build on. ``wait``: the caller needs the compiled
+    """Whether ``group``'s compiled kernels (``"mesh"``: the mesh unit alone) for images of ``dtype``
+    (float32 or float64) run now (see the module docstring). ``wait``: the caller needs the compiled
     kernels (its result would differ on the torch path): unless the mode is ``"off"``, compile them
     here (or wait for the background child where it is on them), then ``True``. ``False`` where
     numba is missing or the mode is ``"off"``: the caller takes its torch path."""
@@ -263,8 +261,8 @@ def compile_all(
     )
 
     def one(unit: str) -> None:
-        if _loads_mesh(unit):
-            mesh.result()  # after the mesh's kernels, not beside them (compiling them twice)
+        if unit.startswith("learn/"):  # a learnable step's warm-up runs mostly the mesh's kernels:
+            mesh.result()  # after them, not beside them (compiling them twice)
         res = subprocess.run([sys.executable, "-c", code, unit], capture_output=True, text=True, check=False)
         if res.returncode != 0:
             raise RuntimeError(f"compiling {unit} failed:\n{res.stderr[-2000:]}")
@@ -274,7 +272,7 @@ def compile_all(
     with pool:
         if "mesh" in units:
             mesh = pool.submit(one, "mesh")
-        later = [u for u in units if _loads_mesh(u)]
+        later = [u for u in units if u.startswith("learn/")]
         futures = [pool.submit(one, u) for u in units if u != "mesh" and u not in later]
         futures += [pool.submit(one, u) for u in later]
         for f in [mesh, *futures]:
@@ -297,13 +295,6 @@ def compile_missing(processes: int = 2, say: Callable[[str], None] | None = None
             say(f"compiling {', '.join(missing)} ({processes} at a time; once per installation)")
         compile_all(units=missing, processes=processes)
     return missing
-
-
-def _loads_mesh(unit: str) -> bool:
-    """Whether ``unit``'s warm-up runs mostly the mesh unit's kernels (a learnable layout's step;
-    a float64 fixed forward's walk runs a few, compiled beside the mesh unit rather than after it:
-    the shorter wall time)."""
-    return unit.startswith("learn/")
 
 
 def _units(group: str, dtype: str | torch.dtype) -> tuple[str, ...]:

@@ -161,9 +161,11 @@ class _Job:
                 # them: the same bytes whenever a file is processed, and their load counted with
                 # the weights
                 jit.ready("fixed", torch.float32, wait=True)
+                shown = self.say is not None  # the bar as the command's own (stderr is a pipe here)
                 self._cache[key] = AreaResampler(
-                    self.layout, self.size, src_size, tol=self.tol, dtype=dtype, device=self.device
-                )
+                    self.layout, self.size, src_size, tol=self.tol, dtype=dtype, device=self.device,
+                    progress=shown,
+                )  # fmt: skip
                 if fine:
                     self.say(f"preprocess: ... built in {time.perf_counter() - t0:.1f} s")
             return self._cache[key]

@@ -55,6 +55,8 @@ class AreaResampler:
             ``dtype`` images need).
         dtype: the dtype of the images the weights are for.
         device: where the sparse products run.
+        progress: the weights build's progress bar on or off (``None``: on a terminal, once the
+            build has run [`PROGRESS_AFTER_S`][layoutwarp.weights.PROGRESS_AFTER_S]).
 
     Call with an ``(H, W)`` or ``(H, W, C)`` numpy image of any real dtype; returns a float32
     ``(h, w)`` / ``(h, w, C)`` array in the input's units (no rescaling of uint8/uint16).
@@ -82,6 +84,7 @@ class AreaResampler:
         tol: float | None = None,
         dtype: torch.dtype | np.dtype | type = np.float32,
         device: str | torch.device = "cpu",
+        progress: bool | None = None,
     ):
         self.size, self.src_size = check_size(size), check_size(src_size, "src_size")
         self.layout = check_layout(layout)
@@ -91,7 +94,7 @@ class AreaResampler:
             raise ArgumentError("dtype", f"dtype must be a numpy or torch dtype, got {dtype!r}") from None
         self.tol = tol_needed if tol is None else check_number(tol, "tol", 0, lo_open=True)
         self.device = check_device(device)
-        self.runs, areas = fixed_runs(self.layout, self.size, self.src_size, self.tol)
+        self.runs, areas = fixed_runs(self.layout, self.size, self.src_size, self.tol, progress)
         self.areas = areas.to(device)
         self._weights: scipy.sparse.csr_matrix | None = None
         self._csr: torch.Tensor | None = None

@@ -44,35 +44,41 @@ COMPILED_MESH_PIXELS = 1 << 18
 
 
 def fixed_runs(
-    layout: Layout, size: tuple[int, int], src_size: tuple[int, int], tol: float
+    layout: Layout, size: tuple[int, int], src_size: tuple[int, int], tol: float, progress: bool | None = None
 ) -> tuple[Runs, torch.Tensor]:
     """The area weights of a fixed ``layout`` on an ``(h, w)`` sensor over ``(H, W)`` images as
     [`Runs`][layoutwarp.kernels.runs.Runs] (the polylines of curved edges within ``tol``, as
     [`area_weights`][]), and the pixels' areas ``(h, w)`` (float64, sensor units: the square
-    ``[-1, 1]²``). Built by the compiled walk where the fixed layout's kernels run, else from
-    [`area_weights`][]: the same runs, cut weights equal to float32 rounding."""
+    ``[-1, 1]²``). Built by the compiled walk where the fixed layout's kernels run (for a sensor of
+    [`COMPILED_MESH_PIXELS`][] or more, compiled first where they are not: numpy's build would
+    take longer), else from [`area_weights`][]: the same runs, cut weights equal to float32
+    rounding. ``progress``: the progress bar ([`PROGRESS_AFTER_S`][]) on or off (``None``: on a
+    terminal)."""
     with torch.no_grad():  # the mesh the weights are built on, not kept: the weights and the
         # areas are all later calls need (a kept mesh is 0.5-0.8 copies of an RGB image)
         mesh = _fixed_mesh(layout, size, tol)
         areas = mesh.areas()
     (h, w), (hs, ws) = size, src_size
     cells = areas.flatten().cpu().numpy() * (hs * ws / 4)  # in source cells
-    if not jit.ready("fixed", torch.float32):  # numpy's build, while the kernels compile
-        return Runs.of(area_weights(layout, size, src_size, tol=tol, mesh=mesh), cells, ws), areas
+    if not jit.ready("fixed", torch.float32, wait=h * w >= COMPILED_MESH_PIXELS):  # while they compile
+        weights = area_weights(layout, size, src_size, tol=tol, mesh=mesh, progress=progress)
+        return Runs.of(weights, cells, ws), areas
     with torch.no_grad():
         verts = mesh.pixel_vertices(src_size)
         area = mesh.areas(verts).flatten().cpu().numpy()
     parts = (t.cpu().numpy() for t in (verts, mesh.seg_start, mesh.seg_end, mesh.edge_offsets))
-    with _progress_bar(h, w, 2 * h) as bar:  # two passes over the rows
-        runs = kernels.build_runs(*parts, size, src_size, area, cells, kernels.threads(hs * ws), bar.update)
+    nt = kernels.threads(hs * ws + 64 * h * w)  # a pixel's walk: its boundary's pieces and its box
+    with _progress_bar(h, w, 3 * h, progress) as bar:  # three passes over the rows
+        runs = kernels.build_runs(*parts, size, src_size, area, cells, nt, bar.update)
     return runs, areas
 
 
-def _progress_bar(h: int, w: int, rows: int) -> tqdm:
-    """The progress bar of an ``(h, w)`` sensor's weights build over ``rows`` rows: drawn on a
-    terminal's stderr once the build has run [`PROGRESS_AFTER_S`][], with the time left."""
+def _progress_bar(h: int, w: int, rows: int, progress: bool | None) -> tqdm:
+    """The progress bar of an ``(h, w)`` sensor's weights build over ``rows`` rows, drawn on stderr
+    once the build has run [`PROGRESS_AFTER_S`][], with the time left (``progress``: on, off, or
+    ``None``: on a terminal)."""
     return tqdm(total=rows, desc=f"area weights {h}x{w}", unit="row", leave=False, delay=PROGRESS_AFTER_S,
-                disable=None)  # fmt: skip
+                disable=None if progress is None else not progress)  # fmt: skip
 
 
 def area_weights(
@@ -84,6 +90,7 @@ def area_weights(
     dtype: torch.dtype | np.dtype | type = np.float32,
     weights_dtype: np.dtype | type = np.float64,
     mesh: PixelMesh | None = None,
+    progress: bool | None = None,
 ) -> scipy.sparse.csr_matrix:
     """Exact area weights of every sensor pixel over the source cells, as a sparse matrix.
 
@@ -111,6 +118,7 @@ def area_weights(
         weights_dtype: the dtype of the returned weights (float64 or float32).
         mesh: the layout's float64 [`pixel_mesh`][] at ``tol``, where the
             caller has built it (default: the cached one, built on first use).
+        progress: the progress bar on or off (``None``: on a terminal).
 
     Returns:
         a ``(h · w, H · W)`` ``scipy.sparse.csr_matrix``.
@@ -136,7 +144,7 @@ def area_weights(
     index = np.int32 if bound < 2**31 else np.int64
     indices, data = np.empty(bound, index), np.empty(bound, weights_dtype)
     counts, n = [np.zeros(1, np.int64)], 0
-    bar = _progress_bar(h, w, h)
+    bar = _progress_bar(h, w, h, progress)
     for i0 in range(0, h, step):
         i1 = min(h, i0 + step)
         # the block's pixels are bounded by horizontal edges of corner rows i0..i1 and vertical

@@ -107,7 +107,7 @@ def test_the_compiled_weights_build_shows_its_progress_on_a_terminal_only(monkey
             monkeypatch.setattr(sys, "stderr", stream)
             runs, _ = res.fixed_runs(lw.CurvLayout((0.3, -0.2)), (12, 16), (40, 60), 1e-4)
             text = stream.getvalue()
-            assert ("area weights 12x16" in text and "/24 [" in text and "row/s" in text) == shown, text
+            assert ("area weights 12x16" in text and "/36 [" in text and "row/s" in text) == shown, text
             assert runs.shape == (12 * 16, 40 * 60)
 
 
@@ -484,18 +484,22 @@ def test_preprocess_refuses_to_overwrite_a_folders_own_files(tmp_path, seed):
 
 def test_a_fine_sensor_says_when_its_area_weights_are_built(tmp_path, monkeypatch, capfd):
     """With progress shown, a sensor of at least ``ANNOUNCE_PIXELS`` pixels says, above the bar,
-    that it builds its area weights (once per source size) and how long that took; with progress
-    off it says nothing."""
+    that it builds its area weights (once per source size) and how long that took, and the build's
+    own bar shows (stderr need not be a terminal: the command's is a pipe while it runs); with
+    progress off it says nothing."""
     import layoutwarp.preprocess as pre
+    import layoutwarp.weights as weights
 
     src = tmp_path / "src"
     src.mkdir()
     for k in range(2):  # one source size: the weights built once
         assert cv2.imwrite(str(src / f"{k}.png"), np.full((30, 38), 100 + k, np.uint8))
     monkeypatch.setattr(pre, "ANNOUNCE_PIXELS", 20)  # a 5x6 sensor counts as fine here
+    monkeypatch.setattr(weights, "PROGRESS_AFTER_S", 0.0)
     preprocess_folder(src, tmp_path / "out", fixed("curv", (0.3, -0.2)), (5, 6), progress=True)
     err = capfd.readouterr().err
     assert err.count("building the area weights of the 5x6 sensor for 30x38 images") == 1, err
     assert re.search(r"built in \d+\.\d s", err), err
+    assert "area weights 5x6" in err, err
     preprocess_folder(src, tmp_path / "quiet", fixed("curv", (0.3, -0.2)), (5, 6), progress=False)
     assert "area weights" not in capfd.readouterr().err

@@ -22,7 +22,7 @@ weights are kept in float32.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 import numpy as np
 
@@ -170,12 +170,13 @@ def _pixel_runs(
 
 @serial
 def _box_share(
-    t: int, nt: int, h: int, w: int, hs: int, ws: int, verts: np.ndarray, seg_start: np.ndarray,
-    seg_end: np.ndarray, edge_offsets: np.ndarray, box: np.ndarray,
+    t: int, nt: int, k0: int, k1: int, h: int, w: int, hs: int, ws: int, verts: np.ndarray,
+    seg_start: np.ndarray, seg_end: np.ndarray, edge_offsets: np.ndarray, box: np.ndarray,
 ) -> int:  # fmt: skip
-    """The boxes ``(R, 4)`` of thread ``t``'s pixels; returns the largest one's cells."""
+    """The boxes ``(R, 4)`` of thread ``t``'s share of pixels ``k0 .. k1 - 1``; returns the
+    largest one's cells."""
     most = 0
-    for k in range(t * (h * w) // nt, (t + 1) * (h * w) // nt):
+    for k in range(k0 + t * (k1 - k0) // nt, k0 + (t + 1) * (k1 - k0) // nt):
         rlo, rhi, clo, chi = _box(k, h, w, hs, ws, verts, seg_start, seg_end, edge_offsets)
         box[k, 0], box[k, 1], box[k, 2], box[k, 3] = rlo, rhi, clo, chi
         most = max(most, (rhi - rlo + 1) * (chi - clo + 2))
@@ -230,25 +231,31 @@ def build_runs(
     weights are normalised by) and ``cells`` their areas in source cells from the sensor's own
     units (what a whole cell's weight is ``1 / cells`` of, as in
     [`Runs.of`][layoutwarp.kernels.runs.Runs.of]); on ``threads`` threads. ``progress(rows)`` is
-    called after each block of sensor rows of each of the two passes ([`BLOCK_PIXELS`][])."""
+    called after each block of sensor rows ([`BLOCK_PIXELS`][]) of each of the three passes (the
+    pixels' boxes, the counts, the runs)."""
     (h, w), (hs, ws) = size, src_size
     rows, nt = h * w, max(1, min(threads, h * w))
     box = np.empty((rows, 4), np.int64)
     args = (h, w, hs, ws, verts, seg_start, seg_end, edge_offsets)
-    most = max(run_shares(_box_share, nt, *args, box))
+    step = max(1, BLOCK_PIXELS // max(w, 1))
+
+    def blocks() -> Iterator[tuple[int, int]]:  # pixels k0 .. k1 - 1 of each block, told when done
+        for i0 in range(0, h, step):
+            i1 = min(h, i0 + step)
+            yield i0 * w, i1 * w
+            if progress is not None:
+                progress(i1 - i0)
+
+    most = max(max(run_shares(_box_share, nt, k0, k1, *args, box)) for k0, k1 in blocks())
     scratch = per_thread(nt, (max(most, 1),))
     scratch.fill(0.0)  # each pixel leaves its box zeroed again
     pix_runs, pix_cuts = np.zeros(rows + 1, np.int64), np.zeros(rows + 1, np.int64)
     with np.errstate(divide="ignore"):  # a pixel of no area has no cell either
         inv_area = 1.0 / area
-    step = max(1, BLOCK_PIXELS // max(w, 1))
 
     def walk(fill: bool, *out: np.ndarray) -> None:
-        for i0 in range(0, h, step):
-            i1 = min(h, i0 + step)
-            run_shares(_runs_share, nt, i0 * w, i1 * w, *args, box, inv_area, cells, scratch, fill, *out)
-            if progress is not None:
-                progress(i1 - i0)
+        for k0, k1 in blocks():
+            run_shares(_runs_share, nt, k0, k1, *args, box, inv_area, cells, scratch, fill, *out)
 
     none, empty = np.empty(0, np.int64), np.empty(0, np.int32)
     walk(False, pix_runs, pix_cuts, none, empty, empty, empty, np.empty(0, np.float32))
