@@ -457,6 +457,22 @@ def test_grad_transforms_are_refused_in_one_line(transform, gen):
         getattr(torch.func, transform)(loss)(params)
 
 
+def test_a_compiled_grad_transform_fails_in_torchs_words_and_gives_no_value(gen):
+    """Under ``torch.compile`` the one-line refusal cannot look for the transform (functorch's
+    checks break the graph), so ``torch.compile(torch.func.grad(...))`` fails in torch's words (a
+    custom operator's autograd formula takes no functorch transform), as docs/pytorch2.md says:
+    never a value. A torch that starts to support it fails this test, and the docs change."""
+    torch._dynamo.reset()
+    layer = lw.SensorLayer((5, 6), "curv", learn=True)
+    img = torch.rand(1, 1, 20, 24, generator=gen)
+
+    def loss(p: dict) -> torch.Tensor:
+        return torch.func.functional_call(layer, p, (img,)).sum()
+
+    with pytest.raises(Exception, match="functorch transforms"):
+        torch.compile(torch.func.grad(loss))(dict(layer.named_parameters()))
+
+
 # ----------------------------------------------------------------------------------------
 # What a reviewer found: inference mode, vmap's roles, copies, strides
 # ----------------------------------------------------------------------------------------
