@@ -248,7 +248,8 @@ def build_runs(
 
     most = max(max(run_shares(_box_share, nt, k0, k1, *args, box)) for k0, k1 in blocks())
     scratch = per_thread(nt, (max(most, 1),))
-    scratch.fill(0.0)  # each pixel leaves its box zeroed again
+    apart = scratch.shape[0] // (nt + 2)  # the threads' rows (own): zeroed once, each pixel leaves
+    scratch[apart : (nt + 1) * apart : apart] = 0.0  # its box zeroed again; the rows between untouched
     pix_runs, pix_cuts = np.zeros(rows + 1, np.int64), np.zeros(rows + 1, np.int64)
     with np.errstate(divide="ignore"):  # a pixel of no area has no cell either
         inv_area = 1.0 / area
