@@ -23,6 +23,7 @@ from .checks import check_size
 from .green import green_pieces
 from .kernels.mesh import build_mesh, mesh_spec
 from .kernels.runs import Runs
+from .kernels.weights import ZERO
 from .layouts import Layout
 from .mesh import PixelMesh, pixel_mesh
 from .tolerance import data_tolerance
@@ -203,7 +204,7 @@ def _block_weights(
     last = np.r_[key[1:] != key[:-1], True]
     run = np.where(last, 0, np.r_[c[1:], 0] - c)  # cells from this step to the next
     scale = np.abs(delta).max(initial=1.0)
-    live = (run > 0) & (np.abs(cum) > 1e-12 * scale)
+    live = (run > 0) & (np.abs(cum) > ZERO * scale)
     key, c, cum, run = key[live], c[live], cum[live], run[live]
     rep = np.repeat(np.arange(key.size), run)
     offs = np.arange(rep.size) - np.repeat(np.cumsum(run) - run, run)

@@ -427,6 +427,12 @@ def test_kernel_threads_follow_torchs_count_and_numbas_threading_layer_never_sta
         torch.set_num_threads(before)
 
 
+def _random_curved(rng: np.random.Generator, limit: float) -> lw.Layout:
+    """A curv, fovea or elliptic layout of mixed-sign θ, ``|θ|`` in ``[0.1, limit]``."""
+    th = (float(rng.uniform(0.1, limit)), -float(rng.uniform(0.1, limit)))
+    return [lw.CurvLayout(th), lw.FoveaLayout(th, center=(0.2, -0.1)), lw.EllipticLayout(th)][rng.integers(3)]
+
+
 def _random_runs(gen: torch.Generator) -> tuple:
     """The float64 area weights, and their `Runs`, of a random curved layout of mixed-sign θ, at a
     random sensor size over a random source (a pixel spans 1.5 to 8 source cells a side)."""
@@ -435,10 +441,7 @@ def _random_runs(gen: torch.Generator) -> tuple:
     from layoutwarp.weights import area_weights
 
     rng = np.random.default_rng(int(torch.randint(0, 2**31, (), generator=gen)))
-    th = (float(rng.uniform(0.1, 0.6)), -float(rng.uniform(0.1, 0.6)))
-    layout = [lw.CurvLayout(th), lw.FoveaLayout(th, center=(0.2, -0.1)), lw.EllipticLayout(th)][
-        rng.integers(3)
-    ]
+    layout = _random_curved(rng, 0.6)
     size = (int(rng.integers(3, 12)), int(rng.integers(3, 12)))
     src = tuple(int(n * rng.uniform(1.5, 8)) for n in size)
     mesh = pixel_mesh(layout, size, tol=1e-4, dtype=torch.float64)
@@ -447,9 +450,9 @@ def _random_runs(gen: torch.Generator) -> tuple:
     return w, Runs.of(w, area, src[1])
 
 
-def _built_and_reference(layout: lw.Layout, size: tuple, src: tuple, threads: int = 2) -> tuple:
-    """A layout's runs built by the compiled walk (`kernels.build_runs`) and by numpy's matrix
-    (`area_weights`, then `Runs.of`), from one float64 mesh."""
+def _walk_and_reference(layout: lw.Layout, size: tuple, src: tuple) -> tuple:
+    """A layout's runs built by the compiled walk (`kernels.build_runs`, a function of the thread
+    count) and by numpy's matrix (`area_weights`, then `Runs.of`), from one float64 mesh."""
     from layoutwarp.kernels.runs import Runs
     from layoutwarp.mesh import pixel_mesh
     from layoutwarp.weights import area_weights
@@ -458,9 +461,12 @@ def _built_and_reference(layout: lw.Layout, size: tuple, src: tuple, threads: in
     verts = mesh.pixel_vertices(src)
     area = mesh.areas(verts).flatten().numpy()
     cells = mesh.areas().flatten().numpy() * (src[0] * src[1] / 4)
-    parts = (t.numpy() for t in (verts, mesh.seg_start, mesh.seg_end, mesh.edge_offsets))
-    built = kernels.build_runs(*parts, size, src, area, cells, threads)
-    return built, Runs.of(area_weights(layout, size, src, tol=1e-4, mesh=mesh), cells, src[1])
+    parts = [t.numpy() for t in (verts, mesh.seg_start, mesh.seg_end, mesh.edge_offsets)]
+
+    def walk(threads: int) -> Runs:
+        return kernels.build_runs(*parts, size, src, area, cells, threads)
+
+    return walk, Runs.of(area_weights(layout, size, src, tol=1e-4, mesh=mesh), cells, src[1])
 
 
 @pytest.mark.parametrize(
@@ -482,15 +488,13 @@ def test_the_compiled_build_gives_the_runs_of_the_area_weights(family, theta, si
     sum a row's steps in another order); on 1 and 3 threads, bit for bit."""
     rng = np.random.default_rng(int(torch.randint(0, 2**31, (), generator=gen)))
     if family == "random":
-        th = (float(rng.uniform(0.1, 0.8)), -float(rng.uniform(0.1, 0.8)))
-        family = ["curv", "fovea", "elliptic"][rng.integers(3)]
-        layout = {"curv": lw.CurvLayout, "elliptic": lw.EllipticLayout}.get(family, lw.FoveaLayout)
-        layout = layout(th, center=(0.2, -0.1)) if family == "fovea" else layout(th)
+        layout = _random_curved(rng, 0.8)
         size = (int(rng.integers(2, 14)), int(rng.integers(2, 14)))
         src = tuple(int(n * rng.uniform(0.6, 9)) + 1 for n in size)
     else:
         layout = lw.make_layout(family, theta)
-    built, ref = _built_and_reference(layout, size, src)
+    walk, ref = _walk_and_reference(layout, size, src)
+    built = walk(2)
     for name in ("pix_runs", "run_start", "run_len", "run_head", "run_tail", "inv_area", "pix_cuts"):
         a, b = getattr(built, name), getattr(ref, name)
         assert a.dtype == b.dtype and np.array_equal(a, b), name
@@ -498,7 +502,7 @@ def test_the_compiled_build_gives_the_runs_of_the_area_weights(family, theta, si
     assert np.abs(built.cut_weight - ref.cut_weight).max(initial=0) <= 2**-23 * np.abs(ref.cut_weight).max(
         initial=0
     )
-    one, three = _built_and_reference(layout, size, src, 1)[0], _built_and_reference(layout, size, src, 3)[0]
+    one, three = walk(1), walk(3)
     assert all(np.array_equal(a, b) for a, b in zip(one.arrays(), three.arrays(), strict=True))
 
 

@@ -36,7 +36,11 @@ from .samplers import stream_origin
 if TYPE_CHECKING:
     import scipy.sparse
 
-__all__ = ["CUDA_KERNELS", "Runs", "measured_runs_apply", "runs_apply", "runs_apply_on_device"]
+__all__ = ["CUDA_KERNELS", "WHOLE", "Runs", "measured_runs_apply", "runs_apply", "runs_apply_on_device"]
+
+#: A cell whose weight is within this of ``1 / area`` (relatively) is whole (both builds of the
+#: runs, [`Runs.of`][] and [`build_runs`][layoutwarp.kernels.weights.build_runs], tell them so).
+WHOLE = 1e-9
 
 
 def _pixel_sums(
@@ -184,14 +188,14 @@ class Runs:
     def of(cls, weights: scipy.sparse.csr_matrix, area: np.ndarray, src_width: int) -> Runs:
         """The runs of float64 area ``weights`` (``(R, H · W)``,
         [`area_weights`][layoutwarp.weights.area_weights]) of pixels of ``area`` ``(R,)`` (in
-        source cells): an entry within 1e-9 of ``1 / area`` is a whole cell,
+        source cells): an entry within ``WHOLE`` (1e-9) of ``1 / area`` is a whole cell,
         every other a cut one. A run ends at a gap, at the end of a source row, and where a whole
         cell follows a cut cell that follows a whole cell (a pixel whose row crosses a boundary
         and back: two runs)."""
         indptr, cell, data = weights.indptr.astype(np.int64), weights.indices.astype(np.int64), weights.data
         rows, n = indptr.size - 1, cell.size
         pixel = np.repeat(np.arange(rows), np.diff(indptr))
-        whole = np.abs(data * area[pixel] - 1.0) <= 1e-9
+        whole = np.abs(data * area[pixel] - 1.0) <= WHOLE
         span = np.ones(n, bool)  # a new span of contiguous cells of one pixel in one source row
         span[1:] = (pixel[1:] != pixel[:-1]) | (cell[1:] != cell[:-1] + 1) | (cell[1:] % src_width == 0)
         seen = np.cumsum(whole) - whole  # whole cells before each entry ...

@@ -8,15 +8,16 @@ that is a step function of the column: ``ΔY (f − 1)`` added at ``c`` and ``�
 (the pieces of a closed boundary in one row sum to ``ΔY = 0``, so the constant parts cancel). A
 pixel's steps are added into a dense buffer over its bounding box of cells, and a running sum
 along each row gives every cell's weight; cells whose weight is within [`ZERO`][] of 0 lie
-outside the pixel. Weights within [`WHOLE`][] of ``1 / area`` mark whole cells; the others are
-cut, and the runs are cut as [`Runs.of`][layoutwarp.kernels.runs.Runs.of] cuts them, so both
-give the same runs from the same weights.
+outside the pixel. Weights within [`WHOLE`][layoutwarp.kernels.runs.WHOLE] of ``1 / area`` mark
+whole cells; the others are cut, and the runs are cut as
+[`Runs.of`][layoutwarp.kernels.runs.Runs.of] cuts them, so both give the same runs from the same
+weights.
 
-Two passes over the pixels, block by block of sensor rows, each thread taking a contiguous range of
-a block: the first counts each pixel's runs and cut cells, the second writes them where the
-counts' prefix sums put them. Nothing is
-held besides the result but one bounding box of float64 per thread. Computed in float64; the cut
-weights are kept in float32.
+Three passes over the pixels, block by block of sensor rows, each thread taking a contiguous range
+of a block: the first finds each pixel's box of cells, the second counts its runs and cut cells,
+the third writes them where the counts' prefix sums put them. Nothing is held besides the result
+but the boxes and one box of float64 per thread. Computed in float64; the cut weights are kept in
+float32.
 """
 
 from __future__ import annotations
@@ -28,15 +29,13 @@ import numpy as np
 
 from .base import inline, own, per_thread, run_shares, serial
 from .exact import cell_piece, row_piece, row_span
-from .runs import Runs
+from .runs import WHOLE, Runs
 
-__all__ = ["BLOCK_PIXELS", "EDGE_SLACK", "WHOLE", "ZERO", "build_runs"]
+__all__ = ["BLOCK_PIXELS", "EDGE_SLACK", "ZERO", "build_runs"]
 
 #: A cell whose weight (unnormalised, in source cells) is at most this far from 0 is outside the
 #: pixel: the steps of a pixel's boundary cancel there to rounding.
 ZERO = 1e-12
-#: A cell whose weight is within this of ``1 / area`` (relatively) is whole.
-WHOLE = 1e-9
 #: How far (relative to ``X``) a piece's interpolated ``X`` may round past its segment's ends.
 EDGE_SLACK = 1e-12
 
