@@ -212,14 +212,13 @@ class AreaResampler:
         cpu = flat.device.type == "cpu" and not flat.requires_grad
         fused = cpu and physics is not None and jit.ready("measure", flat.dtype)
         if cpu and (which == "numba" or fused):
+            if not fused:
+                return self.compiled_product(flat, not allow_nonfinite)
             out = np.empty((n, self.runs.shape[0]), dtype=np.float32)
             x = np.ascontiguousarray(flat.numpy())  # needs no gradient: no detach
             nt = kernels.threads(x.size)  # bounded by torch's; one for a small image
-            if fused:  # the means measured in place: the buffer is this call's own
-                measured = kernel_arguments(physics, self.areas, output, seed_value)
-                bad = kernels.measured_runs_apply(self.runs.arrays(), x, out, *measured, out, nt)
-            else:
-                bad = kernels.runs_apply(self.runs.arrays(), x, out, nt)
+            measured = kernel_arguments(physics, self.areas, output, seed_value)  # measured in place:
+            bad = kernels.measured_runs_apply(self.runs.arrays(), x, out, *measured, out, nt)  # its own
             mean, ok = torch.from_numpy(out).view(n, *self.size), allow_nonfinite or not bad
         else:
             cols = [self.sparse @ flat[k].unsqueeze(1) for k in range(n)]  # contiguous planes: no transpose
@@ -234,6 +233,18 @@ class AreaResampler:
         if physics is None or fused:
             return mean
         return measure(mean, self.areas, physics, output=output, seed=seed)
+
+    def compiled_product(self, flat: torch.Tensor, check: bool) -> torch.Tensor:
+        """The compiled product of float32 CPU planes ``(N, H·W)`` that need no gradient (the fixed
+        unit loaded: ``jit.ready("fixed")``): the means ``(N, h, w)``; ``check``: raise
+        ``ValueError`` where NaN/Inf reach them."""
+        n = flat.shape[0]
+        out = np.empty((n, self.runs.shape[0]), dtype=np.float32)
+        x = np.ascontiguousarray(flat.numpy())
+        bad = kernels.runs_apply(self.runs.arrays(), x, out, kernels.threads(x.size))  # one thread
+        if bad and check:  # for a small image
+            raise_nonfinite(flat)
+        return torch.from_numpy(out).view(n, *self.size)
 
     def adjoint(self, grad: torch.Tensor) -> torch.Tensor:
         """The transposed weights applied to ``(N, h, w)``: ``(N, H, W)``, the images' gradient

@@ -311,6 +311,40 @@ def test_a_fixed_layout_reuses_its_area_weights_in_a_bounded_cache(gen):
     assert len(set(resampler.RESAMPLERS.keys()) - set(before)) == 1
 
 
+@pytest.mark.parametrize("family", ["uniform", "rect", "curv", "fovea"])
+def test_a_plain_fixed_call_skips_the_plan_and_gives_its_values(family, gen, monkeypatch):
+    """A fixed layout's plain call (float32, CPU, defaults, no gradient) runs the kept weights'
+    product without making a plan: the same values, bit for bit, as the planned call, the same
+    errors, and the plan's route wherever anything about the call needs it."""
+    from layoutwarp import resampler, sensor
+
+    layout = lw.make_layout(family, None if family == "uniform" else rand_theta(gen, 0.6))
+    img = torch.rand(3, 2, 40, 52, generator=gen)
+    planned = {shape: lw.simulate(img.view(shape), layout, (7, 9), return_plan=True)[0] for shape in
+               [(3, 2, 40, 52), (6, 40, 52)]}  # fmt: skip
+    plans: list[str] = []
+    real_plan = sensor.plan_simulation
+    monkeypatch.setattr(sensor, "plan_simulation", lambda *a, **k: plans.append("plan") or real_plan(*a, **k))
+    for shape, ref in planned.items():
+        out = lw.simulate(img.view(shape), layout, (7, 9))
+        assert out.shape == ref.shape and torch.equal(out, ref) and not plans
+    bad = img.clone()
+    bad[1, 0, 3, 5] = float("nan")
+    with pytest.raises(ValueError, match="1 non-finite value"):
+        lw.simulate(bad, layout, (7, 9))
+    assert torch.isnan(lw.simulate(bad, layout, (7, 9), allow_nonfinite=True)[1, 0]).any() and not plans
+    x = img.clone().requires_grad_(True)  # what the plan must decide: it does
+    lw.simulate(x, layout, (7, 9)).sum().backward()
+    lw.simulate(img.double(), layout, (7, 9))
+    lw.simulate(img, layout, [7, 9])
+    assert len(plans) == 3 and x.grad is not None
+    with torch.inference_mode():  # outside it, as the plan's call is
+        assert torch.equal(lw.simulate(img, layout, (7, 9)), planned[(3, 2, 40, 52)]) and len(plans) == 3
+    monkeypatch.setattr(resampler.RESAMPLERS, "maxsize", 0)
+    assert torch.allclose(lw.simulate(img, layout, (7, 9)), planned[(3, 2, 40, 52)], atol=1e-6)
+    assert len(plans) == 4
+
+
 def test_a_cache_of_size_zero_keeps_no_weights_and_runs_the_compiled_walk(gen, monkeypatch):
     from layoutwarp import resampler
     from layoutwarp.integrators import integrate_exact
