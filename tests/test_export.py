@@ -85,15 +85,18 @@ def test_vector_formats_read_back(fmt, family, gen, tmp_path):
 @pytest.mark.slow
 def test_tolerance_snapping_and_manhattan(gen):
     layout = layout_of("curv", gen)
-    fine = lw.pixel_mesh(layout, SIZE, tol=1e-10).polygons()
+    fine = lw.pixel_mesh(layout, SIZE, tol=1e-8).polygons()  # 6e-6 µm from the curves
     fine = [shapely.Polygon((p + 1) / 2 * XY) for p in fine]
+    some = torch.randperm(len(fine), generator=gen)[:27].tolist()  # a quarter of the pixels: the
+    # distances between outlines of thousands of vertices are most of the test's time
+
+    def farthest(polys: list) -> float:
+        return max(shapely.Polygon(polys[i]).hausdorff_distance(fine[i]) for i in some)
+
     for tol in (1.0, 0.01):
         polys, info = pixel_polygons_um(layout, SIZE, UM, tol_um=tol)
-        assert info["max_deviation_um"] <= tol
-        assert (
-            max(shapely.Polygon(p).hausdorff_distance(f) for p, f in zip(polys, fine, strict=True))
-            <= tol * 1.01
-        )
+        assert info["max_deviation_um"] <= tol and len(polys) == len(fine)
+        assert farthest(polys) <= tol * 1.01
     polys, info = pixel_polygons_um(layout, SIZE, UM, tol_um=0.5, manhattan=True)
     for p in polys:  # every edge axis-aligned
         d = np.diff(np.vstack([p, p[:1]]), axis=0)
@@ -105,8 +108,7 @@ def test_tolerance_snapping_and_manhattan(gen):
     assert abs(sum(s.area for s in shapes) - W_UM * H_UM) < 1e-6
     if info["self_touching"] == 0:
         assert_tiles(polys, SIZE[0] * SIZE[1])
-    dist = max(shapely.Polygon(p).hausdorff_distance(f) for p, f in zip(polys, fine, strict=True))
-    assert dist <= 0.5
+    assert farthest(polys) <= 0.5
     # snapped to a grid: vertices on it, still a tiling; outlines valid unless reported
     grid = 0.25
     polys, info = pixel_polygons_um(layout, SIZE, UM, tol_um=0.5, grid_um=grid, manhattan=True)

@@ -476,7 +476,7 @@ def _walk_and_reference(layout: lw.Layout, size: tuple, src: tuple) -> tuple:
         ("random", None, None, None),
         ("rect", (0.0, 0.0), (4, 4), (28, 28)),  # every edge on a cell line: no cut cell at all
         ("rect", (0.3, -0.5), (5, 7), (33, 41)),
-        ("curv", (0.7, 0.2), (60, 70), (20, 30)),  # pixels smaller than source cells
+        ("curv", (0.7, 0.2), (24, 30), (8, 12)),  # pixels smaller than source cells
         ("curv", (0.97, -0.96), (9, 8), (70, 64)),  # near the bound: thin, strongly curved pixels
         ("curv", (0.4, -0.3), (1, 1), (37, 45)),  # one pixel: the whole image
         ("elliptic", (0.5, -0.6), (11, 13), (90, 100)),
@@ -603,7 +603,7 @@ def test_runs_split_where_a_row_of_a_pixel_leaves_it_and_comes_back():
         ("rect", (0.0, 0.0), (4, 4), (28, 28)),  # every edge on a cell line, flat and vertical
         ("rect", None, None, None),
         ("curv", None, None, None),
-        ("curv", (0.7, 0.2), (60, 70), (20, 30)),  # pixels smaller than source cells
+        ("curv", (0.7, 0.2), (24, 30), (8, 12)),  # pixels smaller than source cells
     ],
 )
 def test_the_forwards_moments_give_the_backwards_weights(family, theta, size, src, gen):
