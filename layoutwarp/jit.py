@@ -282,14 +282,16 @@ def compile_all(
             _READY.add(unit)
 
 
-def compile_missing(processes: int = 2, say: Callable[[str], None] | None = None) -> tuple[str, ...]:
-    """Compile the units missing from the cache, ``processes`` at a time ([`compile_all`][]), and
-    return their names (none where the mode is ``"off"`` or numba is missing): for a program that
-    is about to need most of them (the test suite, ``layoutwarp bench``). ``say``: told what is
-    compiled, before it is."""
+def compile_missing(
+    processes: int = 2, say: Callable[[str], None] | None = None, units: tuple[str, ...] = UNITS
+) -> tuple[str, ...]:
+    """Compile those of ``units`` (all by default) missing from the cache, ``processes`` at a time
+    ([`compile_all`][]), and return their names (none where the mode is ``"off"`` or numba is
+    missing): for a program that is about to need most of them (the test suite, ``layoutwarp
+    bench``). ``say``: told what is compiled, before it is."""
     if not kernels.available() or mode() == "off":
         return ()
-    missing = tuple(unit for unit, state in status().items() if state == "not compiled")
+    missing = tuple(u for u, state in status().items() if state == "not compiled" and u in units)
     if missing:
         if say is not None:
             say(f"compiling {', '.join(missing)} ({processes} at a time; once per installation)")

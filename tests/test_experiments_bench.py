@@ -171,7 +171,13 @@ def test_scaling_fits_slopes():
 
 def test_run_measures_only_the_rows_asked_for():
     config = BenchConfig.quick(
-        src=(32, 64), size=(5, 9), tols=(1e-3,), mc_samples=(1,), repeats=1, only=("fovea",)
+        src=(32, 64),
+        size=(5, 9),
+        tols=(1e-3,),
+        mc_samples=(1,),
+        repeats=1,
+        only=("fovea",),
+        images=("photo", "synthetic"),
     )
     res = run(config)
     assert {r["layout"] for r in res["rows"]} == {"fovea"}

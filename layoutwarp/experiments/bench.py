@@ -13,6 +13,7 @@ The caller chooses torch's thread count (``layoutwarp bench --threads``); nothin
 
 from __future__ import annotations
 
+import contextlib
 import json
 from collections.abc import Callable, Sequence
 from dataclasses import asdict
@@ -106,10 +107,12 @@ def run(config: BenchConfig | None = None, progress: Callable[[str], None] | Non
     cfg = config or BenchConfig()
     say = progress or (lambda msg: None)
     scene = SineScene.random(3)
-    images = {"synthetic": scene.image(*cfg.src).float()}
-    pic = load_photo(*cfg.src, cfg.photo)
+    images = {"synthetic": scene.image(*cfg.src).float()} if "synthetic" in cfg.images else {}
+    pic = load_photo(*cfg.src, cfg.photo) if "photo" in cfg.images else None
     if pic is not None:
         images = {"photo": pic, **images}
+    if not images:
+        raise ValueError(f"images must name photo (found) or synthetic, got {cfg.images!r}")
     first = next(iter(images.values()))
     setups = bench_layouts(cfg.theta)
     say("anchors")
@@ -168,15 +171,15 @@ def _layout_rows(
     layout = layout_from_spec(spec)
     say(f"{image_name} {name}: float64 references")
     img64 = img.double()
-    with torch.no_grad():
+    with torch.no_grad(), jit.use_mode("off") if cfg.torch_references else contextlib.nullcontext():
         ref = simulate(img64, layout, size, tol=1e-7)
+        gw = 1 + torch.rand(ref.shape, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+        g_ref = None
+        if layout.theta.numel():
+            g_ref = fd_theta_gradient(
+                img64, layout_from_spec(spec, dtype=torch.float64), layout.theta.detach(), size, gw
+            )
     truth = scene.pixel_means(layout, size)[None] if image_name == "synthetic" else None
-    gw = 1 + torch.rand(ref.shape, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
-    g_ref = None
-    if layout.theta.numel():
-        g_ref = fd_theta_gradient(
-            img64, layout_from_spec(spec, dtype=torch.float64), layout.theta.detach(), size, gw
-        )
 
     def errors(out: Tensor) -> dict:
         err = (out.double() - ref).abs()
@@ -480,10 +483,13 @@ def main_bench(
     ``text_path`` as a fenced Markdown block, which the docs include), write JSON and plot."""
     say = lambda msg: print(f"  .. {msg}", flush=True)  # noqa: E731
     rows = tuple(only) if only else None
-    with jit.use_mode("wait"):  # what it times, compiled first, two units at a time
-        jit.compile_missing(2, say)
+    # what it times, compiled first, two units at a time (quick: float32's, its references torch's)
+    units = tuple(u for u in jit.UNITS if not (quick and u.endswith("float64")))
+    with jit.use_mode("wait"):
+        jit.compile_missing(2, say, units)
     if quick:
-        config = BenchConfig.quick(mc_samples=(1, 4, 16), photo=photo, device=device, only=rows)
+        images = {"images": ("photo",)} if photo else {}  # the photo given, else the synthetic scene
+        config = BenchConfig.quick(mc_samples=(1, 4, 16), photo=photo, device=device, only=rows, **images)
         result = run(config, progress=say)
         if with_scaling:
             result["scaling"] = scaling(((128, 256), (256, 512)), ((17, 33), (33, 65)), repeats=2)
@@ -491,8 +497,8 @@ def main_bench(
         result = run(BenchConfig(memory=memory, photo=photo, device=device, only=rows), progress=say)
         if with_scaling:
             result["scaling"] = scaling()
-    entries = ("README example",) if quick else ("README example", *ENTRY_POINTS)
-    result["first_calls"] = first_calls(entries, progress=say, fill=not quick)
+    if not quick:  # each a process of its own, twice: from an empty cache, then warm
+        result["first_calls"] = first_calls(("README example", *ENTRY_POINTS), progress=say)
     text = report_text(result)
     print(text)
     if text_path:

@@ -55,6 +55,11 @@ class BenchConfig:
             allocated GPU memory on ``"cuda"`` (then also ``extra["train_peak_mb"]``, forward +
             backward of the learnable layout).
         only: measure only these rows of [`bench_layouts`][] (the anchors always).
+        images: the images measured, of ``"photo"`` and ``"synthetic"`` (the physics, cached
+            weights and training rows on the first).
+        torch_references: compute the float64 references (the exact means, the finite
+            differences) on the torch path, which no kernel of float64 images serves (``--quick``:
+            nothing of float64 to compile; about 10x slower at the full size).
     """
 
     src: tuple[int, int] = (1024, 2048)
@@ -67,8 +72,13 @@ class BenchConfig:
     photo: str | Path | None = None
     device: str = "cpu"
     only: tuple[str, ...] | None = None
+    images: tuple[str, ...] = ("photo", "synthetic")
+    torch_references: bool = False
 
     @classmethod
     def quick(cls, **changes: Any) -> BenchConfig:
-        """Small sizes and few repeats (``layoutwarp bench --quick``)."""
-        return cls(**({"src": (256, 512), "size": (33, 65), "repeats": 3, "memory": False} | changes))
+        """Small sizes, few repeats, the synthetic scene alone and its references on the torch
+        path (``layoutwarp bench --quick``: a check that everything runs, in about 30 s once
+        compiled)."""
+        small = {"src": (256, 512), "size": (33, 65), "repeats": 3, "memory": False}
+        return cls(**(small | {"images": ("synthetic",), "torch_references": True} | changes))

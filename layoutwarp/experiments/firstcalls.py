@@ -74,7 +74,7 @@ def first_calls(
     example"``, [`README_EXAMPLE`][], or a key of [`ENTRY_POINTS`][]): ``first_s`` with an
     empty numba cache in the default (background) mode, as a new installation meets it, and
     ``warm_s`` with this installation's cache (``fill``: filled first in wait mode, outside the
-    timing; ``layoutwarp bench --quick`` has compiled what the README example uses already);
+    timing; ``False`` where the caller has compiled what the entry points use already);
     their difference is what the first call costs. Each process stops its background worker at
     the end, so the throw-away cache is not filled after it."""
     import subprocess
