@@ -211,15 +211,15 @@ class AreaResampler:
         # compiled unless its kernels are still compiling; the measurement fused where it is compiled
         cpu = flat.device.type == "cpu" and not flat.requires_grad
         fused = cpu and physics is not None and jit.ready("measure", flat.dtype)
-        if cpu and (which == "numba" or fused):
-            if not fused:
-                return self.compiled_product(flat, not allow_nonfinite)
+        if fused:  # the means measured in place: the buffer is this call's own
             out = np.empty((n, self.runs.shape[0]), dtype=np.float32)
             x = np.ascontiguousarray(flat.numpy())  # needs no gradient: no detach
             nt = kernels.threads(x.size)  # bounded by torch's; one for a small image
-            measured = kernel_arguments(physics, self.areas, output, seed_value)  # measured in place:
-            bad = kernels.measured_runs_apply(self.runs.arrays(), x, out, *measured, out, nt)  # its own
+            measured = kernel_arguments(physics, self.areas, output, seed_value)
+            bad = kernels.measured_runs_apply(self.runs.arrays(), x, out, *measured, out, nt)
             mean, ok = torch.from_numpy(out).view(n, *self.size), allow_nonfinite or not bad
+        elif cpu and which == "numba":
+            mean, ok = self.compiled_product(flat, not allow_nonfinite), True  # checked there
         else:
             cols = [self.sparse @ flat[k].unsqueeze(1) for k in range(n)]  # contiguous planes: no transpose
             mean = (

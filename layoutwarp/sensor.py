@@ -230,8 +230,9 @@ def simulate(
     if not torch.compiler.is_compiling() and torch.is_inference_mode_enabled():  # the caches' tensors
         with torch.inference_mode(False), torch.no_grad():  # must serve autograd later: made outside it
             return simulate(**locals())
-    if method == "exact" and radiance is None and tol is None and physics is None and noise is None:
-        out = None if return_plan or seed is not None else _fixed_plain(image, layout, size, allow_nonfinite)
+    defaults = all(v is None for v in (radiance, tol, physics, noise, seed, generator))
+    if defaults and method == "exact" and output == "radiance" and not return_plan:  # no plan needed
+        out = _fixed_plain(image, layout, size, allow_nonfinite)
         if out is not None:
             return out
     size = check_size(size)

@@ -501,7 +501,9 @@ def test_python_dash_m_entry_point():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("script", ["quickstart.py", "kornia_pipeline.py", "preprocess_and_export.py"])
+@pytest.mark.parametrize(
+    "script", ["quickstart.py", "kornia_pipeline.py", "preprocess_and_export.py", "route_of_a_step.py"]
+)
 def test_examples_run(script):
     cmd = [sys.executable, str(ROOT / "examples" / script)]
     res = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)

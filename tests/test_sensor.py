@@ -345,6 +345,27 @@ def test_a_plain_fixed_call_skips_the_plan_and_gives_its_values(family, gen, mon
     assert len(plans) == 4
 
 
+def test_a_fixed_layouts_record_is_measured_while_the_fused_measurement_is_not_loaded(gen, monkeypatch):
+    """The kept weights' product with physics: fused into one compiled call where the
+    measurement's unit is loaded, else the compiled product then the measurement (a process whose
+    background compile has the product's unit done and not yet the measurement's); the same
+    record either way."""
+    from layoutwarp import jit
+
+    layout = lw.CurvLayout(rand_theta(gen, 0.6))
+    img = torch.rand(2, 3, 40, 60, generator=gen)
+    camera = lw.SensorPhysics((300.0, 400.0), photons_per_um2=20, read_noise_e=2.0, adc_bits=10, seed=3)
+    fused = lw.simulate(img, layout, (7, 9), physics=camera)
+    ready = jit.ready
+
+    def measure_not_loaded(group, dtype="float32", wait=False):
+        return False if group == "measure" and not wait else ready(group, dtype, wait)
+
+    monkeypatch.setattr(jit, "ready", measure_not_loaded)
+    apart = lw.simulate(img, layout, (7, 9), physics=camera)
+    assert torch.equal(apart, fused) and not torch.equal(apart, lw.simulate(img, layout, (7, 9)))
+
+
 def test_a_cache_of_size_zero_keeps_no_weights_and_runs_the_compiled_walk(gen, monkeypatch):
     from layoutwarp import resampler
     from layoutwarp.integrators import integrate_exact
