@@ -103,26 +103,31 @@ _pixel_sum = inline(_pixel_sum)
 
 
 @inline
-def _pixel_out(k, pix_runs, run_start, run_len, run_head, run_tail, inv_area, pix_cuts, cut_weight, x, out):
-    """Pixel ``k``'s means of every plane of ``x``, written to ``out[:, k]`` (three planes a pass,
-    then the one or two left); returns how many of them are not finite."""
+def _pixel_out(
+    k, pix_runs, run_start, run_len, run_head, run_tail, inv_area, pix_cuts, cut_weight, x, out, p
+):
+    """Pixel ``k``'s means of planes ``p .. p + 2`` of ``x`` (fewer where fewer are left), written to
+    ``out[p:, k]``; returns how many of them are not finite."""
     n = x.shape[0]
-    bad = 0
-    for p in range(0, n, 3):
-        if n - p == 1:
-            out[p, k] = _pixel_sum(
-                k, pix_runs, run_start, run_len, run_head, run_tail, inv_area, pix_cuts, cut_weight, x, p
-            )
-            bad += not math.isfinite(out[p, k])
-            continue
-        q, r = p + 1, min(p + 2, n - 1)  # two planes left: the second read twice
-        sums = _pixel_sums(
-            k, pix_runs, run_start, run_len, run_head, run_tail, inv_area, pix_cuts, cut_weight, x, p, q, r
+    if n - p == 1:
+        out[p, k] = _pixel_sum(
+            k, pix_runs, run_start, run_len, run_head, run_tail, inv_area, pix_cuts, cut_weight, x, p
         )
-        for i in range(min(3, n - p)):
-            out[p + i, k] = sums[i]
-            bad += not math.isfinite(out[p + i, k])
+        return not math.isfinite(out[p, k])
+    q, r = p + 1, min(p + 2, n - 1)  # two planes left: the second read twice
+    sums = _pixel_sums(
+        k, pix_runs, run_start, run_len, run_head, run_tail, inv_area, pix_cuts, cut_weight, x, p, q, r
+    )
+    bad = 0
+    for i in range(min(3, n - p)):
+        out[p + i, k] = sums[i]
+        bad += not math.isfinite(out[p + i, k])
     return bad
+
+
+#: Pixels a share takes at a time, every three planes in turn: about a sensor row of them, whose
+#: source rows (three planes of them) stay in the core's cache for the next three planes.
+BAND = 256
 
 
 @serial
@@ -131,14 +136,28 @@ def _runs_share(
     run_tail: np.ndarray, inv_area: np.ndarray, pix_cuts: np.ndarray, cut_weight: np.ndarray, x: np.ndarray,
     out: np.ndarray,
 ) -> int:  # fmt: skip
-    """Pixels ``t·R/T ..`` of [`runs_apply`][]; returns how many of the values it wrote are not
-    finite."""
+    """Pixels ``t·R/T ..`` of [`runs_apply`][], a band of [`BAND`][] at a time; returns how many
+    of the values it wrote are not finite."""
     rows = pix_runs.shape[0] - 1
+    lo, hi = t * rows // nt, (t + 1) * rows // nt
     bad = 0
-    for k in range(t * rows // nt, (t + 1) * rows // nt):
-        bad += _pixel_out(
-            k, pix_runs, run_start, run_len, run_head, run_tail, inv_area, pix_cuts, cut_weight, x, out
-        )
+    for k0 in range(lo, hi, BAND):
+        for p in range(0, x.shape[0], 3):
+            for k in range(k0, min(k0 + BAND, hi)):
+                bad += _pixel_out(
+                    k,
+                    pix_runs,
+                    run_start,
+                    run_len,
+                    run_head,
+                    run_tail,
+                    inv_area,
+                    pix_cuts,
+                    cut_weight,
+                    x,
+                    out,
+                    p,
+                )
     return bad
 
 
@@ -278,9 +297,11 @@ def _cuda_runs_apply(
     k = cuda.grid(1)
     rows = pix_runs.shape[0] - 1
     if k < rows:
-        bad = _pixel_out(
-            k, pix_runs, run_start, run_len, run_head, run_tail, inv_area, pix_cuts, cut_weight, x, out
-        )
+        bad = 0
+        for p in range(0, x.shape[0], 3):
+            bad += _pixel_out(
+                k, pix_runs, run_start, run_len, run_head, run_tail, inv_area, pix_cuts, cut_weight, x, out, p
+            )
         if stamp and bad:
             checks[0] = stamp
         if measure:  # from the means as the buffer holds them, as the CPU measures its buffer
