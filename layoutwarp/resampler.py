@@ -209,11 +209,11 @@ class AreaResampler:
             else:
                 return out.view(n, *self.size)  # checked on the device: no wait here
         # compiled unless its kernels are still compiling; the measurement fused where it is compiled
-        cpu = flat.device.type == "cpu" and not flat.requires_grad
+        cpu = flat.device.type == "cpu" and not (torch.is_grad_enabled() and flat.requires_grad)
         fused = cpu and physics is not None and jit.ready("measure", flat.dtype)
         if fused:  # the means measured in place: the buffer is this call's own
             out = np.empty((n, self.runs.shape[0]), dtype=np.float32)
-            x = np.ascontiguousarray(flat.numpy())  # needs no gradient: no detach
+            x = np.ascontiguousarray(flat.detach().numpy())
             nt = kernels.threads(x.size)  # bounded by torch's; one for a small image
             measured = kernel_arguments(physics, self.areas, output, seed_value)
             bad = kernels.measured_runs_apply(self.runs.arrays(), x, out, *measured, out, nt)
@@ -240,7 +240,7 @@ class AreaResampler:
         ``ValueError`` where NaN/Inf reach them."""
         n = flat.shape[0]
         out = np.empty((n, self.runs.shape[0]), dtype=np.float32)
-        x = np.ascontiguousarray(flat.numpy())
+        x = np.ascontiguousarray(flat.detach().numpy())
         bad = kernels.runs_apply(self.runs.arrays(), x, out, kernels.threads(x.size))  # one thread
         if bad and check:  # for a small image
             raise_nonfinite(flat)
@@ -328,10 +328,11 @@ def resampler_for(
     entry holds its weights, about 8 bytes per source pixel (0.87 copies of a float32 RGB image);
     with ``RESAMPLERS.maxsize = 0`` none is built (``None``), and every call runs the compiled walk
     instead, slower (about 6x at 2048x1024 → 257x129: the bench's cached-weights line) but
-    holding no weights.
+    holding no weights. A learnable layout's (used without gradient) are its θ's as a training
+    step computes it ([`operator_theta`][layoutwarp.operators.base.operator_theta]).
     """
-    theta = layout.theta_as(torch.float64)
-    return _kept(layout_token(layout), theta, size, src_size, tol, device, lambda: layout)
+    token, theta = layout_token(layout), ops.operator_theta(layout)
+    return _kept(token, theta, size, src_size, tol, device, lambda: ops.layout_of(token, theta))
 
 
 def _kept(

@@ -38,6 +38,7 @@ from .layouts import Layout, make_layout, wants_grad
 from .measurement import measure, noise_seed
 from .operators.base import (
     layout_token,
+    operator_theta,
     plain_eager,
     random_seed,
     refuse_forward_ad,
@@ -234,6 +235,7 @@ def simulate(
     if defaults and method == "exact" and output == "radiance" and not return_plan:  # no plan needed
         out = _fixed_plain(image, layout, size, allow_nonfinite)
         if out is not None:
+            warn_if_finer(size, (image.shape[-2], image.shape[-1]))  # (its stack level: the caller)
             return out
     size = check_size(size)
     check_memory(size)
@@ -317,7 +319,6 @@ def _fixed_plain(image: Any, layout: Any, size: Any, allow_nonfinite: Any) -> Te
         return None
     check_memory(size)
     src = (image.shape[-2], image.shape[-1])
-    warn_if_finer(size, src)
     res = resampler_for(layout, size, src, _FLOAT32_TOL, "cpu")
     out = res.compiled_product(image.reshape(-1, src[0] * src[1]), not allow_nonfinite)
     return out.view(*image.shape[:-2], *size)
@@ -399,7 +400,7 @@ class _Integration:
 
     def _theta(self) -> Tensor:
         """θ as the geometry takes it: a fixed layout's as it was set (float64), a learned one's."""
-        return self.layout.theta if self.layout.learnable else self.layout.theta_as(torch.float64)
+        return operator_theta(self.layout)
 
     def _area(self, work: Tensor, physics: str, seed: Tensor, with_areas: bool) -> tuple[Tensor, Tensor]:
         """``layoutwarp::area`` on ``work``: the means (or, with ``physics``, the record) and areas."""

@@ -322,6 +322,9 @@ def test_a_plain_fixed_call_skips_the_plan_and_gives_its_values(family, gen, mon
     img = torch.rand(3, 2, 40, 52, generator=gen)
     planned = {shape: lw.simulate(img.view(shape), layout, (7, 9), return_plan=True)[0] for shape in
                [(3, 2, 40, 52), (6, 40, 52)]}  # fmt: skip
+    lw.simulate(img.double(), layout, (7, 9))  # the kernels of every route below loaded (their
+    lw.simulate(img.requires_grad_(True), layout, (7, 9))  # warm-ups make plans of their own)
+    img.requires_grad_(False)
     plans: list[str] = []
     real_plan = sensor.plan_simulation
     monkeypatch.setattr(sensor, "plan_simulation", lambda *a, **k: plans.append("plan") or real_plan(*a, **k))
@@ -340,9 +343,30 @@ def test_a_plain_fixed_call_skips_the_plan_and_gives_its_values(family, gen, mon
     assert len(plans) == 3 and x.grad is not None
     with torch.inference_mode():  # outside it, as the plan's call is
         assert torch.equal(lw.simulate(img, layout, (7, 9)), planned[(3, 2, 40, 52)]) and len(plans) == 3
-    monkeypatch.setattr(resampler.RESAMPLERS, "maxsize", 0)
+    monkeypatch.setattr(resampler.RESAMPLERS, "maxsize", 0)  # no weights kept: the walk's route
     assert torch.allclose(lw.simulate(img, layout, (7, 9)), planned[(3, 2, 40, 52)], atol=1e-6)
-    assert len(plans) == 4
+    assert len(plans) > 3
+
+
+@pytest.mark.parametrize("family", ["rect", "curv", "fovea"])
+def test_a_plain_call_without_gradient_is_the_planned_one_for_learnable_layouts_and_images(family, gen):
+    """Without gradient, a learnable layout's plain call takes its θ as a training step computes it
+    (in the layout's dtype), as the planned call does, and an image that requires grad gives what
+    its detached copy gives, by either route; a warning names the caller's line."""
+    layout = lw.make_layout(family, rand_theta(gen, 0.6), learn=True)
+    img = torch.rand(2, 3, 40, 52, generator=gen)
+    x = img.clone().requires_grad_(True)
+    with torch.no_grad():
+        plain, planned = (
+            lw.simulate(img, layout, (7, 9)),
+            lw.simulate(img, layout, (7, 9), return_plan=True)[0],
+        )
+        assert torch.equal(plain, planned)
+        assert torch.equal(lw.simulate(x, layout, (7, 9)), plain)
+        assert torch.equal(lw.simulate(x, layout, (7, 9), return_plan=True)[0], plain)
+    with pytest.warns(UserWarning, match="more pixels along an axis") as seen:  # once a process
+        lw.simulate(img[..., :5, : {"rect": 3, "curv": 4, "fovea": 5}[family]], layout, (7, 9))  # a pair
+    assert seen[0].filename == __file__
 
 
 def test_a_fixed_layouts_record_is_measured_while_the_fused_measurement_is_not_loaded(gen, monkeypatch):

@@ -54,6 +54,7 @@ __all__ = [
     "no_context",
     "object_of",
     "object_token",
+    "operator_theta",
     "random_seed",
     "refuse",
     "refuse_grad_transforms",
@@ -168,6 +169,13 @@ def _gone(token: str) -> Any:
 #: The values of the θ tensors that operators were handed, per tensor and version (a fixed
 #: layout's θ is the same buffer every call: read once).
 THETA_VALUES = ObjectMemo("θ values of operators")
+
+
+def operator_theta(layout: Layout) -> Tensor:
+    """θ as ``layout`` hands it to the operators beside its token: a fixed layout's as it was set
+    (float64, [`Layout.theta_as`][layoutwarp.layouts.base.Layout.theta_as]), a learnable one's in
+    its dtype (differentiable, as a training step computes it, with or without gradient)."""
+    return layout.theta if layout.learnable else layout.theta_as(torch.float64)
 
 
 def theta_values(theta: Tensor) -> tuple[float, ...]:
