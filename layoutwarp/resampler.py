@@ -239,12 +239,12 @@ class AreaResampler:
         unit loaded: ``jit.ready("fixed")``): the means ``(N, h, w)``; ``check``: raise
         ``ValueError`` where NaN/Inf reach them."""
         n = flat.shape[0]
-        out = np.empty((n, self.runs.shape[0]), dtype=np.float32)
-        x = np.ascontiguousarray(flat.detach().numpy())
-        bad = kernels.runs_apply(self.runs.arrays(), x, out, kernels.threads(x.size))  # one thread
-        if bad and check:  # for a small image
+        out = torch.empty((n, *self.size), dtype=torch.float32)
+        x = np.ascontiguousarray((flat.detach() if flat.requires_grad else flat).numpy())
+        threads = kernels.threads(x.size)  # one for a small image
+        if kernels.runs_apply(self.runs.arrays(), x, out.numpy().reshape(n, -1), threads) and check:
             raise_nonfinite(flat)
-        return torch.from_numpy(out).view(n, *self.size)
+        return out
 
     def adjoint(self, grad: torch.Tensor) -> torch.Tensor:
         """The transposed weights applied to ``(N, h, w)``: ``(N, H, W)``, the images' gradient
