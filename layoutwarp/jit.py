@@ -289,6 +289,9 @@ def compile_missing(
     ([`compile_all`][]), and return their names (none where the mode is ``"off"`` or numba is
     missing): for a program that is about to need most of them (the test suite, ``layoutwarp
     bench``). ``say``: told what is compiled, before it is."""
+    unknown = [u for u in units if u not in UNITS]
+    if unknown:
+        raise ValueError(f"units must be of {', '.join(UNITS)}, got {unknown[0]!r}")
     if not kernels.available() or mode() == "off":
         return ()
     missing = tuple(u for u, state in status().items() if state == "not compiled" and u in units)

@@ -242,7 +242,8 @@ class AreaResampler:
         out = torch.empty((n, *self.size), dtype=torch.float32)
         x = np.ascontiguousarray((flat.detach() if flat.requires_grad else flat).numpy())
         threads = kernels.threads(x.size)  # one for a small image
-        if kernels.runs_apply(self.runs.arrays(), x, out.numpy().reshape(n, -1), threads) and check:
+        planes = out.numpy().reshape(n, self.runs.shape[0])  # (an empty batch too)
+        if kernels.runs_apply(self.runs.arrays(), x, planes, threads) and check:
             raise_nonfinite(flat)
         return out
 

@@ -10,7 +10,6 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from . import jit
 from .checks import (
     ArgumentError,
     check_bool,
@@ -37,6 +36,7 @@ from .layoutfile import load_layout, save_layout
 from .layouts import Layout, make_layout, wants_grad
 from .measurement import measure, noise_seed
 from .operators.base import (
+    backend,
     layout_token,
     operator_theta,
     plain_eager,
@@ -232,7 +232,7 @@ def simulate(
         with torch.inference_mode(False), torch.no_grad():  # must serve autograd later: made outside it
             return simulate(**locals())
     defaults = all(v is None for v in (radiance, tol, physics, noise, seed, generator))
-    if defaults and method == "exact" and output == "radiance" and not return_plan:  # no plan needed
+    if defaults and method == "exact" and output == "radiance" and return_plan is False:  # no plan
         out = _fixed_plain(image, layout, size, allow_nonfinite)
         if out is not None:
             warn_if_finer(size, (image.shape[-2], image.shape[-1]))  # (its stack level: the caller)
@@ -313,10 +313,11 @@ def _fixed_plain(image: Any, layout: Any, size: Any, allow_nonfinite: Any) -> Te
         return None
     if (torch.is_grad_enabled() and wants_grad(layout.rho)) or not plain_eager(image):
         return None
-    if torch.autograd.forward_ad._current_level >= 0 or torch.is_autocast_enabled("cpu"):
+    if torch.is_autocast_enabled("cpu") or layout_token(layout).startswith("object:"):
         return None
-    if layout_token(layout).startswith("object:") or not jit.loaded("fixed/float32"):
+    if backend(image, "fixed") != "numba":  # the compiled product ready (not numba's CUDA simulator)
         return None
+    refuse_forward_ad(image, layout.rho)  # a tangent is refused, as the plan's route refuses it
     check_memory(size)
     src = (image.shape[-2], image.shape[-1])
     res = resampler_for(layout, size, src, _FLOAT32_TOL, "cpu")

@@ -169,6 +169,18 @@ def test_scaling_fits_slopes():
     assert "slope vs source px" in format_scaling(res)
 
 
+def test_the_quick_run_measures_the_synthetic_scene_with_torchs_references_and_compiles_float32():
+    """``bench --quick``: the synthetic scene (the photo only where one is given), its float64
+    references on the torch path, and the float32 units alone compiled first; no image, or a
+    unit not in ``jit.UNITS``, is refused in one line."""
+    quick = BenchConfig.quick()
+    assert quick.images == ("synthetic",) and quick.torch_references and not BenchConfig().torch_references
+    with pytest.raises(ValueError, match="images must name photo"):
+        run(BenchConfig.quick(src=(32, 64), size=(5, 9), images=()))
+    with pytest.raises(ValueError, match="units must be of mesh, .*, got 'learn/float16'"):
+        lw.jit.compile_missing(units=("mesh", "learn/float16"))
+
+
 def test_run_measures_only_the_rows_asked_for():
     config = BenchConfig.quick(
         src=(32, 64),

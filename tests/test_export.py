@@ -87,7 +87,7 @@ def test_tolerance_snapping_and_manhattan(gen):
     layout = layout_of("curv", gen)
     fine = lw.pixel_mesh(layout, SIZE, tol=1e-8).polygons()  # 6e-6 µm from the curves
     fine = [shapely.Polygon((p + 1) / 2 * XY) for p in fine]
-    some = torch.randperm(len(fine), generator=gen)[:27].tolist()  # a quarter of the pixels: the
+    some = torch.randperm(len(fine), generator=gen)[: len(fine) // 4].tolist()  # a quarter: the
     # distances between outlines of thousands of vertices are most of the test's time
 
     def farthest(polys: list) -> float:

@@ -311,12 +311,20 @@ def test_a_fixed_layout_reuses_its_area_weights_in_a_bounded_cache(gen):
     assert len(set(resampler.RESAMPLERS.keys()) - set(before)) == 1
 
 
+def _plain_route_runs() -> None:
+    """Skip where the plain route cannot run: no numba, or the torch path asked for."""
+    if not lw.kernels.available() or lw.jit.mode() == "off":
+        pytest.skip("the plain route runs the compiled product: needs numba and a mode but off")
+
+
 @pytest.mark.parametrize("family", ["uniform", "rect", "curv", "fovea"])
 def test_a_plain_fixed_call_skips_the_plan_and_gives_its_values(family, gen, monkeypatch):
     """A fixed layout's plain call (float32, CPU, defaults, no gradient) runs the kept weights'
     product without making a plan: the same values, bit for bit, as the planned call, the same
     errors, and the plan's route wherever anything about the call needs it."""
     from layoutwarp import resampler, sensor
+
+    _plain_route_runs()
 
     layout = lw.make_layout(family, None if family == "uniform" else rand_theta(gen, 0.6))
     img = torch.rand(3, 2, 40, 52, generator=gen)
@@ -336,6 +344,9 @@ def test_a_plain_fixed_call_skips_the_plan_and_gives_its_values(family, gen, mon
     with pytest.raises(ValueError, match="1 non-finite value"):
         lw.simulate(bad, layout, (7, 9))
     assert torch.isnan(lw.simulate(bad, layout, (7, 9), allow_nonfinite=True)[1, 0]).any() and not plans
+    for flag in ("return_plan", "allow_nonfinite"):  # refused as the plan refuses them
+        with pytest.raises(lw.checks.ArgumentError, match=flag):
+            lw.simulate(img, layout, (7, 9), **{flag: None})
     x = img.clone().requires_grad_(True)  # what the plan must decide: it does
     lw.simulate(x, layout, (7, 9)).sum().backward()
     lw.simulate(img.double(), layout, (7, 9))
@@ -349,10 +360,16 @@ def test_a_plain_fixed_call_skips_the_plan_and_gives_its_values(family, gen, mon
 
 
 @pytest.mark.parametrize("family", ["rect", "curv", "fovea"])
-def test_a_plain_call_without_gradient_is_the_planned_one_for_learnable_layouts_and_images(family, gen):
+def test_a_plain_call_without_gradient_is_the_planned_one_for_learnable_layouts_and_images(
+    family, gen, monkeypatch
+):
     """Without gradient, a learnable layout's plain call takes its θ as a training step computes it
     (in the layout's dtype), as the planned call does, and an image that requires grad gives what
     its detached copy gives, by either route; a warning names the caller's line."""
+    from layoutwarp import checks
+
+    _plain_route_runs()
+    monkeypatch.setattr(checks, "_WARNED", set())  # a warning is said once a process
     layout = lw.make_layout(family, rand_theta(gen, 0.6), learn=True)
     img = torch.rand(2, 3, 40, 52, generator=gen)
     x = img.clone().requires_grad_(True)
@@ -364,8 +381,8 @@ def test_a_plain_call_without_gradient_is_the_planned_one_for_learnable_layouts_
         assert torch.equal(plain, planned)
         assert torch.equal(lw.simulate(x, layout, (7, 9)), plain)
         assert torch.equal(lw.simulate(x, layout, (7, 9), return_plan=True)[0], plain)
-    with pytest.warns(UserWarning, match="more pixels along an axis") as seen:  # once a process
-        lw.simulate(img[..., :5, : {"rect": 3, "curv": 4, "fovea": 5}[family]], layout, (7, 9))  # a pair
+    with pytest.warns(UserWarning, match="more pixels along an axis") as seen:
+        lw.simulate(img[..., :5, :6], layout, (7, 9))
     assert seen[0].filename == __file__
 
 
@@ -388,6 +405,14 @@ def test_a_fixed_layouts_record_is_measured_while_the_fused_measurement_is_not_l
     monkeypatch.setattr(jit, "ready", measure_not_loaded)
     apart = lw.simulate(img, layout, (7, 9), physics=camera)
     assert torch.equal(apart, fused) and not torch.equal(apart, lw.simulate(img, layout, (7, 9)))
+
+
+def test_a_resampler_applies_its_weights_to_an_empty_batch(gen):
+    res = lw.AreaResampler(lw.CurvLayout(rand_theta(gen, 0.6)), (6, 8), (48, 64))
+    for grad in (False, True):
+        out = res.apply(torch.empty(0, 48, 64, requires_grad=grad))
+        assert out.shape == (0, 6, 8) and out.dtype == torch.float32
+    assert res.apply(torch.ones(1, 48, 64)).sub(1).abs().max() < 1e-6  # a constant stays itself
 
 
 def test_a_cache_of_size_zero_keeps_no_weights_and_runs_the_compiled_walk(gen, monkeypatch):

@@ -107,7 +107,7 @@ def _pixel_out(
     k, pix_runs, run_start, run_len, run_head, run_tail, inv_area, pix_cuts, cut_weight, x, out, p
 ):
     """Pixel ``k``'s means of planes ``p .. p + 2`` of ``x`` (fewer where fewer are left), written to
-    ``out[p:, k]``; returns how many of them are not finite."""
+    ``out[p:p + 3, k]``; returns how many of them are not finite."""
     n = x.shape[0]
     if n - p == 1:
         out[p, k] = _pixel_sum(
