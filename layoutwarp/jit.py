@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import atexit
 import contextlib
+import functools
 import importlib
 import json
 import os
@@ -143,7 +144,7 @@ def ready(group: str, dtype: str | torch.dtype = "float32", wait: bool = False) 
     if not kernels.available() or current == "off":
         return False
     _share_cores()  # back to the thread's count once the child is done
-    if all(u in _READY for u in units):
+    if _READY.issuperset(units):
         return True
     if kernels.base.plain_python():  # NUMBA_DISABLE_JIT: nothing to compile
         _READY.update(units)
@@ -302,6 +303,7 @@ def compile_missing(
     return missing
 
 
+@functools.lru_cache(maxsize=64)  # asked at every call of a kernel's route
 def _units(group: str, dtype: str | torch.dtype) -> tuple[str, ...]:
     """The units a group of one dtype needs (the learnable layouts' mesh, then the group's own)."""
     name = str(dtype).removeprefix("torch.")

@@ -309,15 +309,16 @@ def _fixed_plain(image: Any, layout: Any, size: Any, allow_nonfinite: Any) -> Te
         return None
     if not (type(size) is tuple and len(size) == 2 and all(type(v) is int and v > 0 for v in size)):
         return None
-    if not isinstance(layout, Layout) or layout.rho.device.type != "cpu" or RESAMPLERS.maxsize == 0:
+    rho = layout.rho if isinstance(layout, Layout) else None
+    if rho is None or rho.device.type != "cpu" or RESAMPLERS.maxsize == 0:
         return None
-    if (torch.is_grad_enabled() and wants_grad(layout.rho)) or not plain_eager(image):
+    if (torch.is_grad_enabled() and wants_grad(rho)) or not plain_eager(image):
         return None
     if torch.is_autocast_enabled("cpu") or layout_token(layout).startswith("object:"):
         return None
     if backend(image, "fixed") != "numba":  # the compiled product ready (not numba's CUDA simulator)
         return None
-    refuse_forward_ad(image, layout.rho)  # a tangent is refused, as the plan's route refuses it
+    refuse_forward_ad(image, rho)  # a tangent is refused, as the plan's route refuses it
     check_memory(size)
     src = (image.shape[-2], image.shape[-1])
     res = resampler_for(layout, size, src, _FLOAT32_TOL, "cpu")

@@ -177,7 +177,7 @@ def test_the_quick_run_measures_the_synthetic_scene_with_torchs_references_and_c
     assert quick.images == ("synthetic",) and quick.torch_references and not BenchConfig().torch_references
     with pytest.raises(ValueError, match="images must name photo"):
         run(BenchConfig.quick(src=(32, 64), size=(5, 9), images=()))
-    with pytest.raises(ValueError, match="units must be of mesh, .*, got 'learn/float16'"):
+    with pytest.raises(ValueError, match=r"units must be of mesh, .*, got 'learn/float16'"):
         lw.jit.compile_missing(units=("mesh", "learn/float16"))
 
 

@@ -27,6 +27,7 @@ import torch
 from torch import Tensor
 from torch._C._functorch import TransformType
 from torch._functorch.pyfunctorch import retrieve_all_functorch_interpreters
+from torch.autograd import forward_ad
 
 from .. import jit, kernels
 from ..caches import LRU, ObjectMemo, version_of
@@ -291,8 +292,6 @@ def refuse_forward_ad(*tensors: object) -> None:
     """Raise, in one line, where any of ``tensors`` carries a forward-mode tangent
     (``torch.autograd.forward_ad.make_dual``): the operators register reverse-mode formulas only,
     and torch would drop the tangent without a word."""
-    from torch.autograd import forward_ad
-
     if forward_ad._current_level < 0 or torch.compiler.is_compiling():
         return  # no dual level open (the usual case: one integer read)
     if any(isinstance(t, Tensor) and forward_ad.unpack_dual(t).tangent is not None for t in tensors):
