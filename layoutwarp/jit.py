@@ -1,12 +1,12 @@
 """Compiled kernels: which units are ready, and compiling them once per installation.
 
-numba compiles a kernel at its first call and keeps the machine code in a disk cache
-(``cache=True``: beside the package, or under ``NUMBA_CACHE_DIR``), so only the first process of
-an installation pays: about a minute and a half of CPU on 2 cores for every unit together
-(``layoutwarp doctor --compile`` prints each one's time; ``docs/speed.md``). The kernels are
-grouped in *units*, each compiled whole: the learnable layouts' mesh (``mesh``, any dtype), and
-per image dtype a fixed layout's forward (``fixed/…``), the exact integrator (``learn/…``, with
-``mesh``) and the sensor's measurement (``measure/…``). The modes:
+numba compiles a kernel at its first call and keeps the machine code in a disk cache (``cache=True``:
+beside the package, or under ``NUMBA_CACHE_DIR``), so only the first process of an installation
+pays: about 80 s of CPU on 2 cores for every unit together (``layoutwarp doctor --compile`` prints
+each one's time; ``docs/speed.md``). The kernels are grouped in *units*, each compiled whole: the
+learnable layouts' mesh (``mesh``, any dtype), and per image dtype a fixed layout's forward
+(``fixed/…``), the exact integrator (``learn/…``, with ``mesh``) and the sensor's measurement
+(``measure/…``). The modes:
 
 - ``"background"`` (the default): a call whose unit is missing from the cache answers from the
   torch path (the same values to rounding) while one child process compiles the unit (then the
@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import atexit
 import contextlib
-import functools
 import importlib
 import json
 import os
@@ -288,10 +287,8 @@ def compile_missing(
 ) -> tuple[str, ...]:
     """Compile those of ``units`` (all by default) missing from the cache, ``processes`` at a time
     ([`compile_all`][]), and return their names (none where the mode is ``"off"`` or numba is
-    missing): for a program that is about to need most of them (the test suite, ``layoutwarp
-    bench``). ``say``: told what is compiled, before it is."""
-    unknown = [u for u in units if u not in UNITS]
-    if unknown:
+    missing), telling ``say`` first: for a program about to need most of them (the test suite)."""
+    if unknown := [u for u in units if u not in UNITS]:
         raise ValueError(f"units must be of {', '.join(UNITS)}, got {unknown[0]!r}")
     if not kernels.available() or mode() == "off":
         return ()
@@ -303,7 +300,6 @@ def compile_missing(
     return missing
 
 
-@functools.lru_cache(maxsize=64)  # asked at every call of a kernel's route
 def _units(group: str, dtype: str | torch.dtype) -> tuple[str, ...]:
     """The units a group of one dtype needs (the learnable layouts' mesh, then the group's own)."""
     name = str(dtype).removeprefix("torch.")
@@ -397,9 +393,8 @@ class _Worker:
     """A ``python -c "...serve()"`` child compiling the units it was given, in order, answering
     ``done UNIT`` (or ``failed UNIT``) on its stdout after each, at normal priority, with this
     process's ``sys.path`` (so it compiles the package this process imported). It ends when they
-    are done, when this process ends (killed at exit; on Linux also by the kernel should this
-    process die: the thread that starts it, whose end the kernel watches, lives as long as the
-    child), or at [`stop_worker`][]. ``OSError`` where it cannot start."""
+    are done, when this process ends (killed at exit; on Linux by the kernel should it die: the
+    thread that starts it lives as long as it), or at [`stop_worker`][]; ``OSError`` if it can't."""
 
     def __init__(self, units: list[str]) -> None:
         self.todo = list(units)
@@ -475,8 +470,7 @@ class _Worker:
             self.proc.kill()
 
 
-#: Units the background child could not compile into this process's cache (it failed, or what it
-#: compiled does not load here): their calls take the torch path, unless they need compiled code.
+#: Units the background child failed on (or compiled into another cache): the torch path answers.
 _FAILED: set[str] = set()
 
 
@@ -504,9 +498,8 @@ def _start_worker(units: tuple[str, ...], dtype: str | torch.dtype) -> bool:
     return True
 
 
-#: Whether this process is a forked child (a DataLoader's worker) of one whose background compile
-#: ran: it starts none of its own (its parent's fills the same cache) and looks at the cache again
-#: at most every [`LOOK_AGAIN_S`][] seconds.
+#: Whether this process is a forked child (a DataLoader's worker) of one whose background compile ran:
+#: it starts none (its parent's fills the cache) and looks again at most every [`LOOK_AGAIN_S`][] s.
 _FORKED = False
 LOOK_AGAIN_S = 5.0
 _LOOKED: dict[str, float] = {}  # unit: when a forked child last found it missing
