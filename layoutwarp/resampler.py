@@ -211,15 +211,9 @@ class AreaResampler:
         # compiled unless its kernels are still compiling; the measurement fused where it is compiled
         cpu = flat.device.type == "cpu" and not (torch.is_grad_enabled() and flat.requires_grad)
         fused = cpu and physics is not None and jit.ready("measure", flat.dtype)
-        if fused:  # the means measured in place: the buffer is this call's own
-            out = np.empty((n, self.runs.shape[0]), dtype=np.float32)
-            x = np.ascontiguousarray(flat.detach().numpy())
-            nt = kernels.threads(x.size)  # bounded by torch's; one for a small image
-            measured = kernel_arguments(physics, self.areas, output, seed_value)
-            bad = kernels.measured_runs_apply(self.runs.arrays(), x, out, *measured, out, nt)
-            mean, ok = torch.from_numpy(out).view(n, *self.size), allow_nonfinite or not bad
-        elif cpu and which == "numba":
-            mean, ok = self.compiled_product(flat, not allow_nonfinite), True  # checked there
+        if fused or (cpu and which == "numba"):  # checked there
+            camera = kernel_arguments(physics, self.areas, output, seed_value) if fused else ()
+            mean, ok = self.compiled_product(flat, not allow_nonfinite, camera), True
         else:
             cols = [self.sparse @ flat[k].unsqueeze(1) for k in range(n)]  # contiguous planes: no transpose
             mean = (
@@ -234,16 +228,22 @@ class AreaResampler:
             return mean
         return measure(mean, self.areas, physics, output=output, seed=seed)
 
-    def compiled_product(self, flat: torch.Tensor, check: bool) -> torch.Tensor:
+    def compiled_product(self, flat: torch.Tensor, check: bool, camera: tuple = ()) -> torch.Tensor:
         """The compiled product of float32 CPU planes ``(N, H·W)`` that need no gradient (the fixed
-        unit loaded: ``jit.ready("fixed")``): the means ``(N, h, w)``; ``check``: raise
-        ``ValueError`` where NaN/Inf reach them."""
+        unit loaded: ``jit.ready("fixed")``): the means ``(N, h, w)``; with ``camera`` (a camera's
+        ``measurement.kernel_arguments``, its unit loaded) what that sensor records of them, measured
+        in place (`measured_runs_apply`). ``check``: raise ``ValueError`` where NaN/Inf reach the
+        means."""
         n = flat.shape[0]
         out = torch.empty((n, *self.size), dtype=torch.float32)
         x = np.ascontiguousarray((flat.detach() if flat.requires_grad else flat).numpy())
         threads = kernels.threads(x.size)  # one for a small image
         planes = out.numpy().reshape(n, self.runs.shape[0])  # (an empty batch too)
-        if kernels.runs_apply(self.runs.arrays(), x, planes, threads) and check:
+        if camera:  # the buffer is this call's own
+            bad = kernels.measured_runs_apply(self.runs.arrays(), x, planes, *camera, planes, threads)
+        else:
+            bad = kernels.runs_apply(self.runs.arrays(), x, planes, threads)
+        if bad and check:
             raise_nonfinite(flat)
         return out
 

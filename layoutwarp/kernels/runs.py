@@ -144,20 +144,8 @@ def _runs_share(
     for k0 in range(lo, hi, BAND):
         for p in range(0, x.shape[0], 3):
             for k in range(k0, min(k0 + BAND, hi)):
-                bad += _pixel_out(
-                    k,
-                    pix_runs,
-                    run_start,
-                    run_len,
-                    run_head,
-                    run_tail,
-                    inv_area,
-                    pix_cuts,
-                    cut_weight,
-                    x,
-                    out,
-                    p,
-                )
+                bad += _pixel_out(k, pix_runs, run_start, run_len, run_head, run_tail, inv_area, pix_cuts,
+                                  cut_weight, x, out, p)  # fmt: skip
     return bad
 
 
