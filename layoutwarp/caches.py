@@ -125,8 +125,10 @@ def _same(a: tuple, b: tuple) -> bool:
     """Two states alike: tensors the same objects, everything else equal."""
     if len(a) != len(b):
         return False
-    pairs = zip(a, b, strict=True)
-    return all(x is y if isinstance(x, Tensor) or isinstance(y, Tensor) else x == y for x, y in pairs)
+    for x, y in zip(a, b, strict=True):  # a loop, not all(...): a small call's keys are read often
+        if x is not y and (isinstance(x, Tensor) or isinstance(y, Tensor) or x != y):
+            return False
+    return True
 
 
 class ObjectMemo:
@@ -148,8 +150,9 @@ class ObjectMemo:
     def get(self, obj: Any, state: tuple, compute: Callable[[], V]) -> V:
         """The value remembered for ``obj`` in ``state``, else ``compute()`` remembered (a state
         holding ``None``, a [`version_of`][] that cannot be told, is computed and not kept)."""
-        if any(v is None for v in state):
-            return compute()
+        for v in state:
+            if v is None:
+                return compute()
         key = id(obj)
         hit = self._entries.get(key)
         if hit is not None and hit[0]() is obj and _same(hit[1], state):

@@ -332,13 +332,15 @@ def resampler_for(
     holding no weights. A learnable layout's (used without gradient) are its θ's as a training
     step computes it ([`operator_theta`][layoutwarp.operators.base.operator_theta]).
     """
-    token, theta = layout_token(layout), ops.operator_theta(layout)
-    return _kept(token, theta, size, src_size, tol, device, lambda: ops.layout_of(token, theta))
+    token, values = layout_token(layout), ops.layout_theta_values(layout)
+    return _kept(
+        token, values, size, src_size, tol, device, lambda: ops.layout_of(token, ops.operator_theta(layout))
+    )
 
 
 def _kept(
     token: str,
-    theta: torch.Tensor,
+    values: tuple[float, ...],
     size: tuple[int, int],
     src: tuple[int, int],
     tol: float,
@@ -346,12 +348,12 @@ def _kept(
     layout: Callable[[], Layout],
 ) -> AreaResampler | None:
     """The [`AreaResampler`][] kept in [`RESAMPLERS`][] for the layout of a
-    [`layout_token`][layoutwarp.operators.base.layout_token] at ``theta`` (keyed by the token and θ's
-    values: no layout is made, ``layout()``, for a resampler already kept); ``None`` for an
+    [`layout_token`][layoutwarp.operators.base.layout_token] at θ of ``values`` (keyed by the token
+    and them: no layout is made, ``layout()``, for a resampler already kept); ``None`` for an
     unregistered family, or when the cache keeps none."""
     if RESAMPLERS.maxsize == 0 or token.startswith("object:"):
         return None
-    key = ((token, ops.theta_values(theta)), tuple(size), tuple(src), float(tol), torch.device(device))
+    key = ((token, values), tuple(size), tuple(src), float(tol), torch.device(device))
     return RESAMPLERS.get(key, lambda: AreaResampler(layout(), size, src, tol=tol, device=device))
 
 
@@ -392,7 +394,8 @@ def area_product(
     _check_float32(image)
     size, src = (height, width), tuple(image.shape[-2:])
     camera = physics_of(physics)
-    res = _kept(layout, theta, size, src, tol, image.device, lambda: ops.layout_of(layout, theta))
+    values = ops.theta_values(theta)
+    res = _kept(layout, values, size, src, tol, image.device, lambda: ops.layout_of(layout, theta))
     if res is None:  # the cache keeps none: the exact walk (and the measurement)
         means, areas, _, _ = torch.ops.layoutwarp.exact(
             theta, image, layout, height, width, tol, "auto", False, check, theta.new_empty(0), image.dtype
@@ -427,7 +430,8 @@ def _area_backward(
     """The images' gradient of ``layoutwarp::area`` (without physics): the transposed weights
     applied to ``grad`` ``(N, h, w)``, ``(N, H, W)``."""
     src = (src_height, src_width)
-    res = _kept(layout, theta, (height, width), src, tol, grad.device, lambda: ops.layout_of(layout, theta))
+    values = ops.theta_values(theta)
+    res = _kept(layout, values, (height, width), src, tol, grad.device, lambda: ops.layout_of(layout, theta))
     if res is None:
         raise RuntimeError(
             "layoutwarp::area: the area weights' cache was emptied between forward and backward"

@@ -231,7 +231,8 @@ def simulate(
     if not torch.compiler.is_compiling() and torch.is_inference_mode_enabled():  # the caches' tensors
         with torch.inference_mode(False), torch.no_grad():  # must serve autograd later: made outside it
             return simulate(**locals())
-    defaults = all(v is None for v in (radiance, tol, physics, noise, seed, generator))
+    defaults = radiance is None and tol is None and physics is None and noise is None  # (no all():
+    defaults = defaults and seed is None and generator is None  # a small call's microseconds)
     if defaults and method == "exact" and output == "radiance" and return_plan is False:  # no plan
         out = _fixed_plain(image, layout, size, allow_nonfinite)
         if out is not None:
@@ -307,7 +308,9 @@ def _fixed_plain(image: Any, layout: Any, size: Any, allow_nonfinite: Any) -> Te
         return None
     if image.ndim not in (3, 4) or not image.numel() or type(allow_nonfinite) is not bool:
         return None
-    if not (type(size) is tuple and len(size) == 2 and all(type(v) is int and v > 0 for v in size)):
+    if not (type(size) is tuple and len(size) == 2 and type(size[0]) is int and type(size[1]) is int):
+        return None
+    if size[0] <= 0 or size[1] <= 0:
         return None
     rho = layout.rho if isinstance(layout, Layout) else None
     if rho is None or rho.device.type != "cpu" or RESAMPLERS.maxsize == 0:

@@ -21,6 +21,7 @@ from layoutwarp.caches import clear_caches
 from layoutwarp.kernels.mesh import mesh_spec
 from layoutwarp.layoutfile import layout_from_spec, layout_key, layout_spec
 from layoutwarp.layouts import FAMILIES, phi_curv
+from layoutwarp.operators import base as ops
 
 F64 = torch.float64
 SIZE, SRC = (5, 6), (30, 36)
@@ -242,3 +243,39 @@ def test_a_write_the_version_counter_cannot_see_is_mended_by_clear_caches(gen):
     assert torch.equal(lw.simulate(img, layout, SIZE), before)  # not seen: documented
     clear_caches()
     assert torch.equal(lw.simulate(img, layout, SIZE), lw.simulate(img, lw.CurvLayout((-0.2, 0.4)), SIZE))
+
+
+def _data_halved(layout: lw.Layout) -> None:
+    layout.rho.data = layout.rho.data * 0.5  # no version counter moves
+
+
+#: Changes no version counter sees, to what θ is made of: (its function, whether θ's values move).
+UNCOUNTED = {
+    "a new rho.data": (_data_halved, True),
+    ".to(float64)": (lambda layout: layout.to(F64), None),  # a learnable θ now computed in float64
+    "requires_grad_(False)": (lambda layout: layout.rho.requires_grad_(False), True),  # in float64
+}
+UNCOUNTED_CASES = [
+    pytest.param(change, learn, id=f"{change}-{'learnable' if learn else 'fixed'}")
+    for change in UNCOUNTED
+    for learn in (False, True)
+    if learn or change == ".to(float64)"  # a fixed layout's θ is set with set_theta, its ρ no parameter
+]
+
+
+@pytest.mark.parametrize(("change", "learn"), UNCOUNTED_CASES)
+def test_a_layouts_remembered_theta_follows_what_no_version_counts(change, learn):
+    """The θ values a fixed call keys its weights by, remembered per layout
+    (``operators.base.layout_theta_values``), are θ's as the operators take it now, after each
+    change to a learnable ρ that no version counter sees (and a fixed layout's ``.to()``), bit
+    for bit (a stale float32 θ would differ in float64)."""
+    apply, moves = UNCOUNTED[change]
+    layout = lw.CurvLayout((0.3, -0.24), learn=learn)
+    before = ops.layout_theta_values(layout)
+    assert before == ops.theta_values(ops.operator_theta(layout))
+    with torch.no_grad():
+        apply(layout)
+    now = ops.theta_values(ops.operator_theta(layout))
+    assert ops.layout_theta_values(layout) == now
+    if moves or (moves is None and learn):  # a fixed layout's θ is kept in float64 as it was set
+        assert now != before, "the change did not move θ: the test would see nothing"

@@ -186,6 +186,23 @@ def theta_values(theta: Tensor) -> tuple[float, ...]:
     )
 
 
+#: The values of [`operator_theta`][] per layout, while the tensors θ is made of (``rho``, and
+#: a fixed layout's ``fixed_theta``) are the same, unchanged in place, with the same data
+#: (``.to()`` sets a parameter's ``.data``, which no version counts), as trainable as they were,
+#: and its token the same.
+LAYOUT_THETAS = ObjectMemo("θ values of layouts")
+
+
+def layout_theta_values(layout: Layout) -> tuple[float, ...]:
+    """θ's values as float64 numbers, of [`operator_theta`][] of ``layout``, remembered per
+    layout (a fixed layout's small call pays a look-up, not θ's computation)."""
+    state: tuple = (layout_token(layout),)
+    for t in (layout.rho, getattr(layout, "fixed_theta", None)):
+        if t is not None:
+            state += (t, version_of(t), t.data_ptr(), t.dtype, t.requires_grad)
+    return LAYOUT_THETAS.get(layout, state, lambda: theta_values(operator_theta(layout)))
+
+
 def backend(x: Tensor, group: str, *, name: str | None = None, wait: bool = False) -> str:
     """Which implementation runs an operator's work on ``x``: ``"cuda"`` (numba-cuda kernels, on
     a CUDA device or in numba's CUDA simulator, unless the kernel ``name`` failed here before),
