@@ -100,6 +100,22 @@ def test_fd_gradient_matches_exact_autograd(seed):
         assert float((g - fd).norm() / fd.norm()) < 1e-3, (family, g, fd)
 
 
+def test_fd_gradient_along_directions_is_the_projected_gradient(seed):
+    """The derivatives along random directions (``--quick``'s check of a large θ) equal the
+    directions times the gradient from each entry's differences (the loss is smooth in θ)."""
+    gen = torch.Generator().manual_seed(seed)
+    img = torch.rand(1, 2, 40, 48, generator=gen, dtype=F64)
+    size = (5, 6)
+    w = 1 + torch.rand(1, 2, *size, generator=gen, dtype=F64)
+    layout = lw.make_layout("grid", grid=(3, 3), dtype=F64)
+    theta = 0.05 * torch.randn(layout.theta.numel(), generator=gen, dtype=F64)
+    full = fd_theta_gradient(img, layout, theta, size, w)
+    directions = torch.randn(3, theta.numel(), generator=gen, dtype=F64)
+    along = fd_theta_gradient(img, layout, theta, size, w, directions=directions)
+    assert along.shape == (3,)
+    torch.testing.assert_close(along, directions @ full, rtol=1e-5, atol=1e-9 * float(full.norm()))
+
+
 def test_run_small_reports_every_method_and_plots(tmp_path):
     res = run(
         BenchConfig(src=(48, 96), size=(7, 13), tols=(1e-3,), mc_samples=(1, 4), repeats=1, memory=False)

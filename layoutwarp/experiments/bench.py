@@ -138,6 +138,7 @@ def run(config: BenchConfig | None = None, progress: Callable[[str], None] | Non
         "device": str(cfg.device),
         "input_mb": first.numel() * 4 / 2**20,
         "images": list(images),
+        "fd_directions": cfg.fd_directions,
         "scene": asdict(scene),
         "anchors_ms": anchors,
         "rows": [asdict(r) for r in rows],
@@ -174,11 +175,16 @@ def _layout_rows(
     with torch.no_grad(), jit.use_mode("off") if cfg.torch_references else contextlib.nullcontext():
         ref = simulate(img64, layout, size, tol=1e-7)
         gw = 1 + torch.rand(ref.shape, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
-        g_ref = None
-        if layout.theta.numel():
+        g_ref = directions = None
+        n = layout.theta.numel()
+        if n and cfg.fd_directions is not None and cfg.fd_directions < n:  # unit random directions
+            directions = torch.randn(cfg.fd_directions, n, generator=torch.Generator().manual_seed(2))
+            directions = directions.double() / directions.double().norm(dim=1, keepdim=True)
+        if n:
             g_ref = fd_theta_gradient(
-                img64, layout_from_spec(spec, dtype=torch.float64), layout.theta.detach(), size, gw
-            )
+                img64, layout_from_spec(spec, dtype=torch.float64), layout.theta.detach(), size, gw,
+                directions=directions,
+            )  # fmt: skip
     truth = scene.pixel_means(layout, size)[None] if image_name == "synthetic" else None
 
     def errors(out: Tensor) -> dict:
@@ -266,6 +272,7 @@ def _layout_rows(
             row.backward_ms = time_backward(fwd_grad, dev_learn, repeats)
             (fwd_grad().double().cpu() * gw).sum().backward()
             g = _theta_grad(dev_learn).cpu()
+            g = g if directions is None else directions @ g.double()  # along the directions checked
             dev_learn.rho.grad = None
             row.grad_rel_err = float((g - g_ref).norm() / g_ref.norm())
             row.extra["grad"], row.extra["grad_ref"] = g.tolist(), g_ref.tolist()

@@ -60,6 +60,9 @@ class BenchConfig:
         torch_references: compute the float64 references (the exact means, the finite
             differences) on the torch path, which no kernel of float64 images serves (``--quick``:
             nothing of float64 to compile; about 10x slower at the full size).
+        fd_directions: check θ's gradient along this many random directions (each two finite
+            differences), not along each of its ``P`` entries (``2P``), where that is fewer
+            (``--quick``: 4; a grid 8x8's 98 entries took 9 of its 37 s); ``None``: every entry.
     """
 
     src: tuple[int, int] = (1024, 2048)
@@ -74,6 +77,7 @@ class BenchConfig:
     only: tuple[str, ...] | None = None
     images: tuple[str, ...] = ("photo", "synthetic")
     torch_references: bool = False
+    fd_directions: int | None = None
 
     @classmethod
     def quick(cls, **changes: Any) -> BenchConfig:
@@ -81,4 +85,5 @@ class BenchConfig:
         path (``layoutwarp bench --quick``: a check that everything runs, in about 30 s once
         compiled)."""
         small = {"src": (256, 512), "size": (33, 65), "repeats": 3, "memory": False}
-        return cls(**(small | {"images": ("synthetic",), "torch_references": True} | changes))
+        cheap = {"images": ("synthetic",), "torch_references": True, "fd_directions": 4}
+        return cls(**(small | cheap | changes))

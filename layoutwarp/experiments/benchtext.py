@@ -20,7 +20,12 @@ def format_table(result: dict) -> str:
         f"anchors: INTER_AREA {a['inter_area']:.2f} ms, "
         f"grid_sample MC-16 {a['grid_sample_mc16']:.2f} ms",
         "errors: RMSE/max against float64 exact; 'scene' RMSE against the analytic pixel means "
-        "(synthetic only); grad: relative error of dL/dθ against float64 finite differences",
+        "(synthetic only); grad: relative error of dL/dθ against float64 finite differences"
+        + (
+            f" (along {k} random directions where θ has more entries)"
+            if (k := result.get("fd_directions"))
+            else ""
+        ),
         "fwd ms: a fixed layout (its mesh is built once and reused); train ms: forward + backward "
         "of a learnable layout (mesh rebuilt every call, as in training); bwd/fwd within training",
     ]

@@ -139,8 +139,11 @@ def fd_theta_gradient(
     weights: Tensor,
     h: float = 1e-6,
     subdiv: int = 64,
+    directions: Tensor | None = None,
 ) -> Tensor:
-    """Central finite differences of ``Σ weights · exact(θ)`` in float64, shape ``(P,)``.
+    """Central finite differences of ``Σ weights · exact(θ)`` in float64, shape ``(P,)``; with
+    ``directions`` ``(K, P)``, the derivatives along each of them instead, ``(K,)`` (a gradient
+    ``g`` checked as ``directions @ g``: two evaluations a direction, not two an entry).
 
     Curved edges use ``subdiv`` equal parameter steps (no adaptive choice), so the forward
     is smooth in θ and the differences are not polluted by changing subdivisions. The box
@@ -154,9 +157,6 @@ def fd_theta_gradient(
         with torch.no_grad():
             return float((_exact64(img64, layout, size, subdiv, t) * weights).sum())
 
-    grads = []
-    for k in range(th.numel()):
-        step = torch.zeros_like(th)
-        step[k] = h
-        grads.append((loss(th + step) - loss(th - step)) / (2 * h))
+    steps = torch.eye(th.numel(), dtype=torch.float64) if directions is None else directions.double()
+    grads = [(loss(th + h * step) - loss(th - h * step)) / (2 * h) for step in steps]
     return torch.tensor(grads, dtype=torch.float64)
