@@ -16,9 +16,11 @@
 through it (`set_theta`, an optimiser's step, `load_state_dict`, `add_` under `no_grad`), and
 every key here holds the version of each tensor it was computed from, so results follow such
 changes (`tests/test_cache_keys.py` changes every family's state each of these ways and compares
-every kept path with a layout made anew). A change that bypasses the counter is not seen:
-writing through ``tensor.data`` (its own counter), through a numpy view (``tensor.numpy()``) or
-DLPack, or into a tensor's storage by other means. After such a write, [`clear_caches`][] is the
+every kept path with a layout made anew); θ's keys also hold its data's address and dtype, so
+they follow a new ``tensor.data = ...`` and a parameter's ``.to()`` too. A change that bypasses
+the counter in place is not seen: writing through ``tensor.data`` (its own counter, e.g.
+``.data.copy_``), through a numpy view (``tensor.numpy()``) or DLPack, or into a tensor's
+storage by other means. After such a write, [`clear_caches`][] is the
 one remedy (e.g. ``layout.fixed_theta.data.copy_(new)`` then ``lw.caches.clear_caches()``;
 better: ``layout.set_theta(new)``).
 

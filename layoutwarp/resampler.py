@@ -333,9 +333,11 @@ def resampler_for(
     step computes it ([`operator_theta`][layoutwarp.operators.base.operator_theta]).
     """
     token, values = layout_token(layout), ops.layout_theta_values(layout)
-    return _kept(
-        token, values, size, src_size, tol, device, lambda: ops.layout_of(token, ops.operator_theta(layout))
-    )
+
+    def build() -> Layout:  # at the key's θ, not the layout's now: a thread may have set it since
+        return ops.layout_of(token, torch.tensor(values, dtype=torch.float64))
+
+    return _kept(token, values, size, src_size, tol, device, build)
 
 
 def _kept(

@@ -246,36 +246,72 @@ def test_a_write_the_version_counter_cannot_see_is_mended_by_clear_caches(gen):
 
 
 def _data_halved(layout: lw.Layout) -> None:
-    layout.rho.data = layout.rho.data * 0.5  # no version counter moves
+    held = layout.rho if layout.learnable_param else layout.fixed_theta  # what θ is made of
+    held.data = held.data * 0.5  # a new tensor's data: no version counter moves
 
 
 #: Changes no version counter sees, to what θ is made of: (its function, whether θ's values move).
 UNCOUNTED = {
-    "a new rho.data": (_data_halved, True),
+    "a new .data": (_data_halved, True),
     ".to(float64)": (lambda layout: layout.to(F64), None),  # a learnable θ now computed in float64
+    ".to(bfloat16)": (lambda layout: layout.to(torch.bfloat16), None),  # a learnable ρ rounded
     "requires_grad_(False)": (lambda layout: layout.rho.requires_grad_(False), True),  # in float64
 }
 UNCOUNTED_CASES = [
-    pytest.param(change, learn, id=f"{change}-{'learnable' if learn else 'fixed'}")
+    pytest.param(family, change, learn, id=f"{family}-{change}-{'learnable' if learn else 'fixed'}")
+    for family in ("curv", "grid")  # θ made by tanh of ρ, and ρ itself (an unbounded family)
     for change in UNCOUNTED
     for learn in (False, True)
-    if learn or change == ".to(float64)"  # a fixed layout's θ is set with set_theta, its ρ no parameter
+    if learn or change != "requires_grad_(False)"  # a fixed layout's ρ is no parameter
 ]
 
 
-@pytest.mark.parametrize(("change", "learn"), UNCOUNTED_CASES)
-def test_a_layouts_remembered_theta_follows_what_no_version_counts(change, learn):
+@pytest.mark.parametrize(("family", "change", "learn"), UNCOUNTED_CASES)
+def test_a_layouts_remembered_theta_follows_what_no_version_counts(family, change, learn, gen):
     """The θ values a fixed call keys its weights by, remembered per layout
-    (``operators.base.layout_theta_values``), are θ's as the operators take it now, after each
-    change to a learnable ρ that no version counter sees (and a fixed layout's ``.to()``), bit
-    for bit (a stale float32 θ would differ in float64)."""
+    (``operators.base.layout_theta_values``) and per tensor (``theta_values``), are θ's as the
+    operators take it now, read afresh, after each change that no version counter sees, bit for
+    bit (a stale float32 θ would differ in float64); and the call's output is the one it gives
+    with every cache and memo cleared."""
     apply, moves = UNCOUNTED[change]
-    layout = lw.CurvLayout((0.3, -0.24), learn=learn)
+    layout = _make(family, gen, learn)
+    image = torch.rand(1, 2, 30, 36, generator=gen)
+    with torch.no_grad():
+        lw.simulate(image, layout, (5, 6))  # every memo and cache filled before the change
     before = ops.layout_theta_values(layout)
-    assert before == ops.theta_values(ops.operator_theta(layout))
     with torch.no_grad():
         apply(layout)
-    now = ops.theta_values(ops.operator_theta(layout))
+    now = tuple(ops.operator_theta(layout).detach().double().tolist())
     assert ops.layout_theta_values(layout) == now
-    if moves or (moves is None and learn):  # a fixed layout's θ is kept in float64 as it was set
+    assert ops.theta_values(ops.operator_theta(layout)) == now
+    exact = family == "grid" and change in (".to(float64)", "requires_grad_(False)")  # θ = ρ, widened
+    if (moves or (moves is None and learn)) and not exact:  # a fixed θ is kept in float64 as set
         assert now != before, "the change did not move θ: the test would see nothing"
+    with torch.no_grad():
+        out = lw.simulate(image, layout, (5, 6))
+        clear_caches()
+        torch.testing.assert_close(out, lw.simulate(image, layout, (5, 6)), rtol=0, atol=0)
+
+
+def test_a_kept_resampler_is_built_at_its_keys_theta_when_a_thread_sets_another_meanwhile(monkeypatch, gen):
+    """Weights are kept under the θ values their key was made of: where another thread sets the
+    layout's θ between the key and the build (forced here, right after the key), the kept
+    weights are still the key θ's, so a later layout at that θ reads the right ones."""
+    layout = lw.CurvLayout((0.3, -0.24), learn=True)
+    image = torch.rand(1, 2, 30, 36, generator=gen)
+    keyed = ops.layout_theta_values
+
+    def key_then_set(lay: lw.Layout) -> tuple[float, ...]:
+        values = keyed(lay)
+        lay.set_theta((-0.1, 0.35))  # the other thread
+        return values
+
+    monkeypatch.setattr(ops, "layout_theta_values", key_then_set)
+    with torch.no_grad():
+        lw.simulate(image, layout, (5, 6))  # keys at (0.3, -0.24), builds after the set
+    monkeypatch.undo()
+    at_key = lw.CurvLayout((0.3, -0.24), learn=True)
+    with torch.no_grad():
+        kept = lw.simulate(image, at_key, (5, 6))  # the weights kept under the key
+        clear_caches()
+        torch.testing.assert_close(kept, lw.simulate(image, at_key, (5, 6)), rtol=1e-6, atol=1e-6)

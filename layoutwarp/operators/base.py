@@ -180,10 +180,10 @@ def operator_theta(layout: Layout) -> Tensor:
 
 
 def theta_values(theta: Tensor) -> tuple[float, ...]:
-    """θ's values as float64 numbers, read once per tensor and version."""
-    return THETA_VALUES.get(
-        theta, (version_of(theta),), lambda: tuple(theta.detach().to("cpu", torch.float64).tolist())
-    )
+    """θ's values as float64 numbers, read once per tensor, version and data (``.to()`` and a new
+    ``.data`` change a tensor's data, and no version counts it)."""
+    state = (version_of(theta), theta.data_ptr(), theta.dtype)
+    return THETA_VALUES.get(theta, state, lambda: tuple(theta.detach().to("cpu", torch.float64).tolist()))
 
 
 #: The values of [`operator_theta`][] per layout, while the tensors θ is made of (``rho``, and
