@@ -236,7 +236,8 @@ class AreaResampler:
         means."""
         n = flat.shape[0]
         out = torch.empty((n, *self.size), dtype=torch.float32)
-        x = np.ascontiguousarray((flat.detach() if flat.requires_grad else flat).numpy())
+        src = flat.detach() if flat.requires_grad else flat
+        x = np.ascontiguousarray((src.resolve_neg() if src.is_neg() else src).numpy())  # a -x view too
         threads = kernels.threads(x.size)  # one for a small image
         planes = out.numpy().reshape(n, self.runs.shape[0])  # (an empty batch too)
         if camera:  # the buffer is this call's own

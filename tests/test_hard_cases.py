@@ -226,3 +226,8 @@ def test_hard_non_contiguous_and_channels_last(family):
     assert torch.allclose(
         lw.simulate(sliced, layout, (7, 8)), lw.simulate(sliced.contiguous(), layout, (7, 8))
     )
+    negated = torch.complex(torch.zeros_like(img), img).conj().imag  # -img as a view (negative bit)
+    assert negated.is_neg()
+    for options in ({}, {"tol": 1e-3}):  # the plain call and the planned one
+        out = lw.simulate(negated, layout, (7, 8), **options)
+        torch.testing.assert_close(out, -lw.simulate(img, layout, (7, 8), **options), rtol=0, atol=1e-6)
