@@ -117,9 +117,8 @@ def test_fd_gradient_along_directions_is_the_projected_gradient(seed):
 
 
 def test_run_small_reports_every_method_and_plots(tmp_path):
-    res = run(
-        BenchConfig(src=(48, 96), size=(7, 13), tols=(1e-3,), mc_samples=(1, 4), repeats=1, memory=False)
-    )
+    small = {"src": (48, 96), "size": (7, 13), "tols": (1e-3,), "mc_samples": (1, 4), "repeats": 1}
+    res = run(BenchConfig(**small, memory=False, fd_directions=4))  # the grid's 98 θ along 4
     rows = res["rows"]
     assert {r["image"] for r in rows} == set(res["images"]) and "synthetic" in res["images"]
     methods = {(r["layout"], r["method"]) for r in rows}
@@ -129,6 +128,9 @@ def test_run_small_reports_every_method_and_plots(tmp_path):
     by = {(r["image"], r["layout"], r["method"], r["setting"]): r for r in rows}
     sep = by[("synthetic", "rect", "separable", "exact")]
     assert sep["rmse"] < 1e-6 and sep["grad_rel_err"] < 1e-3
+    assert len(sep["extra"]["grad"]) == 2  # rect's θ: every entry (2 < 4 directions)
+    grid = by[("synthetic", "grid 8x8", "exact", "exact")]  # checked along 4 random directions
+    assert len(grid["extra"]["grad"]) == 4 and grid["grad_rel_err"] < 1e-3
     area = by[("synthetic", "uniform", "anchor: cv2.resize AREA", "-")]
     assert area["rmse"] < 1e-6 and math.isfinite(area["scene_rmse"])
     mc = [by[("synthetic", "curv", "montecarlo", f"{s} spp")]["rmse"] for s in (1, 16)]
@@ -191,6 +193,7 @@ def test_the_quick_run_measures_the_synthetic_scene_with_torchs_references_and_c
     unit not in ``jit.UNITS``, is refused in one line."""
     quick = BenchConfig.quick()
     assert quick.images == ("synthetic",) and quick.torch_references and not BenchConfig().torch_references
+    assert quick.fd_directions == 4 and BenchConfig().fd_directions is None  # the full run: every entry
     with pytest.raises(ValueError, match="images must name photo"):
         run(BenchConfig.quick(src=(32, 64), size=(5, 9), images=()))
     with pytest.raises(ValueError, match=r"units must be of mesh, .*, got 'learn/float16'"):
