@@ -47,31 +47,34 @@ def _pixel_sums(
     k, pix_runs, run_start, run_len, run_head, run_tail, inv_area, pix_cuts, cut_weight, x, p, q, r
 ):
     """Pixel ``k``'s means of planes ``p``, ``q`` and ``r`` (three planes at once: an RGB image's
-    cells are read in one pass; a plane may repeat) in one pass over its runs, summed in float64."""
+    cells are read in one pass; a plane may repeat) in one pass over its runs, summed in float64.
+    The planes are read as rows of their own by unsigned indices: no test for a negative index
+    at each read (the product 1.2-1.3x faster than with ``x[p, c]`` and a signed ``c``)."""
+    xp, xq, xr, one = x[p], x[q], x[r], np.uint64(1)
     a0 = a1 = a2 = np.float64(0.0)  # the cut cells' weighted sums
     b0 = b1 = b2 = np.float64(0.0)  # the whole cells' sums
-    o = pix_cuts[k]
+    o = np.uint64(pix_cuts[k])
     for j in range(pix_runs[k], pix_runs[k + 1]):
-        s = np.int64(run_start[j])
-        e = s + run_len[j]
-        h = s + run_head[j]
-        t = e - run_tail[j]
-        for c in range(s, h):
+        c = np.uint64(run_start[j])
+        e = c + np.uint64(run_len[j])
+        h, t = c + np.uint64(run_head[j]), e - np.uint64(run_tail[j])
+        while c < h:
             w = np.float64(cut_weight[o])
-            o += 1
-            a0 += w * x[p, c]
-            a1 += w * x[q, c]
-            a2 += w * x[r, c]
-        for c in range(h, t):
-            b0 += x[p, c]
-            b1 += x[q, c]
-            b2 += x[r, c]
-        for c in range(t, e):
+            a0 += w * xp[c]
+            a1 += w * xq[c]
+            a2 += w * xr[c]
+            o, c = o + one, c + one
+        while c < t:
+            b0 += xp[c]
+            b1 += xq[c]
+            b2 += xr[c]
+            c += one
+        while c < e:
             w = np.float64(cut_weight[o])
-            o += 1
-            a0 += w * x[p, c]
-            a1 += w * x[q, c]
-            a2 += w * x[r, c]
+            a0 += w * xp[c]
+            a1 += w * xq[c]
+            a2 += w * xr[c]
+            o, c = o + one, c + one
     v = inv_area[k]
     return a0 + b0 * v, a1 + b1 * v, a2 + b2 * v
 
@@ -81,21 +84,22 @@ _pixel_sums = inline(_pixel_sums)
 
 def _pixel_sum(k, pix_runs, run_start, run_len, run_head, run_tail, inv_area, pix_cuts, cut_weight, x, p):
     """Pixel ``k``'s mean of plane ``p`` (a gray image's), as [`_pixel_sums`][] of one plane."""
+    xp, one = x[p], np.uint64(1)
     a = b = np.float64(0.0)
-    o = pix_cuts[k]
+    o = np.uint64(pix_cuts[k])
     for j in range(pix_runs[k], pix_runs[k + 1]):
-        s = np.int64(run_start[j])
-        e = s + run_len[j]
-        h = s + run_head[j]
-        t = e - run_tail[j]
-        for c in range(s, h):
-            a += np.float64(cut_weight[o]) * x[p, c]
-            o += 1
-        for c in range(h, t):
-            b += x[p, c]
-        for c in range(t, e):
-            a += np.float64(cut_weight[o]) * x[p, c]
-            o += 1
+        c = np.uint64(run_start[j])
+        e = c + np.uint64(run_len[j])
+        h, t = c + np.uint64(run_head[j]), e - np.uint64(run_tail[j])
+        while c < h:
+            a += np.float64(cut_weight[o]) * xp[c]
+            o, c = o + one, c + one
+        while c < t:
+            b += xp[c]
+            c += one
+        while c < e:
+            a += np.float64(cut_weight[o]) * xp[c]
+            o, c = o + one, c + one
     return a + b * inv_area[k]
 
 
