@@ -231,8 +231,9 @@ def simulate(
     if not torch.compiler.is_compiling() and torch.is_inference_mode_enabled():  # the caches' tensors
         with torch.inference_mode(False), torch.no_grad():  # must serve autograd later: made outside it
             return simulate(**locals())
-    defaults = radiance is None and tol is None and physics is None and noise is None  # (no all():
-    defaults = defaults and seed is None and generator is None  # a small call's microseconds)
+    # every option at its default (tested one by one, not with all(): a small call's microseconds)
+    defaults = radiance is None and tol is None and physics is None and noise is None
+    defaults = defaults and seed is None and generator is None
     if defaults and method == "exact" and output == "radiance" and return_plan is False:  # no plan
         out = _fixed_plain(image, layout, size, allow_nonfinite)
         if out is not None:
@@ -399,17 +400,13 @@ class _Integration:
         else:  # the sampling integrators: the areas of the polygons the pixels are
             mean = self._dispatch(work, route)
             areas = torch.ops.layoutwarp.pixel_areas(
-                self._theta(), layout_token(self.layout), *self.size, self.tol
+                operator_theta(self.layout), layout_token(self.layout), *self.size, self.tol
             )
         return measure(mean, areas, self.physics, output=self.output, seed=seed)
 
-    def _theta(self) -> Tensor:
-        """θ as the geometry takes it: a fixed layout's as it was set (float64), a learned one's."""
-        return operator_theta(self.layout)
-
     def _area(self, work: Tensor, physics: str, seed: Tensor, with_areas: bool) -> tuple[Tensor, Tensor]:
         """``layoutwarp::area`` on ``work``: the means (or, with ``physics``, the record) and areas."""
-        theta = self._theta()
+        theta = operator_theta(self.layout)
         args = (layout_token(self.layout), *self.size, float(self.tol), physics, self.output)
         op = area_product if plain_eager(work, theta, seed) else torch.ops.layoutwarp.area
         return op(work, theta, *args, seed, not self.allow_nonfinite, with_areas)
