@@ -30,7 +30,9 @@ from .layouts import Layout
 from .topology import MeshTopology
 
 __all__ = [
+    "BENDS",
     "MESHES",
+    "SAMPLES",
     "PixelMesh",
     "pixel_mesh",
     "polygon_area",
@@ -219,10 +221,13 @@ def _edge_parameters(
     edges a quarter of the budget ``tol · A`` (``A`` the smaller adjacent pixel area), shared
     along the edge in proportion to length, bounds every pixel's value error by ``tol`` times
     the radiance range. The sagitta is bounded by ``max |φ''⊥| / 8`` from second differences
-    at 5 points per piece (an S-shaped piece or one whose bend sits near an end has no
-    sagitta at its middle), so straight edges get exactly one segment. With ``with_grad``,
-    the parameter velocity ``∂φ/∂θ`` along each edge is held to the same bound, so that
-    θ-gradients are as accurate as values.
+    at the 9 [`SAMPLES`][] of each piece, graded towards its ends: φ bends hardest where a
+    piece meets the unit circle or the sensor's border (θ near ±1 puts nearly all of an
+    edge's bend into its last thousandth), and an S-shaped piece has no sagitta at its
+    middle. Straight edges get exactly one segment. With ``with_grad``, the parameter
+    velocity ``∂φ/∂θ`` along each edge, sampled at the 7 inner samples (it may jump at a
+    kink, a piece's end), is held to the same bound, so that θ-gradients are as accurate as
+    values.
 
     Returns:
         ``(edge, lo, hi, n)``: the smooth pieces (their edge and parameter range, ordered by
@@ -263,9 +268,8 @@ def _segment_counts(
     area_v = torch.minimum(torch.cat([inf, area], 1), torch.cat([area, inf], 1))  # (H, W+1)
     amin = torch.cat([area_h.flatten(), area_v.flatten()])
     a0, d = ua[edge], (ub - ua)[edge]
-    k_s = 4  # 5 samples a piece: worst error 0.12-0.14 of tol over random θ (9 samples: 0.11-0.14)
-    s_t = torch.linspace(0, 1, k_s + 1, dtype=ua.dtype, device=dev)
-    step = max(1, PHI_CHUNK // (k_s + 1))  # pieces per chunk: φ's temporaries stay chunk-sized
+    s_t = torch.tensor(SAMPLES, dtype=ua.dtype, device=dev)
+    step = max(1, PHI_CHUNK // len(SAMPLES))  # pieces per chunk: φ's temporaries stay chunk-sized
     chunks = [
         _chord_and_sagitta(layout, th, a0[sl], d[sl], lo[sl], hi[sl], s_t, with_grad)
         for sl in (slice(i, i + step) for i in range(0, max(len(edge), 1), step))
@@ -282,33 +286,49 @@ def _chord_and_sagitta(
     layout: Layout, th: Tensor, a0: Tensor, d: Tensor, lo: Tensor, hi: Tensor, s_t: Tensor, with_grad: bool
 ) -> tuple[Tensor, Tensor]:
     """Chord length and sagitta bound of smooth pieces ``a0 + [lo, hi] · d`` of uniform edges
-    under φ, from second differences at the parameters ``lo + (hi − lo) · s_t`` (and of
-    ``∂φ/∂θ`` with ``with_grad``): see `_edge_parameters`."""
-    k_s = s_t.numel() - 1
-    pts = a0[:, None] + (lo[:, None] + (hi - lo)[:, None] * s_t)[..., None] * d[:, None]  # (pieces, K+1, 2)
-    pts = pts.transpose(0, 1)  # (K+1, pieces, 2)
-    ends = layout.phi(pts, th)
-    chord = ends[-1] - ends[0]
+    under φ, from second differences at the parameters ``lo + (hi − lo) · s_t`` ([`SAMPLES`][])
+    and, with ``with_grad``, of ``∂φ/∂θ`` at the inner ones: see `_edge_parameters`."""
+    pts = a0[:, None] + (lo[:, None] + (hi - lo)[:, None] * s_t)[..., None] * d[:, None]  # (pieces, K, 2)
+    pts = pts.transpose(0, 1)  # (K, pieces, 2)
+    f = layout.phi(pts, th)
+    chord = f[-1] - f[0]
     length = torch.sqrt(chord[:, 0] ** 2 + chord[:, 1] ** 2)
     unit = chord / length.clamp_min(1e-300)[:, None]
-    d2 = (ends[2:] - 2 * ends[1:-1] + ends[:-2]) * k_s**2
+    d2 = _second_differences(f, slice(None))
     sag = (unit[:, 0] * d2[..., 1] - unit[:, 1] * d2[..., 0]).abs().amax(0) / 8
     if with_grad and th.numel():
         # the θ-gradient moves each edge by ∂φ/∂θ, which bends it even where φ does not
         # (e.g. at θ = 0): bound the curvature of that field the same way. ∂φ/∂θ may jump at
-        # a piece's ends (a kink that moves with θ), so its end samples sit just inside.
-        inner = pts.clone()
-        inner[0] = pts[0] + INNER * (pts[-1] - pts[0])
-        inner[-1] = pts[-1] + INNER * (pts[0] - pts[-1])
-        v = layout.phi_dtheta(inner, th)  # (K+1, pieces, 2, P)
-        d2 = (v[2:] - 2 * v[1:-1] + v[:-2]) * k_s**2  # (K-1, pieces, 2, P)
+        # a piece's ends (a kink that moves with θ): the inner samples only.
+        v = layout.phi_dtheta(pts[1:-1], th)  # (K-2, pieces, 2, P)
+        d2 = _second_differences(v, slice(1, -1))  # (K-4, pieces, 2, P)
         normal = (unit[:, 0, None] * d2[..., 1, :] - unit[:, 1, None] * d2[..., 0, :]).abs()
         sag = torch.maximum(sag, normal.amax(0).amax(-1) / 8)
     return length, sag
 
 
-#: How far inside its piece (a fraction of it) the count stage samples ∂φ/∂θ at the piece's ends.
-INNER = 1e-6
+def _second_differences(f: Tensor, inner: slice) -> Tensor:
+    """``f''`` at the inner samples ``inner`` of [`SAMPLES`][] from the values ``f`` ``(K, ...)`` at
+    those and one on either side, by [`BENDS`][] (the compiled count stage computes it alike)."""
+    up, down = (torch.tensor(w, dtype=f.dtype, device=f.device)[inner] for w in zip(*BENDS, strict=True))
+    shape = (-1,) + (1,) * (f.dim() - 1)
+    return (f[2:] - f[1:-1]) * up.view(shape) - (f[1:-1] - f[:-2]) * down.view(shape)
+
+
+SAMPLES = (0.0, 2.0**-11, 2.0**-7, 2.0**-3, 0.5, 1 - 2.0**-3, 1 - 2.0**-7, 1 - 2.0**-11, 1.0)
+"""Where the count stage samples a smooth piece, as fractions of it: graded by 16 towards both
+ends, where φ bends hardest, and exact in binary. Over θ of either sign up to ±0.97 they keep
+every pixel within the tolerance (``tests/test_mesh.py``, against polylines of 4096 segments)."""
+
+BENDS = tuple(
+    (2 / (h1 + h2) / h2, 2 / (h1 + h2) / h1)
+    for h1, h2 in (
+        (SAMPLES[s] - SAMPLES[s - 1], SAMPLES[s + 1] - SAMPLES[s]) for s in range(1, len(SAMPLES) - 1)
+    )
+)
+"""The second difference at inner sample ``s`` of [`SAMPLES`][] (of three unequally spaced values):
+``(f[s + 1] − f[s]) · BENDS[s − 1][0] − (f[s] − f[s − 1]) · BENDS[s − 1][1]``, the weights
+``2 / ((h₋ + h₊) h₊)`` and ``2 / ((h₋ + h₊) h₋)`` of its steps ``h₋``, ``h₊``."""
 
 #: Segments per chunk when the mesh's vertices are mapped (bounds φ's temporaries and its input).
 PHI_CHUNK = 1 << 16

@@ -90,6 +90,31 @@ def test_subdivision_meets_value_tolerance(tol, gen):
     assert float((got - fine).abs().max()) <= tol * float(img.max() - img.min())
 
 
+# θ near ±1 puts nearly all of an edge's bend into its last thousandth, where it meets the unit
+# circle (curv) or the sensor's border (elliptic); five equal samples a piece missed it there
+# (41-123x tol on these cases, 4x already at ±0.9)
+HARD = [
+    (lw.EllipticLayout, (0.97, 0.97)),
+    (lw.EllipticLayout, (0.3, 0.97)),
+    (lw.EllipticLayout, (0.8924, -0.97)),
+    (lw.CurvLayout, (-0.97, -0.97)),
+    (lw.CurvLayout, (0.97, 0.8924)),
+]
+
+
+@pytest.mark.parametrize("learn", [False, True])
+@pytest.mark.parametrize(("family", "theta"), HARD)
+def test_the_tolerance_holds_where_phi_bends_hardest(family, theta, learn):
+    # every pixel's area within tol of polylines of 4096 segments a piece (values follow: a
+    # pixel's mean moves by at most its area's error times the value range, over its area)
+    layout = family(theta, learn=learn, dtype=F64)
+    for size in [(2, 3), (3, 3), (4, 5)]:
+        ref = lw.pixel_mesh(layout, size, subdivisions=4096).areas().detach()
+        for tol in (1e-3, 1e-4):
+            got = lw.pixel_mesh(layout, size, tol=tol, cache=False).areas().detach()
+            assert float(((got - ref).abs() / ref).max()) <= tol, (size, tol)
+
+
 class TestTopology:
     @pytest.mark.parametrize("size", [(1, 1), (2, 3), (5, 4)])
     def test_every_interior_edge_is_shared_with_opposite_signs(self, size):

@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
-from ...mesh import INNER
+from ...mesh import BENDS, SAMPLES
 from ...topology import MeshTopology
 from ..base import CHUNK, inline, own, per_thread, run_shares, serial, threads
 from .phi import edge_pieces, phi_point, phi_run, unpack_point
@@ -37,20 +37,18 @@ def _count_share(
             out[e] = edge_pieces(kind, centred, e, ends, th, c, scratch, cuts, dcuts, lo, dlo, grad)
 
 
+#: Samples a piece in the count stage ([`SAMPLES`][layoutwarp.mesh.SAMPLES]).
+NS = len(SAMPLES)
+
+
 @inline
 def sample_point(
-    ax: float, ay: float, dx: float, dy: float, a: float, b: float, s: int, inner: float
+    ax: float, ay: float, dx: float, dy: float, a: float, b: float, s: int
 ) -> tuple[float, float]:
-    """Sample ``s`` of the count stage on the piece ``[a, b]`` of the edge ``a + t d``: for
-    ``s < 5`` the point at ``t = a + (b − a)·s/4``; 5 and 6 just inside its start and end
-    (``inner`` of the way to the other end), where ``∂φ/∂θ`` may jump at a kink."""
-    if s < 5:
-        t = a + (b - a) * (s / 4)
-        return ax + t * dx, ay + t * dy
-    j = s - 5
-    t0, t1 = a + (b - a) * ((4 * j) / 4), a + (b - a) * ((4 - 4 * j) / 4)
-    x0, y0, x1, y1 = ax + t0 * dx, ay + t0 * dy, ax + t1 * dx, ay + t1 * dy
-    return x0 + inner * (x1 - x0), y0 + inner * (y1 - y0)
+    """Sample ``s`` of the count stage on the piece ``[a, b]`` of the edge ``a + t d``: the
+    point at ``t = a + (b − a)·SAMPLES[s]``."""
+    t = a + (b - a) * SAMPLES[s]
+    return ax + t * dx, ay + t * dy
 
 
 @inline
@@ -102,38 +100,41 @@ def edge_bounds(
 
 
 @inline
+def _curvature(out: np.ndarray, row: int, k: int, s: int) -> float:
+    """The second difference of row ``row`` of ``out`` at sample ``s`` of the piece whose samples
+    start at column ``k`` ([`BENDS`][layoutwarp.mesh.BENDS], as in torch)."""
+    up, down = BENDS[s - 1]
+    f0, f1, f2 = out[row, k + s - 1], out[row, k + s], out[row, k + s + 1]
+    return (f2 - f1) * up - (f1 - f0) * down
+
+
+@inline
 def piece_sagittas(
-    out: np.ndarray, n: int, ns: int, grad: bool, p: int, sag: np.ndarray, length: np.ndarray
+    out: np.ndarray, n: int, grad: bool, p: int, sag: np.ndarray, length: np.ndarray
 ) -> None:  # fmt: skip
-    """Chord length and sagitta bound of each of ``n`` pieces whose ``ns`` samples are columns
-    ``q·ns ..`` of [`phi_run`][]'s rows ``out`` (five along the piece, then, where ``grad``,
-    two just inside its ends for ``∂φ/∂θ``, which may jump at a kink): the largest of the
-    second differences of φ and, where ``grad``, of every ``∂φ/∂θ`` across the chord, over 8."""
+    """Chord length and sagitta bound of each of ``n`` pieces whose ``NS`` samples are columns
+    ``q·NS ..`` of [`phi_run`][]'s rows ``out``: the largest of the second differences of φ and,
+    where ``grad``, of every ``∂φ/∂θ`` at the inner samples (it may jump at a kink), across the
+    chord, over 8."""
     for q in range(n):
-        k = q * ns
-        chx, chy = out[0, k + 4] - out[0, k], out[1, k + 4] - out[1, k]
+        k = q * NS
+        chx, chy = out[0, k + NS - 1] - out[0, k], out[1, k + NS - 1] - out[1, k]
         ln = math.sqrt(chx * chx + chy * chy)
         ux, uy = chx / max(ln, 1e-300), chy / max(ln, 1e-300)
         sg = 0.0
-        for s in range(1, 4):
-            d2x = (out[0, k + s + 1] - 2 * out[0, k + s] + out[0, k + s - 1]) * 16
-            d2y = (out[1, k + s + 1] - 2 * out[1, k + s] + out[1, k + s - 1]) * 16
-            sg = max(sg, abs(ux * d2y - uy * d2x))
-            if grad:  # the θ-velocity field bends the edge too (inner ends)
-                i0 = k + 5 if s == 1 else k + s - 1
-                i2 = k + 6 if s == 3 else k + s + 1
+        for s in range(1, NS - 1):
+            sg = max(sg, abs(ux * _curvature(out, 1, k, s) - uy * _curvature(out, 0, k, s)))
+            if grad and 1 < s < NS - 2:  # the θ-velocity field bends the edge too
                 for r in range(2, 2 + p):
-                    vx = (out[r, i2] - 2 * out[r, k + s] + out[r, i0]) * 16
-                    vy = (out[p + r, i2] - 2 * out[p + r, k + s] + out[p + r, i0]) * 16
-                    sg = max(sg, abs(ux * vy - uy * vx))
+                    sg = max(sg, abs(ux * _curvature(out, p + r, k, s) - uy * _curvature(out, r, k, s)))
         sag[q], length[q] = sg / 8, ln
 
 
 @serial
 def _pieces_share(
     t: int, nt: int, kind: int, centred: bool, ends: np.ndarray, th: np.ndarray, c: np.ndarray,
-    piece_offsets: np.ndarray, amin: np.ndarray, tol: float, max_subdiv: int, with_grad: bool, inner: float,
-    span: int, bounds: np.ndarray, dbounds: np.ndarray, counts: np.ndarray, edge_counts: np.ndarray,
+    piece_offsets: np.ndarray, amin: np.ndarray, tol: float, max_subdiv: int, with_grad: bool, span: int,
+    bounds: np.ndarray, dbounds: np.ndarray, counts: np.ndarray, edge_counts: np.ndarray,
     work: tuple, phi_work: tuple, all_pts: np.ndarray, all_out: np.ndarray, all_sag: np.ndarray,
     all_length: np.ndarray, kink_grad: bool,
 ) -> None:  # fmt: skip
@@ -143,11 +144,10 @@ def _pieces_share(
     of edges places its sample points first, maps them in one loop ([`phi_run`][]), then
     counts; ``span``: the most pieces a chunk has. Thread ``t`` of ``nt`` takes every ``nt``-th
     chunk, with its rows of the work space: [`_edge_work`][]'s, [`_phi_work`][]'s, the sample
-    points ``(T, 2, 7·span)`` and their map ``(T, 2 + 2P, 7·span)``, the pieces' sagittas and
+    points ``(T, 2, NS·span)`` and their map ``(T, 2 + 2P, NS·span)``, the pieces' sagittas and
     lengths ``(T, span)``; ``kink_grad``: True, as a value (see [`_count_share`][])."""
     ne, p = ends.shape[0], th.shape[0]
     n_chunks = (ne + CHUNK - 1) // CHUNK
-    ns = 7 if with_grad else 5  # samples a piece: 5 along it, 2 just inside its ends
     scratch, cuts = own(work[0], t, nt), own(work[1], t, nt)
     dcuts, lo, dlo = own(work[2], t, nt), own(work[3], t, nt), own(work[4], t, nt)
     qi, dq = own(phi_work[0], t, nt), own(phi_work[1], t, nt)
@@ -165,17 +165,17 @@ def _pieces_share(
             dx, dy = ends[e, 2] - ax, ends[e, 3] - ay
             for i in range(n):
                 a, b = lo[i], lo[i + 1]
-                k = (base + i - piece_offsets[e0]) * ns
-                for s in range(ns):  # five along the piece; with_grad, two just inside its ends
-                    pts[0, k + s], pts[1, k + s] = sample_point(ax, ay, dx, dy, a, b, s, inner)
+                k = (base + i - piece_offsets[e0]) * NS
+                for s in range(NS):
+                    pts[0, k + s], pts[1, k + s] = sample_point(ax, ay, dx, dy, a, b, s)
         npc = piece_offsets[e1] - piece_offsets[e0]
-        phi_run(kind, centred, th, c, pts, npc * ns, out, qi, dq)
+        phi_run(kind, centred, th, c, pts, npc * NS, out, qi, dq)
         if with_grad and p == 4:  # θ's count a constant: the loop over pieces runs in SIMD lanes
-            piece_sagittas(out, npc, ns, True, 4, sag, length)
+            piece_sagittas(out, npc, True, 4, sag, length)
         elif with_grad and p == 2:
-            piece_sagittas(out, npc, ns, True, 2, sag, length)
+            piece_sagittas(out, npc, True, 2, sag, length)
         else:
-            piece_sagittas(out, npc, ns, with_grad, p, sag, length)
+            piece_sagittas(out, npc, with_grad, p, sag, length)
         for e in range(e0, e1):
             first, last = piece_offsets[e], piece_offsets[e + 1]
             j0 = first - piece_offsets[e0]
@@ -442,10 +442,10 @@ def count_stage(
     counts, edge_offsets = np.empty(total, dtype=np.int64), np.empty(ne + 1, dtype=np.int64)
     chunk_ends = np.r_[0:ne:CHUNK, ne]
     span = int(np.diff(piece_offsets[chunk_ends]).max())  # the most pieces a chunk has
-    limits = (float(tol), int(max_subdiv), with_grad, INNER, span)
+    limits = (float(tol), int(max_subdiv), with_grad, span)
     out = (bounds, dbounds, counts, edge_offsets)
-    ns, p = 7, len(th)  # samples a piece, at most
-    points = (per_thread(nt, (2, ns * span)), per_thread(nt, (2 + 2 * p, ns * span)))
+    p = len(th)
+    points = (per_thread(nt, (2, NS * span)), per_thread(nt, (2 + 2 * p, NS * span)))
     space = (*points, per_thread(nt, (span,)), per_thread(nt, (span,)))
     work = (work, _phi_work(nt, p), *space)
     run_shares(_pieces_share, nt, *args, ends, th, c, piece_offsets, amin, *limits, *out, *work, True)

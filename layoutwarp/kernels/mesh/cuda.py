@@ -13,6 +13,7 @@ from ..device import CUDA_THREADS
 from ..exact import segment_weights
 from ..prefix import prefix_block_item, prefix_offsets_item
 from .build import (
+    NS,
     add_moving,
     edge_bounds,
     edge_segments,
@@ -54,7 +55,7 @@ def _phi_at(
 @inline
 def _edge_pieces_and_counts(
     kind: int, centred: bool, e: int, ends: np.ndarray, th: np.ndarray, c: np.ndarray,
-    piece_offsets: np.ndarray, amin: np.ndarray, tol: float, max_subdiv: int, inner: float,
+    piece_offsets: np.ndarray, amin: np.ndarray, tol: float, max_subdiv: int,
     scratch: np.ndarray, cuts: np.ndarray, dcuts: np.ndarray, lo: np.ndarray, dlo: np.ndarray,
     q: np.ndarray, dq: np.ndarray, rows: np.ndarray, one: np.ndarray, one_len: np.ndarray,
     sag: np.ndarray, length: np.ndarray,
@@ -62,7 +63,7 @@ def _edge_pieces_and_counts(
 ) -> None:  # fmt: skip
     """Edge ``e``'s part of [`_pieces_share`][] (always ``with_grad``): its pieces'
     bounds and segment counts, and its segments into ``edge_counts[e + 1]``; ``rows``
-    ``(2 + 2 P_MAX, 7)`` (a piece's seven samples), ``one``, ``one_len`` (1,), ``sag``,
+    ``(2 + 2 P_MAX, NS)`` (a piece's samples), ``one``, ``one_len`` (1,), ``sag``,
     ``length`` (10,): work space."""
     p = th.shape[0]
     base = piece_offsets[e]
@@ -72,13 +73,13 @@ def _edge_pieces_and_counts(
     ax, ay = ends[e, 0], ends[e, 1]
     dx, dy = ends[e, 2] - ax, ends[e, 3] - ay
     for i in range(n):
-        for s in range(7):
-            x, y = sample_point(ax, ay, dx, dy, lo[i], lo[i + 1], s, inner)
+        for s in range(NS):
+            x, y = sample_point(ax, ay, dx, dy, lo[i], lo[i + 1], s)
             _phi_at(kind, centred, x, y, th, c, q, dq)
             rows[0, s], rows[1, s] = q[0], q[1]
             for r in range(p):
                 rows[2 + r, s], rows[2 + p + r, s] = dq[0, r], dq[1, r]
-        piece_sagittas(rows, 1, 7, True, p, one, one_len)  # piece by piece: little work space a thread
+        piece_sagittas(rows, 1, True, p, one, one_len)  # piece by piece: little work space a thread
         sag[i], length[i] = one[0], one_len[0]
     edge_counts[e + 1] = segment_counts(sag, length, 0, n, base, amin[e], tol, max_subdiv, counts)
 
@@ -195,7 +196,7 @@ PIECES, SEGMENTS, OVERFLOW = range(3)
 
 def _cuda_pieces_and_counts(
     kind: int, centred: bool, ends: np.ndarray, th: np.ndarray, c: np.ndarray,
-    piece_offsets: np.ndarray, amin: np.ndarray, tol: float, max_subdiv: int, inner: float,
+    piece_offsets: np.ndarray, amin: np.ndarray, tol: float, max_subdiv: int,
     bounds: np.ndarray, dbounds: np.ndarray, counts: np.ndarray, edge_counts: np.ndarray,
     status: np.ndarray, stamp: int,
 ) -> None:  # fmt: skip
@@ -219,13 +220,13 @@ def _cuda_pieces_and_counts(
         lo, dlo = cuda.local.array(10, F8), cuda.local.array((10, P_MAX), F8)
         q, dq = cuda.local.array(2, F8), cuda.local.array((2, _DQ), F8)
         rows, one, one_len = (
-            cuda.local.array((_ROWS, 7), F8),
+            cuda.local.array((_ROWS, NS), F8),
             cuda.local.array(1, F8),
             cuda.local.array(1, F8),
         )
         sag, length = cuda.local.array(10, F8), cuda.local.array(10, F8)
         _edge_pieces_and_counts(
-            kind, centred, e, ends, th, c, piece_offsets, amin, tol, max_subdiv, inner,
+            kind, centred, e, ends, th, c, piece_offsets, amin, tol, max_subdiv,
             scratch, cuts, dcuts, lo, dlo, q, dq, rows, one, one_len, sag, length, bounds, dbounds, counts,
             edge_counts,
         )  # fmt: skip
@@ -453,7 +454,7 @@ CUDA_KERNELS = {
     "amin": (_cuda_amin, f"void({_A2}, int64, int64, {_A1}, int64, {_F3}, {_A3})"),
     "pieces_and_counts": (
         _cuda_pieces_and_counts,
-        f"void(int64, boolean, {_A2}, {_A1}, {_A1}, {_I1}, {_A1}, float64, int64, float64, {_A2}, {_A3}, "
+        f"void(int64, boolean, {_A2}, {_A1}, {_A1}, {_I1}, {_A1}, float64, int64, {_A2}, {_A3}, "
         f"{_I1}, {_I1}, {_I1}, int64)",
     ),
     "place": (

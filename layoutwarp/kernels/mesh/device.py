@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
-from ...mesh import INNER, PixelMesh
+from ...mesh import PixelMesh
 from ..device import CHECKS, Stamps, cuda_launch, device_checks, host_mapped, stream_of
 from ..prefix import BLOCK
 from .build import mesh_topology
@@ -199,7 +199,7 @@ def build_mesh_device(
     counts, edge_counts = torch.empty(room.pieces, **i64), torch.empty(ne + 1, **i64)
     launch(
         "pieces_and_counts", ne, spec.kind, spec.centred, ends, th, c, piece_offsets, amin, float(tol),
-        int(max_subdiv), INNER, lims, dlims, counts, edge_counts, room.status, stamp,
+        int(max_subdiv), lims, dlims, counts, edge_counts, room.status, stamp,
     )  # fmt: skip
     edge_offsets = torch.cumsum(edge_counts, 0)
     if not room.segments:  # the first mesh, or one after the pieces outgrew theirs: read, once
