@@ -385,6 +385,22 @@ def test_off_centre_fovea_maps_the_square_onto_itself(family, gen):
         assert layout.edge_breakpoints(a, b).isfinite().any()
 
 
+@pytest.mark.parametrize("family", ["rect", "curv", "fovea"])
+def test_a_learned_centre_layout_takes_its_whole_theta_as_theta_holds_it(family, gen):
+    # what .theta and set_theta hold, (θ_x, θ_y, c_x, c_y), builds the same layout as θ and centre=
+    whole = [*rand_theta(gen), *(torch.rand(2, generator=gen, dtype=F64) - 0.5).tolist()]
+    parts = lw.make_layout(family, whole[:2], center=whole[2:], learn_center=True, dtype=F64)
+    layout = lw.make_layout(family, whole, learn_center=True, dtype=F64)
+    assert torch.equal(layout.theta, parts.theta) and layout.to_config() == parts.to_config()
+    assert torch.equal(lw.make_layout(family, layout.theta, learn_center=True).theta, layout.theta)
+    with pytest.raises(ValueError, match="center must not be given too"):
+        lw.make_layout(family, whole, center=whole[2:], learn_center=True)
+    with pytest.raises(ValueError, match="got 3"):
+        lw.make_layout(family, whole[:3], learn_center=True)
+    with pytest.raises(ValueError, match="got 4"):  # a fixed centre's θ is (θ_x, θ_y)
+        lw.make_layout(family, whole, learn_center=False)
+
+
 def test_learned_centre_moves_towards_the_detail():
     # a small bright dot off the centre: the brightest sensor pixel is brightest when it is
     # small and on the dot, so maximising it pulls the fovea (the smallest pixels) there

@@ -38,8 +38,10 @@ class CenteredLayout(Layout):
     φ is not smooth across the lines ``x = c_x`` and ``y = c_y`` (the scale changes there).
 
     Args:
-        theta: ``(θ_x, θ_y)``.
-        center: the centre ``(c_x, c_y)`` in sensor coordinates.
+        theta: ``(θ_x, θ_y)``; with ``learn_center`` also ``(θ_x, θ_y, c_x, c_y)``, the layout's
+            whole θ (as [`theta`][layoutwarp.layouts.base.Layout.theta] and `set_theta` hold it),
+            with no ``center`` then.
+        center: the centre ``(c_x, c_y)`` in sensor coordinates (default: the sensor's).
         learn_center: make the centre part of θ, which becomes ``(θ_x, θ_y, c_x, c_y)`` (each
             centre entry bounded by 1), so that it is learned with θ (``learn=True``).
         bound: as [`Layout`][].
@@ -54,29 +56,38 @@ class CenteredLayout(Layout):
         self,
         theta: Sequence[float] | Tensor | None = None,
         *,
-        center: Sequence[float] | Tensor = (0.0, 0.0),
+        center: Sequence[float] | Tensor | None = None,
         learn_center: bool = False,
         bound: float = 1.0,
         learn: bool = False,
         dtype: torch.dtype | None = None,
     ) -> None:
+        dtype = dtype or tensor_dtype(theta, (0.0, 0.0) if center is None else center)
+        t = None  # θ_x, θ_y of a learned centre, float64 (numpy keeps Python floats in float64)
+        if theta is not None and learn_center:
+            t = torch.as_tensor(np.asarray(theta)).double().flatten()
+        if t is not None and t.numel() == 4:  # the whole θ of a learned centre
+            if center is not None:
+                raise ValueError(
+                    f"theta holds the centre (4 values: θ_x, θ_y, c_x, c_y), so center must not be given "
+                    f"too; got theta={theta!r}, center={center!r}"
+                )
+            t, center = t[:2], t[2:].tolist()
+        center = (0.0, 0.0) if center is None else center
         c = torch.as_tensor(center, dtype=torch.float64).detach().flatten().cpu()
         if c.numel() != 2 or not bool(torch.isfinite(c).all()) or bool((c.abs() >= 1).any()):
             raise ValueError(f"center must be (c_x, c_y) with |c| < 1 each, got {center!r}")
-        dtype = dtype or tensor_dtype(theta, center)
         self.learn_center = bool(learn_center)
         self.num_params = 4 if learn_center else 2
         self._centred = not learn_center and bool((c == 0).all())
         if learn_center:
-            # numpy keeps Python floats in float64 (torch.as_tensor would round them to float32)
-            t = (
-                torch.zeros(2, dtype=torch.float64)
-                if theta is None
-                else torch.as_tensor(np.asarray(theta)).double()
-            )
+            t = torch.zeros(2, dtype=torch.float64) if t is None else t
             if t.numel() != 2:
-                raise ValueError(f"theta must have 2 values (θ_x, θ_y), got {t.numel()}: {theta!r}")
-            theta = torch.cat([t.flatten().cpu(), c])
+                raise ValueError(
+                    f"theta must have 2 values (θ_x, θ_y), or 4 (θ_x, θ_y, c_x, c_y) with a learned centre, "
+                    f"got {t.numel()}: {theta!r}"
+                )
+            theta = torch.cat([t.cpu(), c])
         super().__init__(theta, bound=bound, learn=learn, dtype=dtype)
         self.register_buffer("fixed_center", c)  # float64, as ρ (Layout.exact_buffers)
 
