@@ -220,15 +220,14 @@ def _edge_parameters(
     changes the area next to it by at most ``(2/3) ℓ e / n²``. Giving each of a pixel's four
     edges a quarter of the budget ``tol · A`` (``A`` the smaller adjacent pixel area), shared
     along the edge in proportion to length, bounds every pixel's value error by ``tol`` times
-    the radiance range. The sagitta ``e`` stands for the mean bend ``|φ''⊥|`` along the piece
-    over 8, from second differences at the 9 [`SAMPLES`][] of each piece, graded towards its
-    ends: φ bends hardest where a piece meets the unit circle or the sensor's border (θ near
-    ±1 puts nearly all of an edge's bend into its last thousandth), and each span between two
-    samples counts with the larger bend at its ends (an upper sum), so a bend at one end costs
-    that end's spans, not the whole piece; an S-shaped piece has no sagitta at its middle, and
-    straight edges get exactly one segment. With ``with_grad``, the parameter velocity
-    ``∂φ/∂θ`` along each edge, sampled at the inner samples (it may jump at a kink, a piece's
-    end), is held to the same bound, so that θ-gradients are as accurate as values.
+    the radiance range. The sagitta is bounded by ``max |φ''⊥| / 8`` from second differences
+    at the 9 [`SAMPLES`][] of each piece, graded towards its ends: φ bends hardest where a
+    piece meets the unit circle or the sensor's border (θ near ±1 puts nearly all of an
+    edge's bend into its last thousandth), and an S-shaped piece has no sagitta at its
+    middle. Straight edges get exactly one segment. With ``with_grad``, the parameter
+    velocity ``∂φ/∂θ`` along each edge, sampled at the 7 inner samples (it may jump at a
+    kink, a piece's end), is held to the same bound, so that θ-gradients are as accurate as
+    values.
 
     Returns:
         ``(edge, lo, hi, n)``: the smooth pieces (their edge and parameter range, ordered by
@@ -287,13 +286,8 @@ def _chord_and_sagitta(
     layout: Layout, th: Tensor, a0: Tensor, d: Tensor, lo: Tensor, hi: Tensor, s_t: Tensor, with_grad: bool
 ) -> tuple[Tensor, Tensor]:
     """Chord length and sagitta bound of smooth pieces ``a0 + [lo, hi] · d`` of uniform edges
-    under φ, from the map at the parameters ``lo + (hi − lo) · s_t`` ([`SAMPLES`][]): see
-    `_edge_parameters`. The bend ``|φ''⊥|`` (across the chord) at each inner sample, and where
-    ``with_grad`` that of every ``∂φ/∂θ`` at the inner ones but the outermost (it may jump at a
-    kink, a piece's end), the outer samples taking their neighbour's; each span between two
-    samples weighs the larger bend at its ends by its chord, and the sum over the piece's
-    chord, over 8, is its sagitta bound (a bend that one end of the piece holds costs that end's
-    spans, not the whole piece)."""
+    under φ, from second differences at the parameters ``lo + (hi − lo) · s_t`` ([`SAMPLES`][])
+    and, with ``with_grad``, of ``∂φ/∂θ`` at the inner ones: see `_edge_parameters`."""
     pts = a0[:, None] + (lo[:, None] + (hi - lo)[:, None] * s_t)[..., None] * d[:, None]  # (pieces, K, 2)
     pts = pts.transpose(0, 1)  # (K, pieces, 2)
     f = layout.phi(pts, th)
@@ -301,21 +295,16 @@ def _chord_and_sagitta(
     length = torch.sqrt(chord[:, 0] ** 2 + chord[:, 1] ** 2)
     unit = chord / length.clamp_min(1e-300)[:, None]
     d2 = _second_differences(f, slice(None))
-    bend = (unit[:, 0] * d2[..., 1] - unit[:, 1] * d2[..., 0]).abs()  # (K-2, pieces)
-    bend = torch.cat([bend[:1], bend, bend[-1:]])
+    sag = (unit[:, 0] * d2[..., 1] - unit[:, 1] * d2[..., 0]).abs().amax(0) / 8
     if with_grad and th.numel():
         # the θ-gradient moves each edge by ∂φ/∂θ, which bends it even where φ does not
-        # (e.g. at θ = 0): bound the curvature of that field the same way
+        # (e.g. at θ = 0): bound the curvature of that field the same way. ∂φ/∂θ may jump at
+        # a piece's ends (a kink that moves with θ): the inner samples only.
         v = layout.phi_dtheta(pts[1:-1], th)  # (K-2, pieces, 2, P)
         d2 = _second_differences(v, slice(1, -1))  # (K-4, pieces, 2, P)
-        bv = (unit[:, 0, None] * d2[..., 1, :] - unit[:, 1, None] * d2[..., 0, :]).abs().amax(-1)
-        bend = torch.maximum(bend, torch.cat([bv[:1], bv[:1], bv, bv[-1:], bv[-1:]]))
-    step = f[1:] - f[:-1]
-    spans = torch.sqrt(step[..., 0] ** 2 + step[..., 1] ** 2) * torch.maximum(bend[1:], bend[:-1])
-    total = spans[0]
-    for k in range(1, spans.shape[0]):  # in order, as the compiled count stage adds them
-        total = total + spans[k]
-    return length, total / (8 * length.clamp_min(1e-300))
+        normal = (unit[:, 0, None] * d2[..., 1, :] - unit[:, 1, None] * d2[..., 0, :]).abs()
+        sag = torch.maximum(sag, normal.amax(0).amax(-1) / 8)
+    return length, sag
 
 
 def _second_differences(f: Tensor, inner: slice) -> Tensor:

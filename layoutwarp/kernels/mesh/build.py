@@ -109,40 +109,25 @@ def _curvature(out: np.ndarray, row: int, k: int, s: int) -> float:
 
 
 @inline
-def _bend(out: np.ndarray, k: int, s: int, ux: float, uy: float, grad: bool, p: int) -> float:
-    """The bend across the chord ``(ux, uy)`` at sample ``s`` of the piece whose samples start at
-    column ``k`` of ``out``: of φ (an outer sample takes its neighbour's) and, where ``grad``, of
-    every ``∂φ/∂θ`` (the outermost two take theirs), as [`layoutwarp.mesh._chord_and_sagitta`][]."""
-    i = min(max(s, 1), NS - 2)
-    b = abs(ux * _curvature(out, 1, k, i) - uy * _curvature(out, 0, k, i))
-    if grad:
-        i = min(max(s, 2), NS - 3)
-        for r in range(2, 2 + p):
-            b = max(b, abs(ux * _curvature(out, p + r, k, i) - uy * _curvature(out, r, k, i)))
-    return b
-
-
-@inline
 def piece_sagittas(
     out: np.ndarray, n: int, grad: bool, p: int, sag: np.ndarray, length: np.ndarray
 ) -> None:  # fmt: skip
     """Chord length and sagitta bound of each of ``n`` pieces whose ``NS`` samples are columns
-    ``q·NS ..`` of [`phi_run`][]'s rows ``out``: each span between two samples weighs the larger
-    [`_bend`][] at its ends by its chord; their sum in order, over 8 times the piece's chord."""
+    ``q·NS ..`` of [`phi_run`][]'s rows ``out``: the largest of the second differences of φ and,
+    where ``grad``, of every ``∂φ/∂θ`` at the inner samples (it may jump at a kink), across the
+    chord, over 8."""
     for q in range(n):
         k = q * NS
         chx, chy = out[0, k + NS - 1] - out[0, k], out[1, k + NS - 1] - out[1, k]
         ln = math.sqrt(chx * chx + chy * chy)
         ux, uy = chx / max(ln, 1e-300), chy / max(ln, 1e-300)
-        total = 0.0
-        prev = _bend(out, k, 0, ux, uy, grad, p)
-        for s in range(NS - 1):
-            nxt = _bend(out, k, s + 1, ux, uy, grad, p)
-            dx, dy = out[0, k + s + 1] - out[0, k + s], out[1, k + s + 1] - out[1, k + s]
-            span = math.sqrt(dx * dx + dy * dy) * max(nxt, prev)
-            total = span if s == 0 else total + span
-            prev = nxt
-        sag[q], length[q] = total / (8 * max(ln, 1e-300)), ln
+        sg = 0.0
+        for s in range(1, NS - 1):
+            sg = max(sg, abs(ux * _curvature(out, 1, k, s) - uy * _curvature(out, 0, k, s)))
+            if grad and 1 < s < NS - 2:  # the θ-velocity field bends the edge too
+                for r in range(2, 2 + p):
+                    sg = max(sg, abs(ux * _curvature(out, p + r, k, s) - uy * _curvature(out, r, k, s)))
+        sag[q], length[q] = sg / 8, ln
 
 
 @serial
