@@ -115,6 +115,17 @@ def test_the_tolerance_holds_where_phi_bends_hardest(family, theta, learn):
             assert float(((got - ref).abs() / ref).max()) <= tol, (size, tol)
 
 
+@pytest.mark.parametrize(("family", "theta"), [(lw.CurvLayout, (-0.2, 0.8)), (lw.EllipticLayout, (0.0, 0.8))])
+def test_the_tolerance_holds_on_a_strip_of_three_pixels(family, theta):
+    # long edges across the whole sensor, their bend at one end (12.5x tol for the elliptic
+    # one with five equal samples)
+    layout = family(theta, dtype=F64)
+    ref = lw.pixel_mesh(layout, (1, 3), subdivisions=16384).areas()
+    for tol in (1e-2, 1e-3, 1e-4):
+        got = lw.pixel_mesh(layout, (1, 3), tol=tol, cache=False).areas()
+        assert float(((got - ref).abs() / ref).max()) <= tol, tol
+
+
 class TestTopology:
     @pytest.mark.parametrize("size", [(1, 1), (2, 3), (5, 4)])
     def test_every_interior_edge_is_shared_with_opposite_signs(self, size):
