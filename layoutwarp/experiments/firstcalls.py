@@ -68,11 +68,13 @@ print(json.dumps({{"total": t1 - t0}}))
 def first_calls(
     entries: Sequence[str] = ("README example",),
     progress: Callable[[str], None] | None = None,
+    fill: bool = True,
 ) -> dict:
     """Seconds from a fresh process's start to the answer of each entry point (``"README
     example"``, [`README_EXAMPLE`][], or a key of [`ENTRY_POINTS`][]): ``first_s`` with an
     empty numba cache in the default (background) mode, as a new installation meets it, and
-    ``warm_s`` with this installation's cache (filled first in wait mode, outside the timing);
+    ``warm_s`` with this installation's cache (``fill``: filled first in wait mode, outside the
+    timing; ``False`` where the caller has compiled what the entry points use already);
     their difference is what the first call costs. Each process stops its background worker at
     the end, so the throw-away cache is not filled after it."""
     import subprocess
@@ -102,7 +104,8 @@ def first_calls(
                 code, {**os.environ, "NUMBA_CACHE_DIR": os.path.join(tmp, "cache"), jit.ENV: "background"}
             )
             home = {**os.environ, jit.ENV: "wait"}
-            once(code, home)  # this installation's cache holds what the entry uses
+            if fill:
+                once(code, home)  # this installation's cache holds what the entry uses
             warm = once(code, home)
         out[name] = {
             "first_s": cold["total"],
