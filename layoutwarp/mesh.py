@@ -220,11 +220,12 @@ def _edge_parameters(
     changes the area next to it by at most ``(2/3) ℓ e / n²``. Giving each of a pixel's four
     edges a quarter of the budget ``tol · A`` (``A`` the smaller adjacent pixel area), shared
     along the edge in proportion to length, bounds every pixel's value error by ``tol`` times
-    the radiance range. The sagitta is bounded by ``max |φ''⊥| / 8`` from second differences
-    at the 9 [`SAMPLES`][] of each piece, graded towards its ends: φ bends hardest where a
-    piece meets the unit circle or the sensor's border (θ near ±1 puts nearly all of an
-    edge's bend into its last thousandth), and an S-shaped piece has no sagitta at its
-    middle. Straight edges get exactly one segment. With ``with_grad``, the parameter
+    the radiance range. The sagitta is bounded by ``max |φ''⊥| / 8``, across the edge's own
+    direction at each sample (a piece that turns bends across its chord only in part), from
+    second differences at the 9 [`SAMPLES`][] of each piece, graded towards its ends: φ bends
+    hardest where a piece meets the unit circle or the sensor's border (θ near ±1 puts nearly
+    all of an edge's bend into its last thousandth), and an S-shaped piece has no sagitta at
+    its middle. Straight edges get exactly one segment. With ``with_grad``, the parameter
     velocity ``∂φ/∂θ`` along each edge, sampled at the 7 inner samples (it may jump at a
     kink, a piece's end), is held to the same bound, so that θ-gradients are as accurate as
     values.
@@ -287,22 +288,25 @@ def _chord_and_sagitta(
 ) -> tuple[Tensor, Tensor]:
     """Chord length and sagitta bound of smooth pieces ``a0 + [lo, hi] · d`` of uniform edges
     under φ, from second differences at the parameters ``lo + (hi − lo) · s_t`` ([`SAMPLES`][])
-    and, with ``with_grad``, of ``∂φ/∂θ`` at the inner ones: see `_edge_parameters`."""
+    and, with ``with_grad``, of ``∂φ/∂θ`` at the inner ones, each across the edge's own direction
+    there (a piece that turns bends across its chord only in part): see `_edge_parameters`."""
     pts = a0[:, None] + (lo[:, None] + (hi - lo)[:, None] * s_t)[..., None] * d[:, None]  # (pieces, K, 2)
     pts = pts.transpose(0, 1)  # (K, pieces, 2)
     f = layout.phi(pts, th)
     chord = f[-1] - f[0]
     length = torch.sqrt(chord[:, 0] ** 2 + chord[:, 1] ** 2)
-    unit = chord / length.clamp_min(1e-300)[:, None]
+    tangent = f[2:] - f[:-2]  # (K-2, pieces, 2): the direction at each inner sample
+    span = torch.sqrt(tangent[..., 0] ** 2 + tangent[..., 1] ** 2).clamp_min(1e-300)
+    tx, ty = tangent[..., 0] / span, tangent[..., 1] / span
     d2 = _second_differences(f, slice(None))
-    sag = (unit[:, 0] * d2[..., 1] - unit[:, 1] * d2[..., 0]).abs().amax(0) / 8
+    sag = (tx * d2[..., 1] - ty * d2[..., 0]).abs().amax(0) / 8
     if with_grad and th.numel():
         # the θ-gradient moves each edge by ∂φ/∂θ, which bends it even where φ does not
         # (e.g. at θ = 0): bound the curvature of that field the same way. ∂φ/∂θ may jump at
         # a piece's ends (a kink that moves with θ): the inner samples only.
         v = layout.phi_dtheta(pts[1:-1], th)  # (K-2, pieces, 2, P)
         d2 = _second_differences(v, slice(1, -1))  # (K-4, pieces, 2, P)
-        normal = (unit[:, 0, None] * d2[..., 1, :] - unit[:, 1, None] * d2[..., 0, :]).abs()
+        normal = (tx[1:-1, :, None] * d2[..., 1, :] - ty[1:-1, :, None] * d2[..., 0, :]).abs()
         sag = torch.maximum(sag, normal.amax(0).amax(-1) / 8)
     return length, sag
 
@@ -319,8 +323,9 @@ SAMPLES = (0.0, 2.0**-11, 2.0**-7, 2.0**-3, 0.5, 1 - 2.0**-3, 1 - 2.0**-7, 1 - 2
 """Where the count stage samples a smooth piece, as fractions of it: graded by 16 towards both
 ends, where φ bends hardest, and exact in binary. They keep every pixel within the tolerance on
 the hard cases of ``tests/test_mesh.py`` (θ of either sign up to ±0.97, against polylines of
-4096 segments); a sensor one pixel wide at |θ| ≥ 0.9 can still exceed it (equal steps along a
-piece do not resolve a bend held by its end)."""
+4096 segments) and on its strips; an elliptic sensor one pixel wide at |θ| ≥ 0.95, or a bend
+at the centre at θ near -1 on a long thin sensor, can still exceed it (equal steps along a
+piece do not resolve a bend held by one end)."""
 
 BENDS = tuple(
     (2 / (h1 + h2) / h2, 2 / (h1 + h2) / h1)

@@ -115,19 +115,20 @@ def piece_sagittas(
     """Chord length and sagitta bound of each of ``n`` pieces whose ``NS`` samples are columns
     ``q·NS ..`` of [`phi_run`][]'s rows ``out``: the largest of the second differences of φ and,
     where ``grad``, of every ``∂φ/∂θ`` at the inner samples (it may jump at a kink), across the
-    chord, over 8."""
+    edge's direction at each (from its two neighbours), over 8."""
     for q in range(n):
         k = q * NS
         chx, chy = out[0, k + NS - 1] - out[0, k], out[1, k + NS - 1] - out[1, k]
-        ln = math.sqrt(chx * chx + chy * chy)
-        ux, uy = chx / max(ln, 1e-300), chy / max(ln, 1e-300)
         sg = 0.0
         for s in range(1, NS - 1):
+            tnx, tny = out[0, k + s + 1] - out[0, k + s - 1], out[1, k + s + 1] - out[1, k + s - 1]
+            span = max(math.sqrt(tnx * tnx + tny * tny), 1e-300)
+            ux, uy = tnx / span, tny / span
             sg = max(sg, abs(ux * _curvature(out, 1, k, s) - uy * _curvature(out, 0, k, s)))
             if grad and 1 < s < NS - 2:  # the θ-velocity field bends the edge too
                 for r in range(2, 2 + p):
                     sg = max(sg, abs(ux * _curvature(out, p + r, k, s) - uy * _curvature(out, r, k, s)))
-        sag[q], length[q] = sg / 8, ln
+        sag[q], length[q] = sg / 8, math.sqrt(chx * chx + chy * chy)
 
 
 @serial
