@@ -115,6 +115,33 @@ def test_the_tolerance_holds_where_phi_bends_hardest(family, theta, learn):
             assert float(((got - ref).abs() / ref).max()) <= tol, (size, tol)
 
 
+@pytest.mark.parametrize(
+    ("family", "theta", "size"),
+    [
+        (lw.EllipticLayout, (0.9, -0.9), (5, 7)),
+        (lw.CurvLayout, (0.9, -0.9), (5, 7)),
+        (lw.CurvLayout, (0.95, -0.3), (7, 1)),
+    ],
+)
+def test_theta_gradients_meet_the_tolerance_where_phi_bends_hardest(family, theta, size, gen):
+    # every pixel's dmean/dθ within tol · (value range) of central differences on polylines of
+    # 4096 segments a piece (the learnable count bounds the polylines' error in ∂φ/∂θ too)
+    img = torch.rand(1, 24, 24, generator=gen, dtype=F64)
+    fixed, layout = family(theta, dtype=F64), family(theta, learn=True, dtype=F64)
+
+    def fine(th: torch.Tensor) -> torch.Tensor:
+        mesh = lw.pixel_mesh(fixed, size, subdivisions=4096, theta=th)
+        return lw.integrators.integrate_exact(img, fixed, size, mesh=mesh).flatten()
+
+    th0, h = fixed.theta.detach(), 1e-6
+    ref = torch.stack([(fine(th0 + h * e) - fine(th0 - h * e)) / (2 * h) for e in torch.eye(2, dtype=F64)], 1)
+    tol = 1e-3
+    theta = layout.theta
+    out = lw.integrators.integrate_exact(img, layout, size, tol=tol, theta=theta).flatten()
+    jac = torch.stack([torch.autograd.grad(v, theta, retain_graph=True)[0] for v in out])
+    assert float((jac - ref).abs().max()) <= tol * float(img.max() - img.min())
+
+
 STRIPS = [
     (lw.CurvLayout, (-0.2, 0.8), (1, 3)),
     (lw.EllipticLayout, (0.0, 0.8), (1, 3)),
