@@ -235,8 +235,7 @@ def test_a_training_step_runs_few_torch_operations():
 
     recorded_step()  # the measurement's group: the same first look
     assert count_ops(recorded_step) <= 90
-    # and the step's gradient is the torch reference's (the same float32 tables, summed in
-    # other orders over 14k segments: 1.03e-6 apart at the default seed)
+    # and the step's gradient is the torch reference's (the same float32 tables)
     layout.rho.grad = None
     lw.simulate(image, layout, (17, 23)).sum().backward()
     compiled = layout.rho.grad.clone()
@@ -244,7 +243,7 @@ def test_a_training_step_runs_few_torch_operations():
     tol = lw.data_tolerance(torch.float32)[0]
     integrate_exact(image[0], layout, (17, 23), tol=tol, backend="torch").sum().backward()
     ref = layout.rho.grad
-    assert float((compiled - ref).abs().max()) <= 2e-6 * float(ref.abs().max())
+    assert float((compiled - ref).abs().max()) <= 1e-6 * float(ref.abs().max())
 
 
 @pytest.mark.slow  # a minute of PTX compiling

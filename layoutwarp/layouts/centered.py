@@ -62,7 +62,7 @@ class CenteredLayout(Layout):
         learn: bool = False,
         dtype: torch.dtype | None = None,
     ) -> None:
-        dtype = dtype or tensor_dtype(theta, (0.0, 0.0) if center is None else center)
+        dtype = dtype or tensor_dtype(theta, center)
         t = None  # θ_x, θ_y of a learned centre, float64 (numpy keeps Python floats in float64)
         if theta is not None and learn_center:
             t = torch.as_tensor(np.asarray(theta)).double().flatten()
