@@ -572,6 +572,29 @@ def test_the_runs_product_matches_scipy_for_any_plane_count(planes, gen):
     assert np.array_equal(np.isfinite(out), np.isfinite(ref))
 
 
+@pytest.mark.parametrize("threads", [2, 3, 5])
+def test_the_runs_product_is_the_same_on_any_number_of_threads_and_when_one_does_all(threads, gen):
+    """The product's chunks shared among 2, 3 or 5 threads give the one-thread values bit for bit
+    and its exact count of non-finite values; and a single thread of a pair that the other never
+    joins (a thread the machine holds back) takes the other's chunks too: every value written."""
+    from layoutwarp.kernels.runs import CHUNKS, _runs_share
+
+    w, runs = _random_runs(gen)
+    rng = np.random.default_rng(int(torch.randint(0, 2**31, (), generator=gen)))
+    x = rng.random((4, w.shape[1]), dtype=np.float32)
+    x.flat[rng.choice(x.size, size=3, replace=False)] = np.nan
+    one, many = (np.full((4, w.shape[0]), -1.0, np.float32) for _ in range(2))
+    count = kernels.runs_apply(runs.arrays(), x, one, 1)
+    assert count == int((~np.isfinite(one)).sum()) > 0
+    assert kernels.runs_apply(runs.arrays(), x, many, threads) == count
+    assert np.array_equal(many, one, equal_nan=True)
+    alone = np.full_like(one, -1.0)
+    claims = np.full(CHUNKS * 2, -2, np.int64)
+    _runs_share(0, 2, claims, *runs.arrays(), x, alone)  # thread 1 never runs
+    assert claims.min() >= 0 and claims.sum() == count
+    assert np.array_equal(alone, one, equal_nan=True)
+
+
 def test_runs_split_where_a_row_of_a_pixel_leaves_it_and_comes_back():
     """A pixel's row of cells cut, whole, cut, whole, cut (a boundary crossing it and back), a gap,
     and a row wholly cut: runs whose heads and tails are the cut cells, the whole cells between

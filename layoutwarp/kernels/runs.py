@@ -132,18 +132,20 @@ def _pixel_out(
 #: Pixels a share takes at a time, every three planes in turn: about a sensor row of them, whose
 #: source rows (three planes of them) stay in the core's cache for the next three planes.
 BAND = 256
+#: Chunks of pixels a product is cut into per thread ([`runs_apply`][]): a thread that finishes
+#: its own takes what is left of the others'.
+CHUNKS = 16
 
 
-@serial
-def _runs_share(
-    t: int, nt: int, pix_runs: np.ndarray, run_start: np.ndarray, run_len: np.ndarray, run_head: np.ndarray,
-    run_tail: np.ndarray, inv_area: np.ndarray, pix_cuts: np.ndarray, cut_weight: np.ndarray, x: np.ndarray,
-    out: np.ndarray,
-) -> int:  # fmt: skip
-    """Pixels ``t·R/T ..`` of [`runs_apply`][], a band of [`BAND`][] at a time; returns how many
-    of the values it wrote are not finite."""
+@inline
+def _chunk_sums(
+    i, chunks, pix_runs, run_start, run_len, run_head, run_tail, inv_area, pix_cuts, cut_weight, x, out
+):
+    """Chunk ``i`` of ``chunks`` (whole bands of [`BAND`][] pixels) of [`runs_apply`][]; returns how
+    many of the values it wrote are not finite."""
     rows = pix_runs.shape[0] - 1
-    lo, hi = t * rows // nt, (t + 1) * rows // nt
+    bands = (rows + BAND - 1) // BAND
+    lo, hi = i * bands // chunks * BAND, min((i + 1) * bands // chunks * BAND, rows)
     bad = 0
     for k0 in range(lo, hi, BAND):
         for p in range(0, x.shape[0], 3):
@@ -153,14 +155,42 @@ def _runs_share(
     return bad
 
 
+@serial
+def _runs_share(
+    t: int, nt: int, claims: np.ndarray, pix_runs: np.ndarray, run_start: np.ndarray, run_len: np.ndarray,
+    run_head: np.ndarray, run_tail: np.ndarray, inv_area: np.ndarray, pix_cuts: np.ndarray,
+    cut_weight: np.ndarray, x: np.ndarray, out: np.ndarray,
+) -> None:  # fmt: skip
+    """Thread ``t``'s part of [`runs_apply`][]: its own chunks ``t·C/T ..`` forwards, then what is
+    left of the other threads' backwards, ``C`` the length of ``claims`` (−2: a chunk nobody has
+    taken; −1: taken; then its count of non-finite values). Two threads may both take a chunk
+    (no atomics); they write the same values, and the count is kept once. A thread the machine
+    holds back so leaves its work to the others (torch's OpenMP threads spin for milliseconds
+    after each of its parallel ops, on the cores this product runs on)."""
+    c = claims.shape[0]
+    for s in range(nt):
+        u = (t + s) % nt
+        lo, hi = u * c // nt, (u + 1) * c // nt
+        for j in range(hi - lo):
+            i = lo + j if s == 0 else hi - 1 - j  # its own forwards, the others' from their ends
+            if claims[i] != -2:
+                break
+            claims[i] = -1
+            claims[i] = _chunk_sums(i, c, pix_runs, run_start, run_len, run_head, run_tail, inv_area,
+                                    pix_cuts, cut_weight, x, out)  # fmt: skip
+
+
 def runs_apply(runs: tuple[np.ndarray, ...], x: np.ndarray, out: np.ndarray, threads: int) -> int:
     """``out[n] = W @ x[n]`` for the area weights ``W`` of a fixed layout held as ``runs`` (the
     eight arrays of [`Runs.arrays`][layoutwarp.kernels.runs.Runs.arrays]), planes ``x``
-    ``(N, M)`` float32 and ``out`` ``(N, R)``: a band of pixels to each of ``threads``, every
-    pixel's cells read once for every three planes. Returns how many of the values written are not
-    finite (NaN or ±inf): [`simulate`][layoutwarp.sensor.simulate]'s finiteness check while they
-    are in registers."""
-    return sum(run_shares(_runs_share, int(threads), *runs, x, out))
+    ``(N, M)`` float32 and ``out`` ``(N, R)``: chunks of pixels shared among ``threads`` (a thread
+    done with its own takes the others' that are left), every pixel's cells read once for every
+    three planes. Returns how many of the values written are not finite (NaN or ±inf):
+    [`simulate`][layoutwarp.sensor.simulate]'s finiteness check while they are in registers."""
+    nt = int(threads)
+    claims = np.full(CHUNKS * nt if nt > 1 else 1, -2, np.int64)
+    run_shares(_runs_share, nt, claims, *runs, x, out)
+    return int(claims.sum())
 
 
 def measured_runs_apply(
