@@ -432,8 +432,7 @@ def all_finite(x: Tensor) -> bool:
     """Whether every element of ``x`` is finite: NaN and ±inf reach the sum, so a finite sum says
     so at an eighth of the cost of ``isfinite(x).all()``; only a sum that overflows, of finite
     values, needs the element-wise check. On the CPU numpy sums, on one thread: torch's sum would
-    wake its thread pool, whose spinning workers then slow the compiled kernels that follow, and
-    whose join waits for the scheduler on a busy machine."""
+    wake its thread pool, whose join waits for the scheduler on a busy machine."""
     if x.device.type == "cpu" and x.dtype in (torch.float32, torch.float64):
         a = x.detach().numpy()
         with np.errstate(over="ignore", invalid="ignore"):

@@ -422,9 +422,142 @@ def test_kernel_threads_follow_torchs_count_and_numbas_threading_layer_never_sta
         layout = lw.CurvLayout((0.3, -0.2), learn=True)  # a learnable step and a fixed forward
         lw.simulate(torch.rand(1, 3, 64, 64), layout, (7, 9)).sum().backward()
         lw.simulate(torch.rand(1, 3, 64, 64), lw.CurvLayout((0.3, -0.2)), (7, 9))
-        assert not numba_parallel._is_initialized  # no OpenMP pool: a forked child is safe
+        assert not numba_parallel._is_initialized  # numba's own OpenMP pool never starts
     finally:
         torch.set_num_threads(before)
+
+
+def _teams() -> list[str]:
+    """The teams [`run_shares`][] can run on here: torch's OpenMP threads where its runtime is GNU
+    OpenMP's, and a pool of Python threads."""
+    try:
+        kernels.base.set_team("openmp")
+    except ValueError:
+        return ["python"]
+    finally:
+        kernels.base.set_team(None)
+    return ["openmp", "python"]
+
+
+@pytest.mark.parametrize("team", _teams())
+def test_shares_run_at_once_on_either_team_share_0_on_the_caller_and_errors_reach_it(team):
+    """Every share runs once, all at once (each waits for the others at a barrier), share 0 on the
+    calling thread; an error in a share is raised on the calling thread; a learnable step's values
+    and θ-gradient (its kernels on two threads) are the same bit for bit on either team."""
+    import threading
+
+    def step() -> tuple[torch.Tensor, torch.Tensor]:
+        layout = lw.CurvLayout((0.3, -0.2), learn=True)
+        img = torch.rand(1, 3, 512, 1024, generator=torch.Generator().manual_seed(0))
+        out = lw.simulate(img, layout, (33, 65))
+        (g,) = torch.autograd.grad((out * torch.linspace(-1, 1, out.numel()).view_as(out)).sum(), layout.rho)
+        return out.detach(), g
+
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        reference = step()  # the default team
+        kernels.base.set_team(team)
+        seen: list[tuple[int, int, int]] = []
+        barrier = threading.Barrier(3, timeout=30)
+
+        def share(t: int, nt: int) -> int:
+            barrier.wait()  # all three at once, or a BrokenBarrierError
+            seen.append((t, nt, threading.get_ident()))
+            return 10 * t
+
+        assert kernels.run_shares(share, 3) == [0, 10, 20]
+        assert sorted(s[:2] for s in seen) == [(0, 3), (1, 3), (2, 3)]
+        assert len({s[2] for s in seen}) == 3 and (0, 3, threading.get_ident()) in seen
+
+        def fails(t: int, nt: int) -> None:
+            if t == 2:
+                raise KeyError(f"share {t} of {nt}")
+
+        with pytest.raises(KeyError, match="share 2 of 3"):
+            kernels.run_shares(fails, 3)
+        got = step()
+        assert torch.equal(got[0], reference[0]) and torch.equal(got[1], reference[1])
+    finally:
+        kernels.base.set_team(None)
+        torch.set_num_threads(before)
+
+
+def test_the_team_comes_from_layoutwarp_team_and_a_bad_name_is_refused_in_one_line(monkeypatch):
+    """``LAYOUTWARP_TEAM=python`` runs the shares on the pool of Python threads; a name that is
+    neither ``openmp`` nor ``python`` is refused, naming the variable, at the first kernel."""
+    import threading
+
+    base = kernels.base
+    try:
+        monkeypatch.setenv(base.TEAM_ENV, "python")
+        base.set_team(None)
+        names = base.run_shares(lambda t, nt: threading.current_thread().name, 2)
+        assert names[0] == threading.current_thread().name and names[1].startswith("layoutwarp")
+        monkeypatch.setenv(base.TEAM_ENV, "bogus")
+        base.set_team(None)
+        with pytest.raises(ValueError, match=r"^LAYOUTWARP_TEAM must be 'openmp' or 'python', got 'bogus'$"):
+            base.run_shares(lambda t, nt: t, 2)
+        with pytest.raises(ValueError, match=r"^set_team: name must be 'openmp' or 'python', got 'gpu'$"):
+            base.set_team("gpu")
+    finally:
+        base.set_team(None)
+
+
+def test_a_busy_machine_runs_the_default_team_on_python_threads_and_a_chosen_one_as_chosen(monkeypatch):
+    """While the machine is busy, the default team's shares run on the Python threads (which
+    sleep rather than spin while they wait); a team chosen by name runs as chosen."""
+    import threading
+
+    base = kernels.base
+    monkeypatch.delenv(base.TEAM_ENV, raising=False)
+    monkeypatch.setattr(base, "machine_busy", lambda: True)
+    name = lambda t, nt: threading.current_thread().name  # noqa: E731
+    try:
+        base.set_team(None)
+        assert base.run_shares(name, 2)[1].startswith("layoutwarp")
+        if "openmp" in _teams():
+            base.set_team("openmp")
+            assert not base.run_shares(name, 2)[1].startswith("layoutwarp")
+    finally:
+        base.set_team(None)
+
+
+@pytest.mark.skipif(not hasattr(__import__("os"), "fork"), reason="needs fork")
+def test_a_child_forked_after_the_openmp_team_ran_runs_its_shares_on_threads_of_its_own():
+    """GNU OpenMP's threads are not a forked child's: after the parent's kernels ran on torch's
+    team, a child forked from it runs its shares on Python threads and gives the parent's values
+    (a team there would wait for ever; the child is given 60 s). The child runs torch on one
+    thread, as a DataLoader worker does (torch's own ops on two would wait for ever there)."""
+    import subprocess
+    import sys
+    import textwrap
+
+    code = textwrap.dedent("""
+        import os, sys, torch, layoutwarp as lw
+        torch.set_num_threads(2)
+        img = torch.rand(1, 3, 512, 1024, generator=torch.Generator().manual_seed(0))
+        want = lw.simulate(img, lw.CurvLayout((0.3, -0.2)), (33, 65))
+        assert lw.kernels.run_shares(lambda t, nt: t, 2) == [0, 1]
+        pid = os.fork()
+        if pid == 0:
+            torch.set_num_threads(1)
+            ok = lw.kernels.run_shares(lambda t, nt: t, 2) == [0, 1]
+            tol = lw.data_tolerance(torch.float32)[0]
+            kept = lw.resampler.resampler_for(lw.CurvLayout((0.3, -0.2)), (33, 65), (512, 1024), tol, "cpu")
+            runs = kept.runs
+            x = img.reshape(3, -1).numpy()
+            out = torch.empty(3, 33 * 65).numpy()
+            lw.kernels.runs_apply(runs.arrays(), x, out, 2)  # the product's chunks on two threads
+            again = lw.simulate(img, lw.CurvLayout((0.3, -0.2)), (33, 65))
+            same = torch.equal(torch.from_numpy(out).view(1, 3, 33, 65), want) and torch.equal(again, want)
+            os._exit(0 if ok and same else 1)
+        _, status = os.waitpid(pid, 0)
+        print(os.waitstatus_to_exitcode(status))
+    """)
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert res.stdout.split() == ["0"]
 
 
 def _random_curved(rng: np.random.Generator, limit: float) -> lw.Layout:
@@ -588,10 +721,10 @@ def test_the_runs_product_is_the_same_on_any_number_of_threads_and_when_one_does
     assert count == int((~np.isfinite(one)).sum()) > 0
     assert kernels.runs_apply(runs.arrays(), x, many, threads) == count
     assert np.array_equal(many, one, equal_nan=True)
-    alone = np.full_like(one, -1.0)
-    claims = np.full(CHUNKS * 2, -2, np.int64)
-    _runs_share(0, 2, claims, *runs.arrays(), x, alone)  # thread 1 never runs
-    assert claims.min() >= 0 and claims.sum() == count
+    alone, claims = np.full_like(one, -1.0), np.zeros(CHUNKS * 2, np.uint8)
+    bad = np.zeros(CHUNKS * 2, np.int64)
+    _runs_share(0, 2, claims, bad, *runs.arrays(), x, alone)  # thread 1 never runs
+    assert claims.all() and bad.sum() == count
     assert np.array_equal(alone, one, equal_nan=True)
 
 

@@ -2,16 +2,22 @@
 run), the decorators each kernel is compiled with, and the threads that run a kernel's shares.
 
 A CPU kernel is a serial numba function of its thread's share, ``body(t, threads, ...)``, compiled
-with ``nogil=True``; [`run_shares`][] runs the shares ``t = 0 .. threads − 1`` at once, share 0
-on the calling thread and the others on a pool of Python threads. numba's ``parallel=True`` is
-not used: its parfor passes took two thirds of the kernels' compile time, and its threading
-layer (OpenMP here) made a forked child (a DataLoader worker) abort."""
+with ``nogil=True``; [`run_shares`][] runs the shares ``t = 0 .. threads − 1`` at once on torch's
+own OpenMP threads (where torch's runtime is GNU OpenMP's), else on a pool of Python threads
+([`set_team`][]). numba's ``parallel=True`` is not used: its parfor passes took two thirds of the
+kernels' compile time, and its threading layer made a forked child (a DataLoader worker)
+abort."""
 
 from __future__ import annotations
 
+import ctypes
+import functools
+import glob
+import itertools
 import math
 import os
 import threading
+import time
 import types
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -29,18 +35,24 @@ __all__ = [
     "CHUNK",
     "OPTIONS",
     "SMALL_WORK",
+    "TEAM_ENV",
     "available",
     "inline",
     "inline_ir",
+    "machine_busy",
     "njit",
     "numba_config",
     "own",
     "per_thread",
     "plain_python",
     "retain_freed_memory",
+    "run_chunks",
     "run_shares",
     "serial",
+    "set_team",
+    "take",
     "threads",
+    "tries",
     "without_ir_inlining",
 ]
 
@@ -96,19 +108,154 @@ def _forget_pool() -> None:  # a forked child has none of its parent's threads: 
 if hasattr(os, "register_at_fork"):
     os.register_at_fork(after_in_child=_forget_pool)
 
+#: The team [`run_shares`][] runs on, once chosen: torch's OpenMP threads' runner, or ``None``
+#: (a pool of Python threads), and whether it was the default (then a busy machine's calls run on
+#: the Python threads: [`machine_busy`][]).
+_TEAM: list[tuple[Callable[..., list[Any]] | None, bool]] = []
+_JOBS: dict[int, tuple] = {}  # the shares each running team is given, by key
+_KEYS = itertools.count(1)
+_PID = os.getpid()  # a child forked from this process cannot use its OpenMP threads
+#: The environment variable that sets [`set_team`][]'s default: ``openmp`` or ``python``.
+TEAM_ENV = "LAYOUTWARP_TEAM"
+
+
+def set_team(name: str | None) -> None:
+    """Which threads run a kernel's shares ([`run_shares`][]): ``"openmp"``, torch's own OpenMP
+    threads, where torch's runtime is GNU OpenMP's (the Linux wheels: its ``libgomp``), and the
+    process is not a child forked from one that used them; ``"python"``, a pool of Python
+    threads; ``None``, the default: ``LAYOUTWARP_TEAM``'s, else ``"openmp"`` where it can be,
+    but the Python threads while the machine is busy ([`machine_busy`][]). On torch's threads no
+    thread of the kernel waits for a core that one of them spins on: after each of torch's
+    parallel ops its OpenMP threads spin for milliseconds, and a learnable step's share on a
+    thread of its own beside one ran at half speed (the step 1.3–1.5x its time on torch's
+    threads). On a busy machine the Python threads, which sleep rather than spin while they
+    wait, take a fairer share of the cores."""
+    _TEAM.clear()
+    if name is not None:
+        _TEAM.append((_chosen(name, "set_team: name"), False))
+
+
+def _chosen(name: str, where: str) -> Callable[..., list[Any]] | None:
+    """The team of ``name`` (``where``: who gave it, for the error)."""
+    if name not in ("openmp", "python"):
+        raise ValueError(f"{where} must be 'openmp' or 'python', got {name!r}")
+    team = _openmp_team() if name == "openmp" else None
+    if name == "openmp" and team is None:
+        raise ValueError(f"{where}: no OpenMP threads of torch's here (not GNU OpenMP's, or a forked child)")
+    return team
+
+
+def _run_job(key: int) -> None:
+    """A thread of the team: its shares of job ``key`` (every ``n``-th from its number, where the
+    team has ``n`` threads: fewer than asked for, a thread runs several)."""
+    body, nt, args, results, errors, lib = _JOBS[key]
+    try:
+        for t in range(lib.omp_get_thread_num(), nt, lib.omp_get_num_threads()):
+            results[t] = body(t, nt, *args)
+    except BaseException as e:  # raised again on the calling thread
+        errors.append(e)
+
+
+_CALLBACK = ctypes.CFUNCTYPE(None, ctypes.c_void_p)(_run_job)
+
+
+@functools.cache
+def _openmp_library() -> ctypes.CDLL | None:
+    """The ``libgomp`` torch loaded (the same handle), ``None`` where it has none."""
+    import torch
+
+    found = glob.glob(os.path.join(os.path.dirname(torch.__file__), "lib", "libgomp*.so*"))
+    if not found:
+        return None
+    lib = ctypes.CDLL(found[0])
+    lib.GOMP_parallel.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_uint, ctypes.c_uint]
+    lib.GOMP_parallel.restype = None
+    return lib
+
+
+def _openmp_team() -> Callable[..., list[Any]] | None:
+    """The runner of shares on torch's OpenMP threads (``GOMP_parallel``); ``None`` where torch
+    has none, and in a forked child (GNU OpenMP's threads are not the child's: a team would wait
+    for them for ever)."""
+    lib = _openmp_library() if os.getpid() == _PID else None
+    if lib is None:
+        return None
+    callback = ctypes.cast(_CALLBACK, ctypes.c_void_p)
+
+    def team(body: Callable[..., Any], nt: int, args: tuple) -> list[Any]:
+        key, results, errors = next(_KEYS), [None] * nt, []
+        _JOBS[key] = (body, nt, args, results, errors, lib)
+        try:  # the GIL released while the team runs (ctypes.CDLL)
+            lib.GOMP_parallel(callback, key, nt, 0)
+        finally:
+            del _JOBS[key]
+        if errors:
+            raise errors[0]
+        return results
+
+    return team
+
+
+def _team() -> Callable[..., list[Any]] | None:
+    """The team chosen ([`set_team`][]), else ``LAYOUTWARP_TEAM``'s, else torch's OpenMP threads
+    where they can be and the machine is not busy; ``None``: the pool of Python threads."""
+    if os.getpid() != _PID:
+        return None
+    if not _TEAM:
+        name = os.environ.get(TEAM_ENV)
+        _TEAM.append((_chosen(name, TEAM_ENV), False) if name else (_openmp_team(), True))
+    team, default = _TEAM[0]
+    return None if default and machine_busy() else team
+
+
+_LOAD: list[float] = [-1.0, 0.0]  # when the load was last read, and whether it was busy
+
+
+def machine_busy() -> bool:
+    """Whether more threads are running or waiting for a core than the cores this process may use
+    and one more (Linux's ``/proc/loadavg`` at this moment, read at most once a second;
+    elsewhere never busy)."""
+    now = time.monotonic()
+    if now - _LOAD[0] > 1.0:
+        try:
+            with open("/proc/loadavg") as f:
+                runnable = int(f.read().split()[3].split("/")[0])
+        except (OSError, IndexError, ValueError):
+            runnable = 0
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+        _LOAD[:] = [now, float(runnable > cores + 1)]
+    return bool(_LOAD[1])
+
 
 def run_shares(body: Callable[..., Any], threads: int, *args: Any) -> list[Any]:
     """``body(t, threads, *args)`` for every share ``t < threads`` at once (``body``: a numba
-    function compiled with ``nogil=True``, so the shares run in parallel), share 0 on the calling
-    thread; returns their results in the order of ``t``. Shares write disjoint parts of the
-    outputs, so the result does not depend on the thread count or on which thread ran what."""
+    function compiled with ``nogil=True``, so the shares run in parallel), on torch's OpenMP
+    threads or a pool of Python threads ([`set_team`][]), share 0 on the calling thread; returns
+    their results in the order of ``t``. Shares write disjoint parts of the outputs, so the
+    result does not depend on the thread count or on which thread ran what."""
     if threads <= 1:
         return [body(0, 1, *args)]
+    team = _team()
+    if team is not None:
+        return team(body, threads, args)
     with _POOL_LOCK:  # a thread that grows the pool meanwhile would shut this one down under us
         pool = _pool(threads - 1)
         futures: list[Future] = [pool.submit(body, t, threads, *args) for t in range(1, threads)]
     first = body(0, threads, *args)
     return [first, *(f.result() for f in futures)]
+
+
+def run_chunks(body: Callable[..., Any], threads: int, chunks: int, *args: Any) -> list[Any]:
+    """[`run_shares`][] of a kernel cut into ``chunks`` chunks that any thread may take:
+    ``body(t, threads, claims, *args)``, ``claims`` a fresh ``(chunks,)`` array of zeros that
+    [`take`][] marks. Each share takes its own chunks first (``t``, ``t + threads``, …), then
+    what is left of the others', from the last chunk down: a share the machine holds back leaves
+    its work to the others (torch's OpenMP threads spin for milliseconds on the cores after each
+    of torch's parallel ops, and a share's thread beside one runs at half speed meanwhile). Two
+    shares may both take a chunk (no atomic operations): a chunk must write the same values
+    whichever thread runs it, into outputs of its own, so the result does not depend on who ran
+    what."""
+    return run_shares(body, threads, np.zeros(max(int(chunks), 1), np.uint8), *args)
 
 
 #: Bytes between two threads' work space ([`per_thread`][]): a page. Two cache lines apart, the
@@ -227,3 +374,25 @@ def _own(rows: np.ndarray, t: int, nt: int) -> np.ndarray:
 
 
 own = inline_ir(_own)
+
+
+@inline
+def tries(claims: np.ndarray, nt: int) -> int:
+    """How many chunks a share of [`run_chunks`][] looks at, at most: ``range(tries(claims, nt))``
+    gives [`take`][]'s ``m``."""
+    n = claims.shape[0]
+    return n + (n + nt - 1) // nt
+
+
+@inline
+def take(claims: np.ndarray, t: int, nt: int, m: int) -> int:
+    """The ``m``-th chunk share ``t`` of ``nt`` looks at ([`run_chunks`][]: its own chunks
+    ``t, t + nt, …``, then every chunk from the last down), marked taken; −1 where that one is
+    taken already (or ``m`` is past the last)."""
+    n = claims.shape[0]
+    mine = (n - t + nt - 1) // nt
+    i = t + m * nt if m < mine else n - 1 - (m - mine)
+    if i < 0 or claims[i]:
+        return -1
+    claims[i] = 1
+    return i

@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .base import inline, run_shares, serial
+from .base import inline, run_chunks, serial, take, tries
 from .device import cuda_launch, device_checks
 from .noise import measured_value, sensor_measure
 from .samplers import stream_origin
@@ -157,40 +157,32 @@ def _chunk_sums(
 
 @serial
 def _runs_share(
-    t: int, nt: int, claims: np.ndarray, pix_runs: np.ndarray, run_start: np.ndarray, run_len: np.ndarray,
-    run_head: np.ndarray, run_tail: np.ndarray, inv_area: np.ndarray, pix_cuts: np.ndarray,
-    cut_weight: np.ndarray, x: np.ndarray, out: np.ndarray,
+    t: int, nt: int, claims: np.ndarray, bad: np.ndarray, pix_runs: np.ndarray, run_start: np.ndarray,
+    run_len: np.ndarray, run_head: np.ndarray, run_tail: np.ndarray, inv_area: np.ndarray,
+    pix_cuts: np.ndarray, cut_weight: np.ndarray, x: np.ndarray, out: np.ndarray,
 ) -> None:  # fmt: skip
-    """Thread ``t``'s part of [`runs_apply`][]: its own chunks ``t·C/T ..`` forwards, then what is
-    left of the other threads' backwards, ``C`` the length of ``claims`` (−2: a chunk nobody has
-    taken; −1: taken; then its count of non-finite values). Two threads may both take a chunk
-    (no atomics); they write the same values, and the count is kept once. A thread the machine
-    holds back so leaves its work to the others (torch's OpenMP threads spin for milliseconds
-    after each of its parallel ops, on the cores this product runs on)."""
+    """Thread ``t``'s chunks of [`runs_apply`][] ([`run_chunks`][layoutwarp.kernels.base.run_chunks]:
+    its own, then the others' left), each chunk's count of non-finite values into ``bad``."""
     c = claims.shape[0]
-    for s in range(nt):
-        u = (t + s) % nt
-        lo, hi = u * c // nt, (u + 1) * c // nt
-        for j in range(hi - lo):
-            i = lo + j if s == 0 else hi - 1 - j  # its own forwards, the others' from their ends
-            if claims[i] != -2:
-                break
-            claims[i] = -1
-            claims[i] = _chunk_sums(i, c, pix_runs, run_start, run_len, run_head, run_tail, inv_area,
-                                    pix_cuts, cut_weight, x, out)  # fmt: skip
+    for m in range(tries(claims, nt)):
+        i = take(claims, t, nt, m)
+        if i >= 0:
+            bad[i] = _chunk_sums(i, c, pix_runs, run_start, run_len, run_head, run_tail, inv_area, pix_cuts,
+                                 cut_weight, x, out)  # fmt: skip
 
 
 def runs_apply(runs: tuple[np.ndarray, ...], x: np.ndarray, out: np.ndarray, threads: int) -> int:
     """``out[n] = W @ x[n]`` for the area weights ``W`` of a fixed layout held as ``runs`` (the
     eight arrays of [`Runs.arrays`][layoutwarp.kernels.runs.Runs.arrays]), planes ``x``
     ``(N, M)`` float32 and ``out`` ``(N, R)``: chunks of pixels shared among ``threads`` (a thread
-    done with its own takes the others' that are left), every pixel's cells read once for every
-    three planes. Returns how many of the values written are not finite (NaN or ±inf):
+    done with its own takes the others' left), every pixel's cells read once for every three
+    planes. Returns how many of the values written are not finite (NaN or ±inf):
     [`simulate`][layoutwarp.sensor.simulate]'s finiteness check while they are in registers."""
     nt = int(threads)
-    claims = np.full(CHUNKS * nt if nt > 1 else 1, -2, np.int64)
-    run_shares(_runs_share, nt, claims, *runs, x, out)
-    return int(claims.sum())
+    chunks = CHUNKS * nt if nt > 1 else 1
+    bad = np.zeros(chunks, np.int64)
+    run_chunks(_runs_share, nt, chunks, bad, *runs, x, out)
+    return int(bad.sum())
 
 
 def measured_runs_apply(

@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..base import CHUNK, inline, own, per_thread, run_shares, serial, threads
+from ..base import CHUNK, inline, own, per_thread, run_chunks, run_shares, serial, take, threads, tries
 from ..exact import segment_moments
 from ..prefix import BLOCK
 from .build import EDGE_WORK, count_stage, mesh_topology, pixel_vertex, place_chunk, place_work
@@ -29,11 +29,12 @@ def _still(v: np.ndarray) -> bool:
 
 @serial
 def _integrate_share(
-    t: int, nt: int, kind: int, centred: bool, ends: np.ndarray, ea: np.ndarray, eb: np.ndarray,
-    th: np.ndarray, c: np.ndarray, piece_offsets: np.ndarray, bounds: np.ndarray, dbounds: np.ndarray,
-    counts: np.ndarray, edge_offsets: np.ndarray, corners: np.ndarray, dcorners: np.ndarray,
-    incl: np.ndarray, offsets: np.ndarray, block: int, ws: float, hs: float, span: int, out: np.ndarray,
-    jac: np.ndarray, work: tuple, all_verts: np.ndarray, all_dverts: np.ndarray, sums: tuple,
+    t: int, nt: int, claims: np.ndarray, kind: int, centred: bool, ends: np.ndarray, ea: np.ndarray,
+    eb: np.ndarray, th: np.ndarray, c: np.ndarray, piece_offsets: np.ndarray, bounds: np.ndarray,
+    dbounds: np.ndarray, counts: np.ndarray, edge_offsets: np.ndarray, corners: np.ndarray,
+    dcorners: np.ndarray, incl: np.ndarray, offsets: np.ndarray, block: int, ws: float, hs: float,
+    span: int, out: np.ndarray, jac: np.ndarray, work: tuple, all_verts: np.ndarray,
+    all_dverts: np.ndarray, sums: tuple,
 ) -> None:  # fmt: skip
     """[`mesh_integrals`][] a chunk of edges at a time: its new vertices into work space
     ([`place_chunk`][]), in pixel units as [`_to_pixels`][] gives them; its segments'
@@ -41,12 +42,12 @@ def _integrate_share(
     ([`segment_moments`][]) and θ-Jacobian while the segment is at hand.
     ``corners`` ``(V0, 2)`` in pixel units, ``span``: the most new vertices a chunk has; into
     ``out`` ``(N + 1, E)`` and ``jac`` ``(N + 1, E, P)``, every edge's written once, from work
-    space (no zeroing). Thread ``t`` of ``nt`` takes every ``nt``-th chunk, with its rows of the
-    work space: ``work`` ([`place_work`][]), the chunk's new vertices ``(T, span, 2)`` and their
+    space (no zeroing). Thread ``t`` of ``nt`` takes every ``nt``-th chunk, then the others' left
+    ([`run_chunks`][layoutwarp.kernels.base.run_chunks]), with its rows of the work space:
+    ``work`` ([`place_work`][]), the chunk's new vertices ``(T, span, 2)`` and their
     θ-derivatives ``(T, span, 2, P)``, and ``sums`` ([`_integral_work`][]: a segment's integrals
     and moments, an edge's θ-Jacobian and integrals)."""
     ne, p, n = ends.shape[0], th.shape[0], incl.shape[2]
-    n_chunks = (ne + CHUNK - 1) // CHUNK
     sx, sy = ws / 2, hs / 2  # ∂X/∂x, ∂Y/∂y
     mesh = (kind, centred, ends, th, c, piece_offsets, bounds, dbounds, counts, edge_offsets)
     qi, dq = own(work[0], t, nt), own(work[1], t, nt)
@@ -54,7 +55,10 @@ def _integrate_share(
     verts, dverts = own(all_verts, t, nt), own(all_dverts, t, nt)
     acc, ma = own(sums[0], t, nt), own(sums[1], t, nt)
     mb, ej, oe = own(sums[2], t, nt), own(sums[3], t, nt), own(sums[4], t, nt)
-    for chunk in range(t, n_chunks, nt):
+    for m in range(tries(claims, nt)):
+        chunk = take(claims, t, nt, m)
+        if chunk < 0:
+            continue
         e0, e1 = chunk * CHUNK, min((chunk + 1) * CHUNK, ne)
         place_chunk(*mesh, e0, e1, pts, rows, moving, qi, dq, verts, dverts)
         base = edge_offsets[e0] - e0
@@ -125,10 +129,10 @@ def mesh_integrals(
     out, jac = np.empty((n + 1, ne)), np.empty((n + 1, ne, p))
     nt = threads(ne * EDGE_WORK)
     space = (per_thread(nt, (k.span, 2)), per_thread(nt, (k.span, 2, p)), _integral_work(nt, n, p))
-    run_shares(
-        _integrate_share, nt, spec.kind, spec.centred, ends, ea, eb, k.th, k.c, k.piece_offsets, k.bounds,
-        k.dbounds, k.counts, k.edge_offsets, corners, k.dcorners, *tables, BLOCK, float(ws), float(hs),
-        k.span, out, jac, place_work(nt, p, k.span), *space,
+    run_chunks(
+        _integrate_share, nt, (ne + CHUNK - 1) // CHUNK, spec.kind, spec.centred, ends, ea, eb, k.th, k.c,
+        k.piece_offsets, k.bounds, k.dbounds, k.counts, k.edge_offsets, corners, k.dcorners, *tables, BLOCK,
+        float(ws), float(hs), k.span, out, jac, place_work(nt, p, k.span), *space,
     )  # fmt: skip
     return out, jac
 
