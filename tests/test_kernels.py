@@ -523,6 +523,59 @@ def test_a_busy_machine_runs_the_default_team_on_python_threads_and_a_chosen_one
         base.set_team(None)
 
 
+@pytest.mark.skipif(not hasattr(__import__("signal"), "SIGINT"), reason="needs SIGINT")
+def test_ctrl_c_during_the_shares_raises_and_never_returns_a_share_left_unrun():
+    """SIGINT at random moments while shares run on torch's OpenMP threads (the main thread runs
+    share 0 in a ctypes callback, whose entry may take the signal and drop it): every call either
+    returns every share's result or raises ``KeyboardInterrupt``; none returns with a share that
+    never ran (2 s of calls in a process of its own)."""
+    import subprocess
+    import sys
+    import textwrap
+
+    code = textwrap.dedent("""
+        import os, random, signal, threading, time, numba, torch
+        from layoutwarp.kernels import base
+        torch.set_num_threads(2)
+
+        @numba.njit(nogil=True)
+        def body(t, nt, n):
+            s = 0.0
+            for i in range(n):
+                s += i * 1e-12
+            return t + 1 + 0 * s
+
+        body(0, 1, 1)
+        done = threading.Event()
+
+        def interrupt():
+            while not done.is_set():
+                time.sleep(random.uniform(0.0005, 0.005))
+                os.kill(os.getpid(), signal.SIGINT)
+
+        threading.Thread(target=interrupt, daemon=True).start()
+        wrong = raised = calls = 0
+        end = time.time() + 2
+        while time.time() < end:
+            try:
+                calls += 1
+                wrong += base.run_shares(body, 2, 20000) != [1, 2]
+            except KeyboardInterrupt:
+                raised += 1
+        done.set()
+        for _ in range(3):
+            try:
+                time.sleep(0.05)
+            except KeyboardInterrupt:
+                pass
+        print(calls, raised, wrong)
+    """)
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr[-3000:]
+    calls, raised, wrong = map(int, res.stdout.split())
+    assert wrong == 0 and raised > 10 and calls > raised
+
+
 @pytest.mark.skipif(not hasattr(__import__("os"), "fork"), reason="needs fork")
 def test_a_child_forked_after_the_openmp_team_ran_runs_its_shares_on_threads_of_its_own():
     """GNU OpenMP's threads are not a forked child's: after the parent's kernels ran on torch's

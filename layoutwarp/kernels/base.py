@@ -157,6 +157,7 @@ def _run_job(key: int) -> None:
 
 
 _CALLBACK = ctypes.CFUNCTYPE(None, ctypes.c_void_p)(_run_job)
+_UNDONE = object()  # a share's result before it has run
 
 
 @functools.cache
@@ -183,7 +184,7 @@ def _openmp_team() -> Callable[..., list[Any]] | None:
     callback = ctypes.cast(_CALLBACK, ctypes.c_void_p)
 
     def team(body: Callable[..., Any], nt: int, args: tuple) -> list[Any]:
-        key, results, errors = next(_KEYS), [None] * nt, []
+        key, results, errors = next(_KEYS), [_UNDONE] * nt, []
         _JOBS[key] = (body, nt, args, results, errors, lib)
         try:  # the GIL released while the team runs (ctypes.CDLL)
             lib.GOMP_parallel(callback, key, nt, 0)
@@ -191,6 +192,8 @@ def _openmp_team() -> Callable[..., list[Any]] | None:
             del _JOBS[key]
         if errors:
             raise errors[0]
+        if any(r is _UNDONE for r in results):  # a signal at the callback's entry, which ctypes
+            raise KeyboardInterrupt  # drops: the share never ran, so the call cannot return
         return results
 
     return team
