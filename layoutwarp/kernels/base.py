@@ -129,7 +129,9 @@ def set_team(name: str | None) -> None:
     parallel ops its OpenMP threads spin for milliseconds, and a learnable step's share on a
     thread of its own beside one ran at half speed (the step 1.3–1.5x its time on torch's
     threads). On a busy machine the Python threads, which sleep rather than spin while they
-    wait, take a fairer share of the cores."""
+    wait, take a fairer share of the cores. A child forked before this module was imported is not
+    known as one: run it with one torch thread, as a ``DataLoader`` worker does (its torch ops on
+    more would wait for ever there too)."""
     _TEAM.clear()
     if name is not None:
         _TEAM.append((_chosen(name, "set_team: name"), False))
@@ -233,9 +235,11 @@ def machine_busy() -> bool:
 def run_shares(body: Callable[..., Any], threads: int, *args: Any) -> list[Any]:
     """``body(t, threads, *args)`` for every share ``t < threads`` at once (``body``: a numba
     function compiled with ``nogil=True``, so the shares run in parallel), on torch's OpenMP
-    threads or a pool of Python threads ([`set_team`][]), share 0 on the calling thread; returns
-    their results in the order of ``t``. Shares write disjoint parts of the outputs, so the
-    result does not depend on the thread count or on which thread ran what."""
+    threads or a pool of Python threads ([`set_team`][]), share 0 on the calling thread (an
+    OpenMP team given fewer threads than asked for, e.g. under ``OMP_THREAD_LIMIT``, runs the
+    rest in turn); returns their results in the order of ``t``. Shares write disjoint parts of
+    the outputs, so the result does not depend on the thread count or on which thread ran
+    what."""
     if threads <= 1:
         return [body(0, 1, *args)]
     team = _team()
