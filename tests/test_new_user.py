@@ -168,6 +168,7 @@ def test_output_cut_short_by_its_reader_ends_the_command_quietly(monkeypatch):
     assert ended.value.code == 141
     out.write("more")
     out.flush()  # stdout now leads nowhere: later writes are dropped, not errors
+    out.close()  # (left open, the garbage collector warned of it in a later test)
 
 
 def test_a_small_sensor_is_not_checked_against_the_free_memory(monkeypatch):
