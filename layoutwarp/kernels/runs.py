@@ -82,43 +82,15 @@ def _pixel_sums(
 _pixel_sums = inline(_pixel_sums)
 
 
-def _pixel_sum(k, pix_runs, run_start, run_len, run_head, run_tail, inv_area, pix_cuts, cut_weight, x, p):
-    """Pixel ``k``'s mean of plane ``p`` (a gray image's), as [`_pixel_sums`][] of one plane."""
-    xp, one = x[p], np.uint64(1)
-    a = b = np.float64(0.0)
-    o = np.uint64(pix_cuts[k])
-    for j in range(pix_runs[k], pix_runs[k + 1]):
-        c = np.uint64(run_start[j])
-        e = c + np.uint64(run_len[j])
-        h, t = c + np.uint64(run_head[j]), e - np.uint64(run_tail[j])
-        while c < h:
-            a += np.float64(cut_weight[o]) * xp[c]
-            o, c = o + one, c + one
-        while c < t:
-            b += xp[c]
-            c += one
-        while c < e:
-            a += np.float64(cut_weight[o]) * xp[c]
-            o, c = o + one, c + one
-    return a + b * inv_area[k]
-
-
-_pixel_sum = inline(_pixel_sum)
-
-
 @inline
 def _pixel_out(
     k, pix_runs, run_start, run_len, run_head, run_tail, inv_area, pix_cuts, cut_weight, x, out, p
 ):
     """Pixel ``k``'s means of planes ``p .. p + 2`` of ``x`` (fewer where fewer are left), written to
-    ``out[p:p + 3, k]``; returns how many of them are not finite."""
+    ``out[p:p + 3, k]``; returns how many of them are not finite. One or two planes left are read
+    as three, the last again: the same sums bit for bit, in one loop for every plane count."""
     n = x.shape[0]
-    if n - p == 1:
-        out[p, k] = _pixel_sum(
-            k, pix_runs, run_start, run_len, run_head, run_tail, inv_area, pix_cuts, cut_weight, x, p
-        )
-        return not math.isfinite(out[p, k])
-    q, r = p + 1, min(p + 2, n - 1)  # two planes left: the second read twice
+    q, r = min(p + 1, n - 1), min(p + 2, n - 1)
     sums = _pixel_sums(
         k, pix_runs, run_start, run_len, run_head, run_tail, inv_area, pix_cuts, cut_weight, x, p, q, r
     )
