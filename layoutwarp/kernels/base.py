@@ -16,6 +16,7 @@ import glob
 import itertools
 import math
 import os
+import sys
 import threading
 import time
 import types
@@ -160,6 +161,23 @@ def _run_job(key: int) -> None:
 
 _CALLBACK = ctypes.CFUNCTYPE(None, ctypes.c_void_p)(_run_job)
 _UNDONE = object()  # a share's result before it has run
+#: A Ctrl-C that ctypes dropped at a callback's edge and no team has raised yet; then, once the
+#: hook that notes it is set ([`_unraisable`][]), ``True``.
+_DROPPED: list[bool] = [False]
+
+
+def _unraisable(hook: Callable[[Any], Any]) -> Callable[[Any], Any]:
+    """``sys.unraisablehook`` that keeps ``hook`` for everything but a ``KeyboardInterrupt`` that
+    ctypes drops at [`_run_job`][]'s entry or exit (a Ctrl-C there): noted, and raised by the team
+    on the main thread as a plain ``KeyboardInterrupt``, with no report of its own."""
+
+    def unraisable(report: Any) -> None:
+        if report.exc_type is KeyboardInterrupt and report.object is _run_job:
+            _DROPPED[0] = True
+        else:
+            hook(report)
+
+    return unraisable
 
 
 @functools.cache
@@ -184,6 +202,9 @@ def _openmp_team() -> Callable[..., list[Any]] | None:
     if lib is None:
         return None
     callback = ctypes.cast(_CALLBACK, ctypes.c_void_p)
+    if not _DROPPED[1:]:  # once: a hook set after it is the user's to keep
+        sys.unraisablehook = _unraisable(sys.unraisablehook)
+        _DROPPED.append(True)
 
     def team(body: Callable[..., Any], nt: int, args: tuple) -> list[Any]:
         key, results, errors = next(_KEYS), [_UNDONE] * nt, []
@@ -194,8 +215,10 @@ def _openmp_team() -> Callable[..., list[Any]] | None:
             del _JOBS[key]
         if errors:
             raise errors[0]
-        if any(r is _UNDONE for r in results):  # a signal at the callback's entry, which ctypes
-            raise KeyboardInterrupt  # drops: the share never ran, so the call cannot return
+        dropped = _DROPPED[0] and threading.current_thread() is threading.main_thread()
+        if dropped or any(r is _UNDONE for r in results):  # a Ctrl-C at a callback's edge, which
+            _DROPPED[0] = False  # ctypes drops (at its entry: the share never ran)
+            raise KeyboardInterrupt
         return results
 
     return team
