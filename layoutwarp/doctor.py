@@ -34,7 +34,8 @@ def cpu_backend() -> str:
         return "torch (numba is not installed)"
     if jit.mode() == "off":
         return f"torch ({jit.ENV}=off)"
-    return f"compiled (numba, {kernels.threads()} threads; {jit.ENV}={jit.mode()})"
+    team = "torch's OpenMP" if kernels.base.team_name() == "openmp" else "Python"
+    return f"compiled (numba, {kernels.threads()} threads, {team} ones; {jit.ENV}={jit.mode()})"
 
 
 def cuda_backend(probe: bool = True) -> str:

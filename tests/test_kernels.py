@@ -484,8 +484,9 @@ def test_shares_run_at_once_on_either_team_share_0_on_the_caller_and_errors_reac
 
 
 def test_the_team_comes_from_layoutwarp_team_and_a_bad_name_is_refused_in_one_line(monkeypatch):
-    """``LAYOUTWARP_TEAM=python`` runs the shares on the pool of Python threads; a name that is
-    neither ``openmp`` nor ``python`` is refused, naming the variable, at the first kernel."""
+    """``LAYOUTWARP_TEAM=python`` runs the shares on the pool of Python threads (``layoutwarp
+    doctor`` says so); a name that is neither ``openmp`` nor ``python`` is refused, naming the
+    variable, at the first kernel."""
     import threading
 
     base = kernels.base
@@ -494,6 +495,7 @@ def test_the_team_comes_from_layoutwarp_team_and_a_bad_name_is_refused_in_one_li
         base.set_team(None)
         names = base.run_shares(lambda t, nt: threading.current_thread().name, 2)
         assert names[0] == threading.current_thread().name and names[1].startswith("layoutwarp")
+        assert base.team_name() == "python" and " threads, Python ones;" in lw.doctor.cpu_backend()
         monkeypatch.setenv(base.TEAM_ENV, "bogus")
         base.set_team(None)
         with pytest.raises(ValueError, match=r"^LAYOUTWARP_TEAM must be 'openmp' or 'python', got 'bogus'$"):

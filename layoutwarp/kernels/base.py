@@ -52,6 +52,7 @@ __all__ = [
     "serial",
     "set_team",
     "take",
+    "team_name",
     "threads",
     "tries",
     "without_ir_inlining",
@@ -234,6 +235,12 @@ def _team() -> Callable[..., list[Any]] | None:
         _TEAM.append((_chosen(name, TEAM_ENV), False) if name else (_openmp_team(), True))
     team, default = _TEAM[0]
     return None if default and machine_busy() else team
+
+
+def team_name() -> str:
+    """The threads a kernel's shares run on now ([`set_team`][]): ``"openmp"`` (torch's OpenMP
+    team) or ``"python"`` (a pool of Python threads)."""
+    return "python" if _team() is None else "openmp"
 
 
 _LOAD: list[float] = [-1.0, 0.0]  # when the load was last read, and whether it was busy
