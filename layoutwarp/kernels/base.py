@@ -162,8 +162,7 @@ def _run_job(key: int) -> None:
 
 _CALLBACK = ctypes.CFUNCTYPE(None, ctypes.c_void_p)(_run_job)
 _UNDONE = object()  # a share's result before it has run
-#: A Ctrl-C that ctypes dropped at a callback's edge and no team has raised yet; then, once the
-#: hook that notes it is set ([`_unraisable`][]), ``True``.
+#: Whether ctypes dropped a Ctrl-C at a callback's edge that no team has raised yet.
 _DROPPED: list[bool] = [False]
 
 
@@ -179,6 +178,13 @@ def _unraisable(hook: Callable[[Any], Any]) -> Callable[[Any], Any]:
             hook(report)
 
     return unraisable
+
+
+@functools.cache
+def _note_dropped_interrupts() -> None:
+    """Set ``sys.unraisablehook`` to [`_unraisable`][] of the hook before, once (a hook set after
+    it is the user's to keep)."""
+    sys.unraisablehook = _unraisable(sys.unraisablehook)
 
 
 @functools.cache
@@ -203,9 +209,7 @@ def _openmp_team() -> Callable[..., list[Any]] | None:
     if lib is None:
         return None
     callback = ctypes.cast(_CALLBACK, ctypes.c_void_p)
-    if not _DROPPED[1:]:  # once: a hook set after it is the user's to keep
-        sys.unraisablehook = _unraisable(sys.unraisablehook)
-        _DROPPED.append(True)
+    _note_dropped_interrupts()
 
     def team(body: Callable[..., Any], nt: int, args: tuple) -> list[Any]:
         key, results, errors = next(_KEYS), [_UNDONE] * nt, []
