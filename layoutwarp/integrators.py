@@ -34,8 +34,8 @@ from .layouts import Layout
 from .maps import sample_points
 from .mesh import PixelMesh
 from .operators import base as ops
-from .operators.exact import NUMBA_NEEDS
-from .operators.flux import Radiance, sample_radiance
+from .operators.exact import NUMBA_NEEDS, exact_call
+from .operators.flux import Radiance, flux_call, sample_radiance
 from .operators.separable import axis_weights, separable_edges
 from .tolerance import data_tolerance
 
@@ -134,12 +134,10 @@ def integrate_exact(
         raise ValueError(NUMBA_NEEDS)
     which = "torch" if image.requires_grad else backend
     jacobian = param.requires_grad and torch.is_grad_enabled()
-    h, w = check_size(size)
-    token = ops.layout_token(layout)
-    check = not allow_nonfinite
-    means, areas, _, _ = torch.ops.layoutwarp.exact(
-        param, work, token, h, w, float(tol), which, jacobian, check, bounds, dtype
+    call = exact_call(
+        ops.layout_token(layout), check_size(size), float(tol), which, jacobian, not allow_nonfinite, dtype
     )
+    means, areas, _, _ = torch.ops.layoutwarp.exact(param, work, bounds, call)
     return (means, areas) if return_areas else means
 
 
@@ -282,6 +280,6 @@ def integrate_montecarlo(
         is_fn = callable(image) and not isinstance(image, Tensor)
         source, fn = (theta.new_empty(0), ops.object_token(image)) if is_fn else (image, "")
         edge_seed = ops.random_seed(generator, None if seed is None else seed + 1)
-        args = (ops.layout_token(layout), fn, h, w, s, radiance)
-        out = torch.ops.layoutwarp.flux(out, theta, vol.detach(), source, edge_seed, *args)
+        call = flux_call(ops.layout_token(layout), size, s, radiance, fn)
+        out = torch.ops.layoutwarp.flux(out, theta, vol.detach(), source, edge_seed, call)
     return out

@@ -35,13 +35,14 @@ from .layouts import Layout, check_layout
 from .measurement import device_arguments, kernel_arguments, measure, noise_seed
 from .operators import base as ops
 from .operators.base import layout_token
+from .operators.exact import exact_call
 from .physics import SensorPhysics, physics_of
 from .weights import fixed_runs
 
 if TYPE_CHECKING:
     import scipy.sparse
 
-__all__ = ["RESAMPLERS", "AreaResampler", "area_product", "resampler_for"]
+__all__ = ["RESAMPLERS", "AreaResampler", "area_call", "area_product", "resampler_for"]
 
 
 class AreaResampler:
@@ -371,70 +372,74 @@ def _check_float32(image: torch.Tensor) -> None:
     )
 
 
-def area_product(
-    image: torch.Tensor,
-    theta: torch.Tensor,
+def area_call(
     layout: str,
-    height: int,
-    width: int,
+    size: tuple[int, int],
     tol: float,
-    physics: str,
-    output: str,
-    seed: torch.Tensor,
-    check: bool,
-    with_areas: bool,
+    physics: str = "",
+    output: str = "radiance",
+    check: bool = False,
+    with_areas: bool = False,
+) -> str:
+    """The description ``layoutwarp::area`` takes (see [`area_product`][]): the fixed layout's
+    token, the sensor's ``size``, ``tol``, the camera's ``physics`` token (``""``: none) and its
+    ``output``, whether to ``check`` for NaN/Inf, and whether to return the areas
+    (``with_areas``)."""
+    return ops.describe_call(
+        layout=layout, size=size, tol=tol, physics=physics, output=output, check=check, with_areas=with_areas
+    )
+
+
+def area_product(
+    image: torch.Tensor, theta: torch.Tensor, seed: torch.Tensor, call: str
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """``layoutwarp::area``, the operator of a fixed layout's product (called directly where
-    ``operators.base.plain_eager``): the exact means ``(N, h, w)`` of the
-    fixed layout ``layout`` (a [`layout_token`][layoutwarp.operators.base.layout_token]) at
-    ``theta`` over float32 images ``(N, H, W)`` by its cached area weights
-    ([`resampler_for`][]), and, ``with_areas``, the pixels' areas ``(h, w)`` (float64, sensor
-    units; else an empty tensor); with ``physics`` (a camera's
-    [`token`][layoutwarp.physics.SensorPhysics.token], ``""``: none) what that sensor records,
-    fused, its noise drawn from ``seed``. ``check``: raise ``ValueError`` where NaN/Inf reach the
-    output. Differentiable in the images (without physics: the transposed weights), twice (the
-    product is linear)."""
+    ``operators.base.plain_eager``): the exact means ``(N, h, w)`` of the fixed layout
+    ``layout`` (a [`layout_token`][layoutwarp.operators.base.layout_token]) at ``theta`` over
+    float32 images ``(N, H, W)`` by its cached area weights ([`resampler_for`][]), where
+    ``call`` ([`area_call`][]) holds ``layout``, the sensor's ``size``, ``tol``, ``physics``,
+    ``output``, ``check`` and ``with_areas``; with ``with_areas`` also the pixels' areas
+    ``(h, w)`` (float64, sensor units; else an empty tensor); with ``physics`` (a camera's
+    [`token`][layoutwarp.physics.SensorPhysics.token], ``""``: none) what that sensor records
+    in ``output``'s units, fused, its noise drawn from ``seed``. ``check``: raise
+    ``ValueError`` where NaN/Inf reach the output. Differentiable in the images (without
+    physics: the transposed weights), twice (the product is linear)."""
     _check_float32(image)
-    size, src = (height, width), tuple(image.shape[-2:])
-    camera = physics_of(physics)
+    c = ops.read_call(call, "area")
+    src = tuple(image.shape[-2:])
+    camera = physics_of(c.physics)
     values = ops.theta_values(theta)
-    res = _kept(layout, values, size, src, tol, image.device, lambda: ops.layout_of(layout, theta))
+    res = _kept(c.layout, values, c.size, src, c.tol, image.device, lambda: ops.layout_of(c.layout, theta))
     if res is None:  # the cache keeps none: the exact walk (and the measurement)
-        means, areas, _, _ = torch.ops.layoutwarp.exact(
-            theta, image, layout, height, width, tol, "auto", False, check, theta.new_empty(0), image.dtype
-        )
-        out = means if camera is None else measure(means, areas, camera, output=output, seed=seed)
+        exact = exact_call(c.layout, c.size, c.tol, check=c.check, dtype=image.dtype)
+        means, areas, _, _ = torch.ops.layoutwarp.exact(theta, image, theta.new_empty(0), exact)
+        out = means if camera is None else measure(means, areas, camera, output=c.output, seed=seed)
     else:
-        out, areas = res.product(image, camera, output, seed, not check), res.areas
-    return out, (areas.clone() if with_areas else areas.new_empty(0))
+        out, areas = res.product(image, camera, c.output, seed, not c.check), res.areas
+    return out, (areas.clone() if c.with_areas else areas.new_empty(0))
 
 
 _area = torch.library.custom_op("layoutwarp::area", area_product, mutates_args=())
 
 
 @_area.register_fake
-def _(image, theta, layout, height, width, tol, physics, output, seed, check, with_areas):
+def _(image, theta, seed, call):
     _check_float32(image)
-    areas = (height, width) if with_areas else (0,)
-    return image.new_empty(image.shape[0], height, width), image.new_empty(areas, dtype=torch.float64)
+    c = ops.read_call(call, "area")
+    areas = c.size if c.with_areas else (0,)
+    return image.new_empty(image.shape[0], *c.size), image.new_empty(areas, dtype=torch.float64)
 
 
 @torch.library.custom_op("layoutwarp::area_backward", mutates_args=())
 def _area_backward(
-    grad: torch.Tensor,
-    theta: torch.Tensor,
-    layout: str,
-    height: int,
-    width: int,
-    tol: float,
-    src_height: int,
-    src_width: int,
+    grad: torch.Tensor, theta: torch.Tensor, call: str, src_height: int, src_width: int
 ) -> torch.Tensor:
-    """The images' gradient of ``layoutwarp::area`` (without physics): the transposed weights
-    applied to ``grad`` ``(N, h, w)``, ``(N, H, W)``."""
+    """The images' gradient of ``layoutwarp::area`` (without physics) for its ``call``: the
+    transposed weights applied to ``grad`` ``(N, h, w)``, ``(N, H, W)``."""
+    c = ops.read_call(call, "area_backward")
     src = (src_height, src_width)
     values = ops.theta_values(theta)
-    res = _kept(layout, values, (height, width), src, tol, grad.device, lambda: ops.layout_of(layout, theta))
+    res = _kept(c.layout, values, c.size, src, c.tol, grad.device, lambda: ops.layout_of(c.layout, theta))
     if res is None:
         raise RuntimeError(
             "layoutwarp::area: the area weights' cache was emptied between forward and backward"
@@ -443,38 +448,38 @@ def _area_backward(
 
 
 @_area_backward.register_fake
-def _(grad, theta, layout, height, width, tol, src_height, src_width):
+def _(grad, theta, call, src_height, src_width):
     return grad.new_empty(grad.shape[0], src_height, src_width)
 
 
 def _area_setup(ctx: Any, inputs: tuple, output: tuple) -> None:
-    image, theta, layout, height, width, tol, physics, *_ = inputs
-    if physics:
-        ctx.refused = True
+    image, theta, _, call = inputs
+    c = ops.read_call(call, "area")
+    ctx.refused = bool(c.physics)
+    if ctx.refused:
         return
-    ctx.refused = False
     ctx.save_for_backward(theta)
-    ctx.args = (layout, height, width, tol, image.shape[-2], image.shape[-1])
+    ctx.args = (area_call(c.layout, c.size, c.tol), image.shape[-2], image.shape[-1])
 
 
 def _area_grad(ctx: Any, grad: torch.Tensor, grad_areas: torch.Tensor) -> tuple:
     if ctx.refused:
         raise RuntimeError("layoutwarp::area with physics has no gradient; measure(apply(images)) has")
     (theta,) = ctx.saved_tensors
-    return _area_backward(grad, theta, *ctx.args), *[None] * 10
+    return _area_backward(grad, theta, *ctx.args), None, None, None
 
 
 def _area_backward_setup(ctx: Any, inputs: tuple, output: torch.Tensor) -> None:
-    _, theta, layout, height, width, tol, *_ = inputs
+    _, theta, call, *_ = inputs
     ctx.save_for_backward(theta)
-    ctx.args = (layout, height, width, tol)
+    ctx.call = call
 
 
 def _area_backward_grad(ctx: Any, grad: torch.Tensor) -> tuple:
     (theta,) = ctx.saved_tensors
     seed = torch.zeros((), dtype=torch.int64)
-    forward, _ = torch.ops.layoutwarp.area(grad, theta, *ctx.args, "", "radiance", seed, False, False)
-    return forward, *[None] * 7
+    forward, _ = torch.ops.layoutwarp.area(grad, theta, seed, ctx.call)
+    return forward, None, None, None, None
 
 
 _area.register_autograd(_area_grad, setup_context=_area_setup)

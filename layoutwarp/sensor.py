@@ -35,6 +35,7 @@ from .integrators import (
 from .layoutfile import load_layout, save_layout
 from .layouts import Layout, make_layout, wants_grad
 from .measurement import measure, noise_seed
+from .operators.areas import areas_call
 from .operators.base import (
     backend,
     layout_token,
@@ -45,7 +46,7 @@ from .operators.base import (
     refuse_grad_transforms,
 )
 from .physics import SensorPhysics, apply_psf, as_physics, check_output
-from .resampler import RESAMPLERS, area_product, resampler_for
+from .resampler import RESAMPLERS, area_call, area_product, resampler_for
 
 __all__ = ["METHODS", "SensorLayer", "SimulationPlan", "plan_simulation", "simulate"]
 
@@ -399,17 +400,17 @@ class _Integration:
             mean, areas = self._dispatch(work, route, with_areas=True)  # compiled path: no torch mesh)
         else:  # the sampling integrators: the areas of the polygons the pixels are
             mean = self._dispatch(work, route)
-            areas = torch.ops.layoutwarp.pixel_areas(
-                operator_theta(self.layout), layout_token(self.layout), *self.size, self.tol
-            )
+            call = areas_call(layout_token(self.layout), self.size, self.tol)
+            areas = torch.ops.layoutwarp.pixel_areas(operator_theta(self.layout), call)
         return measure(mean, areas, self.physics, output=self.output, seed=seed)
 
     def _area(self, work: Tensor, physics: str, seed: Tensor, with_areas: bool) -> tuple[Tensor, Tensor]:
         """``layoutwarp::area`` on ``work``: the means (or, with ``physics``, the record) and areas."""
         theta = operator_theta(self.layout)
-        args = (layout_token(self.layout), *self.size, float(self.tol), physics, self.output)
+        token, check = layout_token(self.layout), not self.allow_nonfinite
+        call = area_call(token, self.size, float(self.tol), physics, self.output, check, with_areas)
         op = area_product if plain_eager(work, theta, seed) else torch.ops.layoutwarp.area
-        return op(work, theta, *args, seed, not self.allow_nonfinite, with_areas)
+        return op(work, theta, seed, call)
 
     def _dispatch(
         self, work: Tensor | Radiance, route: str, with_areas: bool = False

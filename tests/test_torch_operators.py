@@ -14,7 +14,11 @@ import torch.nn.functional as F
 
 import layoutwarp as lw
 from layoutwarp.layouts import FAMILIES
+from layoutwarp.operators.areas import areas_call
 from layoutwarp.operators.base import OPERATORS, SECOND_ORDER, TRANSFORMS, layout_token
+from layoutwarp.operators.exact import exact_call
+from layoutwarp.operators.flux import flux_call
+from layoutwarp.resampler import area_call
 
 F64 = torch.float64
 CAMERA = lw.SensorPhysics(
@@ -58,18 +62,18 @@ def _cases(gen: torch.Generator) -> dict[str, tuple]:
     size = (4, 5)
     fixed = lw.CurvLayout((0.3, -0.2))
     ftheta = fixed.theta_as(F64)
-    exact = (th, img64, layout_token(curv), *size, 1e-4, "auto", True, True, bounds, torch.float32)
+    call = exact_call(layout_token(curv), size, 1e-4, "auto", True, True, torch.float32)
+    exact = (th, img64, bounds, call)
     means, areas, jac, held = torch.ops.layoutwarp.exact(
         *[a.detach() if torch.is_tensor(a) else a for a in exact]
     )
     grad_means, grad_areas = torch.rand_like(means), torch.rand_like(areas)
-    tail = (layout_token(curv), *size, 1e-4, "auto")
     ex = torch.tensor([0.0, 3.5, 7.2, 11.0, 14.0], dtype=F64, requires_grad=True)
     ey = torch.tensor([0.0, 2.5, 6.0, 9.5, 12.0], dtype=F64, requires_grad=True)
     sep = torch.ops.layoutwarp.separable(img64, ex.detach(), ey.detach(), True)
     value = torch.rand(2, *size, generator=gen, dtype=F64, requires_grad=True)
     vol = torch.full(size, 4 / 20, dtype=F64)
-    flux = (theta, vol, img64, seed, layout_token(curv), "", *size, 2, "bilinear")
+    flux = (theta, vol, img64, seed, flux_call(layout_token(curv), size, 2, "bilinear"))
     ne = MeshTopology(size).num_edges
     assert jac.shape == (3, ne, 2)
     return {
@@ -83,10 +87,9 @@ def _cases(gen: torch.Generator) -> dict[str, tuple]:
             areas,
             jac,
             held,
-            *tail,
-            True,
-            False,
             bounds,
+            call,
+            [True, False],
         ),
         "separable": (img64.clone().requires_grad_(True), ex, ey, True),
         "separable_backward": (
@@ -101,21 +104,13 @@ def _cases(gen: torch.Generator) -> dict[str, tuple]:
         "area": (
             img32.clone().requires_grad_(True),
             ftheta,
-            layout_token(fixed),
-            *size,
-            2**-12,
-            "",
-            "radiance",
             seed,
-            True,
-            True,
+            area_call(layout_token(fixed), size, 2**-12, check=True, with_areas=True),
         ),
         "area_backward": (
             torch.rand(2, *size, generator=gen),
             ftheta,
-            layout_token(fixed),
-            *size,
-            2**-12,
+            area_call(layout_token(fixed), size, 2**-12),
             12,
             14,
         ),
@@ -125,8 +120,15 @@ def _cases(gen: torch.Generator) -> dict[str, tuple]:
         "draws": (torch.rand(2, *size, generator=gen, dtype=F64) * 20, seed, "poisson", True),
         "flux": (value, *flux),
         "flux_backward": (torch.rand_like(value), value.detach(), theta.detach(), *flux[1:]),
-        "pixel_areas": (grid.theta_as(F64).clone().requires_grad_(True), layout_token(grid), *size, 1e-4),
-        "pixel_areas_backward": (torch.rand_like(areas), grid.theta_as(F64), layout_token(grid), *size, 1e-4),
+        "pixel_areas": (
+            grid.theta_as(F64).clone().requires_grad_(True),
+            areas_call(layout_token(grid), size, 1e-4),
+        ),
+        "pixel_areas_backward": (
+            torch.rand_like(areas),
+            grid.theta_as(F64),
+            areas_call(layout_token(grid), size, 1e-4),
+        ),
         "guard_finite": (value, img64, "image"),
         "uniform": (seed, [3, 4, 2], torch.empty(0, dtype=F64)),
         "seed_sequence": (torch.tensor(3, dtype=torch.int64), 11),
@@ -750,8 +752,9 @@ def test_raw_operators_refuse_bad_arguments_in_one_line_naming_operator_and_argu
     img = torch.rand(2, 12, 14, generator=gen, dtype=F64)
     empty = th.new_empty(0)
 
-    def exact(theta=th, image=img, layout=token, backend="auto"):
-        return torch.ops.layoutwarp.exact(theta, image, layout, 4, 5, 1e-3, backend, False, True, empty, F64)
+    def exact(theta=th, image=img, layout=token, backend="auto", call=None):
+        call = exact_call(layout, (4, 5), 1e-3, backend, False, True, F64) if call is None else call
+        return torch.ops.layoutwarp.exact(theta, image, empty, call)
 
     means, areas, _, _ = exact()
     cases = {
@@ -759,6 +762,7 @@ def test_raw_operators_refuse_bad_arguments_in_one_line_naming_operator_and_argu
         "layoutwarp::exact: layout": lambda: exact(layout="not json"),
         "layoutwarp::exact: image": lambda: exact(image=img[None]),
         "layoutwarp::exact: backend": lambda: exact(backend="banana"),
+        "layoutwarp::exact: call": lambda: exact(call="[1, 2]"),
         "layoutwarp::map_points: points": lambda: torch.ops.layoutwarp.map_points(
             torch.zeros(5, 3, dtype=F64), th, token, False
         ),
@@ -820,19 +824,8 @@ def test_a_plain_eager_fixed_forward_skips_the_dispatcher_and_gives_the_operator
     with torch.no_grad():
         direct = lw.simulate(image, layout, (5, 7))
     theta, seed = layout.theta_as(torch.float64), torch.zeros((), dtype=torch.int64)
-    through, _ = torch.ops.layoutwarp.area(
-        image.reshape(6, 40, 60),
-        theta,
-        layout_token(layout),
-        5,
-        7,
-        2.0**-12,
-        "",
-        "radiance",
-        seed,
-        True,
-        False,
-    )
+    call = area_call(layout_token(layout), (5, 7), 2.0**-12, check=True)
+    through, _ = torch.ops.layoutwarp.area(image.reshape(6, 40, 60), theta, seed, call)
     assert torch.equal(direct.reshape(6, 5, 7), through)
     assert plain_eager(image, theta)
     assert not plain_eager(image.clone().requires_grad_(), theta)

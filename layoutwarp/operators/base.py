@@ -9,10 +9,12 @@ sizes, numpy and the kernels' locks stay inside it, so a model holding a
 [`SensorLayer`][layoutwarp.sensor.SensorLayer] compiles to one graph and exports
 (``torch.export``). [`OPERATORS`][] lists them (the tests run ``torch.library.opcheck`` on each).
 
-Operators take tensors, numbers and text only, so a layout travels as its *token*
+Operators take tensors and one text, the call's *description* ([`describe_call`][]): the
+settings that do not change with θ, as JSON. A layout travels in it as its *token*
 ([`layout_token`][]: its description as JSON text, or a handle of the object for a family
 that is not registered) next to its θ as a tensor, and a camera as its JSON text
-([`SensorPhysics.to_json`][layoutwarp.physics.SensorPhysics.to_json]).
+([`SensorPhysics.to_json`][layoutwarp.physics.SensorPhysics.to_json]). A new θ or a loaded
+checkpoint leaves the description as it was, so a compiled graph is not compiled again.
 """
 
 from __future__ import annotations
@@ -20,7 +22,8 @@ from __future__ import annotations
 import contextlib
 import json
 import sys
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
+from types import SimpleNamespace
 from typing import TYPE_CHECKING, Any, NoReturn
 
 import torch
@@ -48,6 +51,7 @@ __all__ = [
     "backend",
     "batch_rule",
     "check_theta",
+    "describe_call",
     "first_order_only",
     "generator_of",
     "layout_of",
@@ -57,6 +61,7 @@ __all__ = [
     "object_token",
     "operator_theta",
     "random_seed",
+    "read_call",
     "refuse",
     "refuse_grad_transforms",
     "seed_value",
@@ -91,6 +96,53 @@ def layout_token(layout: Layout) -> str:
     if token is None or (token.startswith("object:") and token != f"object:{id(layout)}"):
         token = layout._token = layout.make_token()  # a constructor skipped, or a copy's handle
     return token
+
+
+def describe_call(**settings: bool | int | float | str | Sequence[int] | torch.dtype) -> str:
+    """The text an operator takes beside its tensors: ``settings`` (a layout's token, sizes, the
+    tolerance, flags, a dtype, ...) as one JSON object, read back by [`read_call`][]. Plain string
+    work, so ``torch.compile`` folds it into a constant of the graph."""
+    return "{" + ", ".join(f'"{key}": {_json_text(value)}' for key, value in settings.items()) + "}"
+
+
+def _json_text(value: bool | int | float | str | Sequence[int] | torch.dtype) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (int, float)):
+        return repr(value)
+    if isinstance(value, torch.dtype):
+        return f'"{str(value).removeprefix("torch.")}"'
+    if isinstance(value, (tuple, list)):
+        return "[" + ", ".join(_json_text(v) for v in value) + "]"
+    return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
+
+
+#: The settings of the descriptions operators were handed, per text.
+CALLS: LRU[SimpleNamespace] = LRU("descriptions of operator calls", 64)
+
+
+def read_call(text: str, op: str) -> SimpleNamespace:
+    """The settings of a [`describe_call`][] text as attributes (lists as tuples, dtypes as
+    ``torch.dtype``; kept per text: read them, never change them). A text that is not one is
+    refused in one line naming ``op``."""
+    return CALLS.get(text, lambda: _parse_call(text, op))
+
+
+def _parse_call(text: str, op: str) -> SimpleNamespace:
+    try:
+        settings = json.loads(text)
+        if not isinstance(settings, dict):
+            raise ValueError("not a JSON object")
+    except ValueError as err:
+        refuse(op, "call", f"must be a call's description (describe_call), got {text[:60]!r}: {err}")
+    for key, value in settings.items():
+        if isinstance(value, list):
+            settings[key] = tuple(value)
+        elif key == "dtype":
+            settings[key] = getattr(torch, str(value), None)
+            if not isinstance(settings[key], torch.dtype):
+                refuse(op, "call", f"names no torch dtype: {value!r}")
+    return SimpleNamespace(**settings)
 
 
 def refuse(op: str, argument: str, message: str) -> NoReturn:
@@ -353,7 +405,9 @@ def batch_rule(
 
     def rule(info: Any, in_dims: tuple, *args: Any) -> tuple[Any, Any]:
         batched = [i for i, d in enumerate(in_dims) if d is not None]
-        random = name in RANDOM and (name != "area" or bool(args[6]))  # area draws with a camera
+        random = name in RANDOM and (
+            name != "area" or bool(read_call(args[3], name).physics)
+        )  # with a camera
         if random and info.randomness == "error":
             raise RuntimeError(
                 f"layoutwarp::{name} draws random numbers: pass randomness='same' or 'different' to vmap"

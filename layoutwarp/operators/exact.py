@@ -5,6 +5,7 @@ compiled mesh on the CPU, the device mesh, or the torch reference) chosen here, 
 from __future__ import annotations
 
 import contextlib
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -30,7 +31,7 @@ from ..layouts import Layout, theta_of
 from ..mesh import MeshTopology, pixel_mesh
 from . import base as ops
 
-__all__ = ["DEVICE_MESHES", "NUMBA_NEEDS"]
+__all__ = ["DEVICE_MESHES", "NUMBA_NEEDS", "exact_call"]
 
 #: Why ``backend="numba"`` was refused (by [`integrate_exact`][layoutwarp.integrators.integrate_exact]
 #: for an image that needs its gradient, here where the kernels cannot run).
@@ -50,25 +51,31 @@ def _jacobian_shape(theta: Tensor, image: Tensor, height: int, width: int) -> tu
     return image.shape[0] + 1, MeshTopology((height, width)).num_edges, theta.shape[0]
 
 
-@torch.library.custom_op("layoutwarp::exact", mutates_args=())
-def _exact(
-    theta: Tensor,
-    image: Tensor,
+def exact_call(
     layout: str,
-    height: int,
-    width: int,
+    size: tuple[int, int],
     tol: float,
-    backend: str,
-    jacobian: bool,
-    check: bool,
-    bounds: Tensor,
-    dtype: torch.dtype,
-) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    backend: str = "auto",
+    jacobian: bool = False,
+    check: bool = False,
+    dtype: torch.dtype = torch.float64,
+) -> str:
+    """The description ``layoutwarp::exact`` takes (see [`_exact`][]): the layout's token, the
+    sensor's ``size``, ``tol``, the ``backend``, whether θ's ``jacobian`` is kept, whether to
+    ``check`` for NaN/Inf, and the means' ``dtype``."""
+    return ops.describe_call(
+        layout=layout, size=size, tol=tol, backend=backend, jacobian=jacobian, check=check, dtype=dtype
+    )
+
+
+@torch.library.custom_op("layoutwarp::exact", mutates_args=())
+def _exact(theta: Tensor, image: Tensor, bounds: Tensor, call: str) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """The exact means ``(N, h, w)`` (computed in float64, rounded once into ``dtype``) and
     areas ``(h, w)`` (float64, sensor units) of the pixels of ``layout`` (a
     [`layout_token`][layoutwarp.operators.base.layout_token]) at θ over the box image ``image``
-    ``(N, H, W)``. ``theta`` is θ itself where ``bounds`` is empty, else the parameter ρ of
-    ``θ = bounds · tanh(ρ)`` (float64;
+    ``(N, H, W)``, where ``call`` ([`exact_call`][]) holds ``layout``, the sensor's ``size``
+    ``(h, w)``, ``tol``, ``backend``, ``jacobian``, ``check`` and ``dtype``. ``theta`` is θ
+    itself where ``bounds`` is empty, else the parameter ρ of ``θ = bounds · tanh(ρ)`` (float64;
     [`Layout.theta_source`][layoutwarp.layouts.base.Layout.theta_source]): the operator makes
     θ, so a learnable step's ρ → θ and back cost no launches of their own. With ``jacobian`` (θ
     is learned) also the θ-Jacobian of the edge integrals ``(N + 1, E, P)`` where the compiled
@@ -81,41 +88,46 @@ def _exact(
     checks on the device, and the error comes when its status reaches the host, in a later step
     ([`device_status`][layoutwarp.kernels.mesh.device_status] reads it at once): the step waits
     for nothing."""
-    _check_exact(image, backend)
-    template = ops.layout_of(layout, op="exact")
+    c = ops.read_call(call, "exact")
+    _check_exact(image, c.backend)
+    template = ops.layout_of(c.layout, op="exact")
     ops.check_theta("exact", theta, template, bounds)
-    size, (hs, ws) = (height, width), image.shape[-2:]
-    which = "torch" if backend == "torch" else ops.backend(image, "learn", wait=backend == "numba")
-    if backend == "numba" and which == "torch":
+    hs, ws = image.shape[-2:]
+    which = "torch" if c.backend == "torch" else ops.backend(image, "learn", wait=c.backend == "numba")
+    if c.backend == "numba" and which == "torch":
         raise ValueError(NUMBA_NEEDS)
     spec = mesh_spec(template) if which != "torch" else None
     image = image.contiguous()
     if spec is not None and which == "cuda":  # the mesh built where it is used: none crosses the bus
         held = image.new_empty((), dtype=torch.int8)  # where the image is: a graph holds no CPU tensor
-        means, area, areas, dm = _device_exact(spec, theta, bounds, image, size, tol, check, dtype, held)
-        if jacobian:  # the device mesh kept for the backward (the entry holds the means: their
+        means, area, areas, dm = _device_exact(
+            spec, theta, bounds, image, c.size, c.tol, c.check, c.dtype, held
+        )
+        if c.jacobian:  # the device mesh kept for the backward (the entry holds the means: their
             DEVICE_MESHES.put(means.data_ptr(), (means, dm, area))  # memory is not reused meanwhile)
         return means, areas, image.new_empty(0, dtype=torch.float64), held  # checked on the device
     no_jac = (  # zeros: the torch path's room for a Jacobian it does not fill
-        image.new_zeros(_jacobian_shape(theta, image, *size), dtype=torch.float64)
-        if _keeps_jacobian(image, jacobian)
+        image.new_zeros(_jacobian_shape(theta, image, *c.size), dtype=torch.float64)
+        if _keeps_jacobian(image, c.jacobian)
         else image.new_empty(0, dtype=torch.float64)
     )
     held = image.new_zeros((), dtype=torch.int8)
-    if spec is not None and jacobian:  # mesh, integrals and their θ-Jacobian, chunk by chunk
+    if spec is not None and c.jacobian:  # mesh, integrals and their θ-Jacobian, chunk by chunk
         th = theta_of(theta, bounds).detach().cpu().numpy()
         tables = kernels.prefix_tables(image.numpy(), kernels.BLOCK)
-        out, j = mesh_integrals(spec, size, th, tol, tables, (hs, ws))
-        pix = MeshTopology(size).combine(out)
+        out, j = mesh_integrals(spec, c.size, th, c.tol, tables, (hs, ws))
+        pix = MeshTopology(c.size).combine(out)
         held.fill_(1)
         means, areas, jac = (torch.from_numpy(a) for a in (pix[:-1] / pix[-1], pix[-1] * _unit(image), j))
     else:
-        with ops.autograd_inside() if jacobian else contextlib.nullcontext():  # the mesh a gradient needs
-            th = theta_of(theta, bounds).detach().requires_grad_(jacobian)
-            means, areas = _mesh_exact(th, image, template, size, tol, which != "torch", cache=not jacobian)
+        with ops.autograd_inside() if c.jacobian else contextlib.nullcontext():  # the mesh a gradient needs
+            th = theta_of(theta, bounds).detach().requires_grad_(c.jacobian)
+            means, areas = _mesh_exact(
+                th, image, template, c.size, c.tol, which != "torch", cache=not c.jacobian
+            )
         means, areas, jac = means.detach(), areas.detach().clone(), no_jac
-    means = means.to(dtype)
-    if check and not all_finite(means):
+    means = means.to(c.dtype)
+    if c.check and not all_finite(means):
         raise_nonfinite(image)
     return means, areas, jac, held
 
@@ -129,13 +141,13 @@ def _check_exact(image: Tensor, backend: str) -> None:
 
 
 @_exact.register_fake
-def _(theta, image, layout, height, width, tol, backend, jacobian, check, bounds, dtype):
-    _check_exact(image, backend)
-    n = image.shape[0]
-    jac = _jacobian_shape(theta, image, height, width) if _keeps_jacobian(image, jacobian) else (0,)
+def _(theta, image, bounds, call):
+    c = ops.read_call(call, "exact")
+    _check_exact(image, c.backend)
+    jac = _jacobian_shape(theta, image, *c.size) if _keeps_jacobian(image, c.jacobian) else (0,)
     return (
-        image.new_empty(n, height, width, dtype=dtype),
-        image.new_empty(height, width, dtype=torch.float64),
+        image.new_empty(image.shape[0], *c.size, dtype=c.dtype),
+        image.new_empty(c.size, dtype=torch.float64),
         image.new_empty(jac, dtype=torch.float64),
         image.new_empty((), dtype=torch.int8),
     )
@@ -203,21 +215,17 @@ def _exact_backward(
     areas: Tensor,
     jac: Tensor,
     held: Tensor,
-    layout: str,
-    height: int,
-    width: int,
-    tol: float,
-    backend: str,
-    theta_grad: bool,
-    image_grad: bool,
     bounds: Tensor,
+    call: str,
+    needs: Sequence[bool],
 ) -> tuple[Tensor, Tensor]:
     """The gradients of ``layoutwarp::exact``'s ``theta`` (θ or ρ, as ``bounds`` says) and image
     from those of its means and areas (``None``: unused) (the image's: an empty tensor unless
-    ``image_grad``; θ's, zeros unless ``theta_grad``): the exact Reynolds transport gradient, by
-    one contraction with the kept Jacobian, by the device kernels, or by the mesh again with
-    autograd."""
-    size = (height, width)
+    ``needs[1]``; θ's, zeros unless ``needs[0]``), for the forward's ``call``: the exact
+    Reynolds transport gradient, by one contraction with the kept Jacobian, by the device
+    kernels, or by the mesh again with autograd."""
+    c = ops.read_call(call, "exact_backward")
+    theta_grad, image_grad = needs
     if (
         jac.numel() and bool(held) and not image_grad
     ):  # the compiled CPU step: the quotient rule and one contraction
@@ -226,15 +234,15 @@ def _exact_backward(
         g_edge = edge_gradient(g, means.double().cpu().numpy(), areas.cpu().numpy() / _unit(image), own)
         g_theta = theta_gradient(g_edge, jac.cpu().numpy())
         return _to_param(torch.from_numpy(g_theta), theta, bounds), image.new_empty(0)
-    which = "torch" if backend == "torch" or image_grad else ops.backend(image, "learn")
-    template = ops.layout_of(layout)
+    which = "torch" if c.backend == "torch" or image_grad else ops.backend(image, "learn")
+    template = ops.layout_of(c.layout)
     spec = mesh_spec(template) if which == "cuda" else None
     if spec is not None:  # the forward's device mesh, else built again (its sizes live on the device)
         kept = DEVICE_MESHES.pop(means.data_ptr())
         if kept is None:
             zero = image.new_empty(1, dtype=torch.int8)
             _, area, _, dm = _device_exact(
-                spec, theta, bounds, image.contiguous(), size, tol, False, means.dtype, zero
+                spec, theta, bounds, image.contiguous(), c.size, c.tol, False, means.dtype, zero
             )
         else:
             _, dm, area = kept
@@ -245,7 +253,7 @@ def _exact_backward(
         param = theta.detach().requires_grad_(theta_grad)  # the forward's mesh: built as it was
         th = theta_of(param, bounds)
         img = image.detach().requires_grad_(image_grad)
-        m, a = _mesh_exact(th, img, template, size, tol, which != "torch", cache=False)
+        m, a = _mesh_exact(th, img, template, c.size, c.tol, which != "torch", cache=False)
         inputs = [t for t in (param, img) if t.requires_grad]
         outs = [(o, g) for o, g in ((m, grad_means), (a, grad_areas)) if o.requires_grad and g is not None]
         grads = iter(
@@ -265,8 +273,8 @@ def _exact_backward(
 
 
 @_exact_backward.register_fake
-def _(grad_means, grad_areas, theta, image, *rest):
-    return torch.empty_like(theta), image.new_empty(image.shape) if rest[-2] else image.new_empty(0)
+def _(grad_means, grad_areas, theta, image, means, areas, jac, held, bounds, call, needs):
+    return torch.empty_like(theta), image.new_empty(image.shape) if needs[1] else image.new_empty(0)
 
 
 def _to_param(g_theta: Tensor, param: Tensor, bounds: Tensor) -> Tensor:
@@ -282,46 +290,27 @@ def _to_param(g_theta: Tensor, param: Tensor, bounds: Tensor) -> Tensor:
 
 
 def _exact_setup(ctx: Any, inputs: tuple, output: tuple) -> None:
-    theta, image, layout, height, width, tol, backend, _, _, bounds, _ = inputs
+    theta, image, bounds, call = inputs
     means, areas, jac, held = output
     ctx.save_for_backward(theta, image, means, areas, jac, held, bounds)
-    ctx.args = (layout, height, width, tol, backend)
+    ctx.call = call
     ctx.set_materialize_grads(False)  # an output nobody used costs its backward nothing
 
 
 def _exact_grad(ctx: Any, grad_means: Tensor, grad_areas: Tensor, *_: Tensor) -> tuple:
-    theta, image, means, areas, jac, held, bounds = ctx.saved_tensors
-    theta_grad, image_grad = ctx.needs_input_grad[:2]
     if grad_means is None and grad_areas is None:
-        return (None,) * 11
-    g_theta, g_image = _exact_backward(
-        grad_means,
-        grad_areas,
-        theta,
-        image,
-        means,
-        areas,
-        jac,
-        held,
-        *ctx.args,
-        theta_grad,
-        image_grad,
-        bounds,
-    )
-    return (
-        (g_theta if theta_grad else None),
-        (g_image if image_grad else None),
-        *[None] * 9,
-    )
+        return None, None, None, None
+    needs = ctx.needs_input_grad[:2]
+    g_theta, g_image = _exact_backward(grad_means, grad_areas, *ctx.saved_tensors, ctx.call, needs)
+    return (g_theta if needs[0] else None), (g_image if needs[1] else None), None, None
 
 
 def _exact_backward_setup(ctx: Any, inputs: tuple, output: tuple) -> None:
-    theta, image, *_ = inputs[2:]
-    layout, height, width, tol, backend, theta_grad, _, bounds = inputs[8:]
+    theta, image, *_, bounds, call, needs = inputs[2:]
     # θ fixed: the image's gradient is the transposed product, linear in the means' gradient alone
-    ctx.linear = not theta_grad
+    ctx.linear = not needs[0]
     ctx.save_for_backward(theta, bounds)
-    ctx.args = (layout, height, width, tol, backend, image.dtype)
+    ctx.call, ctx.dtype = call, image.dtype
 
 
 def _exact_backward_grad(ctx: Any, g_theta: Tensor | None, g_image: Tensor | None) -> tuple:
@@ -331,12 +320,11 @@ def _exact_backward_grad(ctx: Any, g_theta: Tensor | None, g_image: Tensor | Non
     if not ctx.linear:
         raise RuntimeError(ops.SECOND_ORDER.format(op="exact"))
     if g_image is None or g_image.numel() == 0:
-        return (None,) * 16
+        return (None,) * 11
     theta, bounds = ctx.saved_tensors
-    layout, height, width, tol, backend, dtype = ctx.args
-    means = torch.ops.layoutwarp.exact(theta, g_image, layout, height, width, tol, backend, False, False,
-                                       bounds, dtype)[0]  # fmt: skip
-    return means, *[None] * 15
+    c = ops.read_call(ctx.call, "exact")
+    call = exact_call(c.layout, c.size, c.tol, c.backend, dtype=ctx.dtype)
+    return torch.ops.layoutwarp.exact(theta, g_image, bounds, call)[0], *[None] * 10
 
 
 _exact.register_autograd(_exact_grad, setup_context=_exact_setup)

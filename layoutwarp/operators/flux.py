@@ -15,7 +15,7 @@ from ..layouts import Layout
 from ..mesh import MeshTopology
 from . import base as ops
 
-__all__ = ["Radiance", "sample_radiance"]
+__all__ = ["Radiance", "flux_call", "sample_radiance"]
 
 #: A black-box radiance: points ``(..., 2)`` in sensor coordinates to values ``(..., N)``.
 Radiance = Callable[[Tensor], Tensor]
@@ -37,18 +37,26 @@ def sample_radiance(image: Tensor | Radiance, points: Tensor, radiance: str) -> 
     return F.grid_sample(image[None], grid, mode=mode, padding_mode="border", align_corners=False)[0]
 
 
+def flux_call(layout: str, size: tuple[int, int], samples: int, radiance: str, radiance_fn: str = "") -> str:
+    """The description ``layoutwarp::flux`` takes (see [`_flux`][]): the layout's token, the
+    sensor's ``size``, the ``samples`` per pixel side, the ``radiance`` model and, for a
+    callable radiance, its [`object_token`][layoutwarp.operators.base.object_token]
+    (``radiance_fn``; ``""``: the image)."""
+    return ops.describe_call(
+        layout=layout, size=size, samples=samples, radiance=radiance, radiance_fn=radiance_fn
+    )
+
+
 @torch.library.custom_op("layoutwarp::flux", mutates_args=())
-def _flux(
-    value: Tensor, theta: Tensor, vol: Tensor, image: Tensor, seed: Tensor, layout: str, radiance_fn: str,
-    height: int, width: int, samples: int, radiance: str,
-) -> Tensor:  # fmt: skip
+def _flux(value: Tensor, theta: Tensor, vol: Tensor, image: Tensor, seed: Tensor, call: str) -> Tensor:
     """Identity on ``value``; its θ-gradient is the Reynolds boundary flux (paper eq. 16).
 
     ``∂I_k/∂θ = (1/|A_k|) ∮_∂A_k (L − I_k) ⟨∂r/∂θ, n⟩ ds`` (constant sensitivity ``W``, so
     the interior term vanishes), estimated with stratified jittered samples along every
     edge (drawn from ``seed``); each shared edge is sampled once and used with opposite signs by
-    its two pixels. Needs no gradient of ``L`` (the image, or the callable of ``radiance_fn``).
-    The work is done in the backward pass only."""
+    its two pixels. ``call`` ([`flux_call`][]) holds the layout, the sensor's size, the samples
+    and the radiance model. Needs no gradient of ``L`` (the image, or the callable of
+    ``call``'s ``radiance_fn``). The work is done in the backward pass only."""
     return value.clone()
 
 
@@ -59,15 +67,15 @@ def _(value, *rest):
 
 @torch.library.custom_op("layoutwarp::flux_backward", mutates_args=())
 def _flux_backward(
-    grad: Tensor, value: Tensor, theta: Tensor, vol: Tensor, image: Tensor, seed: Tensor, layout: str,
-    radiance_fn: str, height: int, width: int, samples: int, radiance: str,
-) -> Tensor:  # fmt: skip
+    grad: Tensor, value: Tensor, theta: Tensor, vol: Tensor, image: Tensor, seed: Tensor, call: str
+) -> Tensor:
     """θ's gradient of ``layoutwarp::flux``: [`_flux_gradient`][] with the weights ``grad / vol``."""
-    source = ops.object_of(radiance_fn) if radiance_fn else image
+    c = ops.read_call(call, "flux_backward")
+    source = ops.object_of(c.radiance_fn) if c.radiance_fn else image
     generator = ops.generator_of(seed, theta.device)
     with ops.autograd_inside():
         g = _flux_gradient(
-            source, ops.layout_of(layout), theta.detach(), (height, width), samples, radiance, generator,
+            source, ops.layout_of(c.layout), theta.detach(), c.size, c.samples, c.radiance, generator,
             grad / vol, value,
         )  # fmt: skip
     return g.to(theta.dtype)
@@ -79,14 +87,14 @@ def _(grad, value, theta, *rest):
 
 
 def _flux_setup(ctx: Any, inputs: tuple, output: Tensor) -> None:
-    value, theta, vol, image, seed, *args = inputs
-    ctx.save_for_backward(value, theta, vol, image, seed)
-    ctx.args = args
+    *tensors, call = inputs
+    ctx.save_for_backward(*tensors)
+    ctx.call = call
 
 
 def _flux_grad(ctx: Any, grad: Tensor) -> tuple:
-    g_theta = _flux_backward(grad, *ctx.saved_tensors, *ctx.args) if ctx.needs_input_grad[1] else None
-    return grad, g_theta, *[None] * 9
+    g_theta = _flux_backward(grad, *ctx.saved_tensors, ctx.call) if ctx.needs_input_grad[1] else None
+    return grad, g_theta, None, None, None, None
 
 
 _flux.register_autograd(_flux_grad, setup_context=_flux_setup)
