@@ -743,6 +743,42 @@ def test_an_input_gradient_penalty_through_a_fixed_layout_has_its_exact_second_d
     torch.testing.assert_close(got.double(), want, rtol=1e-4, atol=1e-5)
 
 
+def test_a_calls_description_reads_back_as_written_and_compiles_to_a_constant():
+    """``describe_call`` writes JSON that ``read_call`` reads back as it was written (a token with
+    quotes and backslashes, sizes, a tolerance's every digit, flags, a dtype), the same as
+    ``json.loads`` of it; under ``torch.compile(fullgraph=True)`` it folds into the graph; a text
+    of no settings, or a dtype torch does not have, is refused in one line naming the operator."""
+    from layoutwarp.operators.base import describe_call, read_call
+
+    token = json.dumps({"family": "odd", "name": 'a "quoted" \\ path', "x": [0.1, 1e-300]}, sort_keys=True)
+    text = describe_call(layout=token, size=(257, 129), tol=0.1 + 0.2, check=True, jac=False, dtype=F64)
+    c = read_call(text, "exact")
+    assert (c.layout, c.size, c.tol, c.check, c.jac, c.dtype) == (
+        token,
+        (257, 129),
+        0.1 + 0.2,
+        True,
+        False,
+        F64,
+    )
+    assert json.loads(text)["layout"] == token and json.loads(text)["dtype"] == "float64"
+
+    @torch.compile(fullgraph=True, backend="eager")
+    def f(x):
+        return x + len(describe_call(layout=token, size=(3, 4), tol=1e-3, dtype=x.dtype))
+
+    assert float(f(torch.zeros(()))) == len(
+        describe_call(layout=token, size=(3, 4), tol=1e-3, dtype=torch.float32)
+    )
+    for bad, why in (
+        ("[1]", "layoutwarp::exact: call must be"),
+        ('{"dtype": "cuda"}', "layoutwarp::exact: call names"),
+    ):
+        with pytest.raises(ValueError, match="^" + why) as err:
+            read_call(bad, "exact")
+        assert "\n" not in str(err.value)
+
+
 def test_raw_operators_refuse_bad_arguments_in_one_line_naming_operator_and_argument(gen):
     """``torch.ops.layoutwarp.*`` called directly with a wrong θ length, a text that is no layout's
     token, a 4-D image, an unknown backend, points that are not (..., 2), or areas of another
