@@ -31,10 +31,10 @@ from .nets import conv_block, normalise_rgb
 from .protocols import SPECS
 from .segmentation import (
     PSPSegNet,
+    augmented_loss,
+    class_legend,
     confusion,
     predict_labels,
-    scale_jitter,
-    segmentation_loss,
     segmentation_scores,
 )
 from .tasks import Task, TaskData, register_task
@@ -182,11 +182,7 @@ class CamVidTask(Task):
 
         def batch_loss(idx: torch.Tensor, net: nn.Module) -> torch.Tensor:
             xb, yb = x[idx].to(device).float().div_(255), y[idx].to(device)
-            if bool(torch.rand((), generator=gen) < 0.5):  # horizontal flip
-                xb, yb = xb.flip(-1), yb.flip(-1)
-            if psp:
-                xb, yb = scale_jitter(xb, yb, gen, ignore=VOID)
-            return segmentation_loss(net(xb), yb, model.sensor.layout, VOID, weight)
+            return augmented_loss(net, xb, yb, model.sensor.layout, gen, VOID, weight, jitter=psp)
 
         return torch.arange(len(x)), batch_loss
 
@@ -196,8 +192,7 @@ class CamVidTask(Task):
         return PALETTE[np.where(lab == VOID, VOID, pred)]
 
     def legend(self) -> dict[str, tuple[int, int, int]]:
-        names = [*CAMVID_CLASSES, "void"]
-        return {n: tuple(int(v) for v in c) for n, c in zip(names, PALETTE, strict=True)}
+        return class_legend([*CAMVID_CLASSES, "void"], PALETTE)
 
     def score(self, model: nn.Module, part: Any) -> dict[str, Any]:
         """mIoU and pixel accuracy on ``part`` at full resolution, void ignored."""

@@ -31,10 +31,10 @@ from ..layouts import Layout
 from .protocols import SPECS
 from .segmentation import (
     PSPSegNet,
+    augmented_loss,
+    class_legend,
     confusion,
     predict_labels,
-    scale_jitter,
-    segmentation_loss,
     segmentation_scores,
 )
 from .tasks import Task, TaskData, register_task
@@ -182,10 +182,7 @@ class CityscapesTask(Task):
         def batch_loss(idx: torch.Tensor, net: nn.Module) -> torch.Tensor:
             x, y = read_pairs([train[int(i)] for i in idx])
             xb, yb = x.to(device).float().div_(255), y.to(device)
-            if bool(torch.rand((), generator=gen) < 0.5):  # horizontal flip
-                xb, yb = xb.flip(-1), yb.flip(-1)
-            xb, yb = scale_jitter(xb, yb, gen, ignore=IGNORE)
-            return segmentation_loss(net(xb), yb, model.sensor.layout, IGNORE)
+            return augmented_loss(net, xb, yb, model.sensor.layout, gen, IGNORE)
 
         return torch.arange(len(train)), batch_loss
 
@@ -195,8 +192,7 @@ class CityscapesTask(Task):
         return PALETTE[np.where(labels[0].numpy() == IGNORE, len(CLASSES), pred)]
 
     def legend(self) -> dict[str, tuple[int, int, int]]:
-        names = [*CLASSES, "void"]
-        return {n: tuple(int(v) for v in c) for n, c in zip(names, PALETTE, strict=True)}
+        return class_legend([*CLASSES, "void"], PALETTE)
 
     def score(self, model: nn.Module, part: Any) -> dict[str, Any]:
         """mIoU and pixel accuracy on the file pairs ``part`` at the labels' resolution, void

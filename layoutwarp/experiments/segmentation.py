@@ -1,6 +1,7 @@
 """What the segmentation tasks (CamVid, Cityscapes) share: the paper's PSPNet behind a sensor,
-its loss on back-warped outputs, PSPNet's scale jitter for whole images, predictions at the
-labels' resolution and the scores (mIoU, pixel accuracy).
+its loss on back-warped outputs, PSPNet's scale jitter for whole images and a training batch's
+augmented loss, predictions at the labels' resolution, the scores (mIoU, pixel accuracy) and the
+classes' legend.
 
 Shapes: images ``(B, 3, H, W)`` in [0, 1] (uint8 for [`predict_labels`][]), label maps
 ``(B, H, W)`` int64 with one ``ignore`` value, logits ``(B, K, h, w)`` on the sensor grid.
@@ -8,6 +9,7 @@ Shapes: images ``(B, 3, H, W)`` in [0, 1] (uint8 for [`predict_labels`][]), labe
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +25,8 @@ from .training import model_device
 
 __all__ = [
     "PSPSegNet",
+    "augmented_loss",
+    "class_legend",
     "confusion",
     "predict_labels",
     "scale_jitter",
@@ -131,6 +135,31 @@ def segmentation_loss(
             aux, labels, layout, ignore_index=ignore, weight=weight
         )
     return loss
+
+
+def augmented_loss(
+    net: nn.Module,
+    x: torch.Tensor,
+    y: torch.Tensor,
+    layout: Layout,
+    gen: torch.Generator,
+    ignore: int,
+    weight: torch.Tensor | None = None,
+    jitter: bool = True,
+) -> torch.Tensor:
+    """A training batch's [`segmentation_loss`][]: images ``x`` (float, in ``[0, 1]``) and
+    labels ``y`` flipped left to right with probability 1/2 and, with ``jitter``, scaled by
+    [`scale_jitter`][] (padding labels with ``ignore``), both drawn from ``gen``."""
+    if bool(torch.rand((), generator=gen) < 0.5):  # horizontal flip
+        x, y = x.flip(-1), y.flip(-1)
+    if jitter:
+        x, y = scale_jitter(x, y, gen, ignore=ignore)
+    return segmentation_loss(net(x), y, layout, ignore, weight)
+
+
+def class_legend(names: Sequence[str], palette: np.ndarray) -> dict[str, tuple[int, int, int]]:
+    """Each class's colour in figures, by name (``names`` and ``palette``'s rows in step)."""
+    return {n: tuple(int(v) for v in c) for n, c in zip(names, palette, strict=True)}
 
 
 @torch.no_grad()

@@ -43,6 +43,20 @@ __all__ = ["CUDA_KERNELS", "WHOLE", "Runs", "measured_runs_apply", "runs_apply",
 WHOLE = 1e-9
 
 
+@inline
+def _cut_sums(xp, xq, xr, cut_weight, o, c, end, a0, a1, a2):
+    """The cut cells ``c .. end`` of three planes' rows, their weights from ``cut_weight[o]`` on,
+    added to the sums ``a0``, ``a1``, ``a2``; returns the sums and ``o`` and ``c`` moved past them."""
+    one = np.uint64(1)
+    while c < end:
+        w = np.float64(cut_weight[o])
+        a0 += w * xp[c]
+        a1 += w * xq[c]
+        a2 += w * xr[c]
+        o, c = o + one, c + one
+    return a0, a1, a2, o, c
+
+
 def _pixel_sums(
     k, pix_runs, run_start, run_len, run_head, run_tail, inv_area, pix_cuts, cut_weight, x, p, q, r
 ):
@@ -58,23 +72,13 @@ def _pixel_sums(
         c = np.uint64(run_start[j])
         e = c + np.uint64(run_len[j])
         h, t = c + np.uint64(run_head[j]), e - np.uint64(run_tail[j])
-        while c < h:
-            w = np.float64(cut_weight[o])
-            a0 += w * xp[c]
-            a1 += w * xq[c]
-            a2 += w * xr[c]
-            o, c = o + one, c + one
+        a0, a1, a2, o, c = _cut_sums(xp, xq, xr, cut_weight, o, c, h, a0, a1, a2)
         while c < t:
             b0 += xp[c]
             b1 += xq[c]
             b2 += xr[c]
             c += one
-        while c < e:
-            w = np.float64(cut_weight[o])
-            a0 += w * xp[c]
-            a1 += w * xq[c]
-            a2 += w * xr[c]
-            o, c = o + one, c + one
+        a0, a1, a2, o, c = _cut_sums(xp, xq, xr, cut_weight, o, c, e, a0, a1, a2)
     v = inv_area[k]
     return a0 + b0 * v, a1 + b1 * v, a2 + b2 * v
 
