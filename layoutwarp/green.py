@@ -257,9 +257,8 @@ class _ExactKernel(torch.autograd.Function):
         if runs_on_device(image):
             out, ctx.tables = _cuda_forward(verts, image.detach().contiguous(), mesh)
             return out
-        arrays = _kernel_arrays(verts, mesh)
         ctx.image = image.detach().contiguous().numpy()
-        out, ctx.tables = _cpu_forward(*arrays, mesh.seg_edge.cpu().numpy(), ctx.image)
+        out, ctx.tables = _cpu_forward(_kernel_arrays(verts, mesh), ctx.image)
         return torch.from_numpy(out)
 
     @staticmethod
@@ -269,31 +268,24 @@ class _ExactKernel(torch.autograd.Function):
         if runs_on_device(verts):
             return _cuda_backward(verts, ctx.tables, mesh, grad), None, None
         g_edge = np.ascontiguousarray(grad.detach().double().cpu().numpy())
-        v, seg_start, seg_end, _ = _kernel_arrays(verts, mesh)
-        seg_edge = mesh.seg_edge.cpu().numpy()
-        wa, wb = _cpu_weights(v, seg_start, seg_end, seg_edge, ctx.image, ctx.tables, g_edge)
+        wa, wb = _cpu_weights(_kernel_arrays(verts, mesh), ctx.image, ctx.tables, g_edge)
         wa_t, wb_t = torch.from_numpy(wa), torch.from_numpy(wb)
         return _vertex_gradient(verts.detach(), mesh.seg_start, mesh.seg_end, wa_t, wb_t), None, None
 
 
 def _cpu_forward(
-    verts: np.ndarray,
-    seg_start: np.ndarray,
-    seg_end: np.ndarray,
-    edge_offsets: np.ndarray,
-    seg_edge: np.ndarray,
-    image: np.ndarray,
+    arrays: tuple[np.ndarray, ...], image: np.ndarray
 ) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray] | None]:
-    """The compiled forward on the CPU: ``(N + 1, E)`` edge integrals (and areas), and the prefix
-    tables where the image is small enough to keep them for the backward (else ``None``: it is
-    integrated in bands of rows, holding no whole table)."""
+    """The compiled forward on the CPU of the mesh's [`_kernel_arrays`][]: ``(N + 1, E)`` edge
+    integrals (and areas), and the prefix tables where the image is small enough to keep them for
+    the backward (else ``None``: it is integrated in bands of rows, holding no whole table)."""
+    verts, seg_start, seg_end, edge_offsets, seg_edge = arrays
     nt = kernels.threads(image.size + _SEGMENT_WORK * len(seg_start))
     if image.nbytes <= kernels.WHOLE_TABLE_BYTES:
         tables = kernels.prefix_tables(image, kernels.BLOCK, nt)
         out = kernels.exact_forward(verts, seg_start, seg_end, edge_offsets, *tables, kernels.BLOCK, nt)
         return out, tables
     band = kernels.band_rows(image, nt)
-    seg_edge = np.ascontiguousarray(seg_edge)
     out = kernels.exact_forward_banded(
         verts, seg_start, seg_end, edge_offsets, seg_edge, image, kernels.BLOCK, band, nt
     )
@@ -305,26 +297,25 @@ _SEGMENT_WORK = 64
 
 
 def _cpu_weights(
-    verts: np.ndarray,
-    seg_start: np.ndarray,
-    seg_end: np.ndarray,
-    seg_edge: np.ndarray,
+    arrays: tuple[np.ndarray, ...],
     image: np.ndarray,
     tables: tuple[np.ndarray, np.ndarray] | None,
     grad: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The compiled backward on the CPU: the Reynolds weights ``(wa, wb)`` of every segment
-    ([`exact_backward`][layoutwarp.kernels.exact_backward]) for the edge gradient ``grad`` ``(N + 1, E)``."""
+    """The compiled backward on the CPU of the mesh's [`_kernel_arrays`][]: the Reynolds weights
+    ``(wa, wb)`` of every segment ([`exact_backward`][layoutwarp.kernels.exact_backward]) for the
+    edge gradient ``grad`` ``(N + 1, E)``."""
+    verts, seg_start, seg_end, _, seg_edge = arrays
     nt = kernels.threads(image.size + _SEGMENT_WORK * len(seg_start))
     incl = (tables or kernels.prefix_tables(image, kernels.BLOCK, nt))[0]
-    seg_edge = np.ascontiguousarray(seg_edge)
     return kernels.exact_backward(verts, seg_start, seg_end, seg_edge, incl, kernels.BLOCK, grad, nt)
 
 
-def _kernel_arrays(verts: Tensor, mesh: PixelMesh) -> list[np.ndarray]:
-    """Vertices (float64) and the mesh's segment and edge indices as contiguous arrays."""
-    tensors = (verts.detach().double(), mesh.seg_start, mesh.seg_end, mesh.edge_offsets)
-    return [np.ascontiguousarray(t.cpu().numpy()) for t in tensors]
+def _kernel_arrays(verts: Tensor, mesh: PixelMesh) -> tuple[np.ndarray, ...]:
+    """What the CPU kernels take of a mesh, as contiguous arrays: its vertices (float64), its
+    segments' starts and ends, its edges' offsets into the segments and each segment's edge."""
+    tensors = (verts.detach().double(), mesh.seg_start, mesh.seg_end, mesh.edge_offsets, mesh.seg_edge)
+    return tuple(np.ascontiguousarray(t.cpu().numpy()) for t in tensors)
 
 
 def _cuda_segments(verts: Tensor, image: Tensor, mesh: PixelMesh) -> tuple[Tensor, Tensor]:

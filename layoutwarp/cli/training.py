@@ -356,6 +356,14 @@ def _task_parser(
     return p
 
 
+def _add_families_and_sizes(
+    p: argparse.ArgumentParser, families: Sequence[str], family_help: str, size_help: str
+) -> None:
+    """The repeatable ``--family`` (one of ``families``) and ``--size`` of ``train`` and ``study``."""
+    p.add_argument("--family", action="append", choices=families, help=family_help)
+    p.add_argument("--size", type=parse_wxh, action="append", help=size_help)
+
+
 def _add_train_parser(sub: argparse._SubParsersAction, task: TaskSpec, families: Sequence[str]) -> None:
     d = task.defaults
     t = _task_parser(
@@ -365,17 +373,11 @@ def _add_train_parser(sub: argparse._SubParsersAction, task: TaskSpec, families:
         "with the uniform baseline.",
         "smoke test on the bundled samples: 1 seed, the first size, few epochs",
     )
-    t.add_argument(
-        "--family",
-        action="append",
-        choices=families,
-        help=f"a family to train, repeatable (default: {', '.join(d.families)})",
-    )
-    t.add_argument(
-        "--size",
-        type=parse_wxh,
-        action="append",
-        help=f"sensor WIDTHxHEIGHT, repeatable (default: {_sizes_text(d.sizes)}; the first with --quick)",
+    _add_families_and_sizes(
+        t,
+        families,
+        f"a family to train, repeatable (default: {', '.join(d.families)})",
+        f"sensor WIDTHxHEIGHT, repeatable (default: {_sizes_text(d.sizes)}; the first with --quick)",
     )
     t.add_argument(
         "--method", default="exact", choices=["exact", "montecarlo", "point"], help="sensor integrator"
@@ -407,17 +409,11 @@ def _add_study_parser(sub: argparse._SubParsersAction, task: TaskSpec, families:
         f"{_sizes_text(plan.uniform_sizes)}, every family at {_sizes_text(plan.learned_sizes)}; resumable.",
         "bundled samples, 1 seed, 1 epoch, 2 uniform sizes and 1 learned size",
     )
-    st.add_argument(
-        "--family",
-        action="append",
-        choices=[*families, "density"],
-        help=f"families besides uniform, repeatable (default: {', '.join(plan.families)})",
-    )
-    st.add_argument(
-        "--size",
-        type=parse_wxh,
-        action="append",
-        help=f"a sensor WIDTHxHEIGHT where every family is trained, repeatable; the uniform curve gains "
+    _add_families_and_sizes(
+        st,
+        [*families, "density"],
+        f"families besides uniform, repeatable (default: {', '.join(plan.families)})",
+        f"a sensor WIDTHxHEIGHT where every family is trained, repeatable; the uniform curve gains "
         f"it (default: {_sizes_text(plan.learned_sizes)}; the first with --quick)",
     )
     st.add_argument("--out", help=f"output folder (default: results/study-{task.name}); rerun to resume")

@@ -94,14 +94,14 @@ def _pixel_constants(a: float, params: np.ndarray) -> tuple[float, float, float,
 
 @inline
 def _noisy_run(
-    row: np.ndarray, flags: np.ndarray, scale: np.ndarray, dark: np.ndarray, full: np.ndarray,
-    zero: np.ndarray, inv: np.ndarray, params: np.ndarray, key: np.uint64, poisson: bool, read: float,
-    output: int,
+    row: np.ndarray, flags: np.ndarray, pix: np.ndarray, params: np.ndarray, key: np.uint64, poisson: bool,
+    read: float, output: int,
 ) -> None:  # fmt: skip
     """[`_measure_run`][] with noise, Poisson or Gaussian: each draw's first try
     ([`first_tries`][]), ``flags[j]`` set where one was rejected and that element's mean left
     in ``row`` for the rescan. Called with ``poisson`` a constant, so each kind of noise gets a
     loop of its own with no test of it inside."""
+    scale, dark, full, zero, inv = pix[0], pix[1], pix[2], pix[3], pix[4]
     for j in range(row.size):
         mean = row[j]
         e = mean * scale[j] + dark[j]
@@ -117,22 +117,22 @@ def _noisy_run(
 
 @inline
 def _measure_run(
-    row: np.ndarray, flags: np.ndarray, scale: np.ndarray, dark: np.ndarray, full: np.ndarray,
-    zero: np.ndarray, inv: np.ndarray, params: np.ndarray, key: np.uint64, noise: int, read: float,
-    output: int,
+    row: np.ndarray, flags: np.ndarray, pix: np.ndarray, params: np.ndarray, key: np.uint64, noise: int,
+    read: float, output: int,
 ) -> None:  # fmt: skip
-    """One plane of a run of `sensor_measure`: the means ``row`` measured in place, the pixel
-    constants from [`_pixel_constants`][], ``key`` the first element's shot
-    stream. Without noise a loop with no draws; with noise [`_noisy_run`][]. Each loop is
-    branch-free and vectorises."""
+    """One plane of a run of `sensor_measure`: the means ``row`` measured in place, ``pix`` the
+    run's pixel constants ``(5, ≥ len(row))`` (scale, dark, full well, zero, reciprocal gain:
+    [`_pixel_constants`][]), ``key`` the first element's shot stream. Without noise a loop with
+    no draws; with noise [`_noisy_run`][]. Each loop is branch-free and vectorises."""
     if noise == 0:
+        scale, dark, full, zero, inv = pix[0], pix[1], pix[2], pix[3], pix[4]
         for j in range(row.size):
             e = row[j] * scale[j] + dark[j]
             row[j] = _recorded(e, full[j], zero[j], inv[j], params, output)
     elif noise == 1:
-        _noisy_run(row, flags, scale, dark, full, zero, inv, params, key, True, read, output)
+        _noisy_run(row, flags, pix, params, key, True, read, output)
     else:
-        _noisy_run(row, flags, scale, dark, full, zero, inv, params, key, False, read, output)
+        _noisy_run(row, flags, pix, params, key, False, read, output)
 
 
 @inline
@@ -228,7 +228,7 @@ def _measure_share(
                     row[j] = mean[r, lo + j]
             flags = redo[r * share + lo - start : r * share + lo - start + m]
             key = state0 + np.uint64(r * p + lo) * ELEMENT_G  # the run's first shot stream
-            _measure_run(row, flags, scale, dark, full, zero, inv, params, key, noise, read, output)
+            _measure_run(row, flags, mine, params, key, noise, read, output)
     for b in range(words.size):  # the rescan
         if words[b] == 0:
             continue
