@@ -60,8 +60,9 @@ __all__ = [
 
 #: Segments per work chunk; chunks go to the threads in turn.
 CHUNK = 256
-#: Work (elements) below which a kernel runs on one thread ([`threads`][]).
-SMALL_WORK = 1 << 20
+#: Work (elements) below which a kernel runs on one thread ([`threads`][]) on torch's OpenMP team
+#: (four times as much on Python threads, which take longer to wake).
+SMALL_WORK = 1 << 18
 
 
 def available() -> bool:
@@ -78,11 +79,13 @@ def plain_python() -> bool:
 def threads(work: int | None = None) -> int:
     """The number of shares a kernel's work is cut into: torch's thread count
     (``torch.set_num_threads``, ``OMP_NUM_THREADS``), so one setting bounds both; 1 where ``work``
-    (elements) is under [`SMALL_WORK`][]: such a kernel takes about a millisecond, and waking a
-    second thread costs a good part of that on a quiet machine and much more on a busy one."""
+    (elements) is under [`SMALL_WORK`][] (four times that where the shares run on Python threads:
+    [`team_name`][]). Such a kernel takes a few hundred microseconds on one thread; handing a
+    share to a second thread of torch's team costs 30-90 µs here, to a Python thread several
+    times that, and more on a busy machine."""
     import torch
 
-    if work is not None and work < SMALL_WORK:
+    if work is not None and work < (SMALL_WORK if _team() is not None else 4 * SMALL_WORK):
         return 1
     return max(1, torch.get_num_threads())
 
