@@ -80,9 +80,9 @@ def threads(work: int | None = None) -> int:
     """The number of shares a kernel's work is cut into: torch's thread count
     (``torch.set_num_threads``, ``OMP_NUM_THREADS``), so one setting bounds both; 1 where ``work``
     (elements) is under [`SMALL_WORK`][] (four times that where the shares run on Python threads:
-    [`team_name`][]). Such a kernel takes a few hundred microseconds on one thread; handing a
-    share to a second thread of torch's team costs 30-90 µs here, to a Python thread several
-    times that, and more on a busy machine."""
+    [`team_name`][]): below it, handing a share to a second thread costs about what the share
+    saves (``examples/share_cost.py``), and waking a Python thread costs several times more, and
+    more again on a busy machine."""
     import torch
 
     if work is not None and work < (SMALL_WORK if _team() is not None else 4 * SMALL_WORK):
