@@ -747,7 +747,8 @@ def test_a_calls_description_reads_back_as_written_and_compiles_to_a_constant():
     """``describe_call`` writes JSON that ``read_call`` reads back as it was written (a token with
     quotes and backslashes, sizes, a tolerance's every digit, flags, a dtype), the same as
     ``json.loads`` of it; under ``torch.compile(fullgraph=True)`` it folds into the graph; a text
-    of no settings, or a dtype torch does not have, is refused in one line naming the operator."""
+    of no settings, a dtype torch does not have, or a setting the operator needs and the text
+    lacks, is refused in one line naming the operator."""
     from layoutwarp.operators.base import describe_call, read_call
 
     token = json.dumps({"family": "odd", "name": 'a "quoted" \\ path', "x": [0.1, 1e-300]}, sort_keys=True)
@@ -777,6 +778,10 @@ def test_a_calls_description_reads_back_as_written_and_compiles_to_a_constant():
         with pytest.raises(ValueError, match="^" + why) as err:
             read_call(bad, "exact")
         assert "\n" not in str(err.value)
+    with pytest.raises(ValueError, match=r"^layoutwarp::exact: call has no setting '\w+'$"):
+        torch.ops.layoutwarp.exact(
+            torch.zeros(0, dtype=F64), torch.zeros(1, 4, 4), torch.zeros(0), '{"tol": 1}'
+        )
 
 
 def test_raw_operators_refuse_bad_arguments_in_one_line_naming_operator_and_argument(gen):

@@ -47,6 +47,7 @@ __all__ = [
     "SECOND_ORDER",
     "TEMPLATES",
     "TRANSFORMS",
+    "CallSettings",
     "autograd_inside",
     "backend",
     "batch_rule",
@@ -117,18 +118,28 @@ def _json_text(value: bool | int | float | str | Sequence[int] | torch.dtype) ->
     return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
 
 
-#: The settings of the descriptions operators were handed, per text.
-CALLS: LRU[SimpleNamespace] = LRU("descriptions of operator calls", 64)
+class CallSettings(SimpleNamespace):
+    """The settings of a call's description as attributes; one it lacks is refused in one line
+    naming the operator."""
+
+    def __getattr__(self, name: str) -> Any:
+        if name.startswith("__"):
+            raise AttributeError(name)
+        refuse(self.__dict__.get("_op", "operator"), "call", f"has no setting {name!r}")
 
 
-def read_call(text: str, op: str) -> SimpleNamespace:
+#: The settings of the descriptions operators were handed, per operator and text.
+CALLS: LRU[CallSettings] = LRU("descriptions of operator calls", 64)
+
+
+def read_call(text: str, op: str) -> CallSettings:
     """The settings of a [`describe_call`][] text as attributes (lists as tuples, dtypes as
-    ``torch.dtype``; kept per text: read them, never change them). A text that is not one is
-    refused in one line naming ``op``."""
-    return CALLS.get(text, lambda: _parse_call(text, op))
+    ``torch.dtype``; kept per text: read them, never change them). A text that is not one, or a
+    setting it lacks, is refused in one line naming ``op``."""
+    return CALLS.get((op, text), lambda: _parse_call(text, op))
 
 
-def _parse_call(text: str, op: str) -> SimpleNamespace:
+def _parse_call(text: str, op: str) -> CallSettings:
     try:
         settings = json.loads(text)
         if not isinstance(settings, dict):
@@ -142,7 +153,7 @@ def _parse_call(text: str, op: str) -> SimpleNamespace:
             settings[key] = getattr(torch, str(value), None)
             if not isinstance(settings[key], torch.dtype):
                 refuse(op, "call", f"names no torch dtype: {value!r}")
-    return SimpleNamespace(**settings)
+    return CallSettings(_op=op, **settings)
 
 
 def refuse(op: str, argument: str, message: str) -> NoReturn:
