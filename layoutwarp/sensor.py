@@ -400,7 +400,7 @@ class _Integration:
             mean, areas = self._dispatch(work, route, with_areas=True)  # compiled path: no torch mesh)
         else:  # the sampling integrators: the areas of the polygons the pixels are
             mean = self._dispatch(work, route)
-            call = areas_call(layout_token(self.layout), self.size, self.tol)
+            call = areas_call(layout_token(self.layout), self.size, float(self.tol))
             areas = torch.ops.layoutwarp.pixel_areas(operator_theta(self.layout), call)
         return measure(mean, areas, self.physics, output=self.output, seed=seed)
 

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import gc
 
+import numpy as np
+import pytest
 import torch
 
 import layoutwarp as lw
@@ -115,3 +117,48 @@ def test_simulate_from_four_threads_at_once_gives_the_single_threaded_values(gen
         assert torch.equal(got[i][0], out), i
         if grad is not None:
             assert torch.equal(got[i][1], grad), i
+
+
+def test_monte_carlo_of_a_map_with_forward_mode_jacobians_from_four_threads_at_once(gen):
+    """The elliptic layout's Jacobian comes from ``torch.func.jvp``, whose forward-mode levels are
+    one stack per process: four threads' Monte Carlo calls at once (seeded) give the values of
+    the same calls made alone, with no error."""
+    import threading
+
+    layout = lw.make_layout("elliptic", (0.4, -0.3))
+    images = [torch.rand(1, 2, 20 + 4 * k, 24, generator=gen) for k in range(4)]
+
+    def run(k: int) -> torch.Tensor:
+        return lw.simulate(images[k], layout, (5, 6), "montecarlo", seed=k)
+
+    alone = [run(k) for k in range(4)]
+    got: dict[int, torch.Tensor] = {}
+    errors: list[BaseException] = []
+
+    def worker(k: int) -> None:
+        try:
+            for _ in range(5):
+                got[k] = run(k)
+        except BaseException as exc:  # reported below, not lost in the thread
+            errors.append(exc)
+
+    threads = [threading.Thread(target=worker, args=(k,)) for k in range(4)]
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join()
+    assert not errors, errors[0]
+    for k in range(4):
+        assert torch.equal(got[k], alone[k])
+
+
+@pytest.mark.parametrize("method", ["point", "montecarlo"])
+def test_a_numpy_or_tensor_tolerance_reaches_the_sampling_integrators_areas(method, gen):
+    """``tol`` given as a numpy or 0-d torch number (with physics, the sampling integrators take
+    the pixels' areas from ``layoutwarp::pixel_areas``): the same record as the Python float's."""
+    camera = lw.SensorPhysics(sensor_um=(80.0, 80.0), photons_per_um2=500.0, seed=1)
+    img, layout = torch.rand(1, 3, 32, 32, generator=gen), lw.CurvLayout((0.3, -0.2), learn=True)
+    for tol in (np.float64(1e-4), np.float32(1e-4), torch.tensor(1e-4, dtype=torch.float64)):
+        got = lw.simulate(img, layout, (8, 8), method, tol=tol, seed=1, physics=camera)
+        want = lw.simulate(img, layout, (8, 8), method, tol=float(tol), seed=1, physics=camera)
+        assert torch.equal(got, want)

@@ -8,6 +8,7 @@ import copy
 import json
 import warnings
 
+import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
@@ -763,6 +764,10 @@ def test_a_calls_description_reads_back_as_written_and_compiles_to_a_constant():
         F64,
     )
     assert json.loads(text)["layout"] == token and json.loads(text)["dtype"] == "float64"
+    odd = read_call(
+        describe_call(a=float("inf"), b=-float("inf"), c=float("nan"), d='x\ny\t"z\\', e=np.float64(0.5)), "t"
+    )
+    assert (odd.a, odd.b, odd.d, odd.e) == (float("inf"), -float("inf"), 'x\ny\t"z\\', 0.5) and odd.c != odd.c
 
     @torch.compile(fullgraph=True, backend="eager")
     def f(x):

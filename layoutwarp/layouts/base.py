@@ -22,7 +22,7 @@ import torch
 from torch import Tensor, nn
 
 from ..checks import ArgumentError, check_bool, check_float_dtype, check_number, check_points
-from .inverse import newton_inverse
+from .inverse import forward_jacobian, newton_inverse
 from .values import config_numbers, tensor_dtype
 
 __all__ = [
@@ -420,7 +420,7 @@ class Layout(nn.Module):
         """``∂φ_i/∂p_j``, shape ``(..., 2, 2)``; generic fallback by forward-mode autodiff (one
         Jacobian-vector product per axis, differentiable in θ; it runs inside operators and
         compiled graphs, where reverse-mode calls cannot)."""
-        return _forward_jacobian(lambda q: self.phi(q, theta), p, 2)
+        return forward_jacobian(lambda q: self.phi(q, theta), p, 2)
 
     def phi_jacobian_det(self, p: Tensor, theta: Tensor) -> Tensor:
         """``det ∂φ/∂p``, shape ``(...)``: the local area scale (Monte Carlo weights); generic
@@ -433,7 +433,7 @@ class Layout(nn.Module):
         Jacobian-vector product per entry of θ)."""
         if theta.numel() == 0:
             return p.new_zeros(*p.shape, 0)
-        return _forward_jacobian(lambda th: self.phi(p, th), theta, theta.numel())
+        return forward_jacobian(lambda th: self.phi(p, th), theta, theta.numel())
 
     def edge_breakpoints(self, a: Tensor, b: Tensor, theta: Tensor | None = None) -> Tensor:
         """Parameters ``t ∈ (0, 1)`` where φ is not smooth along the segments ``a + t (b − a)``.
@@ -510,14 +510,6 @@ FAMILIES: dict[str, type[Layout]] = {}
 ``elliptic`` (this module), ``spline`` and ``grid`` (their modules, loaded with this one), and any
 a user adds with [`register_family`][]. Each family registers itself when its module loads, so
 the dict is filled on import (the source reads ``{}``)."""
-
-
-def _forward_jacobian(f: Callable[[Tensor], Tensor], x: Tensor, n: int) -> Tensor:
-    """The derivatives of ``f`` along each of the ``n`` entries of ``x``'s last axis, stacked last:
-    ``(..., n)`` for outputs ``(...)``, by ``torch.func.jvp``."""
-    eye = torch.eye(n, dtype=x.dtype, device=x.device)
-    cols = [torch.func.jvp(f, (x,), (eye[k].expand_as(x),))[1] for k in range(n)]
-    return torch.stack(cols, -1)
 
 
 _BUILDING = threading.local()

@@ -1,14 +1,15 @@
-"""The generic inverse of a layout's map: damped Newton iteration in float64 with the implicit
-gradient re-attached."""
+"""The generic fallbacks of a layout's map: its derivatives by forward-mode autodiff, and its
+inverse by damped Newton iteration in float64 with the implicit gradient re-attached."""
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable
 
 import torch
 from torch import Tensor
 
-__all__ = ["newton_inverse"]
+__all__ = ["forward_jacobian", "newton_inverse"]
 
 
 def newton_inverse(
@@ -75,3 +76,23 @@ def newton_inverse(
     j = jac(p, theta.detach()).to(q.dtype)
     r = phi(p, theta) - q
     return p - torch.linalg.solve(j, r.unsqueeze(-1)).squeeze(-1)
+
+
+def forward_jacobian(f: Callable[[Tensor], Tensor], x: Tensor, n: int) -> Tensor:
+    """The derivatives of ``f`` along each of the ``n`` entries of ``x``'s last axis, stacked last:
+    ``(..., n)`` for outputs ``(...)``, by ``torch.func.jvp``: one thread's at a time, since
+    torch's forward-mode levels are one stack per process (two threads' at once break each
+    other's); a compiled graph's tracing takes no lock."""
+    if torch.compiler.is_compiling():
+        return _jvp_columns(f, x, n)
+    with _FORWARD_AD:
+        return _jvp_columns(f, x, n)
+
+
+_FORWARD_AD = threading.RLock()  # a map whose φ takes a forward Jacobian of its own nests
+
+
+def _jvp_columns(f: Callable[[Tensor], Tensor], x: Tensor, n: int) -> Tensor:
+    eye = torch.eye(n, dtype=x.dtype, device=x.device)
+    cols = [torch.func.jvp(f, (x,), (eye[k].expand_as(x),))[1] for k in range(n)]
+    return torch.stack(cols, -1)

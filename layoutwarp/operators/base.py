@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import sys
 from collections.abc import Callable, Iterator, Sequence
 from types import SimpleNamespace
@@ -109,13 +110,26 @@ def describe_call(**settings: bool | int | float | str | Sequence[int] | torch.d
 def _json_text(value: bool | int | float | str | Sequence[int] | torch.dtype) -> str:
     if isinstance(value, bool):
         return "true" if value else "false"
-    if isinstance(value, (int, float)):
-        return repr(value)
+    if isinstance(value, int):
+        return str(int(value))
+    if isinstance(value, float):
+        return repr(float(value)) if math.isfinite(value) else _NONFINITE[str(float(value))]
     if isinstance(value, torch.dtype):
         return f'"{str(value).removeprefix("torch.")}"'
     if isinstance(value, (tuple, list)):
         return "[" + ", ".join(_json_text(v) for v in value) + "]"
-    return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(value, str):
+        for raw, escaped in _ESCAPES:
+            value = value.replace(raw, escaped)
+        return '"' + value + '"'
+    raise TypeError(
+        f"describe_call takes bools, numbers, texts, sequences and dtypes, got {type(value).__name__}"
+    )
+
+
+#: How JSON writes what a float's ``repr`` cannot, and the characters a JSON text escapes.
+_NONFINITE = {"nan": "NaN", "inf": "Infinity", "-inf": "-Infinity"}
+_ESCAPES = (("\\", "\\\\"), ('"', '\\"'), ("\n", "\\n"), ("\r", "\\r"), ("\t", "\\t"))
 
 
 class CallSettings(SimpleNamespace):
