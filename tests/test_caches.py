@@ -4,6 +4,8 @@ keys that follow an object's changes and die with it; every one of them in `CACH
 from __future__ import annotations
 
 import gc
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 import pytest
@@ -71,8 +73,6 @@ def test_simulate_from_four_threads_at_once_gives_the_single_threaded_values(gen
     """Four threads share one fixed layout (and a learnable one) and call ``simulate`` at once on
     images of different sizes and sensor sizes, caches small enough that they push each other's
     entries out: every result equals the same call made alone, bit for bit."""
-    import threading
-
     fixed, learn = lw.CurvLayout((0.3, -0.2)), lw.FoveaLayout((0.2, 0.1), center=(0.1, -0.2), learn=True)
     cases = [
         (torch.rand(2, 1, 24 + 8 * k, 30 + 6 * k, generator=gen), (4 + k, 5 + k), layout)
@@ -93,26 +93,10 @@ def test_simulate_from_four_threads_at_once_gives_the_single_threaded_values(gen
     for name in saved:
         CACHES[name].maxsize = 2  # entries pushed out while other threads use theirs
     try:
-        got: dict[int, tuple] = {}
-        errors: list[BaseException] = []
-
-        def worker(t: int) -> None:
-            try:
-                for _ in range(3):
-                    for i in range(t, len(cases), 4):
-                        got[i] = run(cases[i])
-            except BaseException as exc:  # reported below, not lost in the thread
-                errors.append(exc)
-
-        threads = [threading.Thread(target=worker, args=(t,)) for t in range(4)]
-        for th in threads:
-            th.start()
-        for th in threads:
-            th.join()
+        got = _in_four_threads(run, cases, rounds=3)
     finally:
         for name, size in saved.items():
             CACHES[name].maxsize = size
-    assert not errors, errors
     for i, (out, grad) in enumerate(alone):
         assert torch.equal(got[i][0], out), i
         if grad is not None:
@@ -123,33 +107,42 @@ def test_monte_carlo_of_a_map_with_forward_mode_jacobians_from_four_threads_at_o
     """The elliptic layout's Jacobian comes from ``torch.func.jvp``, whose forward-mode levels are
     one stack per process: four threads' Monte Carlo calls at once (seeded) give the values of
     the same calls made alone, with no error."""
+    layout = lw.make_layout("elliptic", (0.4, -0.3))
+    cases = [(torch.rand(1, 2, 20 + 4 * k, 24, generator=gen), k) for k in range(4)]
+
+    def run(case: tuple) -> torch.Tensor:
+        return lw.simulate(case[0], layout, (5, 6), "montecarlo", seed=case[1])
+
+    alone = [run(c) for c in cases]
+    got = _in_four_threads(run, cases, rounds=5)
+    for k in range(4):
+        assert torch.equal(got[k], alone[k])
+
+
+def _in_four_threads(run: Callable[[Any], Any], cases: list, rounds: int) -> dict[int, Any]:
+    """``run`` of every case, ``rounds`` times, from four threads at once (thread ``t`` takes the
+    cases ``t, t + 4, ...``): the last result of each case; the first error raised again here."""
     import threading
 
-    layout = lw.make_layout("elliptic", (0.4, -0.3))
-    images = [torch.rand(1, 2, 20 + 4 * k, 24, generator=gen) for k in range(4)]
-
-    def run(k: int) -> torch.Tensor:
-        return lw.simulate(images[k], layout, (5, 6), "montecarlo", seed=k)
-
-    alone = [run(k) for k in range(4)]
-    got: dict[int, torch.Tensor] = {}
+    got: dict[int, Any] = {}
     errors: list[BaseException] = []
 
-    def worker(k: int) -> None:
+    def worker(t: int) -> None:
         try:
-            for _ in range(5):
-                got[k] = run(k)
-        except BaseException as exc:  # reported below, not lost in the thread
+            for _ in range(rounds):
+                for i in range(t, len(cases), 4):
+                    got[i] = run(cases[i])
+        except BaseException as exc:  # raised below, not lost in the thread
             errors.append(exc)
 
-    threads = [threading.Thread(target=worker, args=(k,)) for k in range(4)]
+    threads = [threading.Thread(target=worker, args=(t,)) for t in range(4)]
     for th in threads:
         th.start()
     for th in threads:
         th.join()
-    assert not errors, errors[0]
-    for k in range(4):
-        assert torch.equal(got[k], alone[k])
+    if errors:
+        raise errors[0]
+    return got
 
 
 @pytest.mark.parametrize("method", ["point", "montecarlo"])
