@@ -167,7 +167,8 @@ def _parse_call(text: str, op: str) -> CallSettings:
             settings[key] = getattr(torch, str(value), None)
             if not isinstance(settings[key], torch.dtype):
                 refuse(op, "call", f"names no torch dtype: {value!r}")
-    return CallSettings(_op=op, **settings)
+    settings["_op"] = op  # the operator its refusals name (a setting of that name is replaced)
+    return CallSettings(**settings)
 
 
 def refuse(op: str, argument: str, message: str) -> NoReturn:

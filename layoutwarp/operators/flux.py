@@ -56,13 +56,23 @@ def _flux(value: Tensor, theta: Tensor, vol: Tensor, image: Tensor, seed: Tensor
     edge (drawn from ``seed``); each shared edge is sampled once and used with opposite signs by
     its two pixels. ``call`` ([`flux_call`][]) holds the layout, the sensor's size, the samples
     and the radiance model. Needs no gradient of ``L`` (the image, or the callable of
-    ``call``'s ``radiance_fn``). The work is done in the backward pass only."""
+    ``call``'s ``radiance_fn``). The work is done in the backward pass only (``call`` is read
+    here, so a bad one is refused at once)."""
+    _read_flux_call(call, "flux")
     return value.clone()
 
 
 @_flux.register_fake
-def _(value, *rest):
+def _(value, theta, vol, image, seed, call):
+    _read_flux_call(call, "flux")
     return torch.empty_like(value)
+
+
+def _read_flux_call(call: str, op: str) -> ops.CallSettings:
+    """``call``'s settings, each of [`flux_call`][]'s read (one it lacks refused in one line)."""
+    c = ops.read_call(call, op)
+    _ = (c.layout, c.size, c.samples, c.radiance, c.radiance_fn)
+    return c
 
 
 @torch.library.custom_op("layoutwarp::flux_backward", mutates_args=())
@@ -70,7 +80,7 @@ def _flux_backward(
     grad: Tensor, value: Tensor, theta: Tensor, vol: Tensor, image: Tensor, seed: Tensor, call: str
 ) -> Tensor:
     """θ's gradient of ``layoutwarp::flux``: [`_flux_gradient`][] with the weights ``grad / vol``."""
-    c = ops.read_call(call, "flux_backward")
+    c = _read_flux_call(call, "flux_backward")
     source = ops.object_of(c.radiance_fn) if c.radiance_fn else image
     generator = ops.generator_of(seed, theta.device)
     with ops.autograd_inside():
