@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import atexit
 import contextlib
+import functools
 import importlib
 import json
 import os
@@ -300,6 +301,7 @@ def compile_missing(
     return missing
 
 
+@functools.lru_cache(maxsize=64)  # asked on every call (a small one's route): the answer kept
 def _units(group: str, dtype: str | torch.dtype) -> tuple[str, ...]:
     """The units a group of one dtype needs (the learnable layouts' mesh, then the group's own)."""
     name = str(dtype).removeprefix("torch.")
