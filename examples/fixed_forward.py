@@ -90,7 +90,7 @@ def main() -> None:
                 + (
                     f"; weights {row['weights']['bytes_over_plane']:.2f}x a float32 plane, built in "
                     f"{row['weights']['build_s'] * 1e3:.0f} ms = "
-                    f"{row['weights']['build_over_10']:.0f}x ten forwards"
+                    f"{row['weights']['build_over_10']:.1f}x ten forwards"
                     if "weights" in row
                     else ""
                 ),

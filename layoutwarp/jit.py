@@ -59,6 +59,7 @@ __all__ = [
     "compile_all",
     "compile_missing",
     "compiled",
+    "load",
     "loaded",
     "mode",
     "ready",
@@ -129,6 +130,26 @@ def loaded(unit: str) -> bool:
     if unit not in UNITS:
         raise ValueError(f"unit must be one of {', '.join(UNITS)}, got {unit!r}")
     return unit in _READY and mode() != "off"
+
+
+def load(unit: str) -> bool:
+    """Whether ``unit``'s kernels (one of [`UNITS`][]) run now, loaded from the disk cache here
+    where they are there: never compiled, nor a compile started (a unit found missing is looked
+    for again after [`LOOK_AGAIN_S`][]). For work that runs either way and is faster compiled."""
+    if loaded(unit):
+        return True
+    if mode() == "off" or not kernels.available():
+        return False
+    if kernels.base.plain_python():
+        _READY.add(unit)
+        return True
+    if time.monotonic() - _LOOKED.get(unit, -LOOK_AGAIN_S) < LOOK_AGAIN_S:
+        return False
+    if _loads(unit):
+        _READY.add(unit)
+        return True
+    _LOOKED[unit] = time.monotonic()
+    return False
 
 
 def ready(group: str, dtype: str | torch.dtype = "float32", wait: bool = False) -> bool:
@@ -339,7 +360,9 @@ def _abort_compiles() -> contextlib.AbstractContextManager:
 
 def _loads(unit: str) -> bool:
     """Whether every kernel of ``unit`` loads from the disk cache (then they stay loaded: numba
-    keeps what it loaded)."""
+    keeps what it loaded). A look within a look (a warm-up that asks [`load`][]) leaves the
+    outer one looking."""
+    before = getattr(_CHECKING, "on", False)
     _CHECKING.on = True
     try:
         with _abort_compiles():
@@ -350,7 +373,7 @@ def _loads(unit: str) -> bool:
     except Exception:  # a look must not fail the user's call: what failed here is compiled (and
         return False  # fails, if it does) where the call itself runs it
     finally:
-        _CHECKING.on = False
+        _CHECKING.on = before
 
 
 def _warm(unit: str) -> None:
@@ -360,11 +383,12 @@ def _warm(unit: str) -> None:
     group, _, dtype = unit.partition("/")
     if group not in _WARMUPS:  # registered when the warm-ups' module loads
         importlib.import_module(f"{__package__}.warmups")
+    before = getattr(_WARMING, "on", False)
     _WARMING.on = True
     try:  # whatever the caller's grad mode, inside an operator too (the warm-up sees to it)
         _WARMUPS[group](getattr(torch, dtype or "float64"))
     finally:
-        _WARMING.on = False
+        _WARMING.on = before  # a warm-up within a warm-up leaves the outer one warming
 
 
 def _announce(unit: str, doing: str) -> None:
@@ -503,8 +527,10 @@ def _start_worker(units: tuple[str, ...], dtype: str | torch.dtype) -> bool:
 #: Whether this process is a forked child (a DataLoader's worker) of one whose background compile ran:
 #: it starts none (its parent's fills the cache) and looks again at most every [`LOOK_AGAIN_S`][] s.
 _FORKED = False
+#: Seconds before a unit found missing from the disk cache is looked for again ([`load`][], and a
+#: forked child's [`ready`][]).
 LOOK_AGAIN_S = 5.0
-_LOOKED: dict[str, float] = {}  # unit: when a forked child last found it missing
+_LOOKED: dict[str, float] = {}  # unit: when it was last found missing (a forked child's, load's)
 
 
 def _after_fork_in_child() -> None:

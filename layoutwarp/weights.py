@@ -39,8 +39,9 @@ PIECES_PER_BLOCK = 1 << 14
 #: A weights build that runs this long shows its progress and the time left on a terminal.
 PROGRESS_AFTER_S = 2.0
 #: A fixed layout's sensor of this many pixels or more builds its mesh compiled even where the mesh
-#: unit is not loaded yet: loading it from the cache costs about a second, once per process, which
-#: the compiled mesh wins back from here on (torch's takes a second or more).
+#: unit is not in the disk cache yet: compiling it takes seconds, which the compiled mesh wins back
+#: from here on (torch's takes a second or more). Below, the unit is used where it loads from the
+#: cache (tens of milliseconds once the fixed unit is loaded), else torch's mesh.
 COMPILED_MESH_PIXELS = 1 << 18
 
 
@@ -214,12 +215,12 @@ def _block_weights(
 
 def _fixed_mesh(layout: Layout, size: tuple[int, int], tol: float) -> PixelMesh:
     """The float64 mesh a fixed layout's weights are built on: compiled ([`build_mesh`][]) for a
-    family with a compiled map where the mesh unit is loaded, or, for a sensor of
-    [`COMPILED_MESH_PIXELS`][] or more, where it loads (or will have compiled: [`jit.ready`][]);
-    else torch's [`pixel_mesh`][] (the same mesh to rounding), not kept."""
+    family with a compiled map where the mesh unit is loaded or loads from the disk cache
+    ([`jit.load`][]), or, for a sensor of [`COMPILED_MESH_PIXELS`][] or more, will have compiled
+    ([`jit.ready`][]); else torch's [`pixel_mesh`][] (the same mesh to rounding), not kept."""
     spec = mesh_spec(layout)
     if spec is not None and (
-        jit.loaded("mesh") or (size[0] * size[1] >= COMPILED_MESH_PIXELS and jit.ready("mesh"))
+        jit.load("mesh") or (size[0] * size[1] >= COMPILED_MESH_PIXELS and jit.ready("mesh"))
     ):
         theta = layout.theta_as(torch.float64).detach().cpu().numpy()
         return build_mesh(spec, size, theta, tol, with_grad=False).pixel_mesh()

@@ -444,3 +444,28 @@ def test_shares_from_several_threads_with_different_counts_all_run():
     for t in threads:
         t.join()
     assert errors == []
+
+
+def test_load_takes_a_unit_from_the_disk_cache_and_never_compiles(monkeypatch):
+    """``jit.load``: a unit in the disk cache loads and stays loaded; one missing there is neither
+    compiled nor handed to a background compile, and is looked for again only after
+    ``LOOK_AGAIN_S``; the mode ``"off"`` loads nothing."""
+    from layoutwarp import jit
+
+    assert jit.load("mesh") and jit.loaded("mesh")  # the suite's cache holds every unit
+    looks: list[str] = []
+    monkeypatch.setattr(jit, "_READY", set())
+    monkeypatch.setattr(jit, "_LOOKED", {})
+    monkeypatch.setattr(jit, "_loads", lambda unit: looks.append(unit) or False)
+    monkeypatch.setattr(jit, "_warm", lambda unit: pytest.fail(f"{unit} compiled"))
+    monkeypatch.setattr(jit, "_start_worker", lambda *a: pytest.fail("a background compile started"))
+    now = [1000.0]
+    monkeypatch.setattr(jit.time, "monotonic", lambda: now[0])
+    assert not jit.load("mesh") and not jit.load("mesh") and looks == ["mesh"]
+    now[0] += jit.LOOK_AGAIN_S
+    assert not jit.load("mesh") and looks == ["mesh", "mesh"]
+    monkeypatch.setattr(jit, "_loads", lambda unit: True)
+    now[0] += jit.LOOK_AGAIN_S
+    with jit.use_mode("off"):
+        assert not jit.load("mesh")
+    assert jit.load("mesh") and jit.loaded("mesh")
