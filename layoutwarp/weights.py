@@ -70,7 +70,7 @@ def fixed_runs(
         area = mesh.areas(verts).flatten().cpu().numpy()
     parts = (t.cpu().numpy() for t in (verts, mesh.seg_start, mesh.seg_end, mesh.edge_offsets))
     nt = kernels.threads(hs * ws + 64 * h * w)  # a pixel's walk: its boundary's pieces and its box
-    with _progress_bar(h, w, 3 * h, progress) as bar:  # three passes over the rows
+    with _progress_bar(h, w, 2 * h, progress) as bar:  # two passes over the rows
         runs = kernels.build_runs(*parts, size, src_size, area, cells, nt, bar.update)
     return runs, areas
 

@@ -917,3 +917,34 @@ def test_each_threads_work_space_lies_a_page_from_every_other_and_from_the_heap(
     edges = [0, *[x for s in starts for x in (s, s + size)], rows.nbytes]
     gaps = [b - a for a, b in zip(edges[::2], edges[1::2], strict=True)]
     assert min(gaps) >= APART, gaps
+
+
+def test_the_runs_build_resumes_where_a_threads_rows_ran_out_of_room(gen, monkeypatch):
+    """`build_runs` writes each thread's runs into rows of its own, which it makes longer where a
+    pixel might overflow them and goes on from that pixel: rows of one run to begin with (made
+    longer many times, on two threads) give the same runs, bit for bit, as the usual room."""
+    from layoutwarp.kernels import weights as kw
+    from layoutwarp.weights import fixed_runs
+
+    layout = lw.CurvLayout(tuple(rand_theta(gen, 0.8)))
+    usual = fixed_runs(layout, (9, 11), (70, 90), 1e-4)[0].arrays()
+    grown: list[int] = []
+
+    class OneRun(kw._Rows):
+        def __init__(self, nt: int, runs: int) -> None:
+            super().__init__(nt, 1)
+
+        def grow(self, runs: int, cuts: int) -> None:
+            grown.append(runs)
+            super().grow(runs, cuts)
+
+    monkeypatch.setattr(kw, "_Rows", OneRun)
+    monkeypatch.setattr(kernels.base, "SMALL_WORK", 0)  # two shares however small
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        tight = fixed_runs(layout, (9, 11), (70, 90), 1e-4)[0].arrays()
+    finally:
+        torch.set_num_threads(before)
+    assert len(grown) >= 5
+    assert all(a.dtype == b.dtype and np.array_equal(a, b) for a, b in zip(usual, tight, strict=True))

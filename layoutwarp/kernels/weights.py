@@ -13,11 +13,12 @@ whole cells; the others are cut, and the runs are cut as
 [`Runs.of`][layoutwarp.kernels.runs.Runs.of] cuts them, so both give the same runs from the same
 weights.
 
-Three passes over the pixels, block by block of sensor rows, each thread taking a contiguous range
-of a block: the first finds each pixel's box of cells, the second counts its runs and cut cells,
-the third writes them where the counts' prefix sums put them. Nothing is held besides the result
-but the boxes and one box of float64 per thread. Computed in float64; the cut weights are kept in
-float32.
+Two passes over the pixels, block by block of sensor rows, each thread taking a contiguous range
+of a block: the first finds each pixel's box of cells, the second writes its runs and cut cells
+into a row of the thread's own. A thread stops before a pixel whose box could overflow its row,
+the rows are made longer, and it goes on where it stopped; the rows are joined in pixel order at
+the end. Besides the result it holds the boxes, one box of float64 per thread and the threads'
+rows. Computed in float64; the cut weights are kept in float32.
 """
 
 from __future__ import annotations
@@ -121,12 +122,12 @@ def _close(j: int, length: int, head: int, wholes: int, run_len: np.ndarray, run
 @inline
 def _pixel_runs(
     k: int, buf: np.ndarray, rlo: int, rhi: int, clo: int, chi: int, ws: int, inv_area: float, cells: float,
-    fill: bool, r_at: int, c_at: int, run_start: np.ndarray, run_len: np.ndarray, run_head: np.ndarray,
+    r_at: int, c_at: int, run_start: np.ndarray, run_len: np.ndarray, run_head: np.ndarray,
     run_tail: np.ndarray, cut_weight: np.ndarray,
 ) -> tuple[int, int]:  # fmt: skip
-    """Sum pixel ``k``'s steps along each row of its box (zeroing ``buf`` for the next pixel) and
-    cut its cells into runs; with ``fill``, write them from run ``r_at`` and cut cell ``c_at``.
-    Returns the pixel's number of runs and of cut cells."""
+    """Sum pixel ``k``'s steps along each row of its box (zeroing ``buf`` for the next pixel), cut
+    its cells into runs and write them from run ``r_at`` and cut cell ``c_at``. Returns the
+    pixel's number of runs and of cut cells."""
     width = chi - clo + 2
     runs = cuts = 0
     length = head = wholes = 0
@@ -143,10 +144,9 @@ def _pixel_runs(
             wv = cum * inv_area
             whole = abs(wv * cells - 1.0) <= WHOLE
             if not span or (whole and not prev_whole and seen):  # a new run
-                if runs > 0 and fill:
+                if runs > 0:
                     _close(r_at + runs - 1, length, head, wholes, run_len, run_head, run_tail)
-                if fill:
-                    run_start[r_at + runs] = (rlo + rr) * ws + col
+                run_start[r_at + runs] = (rlo + rr) * ws + col
                 runs += 1
                 length = head = wholes = 0
                 seen = seen and span
@@ -158,11 +158,10 @@ def _pixel_runs(
             else:
                 if wholes == 0:
                     head += 1
-                if fill:
-                    cut_weight[c_at + cuts] = wv
+                cut_weight[c_at + cuts] = wv
                 cuts += 1
             prev_whole = whole
-    if runs > 0 and fill:
+    if runs > 0:
         _close(r_at + runs - 1, length, head, wholes, run_len, run_head, run_tail)
     return runs, cuts
 
@@ -186,24 +185,80 @@ def _box_share(
 def _runs_share(
     t: int, nt: int, k0: int, k1: int, h: int, w: int, hs: int, ws: int, verts: np.ndarray,
     seg_start: np.ndarray, seg_end: np.ndarray, edge_offsets: np.ndarray, box: np.ndarray,
-    inv_area: np.ndarray, cells: np.ndarray, scratch: np.ndarray, fill: bool, pix_runs: np.ndarray,
+    inv_area: np.ndarray, cells: np.ndarray, scratch: np.ndarray, state: np.ndarray, pix_runs: np.ndarray,
     pix_cuts: np.ndarray, run_start: np.ndarray, run_len: np.ndarray, run_head: np.ndarray,
     run_tail: np.ndarray, cut_weight: np.ndarray,
 ) -> None:  # fmt: skip
-    """Thread ``t``'s share of pixels ``k0 .. k1 - 1``: their runs counted into ``pix_runs[k + 1]``
-    and ``pix_cuts[k + 1]``, or, with ``fill``, written where the prefix sums ``pix_runs[k]``,
-    ``pix_cuts[k]`` put them."""
+    """Thread ``t``'s share of pixels ``k0 .. k1 - 1`` from pixel ``state[t, 0]`` on: their runs
+    and cut cells written into row ``t`` of the run arrays and ``cut_weight`` after the
+    ``state[t, 1]`` runs and ``state[t, 2]`` cut cells already there, each pixel's counts into
+    ``pix_runs[k + 1]`` and ``pix_cuts[k + 1]``. It stops before a pixel whose box (a run and a cut
+    cell at most per cell) could overflow a row: ``state[t]`` then holds that pixel, the counts so
+    far and the room it needs (0 where the share is done)."""
     buf = own(scratch, t, nt)
-    for k in range(k0 + t * (k1 - k0) // nt, k0 + (t + 1) * (k1 - k0) // nt):
+    starts, lengths, heads, tails, cuts_w = run_start[t], run_len[t], run_head[t], run_tail[t], cut_weight[t]
+    k, nr, nc, stop = state[t, 0], state[t, 1], state[t, 2], k0 + (t + 1) * (k1 - k0) // nt
+    state[t, 3] = 0
+    while k < stop:
         rlo, rhi, clo, chi = box[k, 0], box[k, 1], box[k, 2], box[k, 3]
+        most = (rhi - rlo + 1) * (chi - clo + 2)
+        if nr + most > starts.shape[0] or nc + most > cuts_w.shape[0]:
+            state[t, 3] = most
+            break
         _add_steps(k, h, w, hs, ws, verts, seg_start, seg_end, edge_offsets, buf, rlo, rhi, clo, chi)
-        r_at, c_at = (pix_runs[k], pix_cuts[k]) if fill else (0, 0)
         runs, cuts = _pixel_runs(
-            k, buf, rlo, rhi, clo, chi, ws, inv_area[k], cells[k], fill, r_at, c_at, run_start, run_len,
-            run_head, run_tail, cut_weight,
-        )  # fmt: skip
-        if not fill:
-            pix_runs[k + 1], pix_cuts[k + 1] = runs, cuts
+            k,
+            buf,
+            rlo,
+            rhi,
+            clo,
+            chi,
+            ws,
+            inv_area[k],
+            cells[k],
+            nr,
+            nc,
+            starts,
+            lengths,
+            heads,
+            tails,
+            cuts_w,
+        )
+        pix_runs[k + 1], pix_cuts[k + 1] = runs, cuts
+        k, nr, nc = k + 1, nr + runs, nc + cuts
+    state[t, 0], state[t, 1], state[t, 2] = k, nr, nc
+
+
+class _Rows:
+    """The threads' rows of runs and cut cells for [`build_runs`][]: ``arrays`` (``run_start``,
+    ``run_len``, ``run_head``, ``run_tail``, ``cut_weight``, a row a thread), made longer by
+    ``grow``; ``taken`` copies out what a thread wrote."""
+
+    def __init__(self, nt: int, runs: int) -> None:
+        self.arrays = (
+            np.empty((nt, runs), np.int64),
+            *(np.empty((nt, runs), np.int32) for _ in range(3)),
+            np.empty((nt, 4 * runs), np.float32),  # about four cut cells a run
+        )
+
+    def grow(self, runs: int, cuts: int) -> None:
+        """Rows of at least ``runs`` runs and ``cuts`` cut cells (twice as long at least), what
+        they held kept."""
+
+        def longer(a: np.ndarray, n: int) -> np.ndarray:
+            if n <= a.shape[1]:
+                return a
+            b = np.empty((a.shape[0], max(n, 2 * a.shape[1])), a.dtype)
+            b[:, : a.shape[1]] = a
+            return b
+
+        *run_arrays, cut = self.arrays
+        self.arrays = (*(longer(a, runs) for a in run_arrays), longer(cut, cuts))
+
+    def taken(self, t: int, runs: int, cuts: int) -> tuple[np.ndarray, ...]:
+        """Copies of what thread ``t`` wrote: its first ``runs`` runs and ``cuts`` cut cells."""
+        *run_arrays, cut = self.arrays
+        return (*(a[t, :runs].copy() for a in run_arrays), cut[t, :cuts].copy())
 
 
 #: Pixels a call of the walk takes at a time (whole sensor rows): between two, the caller hears of
@@ -230,8 +285,8 @@ def build_runs(
     weights are normalised by) and ``cells`` their areas in source cells from the sensor's own
     units (what a whole cell's weight is ``1 / cells`` of, as in
     [`Runs.of`][layoutwarp.kernels.runs.Runs.of]); on ``threads`` threads. ``progress(rows)`` is
-    called after each block of sensor rows ([`BLOCK_PIXELS`][]) of each of the three passes (the
-    pixels' boxes, the counts, the runs)."""
+    called after each block of sensor rows ([`BLOCK_PIXELS`][]) of each of the two passes (the
+    pixels' boxes, the runs)."""
     (h, w), (hs, ws) = size, src_size
     rows, nt = h * w, max(1, min(threads, h * w))
     box = np.empty((rows, 4), np.int64)
@@ -253,18 +308,23 @@ def build_runs(
     with np.errstate(divide="ignore"):  # a pixel of no area has no cell either
         inv_area = 1.0 / area
 
-    def walk(fill: bool, *out: np.ndarray) -> None:
-        for k0, k1 in blocks():
-            run_shares(_runs_share, nt, k0, k1, *args, box, inv_area, cells, scratch, fill, *out)
-
-    none, empty = np.empty(0, np.int64), np.empty(0, np.int32)
-    walk(False, pix_runs, pix_cuts, none, empty, empty, empty, np.empty(0, np.float32))
+    rows_of = box[:, 1] - box[:, 0] + 1
+    room = _Rows(nt, int(rows_of.sum() * 1.25) // nt + 64)  # about a run a row; grown as needed
+    parts = []
+    state = np.zeros((nt, 4), np.int64)
+    for k0, k1 in blocks():
+        state[:] = 0
+        state[:, 0] = [k0 + t * (k1 - k0) // nt for t in range(nt)]
+        while True:
+            walk = (box, inv_area, cells, scratch, state, pix_runs, pix_cuts, *room.arrays)
+            run_shares(_runs_share, nt, k0, k1, *args, *walk)
+            if not state[:, 3].any():
+                break
+            room.grow(int((state[:, 1] + state[:, 3]).max()), int((state[:, 2] + state[:, 3]).max()))
+        parts += [room.taken(t, int(state[t, 1]), int(state[t, 2])) for t in range(nt)]
     np.cumsum(pix_runs, out=pix_runs)
     np.cumsum(pix_cuts, out=pix_cuts)
-    start = np.empty(int(pix_runs[-1]), np.int64)
-    length, head, tail = (np.empty(start.size, np.int32) for _ in range(3))
-    cut_weight = np.empty(int(pix_cuts[-1]), np.float32)
-    walk(True, pix_runs, pix_cuts, start, length, head, tail, cut_weight)
+    start, length, head, tail, cut_weight = (np.concatenate([p[i] for p in parts]) for i in range(5))
     index = np.int32 if hs * ws < 2**31 else np.int64
     with np.errstate(divide="ignore"):
         whole = 1.0 / cells
