@@ -308,8 +308,9 @@ def build_runs(
     with np.errstate(divide="ignore"):  # a pixel of no area has no cell either
         inv_area = 1.0 / area
 
-    rows_of = box[:, 1] - box[:, 0] + 1
-    room = _Rows(nt, int(rows_of.sum() * 1.25) // nt + 64)  # about a run a row; grown as needed
+    rows_of = box[:, 1] - box[:, 0] + 1  # about a run a row, the busiest block's; grown as needed
+    block_rows = np.add.reduceat(rows_of, np.arange(0, rows, step * w)) if rows else np.zeros(1)
+    room = _Rows(nt, int(block_rows.max() * 1.25) // nt + 64)
     parts = []
     state = np.zeros((nt, 4), np.int64)
     for k0, k1 in blocks():
