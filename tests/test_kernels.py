@@ -922,7 +922,8 @@ def test_each_threads_work_space_lies_a_page_from_every_other_and_from_the_heap(
 def test_the_runs_build_resumes_where_a_threads_rows_ran_out_of_room(gen, monkeypatch):
     """`build_runs` writes each thread's runs into rows of its own, which it makes longer where a
     pixel might overflow them and goes on from that pixel: rows of one run to begin with (made
-    longer many times, on two threads) give the same runs, bit for bit, as the usual room."""
+    longer many times, on two threads, in one block of pixels or in many) give the same runs, bit
+    for bit, as the usual room."""
     from layoutwarp.kernels import weights as kw
     from layoutwarp.weights import fixed_runs
 
@@ -944,7 +945,10 @@ def test_the_runs_build_resumes_where_a_threads_rows_ran_out_of_room(gen, monkey
     torch.set_num_threads(2)
     try:
         tight = fixed_runs(layout, (9, 11), (70, 90), 1e-4)[0].arrays()
+        monkeypatch.setattr(kw, "BLOCK_PIXELS", 22)  # and in blocks of two sensor rows
+        blocks = fixed_runs(layout, (9, 11), (70, 90), 1e-4)[0].arrays()
     finally:
         torch.set_num_threads(before)
     assert len(grown) >= 5
-    assert all(a.dtype == b.dtype and np.array_equal(a, b) for a, b in zip(usual, tight, strict=True))
+    for got in (tight, blocks):
+        assert all(a.dtype == b.dtype and np.array_equal(a, b) for a, b in zip(usual, got, strict=True))
