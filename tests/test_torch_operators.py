@@ -748,8 +748,10 @@ def test_a_calls_description_reads_back_as_written_and_compiles_to_a_constant():
     """``describe_call`` writes JSON that ``read_call`` reads back as it was written (a token with
     quotes and backslashes, sizes, a tolerance's every digit, flags, a dtype), the same as
     ``json.loads`` of it; under ``torch.compile(fullgraph=True)`` it folds into the graph; a text
-    of no settings, a dtype torch does not have, or a setting the operator needs and the text
-    lacks, is refused in one line naming the operator."""
+    of no settings, a dtype torch does not have, a shared setting of the wrong kind (a size that is
+    no pair of positive integers, a tolerance that is no positive number, a flag that is no
+    boolean, ...), or a setting the operator needs and the text lacks, is refused in one line
+    naming the operator."""
     from layoutwarp.operators.base import describe_call, read_call
 
     token = json.dumps({"family": "odd", "name": 'a "quoted" \\ path', "x": [0.1, 1e-300]}, sort_keys=True)
@@ -782,6 +784,11 @@ def test_a_calls_description_reads_back_as_written_and_compiles_to_a_constant():
     ):
         with pytest.raises(ValueError, match="^" + why) as err:
             read_call(bad, "exact")
+        assert "\n" not in str(err.value)
+    for key, bad in (("size", [0, 3]), ("size", "4x5"), ("tol", -1.0), ("tol", float("nan")), ("check", "no"),
+                     ("layout", 123), ("samples", 0)):  # fmt: skip
+        with pytest.raises(ValueError, match=f"^layoutwarp::exact: call setting '{key}' must be ") as err:
+            read_call(json.dumps({key: bad}), "exact")
         assert "\n" not in str(err.value)
     with pytest.raises(ValueError, match=r"^layoutwarp::exact: call has no setting '\w+'$"):
         torch.ops.layoutwarp.exact(

@@ -162,13 +162,38 @@ def _parse_call(text: str, op: str) -> CallSettings:
         refuse(op, "call", f"must be a call's description (describe_call), got {text[:60]!r}: {err}")
     for key, value in settings.items():
         if isinstance(value, list):
-            settings[key] = tuple(value)
-        elif key == "dtype":
+            settings[key] = value = tuple(value)
+        if key == "dtype":
             settings[key] = getattr(torch, str(value), None)
             if not isinstance(settings[key], torch.dtype):
                 refuse(op, "call", f"names no torch dtype: {value!r}")
+        elif key in _SETTING_KINDS and not _SETTING_KINDS[key][0](value):
+            refuse(op, "call", f"setting {key!r} must be {_SETTING_KINDS[key][1]}, got {value!r}")
     settings["_op"] = op  # the operator its refusals name (a setting of that name is replaced)
     return CallSettings(**settings)
+
+
+def _count(value: Any, least: int) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and value >= least
+
+
+#: What the operators' shared settings must be: a test and its words.
+_SETTING_KINDS: dict[str, tuple[Callable[[Any], bool], str]] = {
+    "size": (
+        lambda v: isinstance(v, tuple) and len(v) == 2 and all(_count(n, 1) for n in v),
+        "[h, w], positive",
+    ),
+    "tol": (
+        lambda v: isinstance(v, (int, float)) and not isinstance(v, bool) and 0 < v < math.inf,
+        "a positive number",
+    ),
+    "samples": (lambda v: _count(v, 1), "a positive integer"),
+    **{k: (lambda v: isinstance(v, bool), "true or false") for k in ("jacobian", "check", "with_areas")},
+    **{
+        k: (lambda v: isinstance(v, str), "a text")
+        for k in ("layout", "backend", "physics", "output", "radiance", "radiance_fn")
+    },
+}
 
 
 def refuse(op: str, argument: str, message: str) -> NoReturn:
