@@ -143,12 +143,11 @@ def load(unit: str) -> bool:
     if kernels.base.plain_python():
         _READY.add(unit)
         return True
-    if time.monotonic() - _LOOKED.get(unit, -LOOK_AGAIN_S) < LOOK_AGAIN_S:
+    if _looked_lately(unit):
         return False
     if _loads(unit):
         _READY.add(unit)
         return True
-    _LOOKED[unit] = time.monotonic()
     return False
 
 
@@ -183,10 +182,8 @@ def ready(group: str, dtype: str | torch.dtype = "float32", wait: bool = False) 
                 worker.wait_for(unit)
         elif background and worker is not None and worker.busy() and unit not in worker.done:
             return False  # looked at again once the child has it, or is free
-        elif background and (unit in _FAILED or _FORKED):
-            if time.monotonic() - _LOOKED.get(unit, -LOOK_AGAIN_S) < LOOK_AGAIN_S:
-                return False  # another process may fill the cache: looked at again now and then
-            _LOOKED[unit] = time.monotonic()
+        elif background and (unit in _FAILED or _FORKED) and _looked_lately(unit):
+            return False  # another process may fill the cache: looked at again now and then
         if _loads(unit):
             _READY.add(unit)
             continue
@@ -530,7 +527,17 @@ _FORKED = False
 #: Seconds before a unit found missing from the disk cache is looked for again ([`load`][], and a
 #: forked child's [`ready`][]).
 LOOK_AGAIN_S = 5.0
-_LOOKED: dict[str, float] = {}  # unit: when it was last found missing (a forked child's, load's)
+_LOOKED: dict[str, float] = {}  # unit: when it was last looked for (a forked child's, load's)
+
+
+def _looked_lately(unit: str) -> bool:
+    """Whether ``unit`` was looked for in the disk cache less than [`LOOK_AGAIN_S`][] ago; else
+    ``False``, the look about to be made noted."""
+    now = time.monotonic()
+    if now - _LOOKED.get(unit, -LOOK_AGAIN_S) < LOOK_AGAIN_S:
+        return True
+    _LOOKED[unit] = now
+    return False
 
 
 def _after_fork_in_child() -> None:

@@ -85,8 +85,8 @@ def threads(work: int | None = None) -> int:
     more again on a busy machine."""
     import torch
 
-    if work is not None and work < (SMALL_WORK if _team() is not None else 4 * SMALL_WORK):
-        return 1
+    if work is not None and (work < SMALL_WORK or (work < 4 * SMALL_WORK and _team() is None)):
+        return 1  # the team asked for only where the work is between the two
     return max(1, torch.get_num_threads())
 
 

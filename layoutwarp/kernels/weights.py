@@ -166,6 +166,13 @@ def _pixel_runs(
     return runs, cuts
 
 
+@inline
+def _box_cells(rlo: int, rhi: int, clo: int, chi: int) -> int:
+    """The cells of a pixel's box ``rlo .. rhi`` × ``clo .. chi + 1`` (the column past ``chi``
+    takes the last cells' steps): the most runs, and the most cut cells, the pixel can have."""
+    return (rhi - rlo + 1) * (chi - clo + 2)
+
+
 @serial
 def _box_share(
     t: int, nt: int, k0: int, k1: int, h: int, w: int, hs: int, ws: int, verts: np.ndarray,
@@ -177,7 +184,7 @@ def _box_share(
     for k in range(k0 + t * (k1 - k0) // nt, k0 + (t + 1) * (k1 - k0) // nt):
         rlo, rhi, clo, chi = _box(k, h, w, hs, ws, verts, seg_start, seg_end, edge_offsets)
         box[k, 0], box[k, 1], box[k, 2], box[k, 3] = rlo, rhi, clo, chi
-        most = max(most, (rhi - rlo + 1) * (chi - clo + 2))
+        most = max(most, _box_cells(rlo, rhi, clo, chi))
     return most
 
 
@@ -201,29 +208,13 @@ def _runs_share(
     state[t, 3] = 0
     while k < stop:
         rlo, rhi, clo, chi = box[k, 0], box[k, 1], box[k, 2], box[k, 3]
-        most = (rhi - rlo + 1) * (chi - clo + 2)
+        most = _box_cells(rlo, rhi, clo, chi)
         if nr + most > starts.shape[0] or nc + most > cuts_w.shape[0]:
             state[t, 3] = most
             break
         _add_steps(k, h, w, hs, ws, verts, seg_start, seg_end, edge_offsets, buf, rlo, rhi, clo, chi)
-        runs, cuts = _pixel_runs(
-            k,
-            buf,
-            rlo,
-            rhi,
-            clo,
-            chi,
-            ws,
-            inv_area[k],
-            cells[k],
-            nr,
-            nc,
-            starts,
-            lengths,
-            heads,
-            tails,
-            cuts_w,
-        )
+        runs, cuts = _pixel_runs(k, buf, rlo, rhi, clo, chi, ws, inv_area[k], cells[k], nr, nc, starts,
+                                 lengths, heads, tails, cuts_w)  # fmt: skip
         pix_runs[k + 1], pix_cuts[k + 1] = runs, cuts
         k, nr, nc = k + 1, nr + runs, nc + cuts
     state[t, 0], state[t, 1], state[t, 2] = k, nr, nc
@@ -232,7 +223,7 @@ def _runs_share(
 class _Rows:
     """The threads' rows of runs and cut cells for [`build_runs`][]: ``arrays`` (``run_start``,
     ``run_len``, ``run_head``, ``run_tail``, ``cut_weight``, a row a thread), made longer by
-    ``grow``; ``taken`` copies out what a thread wrote."""
+    ``grow``; ``joined`` copies out what the threads wrote."""
 
     def __init__(self, nt: int, runs: int) -> None:
         self.arrays = (
@@ -255,10 +246,15 @@ class _Rows:
         *run_arrays, cut = self.arrays
         self.arrays = (*(longer(a, runs) for a in run_arrays), longer(cut, cuts))
 
-    def taken(self, t: int, runs: int, cuts: int) -> tuple[np.ndarray, ...]:
-        """Copies of what thread ``t`` wrote: its first ``runs`` runs and ``cuts`` cut cells."""
+    def joined(self, runs: np.ndarray, cuts: np.ndarray) -> tuple[np.ndarray, ...]:
+        """What the threads wrote, one array each, thread after thread: thread ``t``'s first
+        ``runs[t]`` runs and ``cuts[t]`` cut cells."""
         *run_arrays, cut = self.arrays
-        return (*(a[t, :runs].copy() for a in run_arrays), cut[t, :cuts].copy())
+        nt = len(runs)
+        return (
+            *(np.concatenate([a[t, : runs[t]] for t in range(nt)]) for a in run_arrays),
+            np.concatenate([cut[t, : cuts[t]] for t in range(nt)]),
+        )
 
 
 #: Pixels a call of the walk takes at a time (whole sensor rows): between two, the caller hears of
@@ -322,10 +318,13 @@ def build_runs(
             if not state[:, 3].any():
                 break
             room.grow(int((state[:, 1] + state[:, 3]).max()), int((state[:, 2] + state[:, 3]).max()))
-        parts += [room.taken(t, int(state[t, 1]), int(state[t, 2])) for t in range(nt)]
+        parts.append(room.joined(state[:, 1], state[:, 2]))  # copied: the next block writes the rows
     np.cumsum(pix_runs, out=pix_runs)
     np.cumsum(pix_cuts, out=pix_cuts)
-    start, length, head, tail, cut_weight = (np.concatenate([p[i] for p in parts]) for i in range(5))
+    joined = (
+        parts[0] if len(parts) == 1 else tuple(np.concatenate(arrays) for arrays in zip(*parts, strict=True))
+    )
+    start, length, head, tail, cut_weight = joined
     index = np.int32 if hs * ws < 2**31 else np.int64
     with np.errstate(divide="ignore"):
         whole = 1.0 / cells

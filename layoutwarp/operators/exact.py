@@ -60,9 +60,9 @@ def exact_call(
     check: bool = False,
     dtype: torch.dtype = torch.float64,
 ) -> str:
-    """The description ``layoutwarp::exact`` takes: the layout's token, the
-    sensor's ``size``, ``tol``, the ``backend``, whether θ's ``jacobian`` is kept, whether to
-    ``check`` for NaN/Inf, and the means' ``dtype``."""
+    """The description ``layoutwarp::exact`` takes: the layout's token, the sensor's ``size``,
+    ``tol``, the ``backend``, whether θ's ``jacobian`` is kept, whether to ``check`` for NaN/Inf,
+    and the means' ``dtype``."""
     return ops.describe_call(
         layout=layout, size=size, tol=tol, backend=backend, jacobian=jacobian, check=check, dtype=dtype
     )

@@ -38,10 +38,10 @@ def sample_radiance(image: Tensor | Radiance, points: Tensor, radiance: str) -> 
 
 
 def flux_call(layout: str, size: tuple[int, int], samples: int, radiance: str, radiance_fn: str = "") -> str:
-    """The description ``layoutwarp::flux`` takes: the layout's token, the
-    sensor's ``size``, the ``samples`` per pixel side, the ``radiance`` model and, for a
-    callable radiance, its [`object_token`][layoutwarp.operators.base.object_token]
-    (``radiance_fn``; ``""``: the image)."""
+    """The description ``layoutwarp::flux`` takes: the layout's token, the sensor's ``size``, the
+    ``samples`` per pixel side, the ``radiance`` model and, for a callable radiance, its
+    [`object_token`][layoutwarp.operators.base.object_token] (``radiance_fn``; ``""``: the
+    image)."""
     return ops.describe_call(
         layout=layout, size=size, samples=samples, radiance=radiance, radiance_fn=radiance_fn
     )
