@@ -52,6 +52,7 @@ __all__ = [
     "check_raster",
     "distance_subdivisions",
     "export_layout",
+    "index_mask_paths",
     "pixel_polygons_um",
     "report_json",
 ]
@@ -434,13 +435,19 @@ def _write_png(path: Path, polys, wu: float, hu: float, px_per_um: float, line_w
     index = np.zeros(shape, np.int32)
     for k, p in enumerate(pts):
         cv2.fillPoly(index, [p], k + 1, lineType=cv2.LINE_8, shift=shift)
+    ipath = index_mask_paths(path)[1 if big else 0]
     if big:
-        ipath = path.with_name(path.stem + "_index.npy")
         atomic_write(ipath, lambda tmp: np.save(tmp, index))
     else:
-        ipath = path.with_name(path.stem + "_index.png")
         atomic_write(ipath, lambda tmp: _imwrite(tmp, index.astype(np.uint16)))
     return [str(ipath)]
+
+
+def index_mask_paths(path: str | Path) -> tuple[Path, Path]:
+    """Where a PNG export to ``path`` writes its pixel index mask beside the outlines:
+    ``<stem>_index.png`` (uint16), or ``<stem>_index.npy`` for more than 65 534 pixels."""
+    path = Path(path)
+    return path.with_name(path.stem + "_index.png"), path.with_name(path.stem + "_index.npy")
 
 
 def export_layout(

@@ -323,6 +323,7 @@ def check_no_overwrite(
 
     reads: dict[Path, Path] = {}
     writes = [dst / name for name in RECORDS]
+    made: dict[Path, Path] = {}  # each output of this run, and the source it comes from
     for path in list_images(src, dst):  # every image under src, not only the files of this run
         key = identity(path)
         if key is not None:
@@ -330,7 +331,15 @@ def check_no_overwrite(
     for path in sources:
         rel = path.relative_to(src)
         label_src, label_dst = _label_paths(dst, labels, rel, label_rule)
-        writes += [dst / rel] + ([label_dst] if label_src is not None else [])
+        outs = [dst / rel] + ([label_dst] if label_src is not None else [])
+        for out in outs:
+            other = made.setdefault(out, path)
+            if other != path:  # e.g. a source under src/labels/ and a label map of the same name
+                raise ArgumentError(
+                    "dst", f"two outputs of the run would be one file, {str(out)!r}: from "
+                    f"{str(other)!r} and from {str(path)!r}; rename or move one of them",
+                )  # fmt: skip
+        writes += outs
         if label_src is not None and (key := identity(label_src)) is not None:
             reads[key] = label_src
     ours = (dst / "layout.json").is_file()  # a destination of an earlier run: its outputs are ours
@@ -409,8 +418,9 @@ def preprocess_folder(
 
     Raises:
         ValueError: for a bad ``label_rule``, ``workers`` or sensor ``size``, a ``labels`` that is
-            not a folder, a ``dst`` that would overwrite an input, or one that already holds a
-            dataset made with a different layout.
+            not a folder, a ``dst`` that would overwrite an input or write two outputs to one
+            file, or one that already holds a dataset made with a different layout, physics,
+            ``tol`` or ``label_rule``.
     """
     check_layout(layout)
     size = check_size(size)
@@ -454,11 +464,20 @@ def preprocess_folder(
             raise ArgumentError(
                 "dst", f"{dst} holds a dataset made with another layout ({prev}); use an empty folder"
             )
-        before = (old.get("extra") or {}).get("physics")
-        if before != (physics.to_dict() if physics else None):
+        before = old.get("extra") or {}
+        if before.get("physics") != (physics.to_dict() if physics else None):
             raise ArgumentError(
                 "dst", f"{dst} holds a dataset recorded with other sensor physics; use an empty folder"
             )
+        for name, now in (("tol", tol), ("label_rule", label_rule if labels else None)):
+            then = before.get(name)
+            if then != now:  # its files were made so: a resumed run would mix the two
+                blank = "none (the default)" if name == "tol" else "none (no label maps)"
+                said = {v: blank if v is None else repr(v) for v in (then, now)}
+                raise ArgumentError(
+                    name, f"{dst} holds a dataset made with {name} {said[then]}, not {said[now]}; "
+                    f"use an empty folder, or {name} {said[then]} to resume it",
+                )  # fmt: skip
     extra = {"physics": physics.to_dict()} if physics else {}
     save_layout(
         layout,
@@ -559,6 +578,10 @@ def _above(bar: Any) -> Callable[[str], None]:
     return lambda line: bar.write(line, file=sys.stderr)
 
 
+# How long a run waits for the Dask scheduler at its ``address`` before it gives up.
+_CONNECT_TIMEOUT_S = 10
+
+
 def _run_on_dask(
     spec: str, tasks: list[dict], record: Callable[[dict], None], workers: int, address: str | None
 ) -> None:
@@ -577,7 +600,13 @@ def _run_on_dask(
             n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None
         )
     try:
-        with Client(address or cluster) as client:
+        try:
+            client = Client(address or cluster, timeout=_CONNECT_TIMEOUT_S)
+        except (OSError, ValueError) as exc:  # no port, no such host, nobody listening
+            raise ArgumentError(
+                "address", f"address {address!r}: no Dask scheduler reached ({str(exc).splitlines()[0]})"
+            ) from None
+        with client:
             n = max(1, sum(client.nthreads().values()))
             per = max(1, min(16, len(tasks) // (4 * n)))  # about four chunks per worker thread
             chunks = [tasks[k : k + per] for k in range(0, len(tasks), per)]

@@ -5,6 +5,7 @@ everywhere."""
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 
@@ -14,6 +15,7 @@ from conftest import ROOT, SAMPLES
 
 import layoutwarp as lw
 from layoutwarp.cli import build_parser, main, parse_wxh
+from layoutwarp.experiments.demo import demo_outputs
 
 CAMVID_VAL = str(SAMPLES / "camvid" / "val")
 MASK = ["--size", "4x4", "--sensor-um", "40x40"]
@@ -382,6 +384,10 @@ CASES |= {
         ["--px-per-um", "400000000x4000000 raster mask", "a side OpenCV draws"],
     ),
 }
+CASES["export report over its index mask"] = (
+    ["export", "--family", "uniform", *MASK, "--out", "{tmp}/x.png", "--report", "{tmp}/x_index.png"],
+    ["--report", "x_index.png", "--out (its index mask)"],
+)
 CASES |= {
     f"grid coarser than a pixel ({fmt})": (
         ["export", "--family", "uniform", *MASK, "--grid-um", "20", "--out", "{tmp}/x." + fmt],
@@ -489,8 +495,11 @@ def test_demo_writes_figures_and_numbers(tmp_path):
     numbers = json.loads((tmp_path / "demo.json").read_text())
     assert {d["family"] for d in numbers["layouts"].values()} == {"uniform", "rect", "curv", "spline", "grid"}
     assert (tmp_path / "layouts.png").stat().st_size > 10_000
-    for name in ("uniform", "rect", "curv", "fovea", "spline", "grid"):
-        assert (tmp_path / f"sensor_{name}.png").exists()
+    assert sorted(tmp_path.iterdir()) == sorted(demo_outputs(tmp_path))  # what it says it writes
+    # a photo among those files is refused before anything is written over it
+    kept = (tmp_path / "layouts.png").read_bytes()
+    again = ["demo", "--image", str(tmp_path / "layouts.png"), "--size", "16x12", "--out", str(tmp_path)]
+    assert main(again) == 2 and (tmp_path / "layouts.png").read_bytes() == kept
     # the layouts fitted to the photo's edges are not uniform
     assert numbers["layouts"]["grid from edges"]["pixel_area_ratio_max_over_min"] > 1.5
 
@@ -641,3 +650,60 @@ def test_the_decoders_filter_ends_at_once_and_loses_nothing(capfd):
     assert capfd.readouterr().err == "kept\n" and dropped == [
         "libpng warning: iCCP: known incorrect sRGB profile"
     ]
+
+
+def test_a_folder_a_command_writes_into_is_not_another_commands(tmp_path, capsys):
+    # a landscape's runs written among a study's, or a study shipped into its own runs/, were
+    # read as the other's runs (a study summed a landscape's points into its own numbers)
+    study = tmp_path / "st"
+    (study / "runs").mkdir(parents=True)
+    land = ["landscape", "mnist", "--quick", "--family", "rect", "--study", study, "--out"]
+    for argv, needle in [
+        ([*land, study], "is --study"),
+        ([*land, study / "runs"], "lies inside --study"),
+        (["study", "mnist", "--quick", "--out", study, "--ship", study / "runs"], "lies inside --out"),
+    ]:
+        assert main([str(a) for a in argv]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and needle in err[0], err
+    assert sorted(p.name for p in study.rglob("*")) == ["runs"]  # nothing written
+
+
+def test_a_run_record_of_another_kind_is_refused_in_one_line(tmp_path):
+    from layoutwarp.experiments.runs import read_runs, run_name
+
+    def name(r: dict) -> str:
+        return run_name(r["family"], r["size_hw"], r["seed"])
+
+    (tmp_path / "runs").mkdir()
+    record = {"family": "curv", "size_hw": [4, 4], "seed": 0, "scores": {}}
+    (tmp_path / "runs" / "curv_4x4_seed0.json").write_text(json.dumps(record))
+    assert read_runs(tmp_path, name, "a study") == [record]
+    strays = {
+        "study.json": json.dumps({"planned": 3}),  # a summary copied there
+        "curv_4x4_tx+0_ty+0_seed0.json": json.dumps(record),  # a landscape's point
+        "torn.json": '{"family": "cu',
+    }
+    for stray, text in strays.items():
+        (tmp_path / "runs" / stray).write_text(text)
+        with pytest.raises(ValueError, match=re.escape(f"{stray} is no run of a study")):
+            read_runs(tmp_path, name, "a study")
+        (tmp_path / "runs" / stray).unlink()
+
+
+@pytest.mark.parametrize(
+    ("error", "status", "line"),
+    [
+        (PermissionError(13, "Permission denied", "/no/demo.json"), 1, "Permission denied: '/no/demo.json'"),
+        (KeyboardInterrupt(), 130, "interrupted"),
+    ],
+)  # fmt: skip
+def test_an_unwritable_file_or_a_ctrl_c_ends_in_one_line(error, status, line, tmp_path, monkeypatch, capsys):
+    def fail(*args, **kwargs):
+        raise error
+
+    monkeypatch.setattr("layoutwarp.experiments.demo.run_demo", fail)
+    assert main(["demo", "--size", "8x6", "--out", str(tmp_path / "out")]) == status
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"layoutwarp demo: {'error: ' if status == 1 else ''}{line}"]
+    assert not (tmp_path / "out").exists()  # the empty folder it made is gone

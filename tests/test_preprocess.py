@@ -212,6 +212,29 @@ def test_preprocess_resumes_and_checks_layout(tmp_path):
     assert cv2.imread(str(dst / "gray8.png"), cv2.IMREAD_UNCHANGED).max() == 0
     with pytest.raises(ValueError, match="another layout"):
         preprocess_folder(src, dst, fixed("rect", (0.3, 0.25)), size, progress=False)
+    # the files were made at the default tolerance: a resumed run at another would mix the two
+    with pytest.raises(ValueError, match=r"made with tol none \(the default\), not 0.001"):
+        preprocess_folder(src, dst, layout, size, tol=1e-3, progress=False)
+
+
+def test_a_changed_label_rule_is_refused_and_two_outputs_to_one_file_too(tmp_path):
+    rng = np.random.default_rng(0)
+    src, lab = tmp_path / "img", tmp_path / "lab"
+    for folder in (src, src / "labels", lab):
+        folder.mkdir()
+    cv2.imwrite(str(src / "a.png"), rng.integers(0, 256, (20, 24, 3), dtype=np.uint8))
+    cv2.imwrite(str(lab / "a.png"), rng.integers(0, 3, (20, 24), dtype=np.uint8))
+    layout, size = fixed("curv", (0.3, -0.2)), (4, 5)
+    preprocess_folder(src, tmp_path / "out", layout, size, labels=lab, label_rule="majority", progress=False)
+    with pytest.raises(ValueError, match="made with label_rule 'majority', not 'nearest'"):
+        preprocess_folder(
+            src, tmp_path / "out", layout, size, labels=lab, label_rule="nearest", progress=False
+        )
+    # a source under src/labels/ would be written where a.png's label map goes
+    cv2.imwrite(str(src / "labels" / "a.png"), rng.integers(0, 256, (20, 24, 3), dtype=np.uint8))
+    with pytest.raises(ValueError, match="two outputs of the run would be one file"):
+        preprocess_folder(src, tmp_path / "new", layout, size, labels=lab, progress=False)
+    assert not (tmp_path / "new").exists()
 
 
 def test_parallel_workers_give_identical_files_and_share_weights(tmp_path, monkeypatch, seed):

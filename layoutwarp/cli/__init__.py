@@ -122,6 +122,12 @@ def main(argv: Sequence[str] | None = None, *, own_process: bool = False) -> int
     except (UsageError, ValueError, FileNotFoundError) as exc:
         print(f"{prog}: error: {_name_the_flag(exc)}", file=sys.stderr)
         status = 2
+    except OSError as exc:  # a file that cannot be written or read, a server not reached
+        print(f"{prog}: error: {_os_error(exc)}", file=sys.stderr)
+        status = 1
+    except KeyboardInterrupt:  # what was finished is kept: a command run again goes on from there
+        print(f"{prog}: interrupted", file=sys.stderr)
+        status = 130  # as a shell reports a command ended by SIGINT
     finally:
         if status != 0:  # a failed command leaves no empty output folder of its own behind
             for folder in reversed(NEW_FOLDERS):
@@ -154,7 +160,17 @@ def run() -> None:
     except BrokenPipeError:
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit
         status = 141  # as a shell reports a command ended by SIGPIPE
+    except KeyboardInterrupt:  # before the command's work began (its parser, its imports)
+        print("layoutwarp: interrupted", file=sys.stderr)
+        status = 130
     sys.exit(status)
+
+
+def _os_error(exc: OSError) -> str:
+    """An operating system's error in one line: what failed, and on which file."""
+    if exc.strerror and exc.filename is not None:
+        return f"{exc.strerror}: {str(exc.filename)!r}"
+    return str(exc) or type(exc).__name__
 
 
 def _name_the_flag(exc: Exception) -> str:

@@ -38,6 +38,7 @@ __all__ = [
     "layout_from_args",
     "non_negative_float",
     "non_negative_int",
+    "not_within",
     "number_type",
     "out_dir",
     "out_file",
@@ -255,6 +256,18 @@ def distinct_files(outputs: dict[str, str | Path | None], inputs: dict[str, str 
             role = "an input" if other in inputs else "another output"
             raise UsageError(f"argument {flag}: {str(path)!r} is also {other} ({role}); name another file")
         seen[Path(path).resolve()] = flag
+
+
+def not_within(path: str | Path, flag: str, folder: str | Path, folder_flag: str) -> None:
+    """Refuse, in one line, an output folder ``path`` that is ``folder`` (another option's) or lies
+    inside it: what one command writes there would be read as the other's (e.g. a landscape's
+    runs among a study's)."""
+    inner, outer = Path(path).resolve(), Path(folder).resolve()
+    if inner == outer or inner.is_relative_to(outer):
+        where = "is" if inner == outer else "lies inside"
+        raise UsageError(
+            f"argument {flag}: {str(path)!r} {where} {folder_flag} {str(folder)!r}; choose another folder"
+        )
 
 
 def out_file(path: str | Path | None, flag: str) -> Path | None:

@@ -30,7 +30,7 @@ PLOT_SUFFIXES = (".png", ".pdf", ".svg")
 
 def _cmd_demo(args: argparse.Namespace) -> int:
     from ..experiments.data import samples_dir
-    from ..experiments.demo import run_demo
+    from ..experiments.demo import demo_outputs, run_demo
 
     image = Path(args.image) if args.image else samples_dir() / "photos" / "kodim20.png"
     if not image.is_file():
@@ -44,6 +44,8 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         raise UsageError(f"argument --image: cannot read {str(image)!r}: {exc}") from None
     check_sensor_memory(args.size)
     out_dir(args.out)
+    for path in demo_outputs(args.out):  # the photo is none of the files the demo writes
+        distinct_files({"--out": path}, {"--image": image})
     with quiet_decoders():  # the demo decodes the photo again
         numbers = run_demo(image, args.out, args.size, args.theta, args.tol)
     print(f"wrote {args.out}/layouts.png, demo.json and sensor_*.png")

@@ -23,6 +23,7 @@ from .common import (
     existing_folder,
     int_range,
     non_negative_int,
+    not_within,
     out_dir,
     parse_range,
     parse_wxh,
@@ -196,10 +197,7 @@ def _cmd_study(args: argparse.Namespace) -> int:
                 f"argument --ship: no study in {str(out)!r} to ship; "
                 f"run `layoutwarp study {task.name} --out DIR` first"
             )
-        if Path(args.ship).resolve() == out.resolve():
-            raise UsageError(
-                f"argument --ship: {args.ship!r} is the study's own folder (--out); ship to another"
-            )
+        not_within(args.ship, "--ship", out, "--out (the study's own folder)")
         weights = args.weights or "float16"
         samples = samples_dir() / task.folder
         summary = ship_study(
@@ -252,6 +250,8 @@ def _cmd_landscape(args: argparse.Namespace) -> int:
     lo, hi = args.range
     if args.study and not any((Path(args.study) / d).is_dir() for d in ("runs", "layouts")):
         raise UsageError(f"argument --study: no study runs (or shipped layouts) in {args.study!r}")
+    if args.study:
+        not_within(out, "--out", args.study, "--study")
     init_distributed()
     options = _study_run_options(task, task.study, args)
     n = args.grid or (3 if args.quick else 7)

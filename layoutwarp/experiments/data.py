@@ -19,6 +19,7 @@ from __future__ import annotations
 import csv
 import gzip
 import os
+import zlib
 from pathlib import Path
 
 import cv2
@@ -85,7 +86,10 @@ def read_idx(path: str | Path) -> np.ndarray:
     path = Path(path)
     raw = path.read_bytes()
     if raw[:2] == b"\x1f\x8b":
-        raw = gzip.decompress(raw)
+        try:
+            raw = gzip.decompress(raw)
+        except (EOFError, OSError, zlib.error) as exc:  # cut short, or not gzip after all
+            raise ValueError(f"{path}: a damaged gzip file ({exc})") from None
     if len(raw) < 4 or raw[0] != 0 or raw[1] != 0:
         raise ValueError(f"{path}: not an IDX file")
     dtypes = {0x08: np.uint8, 0x09: np.int8, 0x0B: ">i2", 0x0C: ">i4", 0x0D: ">f4", 0x0E: ">f8"}
@@ -112,7 +116,13 @@ def load_mnist_split(folder: str | Path, split: str = "test") -> tuple[np.ndarra
         if found is None:
             raise FileNotFoundError(f"MNIST file {prefix}-{stem}[.gz] not found in {folder}")
         out.append(read_idx(found))
-    return out[0], out[1]
+    images, labels = out
+    if images.ndim != 3 or labels.ndim != 1 or len(images) != len(labels):
+        raise ValueError(
+            f"MNIST {split} files in {folder} do not match: images {images.shape}, labels {labels.shape} "
+            "(one label per image expected)"
+        )
+    return images, labels
 
 
 def load_mnist(folder: str | Path) -> dict[str, np.ndarray]:

@@ -19,7 +19,7 @@ from ..preprocess import read_image
 from ..sensor import simulate
 from .plots import layout_figure
 
-__all__ = ["photo_tensor", "run_demo"]
+__all__ = ["demo_outputs", "photo_tensor", "run_demo"]
 
 
 def photo_tensor(arr: np.ndarray) -> torch.Tensor:
@@ -34,6 +34,14 @@ def photo_tensor(arr: np.ndarray) -> torch.Tensor:
     return torch.from_numpy(np.ascontiguousarray(rgb)).permute(2, 0, 1)[None]
 
 
+def demo_outputs(out: str | Path) -> list[Path]:
+    """The files [`run_demo`][] writes into ``out``: the figure, the numbers and one sensor image a
+    layout."""
+    out = Path(out)
+    names = ("uniform", "rect", "curv", "fovea", "spline", "grid")
+    return [out / "layouts.png", out / "demo.json", *(out / f"sensor_{n}.png" for n in names)]
+
+
 def run_demo(
     image: str | Path,
     out: str | Path,
@@ -42,7 +50,8 @@ def run_demo(
     tol: float | None = None,
 ) -> dict:
     """Simulate the uniform, rect and curv layouts, an off-centre fovea and the spline and grid
-    layouts that follow the photo's own edge density on ``image``; write figures and ``demo.json``.
+    layouts that follow the photo's own edge density on ``image``; write figures and ``demo.json``
+    ([`demo_outputs`][]).
 
     Returns:
         the numbers written to ``demo.json`` (per layout: method, error bound, seconds, the

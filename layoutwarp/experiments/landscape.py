@@ -24,7 +24,7 @@ import numpy as np
 from ..doctor import run_info
 from ..files import atomic_write
 from ..layouts import FAMILIES, make_layout
-from .runs import RunOptions, train_run
+from .runs import RunOptions, read_runs, train_run
 from .tasks import Task
 
 __all__ = ["grid_points", "point_name", "run_landscape", "summarise_landscape"]
@@ -138,7 +138,12 @@ def run_landscape(
 
 
 def _records(out: Path) -> list[dict]:
-    return [json.loads(p.read_text()) for p in sorted((out / "runs").glob("*.json"))]
+    """The records of a landscape folder's finished points."""
+
+    def name(r: dict) -> str:
+        return point_name(r["family"], r["size_hw"], r["theta_point"], r["seed"], r["tag"])
+
+    return read_runs(out, name, "a landscape")
 
 
 def _score(out: Path, family: str, size: tuple[int, int], theta: tuple[float, float], metric: str) -> float:

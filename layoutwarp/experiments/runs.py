@@ -33,6 +33,7 @@ __all__ = [
     "RunOptions",
     "RunRecord",
     "format_summary",
+    "read_runs",
     "run_experiment",
     "run_name",
     "summarise",
@@ -127,6 +128,24 @@ def _net_name(task: Task) -> str:
 def run_name(family: str, size: Sequence[int], seed: int) -> str:
     """The name of one training run in file names: ``<family>_<W>x<H>_seed<s>``."""
     return f"{family}_{size[1]}x{size[0]}_seed{seed}"
+
+
+def read_runs(folder: Path, name_of: Callable[[dict], str], what: str) -> list[dict]:
+    """The run records a ``folder`` of ``what`` (a study, a landscape) holds in ``runs/*.json``, by
+    file name; each must be named as ``name_of`` names its record: a file of another kind (a
+    landscape's runs written into a study's folder, a summary copied there) is refused in one
+    line, not read as one of these runs."""
+    records = []
+    for path in sorted((folder / "runs").glob("*.json")):
+        try:
+            record = json.loads(path.read_text())
+            ours = isinstance(record, dict) and name_of(record) == path.stem
+        except (ValueError, KeyError, TypeError, IndexError):
+            ours = False
+        if not ours:
+            raise ValueError(f"{path} is no run of {what} (the folder's runs/ holds its own); move it away")
+        records.append(record)
+    return records
 
 
 def _area_ratio(layout: Layout, size: tuple[int, int], theta: Sequence[float]) -> float:
