@@ -23,6 +23,7 @@ __all__ = [
     "ASPECT_TOLERANCE",
     "BYTES_PER_SENSOR_PIXEL",
     "MAX_EXTENT_UM",
+    "SEED_MAX",
     "UNCHECKED_BYTES",
     "ArgumentError",
     "all_finite",
@@ -48,6 +49,10 @@ __all__ = [
     "warn_if_finer",
     "warn_if_stretched",
 ]
+
+#: The largest seed any layoutwarp call takes: what torch's generators hold as a signed 64-bit
+#: integer.
+SEED_MAX = 2**63 - 1
 
 
 class ArgumentError(ValueError):
@@ -316,13 +321,16 @@ def check_number(
 
 
 def _interval(lo, hi, lo_open: bool, hi_open: bool) -> str:
+    def num(v: float) -> str:  # an integer bound in full (2**63 - 1 is no 9.22337e+18)
+        return str(v) if isinstance(v, int) else f"{v:g}"
+
     if lo is None and hi is None:
         return ""
     if hi is None:
-        return f"{'>' if lo_open else '>='} {lo:g}"
+        return f"{'>' if lo_open else '>='} {num(lo)}"
     if lo is None:
-        return f"{'<' if hi_open else '<='} {hi:g}"
-    return f"in {'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}"
+        return f"{'<' if hi_open else '<='} {num(hi)}"
+    return f"in {'(' if lo_open else '['}{num(lo)}, {num(hi)}{')' if hi_open else ']'}"
 
 
 def check_device(device: Any, name: str = "device") -> torch.device:

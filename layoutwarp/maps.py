@@ -14,7 +14,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .checks import check_generator, check_int, check_number, check_size
+from .checks import SEED_MAX, check_generator, check_int, check_number, check_size
 from .coords import pixel_centers, sensor_to_pixels
 from .layouts import Layout, check_layout
 from .mesh import pixel_mesh
@@ -75,7 +75,7 @@ def sample_points(
     if jitter and seed is not None:
         like = torch.empty(0, dtype=dtype, device=device)
         off = torch.ops.layoutwarp.uniform(
-            random_seed(None, check_int(seed, "seed", 0)), [h * s, w * s, 2], like
+            random_seed(None, check_int(seed, "seed", 0, SEED_MAX)), [h * s, w * s, 2], like
         )
     elif jitter:
         at = generator.device if generator is not None else device  # drawn where the generator is

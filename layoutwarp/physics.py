@@ -53,6 +53,7 @@ from torch import Tensor
 
 from .caches import LRU
 from .checks import (
+    SEED_MAX,
     ArgumentError,
     check_choice,
     check_extent,
@@ -108,7 +109,7 @@ _RANGES = {
 #: The number fields that may be ``None``.
 _OPTIONAL = {"full_well_per_um2", "gain_dn_per_e", "psf_sigma_um"}
 #: The integer fields: ``(lo, hi, may be None)``.
-_INTEGERS = {"adc_bits": (1, 32, True), "pattern_seed": (0, None, False), "seed": (0, None, True)}
+_INTEGERS = {"adc_bits": (1, 32, True), "pattern_seed": (0, SEED_MAX, False), "seed": (0, SEED_MAX, True)}
 
 
 @dataclass(frozen=True)

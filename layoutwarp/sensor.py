@@ -11,6 +11,7 @@ import torch
 from torch import Tensor, nn
 
 from .checks import (
+    SEED_MAX,
     ArgumentError,
     check_bool,
     check_choice,
@@ -246,12 +247,14 @@ def simulate(
     if not isinstance(layout, Layout):
         raise TypeError(f"layout must be a layoutwarp Layout, got {type(layout).__name__}")
     refuse_forward_ad(image, layout.rho)
+    if layout.learnable_param:  # a step may have made its θ no layout (a fixed θ was checked when set)
+        layout.check_theta_now()
     allow_nonfinite, return_plan = (
         check_bool(allow_nonfinite, "allow_nonfinite"),
         check_bool(return_plan, "return_plan"),
     )
     generator = check_generator(generator)
-    seed = check_int(seed, "seed", 0, optional=True)
+    seed = check_int(seed, "seed", 0, SEED_MAX, optional=True)
     is_callable = callable(image) and not isinstance(image, Tensor)
     dtype = image.dtype if isinstance(image, Tensor) else torch.float32
     plan = plan_simulation(

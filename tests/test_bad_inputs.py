@@ -4,6 +4,8 @@ reviewer's sweep of bad inputs found)."""
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 import torch
@@ -46,10 +48,15 @@ CASES = {
         "generator",
         "torch.Generator",
     ),
+    "a seed past torch's 64 bits": (
+        lambda: lw.simulate(IMG, L, (6, 8), "montecarlo", seed=2**63),
+        "seed",
+        "integer in [0, 9223372036854775807] or None, got 9223372036854775808",
+    ),
     "a seed that is text": (
         lambda: lw.simulate(IMG, L, (6, 8), "montecarlo", seed="a"),
         "seed",
-        "integer >= 0",
+        "integer in [0, 9223372036854775807]",
     ),
     "a family name for a layout (maps)": (
         lambda: lw.forward_maps("curv", (6, 8), (48, 64)),
@@ -225,3 +232,49 @@ def test_preprocessing_refuses_what_it_cannot_do_before_writing(tmp_path, monkey
     monkeypatch.setattr(pre, "read_image", nan_for_nan_png)
     res = lw.preprocess_folder(src, tmp_path / "dst2", L, (6, 8), progress=False)
     assert [f["file"] for f in res.failed] == ["nan.png"] and "NaN or Inf" in res.failed[0]["error"]
+
+
+def _stepped_to(family: str, rho: list[float], dtype: torch.dtype = torch.float64) -> lw.Layout:
+    """A learnable layout whose ρ a training step moved to ``rho`` (in place, as an optimiser
+    does: nothing checks it there)."""
+    layout = lw.make_layout(family, (0.2, -0.1), learn=True, dtype=dtype)
+    with torch.no_grad():
+        layout.rho.copy_(torch.tensor(rho))
+    return layout
+
+
+@pytest.mark.parametrize(
+    ("family", "rho", "dtype", "theta"),
+    [
+        ("curv", [float("nan"), 0.1], torch.float64, "theta[0] = nan"),
+        ("curv", [0.1, 20.0], torch.float64, "theta[1] = 1.0"),  # tanh(20) rounds to 1
+        ("rect", [-20.0, 0.1], torch.float64, "theta[0] = -1.0"),
+        ("elliptic", [0.1, float("inf")], torch.float32, "theta[1] = 1.0"),
+        ("curv", [12.0, 0.1], torch.float32, "theta[0] = 1.0"),  # in float32 from about 9
+    ],
+)
+@pytest.mark.parametrize("method", ["exact", "point", "montecarlo"])
+def test_a_learnable_theta_a_step_made_no_layout_is_refused_in_one_line(family, rho, dtype, theta, method):
+    # NaN sample points crashed torch's grid_sample backward (SIGSEGV) for point and Monte Carlo;
+    # exact gave NaN, rect at ρ = -20 a torch error about negative repeats
+    layout = _stepped_to(family, rho, dtype)
+    img = IMG.to(dtype).requires_grad_(True)
+    with pytest.raises(
+        ArgumentError, match=rf"^{re.escape(theta)} \(rho\[\d\] = .*is no layout.*bound = 1"
+    ) as e:
+        lw.simulate(img, layout, (6, 8), method, seed=0)
+    assert e.value.argument == "theta" and "\n" not in str(e.value)
+    with pytest.raises(ArgumentError, match="is no layout"):  # back-warping takes the same check
+        lw.backwarp(torch.rand(1, 1, 6, 8), layout, (48, 64), mode="bilinear")
+
+
+def test_a_state_dict_whose_theta_is_no_layout_is_refused_as_it_loads():
+    layer = lw.SensorLayer((6, 8), "curv", "point")
+    state = layer.state_dict()
+    state["layout.rho"] = torch.tensor([float("nan"), 0.1])
+    with pytest.raises(ArgumentError, match=r"theta\[0\] = nan .*is no layout"):
+        layer.load_state_dict(state)
+    fixed = lw.CurvLayout((0.3, 0.2))
+    state = fixed.state_dict() | {"fixed_theta": torch.tensor([0.3, 1.0], dtype=torch.float64)}
+    with pytest.raises(ArgumentError, match=r"theta\[1\] = 1.0 .*is no layout"):
+        fixed.load_state_dict(state)

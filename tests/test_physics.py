@@ -57,9 +57,14 @@ CAMERA = {
             "sensor_um[0] (height) must be a finite number in (0, 1e+09], got 1e+300",
         ),
         ("noise", "shot", "noise must be one of 'auto', 'poisson', 'gaussian', 'none'; got 'shot'"),
-        ("seed", -3, "seed must be an integer >= 0 or None, got -3"),
-        ("seed", 2.0, "seed must be an integer >= 0 or None, got 2.0"),
-        ("pattern_seed", True, "pattern_seed must be an integer >= 0, got True"),
+        ("seed", -3, "seed must be an integer in [0, 9223372036854775807] or None, got -3"),
+        ("seed", 2.0, "seed must be an integer in [0, 9223372036854775807] or None, got 2.0"),
+        (
+            "seed",
+            2**64,
+            "seed must be an integer in [0, 9223372036854775807] or None, got 18446744073709551616",
+        ),
+        ("pattern_seed", True, "pattern_seed must be an integer in [0, 9223372036854775807], got True"),
         ("psf_energy", 1.0, "psf_energy must be a finite number in [0.5, 1), got 1.0"),
     ],
 )

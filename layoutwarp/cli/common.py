@@ -380,10 +380,12 @@ def add_physics_args(p: argparse.ArgumentParser, extent: str | None = None) -> N
         g.add_argument("--sensor-um", type=parse_um, help="the sensor's extent WIDTHxHEIGHT in µm")
     g.add_argument("--read-noise-e", type=non_negative_float, help="read noise in electrons (rms)")
     g.add_argument("--full-well-per-um2", type=positive_float, help="electrons a pixel holds per µm²")
-    g.add_argument("--adc-bits", type=positive_int, help="ADC resolution in bits")
+    g.add_argument("--adc-bits", type=int_range(1, 32), help="ADC resolution in bits")
     g.add_argument("--psf", choices=["gaussian", "airy"], help="the optics' point spread function")
     g.add_argument("--f-number", type=positive_float, help="the optics' f-number (with --psf)")
-    g.add_argument("--noise-seed", type=non_negative_int, help="seed of the temporal noise")
+    g.add_argument(  # checks.SEED_MAX: the parsers import no torch
+        "--noise-seed", type=int_range(0, 2**63 - 1), help="seed of the temporal noise"
+    )
 
 
 #: Physics flags and the SensorPhysics fields they set.

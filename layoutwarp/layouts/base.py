@@ -234,6 +234,31 @@ class Layout(nn.Module):
                 f"{b * (1 - 2 * torch.finfo(self._dtype).eps):.9g}",
             )
 
+    def check_theta_now(self) -> None:
+        """Raise, in one line, where θ as it is now is no layout: an entry that is not finite, or one
+        on or past its bound. A learnable layout's ``ρ`` is unconstrained, so a training step (a
+        learning rate too large, a loss gone NaN) or a state dict can make it NaN or ±inf, or so
+        large that ``bound · tanh(ρ)`` rounds onto the bound, where the layout folds (NaN values,
+        or a crash in torch's ``grid_sample`` backward). Reads θ's values where that costs no
+        wait: a CPU ``ρ``, eager, outside ``vmap`` and the other transforms; on a CUDA device or in
+        a compiled graph nothing is read. [`simulate`][layoutwarp.sensor.simulate] and every entry
+        that takes a layout ([`check_layout`][]) call it for learnable layouts."""
+        rho = self.rho
+        if rho.device.type != "cpu" or torch.compiler.is_compiling():
+            return
+        if torch._C._functorch.maybe_current_level() is not None:  # ρ may be batched: no values
+            return
+        with torch.no_grad():
+            bad = self._outside(self.theta.double())
+        if bad is not None:
+            i, v, b = bad
+            raise ArgumentError(
+                "theta",
+                f"theta[{i}] = {v!r} (rho[{i}] = {float(rho.detach()[i])!r}) is no layout: each θ must "
+                f"be finite with |θ| < bound = {b:g}; a training step (its learning rate) or a state dict "
+                "made it so",
+            )
+
     def _check_theta(self, theta: Tensor) -> None:
         """Raise ``ValueError`` naming the first entry of a (float64, CPU) θ that is not allowed."""
         bad = self._outside(theta)
@@ -336,6 +361,8 @@ class Layout(nn.Module):
             state_dict.pop(kept, None)
         super()._load_from_state_dict(state_dict, prefix, *args)
         self._token = self.make_token(keep_theta=True)  # its settings may have changed, not θ's part
+        if self.rho.numel():  # a θ that is no layout is refused as it arrives, not at the next call
+            self.check_theta_now()
 
     @property
     def learnable(self) -> bool:
@@ -519,8 +546,10 @@ _OBJECTS: weakref.WeakValueDictionary[str, Layout] = weakref.WeakValueDictionary
 
 def check_layout(layout: Any, name: str = "layout") -> Layout:
     """``layout`` if it is a layoutwarp [`Layout`][] (a family name or anything else is refused,
-    naming what to pass)."""
+    naming what to pass), a learnable one's θ checked as it is now ([`Layout.check_theta_now`][])."""
     if isinstance(layout, Layout):
+        if layout.learnable_param:  # a step may have made its θ no layout: said here, not as NaN
+            layout.check_theta_now()
         return layout
     hint = (
         f" (make one with make_layout({layout!r}, theta))"
