@@ -525,6 +525,13 @@ def export_layout(
         raise ArgumentError("px_per_um", f"px_per_um sets a PNG mask's resolution; a {fmt} mask has none")
     if fmt == "gds" and grid_um is None:
         grid_um = GDS_DBU_UM  # GDSII stores integers: snap here so the report matches the file
+        pitch = _smallest_chord_um(layout, size, (hu, wu))
+        if grid_um >= pitch:  # no grid was asked for: the sensor is what is too small
+            raise ArgumentError(
+                "sensor_um",
+                f"sensor_um = {wu:g}x{hu:g} µm gives pixels of pitch {pitch:.4g} µm, not above GDSII's "
+                f"{GDS_DBU_UM:g} µm grid; a GDSII mask needs a larger sensor (or use dxf, svg or png)",
+            )
     polys, info = pixel_polygons_um(
         layout, size, (hu, wu), tol_um=tol_um, grid_um=grid_um, manhattan=manhattan, progress=progress
     )

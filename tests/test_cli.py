@@ -384,6 +384,20 @@ CASES |= {
         ["--px-per-um", "400000000x4000000 raster mask", "a side OpenCV draws"],
     ),
 }
+CASES["demo photo a folder"] = (["demo", "--image", "{tmp}/photos"], ["--image", "photos' is a folder"])
+CASES["bench photo no image"] = (
+    ["bench", "--image", "{tmp}/bad.json"],
+    ["--image", "cannot read", "bad.json"],
+)
+CASES["gds of a sensor under its grid"] = (
+    ["export", "--family", "curv", "--theta", "0.3,0.2", "--size", "4x4", "--sensor-um", "1e-6x1e-6",
+     "--out", "{tmp}/x.gds"],
+    ["--sensor-um", "1e-06x1e-06", "pitch 1.75e-07", "GDSII's 0.001 µm grid"],
+)  # fmt: skip
+CASES["a θ learning rate that diverges"] = (
+    ["train", "mnist", "--quick", "--family", "curv", "--theta-lr", "1e9", "--out", "{tmp}/out"],
+    ["argument --theta-lr", "training diverged", "is no layout", "lower --theta-lr"],
+)
 CASES["export report over its index mask"] = (
     ["export", "--family", "uniform", *MASK, "--out", "{tmp}/x.png", "--report", "{tmp}/x_index.png"],
     ["--report", "x_index.png", "--out (its index mask)"],

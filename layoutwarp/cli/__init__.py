@@ -120,7 +120,8 @@ def main(argv: Sequence[str] | None = None, *, own_process: bool = False) -> int
     try:
         status = int(args.func(args) or 0)
     except (UsageError, ValueError, FileNotFoundError) as exc:
-        print(f"{prog}: error: {_name_the_flag(exc)}", file=sys.stderr)
+        line = _os_error(exc) if isinstance(exc, OSError) and exc.strerror else _name_the_flag(exc)
+        print(f"{prog}: error: {line}", file=sys.stderr)
         status = 2
     except OSError as exc:  # a file that cannot be written or read, a server not reached
         print(f"{prog}: error: {_os_error(exc)}", file=sys.stderr)

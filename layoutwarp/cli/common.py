@@ -51,6 +51,7 @@ __all__ = [
     "positive_float",
     "positive_int",
     "quiet_decoders",
+    "readable_image",
 ]
 
 
@@ -258,6 +259,24 @@ def distinct_files(outputs: dict[str, str | Path | None], inputs: dict[str, str 
         seen[Path(path).resolve()] = flag
 
 
+def readable_image(path: str | Path, flag: str = "--image") -> Path:
+    """An image file the command can decode: refused in one line where it does not exist, is a
+    folder, or is no image OpenCV reads (a file cut short, a text file)."""
+    from ..preprocess import read_image
+
+    path = Path(path)
+    if path.is_dir():
+        raise UsageError(f"argument {flag}: {str(path)!r} is a folder; give an image file")
+    if not path.is_file():
+        raise UsageError(f"argument {flag}: no such file {str(path)!r}")
+    try:
+        with quiet_decoders():  # a broken file is named once, in our words
+            read_image(path)
+    except ValueError as exc:
+        raise UsageError(f"argument {flag}: cannot read {str(path)!r}: {exc}") from None
+    return path
+
+
 def not_within(path: str | Path, flag: str, folder: str | Path, folder_flag: str) -> None:
     """Refuse, in one line, an output folder ``path`` that is ``folder`` (another option's) or lies
     inside it: what one command writes there would be read as the other's (e.g. a landscape's
@@ -317,7 +336,11 @@ def add_run_args(p: argparse.ArgumentParser) -> None:
 # ----------------------------------------------------------------------------------------
 def add_layout_args(p: argparse.ArgumentParser, families: Sequence[str]) -> None:
     p.add_argument("--layout", metavar="FILE", help="layout file (written by save_layout or train)")
-    p.add_argument("--family", choices=families, help="or a layout family (with --theta)")
+    p.add_argument(
+        "--family",
+        choices=families,
+        help="or a layout family with --theta (spline and grid hold more than two numbers: --layout FILE)",
+    )
     p.add_argument("--theta", type=parse_theta, help="θ as TX,TY with --family, each |θ| < 1")
     p.add_argument("--size", type=parse_wxh, help="sensor WIDTHxHEIGHT (default: the layout file's)")
 

@@ -20,6 +20,7 @@ from .common import (
     pick_device,
     positive_float,
     quiet_decoders,
+    readable_image,
 )
 
 __all__ = ["add_commands"]
@@ -32,16 +33,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     from ..experiments.data import samples_dir
     from ..experiments.demo import demo_outputs, run_demo
 
-    image = Path(args.image) if args.image else samples_dir() / "photos" / "kodim20.png"
-    if not image.is_file():
-        raise UsageError(f"argument --image: no such file {str(image)!r}")
-    from ..preprocess import read_image
-
-    try:
-        with quiet_decoders():  # a broken file is named once, in our words
-            read_image(image)
-    except ValueError as exc:
-        raise UsageError(f"argument --image: cannot read {str(image)!r}: {exc}") from None
+    image = readable_image(args.image or samples_dir() / "photos" / "kodim20.png")
     check_sensor_memory(args.size)
     out_dir(args.out)
     for path in demo_outputs(args.out):  # the photo is none of the files the demo writes
@@ -82,8 +74,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
     from ..experiments.bench import main_bench
 
-    if args.image and not Path(args.image).is_file():
-        raise UsageError(f"argument --image: no such file {args.image!r}")
+    if args.image:
+        readable_image(args.image)
     for path, flag in ((args.json, "--json"), (args.text, "--text"), (args.plot, "--plot")):
         out_file(path, flag)  # all before the benchmark's minutes: nothing measured, then lost
     distinct_files({"--json": args.json, "--text": args.text, "--plot": args.plot}, {"--image": args.image})

@@ -40,6 +40,9 @@ if TYPE_CHECKING:  # the experiments load on demand
 
 __all__ = ["add_commands"]
 
+#: The epochs of every run of a ``study`` or ``landscape`` with ``--quick``.
+QUICK_STUDY_EPOCHS = 1
+
 
 def _sensor_options(args: argparse.Namespace, default_tol: float) -> dict:
     sensor: dict[str, Any] = {"method": args.method}
@@ -111,11 +114,18 @@ def _checked(options: RunOptions, args: argparse.Namespace) -> RunOptions:
 
 @contextlib.contextmanager
 def _data_errors() -> Iterator[None]:
-    """Within: a data file the task cannot find is the ``--data`` folder's error, in one line."""
+    """Within: a data file the task cannot find is the ``--data`` folder's error, and a learned θ
+    that a step made no layout (`Layout.check_theta_now`) ``--theta-lr``'s, each in one line."""
+    from ..checks import ArgumentError
+
     try:
         yield
     except FileNotFoundError as exc:
         raise UsageError(f"argument --data: {exc}") from None
+    except ArgumentError as exc:
+        if exc.argument != "theta":
+            raise
+        raise UsageError(f"argument --theta-lr: training diverged: {exc}; lower --theta-lr") from None
 
 
 def _physics_option(task: Task, args: argparse.Namespace) -> dict:
@@ -157,9 +167,10 @@ def _cmd_train(args: argparse.Namespace) -> int:
             task, folder, out, families=families, sizes=sizes, seeds=seeds, options=options
         )
     print(format_summary(task, result["summary"]))
+    learned = any(f not in ("uniform", "density") for f in families)  # the best of them: layout.json
     print(
-        f"wrote {out}/results.json (scores in percent), layout.json, layout_*.json, model_*.pt, "
-        f"{task.name}_layouts.png, {task.name}_theta.png"
+        f"wrote {out}/results.json (scores in percent), {'layout.json, ' if learned else ''}layout_*.json, "
+        f"model_*.pt, {task.name}_layouts.png, {task.name}_theta.png"
     )
     return 0
 
@@ -232,7 +243,7 @@ def _study_run_options(task: Task, plan: StudyPlan, args: argparse.Namespace) ->
 
     from ..experiments.study import study_options
 
-    epochs = args.epochs or (1 if args.quick else None)
+    epochs = args.epochs or (QUICK_STUDY_EPOCHS if args.quick else None)
     options = study_options(task, plan, epochs=epochs, **_training_flags(task, args))
     return _checked(replace(options, sensor=options.sensor | _physics_option(task, args)), args)
 
@@ -309,8 +320,11 @@ def _sizes_text(sizes) -> str:
     return " and ".join(f"{w}x{h}" for h, w in sizes)
 
 
-def _add_training_args(p: argparse.ArgumentParser, task: TaskSpec, quick_help: str) -> None:
-    """The options every training command of every task takes, and the task's own."""
+def _add_training_args(
+    p: argparse.ArgumentParser, task: TaskSpec, quick_help: str, quick_epochs: int | None = None
+) -> None:
+    """The options every training command of every task takes, and the task's own
+    (``quick_epochs``: the epochs ``--quick`` trains, where not the task's quick default)."""
     d, q = task.defaults, task.quick_defaults()
     p.add_argument("--quick", action="store_true", help=quick_help)
     p.add_argument(
@@ -321,7 +335,9 @@ def _add_training_args(p: argparse.ArgumentParser, task: TaskSpec, quick_help: s
     )
     p.add_argument("--seeds", type=positive_int, help=f"number of seeds (default: {d.seeds}; 1 with --quick)")
     p.add_argument(
-        "--epochs", type=positive_int, help=f"epochs (default: {d.epochs}; {q.epochs} with --quick)"
+        "--epochs",
+        type=positive_int,
+        help=f"epochs (default: {d.epochs}; {quick_epochs or q.epochs} with --quick)",
     )
     p.add_argument(
         "--freeze-epochs",
@@ -348,11 +364,15 @@ def _add_training_args(p: argparse.ArgumentParser, task: TaskSpec, quick_help: s
 
 
 def _task_parser(
-    sub: argparse._SubParsersAction, task: TaskSpec, description: str, quick_help: str
+    sub: argparse._SubParsersAction,
+    task: TaskSpec,
+    description: str,
+    quick_help: str,
+    quick_epochs: int | None = None,
 ) -> argparse.ArgumentParser:
     """A task's parser under a command, with the training arguments every command shares."""
     p = sub.add_parser(task.name, help=task.description, description=description, formatter_class=Formatter)
-    _add_training_args(p, task, quick_help)
+    _add_training_args(p, task, quick_help, quick_epochs)
     return p
 
 
@@ -407,7 +427,9 @@ def _add_study_parser(sub: argparse._SubParsersAction, task: TaskSpec, families:
         task,
         f"The {task.name} pixel-budget study: uniform layouts at "
         f"{_sizes_text(plan.uniform_sizes)}, every family at {_sizes_text(plan.learned_sizes)}; resumable.",
-        "bundled samples, 1 seed, 1 epoch, 2 uniform sizes and 1 learned size",
+        "bundled samples, 1 seed, 1 epoch, 2 uniform sizes, 1 learned size, families rect and density "
+        "(or --family)",
+        quick_epochs=QUICK_STUDY_EPOCHS,
     )
     _add_families_and_sizes(
         st,
@@ -439,6 +461,7 @@ def _add_landscape_parser(sub: argparse._SubParsersAction, task: TaskSpec, two: 
         f"A θ-landscape of {task.name}: θ frozen on an N x N grid (one seed a point, "
         "three at uniform and at the best point), the study's training; resumable.",
         "bundled samples, 1 epoch, a 3x3 grid",
+        quick_epochs=QUICK_STUDY_EPOCHS,
     )
     lt.add_argument("--family", choices=two, required=True, help="a two-parameter family")
     lt.add_argument(
