@@ -15,7 +15,7 @@ Destination layout::
 
     DST/layout.json            the layout (family, θ, bound, sensor size) and options
     DST/done.jsonl             one line per finished file (appended as they finish)
-    DST/manifest.json          counts, failures, timing (rewritten at the end of a run)
+    DST/manifest.json          counts, failures, timing (rewritten at the end of a run, a stopped one too)
     DST/<rel path>             the sensor images
     DST/labels/<rel path>      label maps (``label_rule`` "nearest" or "majority": on the
                                sensor grid; "inverse": the full-resolution copy)
@@ -524,52 +524,60 @@ def preprocess_folder(
 
     bar = tqdm(total=len(tasks), desc="preprocess", unit="img", disable=not show)
     t0 = time.perf_counter()
-    with done_file.open("a") as log:
+    finished = False
+    try:
+        with done_file.open("a") as log:
 
-        def record(r: dict) -> None:
-            if r["ok"]:
-                log.write(json.dumps(r["entry"]) + "\n")
-                log.flush()
-                result.processed += 1
-                for stage, sec in r.get("stages", {}).items():
-                    result.stages[stage] = result.stages.get(stage, 0.0) + sec
+            def record(r: dict) -> None:
+                if r["ok"]:
+                    log.write(json.dumps(r["entry"]) + "\n")
+                    log.flush()
+                    result.processed += 1
+                    for stage, sec in r.get("stages", {}).items():
+                        result.stages[stage] = result.stages.get(stage, 0.0) + sec
+                else:
+                    result.failed.append({"file": r["file"], "error": r["error"]})
+                bar.update(1)
+
+            fixed = layout_from_spec(config, dtype=torch.float64)
+            job = _Job(fixed, size, tol, label_rule, str(device), physics, say=_above(bar) if show else None)
+            if engine == "dask" and tasks:
+                spec = {"layout": config, "size": list(size), "tol": tol, "label_rule": label_rule}
+                spec |= {"physics": physics.to_dict() if physics else None}
+                spec = json.dumps(spec | {"device": str(device)})
+                _run_on_dask(spec, tasks, record, workers, address)
+            elif workers == 1 or len(tasks) <= 1:
+                for task in tasks:
+                    record(job.process(task))
             else:
-                result.failed.append({"file": r["file"], "error": r["error"]})
-            bar.update(1)
-
-        fixed = layout_from_spec(config, dtype=torch.float64)
-        job = _Job(fixed, size, tol, label_rule, str(device), physics, say=_above(bar) if show else None)
-        if engine == "dask" and tasks:
-            spec = {"layout": config, "size": list(size), "tol": tol, "label_rule": label_rule}
-            spec |= {"physics": physics.to_dict() if physics else None}
-            spec = json.dumps(spec | {"device": str(device)})
-            _run_on_dask(spec, tasks, record, workers, address)
-        elif workers == 1 or len(tasks) <= 1:
-            for task in tasks:
-                record(job.process(task))
-        else:
-            with ThreadPoolExecutor(workers) as ex:
-                for fut in as_completed([ex.submit(job.process, t) for t in tasks]):
-                    record(fut.result())
-    bar.close()
-    result.seconds = time.perf_counter() - t0
-    manifest = {
-        "layout": config,
-        "source": str(src),
-        "labels": str(labels) if labels else None,
-        "files_done": len(_read_done(done_file)),
-        "processed_this_run": result.processed,
-        "skipped_this_run": result.skipped,
-        "failed": result.failed,
-        "seconds": round(result.seconds, 3),
-        "workers": workers,
-        "engine": engine if address is None else f"{engine} at {address}",
-        "device": str(device),
-        "physics": physics.to_dict() if physics else None,
-        "run": run_info(device),
-    }
-    result.manifest = dst / "manifest.json"
-    atomic_write(result.manifest, json.dumps(manifest, indent=2).encode())
+                pool = ThreadPoolExecutor(workers)
+                try:
+                    for fut in as_completed([pool.submit(job.process, t) for t in tasks]):
+                        record(fut.result())
+                finally:  # stopped (Ctrl-C): the images in hand are finished, the rest not begun
+                    pool.shutdown(cancel_futures=True)
+        finished = True
+    finally:  # the manifest of a stopped run too: what it finished, and that it did not end
+        bar.close()
+        result.seconds = time.perf_counter() - t0
+        manifest = {
+            "layout": config,
+            "source": str(src),
+            "labels": str(labels) if labels else None,
+            "files_done": len(_read_done(done_file)),
+            "processed_this_run": result.processed,
+            "skipped_this_run": result.skipped,
+            "failed": result.failed,
+            "finished": finished,
+            "seconds": round(result.seconds, 3),
+            "workers": workers,
+            "engine": engine if address is None else f"{engine} at {address}",
+            "device": str(device),
+            "physics": physics.to_dict() if physics else None,
+            "run": run_info(device),
+        }
+        result.manifest = dst / "manifest.json"
+        atomic_write(result.manifest, json.dumps(manifest, indent=2).encode())
     return result
 
 

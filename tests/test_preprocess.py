@@ -526,3 +526,33 @@ def test_a_fine_sensor_says_when_its_area_weights_are_built(tmp_path, monkeypatc
     assert "area weights 5x6" in err, err
     preprocess_folder(src, tmp_path / "quiet", fixed("curv", (0.3, -0.2)), (5, 6), progress=False)
     assert "area weights" not in capfd.readouterr().err
+
+
+@pytest.mark.parametrize("workers", [1, 3])
+def test_a_stopped_run_writes_its_manifest_and_leaves_the_rest_unbegun(tmp_path, monkeypatch, workers):
+    # Ctrl-C after the second image: the manifest says what was finished and that the run did
+    # not end, the thread pool begins no further image, and a rerun finishes the same files
+    src, dst = tmp_path / "src", tmp_path / "dst"
+    _images(src)
+    layout, size = fixed("curv", (0.3, -0.2)), (6, 7)
+    calls, real = [], lw.preprocess.read_image
+
+    def stopping(path, *args, **kwargs):
+        calls.append(path)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(path, *args, **kwargs)
+
+    monkeypatch.setattr("layoutwarp.preprocess.read_image", stopping)
+    with pytest.raises(KeyboardInterrupt):
+        preprocess_folder(src, dst, layout, size, workers=workers, progress=False)
+    manifest = json.loads((dst / "manifest.json").read_text())
+    assert manifest["finished"] is False and manifest["files_done"] <= 1
+    assert len(calls) <= 2 + (workers - 1)  # the images in hand, none begun after the stop
+    monkeypatch.setattr("layoutwarp.preprocess.read_image", real)
+    again = preprocess_folder(src, dst, layout, size, workers=workers, progress=False)
+    whole = preprocess_folder(src, tmp_path / "whole", layout, size, progress=False)
+    assert json.loads((dst / "manifest.json").read_text())["finished"] is True
+    assert again.processed + manifest["files_done"] == whole.processed
+    for rel in ("gray8.png", "sub/colour8.png", "alpha.png"):
+        assert (dst / rel).read_bytes() == (tmp_path / "whole" / rel).read_bytes()
