@@ -613,17 +613,18 @@ def test_a_dynamic_compile_serves_every_batch_size_with_one_graph(family, gen):
     assert counter.frame_count == 1, counter.frame_count
 
 
+@pytest.mark.parametrize("tol", ["default", "fine"])
 @pytest.mark.parametrize("dtype", [torch.float32, F64])
 @pytest.mark.parametrize("family", ["curv", "fovea", "elliptic", "rect", "grid"])
-def test_vmap_over_theta_gives_the_loops_values_and_gradients(family, dtype, gen):
+def test_vmap_over_theta_gives_the_loops_values_and_gradients(family, dtype, tol, gen):
     """``vmap`` over θ (``functional_call`` with a batch of ρ) of a learnable exact layer: the
     values and ρ's gradient of a loop over the batch. A batched ρ reports no ``requires_grad``
     inside vmap; the layer must still take the learnable path (a float32 image would otherwise
-    go to a fixed layout's cached weights, and θ get no gradient). A fine tolerance: the two
-    paths' polylines then agree to rounding."""
+    go to a fixed layout's cached weights, and θ get no gradient), its polylines a gradient's
+    (at the default tolerance a fixed θ's differed from the loop's by 1.9e-5 in float64)."""
     from torch.func import functional_call, vmap
 
-    fine = 1e-10 if dtype == F64 else 1e-6
+    fine = {"default": None, "fine": 1e-10 if dtype == F64 else 1e-6}[tol]
     layer = lw.SensorLayer((4, 5), _learnable(family, gen, dtype), "exact", tol=fine)
     img = torch.rand(1, 1, 16, 20, generator=gen, dtype=dtype)
     n = layer.layout.rho.numel()
@@ -634,7 +635,7 @@ def test_vmap_over_theta_gives_the_loops_values_and_gradients(family, dtype, gen
     (g,) = torch.autograd.grad(out.square().sum(), rhos)
     ref = torch.stack([functional_call(layer, {"layout.rho": r}, (img,)) for r in rhos])
     (g_ref,) = torch.autograd.grad(ref.square().sum(), rhos)
-    close = {"rtol": 0, "atol": 1e-8} if dtype == F64 else {"rtol": 0, "atol": 1e-5}
+    close = {"rtol": 0, "atol": 1e-12} if dtype == F64 else {"rtol": 0, "atol": 1e-6}
     torch.testing.assert_close(out, ref, **close)
     torch.testing.assert_close(
         g, g_ref, rtol=1e-5 if dtype == F64 else 2e-3, atol=1e-7 if dtype == F64 else 1e-4
