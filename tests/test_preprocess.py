@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import re
+import time
 from pathlib import Path
 
 import cv2
@@ -541,6 +542,7 @@ def test_a_stopped_run_writes_its_manifest_and_leaves_the_rest_unbegun(tmp_path,
         calls.append(path)
         if len(calls) == 2:
             raise KeyboardInterrupt
+        time.sleep(0.5)  # the other images in hand outlast the stop, however busy the machine
         return real(path, *args, **kwargs)
 
     monkeypatch.setattr("layoutwarp.preprocess.read_image", stopping)
@@ -548,7 +550,7 @@ def test_a_stopped_run_writes_its_manifest_and_leaves_the_rest_unbegun(tmp_path,
         preprocess_folder(src, dst, layout, size, workers=workers, progress=False)
     manifest = json.loads((dst / "manifest.json").read_text())
     assert manifest["finished"] is False and manifest["files_done"] <= 1
-    assert len(calls) <= 2 + (workers - 1)  # the images in hand, none begun after the stop
+    assert len(calls) <= workers + 1  # the images in hand (and the stopped thread's next), no more
     monkeypatch.setattr("layoutwarp.preprocess.read_image", real)
     again = preprocess_folder(src, dst, layout, size, workers=workers, progress=False)
     whole = preprocess_folder(src, tmp_path / "whole", layout, size, progress=False)
