@@ -45,6 +45,7 @@ __all__ = [
     "check_type",
     "floating_dtype",
     "raise_nonfinite",
+    "values_readable",
     "warn_if_elsewhere",
     "warn_if_finer",
     "warn_if_stretched",
@@ -321,7 +322,7 @@ def check_number(
 
 
 def _interval(lo, hi, lo_open: bool, hi_open: bool) -> str:
-    def num(v: float) -> str:  # an integer bound in full (2**63 - 1 is no 9.22337e+18)
+    def num(v: float | int) -> str:  # an integer bound in full (2**63 - 1 is no 9.22337e+18)
         return str(v) if isinstance(v, int) else f"{v:g}"
 
     if lo is None and hi is None:
@@ -331,6 +332,16 @@ def _interval(lo, hi, lo_open: bool, hi_open: bool) -> str:
     if lo is None:
         return f"{'<' if hi_open else '<='} {num(hi)}"
     return f"in {'(' if lo_open else '['}{num(lo)}, {num(hi)}{')' if hi_open else ']'}"
+
+
+def values_readable() -> bool:
+    """Whether a tensor's values may be read here as numbers (``.tolist()``, a branch on them):
+    eager, not compiling or tracing, no ``vmap`` or other transform, no dispatch mode (fake
+    tensors, ``make_fx``) or torch function mode. Elsewhere a check that reads values is left
+    out."""
+    if torch.compiler.is_compiling() or torch._C._functorch.maybe_current_level() is not None:
+        return False
+    return not (torch._C._len_torch_dispatch_stack() or torch._C._is_torch_function_mode_enabled())
 
 
 def check_device(device: Any, name: str = "device") -> torch.device:

@@ -30,7 +30,7 @@ from .checks import (
 )
 from .coords import pixel_centers
 from .green import GreenPieces, exact_on_mesh, green_pieces, segment_cells
-from .layouts import Layout, wants_grad
+from .layouts import Layout, gradient_asked
 from .maps import sample_points
 from .mesh import PixelMesh
 from .operators import base as ops
@@ -133,8 +133,8 @@ def integrate_exact(
     if image.requires_grad and backend == "numba":
         raise ValueError(NUMBA_NEEDS)
     which = "torch" if image.requires_grad else backend
-    # a batched ρ (vmap over θ) reports no requires_grad: its polylines are a gradient's, as the loop's
-    jacobian = wants_grad(param) and torch.is_grad_enabled()
+    # a batched ρ (vmap over θ) reports no requires_grad: what it wraps says whether a gradient is asked
+    jacobian = gradient_asked(param) and torch.is_grad_enabled()
     call = exact_call(
         ops.layout_token(layout), check_size(size), float(tol), which, jacobian, not allow_nonfinite, dtype
     )

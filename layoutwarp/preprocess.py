@@ -551,11 +551,16 @@ def preprocess_folder(
                     record(job.process(task))
             else:
                 pool = ThreadPoolExecutor(workers)
+                futures, seen = [pool.submit(job.process, t) for t in tasks], set()
                 try:
-                    for fut in as_completed([pool.submit(job.process, t) for t in tasks]):
+                    for fut in as_completed(futures):
+                        seen.add(fut)
                         record(fut.result())
                 finally:  # stopped (Ctrl-C): the images in hand are finished, the rest not begun
                     pool.shutdown(cancel_futures=True)
+                    for fut in futures:  # and those finished meanwhile are recorded: not done again
+                        if fut not in seen and fut.done() and not fut.cancelled() and fut.exception() is None:
+                            record(fut.result())
         finished = True
     finally:  # the manifest of a stopped run too: what it finished, and that it did not end
         bar.close()

@@ -324,6 +324,8 @@ def _fixed_plain(image: Any, layout: Any, size: Any, allow_nonfinite: Any) -> Te
         return None
     if torch.is_autocast_enabled("cpu") or layout_token(layout).startswith("object:"):
         return None
+    if layout.learnable_param:  # used without gradient (evaluation): its θ as a step left it
+        layout.check_theta_now()
     if backend(image, "fixed") != "numba":  # the compiled product ready (not numba's CUDA simulator)
         return None
     refuse_forward_ad(image, rho)  # a tangent is refused, as the plan's route refuses it

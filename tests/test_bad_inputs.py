@@ -268,13 +268,47 @@ def test_a_learnable_theta_a_step_made_no_layout_is_refused_in_one_line(family, 
         lw.backwarp(torch.rand(1, 1, 6, 8), layout, (48, 64), mode="bilinear")
 
 
-def test_a_state_dict_whose_theta_is_no_layout_is_refused_as_it_loads():
+def test_a_state_dict_whose_theta_is_no_layout_is_refused_before_it_loads():
     layer = lw.SensorLayer((6, 8), "curv", "point")
+    before = layer.layout.rho.detach().clone()
     state = layer.state_dict()
     state["layout.rho"] = torch.tensor([float("nan"), 0.1])
-    with pytest.raises(ArgumentError, match=r"theta\[0\] = nan .*is no layout"):
+    with pytest.raises(ArgumentError, match=r"theta\[0\] = nan \(rho\[0\] = nan\) is no layout"):
         layer.load_state_dict(state)
+    assert torch.equal(layer.layout.rho.detach(), before)  # nothing taken
     fixed = lw.CurvLayout((0.3, 0.2))
     state = fixed.state_dict() | {"fixed_theta": torch.tensor([0.3, 1.0], dtype=torch.float64)}
-    with pytest.raises(ArgumentError, match=r"theta\[1\] = 1.0 .*is no layout"):
+    with pytest.raises(ArgumentError, match=r"theta\[1\] = 1.0 is no layout"):
         fixed.load_state_dict(state)
+    assert fixed.theta_as(torch.float64).tolist() == [0.3, 0.2]
+
+
+def test_a_folded_theta_is_refused_on_the_evaluation_path_too_and_nowhere_values_cannot_be_read():
+    from torch._subclasses.fake_tensor import FakeTensorMode
+
+    layout = _stepped_to("curv", [float("nan"), 0.1], torch.float32)
+    with torch.no_grad(), pytest.raises(ArgumentError, match="is no layout"):  # the kept weights' path
+        lw.simulate(IMG, layout, (6, 8))
+    # fake tensors (shape propagation) read no values: the call is traced as before
+    usable = lw.SensorLayer((6, 8), "curv", learn=True)
+    with FakeTensorMode(allow_non_fake_inputs=True) as mode:
+        out = usable(mode.from_tensor(IMG))
+    assert out.shape == (1, 3, 6, 8)
+
+
+def test_a_bfloat16_layout_is_checked_at_the_precision_it_is_computed_in():
+    # θ = tanh(3.5) rounds to 1 in bfloat16, not in the float32 the integrators compute it in
+    layout = _stepped_to("curv", [3.5, 0.1], torch.bfloat16)
+    out = lw.simulate(IMG, layout, (6, 8))
+    assert torch.isfinite(out).all()
+
+
+def test_the_largest_seed_runs_where_a_call_derives_seeds_from_it():
+    from layoutwarp.checks import SEED_MAX
+
+    physics = lw.SensorPhysics(sensor_um=(40.0, 40.0), photons_per_um2=50.0)
+    assert lw.simulate(IMG, L, (6, 8), physics=physics, seed=SEED_MAX).shape == (1, 3, 6, 8)
+    learn = lw.CurvLayout((0.3, 0.2), learn=True)
+    out = lw.simulate(IMG, learn, (6, 8), "montecarlo", seed=SEED_MAX, grad="reynolds")
+    out.sum().backward()
+    assert torch.isfinite(learn.rho.grad).all()

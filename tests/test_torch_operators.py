@@ -643,6 +643,23 @@ def test_vmap_over_theta_gives_the_loops_values_and_gradients(family, dtype, tol
     assert g_ref.abs().max() > 1e-3  # a gradient that could be wrong
 
 
+@pytest.mark.parametrize("asked", [False, True])
+def test_vmap_over_theta_that_asks_no_gradient_gives_the_loops_values(asked, gen):
+    """A batch of ρ that asks no gradient gives the values of a loop over it (the polylines of a
+    θ that needs none), one that does those of the loop that does: what the batch wraps decides,
+    not that it is batched."""
+    from torch.func import functional_call, vmap
+
+    layer = lw.SensorLayer((4, 5), _learnable("curv", gen, F64), "exact")
+    img = torch.rand(1, 1, 16, 20, generator=gen, dtype=F64)
+    rhos = (layer.layout.rho.detach() + 0.3 * torch.randn(3, 2, generator=gen, dtype=F64)).requires_grad_(
+        asked
+    )
+    out = vmap(lambda r: functional_call(layer, {"layout.rho": r}, (img,)))(rhos)
+    ref = torch.stack([functional_call(layer, {"layout.rho": r}, (img,)) for r in rhos])
+    torch.testing.assert_close(out, ref, rtol=0, atol=1e-14)
+
+
 @pytest.mark.parametrize("learn", [False, True])
 def test_a_uint8_image_compiles_to_one_graph_with_the_eager_values(learn, gen):
     """A uint8 image through ``torch.compile(fullgraph=True)`` (its tolerance is a quarter of one

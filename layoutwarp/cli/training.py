@@ -125,7 +125,9 @@ def _data_errors() -> Iterator[None]:
     except ArgumentError as exc:
         if exc.argument != "theta":
             raise
-        raise UsageError(f"argument --theta-lr: training diverged: {exc}; lower --theta-lr") from None
+        raise UsageError(
+            f"argument --theta-lr: training diverged: {exc}; lower --theta-lr (or --lr)"
+        ) from None
 
 
 def _physics_option(task: Task, args: argparse.Namespace) -> dict:
@@ -427,8 +429,8 @@ def _add_study_parser(sub: argparse._SubParsersAction, task: TaskSpec, families:
         task,
         f"The {task.name} pixel-budget study: uniform layouts at "
         f"{_sizes_text(plan.uniform_sizes)}, every family at {_sizes_text(plan.learned_sizes)}; resumable.",
-        "bundled samples, 1 seed, 1 epoch, 2 uniform sizes, 1 learned size, families rect and density "
-        "(or --family)",
+        f"bundled samples, 1 seed, {QUICK_STUDY_EPOCHS} epoch, 2 uniform sizes, 1 learned size, "
+        "families rect and density (or --family)",
         quick_epochs=QUICK_STUDY_EPOCHS,
     )
     _add_families_and_sizes(
@@ -460,7 +462,7 @@ def _add_landscape_parser(sub: argparse._SubParsersAction, task: TaskSpec, two: 
         task,
         f"A θ-landscape of {task.name}: θ frozen on an N x N grid (one seed a point, "
         "three at uniform and at the best point), the study's training; resumable.",
-        "bundled samples, 1 epoch, a 3x3 grid",
+        f"bundled samples, {QUICK_STUDY_EPOCHS} epoch, a 3x3 grid",
         quick_epochs=QUICK_STUDY_EPOCHS,
     )
     lt.add_argument("--family", choices=two, required=True, help="a two-parameter family")

@@ -49,7 +49,7 @@ from .inverse import newton_inverse
 from .rect import RectLayout, phi_rect, phi_rect_dtheta, phi_rect_inverse, phi_rect_jacobian
 from .spline import SplineLayout
 from .uniform import UniformLayout
-from .values import config_numbers, tensor_dtype, theta_of, wants_grad
+from .values import config_numbers, gradient_asked, tensor_dtype, theta_of, wants_grad
 
 # the registry in the order the command line and the figures list the built-in families
 for _name in BUILTIN_FAMILIES:
@@ -70,6 +70,7 @@ __all__ = [
     "check_layout",
     "config_numbers",
     "disk_to_square",
+    "gradient_asked",
     "layout_by_handle",
     "make_layout",
     "newton_inverse",

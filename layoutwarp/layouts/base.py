@@ -21,7 +21,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from ..checks import ArgumentError, check_bool, check_float_dtype, check_number, check_points
+from ..checks import ArgumentError, check_bool, check_float_dtype, check_number, check_points, values_readable
 from .inverse import forward_jacobian, newton_inverse
 from .values import config_numbers, tensor_dtype
 
@@ -237,26 +237,37 @@ class Layout(nn.Module):
     def check_theta_now(self) -> None:
         """Raise, in one line, where θ as it is now is no layout: an entry that is not finite, or one
         on or past its bound. A learnable layout's ``ρ`` is unconstrained, so a training step (a
-        learning rate too large, a loss gone NaN) or a state dict can make it NaN or ±inf, or so
-        large that ``bound · tanh(ρ)`` rounds onto the bound, where the layout folds (NaN values,
-        or a crash in torch's ``grid_sample`` backward). Reads θ's values where that costs no
-        wait: a CPU ``ρ``, eager, outside ``vmap`` and the other transforms; on a CUDA device or in
-        a compiled graph nothing is read. [`simulate`][layoutwarp.sensor.simulate] and every entry
-        that takes a layout ([`check_layout`][]) call it for learnable layouts."""
+        learning rate too large, a loss gone NaN) can make it NaN or ±inf, or so large that
+        ``bound · tanh(ρ)`` rounds onto the bound, where the layout folds (NaN values, or a crash
+        in torch's ``grid_sample`` backward). θ is taken at the precision the integrators compute
+        it in (float32 at least). Reads ρ's values where that costs no wait: a CPU ``ρ`` whose
+        values can be read ([`values_readable`][layoutwarp.checks.values_readable]); on a CUDA
+        device, or in a compiled graph, a transform or a fake-tensor mode, nothing is read.
+        [`simulate`][layoutwarp.sensor.simulate] and every entry that takes a layout
+        ([`check_layout`][]) call it for learnable layouts; ``load_state_dict`` checks the θ it
+        is given before it takes it."""
         rho = self.rho
-        if rho.device.type != "cpu" or torch.compiler.is_compiling():
+        if rho.device.type != "cpu" or not values_readable():
             return
-        if torch._C._functorch.maybe_current_level() is not None:  # ρ may be batched: no values
-            return
+        values = rho.detach().tolist()
+        calm = _CALM_RHO.get(self._dtype, 0.0)  # |ρ| below it: θ well inside its bound
+        if all(math.isfinite(v) and (self.unbounded or abs(v) < calm) for v in values):
+            return  # what nearly every call meets: no θ computed
         with torch.no_grad():
-            bad = self._outside(self.theta.double())
+            theta = self.theta_as(torch.promote_types(self._dtype, torch.float32))
+        self._refuse_folded(theta, rho)
+
+    def _refuse_folded(self, theta: Tensor, rho: Tensor | None) -> None:
+        """Raise, in one line, where ``theta`` (θ as a computation takes it, from ``rho`` where
+        given) has an entry that is not finite or not inside its bound."""
+        bad = self._outside(theta.detach().double().cpu())
         if bad is not None:
             i, v, b = bad
+            held = "" if rho is None else f" (rho[{i}] = {float(rho.detach()[i])!r})"
             raise ArgumentError(
                 "theta",
-                f"theta[{i}] = {v!r} (rho[{i}] = {float(rho.detach()[i])!r}) is no layout: each θ must "
-                f"be finite with |θ| < bound = {b:g}; a training step (its learning rate) or a state dict "
-                "made it so",
+                f"theta[{i}] = {v!r}{held} is no layout: each θ must be finite with |θ| < bound = {b:g}; "
+                "a training step (its learning rate) or a state dict made it so",
             )
 
     def _check_theta(self, theta: Tensor) -> None:
@@ -264,8 +275,8 @@ class Layout(nn.Module):
         bad = self._outside(theta)
         if bad is not None:
             i, v, b = bad
-            raise ValueError(
-                f"theta[{i}] = {v!r} is out of range: each θ must be finite with |θ| < bound = {b}"
+            raise ArgumentError(
+                "theta", f"theta[{i}] = {v!r} is out of range: each θ must be finite with |θ| < bound = {b}"
             )
 
     def _validate_theta(self, theta: Sequence[float] | Tensor | None, dtype: torch.dtype) -> Tensor:
@@ -359,10 +370,23 @@ class Layout(nn.Module):
             state_dict[kept] = self._to_theta(rho.detach().cpu()).to(torch.float64)
         elif not self._keeps_theta:
             state_dict.pop(kept, None)
+        self._refuse_folded_state(state_dict.get(kept) if self._keeps_theta else rho)
         super()._load_from_state_dict(state_dict, prefix, *args)
         self._token = self.make_token(keep_theta=True)  # its settings may have changed, not θ's part
-        if self.rho.numel():  # a θ that is no layout is refused as it arrives, not at the next call
-            self.check_theta_now()
+
+    def _refuse_folded_state(self, held: Tensor | None) -> None:
+        """Refuse, before anything is loaded, a state dict whose θ (a fixed layout's ``held`` θ, a
+        learnable one's ``held`` ρ) is no layout: the layout keeps the θ it had."""
+        if not isinstance(held, Tensor) or held.shape != self.rho.shape or not held.numel():
+            return  # a missing or misshapen entry: nn.Module's own report
+        if held.device.type == "meta" or not values_readable():
+            return
+        if self._keeps_theta:
+            self._refuse_folded(held, None)
+        else:
+            self._refuse_folded(
+                self._to_theta(held.detach().to(torch.promote_types(self._dtype, torch.float32))), held
+            )
 
     @property
     def learnable(self) -> bool:
@@ -542,6 +566,14 @@ the dict is filled on import (the source reads ``{}``)."""
 _BUILDING = threading.local()
 #: Layouts of families that are not registered, by their tokens' handles (``object:<id>``).
 _OBJECTS: weakref.WeakValueDictionary[str, Layout] = weakref.WeakValueDictionary()
+
+
+#: Per dtype, a |ρ| below which ``bound · tanh(ρ)`` stays well inside the bound (64 of the dtype's
+#: steps from it): [`Layout.check_theta_now`][] computes no θ there.
+_CALM_RHO = {
+    dt: math.atanh(1 - 64 * torch.finfo(torch.promote_types(dt, torch.float32)).eps)
+    for dt in (torch.float16, torch.bfloat16, torch.float32, torch.float64)
+}
 
 
 def check_layout(layout: Any, name: str = "layout") -> Layout:

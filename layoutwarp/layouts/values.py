@@ -10,7 +10,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-__all__ = ["config_numbers", "tensor_dtype", "theta_of", "wants_grad"]
+__all__ = ["config_numbers", "gradient_asked", "tensor_dtype", "theta_of", "wants_grad"]
 
 
 def tensor_dtype(*values: Any) -> torch.dtype:
@@ -35,6 +35,15 @@ def wants_grad(t: Tensor) -> bool:
     """Whether ``t`` can carry a gradient to a parameter: it requires grad, or it is batched under
     ``torch.vmap`` (a batched tensor reports no ``requires_grad``, though what it holds may)."""
     return t.requires_grad or torch._C._functorch.is_batchedtensor(t)
+
+
+def gradient_asked(t: Tensor) -> bool:
+    """Whether autograd may ask ``t`` for a gradient: it requires grad, or, batched under
+    ``torch.vmap``, the tensor it wraps does (a batched tensor reports no ``requires_grad`` of
+    its own; [`wants_grad`][] counts every batched tensor)."""
+    while torch._C._functorch.is_batchedtensor(t):
+        t = torch._C._functorch.get_unwrapped(t)
+    return t.requires_grad
 
 
 def config_numbers(

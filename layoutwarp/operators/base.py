@@ -35,6 +35,7 @@ from torch.autograd import forward_ad
 
 from .. import jit, kernels
 from ..caches import LRU, ObjectMemo, version_of
+from ..checks import values_readable
 from ..kernels.device import runs_on_device, usable
 from ..layoutfile import layout_from_spec
 from ..layouts import layout_by_handle
@@ -354,12 +355,13 @@ def no_context(ctx: Any, inputs: tuple, output: Any) -> None:
 
 
 def random_seed(generator: torch.Generator | None, seed: int | None = None) -> Tensor:
-    """A 0-d int64 tensor that seeds an operator's random draws: ``seed`` as it is, else a draw
-    of ``generator`` (torch's global one when ``None``; under ``torch.compile`` a draw of the
-    compiled graph's). Operators that draw noise take their randomness from it (the same seed,
-    the same draws, eager or compiled)."""
+    """A 0-d int64 tensor that seeds an operator's random draws: ``seed`` as it is (modulo 2^63:
+    the seeds a call derives from its own, ``seed + 1`` and ``seed + 2``, wrap past
+    [`SEED_MAX`][layoutwarp.checks.SEED_MAX]), else a draw of ``generator`` (torch's global one
+    when ``None``; under ``torch.compile`` a draw of the compiled graph's). Operators that draw
+    noise take their randomness from it (the same seed, the same draws, eager or compiled)."""
     if seed is not None:
-        return torch.tensor(seed, dtype=torch.int64)
+        return torch.tensor(seed % 2**63, dtype=torch.int64)
     if generator is None:
         return torch.randint(0, 2**62, (), dtype=torch.int64)
     return torch.randint(0, 2**62, (), generator=generator, dtype=torch.int64, device=generator.device).cpu()
@@ -423,9 +425,7 @@ def plain_eager(*tensors: Tensor) -> bool:
     torch's dispatcher (about 140 µs of a small call): eager, not compiling or tracing, no
     ``vmap`` or other transform, no dispatch mode (fake tensors, ``make_fx``), plain tensors, and
     none that autograd must follow. Anything else goes through the registered operator."""
-    if torch.compiler.is_compiling() or torch._C._functorch.maybe_current_level() is not None:
-        return False
-    if torch._C._len_torch_dispatch_stack() or torch._C._is_torch_function_mode_enabled():
+    if not values_readable():
         return False
     grad = torch.is_grad_enabled()
     return all(type(t) is Tensor and not (grad and t.requires_grad) for t in tensors)
