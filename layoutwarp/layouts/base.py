@@ -244,7 +244,7 @@ class Layout(nn.Module):
         values can be read ([`values_readable`][layoutwarp.checks.values_readable]); on a CUDA
         device, or in a compiled graph, a transform or a fake-tensor mode, nothing is read.
         [`simulate`][layoutwarp.sensor.simulate] and every entry that takes a layout
-        ([`check_layout`][]) call it for learnable layouts; ``load_state_dict`` checks the θ it
+        (``check_layout``) call it for learnable layouts; ``load_state_dict`` checks the θ it
         is given before it takes it."""
         rho = self.rho
         if rho.device.type != "cpu" or not values_readable():

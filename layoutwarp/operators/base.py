@@ -357,7 +357,7 @@ def no_context(ctx: Any, inputs: tuple, output: Any) -> None:
 def random_seed(generator: torch.Generator | None, seed: int | None = None) -> Tensor:
     """A 0-d int64 tensor that seeds an operator's random draws: ``seed`` as it is (modulo 2^63:
     the seeds a call derives from its own, ``seed + 1`` and ``seed + 2``, wrap past
-    [`SEED_MAX`][layoutwarp.checks.SEED_MAX]), else a draw of ``generator`` (torch's global one
+    ``layoutwarp.checks.SEED_MAX``), else a draw of ``generator`` (torch's global one
     when ``None``; under ``torch.compile`` a draw of the compiled graph's). Operators that draw
     noise take their randomness from it (the same seed, the same draws, eager or compiled)."""
     if seed is not None:
