@@ -116,3 +116,18 @@ def test_phi_in_float64_is_its_definition_whatever_dtype_the_layout_was_made_in(
                 assert err <= 5e-14, (what, how, theta.tolist(), err)
         assert made["float32"].theta.dtype == torch.float32 and made["float32 then .double()"].dtype == F64
         assert made["float64 then .float()"].theta.dtype == torch.float32
+
+
+def test_the_float32_inverse_is_the_float64_one_rounded_and_stays_in_the_square(seed):
+    # E⁻¹ near the corners lost 4e-5 in float32 (and left the square by 1e-5): the inverse of a
+    # float32 layout is now the float64 one rounded once
+    rng = np.random.default_rng(seed)
+    near = 1 - 10.0 ** rng.uniform(-7, -1, (4000, 2))  # towards the corners and edges
+    q = np.concatenate([rng.uniform(-1, 1, (20000, 2)), near * rng.choice([-1, 1], (4000, 2))])
+    q32 = torch.from_numpy(q).float()
+    theta = (0.9, -0.9)
+    got = EllipticLayout(theta).inverse(q32)
+    ref = EllipticLayout(theta, dtype=torch.float64).inverse(q32.double())
+    assert got.dtype == torch.float32
+    assert float((got.double() - ref).abs().max()) <= 2 * 2.0**-24  # one rounding of ref, at most 1
+    assert float(got.abs().max()) <= 1.0

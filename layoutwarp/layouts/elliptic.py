@@ -78,7 +78,11 @@ class EllipticLayout(Layout):
         return _elliptic_phi(p, theta)
 
     def phi_inverse(self, q: Tensor, theta: Tensor) -> Tensor:
-        return _through_disk(phi_curv_inverse, q, theta)
+        # E⁻¹ takes a difference of nearly equal roots near the corners: in float32 it lost 4e-5
+        # there (and left the square by 1e-5); computed in float64 and rounded once
+        dtype = torch.promote_types(q.dtype, theta.dtype)
+        wide = torch.promote_types(dtype, torch.float64)
+        return _through_disk(phi_curv_inverse, q.to(wide), theta.to(wide)).to(dtype)
 
 
 def _elliptic_phi(p: Tensor, theta: Tensor) -> Tensor:
