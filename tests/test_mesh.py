@@ -162,6 +162,21 @@ def test_the_tolerance_holds_on_a_strip_of_pixels(family, theta, size):
         assert float(((got - ref).abs() / ref).max()) <= tol, tol
 
 
+@pytest.mark.xfail(
+    strict=True,
+    reason="known: the count stage shares a pixel's budget tol·A with A the area of its corner quad; "
+    "these pixels bend inward to 0.44x and 0.086x of it (the mend: A from the count stage's samples, "
+    "in its torch, CPU and CUDA forms alike)",
+)
+@pytest.mark.parametrize(("theta", "size"), [((-0.97, 0.5), (7, 1)), ((-0.97, -0.97), (1, 3))])
+def test_the_tolerance_holds_where_a_pixel_bends_far_inside_its_corners(theta, size):
+    layout = lw.EllipticLayout(theta, dtype=F64)
+    ref = lw.pixel_mesh(layout, size, subdivisions=16384).areas()
+    for tol in (1e-2, 1e-3):
+        got = lw.pixel_mesh(layout, size, tol=tol, cache=False).areas()
+        assert float(((got - ref).abs() / ref).max()) <= tol, tol
+
+
 class TestTopology:
     @pytest.mark.parametrize("size", [(1, 1), (2, 3), (5, 4)])
     def test_every_interior_edge_is_shared_with_opposite_signs(self, size):
