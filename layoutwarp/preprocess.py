@@ -557,9 +557,9 @@ def preprocess_folder(
                         seen.add(fut)
                         record(fut.result())
                 finally:  # stopped (Ctrl-C): the images in hand are finished, the rest not begun
-                    pool.shutdown(cancel_futures=True)
+                    pool.shutdown(cancel_futures=True)  # (it waits: every future not cancelled is done)
                     for fut in futures:  # and those finished meanwhile are recorded: not done again
-                        if fut not in seen and fut.done() and not fut.cancelled() and fut.exception() is None:
+                        if fut not in seen and not fut.cancelled() and fut.exception() is None:
                             record(fut.result())
         finished = True
     finally:  # the manifest of a stopped run too: what it finished, and that it did not end
