@@ -709,6 +709,8 @@ def test_a_run_record_of_another_kind_is_refused_in_one_line(tmp_path):
     ("error", "status", "line"),
     [
         (PermissionError(13, "Permission denied", "/no/demo.json"), 1, "Permission denied: '/no/demo.json'"),
+        (ImportError("plots need matplotlib: pip install 'layoutwarp[plot]'"), 1,
+         "plots need matplotlib: pip install 'layoutwarp[plot]'"),
         (KeyboardInterrupt(), 130, "interrupted"),
     ],
 )  # fmt: skip

@@ -126,6 +126,9 @@ def main(argv: Sequence[str] | None = None, *, own_process: bool = False) -> int
     except OSError as exc:  # a file that cannot be written or read, a server not reached
         print(f"{prog}: error: {_os_error(exc)}", file=sys.stderr)
         status = 1
+    except ImportError as exc:  # an optional extra not installed: its message says which
+        print(f"{prog}: error: {exc}", file=sys.stderr)
+        status = 1
     except KeyboardInterrupt:  # what was finished is kept: a command run again goes on from there
         print(f"{prog}: interrupted", file=sys.stderr)
         status = 130  # as a shell reports a command ended by SIGINT
