@@ -214,21 +214,21 @@ def _edge_parameters(
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Polyline parameters of every edge so that pixel values stay within ``tol``.
 
-    Each uniform edge is first cut where φ is not smooth along it ([`smooth_pieces`][]),
-    so that a polyline vertex sits on every kink. A smooth piece with chord ``ℓ`` and sagitta
-    ``e`` cut into ``n`` equal parameter steps deviates by about ``e / n²`` from the curve and
-    changes the area next to it by at most ``(2/3) ℓ e / n²``. Giving each of a pixel's four
-    edges a quarter of the budget ``tol · A`` (``A`` the smaller adjacent pixel area), shared
-    along the edge in proportion to length, bounds every pixel's value error by ``tol`` times
-    the radiance range. The sagitta is bounded by ``max |φ''⊥| / 8``, across the edge's own
-    direction at each sample (a piece that turns bends across its chord only in part), from
-    second differences at the 11 [`SAMPLES`][] of each piece, graded towards its ends: φ bends
-    hardest where a piece meets the unit circle or the sensor's border (θ near ±1 puts nearly
-    all of an edge's bend into its last thousandth), and an S-shaped piece has no sagitta at
-    its middle. Straight edges get exactly one segment. With ``with_grad``, the parameter
-    velocity ``∂φ/∂θ`` along each edge, sampled at the 9 inner samples (it may jump at a
-    kink, a piece's end), is held to the same bound, so that θ-gradients are as accurate as
-    values.
+    Each uniform edge is first cut where φ is not smooth along it ([`smooth_pieces`][]), so that a
+    polyline vertex sits on every kink. A smooth piece with chord ``ℓ`` and sagitta ``e`` cut into
+    ``n`` equal parameter steps deviates by about ``e / n²`` from the curve and changes the area
+    next to it by at most ``(2/3) ℓ e / n²``. Giving each of a pixel's four edges a quarter of the
+    budget ``tol · A`` (``A`` the smaller adjacent pixel area: of each pixel, the smaller of its
+    corner quad's area and its sampled polygon's, which a pixel that bends far inside its corners
+    needs), shared along the edge in proportion to length, bounds every pixel's value error by
+    ``tol`` times the radiance range. The sagitta is bounded by ``max |φ''⊥| / 8``, across the
+    edge's own direction at each sample (a piece that turns bends across its chord only in part),
+    from second differences at the 11 [`SAMPLES`][] of each piece, graded towards its ends: φ bends
+    hardest where a piece meets the unit circle or the sensor's border (θ near ±1 puts nearly all of
+    an edge's bend into its last thousandth), and an S-shaped piece has no sagitta at its middle.
+    Straight edges get exactly one segment. With ``with_grad``, the parameter velocity ``∂φ/∂θ``
+    along each edge, sampled at the 9 inner samples (it may jump at a kink, a piece's end), is held
+    to the same bound, so that θ-gradients are as accurate as values.
 
     Returns:
         ``(edge, lo, hi, n)``: the smooth pieces (their edge and parameter range, ordered by
@@ -263,11 +263,6 @@ def _segment_counts(
     cd = layout.phi(topo.corners(device=dev), th).view(h + 1, w + 1, 2)
     quads = torch.stack([cd[:-1, :-1], cd[:-1, 1:], cd[1:, 1:], cd[1:, :-1]], -2)
     area = polygon_area(quads).abs()  # (H, W)
-    inf = torch.full((1, w), math.inf, dtype=area.dtype, device=dev)
-    area_h = torch.minimum(torch.cat([inf, area]), torch.cat([area, inf]))  # (H+1, W)
-    inf = torch.full((h, 1), math.inf, dtype=area.dtype, device=dev)
-    area_v = torch.minimum(torch.cat([inf, area], 1), torch.cat([area, inf], 1))  # (H, W+1)
-    amin = torch.cat([area_h.flatten(), area_v.flatten()])
     a0, d = ua[edge], (ub - ua)[edge]
     s_t = torch.tensor(SAMPLES, dtype=ua.dtype, device=dev)
     step = max(1, PHI_CHUNK // len(SAMPLES))  # pieces per chunk: φ's temporaries stay chunk-sized
@@ -275,8 +270,17 @@ def _segment_counts(
         _chord_and_sagitta(layout, th, a0[sl], d[sl], lo[sl], hi[sl], s_t, with_grad)
         for sl in (slice(i, i + step) for i in range(0, max(len(edge), 1), step))
     ]
-    length, sag = (torch.cat(parts) for parts in zip(*chunks, strict=True))
+    length, sag, swept = (torch.cat(parts) for parts in zip(*chunks, strict=True))
     ne = topo.num_edges
+    # a pixel's area: the smaller of its corner quad's and its samples' polygon's (a pixel may
+    # bend far inside its corners: an elliptic strip at θ near -1 keeps 0.09x of its quad)
+    sampled = topo.combine(torch.zeros(ne, dtype=ua.dtype, device=dev).index_add_(0, edge, swept))
+    area = torch.minimum(area, sampled.abs())
+    inf = torch.full((1, w), math.inf, dtype=area.dtype, device=dev)
+    area_h = torch.minimum(torch.cat([inf, area]), torch.cat([area, inf]))  # (H+1, W)
+    inf = torch.full((h, 1), math.inf, dtype=area.dtype, device=dev)
+    area_v = torch.minimum(torch.cat([inf, area], 1), torch.cat([area, inf], 1))  # (H, W+1)
+    amin = torch.cat([area_h.flatten(), area_v.flatten()])
     edge_len = torch.zeros(ne, dtype=ua.dtype, device=dev).index_add_(0, edge, length)
     budget = 3 * tol * amin[edge] / (8 * edge_len[edge].clamp_min(1e-300))
     n = torch.sqrt(2 * sag / budget).ceil().clamp(1, max_subdiv)
@@ -285,11 +289,13 @@ def _segment_counts(
 
 def _chord_and_sagitta(
     layout: Layout, th: Tensor, a0: Tensor, d: Tensor, lo: Tensor, hi: Tensor, s_t: Tensor, with_grad: bool
-) -> tuple[Tensor, Tensor]:
-    """Chord length and sagitta bound of smooth pieces ``a0 + [lo, hi] · d`` of uniform edges
-    under φ, from second differences at the parameters ``lo + (hi − lo) · s_t`` ([`SAMPLES`][])
-    and, with ``with_grad``, of ``∂φ/∂θ`` at the inner ones, each across the edge's own direction
-    there (a piece that turns bends across its chord only in part): see `_edge_parameters`."""
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Chord length, sagitta bound and swept area of smooth pieces ``a0 + [lo, hi] · d`` of
+    uniform edges under φ: the bound from second differences at the parameters ``lo + (hi − lo) ·
+    s_t`` ([`SAMPLES`][]) and, with ``with_grad``, of ``∂φ/∂θ`` at the inner ones, each across the
+    edge's own direction there (a piece that turns bends across its chord only in part), see
+    `_edge_parameters`; the area ``∫ x dy`` ([`segment_area`][]) along the polyline of those
+    samples, from which the count stage has each pixel's area."""
     pts = a0[:, None] + (lo[:, None] + (hi - lo)[:, None] * s_t)[..., None] * d[:, None]  # (pieces, K, 2)
     pts = pts.transpose(0, 1)  # (K, pieces, 2)
     f = layout.phi(pts, th)
@@ -308,7 +314,10 @@ def _chord_and_sagitta(
         d2 = _second_differences(v, slice(1, -1))  # (K-4, pieces, 2, P)
         normal = (tx[1:-1, :, None] * d2[..., 1, :] - ty[1:-1, :, None] * d2[..., 0, :]).abs()
         sag = torch.maximum(sag, normal.amax(0).amax(-1) / 8)
-    return length, sag
+    swept = segment_area(f[0], f[1])  # ∫ x dy along the samples' polyline, summed in order
+    for k in range(1, len(s_t) - 1):
+        swept = swept + segment_area(f[k], f[k + 1])
+    return length, sag, swept
 
 
 def _second_differences(f: Tensor, inner: slice) -> Tensor:
@@ -323,9 +332,8 @@ SAMPLES = (0.0, 2.0**-11, 2.0**-7, 2.0**-3, 0.25, 0.5, 0.75, 1 - 2.0**-3, 1 - 2.
 """Where the count stage samples a smooth piece, as fractions of it: its quarters, and graded by
 16 towards both ends, where φ bends hardest; exact in binary. They keep every pixel within the tolerance on
 the hard cases of ``tests/test_mesh.py`` (θ of either sign up to ±0.97, against polylines of
-4096 segments) and on its strips; an elliptic sensor one pixel wide at |θ| ≥ 0.95, or a bend
-at the centre at θ near -1 on a long thin sensor, can still exceed it (equal steps along a
-piece do not resolve a bend held by one end or one point)."""
+4096 segments) and on its strips; nearer ±1 a strip of pixels can still exceed it (equal steps
+along a piece do not resolve a bend held by one end or one point)."""
 
 BENDS = tuple(
     (2 / (h1 + h2) / h2, 2 / (h1 + h2) / h1)

@@ -234,7 +234,7 @@ def test_the_cuda_kernels_compile_on_numpy_2_5_without_its_removed_aliases():
         from layoutwarp import kernels
         from layoutwarp.kernels import mesh as mk
         assert ".entry" in kernels.cuda_ptx("edge_sums", "float32")
-        fn, sig = mk.CUDA_KERNELS["amin"]
+        fn, sig = mk.CUDA_KERNELS["counts"]
         assert ".entry" in kernels.cuda_ptx(fn, signature=sig)
         print("compiled", hasattr(numpy, "row_stack"))
     """

@@ -162,19 +162,34 @@ def test_the_tolerance_holds_on_a_strip_of_pixels(family, theta, size):
         assert float(((got - ref).abs() / ref).max()) <= tol, tol
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="known: the count stage shares a pixel's budget tol·A with A the area of its corner quad; "
-    "these pixels bend inward to 0.44x and 0.086x of it (the mend: A from the count stage's samples, "
-    "in its torch, CPU and CUDA forms alike)",
-)
 @pytest.mark.parametrize(("theta", "size"), [((-0.97, 0.5), (7, 1)), ((-0.97, -0.97), (1, 3))])
 def test_the_tolerance_holds_where_a_pixel_bends_far_inside_its_corners(theta, size):
+    # elliptic strips at θ near -1 whose pixels keep 0.44x and 0.086x of their corner quads'
+    # areas: the budget tol·A takes A from the pixel's sampled polygon too (with the quad's A
+    # alone these erred by 1.8x and 1.5x tol), in torch and in the compiled count stage alike
     layout = lw.EllipticLayout(theta, dtype=F64)
     ref = lw.pixel_mesh(layout, size, subdivisions=16384).areas()
     for tol in (1e-2, 1e-3):
-        got = lw.pixel_mesh(layout, size, tol=tol, cache=False).areas()
-        assert float(((got - ref).abs() / ref).max()) <= tol, tol
+        mesh = lw.pixel_mesh(layout, size, tol=tol, cache=False)
+        assert float(((mesh.areas() - ref).abs() / ref).max()) <= tol, tol
+        if lw.kernels.available():
+            spec, th = lw.kernels.mesh.mesh_spec(layout), layout.theta.detach().numpy()
+            compiled = lw.kernels.mesh.build_mesh(spec, size, th, tol, with_grad=False)
+            assert np.array_equal(compiled.edge_offsets, mesh.edge_offsets.numpy()), tol
+
+
+def test_the_tolerance_holds_on_random_elliptic_strips_near_the_bounds(gen):
+    # strips of 2-9 pixels at θ in [-0.97, -0.88]² (with the quad's area alone 7 of 200 such
+    # meshes erred, by up to 1.12x tol: this test failed in about half its seeds)
+    for _ in range(12):
+        theta = -(torch.rand(2, generator=gen, dtype=F64) * 0.09 + 0.88)
+        k = int(torch.randint(2, 10, (), generator=gen))
+        size = (k, 1) if bool(torch.rand((), generator=gen) < 0.5) else (1, k)
+        layout = lw.EllipticLayout(theta.tolist(), dtype=F64)
+        ref = lw.pixel_mesh(layout, size, subdivisions=8192).areas()
+        for tol in (1e-2, 1e-3):
+            got = lw.pixel_mesh(layout, size, tol=tol, cache=False).areas()
+            assert float(((got - ref).abs() / ref).max()) <= tol, (theta.tolist(), size, tol)
 
 
 class TestTopology:

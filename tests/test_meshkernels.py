@@ -254,7 +254,7 @@ def test_the_device_mesh_kernels_compile_for_the_device_without_one():
         ptx = ptx_or_skip(fn, signature=signature)
         assert ".target sm_80" in ptx and ".entry" in ptx, name
     with pytest.raises(ValueError, match="signature"):
-        lw.kernels.cuda_ptx(mk.CUDA_KERNELS["amin"][0])
+        lw.kernels.cuda_ptx(mk.CUDA_KERNELS["counts"][0])
 
 
 #: Runs in a process of its own: numba's CUDA simulator, the device functions as plain Python;

@@ -131,29 +131,38 @@ def piece_sagittas(
         sag[q], length[q] = sg / 8, math.sqrt(chx * chx + chy * chy)
 
 
+@inline
+def piece_swept(out: np.ndarray, k: int) -> float:
+    """The area ``∫ x dy`` along the polyline of a piece's ``NS`` samples, columns ``k ..`` of
+    [`phi_run`][]'s rows ``out``, summed in order (as [`layoutwarp.mesh._segment_counts`][] sums
+    [`segment_area`][layoutwarp.mesh.segment_area])."""
+    acc = 0.0
+    for s in range(NS - 1):
+        acc += (out[1, k + s + 1] - out[1, k + s]) * (out[0, k + s] + out[0, k + s + 1]) / 2
+    return acc
+
+
 @serial
 def _pieces_share(
     t: int, nt: int, kind: int, centred: bool, ends: np.ndarray, th: np.ndarray, c: np.ndarray,
-    piece_offsets: np.ndarray, amin: np.ndarray, tol: float, max_subdiv: int, with_grad: bool, span: int,
-    bounds: np.ndarray, dbounds: np.ndarray, counts: np.ndarray, edge_counts: np.ndarray,
-    work: tuple, phi_work: tuple, all_pts: np.ndarray, all_out: np.ndarray, all_sag: np.ndarray,
-    all_length: np.ndarray, kink_grad: bool,
+    piece_offsets: np.ndarray, with_grad: bool, bounds: np.ndarray, dbounds: np.ndarray,
+    sag: np.ndarray, length: np.ndarray, swept: np.ndarray, work: tuple, phi_work: tuple,
+    all_pts: np.ndarray, all_out: np.ndarray, kink_grad: bool,
 ) -> None:  # fmt: skip
-    """Every smooth piece's parameter range (``bounds`` (pieces, 2), ``dbounds`` (pieces, 2, P))
-    and its segment count, bounding the sagitta as [`layoutwarp.mesh._segment_counts`][] does,
-    and every edge's segments (``edge_counts[e + 1]``; ``edge_counts[0]`` is left alone). A chunk
-    of edges places its sample points first, maps them in one loop ([`phi_run`][]), then
-    counts; ``span``: the most pieces a chunk has. Thread ``t`` of ``nt`` takes every ``nt``-th
-    chunk, with its rows of the work space: [`_edge_work`][]'s, [`_phi_work`][]'s, the sample
-    points ``(T, 2, NS·span)`` and their map ``(T, 2 + 2P, NS·span)``, the pieces' sagittas and
-    lengths ``(T, span)``; ``kink_grad``: True, as a value (see [`_count_share`][])."""
+    """Every smooth piece's parameter range (``bounds`` (pieces, 2), ``dbounds`` (pieces, 2, P)),
+    sagitta bound and chord length (``sag``, ``length`` (pieces,)), as
+    [`layoutwarp.mesh._segment_counts`][] bounds them, and every edge's swept area ``swept``
+    ``(E,)`` ([`piece_swept`][], its pieces' in order). A chunk of edges places its sample points
+    first, maps them in one loop ([`phi_run`][]), then bounds. Thread ``t`` of ``nt`` takes every
+    ``nt``-th chunk, with its rows of the work space: [`_edge_work`][]'s, [`_phi_work`][]'s, the
+    sample points ``(T, 2, NS·span)`` and their map ``(T, 2 + 2P, NS·span)`` (``span``: the most
+    pieces a chunk has); ``kink_grad``: True, as a value (see [`_count_share`][])."""
     ne, p = ends.shape[0], th.shape[0]
     n_chunks = (ne + CHUNK - 1) // CHUNK
     scratch, cuts = own(work[0], t, nt), own(work[1], t, nt)
     dcuts, lo, dlo = own(work[2], t, nt), own(work[3], t, nt), own(work[4], t, nt)
     qi, dq = own(phi_work[0], t, nt), own(phi_work[1], t, nt)
     pts, out = own(all_pts, t, nt), own(all_out, t, nt)
-    sag, length = own(all_sag, t, nt), own(all_length, t, nt)
     for chunk in range(t, n_chunks, nt):
         e0, e1 = chunk * CHUNK, min((chunk + 1) * CHUNK, ne)
         for e in range(e0, e1):
@@ -169,19 +178,73 @@ def _pieces_share(
                 k = (base + i - piece_offsets[e0]) * NS
                 for s in range(NS):
                     pts[0, k + s], pts[1, k + s] = sample_point(ax, ay, dx, dy, a, b, s)
-        npc = piece_offsets[e1] - piece_offsets[e0]
+        first = piece_offsets[e0]
+        npc = piece_offsets[e1] - first
         phi_run(kind, centred, th, c, pts, npc * NS, out, qi, dq)
+        sg, ln = sag[first:], length[first:]
         if with_grad and p == 4:  # θ's count a constant: the loop over pieces runs in SIMD lanes
-            piece_sagittas(out, npc, True, 4, sag, length)
+            piece_sagittas(out, npc, True, 4, sg, ln)
         elif with_grad and p == 2:
-            piece_sagittas(out, npc, True, 2, sag, length)
+            piece_sagittas(out, npc, True, 2, sg, ln)
         else:
-            piece_sagittas(out, npc, with_grad, p, sag, length)
+            piece_sagittas(out, npc, with_grad, p, sg, ln)
         for e in range(e0, e1):
-            first, last = piece_offsets[e], piece_offsets[e + 1]
-            j0 = first - piece_offsets[e0]
-            total = segment_counts(sag, length, j0, last - first, first, amin[e], tol, max_subdiv, counts)
-            edge_counts[e + 1] = total
+            acc = 0.0
+            for pc in range(piece_offsets[e], piece_offsets[e + 1]):
+                acc += piece_swept(out, (pc - first) * NS)
+            swept[e] = acc
+
+
+@inline
+def pixel_area(q: np.ndarray, swept: np.ndarray, i: int, j: int, h: int, w: int) -> float:
+    """Pixel ``(i, j)``'s area as the count stage takes it: the smaller of its corner quad's
+    ([`quad_area`][]) and its sampled polygon's, from its edges' ``swept`` areas combined as
+    [`MeshTopology.combine`][layoutwarp.topology.MeshTopology.combine] combines them."""
+    v = (h + 1) * w + i * (w + 1) + j  # its left edge (after the horizontal ones)
+    sampled = (swept[i * w + j] - swept[(i + 1) * w + j]) + (swept[v + 1] - swept[v])
+    return min(quad_area(q, i, j, w), abs(sampled))
+
+
+@inline
+def edge_amin(q: np.ndarray, swept: np.ndarray, e: int, h: int, w: int) -> float:
+    """The smaller [`pixel_area`][] of the two pixels beside edge ``e`` (horizontal edges, then
+    vertical, numbered as [`MeshTopology`][layoutwarp.topology.MeshTopology] numbers them; the
+    sensor's outside counts as infinite)."""
+    nh = (h + 1) * w
+    if e < nh:
+        i, j = e // w, e % w
+        up = pixel_area(q, swept, i - 1, j, h, w) if i > 0 else np.inf
+        return min(up, pixel_area(q, swept, i, j, h, w) if i < h else np.inf)
+    i, j = (e - nh) // (w + 1), (e - nh) % (w + 1)
+    left = pixel_area(q, swept, i, j - 1, h, w) if j > 0 else np.inf
+    return min(left, pixel_area(q, swept, i, j, h, w) if j < w else np.inf)
+
+
+@inline
+def edge_counts_item(
+    e: int, h: int, w: int, q: np.ndarray, swept: np.ndarray, piece_offsets: np.ndarray,
+    sag: np.ndarray, length: np.ndarray, tol: float, max_subdiv: int, counts: np.ndarray,
+) -> int:  # fmt: skip
+    """Edge ``e``'s pieces' segment counts into ``counts`` ([`segment_counts`][] with its
+    [`edge_amin`][]); returns their sum."""
+    first, amin = piece_offsets[e], edge_amin(q, swept, e, h, w)
+    n = piece_offsets[e + 1] - first
+    return segment_counts(sag, length, first, n, first, amin, tol, max_subdiv, counts)
+
+
+@serial
+def _counts_share(
+    t: int, nt: int, h: int, w: int, q: np.ndarray, swept: np.ndarray, piece_offsets: np.ndarray,
+    sag: np.ndarray, length: np.ndarray, tol: float, max_subdiv: int, counts: np.ndarray,
+    edge_counts: np.ndarray,
+) -> None:  # fmt: skip
+    """Thread ``t``'s chunks of edges (in turn): [`edge_counts_item`][] into ``counts`` and each
+    edge's segments into ``edge_counts[e + 1]`` (``edge_counts[0]`` is left alone)."""
+    ne = swept.shape[0]
+    for chunk in range(t, (ne + CHUNK - 1) // CHUNK, nt):
+        for e in range(chunk * CHUNK, min((chunk + 1) * CHUNK, ne)):
+            edge_counts[e + 1] = edge_counts_item(e, h, w, q, swept, piece_offsets, sag, length, tol,
+                                                  max_subdiv, counts)  # fmt: skip
 
 
 @functools.lru_cache(maxsize=16)
@@ -211,21 +274,6 @@ def quad_area(q: np.ndarray, i: int, j: int, w: int) -> float:
     return abs(s)
 
 
-@inline
-def _amin_across(area: np.ndarray, i: int, j: int) -> float:
-    """The smaller area of the pixels above and below horizontal edge ``(i, j)`` (from the pixel
-    areas ``area`` ``(h, w)``; the sensor's outside counts as infinite)."""
-    up = area[i - 1, j] if i > 0 else np.inf
-    return min(up, area[i, j] if i < area.shape[0] else np.inf)
-
-
-@inline
-def _amin_beside(area: np.ndarray, i: int, j: int) -> float:
-    """The smaller area of the pixels left and right of vertical edge ``(i, j)``."""
-    left = area[i, j - 1] if j > 0 else np.inf
-    return min(left, area[i, j] if j < area.shape[1] else np.inf)
-
-
 @serial
 def _corners_share(
     t: int, nt: int, kind: int, centred: bool, corners: np.ndarray, th: np.ndarray, c: np.ndarray,
@@ -245,43 +293,16 @@ def _corners_share(
         unpack_point(out, n, q[v0:], dq[v0:])
 
 
-@serial
-def _areas_share(t: int, nt: int, q: np.ndarray, area: np.ndarray) -> None:
-    """Rows ``t·h/T ..`` of the pixels' corner-quad areas ``area`` ``(h, w)``."""
-    h, w = area.shape
-    for i in range(t * h // nt, (t + 1) * h // nt):
-        for j in range(w):
-            area[i, j] = quad_area(q, i, j, w)
-
-
-@serial
-def _amin_share(t: int, nt: int, area: np.ndarray, amin: np.ndarray) -> None:
-    """Rows ``t·h/T ..`` of the edges' smaller adjacent areas ``amin`` ``(E,)``, numbered as
-    [`MeshTopology`][layoutwarp.topology.MeshTopology] numbers the edges."""
-    h, w = area.shape
-    nh = (h + 1) * w
-    for i in range(t * (h + 1) // nt, (t + 1) * (h + 1) // nt):  # horizontal edges
-        for j in range(w):
-            amin[i * w + j] = _amin_across(area, i, j)
-    for i in range(t * h // nt, (t + 1) * h // nt):  # vertical edges
-        for j in range(w + 1):
-            amin[nh + i * (w + 1) + j] = _amin_beside(area, i, j)
-
-
 def _corners(
-    kind: int, centred: bool, h: int, w: int, corners: np.ndarray, th: np.ndarray, c: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Deformed corners ``(V0, 2)``, their θ-derivatives ``(V0, 2, P)`` and every edge's smaller
-    adjacent pixel area ``(E,)`` from the corner quads (the count stage's area estimate)."""
+    kind: int, centred: bool, corners: np.ndarray, th: np.ndarray, c: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Deformed corners ``(V0, 2)`` and their θ-derivatives ``(V0, 2, P)``."""
     nc, p = corners.shape[0], th.shape[0]
     q, dq = np.empty((nc, 2)), np.empty((nc, 2, p))
     nt = threads(nc)
     work = (_phi_work(nt, p), per_thread(nt, (2, CHUNK)), per_thread(nt, (2 + 2 * p, CHUNK)))
     run_shares(_corners_share, nt, kind, centred, corners, th, c, q, dq, *work)
-    area, amin = np.empty((h, w)), np.empty((h + 1) * w + h * (w + 1))
-    run_shares(_areas_share, nt, q, area)
-    run_shares(_amin_share, nt, area, amin)
-    return q, dq, amin
+    return q, dq
 
 
 @inline
@@ -430,7 +451,7 @@ def count_stage(
     th = np.ascontiguousarray(theta, dtype=np.float64)
     c = np.array(spec.center, dtype=np.float64)
     args = (spec.kind, spec.centred)
-    cq, cdq, amin = _corners(*args, h, w, uniform, th, c)
+    cq, cdq = _corners(*args, uniform, th, c)
     ne = len(ends)
     nt = threads(ne * EDGE_WORK)
     npieces = np.empty(ne, dtype=np.int64)
@@ -443,13 +464,18 @@ def count_stage(
     counts, edge_offsets = np.empty(total, dtype=np.int64), np.empty(ne + 1, dtype=np.int64)
     chunk_ends = np.r_[0:ne:CHUNK, ne]
     span = int(np.diff(piece_offsets[chunk_ends]).max())  # the most pieces a chunk has
-    limits = (float(tol), int(max_subdiv), with_grad, span)
-    out = (bounds, dbounds, counts, edge_offsets)
+    sag, length, swept = np.empty(total), np.empty(total), np.empty(ne)
     p = len(th)
     points = (per_thread(nt, (2, NS * span)), per_thread(nt, (2 + 2 * p, NS * span)))
-    space = (*points, per_thread(nt, (span,)), per_thread(nt, (span,)))
-    work = (work, _phi_work(nt, p), *space)
-    run_shares(_pieces_share, nt, *args, ends, th, c, piece_offsets, amin, *limits, *out, *work, True)
+    work = (work, _phi_work(nt, p), *points)
+    run_shares(
+        _pieces_share, nt, *args, ends, th, c, piece_offsets, with_grad, bounds, dbounds, sag, length,
+        swept, *work, True,
+    )  # fmt: skip
+    run_shares(
+        _counts_share, nt, h, w, cq, swept, piece_offsets, sag, length, float(tol), int(max_subdiv),
+        counts, edge_offsets,
+    )  # fmt: skip
     edge_offsets[0] = 0
     np.cumsum(edge_offsets, out=edge_offsets)
     vspan = int(np.diff(edge_offsets[chunk_ends] - chunk_ends).max())  # the most new vertices a chunk has

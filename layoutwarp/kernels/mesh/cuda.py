@@ -16,13 +16,13 @@ from .build import (
     NS,
     add_moving,
     edge_bounds,
+    edge_counts_item,
     edge_segments,
     piece_moves,
     piece_sagittas,
+    piece_swept,
     pixel_vertex,
-    quad_area,
     sample_point,
-    segment_counts,
 )
 from .phi import edge_pieces, phi_point
 
@@ -53,18 +53,15 @@ def _phi_at(
 
 
 @inline
-def _edge_pieces_and_counts(
+def _edge_pieces(
     kind: int, centred: bool, e: int, ends: np.ndarray, th: np.ndarray, c: np.ndarray,
-    piece_offsets: np.ndarray, amin: np.ndarray, tol: float, max_subdiv: int,
-    scratch: np.ndarray, cuts: np.ndarray, dcuts: np.ndarray, lo: np.ndarray, dlo: np.ndarray,
-    q: np.ndarray, dq: np.ndarray, rows: np.ndarray, one: np.ndarray, one_len: np.ndarray,
-    sag: np.ndarray, length: np.ndarray,
-    bounds: np.ndarray, dbounds: np.ndarray, counts: np.ndarray, edge_counts: np.ndarray,
+    piece_offsets: np.ndarray, scratch: np.ndarray, cuts: np.ndarray, dcuts: np.ndarray,
+    lo: np.ndarray, dlo: np.ndarray, q: np.ndarray, dq: np.ndarray, rows: np.ndarray,
+    bounds: np.ndarray, dbounds: np.ndarray, sag: np.ndarray, length: np.ndarray, swept: np.ndarray,
 ) -> None:  # fmt: skip
-    """Edge ``e``'s part of [`_pieces_share`][] (always ``with_grad``): its pieces'
-    bounds and segment counts, and its segments into ``edge_counts[e + 1]``; ``rows``
-    ``(2 + 2 P_MAX, NS)`` (a piece's samples), ``one``, ``one_len`` (1,), ``sag``,
-    ``length`` (10,): work space."""
+    """Edge ``e``'s part of [`_pieces_share`][] (always ``with_grad``): its pieces' bounds,
+    sagitta bounds and chord lengths, and its swept area into ``swept[e]``; ``rows``
+    ``(2 + 2 P_MAX, NS)`` (a piece's samples): work space."""
     p = th.shape[0]
     base = piece_offsets[e]
     n = edge_bounds(
@@ -72,6 +69,7 @@ def _edge_pieces_and_counts(
     )
     ax, ay = ends[e, 0], ends[e, 1]
     dx, dy = ends[e, 2] - ax, ends[e, 3] - ay
+    acc = 0.0
     for i in range(n):
         for s in range(NS):
             x, y = sample_point(ax, ay, dx, dy, lo[i], lo[i + 1], s)
@@ -79,9 +77,10 @@ def _edge_pieces_and_counts(
             rows[0, s], rows[1, s] = q[0], q[1]
             for r in range(p):
                 rows[2 + r, s], rows[2 + p + r, s] = dq[0, r], dq[1, r]
-        piece_sagittas(rows, 1, True, p, one, one_len)  # piece by piece: little work space a thread
-        sag[i], length[i] = one[0], one_len[0]
-    edge_counts[e + 1] = segment_counts(sag, length, 0, n, base, amin[e], tol, max_subdiv, counts)
+        # piece by piece: little work space a thread
+        piece_sagittas(rows, 1, True, p, sag[base + i :], length[base + i :])
+        acc += piece_swept(rows, 0)
+    swept[e] = acc
 
 
 @inline
@@ -167,69 +166,62 @@ def _cuda_corners(
         npieces[i + 1] = edge_pieces(kind, centred, i, ends, th, c, scratch, cuts, dcuts, lo, dlo, False)
 
 
-def _cuda_amin(
-    q: np.ndarray, h: int, w: int, amin: np.ndarray, block: int, incl: np.ndarray, offsets: np.ndarray
-) -> None:
-    """Two independent steps in one launch: thread ``e`` takes the smaller of edge ``e``'s two
-    pixels' areas (horizontal edges, then vertical; [`_amin_across`][], [`_amin_beside`][]),
-    each [`quad_area`][] of the deformed corners ``q`` (the areas and the minima at once), and
-    the block offsets of row × channel ``e`` of the prefix table ``incl``
-    ([`prefix_offsets_item`][layoutwarp.kernels.prefix.prefix_offsets_item])."""
-    e = cuda.grid(1)
-    prefix_offsets_item(e, block, incl, offsets)
-    nh = (h + 1) * w
-    if e < nh:
-        i, j = e // w, e % w
-        up = quad_area(q, i - 1, j, w) if i > 0 else np.inf
-        amin[e] = min(up, quad_area(q, i, j, w) if i < h else np.inf)
-    elif e < amin.shape[0]:
-        i, j = (e - nh) // (w + 1), (e - nh) % (w + 1)
-        left = quad_area(q, i, j - 1, w) if j > 0 else np.inf
-        amin[e] = min(left, quad_area(q, i, j, w) if j < w else np.inf)
-
-
 #: The slots of a [`MeshRoom`][]'s status, in page-locked host memory its kernels write directly:
 #: the pieces and the segments the newest mesh needed, and the stamp of the last mesh that
 #: outgrew its room (0: none since the host looked).
 PIECES, SEGMENTS, OVERFLOW = range(3)
 
 
-def _cuda_pieces_and_counts(
+def _cuda_pieces(
     kind: int, centred: bool, ends: np.ndarray, th: np.ndarray, c: np.ndarray,
-    piece_offsets: np.ndarray, amin: np.ndarray, tol: float, max_subdiv: int,
-    bounds: np.ndarray, dbounds: np.ndarray, counts: np.ndarray, edge_counts: np.ndarray,
+    piece_offsets: np.ndarray, bounds: np.ndarray, dbounds: np.ndarray, sag: np.ndarray,
+    length: np.ndarray, swept: np.ndarray, block: int, incl: np.ndarray, offsets: np.ndarray,
+) -> None:  # fmt: skip
+    """Two independent steps in one launch: thread ``e`` takes edge ``e``'s part of the pieces
+    ([`_edge_pieces`][]), into room for ``bounds.shape[0]`` pieces (none where the mesh has
+    more, ``piece_offsets[-1]``: [`_cuda_counts`][] then makes every edge its chord), and the
+    block offsets of row × channel ``e`` of the prefix table ``incl``
+    ([`prefix_offsets_item`][layoutwarp.kernels.prefix.prefix_offsets_item])."""
+    e = cuda.grid(1)
+    prefix_offsets_item(e, block, incl, offsets)
+    ne = ends.shape[0]
+    if e < ne and piece_offsets[ne] <= bounds.shape[0]:
+        scratch, cuts = cuda.local.array((8, P_MAX), F8), cuda.local.array(8, F8)
+        dcuts = cuda.local.array((8, P_MAX), F8)
+        lo, dlo = cuda.local.array(10, F8), cuda.local.array((10, P_MAX), F8)
+        q, dq = cuda.local.array(2, F8), cuda.local.array((2, _DQ), F8)
+        rows = cuda.local.array((_ROWS, NS), F8)
+        _edge_pieces(
+            kind, centred, e, ends, th, c, piece_offsets, scratch, cuts, dcuts, lo, dlo, q, dq, rows,
+            bounds, dbounds, sag, length, swept,
+        )  # fmt: skip
+
+
+def _cuda_counts(
+    h: int, w: int, q: np.ndarray, swept: np.ndarray, piece_offsets: np.ndarray, sag: np.ndarray,
+    length: np.ndarray, tol: float, max_subdiv: int, counts: np.ndarray, edge_counts: np.ndarray,
     status: np.ndarray, stamp: int,
 ) -> None:  # fmt: skip
-    """One thread per edge: [`_edge_pieces_and_counts`][], into room for ``bounds.shape[0]``
-    pieces. Where the mesh has more (``piece_offsets[-1]``, read by every thread alike), every
-    edge is one straight segment instead (its chord); thread 0 writes the pieces needed to the
-    ``status`` and, where they outgrew their room, the mesh's ``stamp``."""
+    """One thread per edge: its pieces' segment counts ([`edge_counts_item`][], from the pixels'
+    areas beside it, which need every edge's swept area: a launch after [`_cuda_pieces`][]) and
+    its segments into ``edge_counts[e + 1]``. Where the pieces outgrew their room
+    (``piece_offsets[-1]`` over ``counts.shape[0]``, read by every thread alike) every edge is one
+    straight segment instead (its chord); thread 0 writes the pieces needed to the ``status``
+    and, where they outgrew their room, the mesh's ``stamp``."""
     e = cuda.grid(1)
-    ne = ends.shape[0]
-    over = piece_offsets[ne] > bounds.shape[0]
+    ne = swept.shape[0]
+    over = piece_offsets[ne] > counts.shape[0]
     if e == 0:
         edge_counts[0] = 0  # the offsets' leading zero: no zeroed buffer to launch for
         status[PIECES] = piece_offsets[ne]
         if over:
             status[OVERFLOW] = stamp
-    if e < ne and over:
-        edge_counts[e + 1] = 1
-    elif e < ne:
-        scratch, cuts = cuda.local.array((8, P_MAX), F8), cuda.local.array(8, F8)
-        dcuts = cuda.local.array((8, P_MAX), F8)
-        lo, dlo = cuda.local.array(10, F8), cuda.local.array((10, P_MAX), F8)
-        q, dq = cuda.local.array(2, F8), cuda.local.array((2, _DQ), F8)
-        rows, one, one_len = (
-            cuda.local.array((_ROWS, NS), F8),
-            cuda.local.array(1, F8),
-            cuda.local.array(1, F8),
+    if e < ne:
+        edge_counts[e + 1] = (
+            1
+            if over
+            else edge_counts_item(e, h, w, q, swept, piece_offsets, sag, length, tol, max_subdiv, counts)
         )
-        sag, length = cuda.local.array(10, F8), cuda.local.array(10, F8)
-        _edge_pieces_and_counts(
-            kind, centred, e, ends, th, c, piece_offsets, amin, tol, max_subdiv,
-            scratch, cuts, dcuts, lo, dlo, q, dq, rows, one, one_len, sag, length, bounds, dbounds, counts,
-            edge_counts,
-        )  # fmt: skip
 
 
 def _cuda_place(
@@ -246,7 +238,7 @@ def _cuda_place(
 
     The mesh is built in room for ``seg_start.shape[0]`` segments (at least as many as edges):
     where it needs more (``edge_offsets[-1]``), each piece is one segment, its chord; where its
-    pieces outgrew their room ([`_cuda_pieces_and_counts`][]) or this one, each edge is.
+    pieces outgrew their room ([`_cuda_counts`][]) or this one, each edge is.
     Either way the ``status`` gets the mesh's ``stamp``, and ``seg_offsets`` ``(E + 1,)`` holds
     the segments' offsets the mesh has. The room left over holds segments of no length (at vertex 0, which add
     nothing), so a kernel may run over all of it."""
@@ -451,11 +443,14 @@ CUDA_KERNELS = {
         f"void(int64, boolean, {_A2}, {_A2}, float32[::1], {_A1}, {_A1}, {_A1}, {_A1}, {_A2}, {_A3}, {_I1}, "
         f"{_F3}, int64, {_F3})",
     ),
-    "amin": (_cuda_amin, f"void({_A2}, int64, int64, {_A1}, int64, {_F3}, {_A3})"),
-    "pieces_and_counts": (
-        _cuda_pieces_and_counts,
-        f"void(int64, boolean, {_A2}, {_A1}, {_A1}, {_I1}, {_A1}, float64, int64, {_A2}, {_A3}, "
-        f"{_I1}, {_I1}, {_I1}, int64)",
+    "pieces": (
+        _cuda_pieces,
+        f"void(int64, boolean, {_A2}, {_A1}, {_A1}, {_I1}, {_A2}, {_A3}, {_A1}, {_A1}, {_A1}, int64, {_F3}, "
+        f"{_A3})",
+    ),
+    "counts": (
+        _cuda_counts,
+        f"void(int64, int64, {_A2}, {_A1}, {_I1}, {_A1}, {_A1}, float64, int64, {_I1}, {_I1}, {_I1}, int64)",
     ),
     "place": (
         _cuda_place,

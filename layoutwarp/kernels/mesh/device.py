@@ -150,14 +150,14 @@ def build_mesh_device(
     holds ``theta`` ``(P,)``: θ itself, or with ``bounds`` (``(P,)``, float64, on that device;
     ``None`` or empty: none) the parameter ρ of ``θ = bounds · tanh(ρ)`` (a learnable layout's,
     in its dtype), which the first kernel makes θ of in float64, so neither takes a launch of its
-    own. In four kernels (corners and pieces, edges' smaller areas, counts, vertices with their
-    pixel units: one thread per corner and edge, each thread the CPU's steps for its item) and
-    two cumulative sums, so no mesh crosses the bus: at 2048x1024 → 257x129 a fovea mesh is about
-    50 MB. The first two kernels also build the prefix table of the source ``image``
-    ``(N, H, W)`` (contiguous, on the same device; ``None``: none). The buffers are its
-    [`MeshRoom`][]'s: the host reads the mesh's totals only for the first mesh of its kind (and
-    its segments' after a mesh whose pieces outgrew their room, which counted none), and never
-    waits for the device otherwise. A ``theta`` on the CPU runs the same kernels in numba's CUDA simulator
+    own. In four kernels (corners and smooth pieces, the pieces' bounds and swept areas, counts from
+    the pixels' areas, vertices with their pixel units: one thread per corner and edge, each thread
+    the CPU's steps for its item) and two cumulative sums, so no mesh crosses the bus: at 2048x1024
+    → 257x129 a fovea mesh is about 50 MB. The first two kernels also build the prefix table of the
+    source ``image`` ``(N, H, W)`` (contiguous, on the same device; ``None``: none). The buffers are
+    its [`MeshRoom`][]'s: the host reads the mesh's totals only for the first mesh of its kind (and
+    its segments' after a mesh whose pieces outgrew their room, which counted none), and never waits
+    for the device otherwise. A ``theta`` on the CPU runs the same kernels in numba's CUDA simulator
     (``NUMBA_ENABLE_CUDASIM=1``), which is how they are tested without a GPU."""
     dev = theta.device
     stream = stream_of(theta)
@@ -190,16 +190,19 @@ def build_mesh_device(
         "corners", max(ne, hs * offsets.shape[1] * n), spec.kind, spec.centred, uniform, ends, param,
         bounds, c, th, slope, q, dq, piece_offsets, image, BLOCK, incl,
     )  # fmt: skip
-    amin = torch.empty(ne, **f64)
-    launch("amin", max(ne, hs * n), q, h, w, amin, BLOCK, incl, offsets)
     piece_offsets.cumsum_(0)
     if not room.pieces:  # the first mesh of its kind: its totals read, once
         room.pieces = room.ahead(int(piece_offsets[-1]), ne)
     lims, dlims = torch.empty(room.pieces, 2, **f64), torch.empty(room.pieces, 2, p, **f64)  # pieces' ends
+    sag, length, swept = (torch.empty(k, **f64) for k in (room.pieces, room.pieces, ne))
+    launch(
+        "pieces", max(ne, hs * n), spec.kind, spec.centred, ends, th, c, piece_offsets, lims, dlims, sag,
+        length, swept, BLOCK, incl, offsets,
+    )  # fmt: skip
     counts, edge_counts = torch.empty(room.pieces, **i64), torch.empty(ne + 1, **i64)
     launch(
-        "pieces_and_counts", ne, spec.kind, spec.centred, ends, th, c, piece_offsets, amin, float(tol),
-        int(max_subdiv), lims, dlims, counts, edge_counts, room.status, stamp,
+        "counts", ne, h, w, q, swept, piece_offsets, sag, length, float(tol), int(max_subdiv), counts,
+        edge_counts, room.status, stamp,
     )  # fmt: skip
     edge_offsets = torch.cumsum(edge_counts, 0)
     if not room.segments:  # the first mesh, or one after the pieces outgrew theirs: read, once
