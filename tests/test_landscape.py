@@ -61,3 +61,21 @@ def test_a_shipped_study_gives_its_learned_theta():
     recs = study_records(ROOT / "examples" / "study" / "mnist", "curv", (4, 4))
     assert sorted(recs) == [0, 1, 2]  # the shipped layout files of the three seeds
     assert all(len(r["theta"]) == 2 and 0 < r["scores"]["accuracy"] <= 100 for r in recs.values())
+
+
+def test_a_study_folders_runs_are_read_as_the_study_reads_them(tmp_path):
+    # the landscape takes a study's learned θ from its run records by the study's own reader:
+    # a run of another family or size is passed over, a file of another kind is refused
+    from layoutwarp.experiments.landscape import study_records
+    from layoutwarp.experiments.runs import run_name
+
+    runs = tmp_path / "runs"
+    runs.mkdir()
+    for family, size, seed, theta in [("curv", (4, 4), 3, [0.1, -0.2]), ("curv", (8, 8), 1, [0.3, 0.3])]:
+        scores = {"accuracy": 90.0}
+        rec = {"family": family, "size_hw": list(size), "seed": seed, "theta": theta, "scores": scores}
+        (runs / f"{run_name(family, size, seed)}.json").write_text(json.dumps(rec))
+    assert study_records(tmp_path, "curv", (4, 4)) == {3: {"theta": [0.1, -0.2], "scores": scores}}
+    (runs / "summary.json").write_text("{}")
+    with pytest.raises(ValueError, match=r"summary\.json is no run of a study"):
+        study_records(tmp_path, "curv", (4, 4))

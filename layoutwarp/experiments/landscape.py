@@ -24,7 +24,7 @@ import numpy as np
 from ..doctor import run_info
 from ..files import atomic_write
 from ..layouts import FAMILIES, make_layout
-from .runs import RunOptions, read_runs, train_run
+from .runs import RunOptions, read_runs, study_run_records, train_run
 from .tasks import Task
 
 __all__ = ["grid_points", "point_name", "run_landscape", "summarise_landscape"]
@@ -48,13 +48,13 @@ def study_records(study: Path, family: str, size: tuple[int, int]) -> dict[int, 
     """The jointly learned runs of ``family`` at ``size`` in a study folder, by seed: their
     ``theta`` and ``scores``, from its run records or, in a shipped study (``--ship``), from the
     layout files it keeps of every run."""
-    name = f"{family}_{size[1]}x{size[0]}_seed*.json"
-    out = {}
-    for p in sorted((study / "runs").glob(name)):
-        rec = json.loads(p.read_text())
-        out[int(rec["seed"])] = {"theta": rec["theta"], "scores": rec["scores"]}
+    out = {
+        int(r["seed"]): {"theta": r["theta"], "scores": r["scores"]}
+        for r in study_run_records(study)
+        if r["family"] == family and tuple(r["size_hw"]) == tuple(size)
+    }
     if not out:
-        for p in sorted((study / "layouts").glob(name)):
+        for p in sorted((study / "layouts").glob(f"{family}_{size[1]}x{size[0]}_seed*.json")):
             data = json.loads(p.read_text())
             seed = int(p.stem.rsplit("seed", 1)[1])
             out[seed] = {"theta": data["theta"], "scores": (data.get("extra") or {}).get("scores", {})}

@@ -36,6 +36,7 @@ __all__ = [
     "read_runs",
     "run_experiment",
     "run_name",
+    "study_run_records",
     "summarise",
     "train_run",
 ]
@@ -146,6 +147,12 @@ def read_runs(folder: Path, name_of: Callable[[dict], str], what: str) -> list[d
             raise ValueError(f"{path} is no run of {what} (the folder's runs/ holds its own); move it away")
         records.append(record)
     return records
+
+
+def study_run_records(folder: Path) -> list[dict]:
+    """The records of a study folder's finished runs, by file name ([`read_runs`][]: each named
+    by [`run_name`][])."""
+    return read_runs(folder, lambda r: run_name(r["family"], r["size_hw"], r["seed"]), "a study")
 
 
 def _area_ratio(layout: Layout, size: tuple[int, int], theta: Sequence[float]) -> float:

@@ -36,7 +36,7 @@ from ..files import atomic_write
 from ..layouts import Layout
 from .models import save_model
 from .protocols import StudyPlan
-from .runs import RunOptions, read_runs, run_name, train_run
+from .runs import RunOptions, run_name, study_run_records, train_run
 from .tasks import Task
 
 __all__ = [
@@ -128,11 +128,6 @@ def run_study(
     return write_summary(task, out, plan, planned=len(todo))
 
 
-def _study_records(out: Path) -> list[dict]:
-    """The records of a study folder's finished runs (`read_runs`)."""
-    return read_runs(out, lambda r: run_name(r["family"], r["size_hw"], r["seed"]), "a study")
-
-
 def write_summary(
     task: Task, out: str | Path, plan: StudyPlan | None = None, planned: int | None = None
 ) -> dict:
@@ -140,7 +135,7 @@ def write_summary(
     ``study_<task>.png`` and, once a run has learned a layout, ``theta_<task>.png``
     ([`theta_figure`][layoutwarp.experiments.plots.theta_figure]); returns the summary."""
     out = Path(out)
-    records = _study_records(out)
+    records = study_run_records(out)
     if not records:
         raise FileNotFoundError(f"no finished runs in {out / 'runs'}")
     summary = summarise_study(task, records) | {"planned": planned}
@@ -382,7 +377,7 @@ def ship_study(
     for name in ("study.json", "study.md", f"study_{task.name}.png", f"theta_{task.name}.png"):
         if (out / name).exists():
             atomic_write(dest / name, (out / name).read_bytes())
-    records = _study_records(out)
+    records = study_run_records(out)
     learned = {tuple(s) for s in task.study.learned_sizes}
     best: dict[tuple[str, tuple[int, int]], dict] = {}
     for r in records:
