@@ -51,6 +51,7 @@ __all__ = [
     "ExportReport",
     "check_raster",
     "distance_subdivisions",
+    "export_format",
     "export_layout",
     "index_mask_paths",
     "pixel_polygons_um",
@@ -443,6 +444,27 @@ def _write_png(path: Path, polys, wu: float, hu: float, px_per_um: float, line_w
     return [str(ipath)]
 
 
+def export_format(path: str | Path, format: str | None = None) -> str:
+    """The format an export to ``path`` writes: ``format`` (any case), which must match the file's
+    suffix, or the suffix itself; one of ``FORMATS``.
+
+    Raises:
+        ArgumentError: in one line, naming ``path`` where its suffix is none of them and no
+            ``format`` is given, else ``format`` where it is none of them or differs.
+    """
+    path = Path(path)
+    suffix = path.suffix.lstrip(".").lower()
+    if format is None and suffix not in FORMATS:  # the file name chose: it is the one to name
+        names = ", ".join(f"*.{f}" for f in FORMATS)
+        raise ArgumentError("path", f"{path.name!r} names no export format: name it {names}")
+    fmt = check_choice((format or suffix).lower(), FORMATS, "format")
+    if format is not None and suffix != fmt:
+        raise ArgumentError(
+            "format", f"format {fmt!r} does not match the file name {path.name!r}; name it *.{fmt}"
+        )
+    return fmt
+
+
 def index_mask_paths(path: str | Path) -> tuple[Path, Path]:
     """Where a PNG export to ``path`` writes its pixel index mask beside the outlines:
     ``<stem>_index.png`` (uint16), or ``<stem>_index.npy`` for more than 65 534 pixels."""
@@ -501,12 +523,7 @@ def export_layout(
         an [`ExportReport`][] (also printed by ``layoutwarp export``).
     """
     path = Path(path)
-    suffix = path.suffix.lstrip(".").lower()
-    fmt = check_choice((format or suffix).lower(), FORMATS, "format")
-    if format is not None and suffix != fmt:
-        raise ArgumentError(
-            "format", f"format {fmt!r} does not match the file name {path.name!r}; name it *.{fmt}"
-        )
+    fmt = export_format(path, format)
     check_layout(layout)
     size = check_size(size)
     hu, wu = check_extent(sensor_um)

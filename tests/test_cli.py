@@ -168,7 +168,7 @@ CASES = {
     ),
     "unknown suffix": (
         ["export", "--family", "uniform", *MASK, "--out", "{tmp}/x.jpg"],
-        ["--format", "'jpg'", "one of 'gds', 'dxf', 'svg', 'png'"],
+        ["--out", "'x.jpg'", "*.gds, *.dxf, *.svg, *.png"],
     ),
     "address without dask": (
         [*PRE, "--address", "tcp://h:1"],

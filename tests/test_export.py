@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import xml.etree.ElementTree as ET
 
 import cv2
@@ -14,7 +15,7 @@ from conftest import rand_theta
 
 import layoutwarp as lw
 from layoutwarp.cli import main
-from layoutwarp.export import export_layout, pixel_polygons_um
+from layoutwarp.export import FORMATS, export_layout, pixel_polygons_um
 
 SIZE = (9, 12)  # h, w
 W_UM, H_UM = 1200.0, 900.0
@@ -155,7 +156,24 @@ def test_cli_export_and_errors(tmp_path, capsys):
     assert json.loads((tmp_path / "r.json").read_text())["pixels"] == SIZE[0] * SIZE[1]
     assert "108 pixels" in capsys.readouterr().out
     assert main([*argv[:-1], str(tmp_path / "m.jpg")]) == 2
-    assert "format must be one of" in capsys.readouterr().err
+    assert "argument --out: 'm.jpg' names no export format" in capsys.readouterr().err
+
+
+def test_the_export_format_is_the_suffix_or_a_format_that_matches_it():
+    from layoutwarp.checks import ArgumentError
+    from layoutwarp.export import export_format
+
+    assert [export_format(f"a/m.{f.upper()}") for f in FORMATS] == list(FORMATS)
+    assert export_format("m.svg", "SVG") == "svg"
+    for path, fmt, argument, needle in [
+        ("m.svg", "png", "format", "'png' does not match the file name 'm.svg'"),
+        ("m.svg", "jpg", "format", "format must be one of"),
+        ("m", None, "path", "'m' names no export format"),
+        ("m.jpg", None, "path", "name it *.gds, *.dxf, *.svg, *.png"),
+    ]:
+        with pytest.raises(ArgumentError, match=re.escape(needle)) as info:
+            export_format(path, fmt)
+        assert info.value.argument == argument
     with pytest.raises(ValueError, match="grid_um"):
         pixel_polygons_um(lw.UniformLayout(), SIZE, UM, grid_um=-1)
 

@@ -115,14 +115,14 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
 
 
 def _cmd_export(args: argparse.Namespace) -> int:
-    from ..export import export_layout, index_mask_paths, report_json
+    from ..export import export_format, export_layout, index_mask_paths, report_json
     from ..files import atomic_write, check_file_destination
 
     check_file_destination(args.out, "out")  # both before any work: nothing written, then refused
     if args.report:
         check_file_destination(args.report, "report")
     outputs = {"--out": args.out}
-    if (args.format or Path(args.out).suffix.lstrip(".")).lower() == "png":  # its index mask beside it
+    if export_format(args.out, args.format) == "png":  # its index mask beside it
         small, large = index_mask_paths(args.out)
         outputs |= {"--out (its index mask)": small, "--out (its large index mask)": large}
     outputs["--report"] = args.report
