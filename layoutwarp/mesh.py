@@ -223,11 +223,11 @@ def _edge_parameters(
     needs), shared along the edge in proportion to length, bounds every pixel's value error by
     ``tol`` times the radiance range. The sagitta is bounded by ``max |φ''⊥| / 8``, across the
     edge's own direction at each sample (a piece that turns bends across its chord only in part),
-    from second differences at the 11 [`SAMPLES`][] of each piece, graded towards its ends: φ bends
+    from second differences at the 13 [`SAMPLES`][] of each piece, graded towards its ends: φ bends
     hardest where a piece meets the unit circle or the sensor's border (θ near ±1 puts nearly all of
     an edge's bend into its last thousandth), and an S-shaped piece has no sagitta at its middle.
     Straight edges get exactly one segment. With ``with_grad``, the parameter velocity ``∂φ/∂θ``
-    along each edge, sampled at the 9 inner samples (it may jump at a kink, a piece's end), is held
+    along each edge, sampled at the 11 inner samples (it may jump at a kink, a piece's end), is held
     to the same bound, so that θ-gradients are as accurate as values.
 
     Returns:
@@ -328,12 +328,16 @@ def _second_differences(f: Tensor, inner: slice) -> Tensor:
     return (f[2:] - f[1:-1]) * up.view(shape) - (f[1:-1] - f[:-2]) * down.view(shape)
 
 
-SAMPLES = (0.0, 2.0**-11, 2.0**-7, 2.0**-3, 0.25, 0.5, 0.75, 1 - 2.0**-3, 1 - 2.0**-7, 1 - 2.0**-11, 1.0)
-"""Where the count stage samples a smooth piece, as fractions of it: its quarters, and graded by
-16 towards both ends, where φ bends hardest; exact in binary. They keep every pixel within the tolerance on
-the hard cases of ``tests/test_mesh.py`` (θ of either sign up to ±0.97, against polylines of
-4096 segments) and on its strips; nearer ±1 a strip of pixels can still exceed it (equal steps
-along a piece do not resolve a bend held by one end or one point)."""
+SAMPLES = (
+    0.0, 2.0**-11, 2.0**-7, 2.0**-3, 0.25, 0.375, 0.5,
+    0.625, 0.75, 1 - 2.0**-3, 1 - 2.0**-7, 1 - 2.0**-11, 1.0,
+)  # fmt: skip
+"""Where the count stage samples a smooth piece, as fractions of it: its eighths from 1/4 to 3/4
+(a bend at a strip's centre, near θ = -1, lies between quarters), and graded by 16 towards both
+ends, where φ bends hardest; exact in binary. They keep every pixel within the tolerance on the
+hard cases of ``tests/test_mesh.py`` (θ of either sign up to ±0.97, against polylines of 4096
+segments) and on its strips, up to ±0.99; equal steps along a piece do not resolve every bend
+held by one end or one point nearer ±1."""
 
 BENDS = tuple(
     (2 / (h1 + h2) / h2, 2 / (h1 + h2) / h1)
