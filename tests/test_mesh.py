@@ -151,6 +151,9 @@ STRIPS = [
     # at quarters only)
     (lw.EllipticLayout, (-0.985, -0.9765), (1, 11)),
     (lw.CurvLayout, (-0.9826, -0.9547), (19, 1)),
+    # long strips near θ = -0.96 (1.07x and 1.23x tol with the samples' area but quarters only)
+    (lw.CurvLayout, (-0.96194, -0.93776), (1, 13)),
+    (lw.CurvLayout, (-0.95965, -0.95853), (1, 17)),
 ]
 
 

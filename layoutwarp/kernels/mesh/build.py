@@ -134,7 +134,7 @@ def piece_sagittas(
 @inline
 def piece_swept(out: np.ndarray, k: int) -> float:
     """The area ``∫ x dy`` along the polyline of a piece's ``NS`` samples, columns ``k ..`` of
-    [`phi_run`][]'s rows ``out``, summed in order (as [`layoutwarp.mesh._segment_counts`][] sums
+    [`phi_run`][]'s rows ``out``, summed in order (as ``layoutwarp.mesh._chord_and_sagitta`` sums
     [`segment_area`][layoutwarp.mesh.segment_area])."""
     acc = 0.0
     for s in range(NS - 1):

@@ -244,7 +244,7 @@ def _cuda_place(
     nothing), so a kernel may run over all of it."""
     e = cuda.grid(1)
     nc, ne, room = q.shape[0], ends.shape[0], seg_start.shape[0]
-    counted = piece_offsets[ne] <= bounds.shape[0]  # the pieces' kernel counted the segments
+    counted = piece_offsets[ne] <= bounds.shape[0]  # the counts' kernel counted the segments
     pieces_over = not counted or piece_offsets[ne] > room
     over = not pieces_over and edge_offsets[ne] > room
     used = ne if pieces_over else piece_offsets[ne] if over else edge_offsets[ne]
