@@ -228,7 +228,9 @@ def _edge_parameters(
     an edge's bend into its last thousandth), and an S-shaped piece has no sagitta at its middle.
     Straight edges get exactly one segment. With ``with_grad``, the parameter velocity ``∂φ/∂θ``
     along each edge, sampled at the 11 inner samples (it may jump at a kink, a piece's end), is held
-    to the same bound, so that θ-gradients are as accurate as values.
+    to the same bound, so that θ-gradients are as accurate as values where the image changes
+    little from one source pixel to the next (docs/integrators.md: an image that jumps at every
+    cell line the edge crosses moves its gradient by a few times ``tol``).
 
     Returns:
         ``(edge, lo, hi, n)``: the smooth pieces (their edge and parameter range, ordered by
@@ -387,7 +389,7 @@ def pixel_mesh(
         tol: what the polylines of curved edges may cost an integral over the pixels: the
             bound on every pixel's box-radiance mean, relative to the image's value range (a
             unitless fraction: the area between polyline and curve, over the pixel's area, is at
-            most ``tol``), and on its θ-gradient when θ requires grad (see
+            most ``tol``), and on the polylines' error in ``∂φ/∂θ`` when θ requires grad (see
             `_edge_parameters`). The default ``1e-5`` is a geometric reference; the
             integrators pass what the data needs
             ([`data_tolerance`][layoutwarp.tolerance.data_tolerance]). ``None``:

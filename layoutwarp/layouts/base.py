@@ -490,8 +490,8 @@ class Layout(nn.Module):
         """Parameters ``t ∈ (0, 1)`` where φ is not smooth along the segments ``a + t (b − a)``.
 
         Where the kinks move with θ (e.g. a learned fovea centre), the parameters are
-        differentiable in ``theta``, so that mesh vertices follow the kinks and θ-gradients stay
-        as accurate as values.
+        differentiable in ``theta``, so that mesh vertices follow the kinks and θ-gradients see
+        them move.
 
         Args:
             a: ``(E, 2)`` segment starts in uniform sensor coordinates.

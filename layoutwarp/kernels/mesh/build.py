@@ -495,7 +495,7 @@ def build_mesh(
     (``(P,)`` float64) with tolerance ``tol``, compiled, with every vertex's θ-derivative.
 
     ``with_grad`` bounds the polylines' error in ``∂φ/∂θ`` too (as ``pixel_mesh`` does when θ
-    requires grad), so that θ-gradients are as accurate as values.
+    requires grad), as ``layoutwarp.mesh._edge_parameters`` says.
     """
     h, w = size
     ends, ea, eb, _ = mesh_topology(size)
