@@ -31,6 +31,7 @@ from .topology import MeshTopology
 
 __all__ = [
     "BENDS",
+    "MAX_SUBDIV",
     "MESHES",
     "SAMPLES",
     "PixelMesh",
@@ -351,6 +352,11 @@ BENDS = tuple(
 ``(f[s + 1] − f[s]) · BENDS[s − 1][0] − (f[s] − f[s − 1]) · BENDS[s − 1][1]``, the weights
 ``2 / ((h₋ + h₊) h₊)`` and ``2 / ((h₋ + h₊) h₋)`` of its steps ``h₋``, ``h₊``."""
 
+#: The most segments a smooth piece of an edge is cut into by default (``max_subdiv``): a
+#: learnable 4x4 or strip layout near θ = ±1 asks up to about 13 000 at the default tolerance,
+#: and 4096 there let its θ-gradient err by 2.5x and 8x ``tol`` (tests/test_mesh.py).
+MAX_SUBDIV = 1 << 14
+
 #: Segments per chunk when the mesh's vertices are mapped (bounds φ's temporaries and its input).
 PHI_CHUNK = 1 << 16
 
@@ -374,7 +380,7 @@ def pixel_mesh(
     size: tuple[int, int],
     *,
     tol: float | None = 1e-5,
-    max_subdiv: int = 4096,
+    max_subdiv: int = MAX_SUBDIV,
     subdivisions: Tensor | int | None = None,
     dtype: torch.dtype | None = None,
     theta: Tensor | None = None,
@@ -396,9 +402,9 @@ def pixel_mesh(
             one segment per edge. Ignored for straight-edged layouts, which always use one
             segment per straight piece (between the cuts of
             [`Layout.edge_breakpoints`][layoutwarp.layouts.base.Layout.edge_breakpoints]).
-        max_subdiv: cap on segments per smooth piece of an edge. Where the cap binds (very
-            fine ``tol`` with long, strongly curved edges: few large pixels, θ near ±1) the
-            error can exceed ``tol``; raise it for such references.
+        max_subdiv: cap on segments per smooth piece of an edge (``MAX_SUBDIV``). Where the
+            cap binds (very fine ``tol`` with long, strongly curved edges: few large pixels, θ
+            near ±1) the error can exceed ``tol``; raise it for such references.
         subdivisions: force the segment counts instead of the adaptive choice, with a vertex on
             every kink: an int for every smooth piece, an ``(E,)`` tensor per edge (for each of
             its pieces), or a ``(pieces,)`` tensor per smooth piece in the order of

@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
-from ...mesh import BENDS, SAMPLES
+from ...mesh import BENDS, MAX_SUBDIV, SAMPLES
 from ...topology import MeshTopology
 from ..base import CHUNK, inline, own, per_thread, run_shares, serial, threads
 from .phi import edge_pieces, phi_point, phi_run, unpack_point
@@ -488,7 +488,7 @@ def build_mesh(
     theta: np.ndarray,
     tol: float,
     *,
-    max_subdiv: int = 4096,
+    max_subdiv: int = MAX_SUBDIV,
     with_grad: bool = True,
 ) -> CompiledMesh:
     """The mesh [`pixel_mesh`][layoutwarp.mesh.pixel_mesh] builds for the layout of ``spec`` at ``theta``

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
-from ...mesh import PixelMesh
+from ...mesh import MAX_SUBDIV, PixelMesh
 from ..device import CHECKS, Stamps, cuda_launch, device_checks, host_mapped, stream_of
 from ..prefix import BLOCK
 from .build import mesh_topology
@@ -144,7 +144,7 @@ def build_mesh_device(
     *,
     bounds: torch.Tensor | None = None,
     image: torch.Tensor | None = None,
-    max_subdiv: int = 4096,
+    max_subdiv: int = MAX_SUBDIV,
 ) -> DeviceMesh:
     """[`build_mesh`][] (``with_grad``) and [`pixel_vertices`][] on the CUDA device that
     holds ``theta`` ``(P,)``: θ itself, or with ``bounds`` (``(P,)``, float64, on that device;

@@ -8,6 +8,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ...mesh import MAX_SUBDIV
 from ..base import CHUNK, inline, own, per_thread, run_chunks, run_shares, serial, take, threads, tries
 from ..exact import segment_moments
 from ..prefix import BLOCK
@@ -103,7 +104,7 @@ def mesh_integrals(
     tables: tuple[np.ndarray, np.ndarray],
     src_size: tuple[int, int],
     *,
-    max_subdiv: int = 4096,
+    max_subdiv: int = MAX_SUBDIV,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The exact integrator's edge integrals ``(N + 1, E)`` of [`build_mesh`][]'s mesh (with
     ``with_grad``) over an ``(H, W)`` source of prefix tables ``tables``
