@@ -115,6 +115,28 @@ def test_the_tolerance_holds_where_phi_bends_hardest(family, theta, learn):
             assert float(((got - ref).abs() / ref).max()) <= tol, (size, tol)
 
 
+def _fine_means(fixed: lw.Layout, img: torch.Tensor, size: tuple[int, int], pieces: int, theta: torch.Tensor):
+    """The means of ``img`` over ``fixed``'s pixels at ``theta`` on polylines of ``pieces``
+    segments a smooth piece (smooth in θ: the reference for central differences)."""
+    mesh = lw.pixel_mesh(fixed, size, subdivisions=pieces, theta=theta)
+    return lw.integrators.integrate_exact(img, fixed, size, mesh=mesh).flatten()
+
+
+def _fine_jacobian(fixed: lw.Layout, img: torch.Tensor, size: tuple[int, int], pieces: int) -> torch.Tensor:
+    """``d mean / dθ`` ``(pixels, 2)`` by central differences (step 1e-6) of `_fine_means`."""
+    th0, h = fixed.theta.detach(), 1e-6
+
+    def at(th: torch.Tensor) -> torch.Tensor:
+        return _fine_means(fixed, img, size, pieces, th)
+
+    return torch.stack([at(th0 + h * e) - at(th0 - h * e) for e in torch.eye(2, dtype=F64)], 1) / (2 * h)
+
+
+def _jacobian(out: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
+    """``d out / dθ`` ``(pixels, P)`` of flat means ``out`` by autograd."""
+    return torch.stack([torch.autograd.grad(v, theta, retain_graph=True)[0] for v in out])
+
+
 @pytest.mark.parametrize(
     ("family", "theta", "size"),
     [
@@ -128,18 +150,11 @@ def test_theta_gradients_meet_the_tolerance_where_phi_bends_hardest(family, thet
     # 4096 segments a piece (the learnable count bounds the polylines' error in ∂φ/∂θ too)
     img = torch.rand(1, 24, 24, generator=gen, dtype=F64)
     fixed, layout = family(theta, dtype=F64), family(theta, learn=True, dtype=F64)
-
-    def fine(th: torch.Tensor) -> torch.Tensor:
-        mesh = lw.pixel_mesh(fixed, size, subdivisions=4096, theta=th)
-        return lw.integrators.integrate_exact(img, fixed, size, mesh=mesh).flatten()
-
-    th0, h = fixed.theta.detach(), 1e-6
-    ref = torch.stack([(fine(th0 + h * e) - fine(th0 - h * e)) / (2 * h) for e in torch.eye(2, dtype=F64)], 1)
+    ref = _fine_jacobian(fixed, img, size, 4096)
     tol = 1e-3
-    theta = layout.theta
-    out = lw.integrators.integrate_exact(img, layout, size, tol=tol, theta=theta).flatten()
-    jac = torch.stack([torch.autograd.grad(v, theta, retain_graph=True)[0] for v in out])
-    assert float((jac - ref).abs().max()) <= tol * float(img.max() - img.min())
+    theta_t = layout.theta  # one tensor: each read of layout.theta is a new one
+    out = lw.integrators.integrate_exact(img, layout, size, tol=tol, theta=theta_t).flatten()
+    assert float((_jacobian(out, theta_t) - ref).abs().max()) <= tol * float(img.max() - img.min())
 
 
 @pytest.mark.parametrize(
@@ -152,20 +167,13 @@ def test_theta_gradients_of_strips_whose_pieces_need_more_than_4096_segments(the
     img = torch.zeros(1, 24, 24, dtype=F64)
     img[..., column:] = 1.0  # a step: its edge crossed by the strip's boundaries
     fixed, layout = lw.EllipticLayout(theta, dtype=F64), lw.EllipticLayout(theta, learn=True, dtype=F64)
-
-    def fine(th: torch.Tensor) -> torch.Tensor:
-        mesh = lw.pixel_mesh(fixed, size, subdivisions=16384, theta=th)
-        return lw.integrators.integrate_exact(img, fixed, size, mesh=mesh).flatten()
-
-    th0, h = fixed.theta.detach(), 1e-6
-    ref = torch.stack([(fine(th0 + h * e) - fine(th0 - h * e)) / (2 * h) for e in torch.eye(2, dtype=F64)], 1)
-    theta_t = layout.theta  # one tensor: each read of layout.theta is a new one
+    ref = _fine_jacobian(fixed, img, size, 16384)
+    theta_t = layout.theta
     mesh = lw.pixel_mesh(layout, size, tol=tol, theta=theta_t)
     capped = lw.pixel_mesh(layout, size, tol=tol, theta=theta_t, max_subdiv=4096)
     assert capped.num_segments < mesh.num_segments  # the old cap bound here
     out = lw.integrators.integrate_exact(img, layout, size, mesh=mesh).flatten()
-    jac = torch.stack([torch.autograd.grad(v, theta_t, retain_graph=True)[0] for v in out])
-    assert float((jac - ref).abs().max()) <= tol
+    assert float((_jacobian(out, theta_t) - ref).abs().max()) <= tol
 
 
 @pytest.mark.slow  # a fine reference's central differences: some seconds
@@ -183,18 +191,12 @@ def test_theta_gradients_of_a_checkerboard_meet_the_tolerance():
     yy, xx = torch.meshgrid(torch.arange(hs), torch.arange(ws), indexing="ij")
     img = ((yy + xx) % 2).to(F64)[None]
     fixed, layout = lw.CurvLayout(theta, dtype=F64), lw.CurvLayout(theta, learn=True, dtype=F64)
-
-    def fine(th: torch.Tensor) -> torch.Tensor:
-        mesh = lw.pixel_mesh(fixed, size, subdivisions=8192, theta=th)
-        return lw.integrators.integrate_exact(img, fixed, size, mesh=mesh).flatten()
-
-    th0, h = fixed.theta.detach(), 1e-6
-    ref = torch.stack([(fine(th0 + h * e) - fine(th0 - h * e)) / (2 * h) for e in torch.eye(2, dtype=F64)], 1)
-    theta_t = layout.theta  # one tensor: each read of layout.theta is a new one
+    ref = _fine_jacobian(fixed, img, size, 8192)
+    theta_t = layout.theta
     out = lw.integrators.integrate_exact(img, layout, size, tol=tol, theta=theta_t).flatten()
-    assert float((out.detach() - fine(th0)).abs().max()) <= tol  # the values hold it
-    jac = torch.stack([torch.autograd.grad(v, theta_t, retain_graph=True)[0] for v in out])
-    assert float((jac - ref).abs().max()) <= tol
+    values = _fine_means(fixed, img, size, 8192, fixed.theta.detach())
+    assert float((out.detach() - values).abs().max()) <= tol  # the values hold it
+    assert float((_jacobian(out, theta_t) - ref).abs().max()) <= tol
 
 
 STRIPS = [
