@@ -353,8 +353,10 @@ BENDS = tuple(
 ``2 / ((h₋ + h₊) h₊)`` and ``2 / ((h₋ + h₊) h₋)`` of its steps ``h₋``, ``h₊``."""
 
 #: The most segments a smooth piece of an edge is cut into by default (``max_subdiv``): a
-#: learnable 4x4 or strip layout near θ = ±1 asks up to about 13 000 at the default tolerance,
-#: and 4096 there let its θ-gradient err by 2.5x and 8x ``tol`` (tests/test_mesh.py).
+#: learnable 4x4 or strip layout near θ = ±1 asks up to about 13 000 at the integrators' default
+#: tolerance for float images (2⁻¹²), and 4096 let its θ-gradient err by 2.5x ``tol`` there (8x at
+#: 1e-4; tests/test_mesh.py). At 1e-5 (``pixel_mesh``'s own default) such strips ask for more,
+#: and the cap binds for their values too.
 MAX_SUBDIV = 1 << 14
 
 #: Segments per chunk when the mesh's vertices are mapped (bounds φ's temporaries and its input).

@@ -157,6 +157,8 @@ def test_cli_export_and_errors(tmp_path, capsys):
     assert "108 pixels" in capsys.readouterr().out
     assert main([*argv[:-1], str(tmp_path / "m.jpg")]) == 2
     assert "argument --out: 'm.jpg' names no export format" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="grid_um"):
+        pixel_polygons_um(lw.UniformLayout(), SIZE, UM, grid_um=-1)
 
 
 def test_the_export_format_is_the_suffix_or_a_format_that_matches_it():
@@ -174,8 +176,6 @@ def test_the_export_format_is_the_suffix_or_a_format_that_matches_it():
         with pytest.raises(ArgumentError, match=re.escape(needle)) as info:
             export_format(path, fmt)
         assert info.value.argument == argument
-    with pytest.raises(ValueError, match="grid_um"):
-        pixel_polygons_um(lw.UniformLayout(), SIZE, UM, grid_um=-1)
 
 
 def test_gds_keeps_a_many_vertex_pixel_in_one_polygon(tmp_path):

@@ -58,7 +58,6 @@ __all__ = [
 #: Library argument names and the command-line flags that set them, for error lines.
 FLAGS = {
     "out": "--out",
-    "path": "--out",  # export_layout's file
     "report": "--report",
     "dst": "DST",
     "src": "SRC",

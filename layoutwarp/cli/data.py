@@ -115,6 +115,7 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
 
 
 def _cmd_export(args: argparse.Namespace) -> int:
+    from ..checks import ArgumentError
     from ..export import export_format, export_layout, index_mask_paths, report_json
     from ..files import atomic_write, check_file_destination
 
@@ -122,7 +123,11 @@ def _cmd_export(args: argparse.Namespace) -> int:
     if args.report:
         check_file_destination(args.report, "report")
     outputs = {"--out": args.out}
-    if export_format(args.out, args.format) == "png":  # its index mask beside it
+    try:
+        fmt = export_format(args.out, args.format)
+    except ArgumentError as exc:  # export_layout's file is the command's --out
+        raise ArgumentError("out" if exc.argument == "path" else exc.argument, str(exc)) from None
+    if fmt == "png":  # its index mask beside it
         small, large = index_mask_paths(args.out)
         outputs |= {"--out (its index mask)": small, "--out (its large index mask)": large}
     outputs["--report"] = args.report
