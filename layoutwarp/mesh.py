@@ -15,6 +15,7 @@ for everyone, so a boundary integral is computed once per edge and pixel ``(i, j
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 from typing import TypeVar
 
@@ -39,6 +40,7 @@ __all__ = [
     "polygon_area",
     "segment_area",
     "smooth_pieces",
+    "warn_if_capped",
 ]
 
 _A = TypeVar("_A", Tensor, np.ndarray)
@@ -287,7 +289,24 @@ def _segment_counts(
     edge_len = torch.zeros(ne, dtype=ua.dtype, device=dev).index_add_(0, edge, length)
     budget = 3 * tol * amin[edge] / (8 * edge_len[edge].clamp_min(1e-300))
     n = torch.sqrt(2 * sag / budget).ceil().clamp(1, max_subdiv)
-    return torch.where(sag <= 1e-15 * length, torch.ones_like(n), n).long()
+    n = torch.where(sag <= 1e-15 * length, torch.ones_like(n), n).long()
+    warn_if_capped(int(n.max()) if n.numel() else 0, max_subdiv)
+    return n
+
+
+def warn_if_capped(most: int, max_subdiv: int) -> None:
+    """Warn (a ``RuntimeWarning``, once per process at the default filter) where the most
+    segments a smooth piece got, ``most``, reached the cap ``max_subdiv``: its polyline may then
+    err by more than the tolerance (the count stages of torch and of the compiled CPU mesh call
+    it; the CUDA mesh does not, as it reads nothing back)."""
+    if most >= max_subdiv:
+        warnings.warn(
+            f"pixel mesh: a smooth piece of an edge reached max_subdiv={max_subdiv} segments, so its "
+            "polyline may err by more than tol (a fine tol with θ near ±1): raise max_subdiv "
+            "(lw.pixel_mesh) or pass a coarser tol",
+            RuntimeWarning,
+            stacklevel=2,
+        )
 
 
 def _chord_and_sagitta(

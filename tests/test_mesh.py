@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import warnings
 
 import numpy as np
 import pytest
@@ -174,6 +175,21 @@ def test_theta_gradients_of_strips_whose_pieces_need_more_than_4096_segments(the
     assert capped.num_segments < mesh.num_segments  # the old cap bound here
     out = lw.integrators.integrate_exact(img, layout, size, mesh=mesh).flatten()
     assert float((_jacobian(out, theta_t) - ref).abs().max()) <= tol
+
+
+def test_a_piece_that_reaches_the_segment_cap_is_reported():
+    # an elliptic strip near θ = ±1 at a fine tol asks for more segments of a piece than the cap
+    layout = lw.EllipticLayout((0.97, 0.97), dtype=F64)
+    with pytest.warns(RuntimeWarning, match="reached max_subdiv=256 segments"):
+        lw.pixel_mesh(layout, (1, 6), tol=1e-4, max_subdiv=256, cache=False)
+    if lw.kernels.available():  # the compiled count stage alike
+        spec, th = lw.kernels.mesh.mesh_spec(layout), layout.theta.detach().numpy()
+        with pytest.warns(RuntimeWarning, match="reached max_subdiv=256 segments"):
+            lw.kernels.mesh.build_mesh(spec, (1, 6), th, 1e-4, max_subdiv=256)
+    with warnings.catch_warnings():  # a usual layout at the default cap: nothing to say
+        warnings.simplefilter("error")
+        lw.pixel_mesh(lw.CurvLayout((0.3, -0.24), dtype=F64), (16, 32), tol=2.0**-12, cache=False)
+        lw.pixel_mesh(layout, (1, 6), tol=1e-3, cache=False)
 
 
 @pytest.mark.slow  # a fine reference's central differences: some seconds

@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
-from ...mesh import BENDS, MAX_SUBDIV, SAMPLES
+from ...mesh import BENDS, MAX_SUBDIV, SAMPLES, warn_if_capped
 from ...topology import MeshTopology
 from ..base import CHUNK, inline, own, per_thread, run_shares, serial, threads
 from .phi import edge_pieces, phi_point, phi_run, unpack_point
@@ -478,6 +478,7 @@ def count_stage(
     )  # fmt: skip
     edge_offsets[0] = 0
     np.cumsum(edge_offsets, out=edge_offsets)
+    warn_if_capped(int(counts.max(initial=0)), max_subdiv)
     vspan = int(np.diff(edge_offsets[chunk_ends] - chunk_ends).max())  # the most new vertices a chunk has
     return _Counted(th, c, cq, cdq, piece_offsets, bounds, dbounds, counts, edge_offsets, vspan)
 
