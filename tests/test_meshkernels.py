@@ -3,6 +3,8 @@ torch reference: the same mesh, values and θ-gradients to rounding, on random a
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -317,6 +319,41 @@ def test_the_device_mesh_is_the_compiled_mesh_in_numbas_simulator(tmp_path):
         scale = max(1.0, float(np.abs(cm.dverts).max()))
         assert got["dverts"].shape == cm.dverts.shape, name
         assert float(np.abs(got["dverts"] - cm.dverts).max()) <= 1e-14 * scale, name
+
+
+#: A device mesh whose pieces reach the cap of their segments, in numba's CUDA simulator.
+DEVICE_CAP = """
+import json, sys, warnings
+import torch
+import layoutwarp as lw
+from layoutwarp.kernels import mesh as mk
+layout = lw.EllipticLayout((0.97, 0.97))
+spec, theta = mk.mesh_spec(layout), layout.theta.detach().double()
+out = {}
+for cap in (64, 1 << 14):
+    dm = mk.build_mesh_device(spec, (1, 6), theta, 1e-3, (12, 12), max_subdiv=cap)
+    out[f"counts_{cap}"] = int(dm.counts[: int(dm.room.status[mk.PIECES])].max())
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        out[f"look_{cap}"] = dm.room.look()["capped"]  # what the mesh wrote, read now
+    out[f"warned_{cap}"] = sum("reached max_subdiv" in str(w.message) for w in caught)
+mk.build_mesh_device(spec, (1, 6), theta, 1e-3, (12, 12), max_subdiv=64)
+out["status"] = mk.device_status()["capped"]  # told at once, then cleared
+out["again"] = mk.device_status()["capped"]
+json.dump(out, open(sys.argv[1], "w"))
+"""
+
+
+@pytest.mark.slow  # a process of its own, the kernels as plain Python
+def test_a_device_mesh_whose_pieces_reach_the_cap_says_so_in_numbas_simulator(tmp_path):
+    """Without a GPU: a device mesh with a piece at ``max_subdiv`` segments writes the cap to its
+    room's status; the next look warns (as the CPU meshes warn at once), `device_status` tells
+    it and clears it; at the default cap the same strip reaches nothing."""
+    run_in_simulator(DEVICE_CAP, tmp_path / "out.json")
+    got = json.loads((tmp_path / "out.json").read_text())
+    assert got["counts_64"] == 64 and got["look_64"] and got["warned_64"] == 1
+    assert got["counts_16384"] < 1 << 14 and not got["look_16384"] and got["warned_16384"] == 0
+    assert got["status"] and not got["again"]
 
 
 #: A learnable step through the device path in numba's CUDA simulator: means, areas, θ's gradient

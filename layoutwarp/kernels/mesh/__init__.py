@@ -35,7 +35,7 @@ gradient), [`cuda`][layoutwarp.kernels.mesh.cuda] (the CUDA kernels) and
 from __future__ import annotations
 
 from .build import build_mesh
-from .cuda import CUDA_KERNELS, PIECES, SEGMENTS
+from .cuda import CAPPED, CUDA_KERNELS, PIECES, SEGMENTS
 from .device import (
     MESH_ROOMS,
     DeviceMesh,
@@ -49,6 +49,7 @@ from .integrals import edge_gradient, mesh_integrals, pixel_vertices, theta_grad
 from .spec import CURV, ELLIPTIC, CompiledMesh, MeshSpec, mesh_spec
 
 __all__ = [
+    "CAPPED",
     "CUDA_KERNELS",
     "CURV",
     "ELLIPTIC",

@@ -167,9 +167,10 @@ def _cuda_corners(
 
 
 #: The slots of a [`MeshRoom`][]'s status, in page-locked host memory its kernels write directly:
-#: the pieces and the segments the newest mesh needed, and the stamp of the last mesh that
-#: outgrew its room (0: none since the host looked).
-PIECES, SEGMENTS, OVERFLOW = range(3)
+#: the pieces and the segments the newest mesh needed, the stamp of the last mesh that outgrew
+#: its room (0: none since the host looked), and the cap a piece's segments reached
+#: (``max_subdiv``; 0: none since the host looked).
+PIECES, SEGMENTS, OVERFLOW, CAPPED = range(4)
 
 
 def _cuda_pieces(
@@ -207,7 +208,8 @@ def _cuda_counts(
     its segments into ``edge_counts[e + 1]``. Where the pieces outgrew their room
     (``piece_offsets[-1]`` over ``counts.shape[0]``, read by every thread alike) every edge is one
     straight segment instead (its chord); thread 0 writes the pieces needed to the ``status``
-    and, where they outgrew their room, the mesh's ``stamp``."""
+    and, where they outgrew their room, the mesh's ``stamp``; a piece whose segments reach
+    ``max_subdiv`` writes it to the status' slot ``CAPPED``."""
     e = cuda.grid(1)
     ne = swept.shape[0]
     over = piece_offsets[ne] > counts.shape[0]
@@ -216,12 +218,15 @@ def _cuda_counts(
         status[PIECES] = piece_offsets[ne]
         if over:
             status[OVERFLOW] = stamp
-    if e < ne:
-        edge_counts[e + 1] = (
-            1
-            if over
-            else edge_counts_item(e, h, w, q, swept, piece_offsets, sag, length, tol, max_subdiv, counts)
+    if e < ne and over:
+        edge_counts[e + 1] = 1
+    elif e < ne:
+        edge_counts[e + 1] = edge_counts_item(
+            e, h, w, q, swept, piece_offsets, sag, length, tol, max_subdiv, counts
         )
+        for pc in range(piece_offsets[e], piece_offsets[e + 1]):
+            if counts[pc] >= max_subdiv:  # every thread that sees it writes the same value
+                status[CAPPED] = max_subdiv
 
 
 def _cuda_place(

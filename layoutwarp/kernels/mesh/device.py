@@ -14,11 +14,12 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
-from ...mesh import MAX_SUBDIV, PixelMesh
+from ...mesh import MAX_SUBDIV, PixelMesh, warn_if_capped
 from ..device import CHECKS, Stamps, cuda_launch, device_checks, host_mapped, stream_of
 from ..prefix import BLOCK
 from .build import mesh_topology
 from .cuda import (
+    CAPPED,
     CUDA_KERNELS,
     OVERFLOW,
     PIECES,
@@ -52,7 +53,7 @@ class MeshRoom:
     all write the stamp of the capture, which [`device_status`][] tells of each time and
     [`look`][layoutwarp.kernels.mesh.MeshRoom.look] the first time."""
 
-    status: np.ndarray  # the slots PIECES, SEGMENTS, OVERFLOW, int64, written by the kernels
+    status: np.ndarray  # the slots PIECES, SEGMENTS, OVERFLOW, CAPPED, int64, written by the kernels
     pieces: int = 0
     segments: int = 0
     overflows: Stamps = field(init=False)  # the stamps in slot OVERFLOW
@@ -66,10 +67,17 @@ class MeshRoom:
 
     def look(self, tell: bool = True) -> dict[str, int | bool]:
         """Take in what the kernels wrote so far, without waiting for them: grow the room a mesh
-        came close to and, with ``tell``, warn where one outgrew it. Returns the status' values
-        and whether an overflow is news."""
+        came close to and, with ``tell``, warn where one outgrew it or had a piece at the cap of
+        its segments ([`warn_if_capped`][layoutwarp.mesh.warn_if_capped]). Returns the status'
+        values, whether an overflow is news and whether a piece reached the cap since the host
+        looked."""
         pieces, segments = int(self.status[PIECES]), int(self.status[SEGMENTS])
         news = self.overflows.news()
+        capped = int(self.status[CAPPED])
+        if capped:  # a mesh since the host looked had a piece at the cap (warned once a process)
+            self.status[CAPPED] = 0
+            if tell:
+                warn_if_capped(capped, capped)
         if news and tell:
             need = f"{pieces} pieces" if pieces > self.pieces else f"{segments} segments"
             warnings.warn(
@@ -87,7 +95,7 @@ class MeshRoom:
             self.segments = self.ahead(segments, self.segments)
         if self.segments:
             self.segments = max(self.segments, self.pieces)  # room for a chord a piece
-        return {"pieces": pieces, "segments": segments, "overflowed": news}
+        return {"pieces": pieces, "segments": segments, "overflowed": news, "capped": bool(capped)}
 
 
 #: Every [`MeshRoom`][], by layout kind and centre, sensor size, tolerance, θ's length and device
@@ -173,7 +181,7 @@ def build_mesh_device(
     with _ROOMS_LOCK:  # threads building one kind of mesh at once share its one room
         room = MESH_ROOMS.get(key)
         if room is None:
-            room = MESH_ROOMS[key] = MeshRoom(host_mapped(3, dev))
+            room = MESH_ROOMS[key] = MeshRoom(host_mapped(4, dev))
     room.look()
     stamp = room.overflows.take()
 
@@ -247,12 +255,14 @@ def device_means(
 def device_status() -> dict[str, object]:
     """What the GPU reported since the last call, read now: every device is synchronised first
     (so call it where the loop waits anyway, e.g. beside ``loss.item()``; a captured CUDA graph's
-    replays report too). Returns ``{"overflowed": bool, "nonfinite": bool, "meshes": [...]}``,
+    replays report too). Returns ``{"overflowed": bool, "capped": bool, "nonfinite": bool,
+    "meshes": [...]}``,
     a dict per kind of learnable mesh with the pieces and segments the newest needed and its
     room. ``overflowed``: some mesh outgrew its room and integrated straight chords, coarser than
     its tolerance: run that step again outside the graph (the room has grown; a graph captured
-    before keeps its buffers, so capture it again). ``nonfinite``: a checked call's input held
-    NaN or Inf. Nothing is raised or warned."""
+    before keeps its buffers, so capture it again). ``capped``: a smooth piece of some mesh
+    reached ``max_subdiv`` segments, so its polyline may err by more than the tolerance.
+    ``nonfinite``: a checked call's input held NaN or Inf. Nothing is raised or warned."""
     if torch.cuda.is_available() and torch.cuda.is_initialized():
         for index in range(torch.cuda.device_count()):
             torch.cuda.synchronize(index)
@@ -262,7 +272,8 @@ def device_status() -> dict[str, object]:
         values = room.look(tell=False)  # the room grown by what it reports
         meshes.append({**values, "overflowed": room.overflows.clear(), "room": before})
     nonfinite = [checks.clear() for checks in CHECKS.values()]
-    return {"overflowed": any(m["overflowed"] for m in meshes), "nonfinite": any(nonfinite), "meshes": meshes}
+    overflowed, capped = any(m["overflowed"] for m in meshes), any(m["capped"] for m in meshes)
+    return {"overflowed": overflowed, "capped": capped, "nonfinite": any(nonfinite), "meshes": meshes}
 
 
 def device_theta_gradient(
