@@ -233,7 +233,8 @@ def _edge_parameters(
     along each edge, sampled at the 11 inner samples (it may jump at a kink, a piece's end), is held
     to the same bound, so that θ-gradients are as accurate as values where the image changes
     little from one source pixel to the next (docs/integrators.md: an image that jumps at every
-    cell line the edge crosses moves its gradient by a few times ``tol``).
+    cell line the edge crosses moves its gradient beyond ``tol``, the more so the more cells the
+    edge crosses).
 
     Returns:
         ``(edge, lo, hi, n)``: the smooth pieces (their edge and parameter range, ordered by
@@ -298,7 +299,8 @@ def warn_if_capped(most: int, max_subdiv: int) -> None:
     """Warn (a ``RuntimeWarning``, once per process at the default filter) where the most
     segments a smooth piece got, ``most``, reached the cap ``max_subdiv``: its polyline may then
     err by more than the tolerance (the count stages of torch and of the compiled CPU mesh call
-    it; the CUDA mesh does not, as it reads nothing back)."""
+    it at once; a CUDA mesh's room, from the cap its kernel wrote to its status, at the next
+    step)."""
     if most >= max_subdiv:
         warnings.warn(
             f"pixel mesh: a smooth piece of an edge reached max_subdiv={max_subdiv} segments, so its "
