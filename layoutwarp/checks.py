@@ -389,8 +389,13 @@ def check_type(value: Any, kind: type | tuple[type, ...], name: str, what: str) 
     raise ArgumentError(_argument(name), f"{name} must be {what}, got {type(value).__name__}: {value!r:.60}")
 
 
-def check_generator(generator: Any, name: str = "generator") -> torch.Generator | None:
-    """``generator`` if it is a ``torch.Generator`` or ``None``."""
+def check_generator(generator: Any, name: str = "generator", *, seed: Any = None) -> torch.Generator | None:
+    """``generator`` if it is a ``torch.Generator`` or ``None``, and not given with a ``seed``
+    (two sources of one call's draws: the call would use one and ignore the other)."""
+    if generator is not None and seed is not None:
+        raise ArgumentError(
+            _argument(name), f"{name} and seed are two sources of the call's random draws: pass one of them"
+        )
     if generator is None or isinstance(generator, torch.Generator):
         return generator
     raise ArgumentError(

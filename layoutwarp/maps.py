@@ -71,7 +71,7 @@ def sample_points(
     """
     h, w = check_size(size)
     s = check_int(samples, "samples", 1)
-    generator = check_generator(generator)
+    generator = check_generator(generator, seed=seed if jitter else None)
     if jitter and seed is not None:
         like = torch.empty(0, dtype=dtype, device=device)
         off = torch.ops.layoutwarp.uniform(

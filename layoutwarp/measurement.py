@@ -105,7 +105,7 @@ def _check_measure(
     if camera is None:
         raise ArgumentError("physics", "physics must be a SensorPhysics or its dict, got None")
     check_choice(output, OUTPUTS, "output")
-    check_generator(generator)
+    check_generator(generator, seed=seed)
     if seed is not None and not (isinstance(seed, Tensor) and seed.ndim == 0 and seed.dtype == torch.int64):
         what = f"a {seed.dtype} tensor of shape {tuple(seed.shape)}" if isinstance(seed, Tensor) else seed
         raise ArgumentError("seed", f"seed must be a 0-d int64 tensor (noise_seed), got {what!s:.60}")

@@ -31,8 +31,9 @@ import os
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor, as_completed
+from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -453,11 +454,11 @@ def preprocess_folder(
             "labels",
             f"labels {str(labels)!r} holds no label map for any image (same relative paths, or .png)",
         )
-    check_no_overwrite(src, dst, sources, labels, label_rule)  # nothing written before this
-    dst.mkdir(parents=True, exist_ok=True)
+    check_no_overwrite(src, dst, sources, labels, label_rule)
     config = layout_spec(layout) | {"size_hw": list(size)}
-    layout_file = dst / "layout.json"
-    if layout_file.exists():
+    layout_file, done_file = dst / "layout.json", dst / "done.jsonl"
+    done = _read_done(done_file)
+    if layout_file.exists() and done:  # a folder where no file was finished holds no dataset yet
         old_layout, old = load_layout(layout_file, dtype=torch.float64)
         prev = layout_spec(old_layout) | {"size_hw": old["size_hw"]}
         if not same_spec(prev, config):
@@ -478,20 +479,6 @@ def preprocess_folder(
                     name, f"{dst} holds a dataset made with {name} {said[then]}, not {said[now]}; "
                     f"use an empty folder, or {name} {said[then]} to resume it",
                 )  # fmt: skip
-    extra = {"physics": physics.to_dict()} if physics else {}
-    save_layout(
-        layout,
-        layout_file,
-        size,
-        tol=tol,
-        label_rule=label_rule if labels else None,
-        source=str(src),
-        **extra,
-    )
-    config |= {"tol": tol, "label_rule": label_rule}
-
-    done_file = dst / "done.jsonl"
-    done = _read_done(done_file)
     tasks, skipped = [], 0
     for path in sources:
         rel = path.relative_to(src)
@@ -517,73 +504,84 @@ def preprocess_folder(
         if label_src is not None:
             task |= {"label_src": str(label_src), "label_dst": str(label_dst)}
         tasks.append(task)
+    with ExitStack() as stack:  # the cluster reached before anything is written: a run refused
+        # there leaves dst as it was
+        client = stack.enter_context(_dask_client(workers, address)) if engine == "dask" and tasks else None
+        dst.mkdir(parents=True, exist_ok=True)
+        extra = {"physics": physics.to_dict()} if physics else {}
+        save_layout(
+            layout, layout_file, size, tol=tol, label_rule=label_rule if labels else None, source=str(src),
+            **extra,
+        )  # fmt: skip
+        config |= {"tol": tol, "label_rule": label_rule}
+        result = PreprocessResult(skipped=skipped)
+        show = sys.stderr.isatty() if progress is None else progress
+        from tqdm.auto import tqdm
 
-    result = PreprocessResult(skipped=skipped)
-    show = sys.stderr.isatty() if progress is None else progress
-    from tqdm.auto import tqdm
+        bar = tqdm(total=len(tasks), desc="preprocess", unit="img", disable=not show)
+        t0 = time.perf_counter()
+        finished = False
+        try:
+            with done_file.open("a") as log:
 
-    bar = tqdm(total=len(tasks), desc="preprocess", unit="img", disable=not show)
-    t0 = time.perf_counter()
-    finished = False
-    try:
-        with done_file.open("a") as log:
+                def record(r: dict) -> None:
+                    if r["ok"]:
+                        log.write(json.dumps(r["entry"]) + "\n")
+                        log.flush()
+                        result.processed += 1
+                        for stage, sec in r.get("stages", {}).items():
+                            result.stages[stage] = result.stages.get(stage, 0.0) + sec
+                    else:
+                        result.failed.append({"file": r["file"], "error": r["error"]})
+                    bar.update(1)
 
-            def record(r: dict) -> None:
-                if r["ok"]:
-                    log.write(json.dumps(r["entry"]) + "\n")
-                    log.flush()
-                    result.processed += 1
-                    for stage, sec in r.get("stages", {}).items():
-                        result.stages[stage] = result.stages.get(stage, 0.0) + sec
+                fixed = layout_from_spec(config, dtype=torch.float64)
+                job = _Job(
+                    fixed, size, tol, label_rule, str(device), physics, say=_above(bar) if show else None
+                )
+                if client is not None:
+                    spec = {"layout": config, "size": list(size), "tol": tol, "label_rule": label_rule}
+                    spec |= {"physics": physics.to_dict() if physics else None}
+                    spec = json.dumps(spec | {"device": str(device)})
+                    _run_on_dask(client, spec, tasks, record)
+                elif workers == 1 or len(tasks) <= 1:
+                    for task in tasks:
+                        record(job.process(task))
                 else:
-                    result.failed.append({"file": r["file"], "error": r["error"]})
-                bar.update(1)
-
-            fixed = layout_from_spec(config, dtype=torch.float64)
-            job = _Job(fixed, size, tol, label_rule, str(device), physics, say=_above(bar) if show else None)
-            if engine == "dask" and tasks:
-                spec = {"layout": config, "size": list(size), "tol": tol, "label_rule": label_rule}
-                spec |= {"physics": physics.to_dict() if physics else None}
-                spec = json.dumps(spec | {"device": str(device)})
-                _run_on_dask(spec, tasks, record, workers, address)
-            elif workers == 1 or len(tasks) <= 1:
-                for task in tasks:
-                    record(job.process(task))
-            else:
-                pool = ThreadPoolExecutor(workers)
-                futures, seen = [pool.submit(job.process, t) for t in tasks], set()
-                try:
-                    for fut in as_completed(futures):
-                        seen.add(fut)
-                        record(fut.result())
-                finally:  # stopped (Ctrl-C): the images in hand are finished, the rest not begun
-                    pool.shutdown(cancel_futures=True)  # (it waits: every future not cancelled is done)
-                    for fut in futures:  # and those finished meanwhile are recorded: not done again
-                        if fut not in seen and not fut.cancelled() and fut.exception() is None:
+                    pool = ThreadPoolExecutor(workers)
+                    futures, seen = [pool.submit(job.process, t) for t in tasks], set()
+                    try:
+                        for fut in as_completed(futures):
+                            seen.add(fut)
                             record(fut.result())
-        finished = True
-    finally:  # the manifest of a stopped run too: what it finished, and that it did not end
-        bar.close()
-        result.seconds = time.perf_counter() - t0
-        manifest = {
-            "layout": config,
-            "source": str(src),
-            "labels": str(labels) if labels else None,
-            "files_done": len(_read_done(done_file)),
-            "processed_this_run": result.processed,
-            "skipped_this_run": result.skipped,
-            "failed": result.failed,
-            "finished": finished,
-            "seconds": round(result.seconds, 3),
-            "workers": workers,
-            "engine": engine if address is None else f"{engine} at {address}",
-            "device": str(device),
-            "physics": physics.to_dict() if physics else None,
-            "run": run_info(device),
-        }
-        result.manifest = dst / "manifest.json"
-        atomic_write(result.manifest, json.dumps(manifest, indent=2).encode())
-    return result
+                    finally:  # stopped (Ctrl-C): the images in hand are finished, the rest not begun
+                        pool.shutdown(cancel_futures=True)  # (it waits: every future not cancelled is done)
+                        for fut in futures:  # and those finished meanwhile are recorded: not done again
+                            if fut not in seen and not fut.cancelled() and fut.exception() is None:
+                                record(fut.result())
+            finished = True
+        finally:  # the manifest of a stopped run too: what it finished, and that it did not end
+            bar.close()
+            result.seconds = time.perf_counter() - t0
+            manifest = {
+                "layout": config,
+                "source": str(src),
+                "labels": str(labels) if labels else None,
+                "files_done": len(_read_done(done_file)),
+                "processed_this_run": result.processed,
+                "skipped_this_run": result.skipped,
+                "failed": result.failed,
+                "finished": finished,
+                "seconds": round(result.seconds, 3),
+                "workers": workers,
+                "engine": engine if address is None else f"{engine} at {address}",
+                "device": str(device),
+                "physics": physics.to_dict() if physics else None,
+                "run": run_info(device),
+            }
+            result.manifest = dst / "manifest.json"
+            atomic_write(result.manifest, json.dumps(manifest, indent=2).encode())
+        return result
 
 
 def _above(bar: Any) -> Callable[[str], None]:
@@ -595,14 +593,13 @@ def _above(bar: Any) -> Callable[[str], None]:
 _CONNECT_TIMEOUT_S = 10
 
 
-def _run_on_dask(
-    spec: str, tasks: list[dict], record: Callable[[dict], None], workers: int, address: str | None
-) -> None:
-    """Run every task on a Dask cluster (a new local one, or the one at ``address``) and record
-    the results here as they complete."""
+@contextmanager
+def _dask_client(workers: int, address: str | None) -> Iterator[Any]:
+    """A client of the Dask scheduler at ``address``, or of a new local cluster of ``workers``
+    single-threaded processes (closed with it); refused in one line (``engine`` or ``address``)
+    where Dask is not installed or no scheduler answers."""
     try:
         from dask.distributed import Client, LocalCluster
-        from dask.distributed import as_completed as completed
     except ImportError:
         raise ArgumentError(
             "engine", "engine='dask' needs the optional extra: pip install 'layoutwarp[dask]'"
@@ -620,13 +617,21 @@ def _run_on_dask(
                 "address", f"address {address!r}: no Dask scheduler reached ({str(exc).splitlines()[0]})"
             ) from None
         with client:
-            n = max(1, sum(client.nthreads().values()))
-            per = max(1, min(16, len(tasks) // (4 * n)))  # about four chunks per worker thread
-            chunks = [tasks[k : k + per] for k in range(0, len(tasks), per)]
-            futures = client.map(_remote_process_many, [spec] * len(chunks), chunks, pure=False)
-            for fut in completed(futures):
-                for r in fut.result():
-                    record(r)
+            yield client
     finally:
         if cluster is not None:
             cluster.close()
+
+
+def _run_on_dask(client: Any, spec: str, tasks: list[dict], record: Callable[[dict], None]) -> None:
+    """Run every task on the cluster of ``client`` (chunks of files, about four a worker thread)
+    and record the results here as they complete."""
+    from dask.distributed import as_completed as completed
+
+    n = max(1, sum(client.nthreads().values()))
+    per = max(1, min(16, len(tasks) // (4 * n)))  # about four chunks per worker thread
+    chunks = [tasks[k : k + per] for k in range(0, len(tasks), per)]
+    futures = client.map(_remote_process_many, [spec] * len(chunks), chunks, pure=False)
+    for fut in completed(futures):
+        for r in fut.result():
+            record(r)

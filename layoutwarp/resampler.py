@@ -23,6 +23,7 @@ from .checks import (
     ArgumentError,
     all_finite,
     check_device,
+    check_generator,
     check_number,
     check_size,
     raise_nonfinite,
@@ -174,6 +175,7 @@ class AreaResampler:
         ``allow_nonfinite=False`` raises ``ValueError`` where NaN/Inf in the images reach the
         means (as [`simulate`][layoutwarp.sensor.simulate] does by default); ``True`` passes them through."""
         self._check_planes(images, "images", self.src_size)
+        check_generator(generator, seed=seed)
         needs_grad = torch.is_grad_enabled() and images.requires_grad
         if physics is not None and needs_grad:  # the means with their gradient, then the measurement
             mean = self.apply(images, allow_nonfinite=allow_nonfinite)

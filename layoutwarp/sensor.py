@@ -209,9 +209,9 @@ def simulate(
             with it on the image's device, so one seed gives other samples on another device) and,
             with ``physics`` and no ``physics.seed``, the noise's. The same seed, the same output,
             eager or under ``torch.compile``.
-        generator: instead of ``seed``, a generator the Monte Carlo jitter and the physics' noise
-            draw from (eager only: a generator object cannot enter a compiled graph; pass
-            ``seed``).
+        generator: instead of ``seed`` (not with it), a generator the Monte Carlo jitter and the
+            physics' noise draw from (eager only: a generator object cannot enter a compiled
+            graph; pass ``seed``).
         allow_nonfinite: let NaN/Inf through instead of raising ``ValueError``.
         physics: a [`SensorPhysics`][] or its dict (see [`layoutwarp.physics`][]): the PSF
             blurs the image, the pixel means become photons in proportion to each pixel's area,
@@ -253,7 +253,7 @@ def simulate(
         check_bool(allow_nonfinite, "allow_nonfinite"),
         check_bool(return_plan, "return_plan"),
     )
-    generator = check_generator(generator)
+    generator = check_generator(generator, seed=seed)
     seed = check_int(seed, "seed", 0, SEED_MAX, optional=True)
     is_callable = callable(image) and not isinstance(image, Tensor)
     dtype = image.dtype if isinstance(image, Tensor) else torch.float32
@@ -515,6 +515,7 @@ class SensorLayer(nn.Module):
         if unknown:
             raise TypeError(f"unknown simulate option(s) {unknown}; expected some of {sorted(_OPTIONS)}")
         self.options = options
+        check_generator(options.get("generator"), seed=options.get("seed"))
         self.describe()  # refuse bad options now, not at the first batch
 
     @property

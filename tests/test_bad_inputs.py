@@ -16,6 +16,7 @@ from layoutwarp.checks import ArgumentError
 L = lw.CurvLayout((0.3, 0.2))
 IMG = torch.rand(1, 3, 48, 64, generator=torch.Generator().manual_seed(0))
 PHYS = {"sensor_um": [60.0, 80.0], "photons_per_um2": 50.0}
+MEAN, AREAS = torch.rand(1, 6, 8), torch.full((6, 8), 4 / 48)
 
 
 def _resampler(**kwargs):
@@ -47,6 +48,31 @@ CASES = {
         lambda: lw.simulate(IMG, L, (6, 8), "montecarlo", generator="x"),
         "generator",
         "torch.Generator",
+    ),
+    "a seed and a generator (simulate)": (
+        lambda: lw.simulate(IMG, L, (6, 8), "montecarlo", seed=1, generator=torch.Generator()),
+        "generator",
+        "generator and seed are two sources of the call's random draws",
+    ),
+    "a seed and a generator (layer)": (
+        lambda: lw.SensorLayer((6, 8), L, "montecarlo", seed=1, generator=torch.Generator()),
+        "generator",
+        "pass one of them",
+    ),
+    "a seed and a generator (sample points)": (
+        lambda: lw.maps.sample_points((6, 8), 2, jitter=True, seed=1, generator=torch.Generator()),
+        "generator",
+        "pass one of them",
+    ),
+    "a seed and a generator (measure)": (
+        lambda: lw.measurement.measure(MEAN, AREAS, PHYS, generator=torch.Generator(), seed=torch.tensor(1)),
+        "generator",
+        "pass one of them",
+    ),
+    "a seed and a generator (resampler)": (
+        lambda: _resampler().apply(IMG[0], PHYS, generator=torch.Generator(), seed=torch.tensor(1)),
+        "generator",
+        "pass one of them",
     ),
     "a seed past torch's 64 bits": (
         lambda: lw.simulate(IMG, L, (6, 8), "montecarlo", seed=2**63),

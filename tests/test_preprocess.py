@@ -439,6 +439,33 @@ def test_preprocess_refuses_a_missing_labels_folder_before_writing(tmp_path, see
     assert not (tmp_path / "dst").exists()
 
 
+def test_a_run_refused_at_its_dask_scheduler_writes_nothing_and_locks_no_settings(tmp_path, seed):
+    pytest.importorskip("distributed")
+    _photo(tmp_path / "src" / "a.png", seed)
+    layout, dst = fixed("curv", (0.2, 0.1)), tmp_path / "dst"
+    # a free port: nobody listens there (the connection is refused at once, no timeout waited)
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    with pytest.raises(ArgumentError, match="no Dask scheduler reached"):
+        preprocess_folder(
+            tmp_path / "src", dst, layout, (4, 4), engine="dask", address=f"tcp://127.0.0.1:{port}"
+        )
+    assert not dst.exists()  # nothing written: not even the folder
+    # a folder whose run finished no file (stopped before its first) holds no dataset: a run with
+    # other settings takes it, where one with a finished file is refused (the test above)
+    dst.mkdir()
+    lw.save_layout(layout, dst / "layout.json", (4, 4), tol=None, label_rule=None, source="x")
+    (dst / "done.jsonl").write_text("")
+    res = preprocess_folder(tmp_path / "src", dst, layout, (4, 4), tol=1e-3, progress=False)
+    assert res.processed == 1
+    assert lw.load_layout(dst / "layout.json")[1]["extra"]["tol"] == 1e-3
+    with pytest.raises(ValueError, match=r"made with tol 0.001, not none \(the default\)"):
+        preprocess_folder(tmp_path / "src", dst, layout, (4, 4), progress=False)
+
+
 def test_a_stretched_source_is_warned_about_once(tmp_path, seed):
     for k in range(3):
         _photo(tmp_path / "src" / f"{k}.png", seed + k, hw=(60, 30))  # portrait

@@ -54,7 +54,9 @@ def test_summary_gives_saving_factors_with_intervals():
 
 def test_model_files_refuse_other_tasks_and_formats(tmp_path):
     (tmp_path / "junk.pt").write_bytes(b"not a model")
-    with pytest.raises(ValueError, match="not a readable layoutwarp model file"):
+    with pytest.raises(
+        ValueError, match=r"junk.pt: not a readable layoutwarp model file \(torch.load cannot read it\)$"
+    ):
         load_model(tmp_path / "junk.pt")
     torch.save({"format": "layoutwarp.model/9", "task": "mnist"}, tmp_path / "new.pt")
     with pytest.raises(

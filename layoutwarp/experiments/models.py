@@ -115,8 +115,11 @@ def load_model(
         data = torch.load(path, map_location="cpu", weights_only=True)
     except FileNotFoundError:
         raise ValueError(f"{path}: no such model file") from None
-    except Exception as exc:  # pickle, zip and torch errors alike: not a model file
-        raise ValueError(f"{path}: not a readable layoutwarp model file ({type(exc).__name__})") from None
+    except Exception:  # pickle, zip and torch errors alike (their names and text are torch's
+        # internals): not a model file
+        raise ValueError(
+            f"{path}: not a readable layoutwarp model file (torch.load cannot read it)"
+        ) from None
     fmt = data.get("format") if isinstance(data, dict) else None
     if fmt not in READS:
         what = f"format {fmt!r}" if isinstance(fmt, str) else "no model format"
