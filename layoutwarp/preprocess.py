@@ -31,6 +31,7 @@ import os
 import sys
 import threading
 import time
+import warnings
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from contextlib import ExitStack, contextmanager
@@ -237,8 +238,16 @@ def _remote_process(spec: str, task: dict) -> dict:
 
 
 def _remote_process_many(spec: str, tasks: list[dict]) -> list[dict]:
-    """A Dask task of several files (fewer round trips to the scheduler)."""
-    return [_remote_process(spec, t) for t in tasks]
+    """A Dask task of several files (fewer round trips to the scheduler). The warnings a file
+    raises on the worker come back with its result (``"warnings"``: category and text), so the
+    run's own process tells them as a local run does, not the worker's log."""
+    out = []
+    for task in tasks:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            r = _remote_process(spec, task)
+        out.append(r | {"warnings": [(w.category, str(w.message)) for w in caught]})
+    return out
 
 
 def worker_weight_builds() -> int:
@@ -522,9 +531,14 @@ def preprocess_folder(
         t0 = time.perf_counter()
         finished = False
         try:
+            told: set[tuple[type[Warning], str]] = set()
             with done_file.open("a") as log:
 
                 def record(r: dict) -> None:
+                    for said in r.get("warnings", ()):  # a Dask worker's, told here once a run (a
+                        if said not in told:  # local run's are its resamplers', built once)
+                            told.add(said)
+                            warnings.warn(said[1], said[0], stacklevel=2)
                     if r["ok"]:
                         log.write(json.dumps(r["entry"]) + "\n")
                         log.flush()

@@ -485,6 +485,19 @@ def test_a_stretched_source_is_warned_about_once(tmp_path, seed):
         )
 
 
+def test_a_dask_workers_warning_is_told_by_the_run_once_as_a_local_runs_is(tmp_path, seed):
+    pytest.importorskip("distributed")
+    for k in range(4):
+        _photo(tmp_path / "src" / f"{k}.png", seed + k, hw=(60, 30))  # portrait
+    with pytest.warns(UserWarning, match=r"another aspect ratio .* \(60, 30\).*stretched 4.00x") as rec:
+        res = preprocess_folder(
+            tmp_path / "src", tmp_path / "dst", fixed("rect", (0.2, 0.1)), (10, 20), workers=2,
+            engine="dask", progress=False,
+        )  # fmt: skip
+    assert res.processed == 4
+    assert len([w for w in rec if "aspect ratio" in str(w.message)]) == 1  # two workers built one each
+
+
 def test_truncated_images_are_refused_in_our_words(tmp_path, seed):
     from layoutwarp.preprocess import read_image
 
