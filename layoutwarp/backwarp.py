@@ -17,7 +17,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from .checks import check_choice, check_shape, check_size
-from .coords import pixel_centers, sensor_to_pixels
+from .coords import pixel_centers, pixel_containing
 from .layouts import Layout, check_layout, wants_grad
 from .maps import inverse_coords, raster_index_map
 
@@ -44,8 +44,8 @@ def sensor_index_maps(
 
     Returns:
         two ``(H, W)`` int64 tensors ``col = floor((φ⁻¹(q)_x + 1) w / 2)`` and likewise
-        ``row``, clamped to the sensor. Computed in float64; a centre exactly on a pixel
-        boundary goes to the pixel on its right/below.
+        ``row``, clamped to the sensor. Computed in float64; a centre on a pixel boundary goes to
+        the pixel on its right/below ([`pixel_containing`][layoutwarp.coords.pixel_containing]).
     """
     check_layout(layout)
     (h, w), target_size = check_size(size), check_size(target_size, "target_size")
@@ -53,8 +53,8 @@ def sensor_index_maps(
     if method == "raster":
         idx = raster_index_map(layout, (h, w), target_size).to(layout.rho.device)
         return idx % w, idx // w
-    idx = torch.floor(sensor_to_pixels(inverse_coords(layout, target_size), (h, w))).long()
-    return idx[..., 0].clamp(0, w - 1), idx[..., 1].clamp(0, h - 1)
+    idx = pixel_containing(inverse_coords(layout, target_size), (h, w))
+    return idx[..., 0], idx[..., 1]
 
 
 def backwarp(

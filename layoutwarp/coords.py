@@ -20,9 +20,11 @@ from torch import Tensor
 from .checks import check_size
 
 __all__ = [
+    "ON_BOUNDARY",
     "cell_index",
     "grid_lines",
     "pixel_centers",
+    "pixel_containing",
     "pixels_to_sensor",
     "sensor_to_pixels",
     "uniform_corners",
@@ -55,6 +57,29 @@ def cell_index(x: Tensor, n: int) -> tuple[Tensor, Tensor]:
     u = (x.clamp(-1, 1) + 1) * (n / 2)
     i = u.detach().floor().clamp(0, n - 1)
     return i.long(), u - i
+
+
+#: How far (in pixels) before a pixel boundary a point still lies on it for [`pixel_containing`][]:
+#: the float64 rounding of the maps that compute the point (about 1e-12 pixels at thousands of
+#: pixels), with room to spare.
+ON_BOUNDARY = 1e-9
+
+
+def pixel_containing(p: Tensor, size: tuple[int, int]) -> Tensor:
+    """The pixel ``(column, row)`` (int64, ``(..., 2)``) of an ``(H, W)`` image containing each
+    sensor point ``p`` ``(..., 2)``, clamped to the image. A point on a pixel boundary goes to the
+    pixel after it (right, below), also where rounding put it a hair before
+    ([`ON_BOUNDARY`][]): the centres of a uniform sensor of ``w`` pixels over ``10 w`` source
+    columns fall on source columns ``5, 15, 25, …``, every one.
+
+    Examples:
+        >>> pixel_containing(torch.tensor([[0.0, -1.0], [1 - 2**-52, 1.0]], dtype=torch.float64), (2, 4))
+        tensor([[2, 0],
+                [3, 1]])
+    """
+    h, w = check_size(size)
+    idx = torch.floor(sensor_to_pixels(p, (h, w)) + ON_BOUNDARY).long()
+    return torch.stack([idx[..., 0].clamp(0, w - 1), idx[..., 1].clamp(0, h - 1)], -1)
 
 
 def uniform_corners(

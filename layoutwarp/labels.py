@@ -21,7 +21,7 @@ import torch
 from torch import Tensor
 
 from .checks import check_choice, check_size
-from .coords import pixel_centers, sensor_to_pixels
+from .coords import pixel_centers, pixel_containing
 from .integrators import integrate_exact
 from .layouts import Layout
 from .maps import map_points
@@ -55,8 +55,8 @@ def source_pixels(layout: Layout, size: tuple[int, int], src_size: tuple[int, in
     """
     (h, w), (hs, ws) = check_size(size), check_size(src_size, "src_size")
     q = map_points(layout, pixel_centers((h, w)))
-    idx = torch.floor(sensor_to_pixels(q, (hs, ws))).long().cpu()
-    return idx[..., 1].clamp(0, hs - 1), idx[..., 0].clamp(0, ws - 1)
+    idx = pixel_containing(q, (hs, ws)).cpu()
+    return idx[..., 1], idx[..., 0]
 
 
 def labels_to_sensor(

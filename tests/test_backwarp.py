@@ -150,3 +150,19 @@ def test_bilinear_backwarp_of_a_learnable_sensor_gives_theta_its_central_differe
             fd[i] = (up - down) / (2 * eps)
     torch.testing.assert_close(g, fd, rtol=1e-5, atol=1e-9)
     assert (g_sensor_only - fd).abs().max() > 100 * (g - fd).abs().max()
+
+
+@pytest.mark.parametrize("n", [3, 5, 10, 18, 24, 129])
+def test_centres_on_pixel_boundaries_go_right_and_below_every_one(n):
+    # a uniform sensor of n pixels over 10 n source pixels: every sensor centre lies on a source
+    # boundary (10 j + 5); target centres of a 3n/2 back-warp lie on every other sensor boundary.
+    # Rounding put some just before it, and they went left or up (columns 4, 15, 25, 34, ...)
+    from layoutwarp.backwarp import sensor_index_maps
+    from layoutwarp.labels import source_pixels
+
+    row, col = source_pixels(lw.UniformLayout(), (n, n + 1), (10 * n, 10 * (n + 1)))
+    assert col[0].tolist() == [10 * j + 5 for j in range(n + 1)]
+    assert row[:, 0].tolist() == [10 * i + 5 for i in range(n)]
+    col, row = sensor_index_maps(lw.UniformLayout(), (2 * n, 2 * n), (3 * n, 3 * n))
+    expected = [math.floor(2 * (t + 0.5) / 3) for t in range(3 * n)]  # exact in rationals: ties right
+    assert col[0].tolist() == expected and row[:, 0].tolist() == expected

@@ -273,10 +273,10 @@ def test_label_rules(tmp_path, gen):
     res = AreaResampler(layout, size, src_size, tol=1e-7)
     # nearest: the label under each deformed pixel centre
     q = layout.phi(lw.coords.pixel_centers(size), layout.theta)
-    col = np.floor((q[..., 0].numpy() + 1) / 2 * src_size[1]).astype(int)
-    row = np.floor((q[..., 1].numpy() + 1) / 2 * src_size[0]).astype(int)
+    col = np.floor((q[..., 0].numpy() + 1) / 2 * src_size[1] + 1e-9).astype(int)  # a centre on a
+    row = np.floor((q[..., 1].numpy() + 1) / 2 * src_size[0] + 1e-9).astype(int)  # border: right/below
     near = res.labels(label, "nearest")
-    assert near.dtype == np.uint8 and (near == label[row, col]).all()  # on a cell border: right/below
+    assert near.dtype == np.uint8 and (near == label[row, col]).all()
     # majority: argmax of the exact area shares of the one-hot classes
     onehot = torch.from_numpy(np.stack([label == k for k in range(5)]).astype(np.float64))
     with torch.no_grad():

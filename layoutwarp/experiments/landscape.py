@@ -24,7 +24,7 @@ import numpy as np
 from ..doctor import run_info
 from ..files import atomic_write
 from ..layouts import FAMILIES, make_layout
-from .runs import RunOptions, read_runs, study_run_records, train_run
+from .runs import RunOptions, check_resumed, read_runs, study_run_records, train_run
 from .tasks import Task
 
 __all__ = ["grid_points", "point_name", "run_landscape", "summarise_landscape"]
@@ -102,6 +102,7 @@ def run_landscape(
     if cls is None or cls().num_params != 2:
         raise ValueError(f"family must be a two-parameter family (e.g. curv, rect, elliptic), got {family!r}")
     out = Path(out)
+    check_resumed(out, options, "landscape")
     data = None
 
     def point(theta: tuple[float, float], seed: int, tag: str = "") -> dict:

@@ -36,7 +36,7 @@ from ..files import atomic_write
 from ..layouts import Layout
 from .models import save_model
 from .protocols import StudyPlan
-from .runs import RunOptions, run_name, study_run_records, train_run
+from .runs import RunOptions, check_resumed, run_name, study_run_records, train_run
 from .tasks import Task
 
 __all__ = [
@@ -95,6 +95,7 @@ def run_study(
     options = options or study_options(task, plan)
     out = Path(out)
     todo = study_runs(plan, seeds or plan.seeds)
+    check_resumed(out, options, "study")
     done = sum((out / "runs" / f"{run_name(*r)}.json").exists() for r in todo)
     say(f"{task.name} study: {len(todo)} runs, {done} already done, in {out}")
     data = None
