@@ -24,7 +24,7 @@ import numpy as np
 from ..doctor import run_info
 from ..files import atomic_write
 from ..layouts import FAMILIES, make_layout
-from .runs import RunOptions, check_resumed, read_runs, study_run_records, train_run
+from .runs import RunOptions, check_resumed, keep_settings, read_runs, study_run_records, train_run
 from .tasks import Task
 
 __all__ = ["grid_points", "point_name", "run_landscape", "summarise_landscape"]
@@ -112,6 +112,7 @@ def run_landscape(
         if path.exists():
             return json.loads(path.read_text())
         data = data or task.load(Path(folder))
+        keep_settings(out, options)
         layout = make_layout(family, theta)  # fixed: θ frozen at the point
         record, _ = train_run(task, data, family, size, seed, options, layout=layout)
         rec = asdict(record) | {"theta_point": list(theta), "tag": tag, "run": run_info(options.device)}

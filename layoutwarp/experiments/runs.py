@@ -36,6 +36,7 @@ __all__ = [
     "RunRecord",
     "check_resumed",
     "format_summary",
+    "keep_settings",
     "read_runs",
     "run_experiment",
     "run_name",
@@ -162,32 +163,41 @@ def study_run_records(folder: Path) -> list[dict]:
 RESUMABLE = ("device",)
 
 
+def _settings(options: RunOptions) -> dict[str, Any]:
+    """What ``settings.json`` holds of ``options``: as JSON reads it back."""
+    return json.loads(json.dumps({"training": options.record(), "sensor": options.sensor}))
+
+
 def check_resumed(out: Path, options: RunOptions, what: str) -> None:
     """Refuse, in one line naming ``out``, to resume a ``what`` (a study, a landscape) whose
     finished or stopped runs trained with other settings than ``options`` (but for
     [`RESUMABLE`][]): its curves would mix two trainings, and a stopped run would go on under
-    settings it did not start with. The settings are ``out/settings.json``'s (a folder of an
-    earlier version: its first finished run's); a folder with no run finished or stopped holds
-    none, and takes ``options``' (written there)."""
-    now = json.loads(json.dumps({"training": options.record(), "sensor": options.sensor}))
+    settings it did not start with. The settings are ``out/settings.json``'s
+    ([`keep_settings`][]; a folder of an earlier version: its first finished run's); a folder
+    with no run finished or stopped holds none."""
     runs = sorted((out / "runs").glob("*.json"))
-    path = out / "settings.json"
-    if runs or any((out / "checkpoints").glob("*.pt")):
-        then = None
-        with contextlib.suppress(OSError, ValueError):
-            then = json.loads((path if path.exists() else runs[0]).read_text())
-        then = then if isinstance(then, dict) else {}
-        for part in ("training", "sensor"):
-            old, new = then.get(part) or {}, now[part]
-            for key in sorted(set(old) | set(new)):
-                if key not in RESUMABLE and old.get(key) != new.get(key):
-                    raise ArgumentError(
-                        "out", f"{out} holds a {what} whose runs trained with {key} {old.get(key)!r}, not "
-                        f"{new.get(key)!r}: use an empty folder, or those settings to resume it",
-                    )  # fmt: skip
-        if path.exists():
-            return
-    atomic_write(path, json.dumps(now, indent=2))
+    if not (runs or any((out / "checkpoints").glob("*.pt"))):
+        return
+    path, then, now = out / "settings.json", None, _settings(options)
+    with contextlib.suppress(OSError, ValueError):
+        then = json.loads((path if path.exists() else runs[0]).read_text())
+    then = then if isinstance(then, dict) else {}
+    for part in ("training", "sensor"):
+        old, new = then.get(part) or {}, now[part]
+        for key in sorted(set(old) | set(new)):
+            if key not in RESUMABLE and old.get(key) != new.get(key):
+                raise ArgumentError(
+                    "out", f"{out} holds a {what} whose runs trained with {key} {old.get(key)!r}, not "
+                    f"{new.get(key)!r}: use an empty folder, or those settings to resume it",
+                )  # fmt: skip
+
+
+def keep_settings(out: Path, options: RunOptions) -> None:
+    """Write ``options``' settings to ``out/settings.json`` (for [`check_resumed`][]) where it has
+    none: a study or landscape calls it as its first run begins, so a command that fails before
+    leaves no settings behind."""
+    if not (out / "settings.json").exists():
+        atomic_write(out / "settings.json", json.dumps(_settings(options), indent=2))
 
 
 def _area_ratio(layout: Layout, size: tuple[int, int], theta: Sequence[float]) -> float:

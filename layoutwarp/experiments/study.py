@@ -36,7 +36,7 @@ from ..files import atomic_write
 from ..layouts import Layout
 from .models import save_model
 from .protocols import StudyPlan
-from .runs import RunOptions, check_resumed, run_name, study_run_records, train_run
+from .runs import RunOptions, check_resumed, keep_settings, run_name, study_run_records, train_run
 from .tasks import Task
 
 __all__ = [
@@ -105,6 +105,7 @@ def run_study(
         if path.exists():
             continue
         data = data or task.load(Path(folder))
+        keep_settings(out, options)
         checkpoint = out / "checkpoints" / f"{name}.pt"  # a stopped run resumes from its last epoch
         record, model = train_run(task, data, family, size, seed, options, checkpoint=checkpoint)
         training = options.record() | {"family": family, "seed": seed, "scores": record.scores}
