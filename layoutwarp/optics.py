@@ -133,21 +133,20 @@ def _airy_kernel(physics: SensorPhysics, py: float, px: float) -> np.ndarray:
 def apply_psf(image: Tensor, physics: SensorPhysics) -> Tensor:
     """Blur source images ``(N, H, W)`` with the physics' PSF (none: returned as they are).
 
-    Borders are reflected (OpenCV's ``BORDER_REFLECT``, torch's ``"reflect"`` on a pixel-edge
-    grid), so the blur neither adds nor loses light at the image's edge; each kernel sums to 1.
+    Borders are reflected as OpenCV's ``BORDER_REFLECT`` (the edge pixel repeated), on both
+    paths, so the blur neither adds nor loses light at the image's edge; each kernel sums to 1.
     On the CPU without a gradient OpenCV filters (``sepFilter2D`` / ``filter2D``); otherwise torch
     convolutions, differentiable in the image.
     """
     if physics.psf is None:
         return image
     k = psf_kernels(physics, image.shape[-2:])
-    n, h, w = image.shape
-    if image.device.type == "cpu" and not image.requires_grad and n > 0:
+    if image.device.type == "cpu" and not image.requires_grad and image.shape[0] > 0:
         import cv2
 
         arr = image.detach().contiguous().numpy()
         out = np.empty_like(arr)
-        for c in range(n):  # plane by plane: no channels-last copy
+        for c in range(arr.shape[0]):  # plane by plane: no channels-last copy
             if "k2d" in k:
                 cv2.filter2D(
                     arr[c], -1, k["k2d"].astype(arr.dtype), dst=out[c], borderType=cv2.BORDER_REFLECT
@@ -159,16 +158,21 @@ def apply_psf(image: Tensor, physics: SensorPhysics) -> Tensor:
     x = image[:, None]
     if "k2d" in k:
         kern = torch.tensor(k["k2d"], dtype=image.dtype, device=image.device)
-        ry, rx = (s // 2 for s in kern.shape)
-        x = (
-            F.pad(x, (rx, rx, ry, ry), mode="reflect")
-            if min(h, w) > max(ry, rx)
-            else F.pad(x, (rx, rx, ry, ry), mode="replicate")
-        )
-        return F.conv2d(x, kern[None, None])[:, 0]
+        return F.conv2d(_reflected(x, *(s // 2 for s in kern.shape)), kern[None, None])[:, 0]
     ky, kx = (torch.tensor(k[a], dtype=image.dtype, device=image.device) for a in ("ky", "kx"))
-    ry, rx = len(ky) // 2, len(kx) // 2
-    mode = "reflect" if min(h, w) > max(ry, rx) else "replicate"
-    x = F.conv2d(F.pad(x, (0, 0, ry, ry), mode=mode), ky.view(1, 1, -1, 1))
-    x = F.conv2d(F.pad(x, (rx, rx, 0, 0), mode=mode), kx.view(1, 1, 1, -1))
-    return x[:, 0]
+    x = F.conv2d(_reflected(x, len(ky) // 2, 0), ky.view(1, 1, -1, 1))
+    return F.conv2d(_reflected(x, 0, len(kx) // 2), kx.view(1, 1, 1, -1))[:, 0]
+
+
+def _reflected(x: Tensor, ry: int, rx: int) -> Tensor:
+    """``x`` ``(..., H, W)`` padded by ``ry`` rows and ``rx`` columns on each side as OpenCV's
+    ``BORDER_REFLECT`` pads (``cba|abc…``: the edge pixel repeated, the image mirrored again where
+    a pad is wider than it), by an index gather: differentiable in ``x``. Torch's
+    ``F.pad(mode="reflect")`` is ``BORDER_REFLECT_101`` (``cb|abc``), which loses light at the
+    edges and gave the image's gradient path other border pixels than the CPU's."""
+    for dim, r in ((-2, ry), (-1, rx)):
+        if r:
+            n = x.shape[dim]
+            i = torch.arange(-r, n + r, device=x.device) % (2 * n)
+            x = x.index_select(dim, torch.where(i >= n, 2 * n - 1 - i, i))
+    return x
