@@ -301,6 +301,17 @@ def simulate(
 
 _FLOAT32_TOL = data_tolerance(torch.float32)[0]
 
+# How far apart the ranks of a process group start a SensorLayer's seeded noise (rank r:
+# physics.seed + r · _RANK_SEEDS): each rank of a distributed run draws noise of its own for its
+# share of the batch, as one process draws it for every image of the batch.
+_RANK_SEEDS = 1_000_000_007
+
+
+def _process_rank() -> int:
+    """This process's rank in torch.distributed's default process group (0 outside one)."""
+    dist = torch.distributed
+    return dist.get_rank() if dist.is_available() and dist.is_initialized() else 0
+
 
 def _fixed_plain(image: Any, layout: Any, size: Any, allow_nonfinite: Any) -> Tensor | None:
     """A fixed layout's means of float32 CPU images by its kept weights' compiled product, where
@@ -467,7 +478,8 @@ class SensorLayer(nn.Module):
         physics: a [`SensorPhysics`][] (or its dict, as files store it): the
             layer records what a real sensor would (see [`simulate`][]). With ``physics.seed``
             the layer's noise is a seeded sequence (new noise every call, the same sequence in
-            every run); without, fresh noise.
+            every run; each rank of a torch.distributed process group a sequence of its own);
+            without, fresh noise.
         output: with ``physics``: ``"radiance"``, ``"electrons"`` or ``"dn"`` (these two need ``physics``).
         **options: further [`simulate`][] options (``tol``, ``samples``, ``radiance``, ...).
 
@@ -538,7 +550,8 @@ class SensorLayer(nn.Module):
             return simulate(image, self.layout, self.size, self.method, **self.options)
         options = dict(self.options)
         if self.physics.seed is not None and "generator" not in options and "seed" not in options:
-            options["noise"] = torch.ops.layoutwarp.seed_sequence(self.noise_calls, self.physics.seed)
+            seed = (self.physics.seed + _process_rank() * _RANK_SEEDS) % (SEED_MAX + 1)
+            options["noise"] = torch.ops.layoutwarp.seed_sequence(self.noise_calls, seed)
             self.noise_calls.add_(1)  # a seeded sequence: new noise every call, the same every run
         return simulate(
             image, self.layout, self.size, self.method, physics=self.physics, output=self.output, **options

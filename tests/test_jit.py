@@ -417,6 +417,13 @@ def test_torch_threads_come_back_when_the_compile_ends_whatever_the_thread_calls
         assert jit.ready("fixed", torch.float32) and torch.get_num_threads() == 1
         worker.running = False
         assert jit.ready("fixed", torch.float32) and torch.get_num_threads() == 2
+        # and at a look at the units' state (a script that polls it, then runs torch alone)
+        worker.running = True
+        jit.ready("fixed", torch.float32)
+        worker.running = False
+        assert torch.get_num_threads() == 1
+        jit.status()
+        assert torch.get_num_threads() == 2
     finally:
         jit._SHARED.__dict__.clear()
         torch.set_num_threads(before)

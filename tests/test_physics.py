@@ -1042,3 +1042,37 @@ def test_a_psf_wider_than_the_sensor_is_refused_before_its_kernel_is_built():
             physics(**kwargs)
         assert info.value.argument == field
     assert physics(psf="airy", f_number=5.6).psf == "airy"
+
+
+@pytest.mark.slow
+def test_the_ranks_of_a_process_group_draw_noise_of_their_own(tmp_path):
+    # under torchrun every rank's SensorLayer followed one seeded sequence: rank 1's k-th image got
+    # rank 0's k-th image's noise, so a global batch held each draw once per rank
+    import os
+    import subprocess
+    import sys
+    import textwrap
+
+    script = tmp_path / "ranks.py"
+    script.write_text(
+        textwrap.dedent("""
+        import torch, torch.distributed as dist, layoutwarp as lw
+        dist.init_process_group("gloo")
+        phys = lw.SensorPhysics((28, 28), photons_per_um2=3.0, read_noise_e=1.0, seed=0)
+        out = lw.SensorLayer((4, 4), "curv", physics=phys)(torch.full((2, 1, 28, 28), 0.5)).detach()
+        outs = [torch.empty_like(out) for _ in range(2)]
+        dist.all_gather(outs, out)
+        if dist.get_rank() == 0:
+            alone = lw.SensorLayer((4, 4), "curv", physics=phys)
+            dist.destroy_process_group()
+            same = torch.equal(alone(torch.full((2, 1, 28, 28), 0.5)), outs[0])  # rank 0: as one process
+            print(same, len({tuple(s.flatten().tolist()) for s in torch.cat(outs)}))
+        else:
+            dist.destroy_process_group()
+    """)
+    )
+    env = {k: v for k, v in os.environ.items() if k not in ("WORLD_SIZE", "RANK", "LOCAL_RANK")}
+    torchrun = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2"]
+    res = subprocess.run([*torchrun, str(script)], capture_output=True, text=True, env=env, timeout=300)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert res.stdout.split() == ["True", "4"]  # four images, four draws

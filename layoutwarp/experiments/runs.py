@@ -27,7 +27,7 @@ from ..mesh import pixel_mesh
 from .models import save_model
 from .protocols import TaskDefaults
 from .tasks import Task, TaskData
-from .training import fit, format_theta, optimizer, schedule
+from .training import fit, format_theta, optimizer, schedule, world
 
 __all__ = [
     "RESULTS_FORMAT",
@@ -252,6 +252,11 @@ def train_run(
         if not hasattr(model, "load_backbone"):
             raise ValueError(f"backbone_weights: the {_net_name(task)} network has no ResNet backbone")
         model.load_backbone(options.backbone_weights)
+    rank, _ = world()
+    if rank:  # the network starts as rank 0's (DistributedDataParallel copies it); the draws of
+        # torch's generator from here (sensor noise, dropout) are each rank's own, as one process
+        # draws them anew for every image of the global batch
+        torch.manual_seed(seed + rank * 1_000_000_007)
     opt = optimizer(model, options.lr, options.theta_lr, options.optimizer, options.weight_decay)
     indices, batch_loss = task.batches(model, data.train, gen, options.task_options)
     sched = schedule(opt, options.schedule, options.epochs)

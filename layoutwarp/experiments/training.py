@@ -213,6 +213,9 @@ def _resume(
     torch.set_rng_state(state["rng"])
     if state["cuda_rng"] is not None and torch.cuda.is_available():
         torch.cuda.set_rng_state_all(state["cuda_rng"])
+    rank, _ = world()
+    if rank:  # the checkpoint holds rank 0's generator: each other rank's draws go on as its own
+        torch.manual_seed(int(torch.randint(0, 2**62, ())) + rank)
     return int(state["epochs_done"]), state["history"], float(state.get("seconds", 0.0))
 
 
