@@ -67,10 +67,10 @@ ON_BOUNDARY = 1e-9
 
 def pixel_containing(p: Tensor, size: tuple[int, int]) -> Tensor:
     """The pixel ``(column, row)`` (int64, ``(..., 2)``) of an ``(H, W)`` image containing each
-    sensor point ``p`` ``(..., 2)``, clamped to the image. A point on a pixel boundary goes to the
-    pixel after it (right, below), also where rounding put it a hair before
-    ([`ON_BOUNDARY`][]): the centres of a uniform sensor of ``w`` pixels over ``10 w`` source
-    columns fall on source columns ``5, 15, 25, …``, every one.
+    sensor point ``p`` ``(..., 2)`` (float64: the rounding it allows for is float64's), clamped to
+    the image. A point on a pixel boundary goes to the pixel after it (right, below), also where
+    rounding put it a hair before (``ON_BOUNDARY``): the centres of a uniform sensor of ``w``
+    pixels over ``10 w`` source columns fall on source columns ``5, 15, 25, …``, every one.
 
     Examples:
         >>> pixel_containing(torch.tensor([[0.0, -1.0], [1 - 2**-52, 1.0]], dtype=torch.float64), (2, 4))

@@ -239,8 +239,9 @@ def _announcing(kernel: Callable, unit: str, doing: str) -> Callable:
 def status() -> dict[str, str]:
     """Each unit's state in this process: ``"ready"`` (loaded), ``"in cache"`` (compiled, not yet
     loaded), ``"compiling"`` (this process's background child has it to do), ``"not compiled"``
-    or ``"no numba"``. Once the background child is done, the calling thread's torch has its
-    thread back (see `_share_cores`), as at any layoutwarp call."""
+    or ``"no numba"``. The calling thread's torch shares the cores with the background child as
+    at any layoutwarp call (`_share_cores`): one thread fewer while the child compiles, its
+    thread back once the child is done."""
     _share_cores()
     out = {}
     for unit in UNITS:

@@ -243,11 +243,40 @@ def _remote_process_many(spec: str, tasks: list[dict]) -> list[dict]:
     run's own process tells them as a local run does, not the worker's log."""
     out = []
     for task in tasks:
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
+        with _told_to_the_run() as said:
             r = _remote_process(spec, task)
-        out.append(r | {"warnings": [(w.category, str(w.message)) for w in caught]})
+        out.append(r | {"warnings": said})
     return out
+
+
+_SAID = threading.local()  # per worker thread: the warnings of the file it is on
+
+
+@contextmanager
+def _told_to_the_run() -> Iterator[list[tuple[type[Warning], str]]]:
+    """The warnings this thread shows meanwhile, as ``(category, text)``, instead of showing them
+    (a worker's other threads, and everything else, show theirs as before: `warnings.catch_warnings`
+    is the whole process's, and lost or mixed up the warnings of a worker's threads)."""
+    with _WORKER_LOCK:
+        if getattr(warnings.showwarning, "__name__", "") != "_show_or_tell":
+            shown = warnings.showwarning
+
+            def _show_or_tell(
+                message: Warning | str, category: type[Warning], filename: str, lineno: int,
+                file: Any = None, line: str | None = None,
+            ) -> None:  # fmt: skip
+                said = getattr(_SAID, "list", None)
+                if said is None:
+                    shown(message, category, filename, lineno, file, line)
+                else:
+                    said.append((category, str(message)))
+
+            warnings.showwarning = _show_or_tell
+    _SAID.list = said = []
+    try:
+        yield said
+    finally:
+        _SAID.list = None
 
 
 def worker_weight_builds() -> int:

@@ -498,6 +498,40 @@ def test_a_dask_workers_warning_is_told_by_the_run_once_as_a_local_runs_is(tmp_p
     assert len([w for w in rec if "aspect ratio" in str(w.message)]) == 1  # two workers built one each
 
 
+def test_a_dask_worker_with_threads_returns_each_files_warnings_with_that_file(monkeypatch):
+    # a `dask worker` runs a thread per core: warnings.catch_warnings (the process's) lost one
+    # thread's warning and gave it to no file, while the other's went to the worker's log
+    import threading
+    import warnings
+
+    import layoutwarp.preprocess as pp
+
+    def fake(spec, task):
+        time.sleep(task["d"])
+        warnings.warn(f"stretched {task['file']}", UserWarning, stacklevel=2)
+        time.sleep(task["d"])
+        return {"ok": False, "file": task["file"], "error": ""}
+
+    monkeypatch.setattr(pp, "_remote_process", fake)
+    got = {}
+
+    def run(name, d):
+        got[name] = pp._remote_process_many("{}", [{"file": name, "d": d}])[0]["warnings"]
+
+    threads = [
+        threading.Thread(target=run, args=("a.png", 0.05)),
+        threading.Thread(target=run, args=("b.png", 0.2)),
+    ]
+    for t in threads:
+        t.start()
+        time.sleep(0.01)
+    for t in threads:
+        t.join()
+    assert got == {name: [(UserWarning, f"stretched {name}")] for name in ("a.png", "b.png")}
+    with pytest.warns(UserWarning, match="outside a file"):  # the worker's own warnings as before
+        warnings.warn("outside a file", UserWarning, stacklevel=2)
+
+
 def test_truncated_images_are_refused_in_our_words(tmp_path, seed):
     from layoutwarp.preprocess import read_image
 
