@@ -185,9 +185,10 @@ def check_resumed(out: Path, options: RunOptions, what: str) -> None:
     if not _made(out):
         return
     path, runs = out / "settings.json", sorted((out / "runs").glob("*.json"))
-    then = None
-    with contextlib.suppress(OSError, ValueError):
-        then = json.loads((path if path.exists() else runs[0]).read_text()) if path.exists() or runs else None
+    record, then = path if path.exists() else next(iter(runs), None), None
+    if record is not None:
+        with contextlib.suppress(OSError, ValueError):
+            then = json.loads(record.read_text())
     if not isinstance(then, dict):
         return  # a stopped run of an earlier version, or a record unread: nothing to hold it to
     now = _settings(options)
