@@ -129,16 +129,19 @@ def test_train_camvid_psp_quick_writes_psp_models_that_evaluate_rebuilds(tmp_pat
     assert "argument --backbone-weights: no such file" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("physics", [None, {"sensor_um": [90.0, 120.0], "photons_per_um2": 20.0, "seed": 4}])
 def test_a_run_stopped_in_its_second_epoch_resumes_from_its_checkpoint_to_the_same_values(
-    tmp_path, monkeypatch
+    tmp_path, monkeypatch, physics
 ):
     """fit's checkpoint: a run stopped in its second epoch (an interrupt in its first batch
-    there) and resumed trains to the values of an uninterrupted run, θ history included."""
+    there) and resumed trains to the values of an uninterrupted run, θ history included; with a
+    seeded sensor noise too (its place in the sequence is kept: the resumed run drew the first
+    epoch's noise again)."""
     from layoutwarp.experiments.runs import RunOptions, train_run
 
     task = get_task("camvid")
     data = task.load(SAMPLES / "camvid", limit=4)
-    sensor = {"method": "exact", "tol": 1e-2}
+    sensor = {"method": "exact", "tol": 1e-2} | ({"physics": physics} if physics else {})
     options = RunOptions.of(task.quick_defaults(), epochs=2, batch_size=2, progress=False, sensor=sensor)
     whole, whole_model = train_run(task, data, "rect", (9, 12), 3, options)
     batches, calls = task.batches, []

@@ -186,6 +186,8 @@ def _save_checkpoint(
         "cuda_rng": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None,
         "history": history,
         "seconds": seconds,
+        # the sensor's place in its seeded noise sequence (a buffer its state dict leaves out)
+        "noise_calls": getattr(model.sensor, "noise_calls", None),
     }
     buf = io.BytesIO()
     torch.save(state, buf)
@@ -210,6 +212,8 @@ def _resume(
         sched.load_state_dict(state["sched"])
     scaler.load_state_dict(state["scaler"])
     gen.set_state(state["gen"])
+    if state.get("noise_calls") is not None and hasattr(model.sensor, "noise_calls"):
+        model.sensor.noise_calls.copy_(state["noise_calls"])
     torch.set_rng_state(state["rng"])
     if state["cuda_rng"] is not None and torch.cuda.is_available():
         torch.cuda.set_rng_state_all(state["cuda_rng"])
