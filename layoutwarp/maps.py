@@ -205,8 +205,9 @@ def raster_index_map(
     ``oversample`` puts one exactly there). This needs no inverse of φ, so it serves any layout.
     OpenCV rounds vertex rows to the nearest scan line, so a fill can reach half a fine pixel
     past a nearly horizontal edge; the result is the point-in-polygon rule (the pixel whose
-    polygon contains the target centre) except for target centres within ``1 / (2·oversample)``
-    of a target pixel (about) from a pixel boundary. A target pixel that no polygon claims
+    polygon contains the target centre) except for target centres near a pixel boundary: within
+    ``1 / oversample`` of a target pixel (half a fine pixel of scan-line rounding, and the fill's
+    own pixel rule). A target pixel that no polygon claims
     (possible only around pixels smaller than a fine pixel) takes the nearest claimed index.
 
     Args:
