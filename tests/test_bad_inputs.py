@@ -19,6 +19,12 @@ PHYS = {"sensor_um": [60.0, 80.0], "photons_per_um2": 50.0}
 MEAN, AREAS = torch.rand(1, 6, 8), torch.full((6, 8), 4 / 48)
 
 
+def _spread(layout):
+    with torch.no_grad():  # as a training step with a large learning rate may leave it
+        layout.rho[2:] = torch.tensor([30.0, -30.0, 0.0])
+    return layout
+
+
 def _resampler(**kwargs):
     return lw.AreaResampler(L, (6, 8), (48, 64), **kwargs)
 
@@ -48,6 +54,16 @@ CASES = {
         lambda: lw.simulate(IMG, L, (6, 8), "montecarlo", generator="x"),
         "generator",
         "torch.Generator",
+    ),
+    "spline logits spread past what float64 resolves": (
+        lambda: lw.SplineLayout([20.0, -20.0, 0.0, 0.0], knots=(2, 2)),
+        "theta",
+        "the x knot logits spread from -20 to 20, so a piece is narrower than float64 resolves",
+    ),
+    "a learnable spline a step spread past what float64 resolves": (
+        lambda: lw.simulate(IMG, _spread(lw.SplineLayout(knots=(2, 3), learn=True)), (6, 8)),
+        "theta",
+        "the y knot logits spread from -30 to 30",
     ),
     "a seed and a generator (simulate)": (
         lambda: lw.simulate(IMG, L, (6, 8), "montecarlo", seed=1, generator=torch.Generator()),

@@ -2,7 +2,9 @@
 
 Each axis has ``k`` pieces over the uniform knots ``x_i = −1 + 2i/k``; the knot outputs are
 ``y_0 = −1``, ``y_i = −1 + 2 Σ_{m<i} softmax(ℓ)_m``, ``y_k = 1`` for ``k`` logits ``ℓ``, so every
-θ is a bijection (each piece has positive width) and all-zero logits are the uniform layout.
+θ is a bijection (each piece has positive width) and all-zero logits are the uniform layout; an
+axis whose logits spread so far that a piece is narrower than float64 resolves (about 34 apart)
+is refused in one line.
 Sensor pixels are axis-aligned rectangles whose widths follow the spline's slope.
 
 * ``kind="linear"``: piecewise-linear, pixel density piecewise constant;
@@ -14,13 +16,14 @@ Both have a closed-form inverse. The functional forms take the knot outputs expl
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from typing import Any
 
 import torch
 from torch import Tensor
 
-from ..checks import check_choice, check_int
+from ..checks import ArgumentError, check_choice, check_int, values_readable
 from ..coords import cell_index
 from .base import Layout, register_family
 from .values import config_numbers, tensor_dtype
@@ -125,7 +128,8 @@ class SplineLayout(Layout):
     """A separable layout with a monotone spline per axis (rectangular pixels).
 
     θ holds the ``k_x + k_y`` knot logits (x first); all zeros is the uniform layout, and every
-    θ is a bijection, so training needs no constraint. See `layoutwarp.layouts.spline`.
+    θ is a bijection, so training needs no constraint, but for logits spread beyond what float64
+    resolves (about 34 apart), which are refused. See `layoutwarp.layouts.spline`.
 
     Args:
         theta: initial logits (``None``: zeros).
@@ -198,6 +202,41 @@ class SplineLayout(Layout):
             learn=learn,
             dtype=dtype or tensor_dtype(x_knots, y_knots),
         )
+
+    def _check_theta(self, theta: Tensor) -> None:
+        super()._check_theta(theta)
+        self._refuse_unresolved(theta.tolist())
+
+    def _refuse_folded(self, theta: Tensor, rho: Tensor | None) -> None:
+        super()._refuse_folded(theta, rho)
+        self._refuse_unresolved(theta.detach().double().cpu().tolist())
+
+    def check_theta_now(self) -> None:
+        """As [`Layout.check_theta_now`][layoutwarp.layouts.base.Layout.check_theta_now], and the
+        logits' spread: a training step may spread them until a piece is narrower than the
+        computation resolves."""
+        super().check_theta_now()
+        if self.rho.device.type == "cpu" and values_readable():
+            self._refuse_unresolved(self.rho.detach().tolist())
+
+    def _refuse_unresolved(self, logits: list[float]) -> None:
+        """Raise, in one line, where an axis's logits spread so far that its narrowest piece is
+        under 2 ulp of float64 (the knots are computed in float64 whatever the layout's dtype):
+        its knots then round onto each other, and the layout's values and gradients were NaN
+        (logits ±19), or its smooth kind failed inside torch."""
+        eps = torch.finfo(torch.float64).eps
+        for axis, part in (("x", logits[: self.knots[0]]), ("y", logits[self.knots[0] :])):
+            if not all(map(math.isfinite, part)):
+                continue  # the base check names a θ that is not finite
+            top = max(part)
+            weights = [math.exp(v - top) for v in part]
+            if min(weights) / sum(weights) < 2 * eps:
+                spread = -math.log(2 * eps) - math.log(len(part))
+                raise ArgumentError(
+                    "theta", f"theta: the {axis} knot logits spread from {min(part):.4g} to {top:.4g}, so a "
+                    f"piece is narrower than float64 resolves; keep each axis's logits within about "
+                    f"{spread:.0f} of each other",
+                )  # fmt: skip
 
     def knot_outputs(self, theta: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """Knot outputs along x ``(k_x + 1,)`` and y ``(k_y + 1,)``."""
