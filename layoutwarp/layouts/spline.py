@@ -213,17 +213,17 @@ class SplineLayout(Layout):
 
     def check_theta_now(self) -> None:
         """As [`Layout.check_theta_now`][layoutwarp.layouts.base.Layout.check_theta_now], and the
-        logits' spread: a training step may spread them until a piece is narrower than the
-        computation resolves."""
+        logits' spread: a training step may spread them until a piece is narrower than float64
+        resolves."""
         super().check_theta_now()
         if self.rho.device.type == "cpu" and values_readable():
             self._refuse_unresolved(self.rho.detach().tolist())
 
     def _refuse_unresolved(self, logits: list[float]) -> None:
         """Raise, in one line, where an axis's logits spread so far that its narrowest piece is
-        under 2 ulp of float64 (the knots are computed in float64 whatever the layout's dtype):
-        its knots then round onto each other, and the layout's values and gradients were NaN
-        (logits ±19), or its smooth kind failed inside torch."""
+        under 2 ulp of float64: its knots then round onto each other, and the layout's values and
+        gradients were NaN (logits ±19, float32 and float64 layouts alike), or its smooth kind
+        failed inside torch."""
         eps = torch.finfo(torch.float64).eps
         for axis, part in (("x", logits[: self.knots[0]]), ("y", logits[self.knots[0] :])):
             if not all(map(math.isfinite, part)):
