@@ -467,9 +467,16 @@ def all_finite(x: Tensor) -> bool:
 
 def raise_nonfinite(image: Tensor, name: str = "image") -> None:
     """Raise a one-line ``ValueError`` with the number of NaN/Inf values of ``image``, if any
-    (the check behind ``allow_nonfinite=False``)."""
+    (the check behind ``allow_nonfinite=False``, called where an integrator's output is not
+    finite); where ``image`` has none, the integrator's sums overflowed its dtype: said so."""
     bad = int((~torch.isfinite(image)).sum())
     if bad:
         raise ValueError(
             f"{name} contains {bad} non-finite value(s) (NaN or Inf); clean it or pass allow_nonfinite=True"
+        )
+    if image.numel() and image.is_floating_point():
+        top, kind = float(image.detach().abs().max()), str(image.dtype).removeprefix("torch.")
+        raise ValueError(
+            f"{name}'s values are finite, but the integrator's sums of them (up to {top:.3g}) overflow "
+            f"{kind}: scale the {name} down, or pass allow_nonfinite=True"
         )

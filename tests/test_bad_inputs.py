@@ -237,6 +237,22 @@ def test_a_bad_argument_is_named_in_one_line(case, tmp_path, monkeypatch):
     assert not any(tmp_path.iterdir())  # refused before anything was written
 
 
+@pytest.mark.parametrize(
+    ("value", "dtype", "learn"),
+    [(1e307, torch.float64, False), (1e307, torch.float64, True), (1e38, torch.float32, True)],
+)
+def test_a_finite_image_whose_sums_overflow_is_refused_in_one_line(value, dtype, learn):
+    # its means came back NaN without a word: the check looked for NaN/Inf in the input alone
+    img = torch.full((1, 1, 16, 64), value, dtype=dtype)
+    with pytest.raises(
+        ValueError, match=r"image's values are finite, but the integrator's sums .* overflow"
+    ) as info:
+        lw.simulate(img, lw.CurvLayout((0.5, -0.3), learn=learn, dtype=dtype), (3, 4))
+    assert "\n" not in str(info.value)
+    out = lw.simulate(img, lw.CurvLayout((0.5, -0.3), learn=learn, dtype=dtype), (3, 4), allow_nonfinite=True)
+    assert not bool(out.isfinite().all())  # let through where asked
+
+
 def test_preprocessing_refuses_what_it_cannot_do_before_writing(tmp_path, monkeypatch):
     import cv2
 
