@@ -15,7 +15,7 @@ from typing import Any
 from . import jit, kernels
 from .version import __version__
 
-__all__ = ["backends", "cpu_backend", "cuda_backend", "report", "run_info"]
+__all__ = ["RANK_SEEDS", "backends", "cpu_backend", "cuda_backend", "report", "run_info", "world"]
 
 #: The distributions whose versions the report lists (absent ones say so).
 PACKAGES = ("torch", "numpy", "numba", "numba-cuda", "kornia", "opencv-contrib-python-headless", "scipy")
@@ -83,6 +83,25 @@ def report() -> str:
         if "not compiled" in states.values():
             lines.append("  (compiled in the background at first use, or now: layoutwarp doctor --compile)")
     return "\n".join(lines)
+
+
+#: How far apart the ranks of a process group start their seeds (rank ``r``: ``seed + r ·
+#: RANK_SEEDS``): a [`SensorLayer`][layoutwarp.sensor.SensorLayer]'s seeded noise, and a training
+#: run's generator once its network is built, so each rank draws noise of its own for its share of
+#: the batch, as one process draws it anew for every image.
+RANK_SEEDS = 1_000_000_007
+
+
+def world() -> tuple[int, int]:
+    """``(rank, world size)`` of this process in torch.distributed's default process group (one
+    ``torchrun`` set up and the process joined, e.g. by
+    [`init_distributed`][layoutwarp.experiments.training.init_distributed]), else ``(0, 1)``.
+    Starts nothing."""
+    import torch.distributed as dist
+
+    if dist.is_available() and dist.is_initialized():
+        return dist.get_rank(), dist.get_world_size()
+    return 0, 1
 
 
 def run_info(device: Any = None, seeds: Any = None) -> dict[str, Any]:

@@ -24,6 +24,7 @@ from .checks import (
     warn_if_elsewhere,
     warn_if_finer,
 )
+from .doctor import RANK_SEEDS, world
 from .integrators import (
     RADIANCES,
     Radiance,
@@ -301,17 +302,6 @@ def simulate(
 
 _FLOAT32_TOL = data_tolerance(torch.float32)[0]
 
-# How far apart the ranks of a process group start a SensorLayer's seeded noise (rank r:
-# physics.seed + r · _RANK_SEEDS): each rank of a distributed run draws noise of its own for its
-# share of the batch, as one process draws it for every image of the batch.
-_RANK_SEEDS = 1_000_000_007
-
-
-def _process_rank() -> int:
-    """This process's rank in torch.distributed's default process group (0 outside one)."""
-    dist = torch.distributed
-    return dist.get_rank() if dist.is_available() and dist.is_initialized() else 0
-
 
 def _fixed_plain(image: Any, layout: Any, size: Any, allow_nonfinite: Any) -> Tensor | None:
     """A fixed layout's means of float32 CPU images by its kept weights' compiled product, where
@@ -550,7 +540,7 @@ class SensorLayer(nn.Module):
             return simulate(image, self.layout, self.size, self.method, **self.options)
         options = dict(self.options)
         if self.physics.seed is not None and "generator" not in options and "seed" not in options:
-            seed = (self.physics.seed + _process_rank() * _RANK_SEEDS) % (SEED_MAX + 1)
+            seed = (self.physics.seed + world()[0] * RANK_SEEDS) % (SEED_MAX + 1)
             options["noise"] = torch.ops.layoutwarp.seed_sequence(self.noise_calls, seed)
             self.noise_calls.add_(1)  # a seeded sequence: new noise every call, the same every run
         return simulate(

@@ -19,7 +19,7 @@ import torch
 from torch import nn
 
 from ..checks import ArgumentError
-from ..doctor import run_info
+from ..doctor import RANK_SEEDS, run_info, world
 from ..files import atomic_write
 from ..layoutfile import save_layout
 from ..layouts import Layout
@@ -27,7 +27,7 @@ from ..mesh import pixel_mesh
 from .models import save_model
 from .protocols import TaskDefaults
 from .tasks import Task, TaskData
-from .training import fit, format_theta, optimizer, schedule, world
+from .training import fit, format_theta, optimizer, schedule
 
 __all__ = [
     "AREA_RATIO_TOL",
@@ -279,7 +279,7 @@ def train_run(
     if rank:  # the network starts as rank 0's (DistributedDataParallel copies it); the draws of
         # torch's generator from here (sensor noise, dropout) are each rank's own, as one process
         # draws them anew for every image of the global batch
-        torch.manual_seed(seed + rank * 1_000_000_007)
+        torch.manual_seed(seed + rank * RANK_SEEDS)
     opt = optimizer(model, options.lr, options.theta_lr, options.optimizer, options.weight_decay)
     indices, batch_loss = task.batches(model, data.train, gen, options.task_options)
     sched = schedule(opt, options.schedule, options.epochs)

@@ -13,6 +13,7 @@ from torch import nn
 from tqdm import tqdm
 
 from ..checks import check_choice
+from ..doctor import world
 from ..files import atomic_write
 
 __all__ = [
@@ -36,22 +37,12 @@ BatchLoss = Callable[[torch.Tensor, nn.Module], torch.Tensor]
 def init_distributed() -> tuple[int, int]:
     """Join the process group ``torchrun`` set up for this process (``WORLD_SIZE`` > 1), once:
     gloo for CPU tensors and NCCL for CUDA tensors where CUDA is available (so ``--device cpu``
-    works on a GPU machine). Returns [`world`][]; alone, it does nothing."""
+    works on a GPU machine). Returns [`world`][layoutwarp.doctor.world]; alone, it does nothing."""
     import torch.distributed as dist
 
     if int(os.environ.get("WORLD_SIZE", "1")) > 1 and dist.is_available() and not dist.is_initialized():
         dist.init_process_group("cpu:gloo,cuda:nccl" if torch.cuda.is_available() else "gloo")
     return world()
-
-
-def world() -> tuple[int, int]:
-    """``(rank, world size)`` of this process: the process group's once
-    [`init_distributed`][] joined it, else ``(0, 1)``. Starts nothing."""
-    import torch.distributed as dist
-
-    if dist.is_available() and dist.is_initialized():
-        return dist.get_rank(), dist.get_world_size()
-    return 0, 1
 
 
 def _check_same_theta(theta: torch.Tensor) -> None:
