@@ -122,6 +122,38 @@ def test_device_flag_errors_name_the_value(capsys):
         assert "no CUDA GPU is available here" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("fails", [False, True])
+def test_a_rank_other_than_0_trains_in_a_folder_its_command_removes(fails, tmp_path, monkeypatch, capsys):
+    # under torchrun the ranks but 0 train into a temporary folder; it outlived every command
+    # (a model and figures left in the system's temp folder per rank and run), also on errors
+    import tempfile
+
+    import layoutwarp.experiments.runs as runs
+    import layoutwarp.experiments.training as training
+
+    scratch = tmp_path / "tmp"
+    scratch.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(scratch))
+    monkeypatch.setattr(training, "init_distributed", lambda: (1, 2))
+    seen = []
+
+    def run_experiment(task, folder, out, **kw):  # where the rank writes, while it runs
+        seen.append((out, out.is_dir(), out.parent == scratch))
+        if fails:
+            raise KeyboardInterrupt
+        (out / "results.json").write_text("{}")
+        return {"summary": {}}
+
+    monkeypatch.setattr(runs, "run_experiment", run_experiment)
+    monkeypatch.setattr(runs, "format_summary", lambda task, summary: "a summary")
+    argv = ["train", "mnist", "--quick", "--family", "curv", "--out", str(tmp_path / "out")]
+    assert main(argv) == (130 if fails else 0)  # a Ctrl-C: the command's one line, status 130
+    assert [s[1:] for s in seen] == [(True, True)]
+    assert list(scratch.iterdir()) == []  # removed, also when the run failed
+    assert not (tmp_path / "out" / "results.json").exists()  # rank 0 alone writes into --out
+    assert capsys.readouterr().out == ""  # and reports
+
+
 @pytest.mark.slow
 @pytest.mark.heavy
 def test_torchrun_with_two_gloo_processes_matches_one_process(tmp_path):
@@ -151,6 +183,8 @@ def test_torchrun_with_two_gloo_processes_matches_one_process(tmp_path):
     assert main([*args, "--out", str(tmp_path / "one")]) == 0
     torchrun = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2"]
     env = {k: v for k, v in os.environ.items() if k not in ("WORLD_SIZE", "RANK", "LOCAL_RANK")}
+    (tmp_path / "tmp").mkdir()
+    env["TMPDIR"] = str(tmp_path / "tmp")  # where rank 1 trains: nothing of it is left
     res = subprocess.run(
         [*torchrun, "-m", "layoutwarp", *args, "--out", str(tmp_path / "two")],
         capture_output=True,
@@ -165,6 +199,7 @@ def test_torchrun_with_two_gloo_processes_matches_one_process(tmp_path):
     assert abs(one["scores"]["accuracy"] - two["scores"]["accuracy"]) <= 2.0
     assert any(abs(v) > 1e-3 for v in two["theta"])  # it learned
     assert res.stdout.count("wrote ") == 1  # rank 0 alone reports
+    assert not any(p.name.startswith("layoutwarp-rank-") for p in (tmp_path / "tmp").iterdir())
     assert sorted(p.name for p in (tmp_path / "two").iterdir()) == sorted(
         p.name for p in (tmp_path / "one").iterdir()
     )

@@ -6,7 +6,6 @@ import argparse
 import contextlib
 import json
 import os
-import sys
 import tempfile
 from collections.abc import Iterator, Sequence
 from pathlib import Path
@@ -137,7 +136,6 @@ def _physics_option(task: Task, args: argparse.Namespace) -> dict:
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
-    from ..experiments.runs import format_summary, run_experiment
     from ..experiments.tasks import get_task
     from ..experiments.training import init_distributed
 
@@ -150,16 +148,46 @@ def _cmd_train(args: argparse.Namespace) -> int:
     for size in sizes:
         check_sensor_memory(size)
     out = out_dir(args.out or f"results/{task.name}")
-    if init_distributed()[0] != 0:  # under torchrun rank 0 alone reports and writes; the others train alike
-        out = Path(tempfile.mkdtemp(prefix="layoutwarp-rank-"))
-        sys.stdout = open(os.devnull, "w")  # for the rest of this process
-    options = _run_options(task, args, d)
+    with _rank_zero_writes(out, init_distributed()[0]) as out:
+        options = _run_options(task, args, d)
+        return _train(task, folder, out, families, sizes, seeds, options, args.quick)
+
+
+@contextlib.contextmanager
+def _rank_zero_writes(out: Path, rank: int) -> Iterator[Path]:
+    """``out`` on rank 0 (a single process is rank 0). Under ``torchrun`` rank 0 alone reports and
+    writes; every other rank trains alike into a temporary folder, removed when its command ends
+    (also on an error), with its printing silenced."""
+    if rank == 0:
+        yield out
+        return
+    with (
+        tempfile.TemporaryDirectory(prefix="layoutwarp-rank-") as scratch,
+        open(os.devnull, "w") as null,
+        contextlib.redirect_stdout(null),
+    ):
+        yield Path(scratch)
+
+
+def _train(
+    task: Task,
+    folder: Path,
+    out: Path,
+    families: tuple[str, ...],
+    sizes: tuple[tuple[int, int], ...],
+    seeds: tuple[int, ...],
+    options: RunOptions,
+    quick: bool,
+) -> int:
+    """``layoutwarp train``'s runs into ``out``, with its report."""
+    from ..experiments.runs import format_summary, run_experiment
+
     sizes_txt = ", ".join(f"{w}x{h}" for h, w in sizes)
     print(
         f"{task.name}: data {folder}, families {', '.join(families)}, sensors {sizes_txt}, "
         f"seeds {list(seeds)}, {options.epochs} epochs"
     )
-    if args.quick:
+    if quick:
         print(
             f"  --quick: a smoke test on the few bundled {task.name} samples; its scores say that "
             "the pipeline runs, not what a layout is worth (train on the full data for that)"
