@@ -94,7 +94,8 @@ def _elliptic_phi(p: Tensor, theta: Tensor) -> Tensor:
     ``c_y = 1 − y²``, coordinates taken as ``|x|, |y|`` and the signs restored, ``u, v = E(p)``):
     ``1 − ‖E(p)‖ = c_x c_y / (1 + ‖E(p)‖)``; φ_curv's change ``Δu = −2θ (1 − r) u / (1 − θ + 2θ(1 − r))``;
     ``(√2 − u)² − v² = (√(2 − y²) − x)²`` with ``√(2 − y²) − x = (c_x + c_y) / (√(2 − y²) + x)``; so
-    ``A₋ = m² − 2(√2 − u)Δu − 2vΔv + Δu² − Δv²``, and the coordinate is ``2√2 u' / (√A₊ + √A₋)``."""
+    ``A₋ = m² − 2(√2 − u)Δu − 2vΔv + Δu² − Δv²``, and the coordinate is ``2√2 u' / (√A₊ + √A₋)``.
+    At θ = 0 the value is ``p`` exactly (the derivatives the closed form's)."""
     p, theta = promote(p, theta)
     inside = (p.abs() < 1).all(-1, keepdim=True)
     q = torch.where(inside, p, torch.zeros_like(p))
@@ -117,6 +118,11 @@ def _elliptic_phi(p: Tensor, theta: Tensor) -> Tensor:
     x = 2 * h * u2 / (torch.sqrt(a_plus) + _sqrt0(a_minus))
     y = 2 * h * v2 / (torch.sqrt(b_plus) + _sqrt0(b_minus))
     out = torch.stack([torch.copysign(x, q[..., 0]), torch.copysign(y, q[..., 1])], -1)
+    # θ = 0 is the uniform layout: φ is p itself, exactly, with the closed form's derivatives (it
+    # rounds off p by an ulp, which put an edge meant to lie on a source cell line on either side
+    # of it: one-sided θ-gradients there, other ones on the compiled mesh)
+    uniform = ((tx == 0) & (ty == 0))[..., None]
+    out = torch.where(uniform, out + (q - out).detach(), out)
     return torch.where(inside, out, p)
 
 

@@ -122,6 +122,8 @@ def phi_point(
             # (p − m)/2 as (p² − m²)/(2(p + m)) = r2·a/(p + m): no cancellation near the axes
             s1, s2 = p1 + m1, p2 + m2
             q[0], q[1] = r2 * a * _inv(s1), r2 * b * _inv(s2)
+            if th[0] == 0 and th[1] == 0:  # the uniform layout: p exactly, as the torch map gives it
+                q[0], q[1] = x, y
             # the Jacobian of E⁻¹ at (a, b) times ∂φ_curv/∂θ (diagonal); 1/m − 1/p as (p − m)/(p m)
             ip1, im1, ip2, im2 = _inv(p1), _inv(m1), _inv(p2), _inv(m2)
             dq[0, 0] = ((2 * a + r2) * ip1 - (2 * a - r2) * im1) / 4 * da
