@@ -436,11 +436,12 @@ def _write_png(path: Path, polys, wu: float, hu: float, px_per_um: float, line_w
     index = np.zeros(shape, np.int32)
     for k, p in enumerate(pts):
         cv2.fillPoly(index, [p], k + 1, lineType=cv2.LINE_8, shift=shift)
-    ipath = index_mask_paths(path)[1 if big else 0]
+    ipath, other = index_mask_paths(path)[:: -1 if big else 1]
     if big:
         atomic_write(ipath, lambda tmp: np.save(tmp, index))
     else:
         atomic_write(ipath, lambda tmp: _imwrite(tmp, index.astype(np.uint16)))
+    other.unlink(missing_ok=True)  # an earlier export's to this path: no stale mask beside it
     return [str(ipath)]
 
 
@@ -467,7 +468,8 @@ def export_format(path: str | Path, format: str | None = None) -> str:
 
 def index_mask_paths(path: str | Path) -> tuple[Path, Path]:
     """Where a PNG export to ``path`` writes its pixel index mask beside the outlines:
-    ``<stem>_index.png`` (uint16), or ``<stem>_index.npy`` for more than 65 534 pixels."""
+    ``<stem>_index.png`` (uint16), or ``<stem>_index.npy`` for more than 65 534 pixels (an export
+    removes the other of the two, an earlier export's to the same path)."""
     path = Path(path)
     return path.with_name(path.stem + "_index.png"), path.with_name(path.stem + "_index.npy")
 

@@ -14,14 +14,26 @@ from typing import Any
 import cv2
 import numpy as np
 
-__all__ = ["IMAGE_SUFFIXES", "encode_image", "list_images", "read_image", "to_dtype"]
+__all__ = ["IMAGE_SUFFIXES", "KEEPS", "encode_image", "list_images", "read_image", "read_label", "to_dtype"]
 
 #: The image files preprocessing reads (by suffix, any case).
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
 
+#: The dtypes the format of each suffix keeps (OpenCV's encoders; TIFF, not listed, keeps every
+#: dtype an image file holds). OpenCV writes any other as 8-bit, with a line on the terminal.
+KEEPS = {".png": ("uint8", "uint16"), ".jpg": ("uint8",), ".jpeg": ("uint8",), ".bmp": ("uint8",)}
+
 
 def encode_image(path: Path, arr: np.ndarray) -> bytes:
-    """``arr`` encoded as the image format of ``path``'s suffix (OpenCV's encoders)."""
+    """``arr`` encoded as the image format of ``path``'s suffix (OpenCV's encoders); ``ValueError``
+    for a dtype that format does not keep ([`KEEPS`][]: a 16-bit image in a file named ``.jpg``,
+    say), which OpenCV would write as 8-bit, saturated."""
+    keeps = KEEPS.get(path.suffix.lower())
+    if keeps is not None and arr.dtype.name not in keeps:
+        raise ValueError(
+            f"a {arr.dtype} image cannot be written as {path.suffix}, which keeps {' or '.join(keeps)} "
+            "only: give the source file a suffix of its format (.tif keeps every dtype)"
+        )
     ok, buf = cv2.imencode(path.suffix, arr)
     if not ok:
         raise ValueError(f"OpenCV cannot encode a {arr.dtype} {arr.shape} image as {path.suffix}")
@@ -85,14 +97,15 @@ def _truncation(data: np.ndarray) -> str | None:
 
 def read_image(path: Path, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray:
     """An image file as OpenCV decodes it (HW or HWC, its own dtype); ``ValueError`` if unreadable
-    or cut short (a PNG or JPEG file without its end marker).
+    or cut short (a PNG or JPEG file without its end marker). A JPEG file is turned as its EXIF
+    orientation says (as viewers show it, and as ``cv2.imread`` reads it by default), with the
+    default ``flags``.
 
     Read as bytes first, so paths OpenCV's own reader cannot open (non-ASCII names) work too.
     """
-    data = np.fromfile(str(path), dtype=np.uint8)
-    why = _truncation(data) if data.size else "empty file"
-    if why is not None:
-        raise ValueError(why)
+    data = _file_bytes(path)
+    if flags == cv2.IMREAD_UNCHANGED and data[:2].tobytes() == b"\xff\xd8":  # no alpha in a JPEG
+        flags = cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR  # UNCHANGED ignores the orientation
     with _opencv_quiet():
         img = cv2.imdecode(data, flags)
     if img is None:
@@ -100,14 +113,47 @@ def read_image(path: Path, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray:
     return img
 
 
+def read_label(path: Path) -> np.ndarray:
+    """A label map file's class indices, HW (HWC where the file holds colours): as
+    [`read_image`][] reads it, except that a palette PNG (Pascal VOC's) gives the indices its pixels
+    hold, not the palette's colours."""
+    data = _file_bytes(path)
+    # a PNG's IHDR chunk comes first: its colour type (3: palette) is byte 25 of the file
+    if data[:8].tobytes() == b"\x89PNG\r\n\x1a\n" and data.size > 25 and data[25] == 3:
+        import io
+
+        from PIL import Image  # Pillow comes with scikit-image
+
+        with Image.open(io.BytesIO(data.tobytes())) as im:
+            return np.array(im)  # writable, as OpenCV gives them
+    return read_image(path)
+
+
+def _file_bytes(path: Path) -> np.ndarray:
+    """A file's bytes; ``ValueError`` for an empty file or a PNG or JPEG cut short."""
+    if not path.is_file():  # not opened: a pipe would wait for a writer
+        raise ValueError("not a file (a broken link, a pipe or a device)")
+    data = np.fromfile(str(path), dtype=np.uint8)
+    why = _truncation(data) if data.size else "empty file"
+    if why is not None:
+        raise ValueError(why)
+    return data
+
+
 def list_images(src: str | Path, exclude: str | Path | None = None) -> list[Path]:
     """Every image file (by suffix, see [`IMAGE_SUFFIXES`][]) under ``src`` in sorted order,
-    leaving out the folder ``exclude`` (e.g. a destination inside the source)."""
+    leaving out the folder ``exclude`` (e.g. a destination inside the source). Links to folders
+    are followed, each folder walked once (a link back up is not followed again); an entry with an
+    image suffix that is no file (a broken link, a pipe) is listed too, for its reader to refuse."""
     src = Path(src)
     exclude = Path(exclude).resolve() if exclude is not None else None
-    files = []
-    for root, dirs, names in os.walk(src):
-        rootp = Path(root)
-        dirs[:] = sorted(d for d in dirs if exclude is None or (rootp / d).resolve() != exclude)
+    files, walked = [], {src.resolve(), exclude}
+    for root, dirs, names in os.walk(src, followlinks=True):
+        rootp, kept = Path(root), []
+        for d in sorted(dirs):  # a folder reached twice (by a link) is walked once
+            if (real := (rootp / d).resolve()) not in walked:
+                walked.add(real)
+                kept.append(d)
+        dirs[:] = kept
         files += [rootp / n for n in sorted(names) if Path(n).suffix.lower() in IMAGE_SUFFIXES]
     return files

@@ -25,6 +25,7 @@ Destination layout::
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import os
@@ -56,7 +57,7 @@ from .checks import (
 )
 from .doctor import run_info
 from .files import atomic_write, file_in_the_way
-from .imagefiles import IMAGE_SUFFIXES, encode_image, list_images, read_image, to_dtype
+from .imagefiles import IMAGE_SUFFIXES, encode_image, list_images, read_image, read_label, to_dtype
 from .labels import LABEL_RULES as SENSOR_RULES
 from .layoutfile import layout_from_spec, layout_spec, load_layout, same_spec, save_layout
 from .layouts import Layout, check_layout
@@ -100,6 +101,9 @@ class PreprocessResult:
     #: decode the file), ``weights`` (build the area weights, once per source size),
     #: ``integrate`` (the sensor image), ``encode`` (encode and write it, its label map too).
     stages: dict[str, float] = field(default_factory=dict)
+    #: The warnings of the run (a stretched source, say), each told once, naming the first file
+    #: that raised it.
+    warnings: list[str] = field(default_factory=list)
 
     @property
     def images_per_second(self) -> float:
@@ -184,33 +188,46 @@ class _Job:
             out = to_dtype(self.record(img, res, rel), img.dtype)
             t.append(time.perf_counter())
             dst = Path(task["dst"])
-            atomic_write(dst, encode_image(dst, out))
+            image = encode_image(dst, out)
+            label = self._label(task, img.shape[:2], res) if task.get("label_src") else None
+            atomic_write(dst, image)  # after the label map: a file refused for it writes nothing
             entry = {"file": rel, "src_bytes": task["src_bytes"], "src_mtime_ns": task["src_mtime_ns"]}
             entry |= {"src_hw": list(img.shape[:2]), "out_bytes": dst.stat().st_size}
-            if task.get("label_src"):
-                entry |= self._process_label(task, res)
+            if label is not None:
+                entry |= self._write_label(task, label, res)
             t.append(time.perf_counter())
             stages = dict(zip(STAGES, np.diff(t).tolist(), strict=True))
             return {"ok": True, "entry": entry, "stages": stages}
         except Exception as exc:  # reported, never fatal
             return {"ok": False, "file": rel, "error": f"{type(exc).__name__}: {exc}"}
 
-    def _process_label(self, task: dict, res: AreaResampler) -> dict:
+    def _label(self, task: dict, src_hw: tuple[int, int], res: AreaResampler) -> bytes:
+        """The bytes of a file's sensor-grid label map (``"inverse"``: its label map's own);
+        ``ValueError`` for a label map that is not one class index a pixel of its image."""
         src, dst = Path(task["label_src"]), Path(task["label_dst"])
+        label = read_label(src)
+        if label.shape != src_hw:
+            h, w = src_hw
+            raise ValueError(f"label map {src} must be single-channel and {w}x{h} as its image, has shape "
+                             f"{label.shape}")  # fmt: skip
         if self.label_rule == "inverse":
-            atomic_write(dst, src.read_bytes())
+            return src.read_bytes()
+        return encode_image(dst, res.labels(label, self.label_rule))
+
+    def _write_label(self, task: dict, label: bytes, res: AreaResampler) -> dict:
+        """Write a file's label map (and, for ``"inverse"``, its source size's back-warp maps, once);
+        its entry in ``done.jsonl``."""
+        dst = Path(task["label_dst"])
+        atomic_write(dst, label)
+        if self.label_rule == "inverse":
             maps = Path(task["backwarp_dir"]) / f"{res.src_size[1]}x{res.src_size[0]}.npz"
             with self._lock:
                 if not maps.exists():
                     col, row = sensor_index_maps(res.layout, res.size, res.src_size)
                     buf = _npz_bytes(row=row.numpy().astype(np.int32), col=col.numpy().astype(np.int32))
                     atomic_write(maps, buf)
-        else:
-            label = read_image(src)
-            if label.ndim != 2:
-                raise ValueError(f"label map {src} must be single-channel, has shape {label.shape}")
-            atomic_write(dst, encode_image(dst, res.labels(label, self.label_rule)))
-        return {"label": str(dst), "label_bytes": dst.stat().st_size}
+        entry = {"label": str(dst), "label_bytes": dst.stat().st_size}
+        return entry | {k: task[k] for k in ("label_src_bytes", "label_src_mtime_ns")}
 
 
 #: The stages of one image, as [`PreprocessResult.stages`][] sums them.
@@ -241,12 +258,15 @@ def _remote_process_many(spec: str, tasks: list[dict]) -> list[dict]:
     """A Dask task of several files (fewer round trips to the scheduler). The warnings a file
     raises on the worker come back with its result (``"warnings"``: category and text), so the
     run's own process tells them as a local run does, not the worker's log."""
-    out = []
-    for task in tasks:
-        with _told_to_the_run() as said:
-            r = _remote_process(spec, task)
-        out.append(r | {"warnings": said})
-    return out
+    return [_telling(functools.partial(_remote_process, spec), task) for task in tasks]
+
+
+def _telling(process: Callable[[dict], dict], task: dict) -> dict:
+    """``process(task)``'s result with the warnings it raised in this thread (``"warnings"``:
+    category and text), for the run to tell once and keep in its manifest."""
+    with _told_to_the_run() as said:
+        r = process(task)
+    return r | {"warnings": said}
 
 
 _SAID = threading.local()  # per worker thread: the warnings of the file it is on
@@ -311,6 +331,26 @@ def _read_done(path: Path) -> dict[str, dict]:
     return done
 
 
+def _done_before(prev: dict | None, task: dict) -> bool:
+    """Whether a file's entry ``prev`` in ``done.jsonl`` (or ``None``) says that ``task`` was done
+    and its outputs stand: the same source file (and label map) by size and modification time, and
+    the outputs of the sizes written. (Entries of an earlier version, without the label map's
+    size and time, leave those out.)"""
+    if prev is None:
+        return False
+    keys = ["src_bytes", "src_mtime_ns"] + [k for k in ("label_src_bytes", "label_src_mtime_ns") if k in prev]
+    label = task.get("label_dst")
+    return (
+        all(prev.get(k) == task.get(k) for k in keys)
+        and _has_size(Path(task["dst"]), prev.get("out_bytes"))
+        and (label is None or _has_size(Path(label), prev.get("label_bytes")))
+    )
+
+
+def _has_size(path: Path, size: int | None) -> bool:
+    return path.exists() and path.stat().st_size == size
+
+
 def _find_label(labels: Path, rel: Path) -> Path | None:
     for cand in (labels / rel, (labels / rel).with_suffix(".png")):
         if cand.exists():
@@ -338,8 +378,11 @@ RECORDS = ("layout.json", "done.jsonl", "manifest.json")
 def _label_paths(dst: Path, labels: Path | None, rel: Path, label_rule: str) -> tuple[Path | None, Path]:
     """A source file's label map (``None`` if it has none) and where its sensor-grid label goes."""
     label_src = _find_label(labels, rel) if labels is not None else None
-    keep = label_rule == "inverse" or label_src is None
-    return label_src, dst / "labels" / (rel if keep else rel.with_suffix(".png"))
+    if label_src is None:
+        return None, dst / "labels" / rel
+    return label_src, dst / "labels" / rel.with_suffix(
+        label_src.suffix if label_rule == "inverse" else ".png"
+    )
 
 
 def check_no_overwrite(
@@ -483,10 +526,13 @@ def preprocess_folder(
         what = "files is empty" if files is not None else f"src {str(src)!r} holds no images"
         raise ArgumentError("src", f"{what} ({', '.join(IMAGE_SUFFIXES)})")
     for path in sources:
-        if not path.is_relative_to(src) or not path.is_file():
+        if files is not None and (not path.is_relative_to(src) or not path.is_file()):
             raise ArgumentError(
                 "files", f"files must be image files under src {str(src)!r}, got {str(path)!r}"
             )
+    # what the walk found that is no file (a broken link, a pipe): listed as failed, never opened
+    odd = [path for path in sources if not path.is_file()]
+    sources = [path for path in sources if path.is_file()]
     if labels is not None and not any(_find_label(labels, p.relative_to(src)) for p in sources):
         raise ArgumentError(
             "labels",
@@ -523,25 +569,16 @@ def preprocess_folder(
         st = path.stat()
         out = dst / rel
         label_src, label_dst = _label_paths(dst, labels, rel, label_rule)
-        prev = done.get(str(rel))
-        if (
-            prev is not None
-            and prev.get("src_bytes") == st.st_size
-            and prev.get("src_mtime_ns") == st.st_mtime_ns
-            and out.exists()
-            and out.stat().st_size == prev.get("out_bytes")
-            and (
-                label_src is None
-                or (label_dst.exists() and label_dst.stat().st_size == prev.get("label_bytes"))
-            )
-        ):
-            skipped += 1
-            continue
         task = {"rel": str(rel), "src": str(path), "dst": str(out), "src_bytes": st.st_size}
         task |= {"src_mtime_ns": st.st_mtime_ns, "backwarp_dir": str(dst / "backwarp")}
         if label_src is not None:
+            lst = label_src.stat()
             task |= {"label_src": str(label_src), "label_dst": str(label_dst)}
-        tasks.append(task)
+            task |= {"label_src_bytes": lst.st_size, "label_src_mtime_ns": lst.st_mtime_ns}
+        if _done_before(done.get(str(rel)), task):
+            skipped += 1
+        else:
+            tasks.append(task)
     with ExitStack() as stack:  # the cluster reached before anything is written: a run refused
         # there leaves dst as it was
         client = stack.enter_context(_dask_client(workers, address)) if engine == "dask" and tasks else None
@@ -553,6 +590,9 @@ def preprocess_folder(
         )  # fmt: skip
         config |= {"tol": tol, "label_rule": label_rule}
         result = PreprocessResult(skipped=skipped)
+        for path in odd:
+            error = "ValueError: not a file (a broken link, a pipe or a device)"
+            result.failed.append({"file": str(path.relative_to(src)), "error": error})
         show = sys.stderr.isatty() if progress is None else progress
         from tqdm.auto import tqdm
 
@@ -564,10 +604,11 @@ def preprocess_folder(
             with done_file.open("a") as log:
 
                 def record(r: dict) -> None:
-                    for said in r.get("warnings", ()):  # a Dask worker's, told here once a run (a
-                        if said not in told:  # local run's are its resamplers', built once)
+                    for said in r.get("warnings", ()):  # a worker's (a thread's or a Dask
+                        if said not in told:  # worker's), told here once a run, with its file
                             told.add(said)
-                            warnings.warn(said[1], said[0], stacklevel=2)
+                            result.warnings.append(f"{said[1]} (first: {r.get('entry', r).get('file')})")
+                            warnings.warn(result.warnings[-1], said[0], stacklevel=2)
                     if r["ok"]:
                         log.write(json.dumps(r["entry"]) + "\n")
                         log.flush()
@@ -589,10 +630,10 @@ def preprocess_folder(
                     _run_on_dask(client, spec, tasks, record)
                 elif workers == 1 or len(tasks) <= 1:
                     for task in tasks:
-                        record(job.process(task))
+                        record(_telling(job.process, task))
                 else:
                     pool = ThreadPoolExecutor(workers)
-                    futures, seen = [pool.submit(job.process, t) for t in tasks], set()
+                    futures, seen = [pool.submit(_telling, job.process, t) for t in tasks], set()
                     try:
                         for fut in as_completed(futures):
                             seen.add(fut)
@@ -614,6 +655,7 @@ def preprocess_folder(
                 "processed_this_run": result.processed,
                 "skipped_this_run": result.skipped,
                 "failed": result.failed,
+                "warnings": result.warnings,
                 "finished": finished,
                 "seconds": round(result.seconds, 3),
                 "workers": workers,

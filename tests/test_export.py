@@ -139,6 +139,17 @@ def test_png_boundaries_and_index(gen, tmp_path):
     assert (index[xy[..., 1], xy[..., 0]] == np.arange(1, SIZE[0] * SIZE[1] + 1).reshape(SIZE)).all()
 
 
+def test_a_png_export_leaves_one_index_mask_beside_it(tmp_path):
+    # over 65 534 pixels the index mask is a .npy: an export to the same path left the other
+    # kind, an earlier export's, beside it (a stale mask that no longer matches the outlines)
+    small, large = tmp_path / "m_index.png", tmp_path / "m_index.npy"
+    for size, kept in [((4, 6), small), ((256, 257), large), ((3, 5), small)]:
+        rep = export_layout(lw.UniformLayout(), size, tmp_path / "m.png", (size[0], size[1]), px_per_um=1)
+        assert rep.files[-1] == str(kept) and sorted(tmp_path.iterdir()) == sorted([tmp_path / "m.png", kept])
+        index = np.load(kept) if kept == large else cv2.imread(str(kept), cv2.IMREAD_UNCHANGED)
+        assert index.max() == size[0] * size[1]
+
+
 def test_report_pitch_and_warning(tmp_path):
     layout = lw.UniformLayout()
     rep = export_layout(layout, (4, 6), tmp_path / "u.svg", (400, 600), min_feature_um=120)

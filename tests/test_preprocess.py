@@ -476,6 +476,18 @@ def test_a_stretched_source_is_warned_about_once(tmp_path, seed):
             tmp_path / "src", tmp_path / "dst", fixed("rect", (0.2, 0.1)), (10, 20), progress=False
         )
     assert len([w for w in rec if "aspect ratio" in str(w.message)]) == 1
+    # with the file it came with (the first of its size), in the manifest too: on two threads
+    with pytest.warns(UserWarning, match=r"\(60, 30\): .*stretched 2.00x along x \(first: [012].png\)"):
+        res = preprocess_folder(
+            tmp_path / "src",
+            tmp_path / "dst1",
+            fixed("rect", (0.2, 0.1)),
+            (10, 10),
+            workers=2,
+            progress=False,
+        )
+    assert len(res.warnings) == 1 and "stretched 2.00x" in res.warnings[0]
+    assert json.loads((tmp_path / "dst1" / "manifest.json").read_text())["warnings"] == res.warnings
     import warnings
 
     with warnings.catch_warnings():
@@ -635,3 +647,113 @@ def test_a_stopped_run_writes_its_manifest_and_leaves_the_rest_unbegun(tmp_path,
     assert again.processed + manifest["files_done"] == whole.processed
     for rel in ("gray8.png", "sub/colour8.png", "alpha.png"):
         assert (dst / rel).read_bytes() == (tmp_path / "whole" / rel).read_bytes()
+
+
+def test_an_image_its_suffix_cannot_keep_fails_and_is_not_written(tmp_path):
+    # 16-bit data in a file named .jpg, float data named .png: OpenCV's encoders wrote them as
+    # 8-bit, saturated, without an error (every value 255), and the run counted them as done
+    src, dst = tmp_path / "src", tmp_path / "dst"
+    src.mkdir()
+    rng = np.random.default_rng(4)
+    (src / "scan16.jpg").write_bytes(
+        cv2.imencode(".png", rng.integers(0, 65536, (48, 64), dtype=np.uint16))[1]
+    )
+    (src / "depth.png").write_bytes(cv2.imencode(".tif", rng.random((48, 64), dtype=np.float32))[1])
+    _photo(src / "fine.png", 1)
+    res = preprocess_folder(src, dst, lw.UniformLayout(), (12, 16), progress=False)
+    failed = {f["file"]: f["error"] for f in res.failed}
+    assert res.processed == 1 and sorted(failed) == ["depth.png", "scan16.jpg"]
+    assert "a uint16 image cannot be written as .jpg, which keeps uint8 only" in failed["scan16.jpg"]
+    assert (
+        "a float32 image cannot be written as .png, which keeps uint8 or uint16 only" in failed["depth.png"]
+    )
+    assert sorted(p.name for p in dst.iterdir()) == ["done.jsonl", "fine.png", "layout.json", "manifest.json"]
+    for suffix, keeps in lw.imagefiles.KEEPS.items():  # what OpenCV's encoder of each suffix keeps
+        for dtype in ("uint8", "uint16", "int16", "float32"):
+            arr = rng.integers(0, 200, (5, 7)).astype(dtype)
+            if dtype in keeps:
+                back = cv2.imdecode(
+                    np.frombuffer(lw.imagefiles.encode_image(Path("a" + suffix), arr), np.uint8), -1
+                )
+                assert back.dtype == arr.dtype
+            else:
+                with pytest.raises(ValueError, match=f"a {dtype} image cannot be written as {suffix}"):
+                    lw.imagefiles.encode_image(Path("a" + suffix), arr)
+
+
+def test_links_in_the_source_folder_are_followed_once_and_a_broken_one_fails_alone(tmp_path):
+    import os
+
+    src, elsewhere = tmp_path / "src", tmp_path / "elsewhere"
+    for rel in ("real/a.png", "real/b.png"):
+        _photo(src / rel, 2)
+    _photo(elsewhere / "c.png", 3)
+    (src / "linked").symlink_to(elsewhere)  # a folder link: its images are the source's too
+    (src / "again").symlink_to(elsewhere)  # the same folder by a second link: walked once
+    (src / "real" / "loop").symlink_to(src)  # a link back up: not walked again
+    (src / "real" / "gone.png").symlink_to(tmp_path / "nowhere.png")  # broken
+    os.mkfifo(src / "real" / "pipe.png")  # a pipe: never opened (it would wait for a writer)
+    res = preprocess_folder(src, tmp_path / "dst", lw.UniformLayout(), (10, 15), progress=False)
+    assert sorted(f["file"] for f in res.failed) == ["real/gone.png", "real/pipe.png"]
+    assert all("not a file (a broken link, a pipe or a device)" in f["error"] for f in res.failed)
+    written = sorted(str(p.relative_to(tmp_path / "dst")) for p in (tmp_path / "dst").rglob("*.png"))
+    assert written == ["again/c.png", "real/a.png", "real/b.png"]  # "again" sorts before "linked"
+    manifest = json.loads((tmp_path / "dst" / "manifest.json").read_text())
+    assert len(manifest["failed"]) == 2 and manifest["files_done"] == 3
+
+
+def test_label_maps_palette_changed_or_not_fitting_their_image(tmp_path):
+    from PIL import Image
+
+    img, lab, dst = tmp_path / "img", tmp_path / "lab", tmp_path / "dst"
+    _photo(img / "a.png", 4, hw=(48, 64))
+    _photo(img / "b.jpg", 5, hw=(48, 64))
+    _photo(img / "c.png", 6, hw=(48, 64))
+    classes = np.zeros((48, 64), np.uint8)
+    classes[:, 32:] = 1
+    classes[24:] += 2
+    lab.mkdir()
+    palette = Image.fromarray(classes, "P")  # Pascal VOC's kind: the pixels hold class indices
+    palette.putpalette([0, 0, 0, 128, 0, 0, 0, 128, 0, 128, 128, 0] + [0] * 756)
+    palette.save(lab / "a.png")
+    cv2.imwrite(str(lab / "b.png"), classes)  # a JPEG image's label map: the .png of its stem
+    cv2.imwrite(str(lab / "c.png"), cv2.resize(classes, (128, 96), interpolation=cv2.INTER_NEAREST))
+    layout, size = lw.UniformLayout(), (6, 8)
+    res = preprocess_folder(img, dst, layout, size, labels=lab, label_rule="nearest", progress=False)
+    assert [f["file"] for f in res.failed] == ["c.png"]  # a label map of another size than its image
+    assert "must be single-channel and 64x48 as its image, has shape (96, 128)" in res.failed[0]["error"]
+    assert not (dst / "c.png").exists() and not (dst / "labels" / "c.png").exists()  # nothing of it
+    want = AreaResampler(layout, size, (48, 64)).labels(classes, "nearest")
+    for name in ("a.png", "b.png"):
+        assert (cv2.imread(str(dst / "labels" / name), cv2.IMREAD_UNCHANGED) == want).all()
+    # a corrected label map is taken on the next run (its image unchanged)
+    time.sleep(0.01)
+    cv2.imwrite(str(lab / "b.png"), 3 - classes)
+    res = preprocess_folder(img, dst, layout, size, labels=lab, label_rule="nearest", progress=False)
+    assert res.processed == 1 and res.skipped == 1 and [f["file"] for f in res.failed] == ["c.png"]
+    assert (cv2.imread(str(dst / "labels" / "b.png"), cv2.IMREAD_UNCHANGED) == 3 - want).all()
+    # inverse: each label map copied in its own format (b.jpg's label map is a PNG file)
+    inv = tmp_path / "inv"
+    res = preprocess_folder(img, inv, layout, size, labels=lab, label_rule="inverse", progress=False)
+    assert [f["file"] for f in res.failed] == ["c.png"]
+    assert sorted(p.name for p in (inv / "labels").iterdir()) == ["a.png", "b.png"]
+    assert (inv / "labels" / "b.png").read_bytes() == (lab / "b.png").read_bytes()
+
+
+def test_a_jpeg_is_read_as_its_exif_orientation_shows_it(tmp_path):
+    from PIL import Image
+
+    src = tmp_path / "src"
+    src.mkdir()
+    stored = np.zeros((48, 64, 3), np.uint8)
+    stored[:, :32] = 255  # stored landscape, left half white; shown portrait (turned 90° clockwise)
+    im = Image.fromarray(stored)
+    exif = im.getexif()
+    exif[0x0112] = 6
+    im.save(src / "phone.jpg", exif=exif.tobytes(), quality=95)
+    shown = cv2.imread(str(src / "phone.jpg"))  # OpenCV's own reader applies the orientation
+    assert shown.shape == (64, 48, 3)
+    assert np.array_equal(lw.imagefiles.read_image(src / "phone.jpg"), shown)
+    preprocess_folder(src, tmp_path / "dst", lw.UniformLayout(), (16, 12), progress=False)
+    out = cv2.imread(str(tmp_path / "dst" / "phone.jpg"), cv2.IMREAD_UNCHANGED)
+    assert out.shape == (16, 12, 3) and out[:8].mean() > 200 and out[8:].mean() < 50  # white on top

@@ -58,7 +58,7 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
         raise UsageError(f"argument --benchmark: needs an empty DST, {str(dst)!r} is not empty")
     base = None
     if args.benchmark:  # the baseline first, both on a warm page cache
-        files = list_images(args.src, dst)
+        files = [path for path in list_images(args.src, dst) if path.is_file()]  # no broken link
         for path in files:
             path.read_bytes()
         with tempfile.TemporaryDirectory() as tmp:
