@@ -226,11 +226,11 @@ def _edge_parameters(
     needs), shared along the edge in proportion to length, bounds every pixel's value error by
     ``tol`` times the radiance range. The sagitta is bounded by ``max |φ''⊥| / 8``, across the
     edge's own direction at each sample (a piece that turns bends across its chord only in part),
-    from second differences at the 17 [`SAMPLES`][] of each piece, graded towards its ends: φ bends
+    from second differences at the 13 [`SAMPLES`][] of each piece, graded towards its ends: φ bends
     hardest where a piece meets the unit circle or the sensor's border (θ near ±1 puts nearly all of
     an edge's bend into its last thousandth), and an S-shaped piece has no sagitta at its middle.
     Straight edges get exactly one segment. With ``with_grad``, the parameter velocity ``∂φ/∂θ``
-    along each edge, sampled at the 15 inner samples (it may jump at a kink, a piece's end), is held
+    along each edge, sampled at the 11 inner samples (it may jump at a kink, a piece's end), is held
     to the same bound, so that θ-gradients are as accurate as values where the image changes
     little from one source pixel to the next (docs/integrators.md: an image that jumps at every
     cell line the edge crosses moves its gradient beyond ``tol``, the more so the more cells the
@@ -353,19 +353,15 @@ def _second_differences(f: Tensor, inner: slice) -> Tensor:
 
 
 SAMPLES = (
-    0.0, 2.0**-19, 2.0**-15, 2.0**-11, 2.0**-7, 2.0**-3, 0.25, 0.375, 0.5,
-    0.625, 0.75, 1 - 2.0**-3, 1 - 2.0**-7, 1 - 2.0**-11, 1 - 2.0**-15, 1 - 2.0**-19, 1.0,
+    0.0, 2.0**-11, 2.0**-7, 2.0**-3, 0.25, 0.375, 0.5,
+    0.625, 0.75, 1 - 2.0**-3, 1 - 2.0**-7, 1 - 2.0**-11, 1.0,
 )  # fmt: skip
 """Where the count stage samples a smooth piece, as fractions of it: its eighths from 1/4 to 3/4
 (a bend at a strip's centre, near θ = -1, lies between quarters), and graded by 16 towards both
-ends down to 2⁻¹⁹ of the piece, where φ bends hardest (θ at 1 − 10⁻⁶ holds a curv edge's bend in
-its last millionth); exact in binary. Finer steps would make rounding look like a bend (a
-second difference over 2⁻²³ of a piece is float64's noise times 2⁴⁶): counts rose 2.2x on
-ordinary layouts. They keep every pixel within the tolerance on the hard cases of
-``tests/test_mesh.py`` (θ of either sign up to ±0.97, against polylines of 4096 segments) and on
-its strips, up to ±0.99, and curv's up to 0.999999; nearer ±1 a bend held by one end can need
-more equal steps than ``max_subdiv`` (said in a warning), and for a few it is narrower still
-than the samples (docs/integrators.md)."""
+ends, where φ bends hardest; exact in binary. They keep every pixel within the tolerance on the
+hard cases of ``tests/test_mesh.py`` (θ of either sign up to ±0.97, against polylines of 4096
+segments) and on its strips, up to ±0.99; equal steps along a piece do not resolve every bend
+held by one end or one point nearer ±1."""
 
 BENDS = tuple(
     (2 / (h1 + h2) / h2, 2 / (h1 + h2) / h1)
