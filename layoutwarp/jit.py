@@ -256,6 +256,9 @@ def status() -> dict[str, str]:
     return out
 
 
+_CHILDREN_LOCK = threading.Lock()  # a compile's children: started, or stopped, one at a time
+
+
 def compile_all(
     progress: Callable[[str, float, float], None] | None = None,
     units: tuple[str, ...] = UNITS,
@@ -282,16 +285,28 @@ def compile_all(
         "compile_all(lambda *a: print(json.dumps(a)), units=(sys.argv[1],))"
     )
 
+    children: list[subprocess.Popen] = []
+    stop = threading.Event()
+
     def one(unit: str) -> None:
         if unit.startswith("learn/"):  # a learnable step's warm-up runs mostly the mesh's kernels:
             mesh.result()  # after them, not beside them (compiling them twice)
-        res = subprocess.run([sys.executable, "-c", code, unit], capture_output=True, text=True, check=False)
-        if res.returncode != 0:
-            raise RuntimeError(f"compiling {unit} failed:\n{res.stderr[-2000:]}")
+        with _CHILDREN_LOCK:
+            if stop.is_set():
+                return
+            child = subprocess.Popen(
+                [sys.executable, "-c", code, unit], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+            )
+            children.append(child)
+        out, err = child.communicate()
+        if stop.is_set():
+            return
+        if child.returncode != 0:
+            raise RuntimeError(f"compiling {unit} failed:\n{err[-2000:]}")
         if progress is not None:
-            progress(*json.loads(res.stdout.strip().splitlines()[-1]))
+            progress(*json.loads(out.strip().splitlines()[-1]))
 
-    with pool:
+    try:
         if "mesh" in units:
             mesh = pool.submit(one, "mesh")
         later = [u for u in units if u.startswith("learn/")]
@@ -299,6 +314,14 @@ def compile_all(
         futures += [pool.submit(one, u) for u in later]
         for f in [mesh, *futures]:
             f.result()
+    except BaseException:  # Ctrl-C, or a unit failed: the units not begun are not begun, and the
+        with _CHILDREN_LOCK:  # compiles under way stop with the command (none outlives it)
+            stop.set()
+            for child in children:
+                child.kill()
+        raise
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
     for unit in units:
         if _loads(unit):
             _READY.add(unit)

@@ -4,10 +4,14 @@ everywhere."""
 
 from __future__ import annotations
 
+import contextlib
 import json
+import os
 import re
+import signal
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -703,6 +707,16 @@ def test_a_run_record_of_another_kind_is_refused_in_one_line(tmp_path):
         with pytest.raises(ValueError, match=re.escape(f"{stray} is no run of a study")):
             read_runs(tmp_path, name, "a study")
         (tmp_path / "runs" / stray).unlink()
+    # a writer's temporary file (another rank's write under way, or one a killed process left)
+    # is no record: it was read as one, and refused the folder until removed by hand
+    (tmp_path / "runs" / ".curv_4x4_seed0.json.q8w1z0cd.json").write_text('{"family": "cu')
+    (tmp_path / "checkpoints").mkdir()
+    (tmp_path / "checkpoints" / ".curv_4x4_seed1.pt.k2j3h4.pt").write_bytes(b"")
+    assert read_runs(tmp_path, name, "a study") == [record]
+    from layoutwarp.experiments.runs import _made
+
+    (tmp_path / "runs" / "curv_4x4_seed0.json").unlink()
+    assert not _made(tmp_path)
 
 
 @pytest.mark.parametrize(
@@ -723,3 +737,37 @@ def test_an_unwritable_file_or_a_ctrl_c_ends_in_one_line(error, status, line, tm
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [f"layoutwarp demo: {'error: ' if status == 1 else ''}{line}"]
     assert not (tmp_path / "out").exists()  # the empty folder it made is gone
+
+
+def _children(pid: int) -> list[int]:
+    """The processes whose parent is ``pid`` (Linux's /proc)."""
+    kids = []
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            with contextlib.suppress(OSError):
+                stat = open(f"/proc/{entry}/stat").read()
+                if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
+                    kids.append(int(entry))
+    return kids
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads the processes from /proc")
+def test_sigterm_stops_a_command_as_ctrl_c_does_and_its_compiles_with_it(tmp_path):
+    # SIGTERM (torchrun ending a rank, a scheduler) killed the command without its cleanup (a
+    # rank's temporary folder left, no manifest), and `doctor --compile` left its compiling
+    # children running; a Ctrl-C there still started the units not begun
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache")}  # empty: everything compiles
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "layoutwarp", "doctor", "--compile"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+    )  # fmt: skip
+    deadline = time.monotonic() + 60
+    while not (kids := _children(proc.pid)) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert kids, "no compile started"
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 143 and err.strip().endswith("terminated"), err[-2000:]
+    time.sleep(0.5)
+    assert not [k for k in kids if os.path.exists(f"/proc/{k}")]  # its compiles stopped with it

@@ -154,6 +154,27 @@ def test_a_rank_other_than_0_trains_in_a_folder_its_command_removes(fails, tmp_p
     assert capsys.readouterr().out == ""  # and reports
 
 
+@pytest.mark.parametrize("command", ["study", "landscape"])
+def test_a_study_or_landscape_prints_on_rank_0_alone(command, tmp_path, monkeypatch, capsys):
+    # under torchrun every rank printed the whole report (and two ranks' lines mixed in one)
+    import layoutwarp.experiments.landscape as landscape
+    import layoutwarp.experiments.study as study
+    import layoutwarp.experiments.training as training
+
+    ran = []
+    monkeypatch.setattr(study, "run_study", lambda *a, **kw: ran.append(command) or {})
+    monkeypatch.setattr(study, "study_table", lambda summary: "the table\n")
+    monkeypatch.setattr(landscape, "run_landscape", lambda *a, **kw: ran.append(command) or {})
+    monkeypatch.setattr(landscape, "landscape_table", lambda summary: "the table\n")
+    for rank, says in ((1, ""), (0, "the table\nwrote ")):
+        monkeypatch.setattr(training, "init_distributed", lambda rank=rank: (rank, 2))
+        extra = ["--family", "rect"] if command == "landscape" else []
+        assert main([command, "mnist", "--quick", *extra, "--out", str(tmp_path / command)]) == 0
+        out = capsys.readouterr().out
+        assert out.startswith(says) if says else out == ""
+    assert ran == [command, command]
+
+
 @pytest.mark.slow
 @pytest.mark.heavy
 def test_torchrun_with_two_gloo_processes_matches_one_process(tmp_path):

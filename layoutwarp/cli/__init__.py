@@ -13,6 +13,7 @@ import argparse
 import contextlib
 import os
 import re
+import signal
 import sys
 import warnings
 from collections.abc import Sequence
@@ -129,9 +130,10 @@ def main(argv: Sequence[str] | None = None, *, own_process: bool = False) -> int
     except ImportError as exc:  # an optional extra not installed: its message says which
         print(f"{prog}: error: {exc}", file=sys.stderr)
         status = 1
-    except KeyboardInterrupt:  # what was finished is kept: a command run again goes on from there
-        print(f"{prog}: interrupted", file=sys.stderr)
-        status = 130  # as a shell reports a command ended by SIGINT
+    except KeyboardInterrupt as exc:  # what was finished is kept: a command run again goes on from there
+        ended = isinstance(exc, Terminated)
+        print(f"{prog}: {'terminated' if ended else 'interrupted'}", file=sys.stderr)
+        status = 143 if ended else 130  # as a shell reports a command ended by SIGTERM or SIGINT
     finally:
         if status != 0:  # a failed command leaves no empty output folder of its own behind
             for folder in reversed(NEW_FOLDERS):
@@ -155,18 +157,31 @@ def _one_line_warning(message: Warning | str, category: type[Warning], *args: An
     return f"layoutwarp: warning: {message}\n"
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (a scheduler's stop, ``torchrun`` ending the other ranks, ``kill``) as the command
+    line takes it: as a Ctrl-C, so the command stops as one does (what it finished kept, its
+    temporary files and child processes gone, a manifest written), with status 143."""
+
+
+def _terminate(signum: int, frame: object) -> None:
+    raise Terminated
+
+
 def run() -> None:
     """The ``layoutwarp`` command (and ``python -m layoutwarp``): [`main`][] in a process of
-    its own. Output cut short by its reader (``| head``) ends the command quietly."""
+    its own. Output cut short by its reader (``| head``) ends the command quietly; SIGTERM
+    stops it as a Ctrl-C does ([`Terminated`][])."""
+    signal.signal(signal.SIGTERM, _terminate)
     try:
         status = main(own_process=True)
         sys.stdout.flush()
     except BrokenPipeError:
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit
         status = 141  # as a shell reports a command ended by SIGPIPE
-    except KeyboardInterrupt:  # before the command's work began (its parser, its imports)
-        print("layoutwarp: interrupted", file=sys.stderr)
-        status = 130
+    except KeyboardInterrupt as exc:  # before the command's work began (its parser, its imports)
+        ended = isinstance(exc, Terminated)
+        print(f"layoutwarp: {'terminated' if ended else 'interrupted'}", file=sys.stderr)
+        status = 143 if ended else 130
     sys.exit(status)
 
 

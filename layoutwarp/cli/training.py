@@ -161,12 +161,19 @@ def _rank_zero_writes(out: Path, rank: int) -> Iterator[Path]:
     if rank == 0:
         yield out
         return
-    with (
-        tempfile.TemporaryDirectory(prefix="layoutwarp-rank-") as scratch,
-        open(os.devnull, "w") as null,
-        contextlib.redirect_stdout(null),
-    ):
+    with tempfile.TemporaryDirectory(prefix="layoutwarp-rank-") as scratch, _rank_zero_prints(rank):
         yield Path(scratch)
+
+
+@contextlib.contextmanager
+def _rank_zero_prints(rank: int) -> Iterator[None]:
+    """Within: this process prints its report only on rank 0 (a single process is rank 0); the
+    other ranks of a ``torchrun`` print nothing to stdout (their errors still go to stderr)."""
+    if rank == 0:
+        yield
+        return
+    with open(os.devnull, "w") as null, contextlib.redirect_stdout(null):
+        yield
 
 
 def _train(
@@ -256,13 +263,15 @@ def _cmd_study(args: argparse.Namespace) -> int:
         return 0
     for size in plan.uniform_sizes + plan.learned_sizes:
         check_sensor_memory(size)
-    init_distributed()
-    options = _study_run_options(task, plan, args)
-    with _data_errors():
-        summary = run_study(task, folder, out, plan=plan, seeds=args.seeds, options=options)
-    print(study_table(summary), end="")
-    theta = f", theta_{task.name}.png" if (out / f"theta_{task.name}.png").exists() else ""
-    print(f"wrote {out}/study.json, study.md, study_{task.name}.png{theta} (scores in percent)")
+    # under torchrun every rank trains and writes the same records (atomically, the same bytes
+    # but for a run's time): a resumed run's checkpoint is where each rank looks for it
+    with _rank_zero_prints(init_distributed()[0]):
+        options = _study_run_options(task, plan, args)
+        with _data_errors():
+            summary = run_study(task, folder, out, plan=plan, seeds=args.seeds, options=options)
+        print(study_table(summary), end="")
+        theta = f", theta_{task.name}.png" if (out / f"theta_{task.name}.png").exists() else ""
+        print(f"wrote {out}/study.json, study.md, study_{task.name}.png{theta} (scores in percent)")
     return 0
 
 
@@ -293,26 +302,19 @@ def _cmd_landscape(args: argparse.Namespace) -> int:
         raise UsageError(f"argument --study: no study runs (or shipped layouts) in {args.study!r}")
     if args.study:
         not_within(out, "--out", args.study, "--study")
-    init_distributed()
-    options = _study_run_options(task, task.study, args)
-    n = args.grid or (3 if args.quick else 7)
-    with _data_errors():
-        summary = run_landscape(
-            task,
-            folder,
-            out,
-            family=args.family,
-            size=size,
-            n=n,
-            lo=lo,
-            hi=hi,
-            options=options,
-            study=args.study,
-        )
     from ..experiments.landscape import landscape_table
 
-    print(landscape_table(summary), end="")
-    print(f"wrote {out}/landscape.json, landscape.md and landscape_{task.name}_{args.family}.png (percent)")
+    with _rank_zero_prints(init_distributed()[0]):  # every rank writes, as a study's do
+        options = _study_run_options(task, task.study, args)
+        n = args.grid or (3 if args.quick else 7)
+        with _data_errors():
+            summary = run_landscape(
+                task, folder, out, family=args.family, size=size, n=n, lo=lo, hi=hi, options=options,
+                study=args.study,
+            )  # fmt: skip
+        print(landscape_table(summary), end="")
+        figure = f"landscape_{task.name}_{args.family}.png"
+        print(f"wrote {out}/landscape.json, landscape.md and {figure} (percent)")
     return 0
 
 

@@ -136,13 +136,20 @@ def run_name(family: str, size: Sequence[int], seed: int) -> str:
     return f"{family}_{size[1]}x{size[0]}_seed{seed}"
 
 
+def _files(folder: Path, pattern: str) -> list[Path]:
+    """The files of ``folder`` that match ``pattern``, sorted, but a writer's temporary ones
+    ([`atomic_write`][layoutwarp.files.atomic_write]'s ``.NAME.<random><suffix>``: another
+    process's write under way, or one a killed process left)."""
+    return sorted(p for p in folder.glob(pattern) if not p.name.startswith("."))
+
+
 def read_runs(folder: Path, name_of: Callable[[dict], str], what: str) -> list[dict]:
     """The run records a ``folder`` of ``what`` (a study, a landscape) holds in ``runs/*.json``, by
     file name; each must be named as ``name_of`` names its record: a file of another kind (a
     landscape's runs written into a study's folder, a summary copied there) is refused in one
     line, not read as one of these runs."""
     records = []
-    for path in sorted((folder / "runs").glob("*.json")):
+    for path in _files(folder / "runs", "*.json"):
         try:
             record = json.loads(path.read_text())
             ours = isinstance(record, dict) and name_of(record) == path.stem
@@ -171,7 +178,7 @@ def _settings(options: RunOptions) -> dict[str, Any]:
 
 def _made(out: Path) -> bool:
     """Whether a study or landscape folder holds a run that finished or stopped with a checkpoint."""
-    return any((out / "runs").glob("*.json")) or any((out / "checkpoints").glob("*.pt"))
+    return bool(_files(out / "runs", "*.json") or _files(out / "checkpoints", "*.pt"))
 
 
 def check_resumed(out: Path, options: RunOptions, what: str) -> None:
@@ -184,7 +191,7 @@ def check_resumed(out: Path, options: RunOptions, what: str) -> None:
     lacks (an earlier version's) is not compared."""
     if not _made(out):
         return
-    path, runs = out / "settings.json", sorted((out / "runs").glob("*.json"))
+    path, runs = out / "settings.json", _files(out / "runs", "*.json")
     record, then = path if path.exists() else next(iter(runs), None), None
     if record is not None:
         with contextlib.suppress(OSError, ValueError):
