@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 
 import pytest
 
@@ -15,6 +16,11 @@ def test_grid_points_and_names():
     assert pts[0] == (-0.8, -0.8) and pts[4] == (0.0, 0.0) and pts[-1] == (0.8, 0.8) and len(pts) == 9
     assert point_name("curv", (4, 4), (0.5, -0.25), 2) == "curv_4x4_tx+0.5_ty-0.25_seed2"
     assert point_name("curv", (4, 4), (0.0, 0.0), 0, "learned") == "curv_4x4_tx+0_ty+0_learned_seed0"
+    # the documented -0.9 .. 0.9 by 7 put its centre at -0.0: named tx-0_ty-0 against the uniform
+    # seeds' tx+0_ty+0, so a best point at θ = 0 trained and counted those seeds twice
+    centre = grid_points(7, -0.9, 0.9)[24]
+    assert centre == (0.0, 0.0) and all(math.copysign(1, v) == 1 for v in centre)
+    assert point_name("rect", (4, 4), centre, 0) == "rect_4x4_tx+0_ty+0_seed0"
 
 
 @pytest.mark.slow
@@ -79,3 +85,37 @@ def test_a_study_folders_runs_are_read_as_the_study_reads_them(tmp_path):
     (runs / "summary.json").write_text("{}")
     with pytest.raises(ValueError, match=r"summary\.json is no run of a study"):
         study_records(tmp_path, "curv", (4, 4))
+
+
+def test_landscape_seeds_are_its_repeats_at_theta_0_and_the_best_point(tmp_path, monkeypatch, capsys):
+    # --seeds was accepted and ignored: θ = 0 and the best point took 3 seeds whatever it said
+    import layoutwarp.experiments.landscape as landscape
+
+    asked = []
+    monkeypatch.setattr(landscape, "run_landscape", lambda *a, **kw: asked.append(kw["repeats"]) or {})
+    monkeypatch.setattr(landscape, "landscape_table", lambda summary: "")
+    argv = ["landscape", "mnist", "--quick", "--family", "rect", "--out", str(tmp_path / "l")]
+    assert main(argv) == 0 and main([*argv, "--seeds", "2"]) == 0
+    assert asked == [3, 2]
+
+
+@pytest.mark.parametrize("command", ["study", "landscape"])
+def test_a_folder_of_the_other_kind_is_refused_before_any_run_trains(command, tmp_path, monkeypatch, capsys):
+    # study --out LANDSCAPE trained a run into the landscape's folder before refusing it (and
+    # the landscape then refused its own folder); the reverse trained 13 points
+    import layoutwarp.experiments.landscape as landscape
+    import layoutwarp.experiments.study as study
+    from layoutwarp.experiments.runs import run_name
+
+    trained = []
+    for module in (study, landscape):
+        monkeypatch.setattr(module, "train_run", lambda *a, **kw: trained.append(a) or ({}, None))
+    runs = tmp_path / "runs"
+    runs.mkdir()
+    record = {"family": "rect", "size_hw": [3, 3], "seed": 0, "theta_point": [0.0, 0.0], "tag": ""}
+    other = point_name("rect", (3, 3), (0.0, 0.0), 0) if command == "study" else run_name("rect", (3, 3), 0)
+    (runs / f"{other}.json").write_text(json.dumps(record))
+    extra = ["--family", "rect"] if command == "landscape" else []
+    assert main([command, "mnist", "--quick", *extra, "--out", str(tmp_path)]) == 2
+    assert f"{other}.json is no run of a {command}" in capsys.readouterr().err
+    assert trained == [] and sorted(p.name for p in runs.iterdir()) == [f"{other}.json"]

@@ -165,6 +165,11 @@ def test_a_study_or_landscape_resumes_only_with_the_settings_its_runs_trained_wi
     check_resumed(out, replace(opts, device="cuda"), "study")  # where the runs train may change
     with pytest.raises(ArgumentError, match=rf"trained with tol {opts.sensor['tol']!r}, not 0.001"):
         check_resumed(out, replace(opts, sensor=opts.sensor | {"tol": 1e-3}), "study")
+    # a sensor option the runs did not have (sensor physics added on resuming): refused too, and
+    # the reverse (it was accepted: the folder's record lacked the key, so it was not compared)
+    physics = {"physics": {"photons_per_um2": 5.0}}
+    with pytest.raises(ArgumentError, match=r"trained with physics None, not \{'photons_per_um2': 5.0\}"):
+        check_resumed(out, replace(opts, sensor=opts.sensor | physics), "study")
     keep_settings(out, replace(opts, epochs=5))  # a folder's settings are written once
     assert json.loads((out / "settings.json").read_text())["training"]["epochs"] == 3
     # a folder of an earlier version (no settings.json): its first finished run's

@@ -310,7 +310,7 @@ def _cmd_landscape(args: argparse.Namespace) -> int:
         with _data_errors():
             summary = run_landscape(
                 task, folder, out, family=args.family, size=size, n=n, lo=lo, hi=hi, options=options,
-                study=args.study,
+                study=args.study, repeats=args.seeds or 3,
             )  # fmt: skip
         print(landscape_table(summary), end="")
         figure = f"landscape_{task.name}_{args.family}.png"

@@ -31,8 +31,9 @@ __all__ = ["grid_points", "point_name", "run_landscape", "summarise_landscape"]
 
 
 def grid_points(n: int, lo: float, hi: float) -> list[tuple[float, float]]:
-    """The ``n × n`` grid of ``(θx, θy)`` over ``[lo, hi]²`` (row-major: θy slow), rounded to 1e-6."""
-    axis = np.round(np.linspace(lo, hi, n), 6)
+    """The ``n × n`` grid of ``(θx, θy)`` over ``[lo, hi]²`` (row-major: θy slow), rounded to 1e-6;
+    a centre that rounds to -0.0 is 0 (the uniform layout's θ, named as its other runs are)."""
+    axis = np.round(np.linspace(lo, hi, n), 6) + 0.0  # -0.0 + 0.0 is +0.0
     return [(float(tx), float(ty)) for ty in axis for tx in axis]
 
 
@@ -102,6 +103,7 @@ def run_landscape(
     if cls is None or cls().num_params != 2:
         raise ValueError(f"family must be a two-parameter family (e.g. curv, rect, elliptic), got {family!r}")
     out = Path(out)
+    _records(out)  # a folder of another kind refused before any run trains into it
     check_resumed(out, options, "landscape")
     data = None
 

@@ -187,8 +187,9 @@ def check_resumed(out: Path, options: RunOptions, what: str) -> None:
     [`RESUMABLE`][]): its curves would mix two trainings, and a stopped run would go on under
     settings it did not start with. The settings are ``out/settings.json``'s
     ([`keep_settings`][]; in a folder of an earlier version, its first finished run's, where it
-    has one); a folder with no run finished or stopped holds none. A setting the folder's record
-    lacks (an earlier version's) is not compared."""
+    has one); a folder with no run finished or stopped holds none. A training setting the folder's
+    record lacks (an earlier version's) is not compared; a sensor option it lacks is one its runs
+    did not have."""
     if not _made(out):
         return
     path, runs = out / "settings.json", _files(out / "runs", "*.json")
@@ -201,10 +202,14 @@ def check_resumed(out: Path, options: RunOptions, what: str) -> None:
     now = _settings(options)
     for part in ("training", "sensor"):
         old, new = then.get(part), now[part]
-        for key in sorted(old) if isinstance(old, dict) else ():
-            if key not in RESUMABLE and old[key] != new.get(key):
+        if not isinstance(old, dict):
+            continue
+        # a sensor option the record lacks is one the runs did not have (physics, say); a
+        # training setting it lacks, one an earlier version did not record
+        for key in sorted(old.keys() | new.keys()) if part == "sensor" else sorted(old):
+            if key not in RESUMABLE and old.get(key) != new.get(key):
                 raise ArgumentError(
-                    "out", f"{out} holds a {what} whose runs trained with {key} {old[key]!r}, not "
+                    "out", f"{out} holds a {what} whose runs trained with {key} {old.get(key)!r}, not "
                     f"{new.get(key)!r}: use an empty folder, or those settings to resume it",
                 )  # fmt: skip
 

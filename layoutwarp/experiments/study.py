@@ -95,6 +95,7 @@ def run_study(
     options = options or study_options(task, plan)
     out = Path(out)
     todo = study_runs(plan, seeds or plan.seeds)
+    study_run_records(out)  # a folder of another kind refused before any run trains into it
     check_resumed(out, options, "study")
     done = sum((out / "runs" / f"{run_name(*r)}.json").exists() for r in todo)
     say(f"{task.name} study: {len(todo)} runs, {done} already done, in {out}")
