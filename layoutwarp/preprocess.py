@@ -30,6 +30,7 @@ import hashlib
 import json
 import os
 import sys
+import tempfile
 import threading
 import time
 import warnings
@@ -681,19 +682,25 @@ _CONNECT_TIMEOUT_S = 10
 @contextmanager
 def _dask_client(workers: int, address: str | None) -> Iterator[Any]:
     """A client of the Dask scheduler at ``address``, or of a new local cluster of ``workers``
-    single-threaded processes (closed with it); refused in one line (``engine`` or ``address``)
-    where Dask is not installed or no scheduler answers."""
+    single-threaded processes (closed with it, its scratch folder too: Dask's own, in the system's
+    temporary folder, kept its lock files after every run); refused in one line (``engine`` or
+    ``address``) where Dask is not installed or no scheduler answers."""
     try:
         from dask.distributed import Client, LocalCluster
     except ImportError:
         raise ArgumentError(
             "engine", "engine='dask' needs the optional extra: pip install 'layoutwarp[dask]'"
         ) from None
-    cluster = None
+    import dask
+
+    cluster, scratch, stack = None, None, ExitStack()
     if address is None:
+        scratch = tempfile.TemporaryDirectory(prefix="layoutwarp-dask-", ignore_cleanup_errors=True)
+        stack.enter_context(dask.config.set({"temporary-directory": scratch.name}))
         cluster = LocalCluster(
-            n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None
-        )
+            n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None,
+            local_directory=scratch.name,
+        )  # fmt: skip
     try:
         try:
             client = Client(address or cluster, timeout=_CONNECT_TIMEOUT_S)
@@ -706,6 +713,9 @@ def _dask_client(workers: int, address: str | None) -> Iterator[Any]:
     finally:
         if cluster is not None:
             cluster.close()
+        stack.close()
+        if scratch is not None:
+            scratch.cleanup()
 
 
 def _run_on_dask(client: Any, spec: str, tasks: list[dict], record: Callable[[dict], None]) -> None:

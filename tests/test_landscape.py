@@ -119,3 +119,23 @@ def test_a_folder_of_the_other_kind_is_refused_before_any_run_trains(command, tm
     assert main([command, "mnist", "--quick", *extra, "--out", str(tmp_path)]) == 2
     assert f"{other}.json is no run of a {command}" in capsys.readouterr().err
     assert trained == [] and sorted(p.name for p in runs.iterdir()) == [f"{other}.json"]
+
+
+def test_a_landscape_summary_reads_its_own_family_and_size_alone(tmp_path):
+    # a curv landscape's folder resumed as a rect one (the settings match) summarised curv's
+    # scores as rect's: the records were taken by θ and tag alone
+    from layoutwarp.experiments.landscape import summarise_landscape
+    from layoutwarp.experiments.tasks import get_task
+
+    task, grid = get_task("mnist"), [*grid_points(2, -0.5, 0.5), (0.0, 0.0)]
+    (tmp_path / "runs").mkdir()
+    for family, size, base in (("curv", (3, 3), 10.0), ("rect", (3, 3), 50.0), ("rect", (4, 4), 90.0)):
+        for k, theta in enumerate(grid):
+            for seed in (0, 1, 2) if theta == (0.0, 0.0) else (0,):
+                rec = {"family": family, "size_hw": list(size), "seed": seed, "theta_point": list(theta)}
+                rec |= {"tag": "", "scores": {"accuracy": base + k + seed}}
+                name = point_name(family, size, theta, seed)
+                (tmp_path / "runs" / f"{name}.json").write_text(json.dumps(rec))
+    summary = summarise_landscape(task, tmp_path, "rect", (3, 3), grid, None)
+    assert summary["values"] == [50.0, 51.0, 52.0, 53.0, 54.0]
+    assert summary["uniform"]["n"] == 3 and summary["uniform"]["mean"] == 55.0

@@ -325,8 +325,14 @@ def _tree(root: Path) -> dict[str, bytes]:
 
 @pytest.mark.slow
 @pytest.mark.heavy
-def test_dask_engine_writes_the_same_bytes_and_reports_the_same_failures(tmp_path):
+def test_dask_engine_writes_the_same_bytes_and_reports_the_same_failures(tmp_path, monkeypatch):
     pytest.importorskip("distributed")
+    import tempfile
+
+    scratch = tmp_path / "tmp"  # the system's temporary folder: the cluster leaves nothing there
+    scratch.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(scratch))
+    monkeypatch.setenv("TMPDIR", str(scratch))
     src = tmp_path / "src"
     _images(src)  # mixed dtypes and sizes, plus two unreadable files
     layout, size = fixed("grid", None), (9, 13)
@@ -343,6 +349,7 @@ def test_dask_engine_writes_the_same_bytes_and_reports_the_same_failures(tmp_pat
     assert (
         len(done) == 6 and json.loads((tmp_path / "dask" / "manifest.json").read_text())["engine"] == "dask"
     )
+    assert list(scratch.iterdir()) == []  # Dask's scratch folder (its lock files) went with it
 
 
 @pytest.mark.slow

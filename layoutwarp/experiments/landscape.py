@@ -159,8 +159,10 @@ def summarise_landscape(
     task: Task, out: Path, family: str, size: tuple[int, int], grid: list, study: str | Path | None
 ) -> dict[str, Any]:
     """The grid's metric, uniform's and the best point's mean ± std over their seeds, the learned θ
-    (jointly, from the study) and their frozen reruns, and the gaps."""
-    recs = _records(out)
+    (jointly, from the study) and their frozen reruns, and the gaps: of the runs of ``family`` at
+    ``size`` (a folder that also holds another family's or size's, resumed with other flags,
+    mixed their scores into this one's)."""
+    recs = [r for r in _records(out) if r["family"] == family and list(r["size_hw"]) == list(size)]
 
     def scores(theta, tag=""):
         return [
