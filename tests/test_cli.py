@@ -18,7 +18,7 @@ import pytest
 from conftest import ROOT, SAMPLES
 
 import layoutwarp as lw
-from layoutwarp.cli import build_parser, main, parse_wxh
+from layoutwarp.cli import Terminated, build_parser, main, parse_wxh
 from layoutwarp.experiments.demo import demo_outputs
 
 CAMVID_VAL = str(SAMPLES / "camvid" / "val")
@@ -726,17 +726,19 @@ def test_a_run_record_of_another_kind_is_refused_in_one_line(tmp_path):
         (ImportError("plots need matplotlib: pip install 'layoutwarp[plot]'"), 1,
          "plots need matplotlib: pip install 'layoutwarp[plot]'"),
         (KeyboardInterrupt(), 130, "interrupted"),
+        (Terminated(), 143, "terminated"),
     ],
 )  # fmt: skip
 def test_an_unwritable_file_or_a_ctrl_c_ends_in_one_line(error, status, line, tmp_path, monkeypatch, capsys):
     def fail(*args, **kwargs):
+        (tmp_path / "a" / "b" / "out").mkdir(parents=True)  # made, as a command makes its --out
         raise error
 
     monkeypatch.setattr("layoutwarp.experiments.demo.run_demo", fail)
-    assert main(["demo", "--size", "8x6", "--out", str(tmp_path / "out")]) == status
+    assert main(["demo", "--size", "8x6", "--out", str(tmp_path / "a" / "b" / "out")]) == status
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [f"layoutwarp demo: {'error: ' if status == 1 else ''}{line}"]
-    assert not (tmp_path / "out").exists()  # the empty folder it made is gone
+    assert not (tmp_path / "a").exists()  # the empty folders it made are gone (those above --out too)
 
 
 def _children(pid: int) -> list[int]:

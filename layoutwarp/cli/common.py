@@ -237,8 +237,8 @@ def out_dir(path: str | Path, flag: str = "--out") -> Path:
     if blocker is not None:
         what = "is a file" if blocker == path else f"lies under {str(blocker)!r}, which is a file"
         raise UsageError(f"argument {flag}: must be a folder; {str(path)!r} {what}")
-    if not path.exists():
-        NEW_FOLDERS.append(path)
+    missing = [path, *path.parents]  # the folder and those above it the command will create
+    NEW_FOLDERS.extend(reversed([folder for folder in missing if not folder.exists()]))
     return path
 
 
