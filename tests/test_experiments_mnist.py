@@ -224,3 +224,33 @@ def test_torchrun_with_two_gloo_processes_matches_one_process(tmp_path):
     assert sorted(p.name for p in (tmp_path / "two").iterdir()) == sorted(
         p.name for p in (tmp_path / "one").iterdir()
     )
+
+
+@pytest.mark.slow
+def test_ranks_that_would_resume_at_different_epochs_are_refused_in_one_line(tmp_path):
+    # two machines, each its own --out: rank 0 found a checkpoint and resumed at epoch 1, rank 1
+    # began at 0; their collectives paired across epochs, a run was recorded, the next crashed
+    import os
+    import subprocess
+    import sys
+    import textwrap
+
+    script = tmp_path / "start.py"
+    script.write_text(
+        textwrap.dedent("""
+        import torch.distributed as dist
+        from layoutwarp.experiments.training import _check_same_start
+        dist.init_process_group("gloo")
+        _check_same_start(3)  # alike: nothing said
+        try:
+            _check_same_start(dist.get_rank())
+        except ValueError as exc:
+            print(exc)
+        dist.destroy_process_group()
+    """)
+    )
+    env = {k: v for k, v in os.environ.items() if k not in ("WORLD_SIZE", "RANK", "LOCAL_RANK")}
+    torchrun = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2"]
+    res = subprocess.run([*torchrun, str(script)], capture_output=True, text=True, env=env, timeout=300)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert res.stdout.count("the ranks would resume at epochs 0 to 1: every rank must see") == 2  # both

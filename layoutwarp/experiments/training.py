@@ -45,6 +45,21 @@ def init_distributed() -> tuple[int, int]:
     return world()
 
 
+def _check_same_start(first: int) -> None:
+    """Refuse, in one line on every rank, a distributed run whose ranks would begin at different
+    epochs: a checkpoint one rank found and another did not (``--out`` not a folder every rank
+    sees). They would pair their collectives across epochs, and fail a run later, if at all."""
+    import torch.distributed as dist
+
+    bounds = torch.tensor([first, -first], dtype=torch.int64)
+    dist.all_reduce(bounds, op=dist.ReduceOp.MAX)
+    if int(bounds[0]) != -int(bounds[1]):
+        raise ValueError(
+            f"the ranks would resume at epochs {-int(bounds[1])} to {int(bounds[0])}: every rank "
+            "must see the run's checkpoint (--out a folder every rank sees, e.g. on a shared file system)"
+        )
+
+
 def _check_same_theta(theta: torch.Tensor) -> None:
     """Raise if the ranks of a distributed run hold different θ (they must stay identical)."""
     import torch.distributed as dist
@@ -113,6 +128,8 @@ def fit(
         starts.pop()
     bounds = list(zip(starts, [*starts[1:], n], strict=True))
     rank, size = world()
+    if size > 1:
+        _check_same_start(first)
     if size > 1 and device.type == "cuda":  # batch statistics over the global batch (in place:
         nn.SyncBatchNorm.convert_sync_batchnorm(model)  # the parameters, and so `opt`, stay)
     bar = tqdm(
