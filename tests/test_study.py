@@ -50,6 +50,17 @@ def test_summary_gives_saving_factors_with_intervals():
     lo, hi = row["saving_interval"]
     assert lo < row["saving"] < hi
     assert "| curv | 4x4 | 16 |" in study_table(summary)
+    # an end of the interval past the uniform curve is a bound, marked as the saving's own is (the
+    # mark was dropped: "> 1.00x [1.00, 1.00]", an upper end read as a value)
+    recs += [
+        {"family": "rect", "size_hw": [4, 4], "seed": k, "scores": {"accuracy": 119.0 + 4 * k}}
+        for k in (0, 1)
+    ]
+    summary = summarise_study(MNIST, recs)
+    row = next(r for r in summary["rows"] if r["family"] == "rect")  # 121 ± 2.83: past 120.5, its top end too
+    assert row["interval_bounds"] == ["=", ">"] and row["bound"] == ">"
+    lo, hi = row["saving_interval"]
+    assert f"| > 64 | > 4.00x [{lo:.2f}, > 4.00] |" in study_table(summary)
 
 
 def test_model_files_refuse_other_tasks_and_formats(tmp_path):
@@ -350,6 +361,12 @@ def test_a_study_runs_seed_by_seed_so_a_stopped_one_has_every_configurations_fir
     assert [k for _, _, k in runs] == sorted(k for _, _, k in runs)  # every seed 0 before any seed 1
     seed0 = [("uniform", (6, 8), 0), ("uniform", (9, 12), 0), ("rect", (6, 8), 0), ("curv", (6, 8), 0)]
     assert runs[: len(runs) // 3] == seed0  # within a seed: the uniform curve, then the learned layouts
+    # uniform among the families: its learned size is a point of the uniform curve, planned once
+    # (it was planned twice: a finished study said 2 of 3 planned runs, and every rerun 1 to do)
+    uniform = study_runs(
+        StudyPlan(uniform_sizes=((6, 8),), learned_sizes=((6, 8),), families=("uniform",)), 2
+    )
+    assert uniform == [("uniform", (6, 8), 0), ("uniform", (6, 8), 1)]
 
 
 def test_study_takes_size_as_every_training_command_does(tmp_path, monkeypatch, capsys):

@@ -52,10 +52,11 @@ __all__ = [
 def study_runs(plan: StudyPlan, seeds: int) -> list[tuple[str, tuple[int, int], int]]:
     """Every ``(family, size, seed)`` of a plan, seed by seed (each seed: the uniform curve, then
     the learned layouts), so a study stopped part way has every configuration's first seeds
-    rather than all of some configurations' and none of others'."""
+    rather than all of some configurations' and none of others'. A configuration is planned once
+    (``uniform`` among the families is the uniform curve's own)."""
     uniform = [("uniform", s) for s in plan.uniform_sizes]
     learned = [(f, s) for s in plan.learned_sizes for f in plan.families]
-    return [(family, size, k) for k in range(seeds) for family, size in uniform + learned]
+    return [(family, size, k) for k in range(seeds) for family, size in dict.fromkeys(uniform + learned)]
 
 
 def study_options(task: Task, plan: StudyPlan, **changes: Any) -> RunOptions:
@@ -218,10 +219,11 @@ def summarise_study(task: Task, records: list[dict]) -> dict:
         if r["family"] == "uniform" or len(curve) < 2:
             continue
         eq, rel = equivalent_pixels(curve, r["mean"])
-        lo, _ = equivalent_pixels(curve, r["mean"] - r["std"])
-        hi, _ = equivalent_pixels(curve, r["mean"] + r["std"])
+        lo, lo_rel = equivalent_pixels(curve, r["mean"] - r["std"])
+        hi, hi_rel = equivalent_pixels(curve, r["mean"] + r["std"])
         r |= {"equivalent_pixels": eq, "bound": rel, "saving": eq / r["pixels"]}
-        r |= {"saving_interval": [lo / r["pixels"], hi / r["pixels"]]}
+        # an end past the uniform curve's is a bound too ("<" or ">"), as the saving's own
+        r |= {"saving_interval": [lo / r["pixels"], hi / r["pixels"]], "interval_bounds": [lo_rel, hi_rel]}
     return {
         "task": task.name,
         "net": task.net,
@@ -244,10 +246,11 @@ def study_table(summary: dict) -> str:
         h, w = r["size_hw"]
         eq = sav = "—"
         if "equivalent_pixels" in r:
-            mark = {"=": "", "<": "< ", ">": "> "}[r["bound"]]
+            marks = {"=": "", "<": "< ", ">": "> "}
+            mark = marks[r["bound"]]
             eq = f"{mark}{r['equivalent_pixels']:.0f}"
-            lo, hi = r["saving_interval"]
-            sav = f"{mark}{r['saving']:.2f}x [{lo:.2f}, {hi:.2f}]"
+            (lo, hi), (at_lo, at_hi) = r["saving_interval"], r.get("interval_bounds", ("=", "="))
+            sav = f"{mark}{r['saving']:.2f}x [{marks[at_lo]}{lo:.2f}, {marks[at_hi]}{hi:.2f}]"
         score = f"{r['mean']:.2f} ± {r['std']:.2f} (n={r['n']})"
         vs = "—"
         if "vs_uniform" in r:
