@@ -773,3 +773,26 @@ def test_sigterm_stops_a_command_as_ctrl_c_does_and_its_compiles_with_it(tmp_pat
     assert proc.returncode == 143 and err.strip().endswith("terminated"), err[-2000:]
     time.sleep(0.5)
     assert not [k for k in kids if os.path.exists(f"/proc/{k}")]  # its compiles stopped with it
+
+
+def test_a_process_group_that_fails_ends_in_one_line(tmp_path, monkeypatch, capsys):
+    # a rank gone (killed, failed): the others' collectives raised the backend's RuntimeError,
+    # printed as a 30-line traceback per rank; outside a process group a RuntimeError is a bug
+    # of ours and keeps its traceback
+    import layoutwarp.cli as cli
+
+    def fail(*args, **kwargs):
+        raise RuntimeError("[../gloo/transport/tcp/pair.cc:534] Connection closed by peer\nmore lines")
+
+    monkeypatch.setattr("layoutwarp.experiments.demo.run_demo", fail)
+    argv = ["demo", "--size", "8x6", "--out", str(tmp_path / "out")]
+    monkeypatch.setattr(cli, "_in_a_process_group", lambda: True)
+    assert main(argv) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [
+        "layoutwarp demo: error: the process group failed (did another rank stop?): "
+        "[../gloo/transport/tcp/pair.cc:534] Connection closed by peer"
+    ]
+    monkeypatch.setattr(cli, "_in_a_process_group", lambda: False)
+    with pytest.raises(RuntimeError, match="Connection closed by peer"):
+        main(argv)

@@ -130,6 +130,14 @@ def main(argv: Sequence[str] | None = None, *, own_process: bool = False) -> int
     except ImportError as exc:  # an optional extra not installed: its message says which
         print(f"{prog}: error: {exc}", file=sys.stderr)
         status = 1
+    except RuntimeError as exc:
+        if not _in_a_process_group():
+            raise
+        # a rank of a torchrun gone (killed, failed): the others' collectives fail with the
+        # backend's traceback; one line instead, torchrun's own report follows
+        first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+        print(f"{prog}: error: the process group failed (did another rank stop?): {first}", file=sys.stderr)
+        status = 1
     except KeyboardInterrupt as exc:  # what was finished is kept: a command run again goes on from there
         ended = isinstance(exc, Terminated)
         print(f"{prog}: {'terminated' if ended else 'interrupted'}", file=sys.stderr)
@@ -140,6 +148,13 @@ def main(argv: Sequence[str] | None = None, *, own_process: bool = False) -> int
                 with contextlib.suppress(OSError):  # kept if anything was written there
                     folder.rmdir()
     return status
+
+
+def _in_a_process_group() -> bool:
+    """Whether this process joined a ``torchrun`` process group (torch.distributed loaded and
+    initialised; nothing imported to ask)."""
+    dist = sys.modules.get("torch.distributed")
+    return dist is not None and dist.is_available() and dist.is_initialized()
 
 
 def _leaf_parser(parser: argparse.ArgumentParser, args: argparse.Namespace) -> argparse.ArgumentParser:
