@@ -1,7 +1,8 @@
 """How the curved families' pixel areas hold the tolerance as θ nears ±1.
 
-For curv and elliptic at |θ| from 0.999 to 1 − 10⁻⁷ (both signs, and mixed), on a 5x1 and a 6x6
-sensor at the default tolerance of float images (2⁻¹²): each pixel's area from its polyline
+For curv and elliptic at |θ| from 0.999 to 1 − 10⁻⁷ (both signs, and mixed), on a 1x5 sensor (a
+column of five pixels) and a 6x6 one, at the default tolerance of float images (2⁻¹²): each
+pixel's area from its polyline
 (`lw.pixel_mesh`) against its boundary sampled along φ at 2000 equal steps an edge plus 3000
 graded geometrically to 1e-13 from each end (where φ bends as θ nears ±1). Prints the worst
 pixel's relative error over the tolerance, the segments, and whether the mesh warned that a piece

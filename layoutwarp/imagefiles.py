@@ -31,13 +31,19 @@ def encode_image(path: Path, arr: np.ndarray) -> bytes:
     keeps = KEEPS.get(path.suffix.lower())
     if keeps is not None and arr.dtype.name not in keeps:
         raise ValueError(
-            f"a {arr.dtype} image cannot be written as {path.suffix}, which keeps {' or '.join(keeps)} "
+            f"{_a(arr.dtype.name)} {arr.dtype} image cannot be written as {path.suffix}, which keeps "
+            f"{' or '.join(keeps)} "
             "only: give the source file a suffix of its format (.tif keeps every dtype)"
         )
     ok, buf = cv2.imencode(path.suffix, arr)
     if not ok:
         raise ValueError(f"OpenCV cannot encode a {arr.dtype} {arr.shape} image as {path.suffix}")
     return buf.tobytes()
+
+
+def _a(word: str) -> str:
+    """The article before ``word``."""
+    return "an" if word[:1] in "aeio" else "a"  # "an int16", "a uint16"
 
 
 def to_dtype(values: np.ndarray, dtype: np.dtype) -> np.ndarray:

@@ -213,7 +213,7 @@ class _Job:
                              f"{label.shape}")  # fmt: skip
         if self.label_rule == "inverse":
             return src.read_bytes()
-        return encode_image(dst, res.labels(label, self.label_rule))
+        return encode_image(dst, _png_classes(res.labels(label, self.label_rule), src))
 
     def _write_label(self, task: dict, label: bytes, res: AreaResampler) -> dict:
         """Write a file's label map (and, for ``"inverse"``, its source size's back-warp maps, once);
@@ -229,6 +229,18 @@ class _Job:
                     atomic_write(maps, buf)
         entry = {"label": str(dst), "label_bytes": dst.stat().st_size}
         return entry | {k: task[k] for k in ("label_src_bytes", "label_src_mtime_ns")}
+
+
+def _png_classes(labels: np.ndarray, src: Path) -> np.ndarray:
+    """Sensor-grid class indices as a PNG keeps them: uint8 or uint16, the smallest that holds
+    them (a label map of int16 or int32 indices, say); ``ValueError`` naming the label map ``src``
+    where an index is negative or above 65535."""
+    if labels.dtype in (np.uint8, np.uint16):
+        return labels
+    lo, hi = (int(labels.min()), int(labels.max())) if labels.size else (0, 0)
+    if lo < 0 or hi > np.iinfo(np.uint16).max:
+        raise ValueError(f"label map {src} holds class indices {lo} .. {hi}; a PNG keeps 0 .. 65535")
+    return labels.astype(np.uint8 if hi <= np.iinfo(np.uint8).max else np.uint16)
 
 
 #: The stages of one image, as [`PreprocessResult.stages`][] sums them.

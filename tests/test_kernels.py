@@ -956,3 +956,37 @@ def test_the_runs_build_resumes_where_a_threads_rows_ran_out_of_room(gen, monkey
     assert len(grown) >= 5
     for got in (tight, blocks):
         assert all(a.dtype == b.dtype and np.array_equal(a, b) for a, b in zip(usual, got, strict=True))
+
+
+def test_an_interrupt_ctypes_drops_is_raised_again_of_its_own_class():
+    # the command line's SIGTERM is a KeyboardInterrupt subclass: dropped by ctypes at a share's
+    # edge, it was reported as unraisable and raised again as a plain KeyboardInterrupt (status
+    # 130, "interrupted"), or lost where it came at the share's exit
+    from types import SimpleNamespace
+
+    import numba
+
+    from layoutwarp.cli import Terminated
+    from layoutwarp.kernels import base
+
+    told = []
+    hook = base._unraisable(told.append)
+    for kind in (Terminated, KeyboardInterrupt):
+        hook(SimpleNamespace(exc_type=kind, object=base._run_job))
+        assert base._DROPPED[0] is kind and told == []
+    hook(SimpleNamespace(exc_type=ValueError, object=base._run_job))  # anything else: as before
+    assert len(told) == 1
+    base._DROPPED[0] = None
+    team = base._openmp_team()
+    if team is None:
+        pytest.skip("no OpenMP team here")
+
+    @numba.njit(nogil=True)
+    def body(t, nt):
+        return t + 1
+
+    assert team(body, 2, ()) == [1, 2]
+    base._DROPPED[0] = Terminated  # as the hook leaves it for the team on the main thread
+    with pytest.raises(Terminated):
+        team(body, 2, ())
+    assert base._DROPPED[0] is None

@@ -480,7 +480,7 @@ def _graded_areas(layout, size):
     strict=True,
     reason="known: nearer the bound than ±0.99 a bend held by the last millionth of an edge is "
     "narrower than the count stage's samples, which miss it without a word (curv (0.999999, "
-    "0.999999) on 5x1: one segment an edge, 3900x tol), or needs more equal steps than max_subdiv "
+    "0.999999) on 1x5: one segment an edge, 3900x tol), or needs more equal steps than max_subdiv "
     "(elliptic (0.9999, 0.9999) on 6x6: 65x tol, with a warning); python examples/near_bound.py",
 )
 @pytest.mark.parametrize(

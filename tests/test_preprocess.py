@@ -684,7 +684,10 @@ def test_an_image_its_suffix_cannot_keep_fails_and_is_not_written(tmp_path):
                 )
                 assert back.dtype == arr.dtype
             else:
-                with pytest.raises(ValueError, match=f"a {dtype} image cannot be written as {suffix}"):
+                article = "an" if dtype.startswith("int") else "a"
+                with pytest.raises(
+                    ValueError, match=f"^{article} {dtype} image cannot be written as {suffix}"
+                ):
                     lw.imagefiles.encode_image(Path("a" + suffix), arr)
 
 
@@ -733,6 +736,18 @@ def test_label_maps_palette_changed_or_not_fitting_their_image(tmp_path):
     want = AreaResampler(layout, size, (48, 64)).labels(classes, "nearest")
     for name in ("a.png", "b.png"):
         assert (cv2.imread(str(dst / "labels" / name), cv2.IMREAD_UNCHANGED) == want).all()
+    # label maps of int16 or int32 indices go to the sensor grid as a PNG keeps them (uint8 here)
+    wide, wimg = tmp_path / "wide", tmp_path / "wimg"
+    (wide / "lab").mkdir(parents=True)
+    wimg.mkdir()
+    for dtype in ("int16", "int32"):
+        cv2.imwrite(str(wimg / f"{dtype}.tif"), np.zeros((48, 64), np.uint8))
+        cv2.imwrite(str(wide / "lab" / f"{dtype}.tif"), classes.astype(dtype))
+    res = preprocess_folder(wimg, wide / "out", layout, size, labels=wide / "lab", progress=False)
+    assert res.failed == [] and res.processed == 2
+    for name in ("int16.png", "int32.png"):
+        got = cv2.imread(str(wide / "out" / "labels" / name), cv2.IMREAD_UNCHANGED)
+        assert got.dtype == np.uint8 and (got == want).all()
     # a corrected label map is taken on the next run (its image unchanged)
     time.sleep(0.01)
     cv2.imwrite(str(lab / "b.png"), 3 - classes)

@@ -496,6 +496,9 @@ def _add_landscape_parser(sub: argparse._SubParsersAction, task: TaskSpec, two: 
         quick_epochs=QUICK_STUDY_EPOCHS,
     )
     lt.add_argument("--family", choices=two, required=True, help="a two-parameter family")
+    for action in lt._actions:  # its seeds are those at θ = 0 and at the best point alone
+        if "--seeds" in action.option_strings:
+            action.help = "seeds at θ = 0 and at the best grid point, each other point one (default: 3)"
     lt.add_argument(
         "--grid", type=int_range(2, 25), help="N: the grid is N x N, 2 to 25 (default: 7; 3 with --quick)"
     )

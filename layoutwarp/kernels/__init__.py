@@ -14,8 +14,11 @@
 Compiled code is cached on disk (``cache=True``): a second process loads it instead of
 compiling again. numba invalidates a cache only when the function's own file changes, and the
 kernels inline functions of other files of this package (the mesh kernels the exact
-integrator's per-segment functions): after editing one, delete the package's ``*.nbi``/``*.nbc``
-caches. [`available`][layoutwarp.kernels.base.available] says whether numba is installed;
+integrator's per-segment functions) and read ``layoutwarp.mesh``'s constants: on import, the
+digest of all those sources is compared with the one kept in the cache folder, and where it
+differs (an edited source, a ``git checkout``) the compiled kernels kept there are deleted, so that
+numba compiles them again ([`renew_stale_caches`][layoutwarp.kernels.base.renew_stale_caches]).
+[`available`][layoutwarp.kernels.base.available] says whether numba is installed;
 without it the torch reference runs. This package's namespace holds the names the rest of
 layoutwarp calls; [`mesh`][layoutwarp.kernels.mesh] (which imports torch) is imported on its own.
 """
@@ -38,6 +41,11 @@ from .noise import sensor_measure, sensor_measure_plain
 from .prefix import BLOCK, prefix_tables
 from .runs import measured_runs_apply, runs_apply
 from .weights import build_runs
+
+if available():  # before any kernel loads its cache (at its first call)
+    from .base import renew_stale_caches
+
+    renew_stale_caches(getattr(getattr(segment_moments, "_cache", None), "_cache_path", None))
 
 __all__ = [
     "BLOCK",

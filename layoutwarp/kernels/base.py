@@ -65,6 +65,60 @@ CHUNK = 256
 SMALL_WORK = 1 << 18
 
 
+#: Where the digest of the kernels' sources is kept, in the kernels' cache folder.
+SOURCES_DIGEST = "layoutwarp-kernel-sources.sha256"
+
+
+def kernel_sources() -> list[str]:
+    """Every file the compiled kernels are built from: this package's (its ``mesh`` too) and
+    ``layoutwarp/mesh.py`` (the count stage's constants), sorted."""
+    here = os.path.dirname(os.path.abspath(__file__))
+    found = glob.glob(os.path.join(here, "**", "*.py"), recursive=True)
+    return sorted([*found, os.path.join(os.path.dirname(here), "mesh.py")])
+
+
+def renew_stale_caches(folder: str | None) -> bool:
+    """Delete the compiled kernels kept in the cache ``folder`` (the kernels' ``__pycache__``, or its
+    place under ``NUMBA_CACHE_DIR``, and the mesh kernels' beside it; ``None``: nothing to do)
+    where the digest of [`kernel_sources`][] differs from the one kept there, then keep the new
+    one. numba keys a kernel's cache on its own file's content: a kernel that inlines another
+    file's function, or reads its constants, kept its old machine code where only that file
+    changed (an edited source, a ``git checkout``). Returns whether any was deleted; a folder that
+    cannot be written (a read-only installation, which an upgrade rewrites whole) is passed over."""
+    if folder is None:
+        return False
+    import hashlib
+
+    digest = hashlib.sha256()
+    for path in kernel_sources():
+        with open(path, "rb") as f:
+            digest.update(f.read())
+    stamp, now = os.path.join(folder, SOURCES_DIGEST), digest.hexdigest()
+    try:
+        with open(stamp) as f:
+            kept = f.read().strip()
+    except OSError:
+        kept = None
+    if kept == now:
+        return False
+    mesh = os.path.join(os.path.dirname(folder), "mesh", "__pycache__")
+    if os.path.basename(folder) != "__pycache__":  # under NUMBA_CACHE_DIR: mesh/ beneath it
+        mesh = os.path.join(folder, "mesh")
+    stale = [f for d in (folder, mesh) for ext in ("*.nbi", "*.nbc") for f in glob.glob(os.path.join(d, ext))]
+    for path in stale:
+        try:
+            os.remove(path)
+        except OSError:
+            pass
+    try:
+        os.makedirs(folder, exist_ok=True)
+        with open(stamp, "w") as f:
+            f.write(now + "\n")
+    except OSError:
+        pass
+    return bool(stale)
+
+
 def available() -> bool:
     """Whether the compiled kernels can run (numba is importable)."""
     return njit is not None
@@ -165,18 +219,20 @@ def _run_job(key: int) -> None:
 
 _CALLBACK = ctypes.CFUNCTYPE(None, ctypes.c_void_p)(_run_job)
 _UNDONE = object()  # a share's result before it has run
-#: Whether ctypes dropped a Ctrl-C at a callback's edge that no team has raised yet.
-_DROPPED: list[bool] = [False]
+#: The interrupt ctypes dropped at a callback's edge that no team has raised yet (its class: a
+#: ``KeyboardInterrupt``, or the command line's SIGTERM, a subclass of it), else ``None``.
+_DROPPED: list[type[BaseException] | None] = [None]
 
 
 def _unraisable(hook: Callable[[Any], Any]) -> Callable[[Any], Any]:
-    """``sys.unraisablehook`` that keeps ``hook`` for everything but a ``KeyboardInterrupt`` that
-    ctypes drops at [`_run_job`][]'s entry or exit (a Ctrl-C there): noted, and raised by the team
-    on the main thread as a plain ``KeyboardInterrupt``, with no report of its own."""
+    """``sys.unraisablehook`` that keeps ``hook`` for everything but a ``KeyboardInterrupt`` (or a
+    subclass) that ctypes drops at [`_run_job`][]'s entry or exit (a Ctrl-C there): noted, and
+    raised again, of its own class, by the team on the main thread, with no report of its own."""
 
     def unraisable(report: Any) -> None:
-        if report.exc_type is KeyboardInterrupt and report.object is _run_job:
-            _DROPPED[0] = True
+        kind = report.exc_type
+        if isinstance(kind, type) and issubclass(kind, KeyboardInterrupt) and report.object is _run_job:
+            _DROPPED[0] = kind
         else:
             hook(report)
 
@@ -223,10 +279,11 @@ def _openmp_team() -> Callable[..., list[Any]] | None:
             del _JOBS[key]
         if errors:
             raise errors[0]
-        dropped = _DROPPED[0] and threading.current_thread() is threading.main_thread()
-        if dropped or any(r is _UNDONE for r in results):  # a Ctrl-C at a callback's edge, which
-            _DROPPED[0] = False  # ctypes drops (at its entry: the share never ran)
-            raise KeyboardInterrupt
+        main = threading.current_thread() is threading.main_thread()
+        kind = _DROPPED[0] if main else None
+        if kind is not None or any(r is _UNDONE for r in results):  # a Ctrl-C at a callback's edge,
+            _DROPPED[0] = None  # which ctypes drops (at its entry: the share never ran)
+            raise (kind or KeyboardInterrupt)()
         return results
 
     return team
