@@ -14,7 +14,16 @@ from typing import Any
 import cv2
 import numpy as np
 
-__all__ = ["IMAGE_SUFFIXES", "KEEPS", "encode_image", "list_images", "read_image", "read_label", "to_dtype"]
+__all__ = [
+    "IMAGE_SUFFIXES",
+    "JPEG_CHANNELS",
+    "KEEPS",
+    "encode_image",
+    "list_images",
+    "read_image",
+    "read_label",
+    "to_dtype",
+]
 
 #: The image files preprocessing reads (by suffix, any case).
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
@@ -22,12 +31,15 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
 #: The dtypes the format of each suffix keeps (OpenCV's encoders; TIFF, not listed, keeps every
 #: dtype an image file holds). OpenCV writes any other as 8-bit, with a line on the terminal.
 KEEPS = {".png": ("uint8", "uint16"), ".jpg": ("uint8",), ".jpeg": ("uint8",), ".bmp": ("uint8",)}
+#: The channel counts a JPEG keeps (OpenCV drops an alpha channel without a word).
+JPEG_CHANNELS = (1, 3)
 
 
 def encode_image(path: Path, arr: np.ndarray) -> bytes:
     """``arr`` encoded as the image format of ``path``'s suffix (OpenCV's encoders); ``ValueError``
     for a dtype that format does not keep ([`KEEPS`][]: a 16-bit image in a file named ``.jpg``,
-    say), which OpenCV would write as 8-bit, saturated."""
+    say), which OpenCV would write as 8-bit, saturated, for an alpha channel a JPEG would drop
+    ([`JPEG_CHANNELS`][]), and for what OpenCV cannot encode."""
     keeps = KEEPS.get(path.suffix.lower())
     if keeps is not None and arr.dtype.name not in keeps:
         raise ValueError(
@@ -35,7 +47,16 @@ def encode_image(path: Path, arr: np.ndarray) -> bytes:
             f"{' or '.join(keeps)} "
             "only: give the source file a suffix of its format (.tif keeps every dtype)"
         )
-    ok, buf = cv2.imencode(path.suffix, arr)
+    channels = 1 if arr.ndim == 2 else arr.shape[2]
+    if path.suffix.lower() in (".jpg", ".jpeg") and channels not in JPEG_CHANNELS:
+        raise ValueError(
+            f"an image of {channels} channels cannot be written as {path.suffix}, which keeps 1 or 3 "
+            "(its alpha would be dropped): give the source file a suffix of its format"
+        )
+    try:
+        ok, buf = cv2.imencode(path.suffix, arr)
+    except cv2.error:  # a channel count the format has no place for: OpenCV's lines, in one
+        ok = False
     if not ok:
         raise ValueError(f"OpenCV cannot encode a {arr.dtype} {arr.shape} image as {path.suffix}")
     return buf.tobytes()
@@ -149,15 +170,18 @@ def _file_bytes(path: Path) -> np.ndarray:
 def list_images(src: str | Path, exclude: str | Path | None = None) -> list[Path]:
     """Every image file (by suffix, see [`IMAGE_SUFFIXES`][]) under ``src`` in sorted order,
     leaving out the folder ``exclude`` (e.g. a destination inside the source). Links to folders
-    are followed, each folder walked once (a link back up is not followed again); an entry with an
-    image suffix that is no file (a broken link, a pipe) is listed too, for its reader to refuse."""
+    are followed, each folder walked once; a link to ``src`` or a folder above it is not (it
+    would bring in src's siblings); an entry with an image suffix that is no file (a broken link,
+    a pipe) is listed too, for its reader to refuse."""
     src = Path(src)
     exclude = Path(exclude).resolve() if exclude is not None else None
-    files, walked = [], {src.resolve(), exclude}
+    top = src.resolve()
+    files, walked = [], {top, exclude}
     for root, dirs, names in os.walk(src, followlinks=True):
         rootp, kept = Path(root), []
-        for d in sorted(dirs):  # a folder reached twice (by a link) is walked once
-            if (real := (rootp / d).resolve()) not in walked:
+        for d in sorted(dirs):  # a folder reached twice (by a link) is walked once, and a link
+            real = (rootp / d).resolve()  # up to a folder holding src, never (src's siblings)
+            if real not in walked and not top.is_relative_to(real):
                 walked.add(real)
                 kept.append(d)
         dirs[:] = kept

@@ -675,6 +675,13 @@ def test_an_image_its_suffix_cannot_keep_fails_and_is_not_written(tmp_path):
         "a float32 image cannot be written as .png, which keeps uint8 or uint16 only" in failed["depth.png"]
     )
     assert sorted(p.name for p in dst.iterdir()) == ["done.jsonl", "fine.png", "layout.json", "manifest.json"]
+    rgba = rng.integers(0, 255, (5, 7, 4)).astype(np.uint8)  # a JPEG dropped the alpha without a word
+    with pytest.raises(
+        ValueError, match=r"^an image of 4 channels cannot be written as \.jpg, which keeps 1 or 3"
+    ):
+        lw.imagefiles.encode_image(Path("a.jpg"), rgba)
+    with pytest.raises(ValueError, match=r"^OpenCV cannot encode a uint8 \(5, 7, 2\) image as \.png$"):
+        lw.imagefiles.encode_image(Path("a.png"), rgba[..., :2])  # OpenCV's own error: many lines
     for suffix, keeps in lw.imagefiles.KEEPS.items():  # what OpenCV's encoder of each suffix keeps
         for dtype in ("uint8", "uint16", "int16", "float32"):
             arr = rng.integers(0, 200, (5, 7)).astype(dtype)
@@ -701,6 +708,8 @@ def test_links_in_the_source_folder_are_followed_once_and_a_broken_one_fails_alo
     (src / "linked").symlink_to(elsewhere)  # a folder link: its images are the source's too
     (src / "again").symlink_to(elsewhere)  # the same folder by a second link: walked once
     (src / "real" / "loop").symlink_to(src)  # a link back up: not walked again
+    (src / "real" / "up").symlink_to(tmp_path)  # up to src's parent: not followed (its siblings)
+    _photo(tmp_path / "sibling" / "d.png", 4)
     (src / "real" / "gone.png").symlink_to(tmp_path / "nowhere.png")  # broken
     os.mkfifo(src / "real" / "pipe.png")  # a pipe: never opened (it would wait for a writer)
     res = preprocess_folder(src, tmp_path / "dst", lw.UniformLayout(), (10, 15), progress=False)
