@@ -237,6 +237,8 @@ def _png_classes(labels: np.ndarray, src: Path) -> np.ndarray:
     where an index is negative or above 65535."""
     if labels.dtype in (np.uint8, np.uint16):
         return labels
+    if not (np.issubdtype(labels.dtype, np.integer) or labels.dtype == np.bool_):
+        raise ValueError(f"label map {src} holds {labels.dtype} values; class indices are integers")
     lo, hi = (int(labels.min()), int(labels.max())) if labels.size else (0, 0)
     if lo < 0 or hi > np.iinfo(np.uint16).max:
         raise ValueError(f"label map {src} holds class indices {lo} .. {hi}; a PNG keeps 0 .. 65535")
@@ -706,14 +708,14 @@ def _dask_client(workers: int, address: str | None) -> Iterator[Any]:
     import dask
 
     cluster, scratch, stack = None, None, ExitStack()
-    if address is None:
-        scratch = tempfile.TemporaryDirectory(prefix="layoutwarp-dask-", ignore_cleanup_errors=True)
-        stack.enter_context(dask.config.set({"temporary-directory": scratch.name}))
-        cluster = LocalCluster(
-            n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None,
-            local_directory=scratch.name,
-        )  # fmt: skip
     try:
+        if address is None:
+            scratch = tempfile.TemporaryDirectory(prefix="layoutwarp-dask-", ignore_cleanup_errors=True)
+            stack.enter_context(dask.config.set({"temporary-directory": scratch.name}))
+            cluster = LocalCluster(
+                n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None,
+                local_directory=scratch.name,
+            )  # fmt: skip
         try:
             client = Client(address or cluster, timeout=_CONNECT_TIMEOUT_S)
         except (OSError, ValueError) as exc:  # no port, no such host, nobody listening

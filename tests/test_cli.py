@@ -780,22 +780,30 @@ def test_sigterm_stops_a_command_as_ctrl_c_does_and_its_compiles_with_it(tmp_pat
 
 def test_a_process_group_that_fails_ends_in_one_line(tmp_path, monkeypatch, capsys):
     # a rank gone (killed, failed): the others' collectives raised the backend's RuntimeError,
-    # printed as a 30-line traceback per rank; outside a process group a RuntimeError is a bug
-    # of ours and keeps its traceback
-    import layoutwarp.cli as cli
+    # printed as a 30-line traceback per rank; any other RuntimeError (out of memory, a bug of
+    # ours) keeps its traceback, in a process group or not
+    import torch.distributed as dist
+
+    errors = []
 
     def fail(*args, **kwargs):
-        raise RuntimeError("[../gloo/transport/tcp/pair.cc:534] Connection closed by peer\nmore lines")
+        raise errors[-1]
 
     monkeypatch.setattr("layoutwarp.experiments.demo.run_demo", fail)
     argv = ["demo", "--size", "8x6", "--out", str(tmp_path / "out")]
-    monkeypatch.setattr(cli, "_in_a_process_group", lambda: True)
-    assert main(argv) == 1
-    err = capsys.readouterr().err.strip().splitlines()
-    assert err == [
-        "layoutwarp demo: error: the process group failed (did another rank stop?): "
-        "[../gloo/transport/tcp/pair.cc:534] Connection closed by peer"
-    ]
-    monkeypatch.setattr(cli, "_in_a_process_group", lambda: False)
-    with pytest.raises(RuntimeError, match="Connection closed by peer"):
-        main(argv)
+    gone = RuntimeError("[../gloo/transport/tcp/pair.cc:534] Connection closed by peer\nmore lines")
+    for joined in (True, False):
+        monkeypatch.setattr(dist, "is_initialized", lambda joined=joined: joined)
+        errors.append(gone)
+        if joined:
+            assert main(argv) == 1
+            assert capsys.readouterr().err.strip().splitlines() == [
+                "layoutwarp demo: error: the process group failed (did another rank stop?): "
+                "[../gloo/transport/tcp/pair.cc:534] Connection closed by peer"
+            ]
+        else:
+            with pytest.raises(RuntimeError, match="Connection closed by peer"):
+                main(argv)
+        errors.append(RuntimeError("CUDA out of memory. Tried to allocate 2.00 GiB"))
+        with pytest.raises(RuntimeError, match="CUDA out of memory"):
+            main(argv)

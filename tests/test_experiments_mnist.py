@@ -241,11 +241,12 @@ def test_ranks_that_would_resume_at_different_epochs_are_refused_in_one_line(tmp
         import torch.distributed as dist
         from layoutwarp.experiments.training import _check_same_start
         dist.init_process_group("gloo")
-        _check_same_start(3)  # alike: nothing said
-        try:
-            _check_same_start(dist.get_rank())
-        except ValueError as exc:
-            print(exc)
+        _check_same_start(3, "curv_4x4_seed0")  # alike: nothing said
+        for first, run in ((dist.get_rank(), "a"), (0, f"run{dist.get_rank()}")):
+            try:
+                _check_same_start(first, run)
+            except ValueError as exc:
+                print(exc)
         dist.destroy_process_group()
     """)
     )
@@ -254,3 +255,5 @@ def test_ranks_that_would_resume_at_different_epochs_are_refused_in_one_line(tmp
     res = subprocess.run([*torchrun, str(script)], capture_output=True, text=True, env=env, timeout=300)
     assert res.returncode == 0, res.stderr[-3000:]
     assert res.stdout.count("the ranks would resume at epochs 0 to 1: every rank must see") == 2  # both
+    # or train different runs: a record one rank found (it skipped the run) and another did not
+    assert res.stdout.count("the ranks would train different runs (run") == 2

@@ -8,6 +8,7 @@ import subprocess
 import sys
 import textwrap
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -487,8 +488,12 @@ def test_compiled_kernels_of_other_sources_are_deleted(layout, tmp_path, monkeyp
 
     if layout == "pycache":  # beside the sources: kernels/__pycache__, kernels/mesh/__pycache__
         folder, mesh = tmp_path / "kernels" / "__pycache__", tmp_path / "kernels" / "mesh" / "__pycache__"
-    else:  # mirrored under NUMBA_CACHE_DIR: the mesh's beneath the kernels'
-        folder, mesh = tmp_path / "cache" / "kernels", tmp_path / "cache" / "kernels" / "mesh"
+    else:  # under NUMBA_CACHE_DIR: flat, each source folder's as numba names it (its name, a hash)
+        from numba.core.caching import _CacheLocator
+
+        here = Path(base.__file__).parent
+        folder = tmp_path / "cache" / _CacheLocator.get_suitable_cache_subpath(str(here / "base.py"))
+        mesh = tmp_path / "cache" / _CacheLocator.get_suitable_cache_subpath(str(here / "mesh" / "build.py"))
     sources = tmp_path / "src.py"
     sources.write_text("x = 1\n")
     monkeypatch.setattr(base, "kernel_sources", lambda: [str(sources)])

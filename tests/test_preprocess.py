@@ -754,6 +754,10 @@ def test_label_maps_palette_changed_or_not_fitting_their_image(tmp_path):
         cv2.imwrite(str(wide / "lab" / f"{dtype}.tif"), classes.astype(dtype))
     res = preprocess_folder(wimg, wide / "out", layout, size, labels=wide / "lab", progress=False)
     assert res.failed == [] and res.processed == 2
+    from layoutwarp.preprocess import _png_classes
+
+    with pytest.raises(ValueError, match="holds float32 values; class indices are integers"):
+        _png_classes(np.array([[0.0, 1.7]], np.float32), Path("x.tif"))  # not truncated to 0, 1
     for name in ("int16.png", "int32.png"):
         got = cv2.imread(str(wide / "out" / "labels" / name), cv2.IMREAD_UNCHANGED)
         assert got.dtype == np.uint8 and (got == want).all()

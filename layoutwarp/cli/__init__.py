@@ -131,7 +131,7 @@ def main(argv: Sequence[str] | None = None, *, own_process: bool = False) -> int
         print(f"{prog}: error: {exc}", file=sys.stderr)
         status = 1
     except RuntimeError as exc:
-        if not _in_a_process_group():
+        if not _a_process_group_failure(exc):
             raise
         # a rank of a torchrun gone (killed, failed): the others' collectives fail with the
         # backend's traceback; one line instead, torchrun's own report follows
@@ -150,11 +150,15 @@ def main(argv: Sequence[str] | None = None, *, own_process: bool = False) -> int
     return status
 
 
-def _in_a_process_group() -> bool:
-    """Whether this process joined a ``torchrun`` process group (torch.distributed loaded and
-    initialised; nothing imported to ask)."""
+def _a_process_group_failure(exc: RuntimeError) -> bool:
+    """Whether ``exc`` is the failure of the ``torchrun`` process group this process joined
+    (torch.distributed's own error, or its backend's): nothing imported to ask. Any other
+    ``RuntimeError`` (out of memory, a bug of ours) keeps its traceback."""
     dist = sys.modules.get("torch.distributed")
-    return dist is not None and dist.is_available() and dist.is_initialized()
+    if dist is None or not dist.is_available() or not dist.is_initialized():
+        return False
+    backend = ("gloo", "NCCL", "Connection closed")  # its backends' own errors come as RuntimeError
+    return isinstance(exc, dist.DistError) or any(word in str(exc) for word in backend)
 
 
 def _leaf_parser(parser: argparse.ArgumentParser, args: argparse.Namespace) -> argparse.ArgumentParser:

@@ -54,8 +54,8 @@ def study_runs(plan: StudyPlan, seeds: int) -> list[tuple[str, tuple[int, int], 
     the learned layouts), so a study stopped part way has every configuration's first seeds
     rather than all of some configurations' and none of others'. A configuration is planned once
     (``uniform`` among the families is the uniform curve's own)."""
-    uniform = [("uniform", s) for s in plan.uniform_sizes]
-    learned = [(f, s) for s in plan.learned_sizes for f in plan.families]
+    uniform = [("uniform", tuple(s)) for s in plan.uniform_sizes]
+    learned = [(f, tuple(s)) for s in plan.learned_sizes for f in plan.families]
     return [(family, size, k) for k in range(seeds) for family, size in dict.fromkeys(uniform + learned)]
 
 

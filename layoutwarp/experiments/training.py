@@ -45,14 +45,23 @@ def init_distributed() -> tuple[int, int]:
     return world()
 
 
-def _check_same_start(first: int) -> None:
-    """Refuse, in one line on every rank, a distributed run whose ranks would begin at different
-    epochs: a checkpoint one rank found and another did not (``--out`` not a folder every rank
-    sees). They would pair their collectives across epochs, and fail a run later, if at all."""
+def _check_same_start(first: int, run: str = "") -> None:
+    """Refuse, in one line on every rank, a distributed run whose ranks would begin another run
+    (``run``: its name) or at different epochs: a record or checkpoint one rank found and another
+    did not (``--out`` not a folder every rank sees). They would pair their collectives across
+    runs or epochs, and fail later, if at all."""
+    import zlib
+
     import torch.distributed as dist
 
-    bounds = torch.tensor([first, -first], dtype=torch.int64)
+    name = zlib.crc32(run.encode())
+    bounds = torch.tensor([first, -first, name, -name], dtype=torch.int64)
     dist.all_reduce(bounds, op=dist.ReduceOp.MAX)
+    if int(bounds[2]) != -int(bounds[3]):
+        raise ValueError(
+            f"the ranks would train different runs ({run} on this one): every rank must see the "
+            "runs already done (--out a folder every rank sees, e.g. on a shared file system)"
+        )
     if int(bounds[0]) != -int(bounds[1]):
         raise ValueError(
             f"the ranks would resume at epochs {-int(bounds[1])} to {int(bounds[0])}: every rank "
@@ -129,7 +138,7 @@ def fit(
     bounds = list(zip(starts, [*starts[1:], n], strict=True))
     rank, size = world()
     if size > 1:
-        _check_same_start(first)
+        _check_same_start(first, desc)
     if size > 1 and device.type == "cuda":  # batch statistics over the global batch (in place:
         nn.SyncBatchNorm.convert_sync_batchnorm(model)  # the parameters, and so `opt`, stay)
     bar = tqdm(

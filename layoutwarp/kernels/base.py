@@ -102,18 +102,24 @@ def renew_stale_caches(folder: str | None) -> bool:
     if kept == now:
         return False
     mesh = os.path.join(os.path.dirname(folder), "mesh", "__pycache__")
-    if os.path.basename(folder) != "__pycache__":  # under NUMBA_CACHE_DIR: mesh/ beneath it
-        mesh = os.path.join(folder, "mesh")
+    if os.path.basename(folder) != "__pycache__":  # under NUMBA_CACHE_DIR (or numba's user-wide
+        from numba.core.caching import _CacheLocator  # folder): flat, a folder a source folder
+
+        here = os.path.dirname(os.path.abspath(__file__))
+        sub = _CacheLocator.get_suitable_cache_subpath(os.path.join(here, "mesh", "build.py"))
+        mesh = os.path.join(os.path.dirname(folder), sub)
     stale = [f for d in (folder, mesh) for ext in ("*.nbi", "*.nbc") for f in glob.glob(os.path.join(d, ext))]
     for path in stale:
         try:
             os.remove(path)
         except OSError:
             pass
-    try:
+    try:  # whole or not at all: a process reading it meanwhile must not find it empty
         os.makedirs(folder, exist_ok=True)
-        with open(stamp, "w") as f:
+        part = f"{stamp}.{os.getpid()}"
+        with open(part, "w") as f:
             f.write(now + "\n")
+        os.replace(part, stamp)
     except OSError:
         pass
     return bool(stale)
