@@ -552,29 +552,47 @@ def test_ctrl_c_during_the_shares_raises_and_never_returns_a_share_left_unrun():
         # child inherits an ignored or blocked SIGINT: twice a test run saw no interrupt at all)
         signal.signal(signal.SIGINT, signal.default_int_handler)
         signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
-        done = threading.Event()
+        import faulthandler, sys
+        faulthandler.dump_traceback_later(90, exit=True)  # a hang: every thread's stack, then out
+        go, done = threading.Event(), threading.Event()
 
         def interrupt():
+            go.wait()  # not before the calls: a SIGINT in Thread.start ended the child (load)
             while not done.is_set():
                 time.sleep(random.uniform(0.0005, 0.005))
                 os.kill(os.getpid(), signal.SIGINT)
 
-        threading.Thread(target=interrupt, daemon=True).start()
+        interrupter = threading.Thread(target=interrupt, daemon=True)
+        interrupter.start()
         wrong = raised = calls = 0
-        end = time.time() + 2
-        while time.time() < end:
+        start = time.time()
+        go.set()
+        while True:
             try:
-                calls += 1
-                wrong += base.run_shares(body, 2, 20000) != [1, 2]
+                try:
+                    now = time.time() - start  # a second on each team: the Python threads' pool
+                    if now >= 2:  # holds the signals while its locks are held (one left held hung
+                        break  # the process at its exit)
+                    base.set_team("python" if now >= 1 else None)
+                    calls += 1
+                    wrong += base.run_shares(body, 2, 20000) != [1, 2]
+                except KeyboardInterrupt:
+                    raised += 1
+            except KeyboardInterrupt:  # in the loop's own lines, between calls (a loaded machine)
+                pass
+        while interrupter.is_alive():  # no more signals once it is gone
+            try:
+                done.set()
+                interrupter.join()
             except KeyboardInterrupt:
-                raised += 1
-        done.set()
+                pass
         for _ in range(3):
             try:
                 time.sleep(0.05)
             except KeyboardInterrupt:
                 pass
         print(calls, raised, wrong)
+        sys.stdout.flush()
     """)
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stderr[-3000:]

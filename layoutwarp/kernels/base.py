@@ -16,6 +16,7 @@ import glob
 import itertools
 import math
 import os
+import signal
 import sys
 import threading
 import time
@@ -345,11 +346,27 @@ def run_shares(body: Callable[..., Any], threads: int, *args: Any) -> list[Any]:
     team = _team()
     if team is not None:
         return team(body, threads, args)
-    with _POOL_LOCK:  # a thread that grows the pool meanwhile would shut this one down under us
-        pool = _pool(threads - 1)
-        futures: list[Future] = [pool.submit(body, t, threads, *args) for t in range(1, threads)]
-    first = body(0, threads, *args)
-    return [first, *(f.result() for f in futures)]
+    # a Ctrl-C (or SIGTERM) is taken once the shares are done: raised inside the pool's locks, it
+    # left one held, and a worker waited on it for ever (the process hung at its exit)
+    held = _hold_stops()
+    try:
+        with _POOL_LOCK:  # a thread that grows the pool meanwhile would shut this one down under us
+            pool = _pool(threads - 1)
+            futures: list[Future] = [pool.submit(body, t, threads, *args) for t in range(1, threads)]
+        first = body(0, threads, *args)
+        return [first, *(f.result() for f in futures)]
+    finally:
+        if held is not None:
+            signal.pthread_sigmask(signal.SIG_SETMASK, held)
+
+
+def _hold_stops() -> set[int] | None:
+    """On the main thread, where Python takes signals: SIGINT and SIGTERM held back (delivered
+    when the mask before, which this returns, is set again); elsewhere, or where the system has no
+    signal masks, nothing (``None``)."""
+    if not hasattr(signal, "pthread_sigmask") or threading.current_thread() is not threading.main_thread():
+        return None
+    return signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
 
 
 def run_chunks(body: Callable[..., Any], threads: int, chunks: int, *args: Any) -> list[Any]:
