@@ -807,3 +807,25 @@ def test_a_process_group_that_fails_ends_in_one_line(tmp_path, monkeypatch, caps
         errors.append(RuntimeError("CUDA out of memory. Tried to allocate 2.00 GiB"))
         with pytest.raises(RuntimeError, match="CUDA out of memory"):
             main(argv)
+
+
+@pytest.mark.parametrize(
+    ("task", "model", "line"),
+    [
+        ("faces", "faces/models/density_8x8_seed0.pt",
+         "argument --split: a faces folder has no splits (every face in labels.csv is scored), got split"),
+        ("camvid", "camvid/models/uniform_48x36_seed1.pt", "argument --split: no CamVid images in "),
+    ],
+)  # fmt: skip
+def test_evaluate_names_a_bad_split_once_and_as_the_split(task, model, line, capsys):
+    # faces said "argument --split: --split: ..."; camvid blamed an unknown split on --data
+    argv = [
+        "evaluate",
+        task,
+        "--model",
+        str(ROOT / "examples" / "study" / model),
+        "--data",
+        str(SAMPLES / task),
+    ]
+    assert main([*argv, "--split", "nope"]) == 2
+    assert capsys.readouterr().err.startswith(f"layoutwarp evaluate: error: {line}")

@@ -151,7 +151,7 @@ def load_camvid(root: str | Path, split: str, limit: int | None = None) -> tuple
     root = Path(root)
     files = sorted((root / split).glob("*.png"))[:limit]
     if not files:
-        raise FileNotFoundError(f"no CamVid images in {root / split}")
+        raise FileNotFoundError(f"no CamVid images in {root / split} (split {split!r})")
     imgs = np.stack([read_rgb(f) for f in files])
     labels = []
     for f in files:

@@ -124,7 +124,7 @@ class FacesTask(Task):
     def load_split(self, folder: Path, split: str | None) -> Any:
         if split is not None:
             raise ValueError(
-                f"--split: a faces folder has no splits (every face in labels.csv is scored), got {split!r}"
+                f"a faces folder has no splits (every face in labels.csv is scored), got split {split!r}"
             )
         return load_faces(folder)
 
