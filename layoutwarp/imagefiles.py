@@ -130,7 +130,11 @@ def read_image(path: Path, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray:
 
     Read as bytes first, so paths OpenCV's own reader cannot open (non-ASCII names) work too.
     """
-    data = _file_bytes(path)
+    return _decode(_file_bytes(path), flags)
+
+
+def _decode(data: np.ndarray, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray:
+    """A file's bytes ``data`` decoded as [`read_image`][] decodes them."""
     if flags == cv2.IMREAD_UNCHANGED and data[:2].tobytes() == b"\xff\xd8":  # no alpha in a JPEG
         flags = cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR  # UNCHANGED ignores the orientation
     with _opencv_quiet():
@@ -153,7 +157,7 @@ def read_label(path: Path) -> np.ndarray:
 
         with Image.open(io.BytesIO(data.tobytes())) as im:
             return np.array(im)  # writable, as OpenCV gives them
-    return read_image(path)
+    return _decode(data)
 
 
 def _file_bytes(path: Path) -> np.ndarray:

@@ -621,12 +621,10 @@ def _share_cores() -> None:
 
 
 def cache_folder() -> str | None:
-    """Where numba keeps this installation's compiled kernels (``None`` without numba): the
-    kernels package's ``__pycache__`` (the mesh's in ``mesh/__pycache__`` beneath it)."""
-    if not kernels.available():
-        return None
-    probe = kernels.exact.segment_moments_from_python
-    return getattr(getattr(probe, "_cache", None), "_cache_path", None)
+    """Where numba keeps this installation's compiled kernels (``None`` without numba):
+    ``kernels.cache_folder()``'s answer: the kernels package's ``__pycache__`` (the mesh's in
+    ``mesh/__pycache__`` beneath it), or their places under ``NUMBA_CACHE_DIR``."""
+    return kernels.cache_folder()
 
 
 def _end_with_parent() -> None:

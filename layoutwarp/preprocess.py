@@ -707,14 +707,16 @@ def _dask_client(workers: int, address: str | None) -> Iterator[Any]:
         ) from None
     import dask
 
-    cluster, scratch, stack = None, None, ExitStack()
+    cluster, stack = None, ExitStack()
     try:
         if address is None:
-            scratch = tempfile.TemporaryDirectory(prefix="layoutwarp-dask-", ignore_cleanup_errors=True)
-            stack.enter_context(dask.config.set({"temporary-directory": scratch.name}))
+            scratch = stack.enter_context(
+                tempfile.TemporaryDirectory(prefix="layoutwarp-dask-", ignore_cleanup_errors=True)
+            )
+            stack.enter_context(dask.config.set({"temporary-directory": scratch}))
             cluster = LocalCluster(
                 n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None,
-                local_directory=scratch.name,
+                local_directory=scratch,
             )  # fmt: skip
         try:
             client = Client(address or cluster, timeout=_CONNECT_TIMEOUT_S)
@@ -727,9 +729,7 @@ def _dask_client(workers: int, address: str | None) -> Iterator[Any]:
     finally:
         if cluster is not None:
             cluster.close()
-        stack.close()
-        if scratch is not None:
-            scratch.cleanup()
+        stack.close()  # Dask's settings as they were, then its scratch folder removed
 
 
 def _run_on_dask(client: Any, spec: str, tasks: list[dict], record: Callable[[dict], None]) -> None:

@@ -139,9 +139,7 @@ def main(argv: Sequence[str] | None = None, *, own_process: bool = False) -> int
         print(f"{prog}: error: the process group failed (did another rank stop?): {first}", file=sys.stderr)
         status = 1
     except KeyboardInterrupt as exc:  # what was finished is kept: a command run again goes on from there
-        ended = isinstance(exc, Terminated)
-        print(f"{prog}: {'terminated' if ended else 'interrupted'}", file=sys.stderr)
-        status = 143 if ended else 130  # as a shell reports a command ended by SIGTERM or SIGINT
+        status = _stopped(prog, exc)
     finally:
         if status != 0:  # a failed command leaves no empty output folder of its own behind
             for folder in reversed(NEW_FOLDERS):
@@ -186,6 +184,14 @@ def _terminate(signum: int, frame: object) -> None:
     raise Terminated
 
 
+def _stopped(prog: str, exc: KeyboardInterrupt) -> int:
+    """Say that ``prog`` was stopped (a Ctrl-C, or SIGTERM as [`Terminated`][]), in one line, and
+    return the status a shell reports for the signal: 130 for SIGINT, 143 for SIGTERM."""
+    ended = isinstance(exc, Terminated)
+    print(f"{prog}: {'terminated' if ended else 'interrupted'}", file=sys.stderr)
+    return 143 if ended else 130
+
+
 def run() -> None:
     """The ``layoutwarp`` command (and ``python -m layoutwarp``): [`main`][] in a process of
     its own. Output cut short by its reader (``| head``) ends the command quietly; SIGTERM
@@ -198,9 +204,7 @@ def run() -> None:
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit
         status = 141  # as a shell reports a command ended by SIGPIPE
     except KeyboardInterrupt as exc:  # before the command's work began (its parser, its imports)
-        ended = isinstance(exc, Terminated)
-        print(f"layoutwarp: {'terminated' if ended else 'interrupted'}", file=sys.stderr)
-        status = 143 if ended else 130
+        status = _stopped("layoutwarp", exc)
     sys.exit(status)
 
 

@@ -42,10 +42,18 @@ from .prefix import BLOCK, prefix_tables
 from .runs import measured_runs_apply, runs_apply
 from .weights import build_runs
 
+
+def cache_folder() -> str | None:
+    """Where numba keeps this installation's compiled kernels (``None`` without numba): this
+    package's ``__pycache__`` (the mesh kernels' in ``mesh/__pycache__`` beneath it), or its place
+    under ``NUMBA_CACHE_DIR`` (the mesh kernels' beside it)."""
+    return getattr(getattr(segment_moments, "_cache", None), "_cache_path", None)
+
+
 if available():  # before any kernel loads its cache (at its first call)
     from .base import renew_stale_caches
 
-    renew_stale_caches(getattr(getattr(segment_moments, "_cache", None), "_cache_path", None))
+    renew_stale_caches(cache_folder())
 
 __all__ = [
     "BLOCK",
@@ -55,6 +63,7 @@ __all__ = [
     "available",
     "band_rows",
     "build_runs",
+    "cache_folder",
     "cuda_available",
     "cuda_checked",
     "cuda_launch",
